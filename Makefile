@@ -1,0 +1,30 @@
+# Two commands for a fresh machine with python3 and make:  `make demo`  and  `make test`.
+PYTHON ?= python3
+VENV   ?= .venv
+PIP    := $(VENV)/bin/pip
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+# Keeps pip from resolving torch to a CUDA build: every install goes through the constraints.
+PIPC   := $(PIP) install --disable-pip-version-check -q -c constraints.txt
+
+.PHONY: demo test venv bench clean lint-docker
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml constraints.txt
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PIPC) --upgrade pip setuptools wheel
+	$(PIPC) torch==2.13.0
+	$(PIPC) -e '.[dev]'
+	touch $@
+
+demo: $(STAMP)
+	$(VENV)/bin/lightfield demo
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(VENV)/bin/lightfield bench --quick -o bench/results
+
+clean:
+	rm -rf $(VENV) lightfield-data demo-output

@@ -1,0 +1,1 @@
+"""The `lightfield` command line: a thin adapter over core, service and worker."""

@@ -1,0 +1,51 @@
+"""`lightfield` console script. Each subcommand lives in its own module under cli/ and
+exposes `HELP`, `add_arguments(parser)` and `run(args) -> int`. Command modules keep heavy
+imports (torch, fastapi, celery) inside `run` so `lightfield --help` stays fast."""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+COMMANDS = [
+    "demo",
+    "simulate",
+    "estimate",
+    "envmap",
+    "preview",
+    "serve",
+    "worker",
+    "bench",
+    "train-prior",
+    "render-previews",
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="lightfield", description="Spatiotemporal indoor HDR lighting estimation.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in COMMANDS:
+        module_name = "cli." + name.replace("-", "_")
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name == module_name:
+                continue  # command not built yet
+            raise
+        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        module.add_arguments(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args._run(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

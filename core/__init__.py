@@ -1,0 +1,1 @@
+"""lightfield core: pure torch/numpy library (no web or queue imports)."""

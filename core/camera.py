@@ -1,0 +1,134 @@
+"""Pinhole camera: intrinsics, camera-to-world poses, projection and unprojection.
+
+Pixel and frame conventions come from core.conventions (OpenGL camera, planar depth).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from core.conventions import DEFAULT_HFOV_DEG, camera_point_to_pixel, pixel_to_camera_ray
+
+
+class CameraError(ValueError):
+    """Invalid camera parameters or a point that cannot be projected (e.g. behind the camera)."""
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self):
+        for name in ("fx", "fy", "cx", "cy"):
+            v = getattr(self, name)
+            if not math.isfinite(v):
+                raise CameraError(f"intrinsics.{name} must be finite, got {v}")
+        if self.fx <= 0 or self.fy <= 0:
+            raise CameraError(f"intrinsics focal lengths must be > 0, got fx={self.fx}, fy={self.fy}")
+        if self.width <= 0 or self.height <= 0:
+            raise CameraError(f"image size must be positive, got {self.width}x{self.height}")
+
+    @classmethod
+    def from_hfov(cls, width: int, height: int, hfov_deg: float = DEFAULT_HFOV_DEG) -> "Intrinsics":
+        if not (0.0 < hfov_deg < 180.0):
+            raise CameraError(f"hfov_deg must be in (0, 180), got {hfov_deg}")
+        f = 0.5 * width / math.tan(math.radians(hfov_deg) / 2.0)
+        return cls(f, f, width / 2.0, height / 2.0, width, height)
+
+    @classmethod
+    def from_matrix(cls, K, width: int, height: int) -> "Intrinsics":
+        K = torch.as_tensor(K, dtype=torch.float64)
+        if K.shape != (3, 3):
+            raise CameraError(f"K must be 3x3, got {tuple(K.shape)}")
+        return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), width, height)
+
+    def matrix(self, dtype=torch.float32) -> torch.Tensor:
+        return torch.tensor([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=dtype)
+
+    def scaled(self, width: int, height: int) -> "Intrinsics":
+        """Intrinsics for the same camera resampled to width x height."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height)
+
+    @property
+    def hfov_deg(self) -> float:
+        return math.degrees(2.0 * math.atan(0.5 * self.width / self.fx))
+
+    def as_dict(self) -> dict:
+        return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "width": self.width, "height": self.height}
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Intrinsics plus a camera-to-world pose (4x4, float64 tensor)."""
+
+    intrinsics: Intrinsics
+    c2w: torch.Tensor
+
+    def __post_init__(self):
+        c2w = torch.as_tensor(self.c2w, dtype=torch.float64)
+        if c2w.shape != (4, 4):
+            raise CameraError(f"pose must be 4x4, got {tuple(c2w.shape)}")
+        if not torch.isfinite(c2w).all():
+            raise CameraError("pose contains non-finite values")
+        object.__setattr__(self, "c2w", c2w)
+
+    @property
+    def position(self) -> torch.Tensor:
+        return self.c2w[:3, 3]
+
+    @property
+    def w2c(self) -> torch.Tensor:
+        return torch.linalg.inv(self.c2w)
+
+    def pixel_rays(self, dtype=torch.float32, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """World-space ray origins [3] and unit directions [H, W, 3] through every pixel centre."""
+        k = self.intrinsics
+        v, u = torch.meshgrid(
+            torch.arange(k.height, dtype=torch.float64) + 0.5,
+            torch.arange(k.width, dtype=torch.float64) + 0.5,
+            indexing="ij",
+        )
+        d_cam = pixel_to_camera_ray(u, v, k.fx, k.fy, k.cx, k.cy)
+        d = d_cam @ self.c2w[:3, :3].T
+        d = d / d.norm(dim=-1, keepdim=True)
+        return self.position.to(dtype=dtype, device=device), d.to(dtype=dtype, device=device)
+
+    def unproject(self, depth: torch.Tensor) -> torch.Tensor:
+        """Planar depth [H, W] -> world points [H, W, 3] (non-finite where depth is invalid)."""
+        k = self.intrinsics
+        if tuple(depth.shape) != (k.height, k.width):
+            raise CameraError(f"depth shape {tuple(depth.shape)} does not match image {k.height}x{k.width}")
+        v, u = torch.meshgrid(
+            torch.arange(k.height, dtype=torch.float64) + 0.5,
+            torch.arange(k.width, dtype=torch.float64) + 0.5,
+            indexing="ij",
+        )
+        ray = pixel_to_camera_ray(u, v, k.fx, k.fy, k.cx, k.cy)  # z = -1
+        d64 = depth.to(torch.float64)
+        ok = torch.isfinite(d64) & (d64 > 0)
+        p_cam = ray * torch.where(ok, d64, torch.full_like(d64, float("nan")))[..., None]
+        p = p_cam @ self.c2w[:3, :3].T + self.c2w[:3, 3]
+        return p.to(depth.dtype if depth.is_floating_point() else torch.float32)
+
+    def project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """World points [..., 3] -> (u, v, planar depth); depth <= 0 means behind the camera."""
+        w2c = self.w2c.to(points.dtype)
+        p_cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+        k = self.intrinsics
+        return camera_point_to_pixel(p_cam, k.fx, k.fy, k.cx, k.cy)
+
+    def world_to_camera(self, points: torch.Tensor) -> torch.Tensor:
+        w2c = self.w2c.to(points.dtype)
+        return points @ w2c[:3, :3].T + w2c[:3, 3]
+
+
+def identity_pose() -> torch.Tensor:
+    return torch.eye(4, dtype=torch.float64)
