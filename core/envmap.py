@@ -1,0 +1,242 @@
+"""Equirectangular environment maps: solid angles, sampling, resizing, rotation, integrals.
+
+An env map is a tensor [H, 2H, 3] (float32 by default) in the layout of core.conventions:
+pixel centre (i, j) has theta = pi (i + 1/2) / H from +y and phi = 2 pi (j + 1/2) / W - pi,
+and holds the radiance arriving FROM direction d. Every function here is device-agnostic
+and differentiable with respect to the map (and, for `sample_envmap`, the direction).
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import torch
+
+from core.conventions import direction_to_equirect_pixel, equirect_directions, equirect_width
+
+
+class EnvmapError(ValueError):
+    """An env map or an argument to an env map function is malformed."""
+
+
+def check_envmap(envmap: torch.Tensor, name: str = "envmap") -> int:
+    """Validate shape [H, 2H, 3] and floating dtype; return H."""
+    if not isinstance(envmap, torch.Tensor):
+        raise EnvmapError(f"{name} must be a torch.Tensor, got {type(envmap).__name__}")
+    if envmap.ndim != 3 or envmap.shape[-1] != 3 or envmap.shape[1] != 2 * envmap.shape[0] or envmap.shape[0] < 1:
+        raise EnvmapError(f"{name} must have shape [H, 2H, 3] with H >= 1, got {tuple(envmap.shape)}")
+    if not envmap.is_floating_point():
+        raise EnvmapError(f"{name} must be floating point, got {envmap.dtype}")
+    return int(envmap.shape[0])
+
+
+def _check_height(height: int, name: str = "height") -> int:
+    if isinstance(height, bool) or int(height) != height or int(height) < 1:
+        raise EnvmapError(f"{name} must be a positive integer, got {height!r}")
+    return int(height)
+
+
+# ---------------------------------------------------------------------------------------
+# Solid angles and integrals
+# ---------------------------------------------------------------------------------------
+def _row_cos_edges(height: int) -> torch.Tensor:
+    """cos(theta) at the H + 1 row edges, float64 (exact at the poles)."""
+    edges = torch.arange(height + 1, dtype=torch.float64) * (math.pi / height)
+    c = torch.cos(edges)
+    c[0], c[-1] = 1.0, -1.0
+    return c
+
+
+def solid_angles(height: int, device=None, dtype=torch.float32) -> torch.Tensor:
+    """Exact solid angle [H, 2H] of every pixel: (2 pi / W)(cos theta_top - cos theta_bottom).
+
+    Computed in float64, so the sum is 4 pi to float64 precision before the cast.
+    """
+    height = _check_height(height)
+    width = equirect_width(height)
+    c = _row_cos_edges(height)
+    per_row = (2.0 * math.pi / width) * (c[:-1] - c[1:])
+    return per_row[:, None].expand(height, width).to(device=device, dtype=dtype).contiguous()
+
+
+def integrate(envmap: torch.Tensor) -> torch.Tensor:
+    """Integral of radiance over the sphere, [3] (float64 accumulation, returned in envmap dtype)."""
+    h = check_envmap(envmap)
+    w = solid_angles(h, device=envmap.device, dtype=torch.float64)
+    return (envmap.to(torch.float64) * w[..., None]).sum(dim=(0, 1)).to(envmap.dtype)
+
+
+def irradiance(envmap: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """Irradiance E(n) = integral of L(d) max(0, n.d) dd for unit normals [..., 3] -> [..., 3].
+
+    A brute-force quadrature over the pixel centres (exact solid angles); use
+    core.sh.sh_irradiance for the band-limited fast version.
+    """
+    h = check_envmap(envmap)
+    dirs = equirect_directions(h, device=envmap.device, dtype=torch.float64).reshape(-1, 3)
+    weighted = (envmap.to(torch.float64) * solid_angles(h, device=envmap.device, dtype=torch.float64)[..., None])
+    n = normal.to(torch.float64)
+    cos = (n.reshape(-1, 3) @ dirs.T).clamp_min(0.0)  # [N, HW]
+    e = cos @ weighted.reshape(-1, 3)
+    return e.reshape(*normal.shape[:-1], 3).to(envmap.dtype)
+
+
+# ---------------------------------------------------------------------------------------
+# Construction
+# ---------------------------------------------------------------------------------------
+def envmap_from_function(
+    fn: Callable[[torch.Tensor], torch.Tensor], height: int, device=None, dtype=torch.float32
+) -> torch.Tensor:
+    """Evaluate `fn(d [H, 2H, 3]) -> [H, 2H, 3] or [H, 2H]` at the pixel centres.
+
+    A scalar result is broadcast to the three channels (grey radiance).
+    """
+    height = _check_height(height)
+    d = equirect_directions(height, device=device, dtype=dtype)
+    out = torch.as_tensor(fn(d), device=device)
+    if out.shape == d.shape[:-1]:
+        out = out[..., None].expand(*d.shape[:-1], 3)
+    if out.shape != d.shape:
+        raise EnvmapError(f"fn must return shape {tuple(d.shape)} or {tuple(d.shape[:-1])}, got {tuple(out.shape)}")
+    return out.to(dtype).contiguous()
+
+
+def mirror_envmap(envmap: torch.Tensor, axis: str) -> torch.Tensor:
+    """Env map seen through a mirror of one world axis: result(d) = envmap(d with `axis` negated).
+
+    Exact column permutations (no resampling). Used to convert to left-handed or
+    x-flipped consumers (Unity: axis="z"; three.js CubeTexture: axis="x"; see docs/conventions.md).
+    x -> phi becomes -phi; z -> phi becomes pi - phi; y -> rows flip.
+    """
+    check_envmap(envmap)
+    w = envmap.shape[1]
+    if axis == "y":
+        return envmap.flip(0)
+    if axis == "x":
+        # column j has phi_j = 2 pi (j + 1/2)/W - pi; -phi_j is column W - 1 - j
+        return envmap.flip(1)
+    if axis == "z":
+        # pi - phi_j is column (W/2 - 1 - j) mod W: flip then roll by half a turn
+        return torch.roll(envmap.flip(1), shifts=w // 2, dims=1)
+    raise EnvmapError(f"axis must be 'x', 'y' or 'z', got {axis!r}")
+
+
+# ---------------------------------------------------------------------------------------
+# Sampling
+# ---------------------------------------------------------------------------------------
+def sample_envmap(envmap: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """Bilinear radiance lookup for directions d [..., 3] (need not be unit) -> [..., 3].
+
+    Columns wrap around the phi = +-pi seam. Rows are interpolated between pixel-centre
+    rows; between the first (last) row centre and the pole, the value blends linearly
+    towards the mean of that row, which is the only pole value that does not depend on
+    phi. So sampling is continuous everywhere, including exactly at the poles.
+    A zero direction is treated as +y (finite). Non-finite directions give NaN.
+    """
+    h = check_envmap(envmap)
+    w = envmap.shape[1]
+    if d.shape[-1] != 3:
+        raise EnvmapError(f"directions must have shape [..., 3], got {tuple(d.shape)}")
+    finite = torch.isfinite(d).all(dim=-1)
+    d_safe = torch.where(finite[..., None], d, torch.zeros_like(d))
+    row, col = direction_to_equirect_pixel(d_safe.to(torch.promote_types(d.dtype, torch.float32)), h)
+
+    # Padded rows: index 0 = north pole (mean of row 0), 1..H = map rows, H + 1 = south pole.
+    top = envmap[:1].mean(dim=1, keepdim=True).expand(1, w, 3)
+    bottom = envmap[-1:].mean(dim=1, keepdim=True).expand(1, w, 3)
+    padded = torch.cat((top, envmap, bottom), dim=0).reshape(-1, 3)
+
+    row = row.clamp(-0.5, h - 0.5)
+    in_top = row < 0.0
+    in_bottom = row > h - 1
+    r0 = torch.floor(row).clamp(0, max(h - 2, 0))
+    t_row = row - r0
+    lo = r0 + 1  # padded index of the upper neighbour
+    # polar caps: between the pole (at row -1/2 / H - 1/2) and the nearest row centre
+    lo = torch.where(in_top, torch.zeros_like(lo), lo)
+    t_row = torch.where(in_top, (row + 0.5) / 0.5, t_row)
+    lo = torch.where(in_bottom, torch.full_like(lo, h), lo)
+    t_row = torch.where(in_bottom, (row - (h - 1)) / 0.5, t_row)
+    hi = lo + 1
+
+    c0 = torch.floor(col)
+    t_col = (col - c0)[..., None]
+    c0 = c0.long().remainder(w)
+    c1 = (c0 + 1).remainder(w)
+    lo_i, hi_i = lo.long(), hi.long()
+    t_row = t_row[..., None].to(envmap.dtype)
+    t_col = t_col.to(envmap.dtype)
+
+    def at(r, c):
+        return padded[r * w + c]
+
+    upper = at(lo_i, c0) * (1 - t_col) + at(lo_i, c1) * t_col
+    lower = at(hi_i, c0) * (1 - t_col) + at(hi_i, c1) * t_col
+    out = upper * (1 - t_row) + lower * t_row
+    return torch.where(finite[..., None], out, torch.full_like(out, float("nan")))
+
+
+# ---------------------------------------------------------------------------------------
+# Resizing and rotation
+# ---------------------------------------------------------------------------------------
+def _overlap_matrix(out_edges: torch.Tensor, in_edges: torch.Tensor) -> torch.Tensor:
+    """Overlap lengths [n_out, n_in] between two partitions of the same interval (increasing edges)."""
+    lo = torch.maximum(out_edges[:-1, None], in_edges[None, :-1])
+    hi = torch.minimum(out_edges[1:, None], in_edges[None, 1:])
+    return (hi - lo).clamp_min(0.0)
+
+
+def _area_downsample(envmap: torch.Tensor, height: int) -> torch.Tensor:
+    """Each output pixel = solid-angle-weighted mean of the input area it covers.
+
+    Separable in (1 - cos theta) and phi, so the integral of L dw is preserved exactly
+    (up to float64 rounding) for any ratio of heights, not only integer ones.
+    """
+    h_in, w_in = envmap.shape[0], envmap.shape[1]
+    w_out = equirect_width(height)
+    rows = _overlap_matrix(1.0 - _row_cos_edges(height), 1.0 - _row_cos_edges(h_in))  # cos-measure overlaps
+    rows = rows / rows.sum(dim=1, keepdim=True)
+    cols = _overlap_matrix(
+        torch.linspace(0.0, 1.0, w_out + 1, dtype=torch.float64), torch.linspace(0.0, 1.0, w_in + 1, dtype=torch.float64)
+    )
+    cols = cols / cols.sum(dim=1, keepdim=True)
+    rows, cols = rows.to(envmap.device), cols.to(envmap.device)
+    x = envmap.to(torch.float64)
+    out = torch.einsum("oi,ijc,pj->opc", rows, x, cols)
+    return out.to(envmap.dtype)
+
+
+def resize_envmap(envmap: torch.Tensor, height: int) -> torch.Tensor:
+    """Resize to [height, 2 height, 3].
+
+    Downsampling is area-correct (preserves the integral of L dw and never skips a small
+    bright source); upsampling is bilinear via `sample_envmap` at the new pixel centres.
+    """
+    h = check_envmap(envmap)
+    height = _check_height(height)
+    if height == h:
+        return envmap.clone()
+    if height < h:
+        return _area_downsample(envmap, height)
+    d = equirect_directions(height, device=envmap.device, dtype=torch.float64)
+    return sample_envmap(envmap, d).to(envmap.dtype)
+
+
+def rotate_envmap(envmap: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """Rotate the lighting by the 3x3 world rotation R: result(d) = envmap(R^T d).
+
+    So a light that arrived from direction s arrives from R s afterwards (the scene is
+    rotated by R, the probe's frame stays). To express a map given in a probe/camera frame
+    in the world frame, pass that frame's camera-to-world rotation.
+    Resampling is bilinear, so a rotation that is not a multiple of the pixel grid blurs by
+    up to one pixel.
+    """
+    h = check_envmap(envmap)
+    R = torch.as_tensor(R, dtype=torch.float64, device=envmap.device)
+    if R.shape != (3, 3):
+        raise EnvmapError(f"R must be 3x3, got {tuple(R.shape)}")
+    if not torch.isfinite(R).all() or not torch.allclose(R @ R.T, torch.eye(3, dtype=torch.float64, device=R.device), atol=1e-4):
+        raise EnvmapError("R must be a finite orthonormal 3x3 matrix")
+    d = equirect_directions(h, device=envmap.device, dtype=torch.float64)
+    src = d @ R  # row-vector form of R^T d
+    return sample_envmap(envmap, src).to(envmap.dtype)

@@ -1,0 +1,151 @@
+"""Real spherical harmonics up to band 2 (9 coefficients) in OUR world frame.
+
+Basis (orthonormal over the sphere, Ramamoorthi & Hanrahan 2001 sign convention, i.e. no
+Condon-Shortley phase), evaluated on the unit direction d = (x, y, z) of core.conventions
+(+y up, -z forward). Index k, band l, order m:
+
+    k=0  l=0 m= 0   0.282095
+    k=1  l=1 m=-1   0.488603 y
+    k=2  l=1 m= 0   0.488603 z
+    k=3  l=1 m=+1   0.488603 x
+    k=4  l=2 m=-2   1.092548 x y
+    k=5  l=2 m=-1   1.092548 y z
+    k=6  l=2 m= 0   0.315392 (3 z^2 - 1)
+    k=7  l=2 m=+1   1.092548 x z
+    k=8  l=2 m=+2   0.546274 (x^2 - y^2)
+
+The formulas use our axes literally, so the basis' polar axis (m = 0) is our z (backward),
+not up. This is exactly the polynomial form ARCore's samples evaluate in ARCore's world
+frame (also +y up, -z forward); ARCore's coefficients differ only by the sign of the odd-m
+entries (k = 1, 3, 5, 7), see `to_arcore_27` and docs/conventions.md.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+
+from core.conventions import equirect_directions
+from core.envmap import check_envmap, solid_angles
+
+SH_COUNT = 9
+SH_BANDS = (0, 1, 1, 1, 2, 2, 2, 2, 2)  # band l of each coefficient index
+SH_ORDERS = (0, -1, 0, 1, -2, -1, 0, 1, 2)  # order m of each coefficient index
+
+# Normalisation constants, from their closed forms (printed to 6 digits in the docstring).
+C0 = 0.5 * math.sqrt(1.0 / math.pi)  # 0.282095
+C1 = math.sqrt(3.0 / (4.0 * math.pi))  # 0.488603
+C2 = 0.5 * math.sqrt(15.0 / math.pi)  # 1.092548
+C2_0 = 0.25 * math.sqrt(5.0 / math.pi)  # 0.315392
+C2_2 = 0.25 * math.sqrt(15.0 / math.pi)  # 0.546274
+
+# Clamped-cosine convolution (Ramamoorthi & Hanrahan 2001): E_lm = A_l L_lm.
+COSINE_LOBE_BY_BAND = (math.pi, 2.0 * math.pi / 3.0, math.pi / 4.0)
+
+# ARCore's basis carries the Condon-Shortley phase: coefficients with odd m change sign.
+ARCORE_SIGNS = tuple(-1.0 if m % 2 else 1.0 for m in SH_ORDERS)
+
+
+class SHError(ValueError):
+    """Malformed SH coefficients or ARCore arrays."""
+
+
+def _check_coeffs(coeffs: torch.Tensor) -> None:
+    if coeffs.shape[0] != SH_COUNT:
+        raise SHError(f"SH coefficients must have shape [9, ...], got {tuple(coeffs.shape)}")
+
+
+def sh_basis(d: torch.Tensor) -> torch.Tensor:
+    """Basis values [..., 9] at directions d [..., 3] (normalised here; zero d gives band 0 only)."""
+    if d.shape[-1] != 3:
+        raise SHError(f"directions must have shape [..., 3], got {tuple(d.shape)}")
+    n = d.norm(dim=-1, keepdim=True)
+    u = d / n.clamp_min(torch.finfo(d.dtype).tiny)
+    x, y, z = u.unbind(-1)
+    return torch.stack(
+        (
+            torch.full_like(x, C0),
+            C1 * y,
+            C1 * z,
+            C1 * x,
+            C2 * x * y,
+            C2 * y * z,
+            C2_0 * (3.0 * z * z - 1.0) * (n[..., 0] > 0),  # zero vector: keep only the constant
+            C2 * x * z,
+            C2_2 * (x * x - y * y),
+        ),
+        dim=-1,
+    )
+
+
+def project_sh(envmap: torch.Tensor) -> torch.Tensor:
+    """Projection c_k = integral L Y_k dw as a sum over pixels with exact solid angles -> [9, 3]."""
+    h = check_envmap(envmap)
+    basis = sh_basis(equirect_directions(h, device=envmap.device, dtype=torch.float64))  # [H, W, 9]
+    w = solid_angles(h, device=envmap.device, dtype=torch.float64)[..., None]
+    coeffs = torch.einsum("hwk,hwc->kc", basis * w, envmap.to(torch.float64))
+    return coeffs.to(envmap.dtype)
+
+
+def eval_sh(coeffs: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """Reconstruct sum_k c_k Y_k(d): coeffs [9, C], d [..., 3] -> [..., C]."""
+    _check_coeffs(coeffs)
+    return sh_basis(d.to(coeffs.dtype)) @ coeffs
+
+
+def sh_irradiance(coeffs: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """Irradiance E(n) = integral L(d) max(0, n.d) dd of the band-limited radiance -> [..., C].
+
+    Divide by pi for the outgoing radiance of a white Lambertian surface.
+    """
+    _check_coeffs(coeffs)
+    a = torch.tensor([COSINE_LOBE_BY_BAND[l] for l in SH_BANDS], dtype=coeffs.dtype, device=coeffs.device)
+    return eval_sh(coeffs * a[:, None], normal)
+
+
+def sh_to_envmap(coeffs: torch.Tensor, height: int) -> torch.Tensor:
+    """Render band-limited radiance into an equirect map [H, 2H, C]."""
+    d = equirect_directions(height, device=coeffs.device, dtype=coeffs.dtype)
+    return eval_sh(coeffs, d)
+
+
+def to_arcore_27(coeffs: torch.Tensor) -> list[float]:
+    """Our [9, 3] radiance coefficients -> ARCore's 27 floats.
+
+    ARCore (`LightEstimate.getEnvironmentalHdrAmbientSphericalHarmonics`): coefficient-major,
+    RGB interleaved [c0.r, c0.g, c0.b, c1.r, ...], same band order and world frame as ours,
+    but with the Condon-Shortley phase, so entries with odd m (k = 1, 3, 5, 7) are negated.
+    """
+    _check_coeffs(coeffs)
+    if tuple(coeffs.shape) != (SH_COUNT, 3):
+        raise SHError(f"ARCore layout needs RGB coefficients [9, 3], got {tuple(coeffs.shape)}")
+    signs = torch.tensor(ARCORE_SIGNS, dtype=torch.float64)[:, None]
+    return [float(v) for v in (coeffs.detach().cpu().to(torch.float64) * signs).reshape(-1)]
+
+
+def from_arcore_27(values: Sequence[float] | torch.Tensor, dtype=torch.float32) -> torch.Tensor:
+    """Inverse of `to_arcore_27`: 27 floats -> our [9, 3] coefficients."""
+    t = torch.as_tensor(values, dtype=torch.float64).reshape(-1)
+    if t.numel() != 27:
+        raise SHError(f"ARCore spherical harmonics need exactly 27 floats, got {t.numel()}")
+    if not torch.isfinite(t).all():
+        raise SHError("ARCore spherical harmonics contain non-finite values")
+    signs = torch.tensor(ARCORE_SIGNS, dtype=torch.float64)[:, None]
+    return (t.reshape(SH_COUNT, 3) * signs).to(dtype)
+
+
+__all__ = [
+    "SH_COUNT",
+    "SH_BANDS",
+    "SH_ORDERS",
+    "COSINE_LOBE_BY_BAND",
+    "SHError",
+    "sh_basis",
+    "project_sh",
+    "eval_sh",
+    "sh_irradiance",
+    "sh_to_envmap",
+    "to_arcore_27",
+    "from_arcore_27",
+]
