@@ -1,0 +1,152 @@
+"""LDR image decoding with limits, and PNG writing (8 and 16 bit).
+
+Pillow opens files lazily: `Image.open` parses only the header, so the pixel count is
+checked against `MediaLimits.max_pixels` before anything is decoded (decompression bombs).
+Pillow's own bomb guard (`Image.MAX_IMAGE_PIXELS`) is kept as a second line of defence and
+raised, never lowered, to the largest limit in use. 16-bit PNGs are decoded with OpenCV
+because Pillow truncates 16-bit colour PNGs to 8 bits. EXIF orientation is NOT applied:
+pixels are returned in stored order, consistent with video frames and depth maps (a phone
+photo stored sideways stays sideways; rotate before upload).
+"""
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image
+
+from core.io.exr import atomic_write
+from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source, read_source
+from core.io.sniff import PNG_MAGIC, sniff_image
+
+Image.MAX_IMAGE_PIXELS = max(Image.MAX_IMAGE_PIXELS or 0, MediaLimits.from_env().max_pixels)
+
+
+def _png_bit_depth(data: bytes) -> int:
+    """Bit depth from the IHDR chunk (always the first chunk, at a fixed offset)."""
+    return data[24] if data.startswith(PNG_MAGIC) and len(data) > 24 else 0
+
+
+def _open_checked(data: bytes, limits: MediaLimits) -> Image.Image:
+    fmt = sniff_image(data)
+    if fmt is None:
+        raise MediaError("not_media", "not a supported image (unrecognised magic bytes)")
+    if limits.max_pixels > (Image.MAX_IMAGE_PIXELS or 0):
+        Image.MAX_IMAGE_PIXELS = limits.max_pixels
+    try:
+        image = Image.open(io.BytesIO(data))
+    except Image.DecompressionBombError as exc:
+        raise MediaError("too_many_pixels", f"image declares too many pixels ({exc})") from None
+    except Exception as exc:  # UnidentifiedImageError, SyntaxError from broken headers, ...
+        if fmt == "heif":
+            raise MediaError("unsupported_codec", "HEIF/AVIF images are not supported; convert to PNG or JPEG") from None
+        raise MediaError("truncated", f"{fmt.upper()} header is corrupt or truncated") from exc
+    width, height = image.size
+    limits.check_pixels(width, height, f"{fmt.upper()} image")
+    return image
+
+
+def _decode_png16(data: bytes) -> np.ndarray:
+    """uint16 [H, W] or [H, W, 3|4] in RGB(A) order."""
+    decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if decoded is None:
+        raise MediaError("truncated", "16-bit PNG data is truncated or corrupt")
+    if decoded.ndim == 3:
+        decoded = cv2.cvtColor(decoded, cv2.COLOR_BGRA2RGBA if decoded.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    return decoded
+
+
+def _to_rgb(array: np.ndarray) -> np.ndarray:
+    if array.ndim == 2:
+        return np.repeat(array[..., None], 3, axis=-1)
+    return array[..., :3]
+
+
+def read_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> np.ndarray:
+    """float32 [H, W, 3] in [0, 1] from PNG (8/16 bit), JPEG, WebP, BMP, TIFF, GIF (first
+    frame). Alpha is dropped (not composited), grey is expanded to RGB."""
+    data = read_source(source, limits, "image")
+    image = _open_checked(data, limits)
+    if image.format == "PNG" and _png_bit_depth(data) == 16:
+        return _to_rgb(_decode_png16(data)).astype(np.float32) / np.float32(65535.0)
+    try:
+        image.load()
+        if image.mode in ("I;16", "I;16B", "I;16L", "I", "F"):  # 16/32-bit grey TIFF etc.
+            grey = np.asarray(image, np.float32)
+            top = 65535.0 if image.mode.startswith("I;16") or grey.max() > 1.0 else 1.0
+            return _to_rgb(np.clip(grey / np.float32(top), 0.0, 1.0))
+        rgb = image.convert("RGB")
+    except Image.DecompressionBombError as exc:
+        raise MediaError("too_many_pixels", str(exc)) from None
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise MediaError("truncated", f"{image.format} data is truncated or corrupt ({exc})") from None
+    return np.asarray(rgb, np.float32) / np.float32(255.0)
+
+
+def _check_image_array(array: np.ndarray, what: str) -> np.ndarray:
+    a = np.asarray(array)
+    if not (a.ndim == 2 or (a.ndim == 3 and a.shape[2] in (1, 3, 4))) or a.shape[0] < 1 or a.shape[1] < 1:
+        raise MediaError("shape_mismatch", f"{what} must be [H, W] or [H, W, 1|3|4], got shape {a.shape}")
+    return a[..., 0] if a.ndim == 3 and a.shape[2] == 1 else a
+
+
+def _to_bgr(a: np.ndarray) -> np.ndarray:
+    if a.ndim == 2:
+        return a
+    return cv2.cvtColor(a, cv2.COLOR_RGBA2BGRA if a.shape[2] == 4 else cv2.COLOR_RGB2BGR)
+
+
+def encode_png(ldr: np.ndarray) -> bytes:
+    """8-bit PNG bytes from float in [0, 1] (clipped, rounded) or uint8, RGB(A) or grey."""
+    a = _check_image_array(ldr, "PNG image")
+    if a.dtype != np.uint8:
+        a = a.astype(np.float32)
+        if not np.isfinite(a).all():
+            raise MediaError("non_finite", f"PNG image has {int((~np.isfinite(a)).sum())} NaN/inf values")
+        a = np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
+    ok, buf = cv2.imencode(".png", _to_bgr(np.ascontiguousarray(a)))
+    if not ok:
+        raise MediaError("shape_mismatch", f"PNG encoder refused an array of shape {a.shape}")
+    return buf.tobytes()
+
+
+def write_png(path: str | os.PathLike, ldr: np.ndarray) -> Path:
+    """Write an 8-bit PNG (see `encode_png`) atomically."""
+    return atomic_write(path, encode_png(ldr))
+
+
+def encode_png16(array: np.ndarray) -> bytes:
+    """16-bit PNG bytes from uint16 [H, W] or [H, W, 3|4] (RGB order). Other integer dtypes
+    are accepted if every value fits in 0..65535; floats are refused (scale them first)."""
+    a = _check_image_array(array, "16-bit PNG image")
+    if a.dtype != np.uint16:
+        if not np.issubdtype(a.dtype, np.integer):
+            raise MediaError("shape_mismatch", f"16-bit PNG needs integer values, got dtype {a.dtype}")
+        if a.size and (a.min() < 0 or a.max() > 65535):
+            raise MediaError("shape_mismatch", f"16-bit PNG values must be in 0..65535, got {a.min()}..{a.max()}")
+        a = a.astype(np.uint16)
+    ok, buf = cv2.imencode(".png", _to_bgr(np.ascontiguousarray(a)))
+    if not ok:
+        raise MediaError("shape_mismatch", f"PNG encoder refused an array of shape {a.shape}")
+    return buf.tobytes()
+
+
+def write_png16(path: str | os.PathLike, array: np.ndarray) -> Path:
+    """Write a 16-bit PNG (see `encode_png16`) atomically."""
+    return atomic_write(path, encode_png16(array))
+
+
+def read_png16(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> np.ndarray:
+    """uint16 [H, W] (grey) or [H, W, 3|4] (RGB order) from a 16-bit PNG; an 8-bit PNG is
+    refused with code 'wrong_bit_depth' (it cannot hold 16-bit data such as depth)."""
+    data = read_source(source, limits, "16-bit PNG")
+    if not data.startswith(PNG_MAGIC):
+        raise MediaError("not_media", "not a PNG file (bad magic bytes)")
+    _open_checked(data, limits)
+    depth = _png_bit_depth(data)
+    if depth != 16:
+        raise MediaError("wrong_bit_depth", f"PNG has {depth}-bit samples; a 16-bit PNG is required")
+    return _decode_png16(data)

@@ -1,0 +1,216 @@
+"""Video decoding with limits (PyAV), and mp4 writing.
+
+Limits are applied from the stream header before decoding: the frame size against
+`max_pixels`, and the frame budget `min(max_frames, max_total_pixels // (H*W))` against
+the number of frames left after `frame_stride`. Too many frames are, by default,
+subsampled evenly over the whole clip (first and last kept), so a long clip still covers
+its full duration; `on_too_many='error'` refuses instead. Rotation metadata (phone
+videos) is not applied: frames come in stored orientation, like images.
+"""
+from __future__ import annotations
+
+import functools
+import io
+import os
+from dataclasses import dataclass, field
+from fractions import Fraction
+from pathlib import Path
+from typing import Literal
+
+import av
+import numpy as np
+
+from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source
+from core.io.sniff import sniff_media, sniff_video
+
+OnTooMany = Literal["subsample", "error"]
+_SNIFF_BYTES = 64
+
+
+@dataclass
+class VideoFrames:
+    """Decoded frames. `fps` is the SOURCE frame rate; frame k was source frame
+    `source_frame_indices[k]`, so its time is `times[k]` = index / fps (seconds)."""
+
+    frames: np.ndarray  # float32 [T, H, W, 3] in [0, 1]
+    fps: float
+    source_frame_indices: np.ndarray  # int64 [T], increasing
+    original_frame_count: int  # frames in the source (declared, or counted when undeclared)
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def times(self) -> np.ndarray:
+        return self.source_frame_indices.astype(np.float64) / self.fps
+
+
+def select_frame_indices(
+    frame_count: int, frame_pixels: int, limits: MediaLimits, on_too_many: OnTooMany = "subsample"
+) -> np.ndarray:
+    """Source frame indices to keep: every `frame_stride`-th frame, then an even
+    subsample (or a 'too_many_frames' error) if more than the frame budget remain."""
+    if on_too_many not in ("subsample", "error"):
+        raise ValueError(f"on_too_many must be 'subsample' or 'error', got {on_too_many!r}")
+    candidates = np.arange(0, frame_count, limits.frame_stride, dtype=np.int64)
+    budget = min(limits.max_frames, limits.max_total_pixels // max(frame_pixels, 1))
+    if budget < 1:
+        raise MediaError("too_many_pixels", f"one frame of {frame_pixels} pixels exceeds max_total_pixels={limits.max_total_pixels}")
+    if candidates.size <= budget:
+        return candidates
+    if on_too_many == "error":
+        raise MediaError(
+            "too_many_frames",
+            f"video has {candidates.size} frames after frame_stride={limits.frame_stride}, more than the limit of {budget} "
+            f"(max_frames={limits.max_frames}, max_total_pixels={limits.max_total_pixels})",
+        )
+    pick = np.round(np.linspace(0, candidates.size - 1, budget)).astype(np.int64)
+    return candidates[pick]
+
+
+def _open_container(source: Source, limits: MediaLimits):
+    """-> (av container, first bytes) after the size check."""
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        data = bytes(source)
+        limits.check_bytes(len(data), "video")
+        head, target = data[:_SNIFF_BYTES], io.BytesIO(data)
+    else:
+        path = Path(source)
+        if not path.is_file():
+            raise MediaError("empty", f"video {str(path)!r} does not exist")
+        limits.check_bytes(path.stat().st_size, f"video {str(path)!r}")
+        with path.open("rb") as f:
+            head = f.read(_SNIFF_BYTES)
+        target = str(path)
+    if sniff_media(head) != "video":
+        raise MediaError("not_media", "not a supported video container (unrecognised magic bytes)")
+    try:
+        return av.open(target, mode="r"), head
+    except av.error.FFmpegError as exc:
+        raise MediaError("truncated", f"{sniff_video(head)} container is truncated or corrupt ({exc.strerror})") from None
+
+
+def _video_stream(container):
+    if not container.streams:  # a container cut before its stream table
+        raise MediaError("truncated", "video container is truncated or corrupt (no streams)")
+    if not container.streams.video:
+        raise MediaError("not_media", "file has no video stream")
+    stream = container.streams.video[0]
+    if stream.codec_context is None or stream.codec_context.codec is None:
+        raise MediaError("unsupported_codec", f"no decoder for video codec {getattr(stream.codec_context, 'name', '?')!r}")
+    stream.thread_type = "AUTO"
+    return stream
+
+
+def _count_packets(source: Source, limits: MediaLimits) -> int:
+    """Frame count of a stream that does not declare one: its non-empty packets."""
+    container, _ = _open_container(source, limits)
+    with container:
+        stream = _video_stream(container)
+        return sum(1 for packet in container.demux(stream) if packet.size > 0)
+
+
+def read_video(source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_many: OnTooMany = "subsample") -> VideoFrames:
+    """Decode a video (path or bytes) into float32 frames under `limits` (see module doc)."""
+    container, _ = _open_container(source, limits)
+    warnings: list[str] = []
+    with container:
+        stream = _video_stream(container)
+        ctx = stream.codec_context
+        if ctx.width and ctx.height:
+            limits.check_pixels(ctx.width, ctx.height, "video frame")
+        rate = stream.average_rate or stream.guessed_rate or stream.base_rate
+        fps = float(rate) if rate else 0.0
+        if not (fps > 0 and np.isfinite(fps)):
+            fps = 30.0
+            warnings.append("video has no frame rate; assumed 30 fps")
+        declared = int(stream.frames or 0)
+        frame_count = declared if declared > 0 else _count_packets(source, limits)
+        if frame_count <= 0:
+            raise MediaError("no_frames", "video stream has no frames")
+        pixels = (ctx.width * ctx.height) if ctx.width and ctx.height else 1
+        wanted = select_frame_indices(frame_count, pixels, limits, on_too_many)
+        kept, indices = _decode_selected(container, stream, wanted, limits, warnings)
+    if not kept:
+        raise MediaError("truncated", f"no frame could be decoded (the stream declares {frame_count})")
+    if len(kept) < wanted.size:
+        warnings.append(f"decoded {len(kept)} of {wanted.size} selected frames; the file ends early or is corrupt")
+    frames = np.stack(kept).astype(np.float32)
+    frames /= np.float32(255.0)
+    return VideoFrames(frames, fps, np.asarray(indices, np.int64), frame_count, warnings)
+
+
+def _decode_selected(container, stream, wanted: np.ndarray, limits: MediaLimits, warnings: list[str]):
+    """uint8 frames at the `wanted` source indices (presentation order), stopping after the last."""
+    wanted_set = set(wanted.tolist())
+    last = int(wanted[-1])
+    kept: list[np.ndarray] = []
+    indices: list[int] = []
+    index = -1
+    try:
+        for frame in container.decode(stream):
+            index += 1
+            if index == 0:  # streams that did not declare a size are checked here
+                limits.check_pixels(frame.width, frame.height, "video frame")
+            if index in wanted_set:
+                rgb = frame.to_ndarray(format="rgb24")
+                if kept and rgb.shape != kept[0].shape:
+                    raise MediaError("shape_mismatch", f"frame {index} is {rgb.shape[1]}x{rgb.shape[0]}, frame 0 was {kept[0].shape[1]}x{kept[0].shape[0]}")
+                kept.append(rgb)
+                indices.append(index)
+            if index >= last:
+                break
+    except av.error.DecoderNotFoundError:
+        raise MediaError("unsupported_codec", f"no decoder for video codec {stream.codec_context.name!r}") from None
+    except av.error.FFmpegError as exc:
+        if not kept:
+            raise MediaError("truncated", f"video data is corrupt ({exc.strerror})") from None
+        warnings.append(f"decoding stopped at frame {index + 1}: {exc.strerror}")
+    return kept, indices
+
+
+@functools.lru_cache(maxsize=None)
+def video_codec() -> str:
+    """'libx264' when PyAV's bundled ffmpeg has it (H.264 plays in browsers), else 'mpeg4'."""
+    try:
+        av.codec.Codec("libx264", "w")
+        return "libx264"
+    except Exception:
+        return "mpeg4"
+
+
+def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: int = 18) -> Path:
+    """Write frames [T, H, W, 3] (float in [0, 1] or uint8) as an mp4 (yuv420p, moov atom
+    first so browsers can stream it). yuv420p needs even sizes: odd heights/widths are
+    padded by repeating the last row/column."""
+    a = np.asarray(frames)
+    if a.ndim != 4 or a.shape[-1] != 3 or min(a.shape[:3]) < 1:
+        raise MediaError("shape_mismatch", f"frames must be [T, H, W, 3], got shape {a.shape}")
+    if not (np.isfinite(fps) and fps > 0):
+        raise MediaError("non_finite", f"fps must be a positive number, got {fps}")
+    if a.dtype != np.uint8:
+        a = np.asarray(a, np.float32)
+        if not np.isfinite(a).all():
+            raise MediaError("non_finite", "frames contain NaN/inf values")
+        a = np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
+    pad_h, pad_w = a.shape[1] % 2, a.shape[2] % 2
+    if pad_h or pad_w:
+        a = np.pad(a, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    codec = video_codec()
+    try:
+        with av.open(str(tmp), mode="w", format="mp4", options={"movflags": "faststart"}) as container:
+            stream = container.add_stream(codec, rate=Fraction(fps).limit_denominator(1001))
+            stream.width, stream.height, stream.pix_fmt = a.shape[2], a.shape[1], "yuv420p"
+            if codec == "libx264":
+                stream.options = {"crf": str(int(crf)), "preset": "medium"}
+            else:
+                stream.bit_rate = 8_000_000
+            for image in a:
+                for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
+                    container.mux(packet)
+            for packet in stream.encode():
+                container.mux(packet)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
