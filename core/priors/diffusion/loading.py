@@ -1,0 +1,187 @@
+"""Load a diffusion prior from a LOCAL diffusers-format directory, never from the network.
+
+Layout (see docs/diffusion-prior.md):
+
+    MODEL_DIR/
+      lightfield_prior.json     model card (core.priors.diffusion.card)
+      unet/                     UNet2DConditionModel, in_channels = 9 (inpainting)
+      controlnet/               ControlNetModel fed the depth map, in_channels = 4
+      vae/                      AutoencoderKL
+      text_encoder/             CLIPTextModel or CLIPTextModelWithProjection
+      tokenizer/                CLIPTokenizer (vocab.json + merges.txt or tokenizer.json)
+      scheduler/                scheduler_config.json (loaded as DDIMScheduler)
+
+Weights must be safetensors: pickled .bin checkpoints are refused (they execute code).
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from core.priors.base import PriorError
+from core.priors.diffusion.card import ModelCard
+
+SUBFOLDERS = {
+    "unet": "config.json",
+    "controlnet": "config.json",
+    "vae": "config.json",
+    "text_encoder": "config.json",
+    "tokenizer": None,  # vocab.json + merges.txt, or tokenizer.json
+    "scheduler": "scheduler_config.json",
+}
+
+_DTYPES = {
+    "float32": torch.float32, "fp32": torch.float32,
+    "float16": torch.float16, "fp16": torch.float16, "half": torch.float16,
+    "bfloat16": torch.bfloat16, "bf16": torch.bfloat16,
+}
+
+
+@dataclass
+class PriorComponents:
+    """The diffusers / transformers models of one prior, on one device and dtype, in eval mode."""
+
+    unet: Any  # UNet2DConditionModel
+    controlnet: Any  # ControlNetModel
+    vae: Any  # AutoencoderKL
+    text_encoder: Any  # CLIPTextModel | CLIPTextModelWithProjection
+    tokenizer: Any  # CLIPTokenizer
+    scheduler: Any  # DDIMScheduler
+    card: ModelCard
+    model_dir: Path
+    device: torch.device
+    dtype: torch.dtype
+
+    @property
+    def vae_scale_factor(self) -> int:
+        return 2 ** (len(self.vae.config.block_out_channels) - 1)
+
+    @property
+    def size_multiple(self) -> int:
+        """Image sides must be multiples of this: VAE downsampling times UNet downsampling."""
+        return self.vae_scale_factor * 2 ** (len(self.unet.config.block_out_channels) - 1)
+
+
+def resolve_device(device: str | torch.device | None) -> torch.device:
+    if device is None:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise PriorError(f"device: cannot parse {device!r}") from exc
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise PriorError(f"device: {device!r} requested but CUDA is not available")
+    return dev
+
+
+def resolve_dtype(dtype: str | torch.dtype | None, device: torch.device) -> torch.dtype:
+    """CUDA defaults to bfloat16 where supported (no fp16 overflow in the VAE), else float16; CPU to float32."""
+    if dtype is None:
+        if device.type == "cuda":
+            return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+        return torch.float32
+    if isinstance(dtype, str):
+        if dtype.lower() not in _DTYPES:
+            raise PriorError(f"dtype: unknown {dtype!r}; use one of {sorted(set(_DTYPES))}")
+        dtype = _DTYPES[dtype.lower()]
+    if dtype not in (torch.float32, torch.float16, torch.bfloat16):
+        raise PriorError(f"dtype: {dtype} is not a supported floating type")
+    if device.type == "cpu" and dtype == torch.float16:
+        raise PriorError("dtype: float16 is not supported on CPU; use float32 or bfloat16")
+    return dtype
+
+
+def check_model_dir(weights_dir: str | os.PathLike) -> Path:
+    """Raise PriorError unless `weights_dir` is a local directory with every sub-model present."""
+    path = Path(weights_dir).expanduser()
+    if not path.is_dir():
+        hint = (
+            " It looks like a Hugging Face hub id; download the weights yourself and pass the local directory"
+            if "/" in str(weights_dir) and not path.is_absolute() and not path.exists()
+            else ""
+        )
+        raise PriorError(
+            f"prior weights {str(weights_dir)!r} is not an existing local directory.{hint} "
+            "(nothing is ever downloaded; see docs/diffusion-prior.md)"
+        )
+    missing = []
+    for sub, marker in SUBFOLDERS.items():
+        d = path / sub
+        if marker is not None and not (d / marker).is_file():
+            missing.append(f"{sub}/{marker}")
+        elif marker is None and not ((d / "tokenizer.json").is_file() or (d / "vocab.json").is_file()):
+            missing.append(f"{sub}/vocab.json (or tokenizer.json)")
+    if missing:
+        raise PriorError(f"prior weights {str(path)!r} is missing: {', '.join(missing)}")
+    return path
+
+
+def _text_encoder_class(path: Path):
+    from transformers import CLIPTextModel, CLIPTextModelWithProjection
+
+    archs = json.loads((path / "text_encoder" / "config.json").read_text()).get("architectures") or []
+    return CLIPTextModelWithProjection if "CLIPTextModelWithProjection" in archs else CLIPTextModel
+
+
+def load_components(
+    weights_dir: str | os.PathLike, device: str | torch.device | None = None, dtype: str | torch.dtype | None = None
+) -> PriorComponents:
+    """Load every sub-model from disk (local_files_only, safetensors only) and validate that they fit together."""
+    os.environ["HF_HUB_OFFLINE"] = "1"  # belt and braces: local_files_only below already forbids downloads
+    path = check_model_dir(weights_dir)
+    card = ModelCard.load(path)
+    dev = resolve_device(device)
+    dt = resolve_dtype(dtype, dev)
+
+    from diffusers import AutoencoderKL, ControlNetModel, DDIMScheduler, UNet2DConditionModel
+    from transformers import CLIPTokenizer
+
+    common = dict(local_files_only=True, use_safetensors=True, torch_dtype=dt)
+    try:
+        unet = UNet2DConditionModel.from_pretrained(path, subfolder="unet", **common)
+        controlnet = ControlNetModel.from_pretrained(path, subfolder="controlnet", **common)
+        vae = AutoencoderKL.from_pretrained(path, subfolder="vae", **common)
+        text_encoder = _text_encoder_class(path).from_pretrained(
+            path / "text_encoder", local_files_only=True, use_safetensors=True, dtype=dt
+        )
+        tokenizer = CLIPTokenizer.from_pretrained(path / "tokenizer", local_files_only=True)
+        scheduler = DDIMScheduler.from_pretrained(path, subfolder="scheduler", local_files_only=True)
+    except (OSError, ValueError, EnvironmentError) as exc:
+        raise PriorError(f"cannot load prior weights from {str(path)!r}: {exc}") from exc
+
+    comps = PriorComponents(unet, controlnet, vae, text_encoder, tokenizer, scheduler, card, path, dev, dt)
+    _check_compatible(comps)
+    for m in (unet, controlnet, vae, text_encoder):
+        m.to(dev).eval().requires_grad_(False)
+    return comps
+
+
+def _check_compatible(c: PriorComponents) -> None:
+    latent = c.vae.config.latent_channels
+    if c.unet.config.in_channels != 2 * latent + 1:
+        raise PriorError(
+            f"unet.in_channels is {c.unet.config.in_channels}, expected {2 * latent + 1} "
+            "(noisy latent + masked-image latent + mask): this is not an inpainting UNet"
+        )
+    if c.controlnet.config.in_channels != latent:
+        raise PriorError(f"controlnet.in_channels is {c.controlnet.config.in_channels}, expected {latent}")
+    if getattr(c.unet.config, "addition_embed_type", None) is not None:
+        raise PriorError(
+            f"unet.addition_embed_type={c.unet.config.addition_embed_type!r} (SDXL-style) is not supported; "
+            "use an SD 1.x/2.x inpainting UNet"
+        )
+    hidden = c.text_encoder.config.hidden_size
+    if c.unet.config.cross_attention_dim != hidden:
+        raise PriorError(
+            f"unet.cross_attention_dim={c.unet.config.cross_attention_dim} does not match "
+            f"text_encoder.hidden_size={hidden}"
+        )
+    m = c.size_multiple
+    h, w = c.card.resolution
+    if h % m or w % m:
+        raise PriorError(f"model card resolution {[h, w]} must be multiples of {m} for this UNet/VAE")

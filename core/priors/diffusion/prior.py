@@ -1,0 +1,139 @@
+"""DiffusionPrior: the paper's chrome-ball inpainting prior behind core/priors/base.py.
+
+One call = one pass of the network over one image that holds all N balls of the step
+(the model is multi-ball). A single-ball model (card `multi_ball: false`, e.g. a
+DiffusionLight-style checkpoint) gets a batch of N images instead, ball i inpainted with
+only its own mask, and the N results are combined by each ball's coverage; still one
+batched pass per denoising step.
+"""
+from __future__ import annotations
+
+import os
+from typing import TYPE_CHECKING
+
+import torch
+
+from core.priors.base import PriorError, PriorRequest
+from core.priors.diffusion.conditioning import (
+    binary_mask_at,
+    depth_to_control,
+    latent_mask,
+    model_size,
+    paste_outside,
+    resize,
+    to_signed,
+    to_unit,
+    union_coverage,
+)
+from core.priors.diffusion.denoise import InpaintCondition, InpaintDenoiser
+from core.priors.diffusion.exposure import ExposureConditioner
+from core.priors.diffusion.loading import PriorComponents, load_components
+
+if TYPE_CHECKING:
+    from core.engine.capture import Capture
+    from core.priors.diffusion.sampling import BallSamples
+
+
+class DiffusionPrior:
+    name = "diffusion"
+
+    def __init__(self, components: PriorComponents):
+        self.components = components
+        card = components.card
+        self.conditioner = ExposureConditioner(
+            components.text_encoder, components.tokenizer, card.prompts.max, card.prompts.min, card.ev_min
+        )
+        self.denoiser = InpaintDenoiser(components)
+
+    @classmethod
+    def from_pretrained(
+        cls, weights_dir: str | os.PathLike, device: str | torch.device | None = None, dtype: str | torch.dtype | None = None
+    ) -> "DiffusionPrior":
+        """Load from a local model directory (see loading.py); PriorError if it is not one."""
+        return cls(load_components(weights_dir, device=device, dtype=dtype))
+
+    # -- Prior protocol -------------------------------------------------------------------
+    def bind(self, capture: "Capture") -> None:
+        """Nothing is per-capture: prompts are encoded at load time and frames are sized per call."""
+
+    def describe(self) -> dict:
+        c = self.components
+        return {
+            "name": self.name,
+            "weights": str(c.model_dir),
+            "device": str(c.device),
+            "dtype": str(c.dtype).replace("torch.", ""),
+            "card": c.card.model_dump(mode="json"),
+        }
+
+    def __call__(self, request: PriorRequest) -> torch.Tensor:
+        image, masks, depth = _validated(request)
+        coverage = union_coverage(masks)
+        if request.steps == 0 or request.tau <= 0.0 or not bool((coverage > 0).any()):
+            return image.clone()
+        per_ball = masks if not self.components.card.multi_ball else coverage[None]
+        cond, image_latents, size = self._condition(image, per_ball, depth, request.ev)
+        latents = self.denoiser.refine(
+            image_latents, cond, float(request.tau), int(request.steps), float(request.guidance_scale), request.generator
+        )
+        generated = resize(to_unit(self.denoiser.decode(latents)), tuple(image.shape[-2:])).to(image.device)
+        return paste_outside(_combine(generated, per_ball), image, coverage)
+
+    def sample_balls(self, *args, **kwargs) -> "BallSamples":
+        """Direct sampling from pure noise at several exposures; see sampling.sample_balls."""
+        from core.priors.diffusion.sampling import sample_balls
+
+        return sample_balls(self, *args, **kwargs)
+
+    # -- helpers ----------------------------------------------------------------------------
+    def model_size(self, height: int, width: int) -> tuple[int, int]:
+        c = self.components
+        return model_size(height, width, c.card.resolution, c.size_multiple)
+
+    def _condition(
+        self, image: torch.Tensor, per_ball: torch.Tensor, depth: torch.Tensor, ev: float
+    ) -> tuple[InpaintCondition, torch.Tensor, tuple[int, int]]:
+        """Model-space inputs for a batch of B = per_ball.shape[0] inpaintings of `image`."""
+        c = self.components
+        b = per_ball.shape[0]
+        size = self.model_size(*image.shape[-2:])
+        img = to_signed(resize(image[None].to(c.device), size)).expand(b, -1, -1, -1)
+        mask = binary_mask_at(per_ball.to(c.device), size)[:, None]  # [B, 1, h, w]
+        # masked image: balls blanked to 0 in [-1, 1] (mid grey), as diffusers' inpainting pipelines do
+        latents = self.denoiser.encode(torch.cat([img[:1], img * (1.0 - mask)]))
+        control = resize(depth_to_control(depth)[None], size).to(c.device).expand(b, -1, -1, -1)
+        cond = InpaintCondition(
+            mask=latent_mask(mask, c.vae_scale_factor),
+            masked_image_latents=latents[1:],
+            control=control,
+            embedding=self.conditioner(ev).repeat(b),
+            null_embedding=self.conditioner.null_embedding(b),
+        )
+        return cond, latents[:1].expand(b, -1, -1, -1), size
+
+
+def _validated(request: PriorRequest) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    image, masks, depth = request.image, request.ball_masks, request.depth
+    if image.dim() != 3 or image.shape[0] != 3:
+        raise PriorError(f"request.image must be [3, H, W], got {tuple(image.shape)}")
+    h, w = image.shape[-2:]
+    if masks.dim() != 3 or tuple(masks.shape[-2:]) != (h, w):
+        raise PriorError(f"request.ball_masks must be [N, {h}, {w}], got {tuple(masks.shape)}")
+    if tuple(depth.shape) != (h, w):
+        raise PriorError(f"request.depth must be [{h}, {w}], got {tuple(depth.shape)}")
+    if request.steps < 0:
+        raise PriorError(f"request.steps must be >= 0, got {request.steps}")
+    if not (0.0 <= request.tau <= 1.0):
+        raise PriorError(f"request.tau must be in [0, 1], got {request.tau}")
+    if not request.guidance_scale >= 0.0:
+        raise PriorError(f"request.guidance_scale must be >= 0, got {request.guidance_scale}")
+    return image.float(), masks.float(), depth
+
+
+def _combine(generated: torch.Tensor, per_ball: torch.Tensor) -> torch.Tensor:
+    """[B, 3, H, W] generations -> one image: B = 1 is taken as is; else each ball's pixels from its own pass."""
+    if generated.shape[0] == 1:
+        return generated[0]
+    w = per_ball.to(generated).clamp(0.0, 1.0)[:, None]  # [B, 1, H, W]
+    total = w.sum(0)
+    return (w * generated).sum(0) / total.clamp(min=1e-6)
