@@ -27,7 +27,7 @@ from collections.abc import Sequence
 import torch
 
 from core.conventions import equirect_directions
-from core.envmap import check_envmap, solid_angles
+from core.envmap import check_envmap
 
 SH_COUNT = 9
 SH_BANDS = (0, 1, 1, 1, 2, 2, 2, 2, 2)  # band l of each coefficient index
@@ -79,12 +79,58 @@ def sh_basis(d: torch.Tensor) -> torch.Tensor:
     )
 
 
+def pixel_basis_integrals(height: int, device=None) -> torch.Tensor:
+    """Exact integrals of each basis function over each equirect pixel's cell, [H, 2H, 9] float64.
+
+    Treating a pixel as constant radiance over its cell (the same model as the exact
+    per-pixel solid angles), projection is then exact: a constant map has exactly zero
+    band 1 and 2 coefficients, which midpoint quadrature only reaches as O(1/H^2).
+    With x = sin t sin p, y = cos t, z = -sin t cos p and dw = sin t dt dp, every integral
+    is a product of a theta integral and a phi integral in closed form.
+    """
+    h = int(height)
+    w = 2 * h
+    t = torch.arange(h + 1, dtype=torch.float64) * (math.pi / h)
+    a, b = t[:-1, None], t[1:, None]  # [H, 1]
+    p = torch.arange(w + 1, dtype=torch.float64) * (2.0 * math.pi / w) - math.pi
+    q0, q1 = p[None, :-1], p[None, 1:]  # [1, W]
+    ca, cb = torch.cos(a), torch.cos(b)
+    # theta integrals (with the sin t Jacobian)
+    i_s1 = ca - cb  # sin
+    i_cs = (ca * ca - cb * cb) / 2  # cos sin
+    i_s2 = (b - a) / 2 - (torch.sin(2 * b) - torch.sin(2 * a)) / 4  # sin^2
+    i_c2s = (ca**3 - cb**3) / 3  # cos^2 sin
+    i_s3 = i_s1 - i_c2s  # sin^3
+    i_s2c = (torch.sin(b) ** 3 - torch.sin(a) ** 3) / 3  # sin^2 cos
+    # phi integrals
+    j1 = q1 - q0
+    js = torch.cos(q0) - torch.cos(q1)
+    jc = torch.sin(q1) - torch.sin(q0)
+    d2 = (torch.sin(2 * q1) - torch.sin(2 * q0)) / 4
+    jss, jcc = j1 / 2 - d2, j1 / 2 + d2
+    jsc = (torch.sin(q1) ** 2 - torch.sin(q0) ** 2) / 2
+    out = torch.stack(
+        (
+            C0 * i_s1 * j1,
+            C1 * i_cs * j1,  # y
+            -C1 * i_s2 * jc,  # z
+            C1 * i_s2 * js,  # x
+            C2 * i_s2c * js,  # x y
+            -C2 * i_s2c * jc,  # y z
+            C2_0 * (3 * i_s3 * jcc - i_s1 * j1),  # 3 z^2 - 1
+            -C2 * i_s3 * jsc,  # x z
+            C2_2 * (i_s3 * jss - i_c2s * j1),  # x^2 - y^2
+        ),
+        dim=-1,
+    )
+    return out.to(device)
+
+
 def project_sh(envmap: torch.Tensor) -> torch.Tensor:
-    """Projection c_k = integral L Y_k dw as a sum over pixels with exact solid angles -> [9, 3]."""
+    """Projection c_k = integral L Y_k dw of the pixel-wise constant map -> [9, 3] (exact per cell)."""
     h = check_envmap(envmap)
-    basis = sh_basis(equirect_directions(h, device=envmap.device, dtype=torch.float64))  # [H, W, 9]
-    w = solid_angles(h, device=envmap.device, dtype=torch.float64)[..., None]
-    coeffs = torch.einsum("hwk,hwc->kc", basis * w, envmap.to(torch.float64))
+    cells = pixel_basis_integrals(h, device=envmap.device)
+    coeffs = torch.einsum("hwk,hwc->kc", cells, envmap.to(torch.float64))
     return coeffs.to(envmap.dtype)
 
 
@@ -143,6 +189,7 @@ __all__ = [
     "SHError",
     "sh_basis",
     "project_sh",
+    "pixel_basis_integrals",
     "eval_sh",
     "sh_irradiance",
     "sh_to_envmap",
