@@ -343,7 +343,13 @@ def _bilinear(image: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Te
 
 
 def unwrap_ball(
-    image: torch.Tensor, camera: Camera, center, radius: float, height: int, iterations: int = 24
+    image: torch.Tensor,
+    camera: Camera,
+    center,
+    radius: float,
+    height: int,
+    iterations: int = 24,
+    min_incidence_cos: float = 0.05,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Perspective-exact inverse of the render: ball image [H, W, 3] -> (env map [h, 2h, 3], valid [h, 2h]).
 
@@ -354,8 +360,9 @@ def unwrap_ball(
     map contracts with factor about (R/|o - c|) / (2 cos i) (i = incidence angle), so it
     converges to machine precision in a few iterations except at grazing incidence.
 
-    `valid` is False where the ball does not show d: grazing or back-facing solutions
-    (the cone of directions behind the ball), unconverged solutions, hit points outside
+    `valid` is False where the ball does not show d: back-facing or grazing solutions
+    with cos(incidence) < `min_incidence_cos` (the cone of directions behind the ball, and
+    the rim ring where one pixel spans tens of degrees of the map), unconverged solutions, hit points outside
     the frame, and hit points whose bilinear footprint is not fully covered by the ball
     (so no background pixel leaks in).
     """
@@ -378,7 +385,7 @@ def unwrap_ball(
     r = -v
     reflected = r - 2.0 * (r * n).sum(-1, keepdim=True) * n
     converged = (reflected * d).sum(-1) > 1.0 - 1e-9
-    facing = (n * v).sum(-1) > 1e-3
+    facing = (n * v).sum(-1) > min_incidence_cos
 
     u_px, v_px, _ = camera.project(p)
     u_px, v_px = torch.nan_to_num(u_px), torch.nan_to_num(v_px)
