@@ -1,0 +1,62 @@
+"""The FastAPI application: `create_app(settings)`; `app` for `uvicorn service.app:app`."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.responses import RedirectResponse
+from fastapi.staticfiles import StaticFiles
+
+from service.auth import KeyRing
+from service.config import ServiceSettings
+from service.context import AppContext
+from service.errors import install_error_handlers
+from service.fieldcache import FieldCache
+from service.metrics import Metrics, MetricsMiddleware
+from service.routes import health, jobs, lightfield
+from service.store import JobStore, connect
+from worker.app import make_celery
+
+log = logging.getLogger("lightfield.service")
+UI_DIR = Path(__file__).parent / "ui"
+
+DESCRIPTION = """Spatiotemporally varying indoor HDR lighting as a service.
+
+Upload an image or a video (`POST /jobs`), follow the job (`GET /jobs/{id}`, SSE at
+`/jobs/{id}/events`), then query the light field: `GET /lightfield/{id}/envmap?x=X,Y,Z&t=SEC`.
+Conventions (frames, equirect layout, tone map) are in every query response's
+`X-Lightfield-Conventions` header. See docs/api.md."""
+
+
+def create_app(settings: ServiceSettings | None = None) -> FastAPI:
+    settings = settings or ServiceSettings.from_env()
+    if not settings.broker_url:
+        raise RuntimeError("LIGHTFIELD_BROKER_URL is not set (use `lightfield serve`, which starts Redis itself)")
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    store = JobStore(connect(settings.broker_url))
+    ctx = AppContext(settings=settings, keyring=KeyRing.parse(settings.api_keys), store=store,
+                     celery=make_celery(settings), fields=FieldCache(settings.field_cache_size))
+    app = FastAPI(title="lightfield", version="0.1.0", description=DESCRIPTION)
+    app.state.ctx = ctx
+    app.state.metrics = Metrics(store)
+    app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
+    install_error_handlers(app)
+    for module in (jobs, lightfield, health):
+        app.include_router(module.router)
+    if UI_DIR.is_dir():
+        app.mount("/ui", StaticFiles(directory=UI_DIR, html=True), name="ui")
+
+        @app.get("/", include_in_schema=False)
+        def root():
+            return RedirectResponse("/ui/")
+
+    return app
+
+
+def __getattr__(name: str):
+    # `uvicorn service.app:app` (and the Docker image) build the app from the environment
+    # lazily, so importing this module has no side effects.
+    if name == "app":
+        return create_app()
+    raise AttributeError(name)

@@ -1,0 +1,61 @@
+"""Loaded light fields, cached per API process (bounded LRU), evaluated one query at a time.
+
+Loading an artefact costs a file read and a module build; keeping the last few in memory
+makes repeated queries on the same job pay only the evaluation. Each cached field carries a
+lock: torch evaluation already uses every core, so running two queries on one field at once
+only adds memory, and it keeps modules that cache buffers safe.
+"""
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+
+@dataclass
+class CachedField:
+    artefact: Any  # core.engine.artefact.LightFieldArtefact
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    baked: dict = field(default_factory=dict)  # height -> fast-path grid, built on first use
+
+
+class FieldCache:
+    def __init__(self, capacity: int, loader: Callable[[Path], Any] | None = None):
+        self.capacity = capacity
+        self._loader = loader or _load_artefact
+        self._items: "OrderedDict[str, CachedField]" = OrderedDict()
+        self._lock = threading.Lock()
+        self._loading: dict[str, threading.Lock] = {}
+
+    def get(self, key: str, directory: Path) -> CachedField:
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                return self._items[key]
+            load_lock = self._loading.setdefault(key, threading.Lock())
+        with load_lock:  # one load per key even when many requests miss at once
+            with self._lock:
+                if key in self._items:
+                    return self._items[key]
+            item = CachedField(self._loader(directory))
+            with self._lock:
+                self._items[key] = item
+                self._loading.pop(key, None)
+                while len(self._items) > self.capacity:
+                    self._items.popitem(last=False)
+            return item
+
+    def evict(self, key: str) -> None:
+        with self._lock:
+            self._items.pop(key, None)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+def _load_artefact(directory: Path):
+    from core.engine.artefact import LightFieldArtefact
+
+    return LightFieldArtefact.load(directory)

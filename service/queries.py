@@ -1,0 +1,126 @@
+"""Evaluating a cached light field for the HTTP layer (blocking: run in a threadpool).
+
+Validation of the query values lives here too, so every endpoint refuses the same things
+with the same codes: x must be three finite numbers, t finite, sizes within the limits.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.errors import InvalidInput, PayloadTooLarge
+from service.fieldcache import CachedField
+
+MAX_ABS_EV = 64.0
+SH_ENVMAP_HEIGHT = 128  # enough to isolate a small light; SH only needs band 2
+
+
+@dataclass(frozen=True)
+class EvalFlags:
+    x: bool
+    t: bool
+
+    def header(self) -> str:
+        """X-Lightfield-Extrapolated: the axes outside the trained range, or 'none'."""
+        return ",".join(a for a, on in (("x", self.x), ("t", self.t)) if on) or "none"
+
+
+def parse_x(text: str) -> tuple[float, float, float]:
+    parts = text.split(",")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise InvalidInput(f"x must be three finite numbers 'X,Y,Z' (metres), got {text[:80]!r}", code="invalid_x")
+    return values  # type: ignore[return-value]
+
+
+def check_t(t: float) -> float:
+    if not math.isfinite(t):
+        raise InvalidInput(f"t must be a finite number of seconds, got {t}", code="invalid_t")
+    return float(t)
+
+
+def check_ev(ev: float) -> float:
+    if not math.isfinite(ev) or abs(ev) > MAX_ABS_EV:
+        raise InvalidInput(f"ev must be finite and within +-{MAX_ABS_EV:g}, got {ev}", code="invalid_ev")
+    return float(ev)
+
+
+def check_size(value: int, limit: int, name: str) -> int:
+    if value > limit:
+        raise PayloadTooLarge(f"{name}={value} exceeds the limit of {limit}", code=f"{name}_too_large")
+    return value
+
+
+def _flags(raw) -> EvalFlags:
+    get = raw.get if isinstance(raw, dict) else (lambda k, d=False: getattr(raw, k, d))
+    return EvalFlags(bool(get("extrapolated_x", False)), bool(get("extrapolated_t", False)))
+
+
+def _numpy(hdr) -> np.ndarray:
+    if hasattr(hdr, "detach"):
+        hdr = hdr.detach().cpu().numpy()
+    return np.ascontiguousarray(hdr, dtype=np.float32)
+
+
+def envmap(cf: CachedField, x, t: float, height: int) -> tuple[np.ndarray, EvalFlags]:
+    with cf.lock:
+        hdr, flags = cf.artefact.envmap(x, t, height)
+    return _numpy(hdr), _flags(flags)
+
+
+def fast_available() -> bool:
+    """Whether the engine offers a baked (precomputed grid) fast path."""
+    import importlib.util
+
+    return importlib.util.find_spec("core.engine.bake") is not None
+
+
+def envmap_with_quality(cf: CachedField, x, t: float, height: int, quality: str):
+    """(hdr, flags, quality actually used). 'fast' falls back to exact without a baked grid."""
+    if quality == "fast" and fast_available():
+        return (*baked_envmap(cf, x, t, height), "fast")
+    return (*envmap(cf, x, t, height), "exact")
+
+
+def baked_envmap(cf: CachedField, x, t: float, height: int):
+    raise NotImplementedError
+
+
+def envmaps(cf: CachedField, xs, ts, height: int) -> tuple[np.ndarray, list[EvalFlags]]:
+    with cf.lock:
+        hdrs, flags = cf.artefact.envmaps(xs, ts, height)
+    if isinstance(flags, dict):  # one dict of per-query arrays
+        fx = np.broadcast_to(np.asarray(flags.get("extrapolated_x", False)), (len(xs),))
+        ft = np.broadcast_to(np.asarray(flags.get("extrapolated_t", False)), (len(xs),))
+        per = [EvalFlags(bool(a), bool(b)) for a, b in zip(fx, ft)]
+    else:
+        per = [_flags(f) for f in flags]
+    return _numpy(hdrs), per
+
+
+def spherical_harmonics(cf: CachedField, x, t: float):
+    """(ambient SH as ARCore 27 floats, dominant light, flags): ARCore Environmental HDR split."""
+    import torch
+
+    from core.lights import extract_dominant_light
+    from core.sh import to_arcore_27
+
+    hdr, flags = envmap(cf, x, t, SH_ENVMAP_HEIGHT)
+    light = extract_dominant_light(torch.from_numpy(hdr))
+    return to_arcore_27(light.ambient_sh), light, flags
+
+
+def cubemap(cf: CachedField, x, t: float, size: int) -> tuple[np.ndarray, EvalFlags]:
+    """Faces [6, size, size, 3] (+X, -X, +Y, -Y, +Z, -Z), sampled from a 2*size-high env map (one map pixel per texel at the face centres)."""
+    import torch
+
+    from core.cubemap import equirect_to_cubemap
+
+    hdr, flags = envmap(cf, x, t, max(2 * size, 8))
+    faces = equirect_to_cubemap(torch.from_numpy(hdr), size)
+    return _numpy(faces), flags

@@ -1,0 +1,50 @@
+"""Liveness, readiness and metrics."""
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import Response
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+
+from service.context import AppContext, get_ctx
+from service.errors import ErrorBody, ServiceUnavailable
+from service.models import Health, Readiness
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/healthz", response_model=Health, summary="The API process is up")
+def healthz():
+    return Health(status="ok")
+
+
+def _check_ready(ctx: AppContext) -> Readiness:
+    try:
+        ctx.store.client.ping()
+    except Exception:
+        return Readiness(status="not_ready", broker=False, workers=0, detail="Redis (broker and job store) unreachable")
+    try:
+        replies = ctx.celery.control.ping(timeout=ctx.settings.readiness_timeout_s, limit=1) or []
+    except Exception:
+        replies = []
+    if not replies:
+        return Readiness(status="not_ready", broker=True, workers=0,
+                         detail=f"no worker answered a ping within {ctx.settings.readiness_timeout_s:g} s")
+    return Readiness(status="ready", broker=True, workers=len(replies))
+
+
+@router.get("/readyz", response_model=Readiness, responses={503: {"model": ErrorBody}},
+            summary="Broker reachable and at least one worker answering")
+async def readyz(ctx: AppContext = Depends(get_ctx)):
+    ready = await run_in_threadpool(_check_ready, ctx)
+    if ready.status != "ready":
+        raise ServiceUnavailable(f"not ready: {ready.detail}", code="not_ready")
+    return ready
+
+
+@router.get("/metrics", response_class=Response, summary="Prometheus metrics",
+            responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}})
+async def metrics(request: Request):
+    registry = request.app.state.metrics.registry
+    data = await run_in_threadpool(generate_latest, registry)
+    return Response(data, media_type=CONTENT_TYPE_LATEST)

@@ -1,0 +1,86 @@
+"""Check an upload before it is queued, so bad input is a 4xx now instead of a failed job later.
+
+The input is loaded with the engine's own `load_capture` under the configured MediaLimits:
+the same code the worker runs, so what passes here loads there (sizes, decompression bombs,
+codecs, depth/pose shapes, all-invalid depth). It costs one decode of a capture whose size
+the limits bound; the API serialises these checks (one at a time per process) so memory
+stays bounded under concurrent uploads.
+"""
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+from service.errors import ApiError, InvalidInput, PayloadTooLarge, UnsupportedMedia
+
+# sniffed format -> file suffix the engine's loader dispatches on (formats it cannot decode
+# are absent and refused with 415)
+IMAGE_SUFFIX = {"png": ".png", "jpeg": ".jpg", "webp": ".webp", "bmp": ".bmp", "tiff": ".tiff"}
+VIDEO_SUFFIX = {"mp4": ".mp4", "matroska": ".mkv", "avi": ".avi"}
+GIF_SUFFIX = ".gif"  # an image by its magic bytes, decoded as a (possibly animated) video
+DEPTH_SUFFIX = {"npz": ".npz", "npy": ".npy", "exr": ".exr", "png": ".png"}
+SNIFF_BYTES = 64
+
+
+def _head(path: Path) -> bytes:
+    with open(path, "rb") as f:
+        return f.read(SNIFF_BYTES)
+
+
+def classify_input(path: Path) -> tuple[str, str]:
+    """(kind 'image'|'video', suffix) from the file's magic bytes; raises a 4xx ApiError."""
+    from core.io.sniff import sniff_image, sniff_video
+
+    head = _head(path)
+    if not head:
+        raise InvalidInput("form field 'file' is empty (0 bytes)", code="empty")
+    image, video = sniff_image(head), sniff_video(head)
+    if image == "gif":
+        return "video", GIF_SUFFIX
+    if image in IMAGE_SUFFIX:
+        return "image", IMAGE_SUFFIX[image]
+    if video in VIDEO_SUFFIX:
+        return "video", VIDEO_SUFFIX[video]
+    if image or video:
+        raise UnsupportedMedia(f"'file' is {image or video}, which is not supported; use PNG/JPEG/WebP/BMP/TIFF "
+                               "images or MP4/MOV/MKV/WebM/AVI/GIF videos", code="unsupported_format")
+    raise UnsupportedMedia("'file' is not an image or a video (unrecognised content)", code="not_media")
+
+
+def classify_depth(path: Path) -> str:
+    from core.io.sniff import sniff_depth
+
+    head = _head(path)
+    if not head:
+        raise InvalidInput("form field 'depth' is empty (0 bytes)", code="empty")
+    kind = sniff_depth(head)
+    if kind is None:
+        raise UnsupportedMedia("'depth' must be .npz/.npy (array 'depth'), OpenEXR or a 16-bit PNG in millimetres",
+                               code="not_depth")
+    return DEPTH_SUFFIX[kind]
+
+
+def media_error_to_api(exc) -> ApiError:
+    status = getattr(exc, "http_status", 422)
+    cls = {413: PayloadTooLarge, 415: UnsupportedMedia}.get(status, InvalidInput)
+    return cls(str(exc), code=exc.code)
+
+
+def check_capture(input_path: Path, depth_path: Path | None, params) -> dict:
+    """Load the capture as the worker will; returns a short summary or raises a 4xx ApiError."""
+    from core.camera import CameraError
+    from core.engine.capture import CaptureError, load_capture
+    from core.io.limits import MediaError, MediaLimits
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            capture = load_capture(input_path, depth_path, params, MediaLimits.from_env())
+    except MediaError as exc:
+        raise media_error_to_api(exc) from None
+    except CaptureError as exc:
+        field = getattr(exc, "field", "input")
+        raise InvalidInput(str(exc), code=f"invalid_{field}") from None
+    except CameraError as exc:
+        raise InvalidInput(str(exc), code="invalid_intrinsics") from None
+    return {"frames": capture.num_frames, "width": capture.width, "height": capture.height}

@@ -1,0 +1,1 @@
+"""Celery side of the service: the app (worker.app) and the distillation task (worker.tasks)."""

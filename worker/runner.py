@@ -1,0 +1,190 @@
+"""One delivery of a distillation job: lease, run the engine, record the outcome.
+
+Kept free of Celery so its decisions (skip, re-queue, resume, fail) are plain functions of
+the job record, the lease and the engine's behaviour. `worker.tasks` is the Celery shim.
+"""
+from __future__ import annotations
+
+import importlib
+import inspect
+import logging
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from enum import Enum
+from pathlib import Path
+from typing import Callable
+
+from service.config import ServiceSettings
+from service.storage import JobPaths
+from service.store import JobStore
+from worker.lease import RunLease
+
+log = logging.getLogger("lightfield.worker")
+
+DEFAULT_ENGINE = "core.engine.distill:run_job"
+PROGRESS_MIN_INTERVAL_S = 0.2  # progress writes per job are throttled to ~5/s
+
+
+class Outcome(str, Enum):
+    SKIPPED = "skipped"  # unknown or already finished job, or cancelled before it started
+    REQUEUE = "requeue"  # another delivery holds the lease; try again later
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+    ABANDONED = "abandoned"  # lease lost mid-run: another worker owns the job now
+
+
+def engine_entrypoint() -> Callable:
+    """The engine's run_job. LIGHTFIELD_ENGINE ("module:function") swaps it, e.g. for an
+    instrumented engine in experiments; the default is the project's engine."""
+    spec = os.environ.get("LIGHTFIELD_ENGINE", DEFAULT_ENGINE)
+    module, _, name = spec.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def _user_error_types() -> tuple[type[BaseException], ...]:
+    """Errors caused by the job's input: recorded with their code, never retried."""
+    types: list[type[BaseException]] = []
+    for module, name in (("core.io.limits", "MediaError"), ("core.engine.capture", "CaptureError"),
+                         ("core.camera", "CameraError"), ("core.priors.base", "PriorError")):
+        try:
+            types.append(getattr(importlib.import_module(module), name))
+        except (ImportError, AttributeError):
+            continue
+    return tuple(types)
+
+
+def _cancelled_type() -> type[BaseException]:
+    for module in ("core.engine.distill", "core.engine.progress"):
+        try:
+            return getattr(importlib.import_module(module), "Cancelled")
+        except (ImportError, AttributeError):
+            continue
+    raise ImportError("core.engine.progress.Cancelled is missing")
+
+
+def error_code_of(exc: BaseException) -> str:
+    code = getattr(exc, "code", None)
+    if isinstance(code, str) and code:
+        return code
+    return {"CaptureError": "invalid_capture", "CameraError": "invalid_camera",
+            "PriorError": "prior_unavailable"}.get(type(exc).__name__, "invalid_input")
+
+
+@dataclass
+class JobRunner:
+    store: JobStore
+    settings: ServiceSettings
+    prior_provider: Callable[[str, str | None], object] | None = None
+
+    def run(self, job_id: str) -> Outcome:
+        record = self.store.get(job_id)
+        if record is None or record.is_terminal:
+            return Outcome.SKIPPED
+        if self.store.cancel_requested(job_id) and record.state == "queued":
+            self.store.update(job_id, allowed=("queued",), state="cancelled", finished_at=time.time())
+            return Outcome.SKIPPED
+        lease = RunLease(self.store, job_id, self.settings.lease_ttl_s)
+        if not lease.acquire():
+            return Outcome.REQUEUE
+        with lease:
+            record = self.store.get(job_id)  # re-read under the lease
+            if record is None or record.is_terminal:
+                return Outcome.SKIPPED
+            return self._run_leased(record, lease)
+
+    def _run_leased(self, record, lease: RunLease) -> Outcome:
+        job_id = record.id
+        paths = JobPaths.for_job(self.settings.data_dir, record.tenant_hash, job_id)
+        resumed = paths.checkpoint_dir.is_dir() and any(paths.checkpoint_dir.iterdir())
+        started = self.store.update(
+            job_id, allowed=("queued", "running"), state="running", attempts=record.attempts + 1,
+            started_at=record.started_at or time.time(), resumed=record.resumed or resumed,
+            stage="starting", message="resuming from checkpoint" if resumed else "",
+        )
+        if not started:
+            return Outcome.SKIPPED
+        log.info("job %s: run %d%s", job_id, record.attempts + 1, " (resuming)" if resumed else "")
+
+        cancelled_type = _cancelled_type()
+        user_errors = _user_error_types()
+        try:
+            relative = self._relative_artefact(self._call_engine(record, paths, lease), paths)
+        except cancelled_type:
+            if lease.lost.is_set():
+                return Outcome.ABANDONED
+            self.store.update(job_id, allowed=("running",), state="cancelled", finished_at=time.time(),
+                              stage="cancelled", eta_s=None)
+            paths.remove_all()
+            return Outcome.CANCELLED
+        except user_errors as exc:
+            self._fail(record, paths, error_code_of(exc), str(exc))
+            return Outcome.FAILED
+        except Exception as exc:  # the engine broke: log it, tell the user without internals
+            log.exception("job %s: engine error", job_id)
+            self._fail(record, paths, "engine_error", f"the estimation failed ({type(exc).__name__}); see worker logs")
+            return Outcome.FAILED
+
+        if lease.lost.is_set():
+            return Outcome.ABANDONED
+        self.store.update(job_id, allowed=("running",), state="succeeded", progress=1.0, stage="done",
+                          eta_s=0.0, artefact=relative, finished_at=time.time())
+        paths.remove_uploads()
+        shutil.rmtree(paths.checkpoint_dir, ignore_errors=True)
+        return Outcome.SUCCEEDED
+
+    def _call_engine(self, record, paths: JobPaths, lease: RunLease) -> Path:
+        from core.engine.params import JobParams
+        from core.io.limits import MediaLimits
+
+        params = JobParams.model_validate_json(record.params or "{}")
+        run_job = engine_entrypoint()
+        paths.job_dir.mkdir(parents=True, exist_ok=True)
+        kwargs = dict(
+            progress=self._progress_writer(record.id),
+            should_cancel=lambda: lease.lost.is_set() or self.store.cancel_requested(record.id),
+            checkpoint_dir=paths.checkpoint_dir,
+        )
+        accepted = inspect.signature(run_job).parameters
+        if "limits" in accepted:
+            kwargs["limits"] = MediaLimits.from_env()
+        if self.settings.distill_overrides and "config" in accepted:
+            from core.engine.config import preset
+
+            kwargs["config"] = preset(params.preset, **self.settings.distill_overrides)
+        # Only weight-loading priors are worth keeping across jobs; the engine builds cheap
+        # ones itself with its preset's settings.
+        if self.prior_provider is not None and params.prior == "diffusion" and "prior" in accepted:
+            kwargs["prior"] = self.prior_provider(params.prior, params.prior_weights)
+        depth = paths.upload_dir / record.depth_file if record.depth_file else None
+        return Path(run_job(paths.upload_dir / record.input_file, depth, params, paths.artefact_dir, **kwargs))
+
+    def _progress_writer(self, job_id: str):
+        last = {"t": 0.0, "stage": None}
+
+        def write(p) -> None:
+            now = time.monotonic()
+            if p.stage == last["stage"] and now - last["t"] < PROGRESS_MIN_INTERVAL_S:
+                return
+            last["t"], last["stage"] = now, p.stage
+            self.store.update(
+                job_id, allowed=("running",), progress=min(max(float(p.fraction), 0.0), 1.0), stage=p.stage,
+                iteration=int(p.iteration), total=int(p.total), loss=p.loss, eta_s=p.eta_s,
+                message=getattr(p, "message", "") or "",
+            )
+
+        return write
+
+    def _fail(self, record, paths: JobPaths, code: str, message: str) -> None:
+        self.store.update(record.id, allowed=("running",), state="failed", error_code=code,
+                          error_message=message[:2000], finished_at=time.time(), eta_s=None)
+        paths.remove_all()
+
+    def _relative_artefact(self, artefact: Path, paths: JobPaths) -> str:
+        """The engine's returned directory, checked to lie inside this job's area."""
+        resolved = artefact.resolve()
+        if not resolved.is_relative_to(paths.job_dir.resolve()):
+            raise RuntimeError(f"engine wrote its artefact outside the job area: {artefact}")
+        return str(resolved.relative_to(Path(self.settings.data_dir).resolve()))
