@@ -1,0 +1,97 @@
+"""Distillation settings and the three presets (draft / standard / paper).
+
+`paper` is the paper's §3.2 setup (GPU): MLP 6x256, N = 9 probes, ev 0 -> -5, tau_min
+annealed 1 -> 0, k = ceil(10 tau), guidance 12.5, Adam + warm-up + cosine LR, grad clipping.
+`draft` and `standard` keep the same loop but cut what CPU time pays for: the working frame
+resolution (the ball is 1/4 of the frame, so this is the ball resolution), iterations, and a
+lighter field (the trunk: the (x, t) trunk runs once per ball, only the small direction head
+runs per ball pixel). Wall times are measured by `bench/presets.py`, not promised here.
+"""
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from core.conventions import DEFAULT_EV_MIN
+
+
+class DistillConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = "custom"
+    iterations: int = Field(300, ge=1)
+    n_probes: int = Field(9, ge=1, le=64)
+    work_height: int = Field(96, ge=16, description="frames are area-downsampled to this height")
+    supersample: int = Field(1, ge=1, le=8, description="ball samples per pixel side (>= 8 across tiny balls anyway)")
+    ball_diameter_fraction: float = Field(0.25, gt=0, le=1.0)
+    # Probe depth: uniform in [lo, hi] x scene depth at the pixel, i.e. strictly in front of
+    # the surface; see distill.sample_probes for the near-plane guard.
+    probe_depth_fraction: tuple[float, float] = (0.5, 0.95)
+    ev_min: float = Field(DEFAULT_EV_MIN, le=0.0)
+    ev_sweep_fraction: float = Field(1.0, gt=0, le=1.0, description="ev reaches ev_min after this fraction of steps")
+    guidance_scale: float = 12.5
+    tau_max: float = 1.0
+    lr: float = Field(5e-3, gt=0)
+    lr_min_ratio: float = Field(0.05, ge=0, le=1)
+    warmup_steps: int = Field(20, ge=0)
+    grad_clip: float = Field(1.0, gt=0)
+    adam_betas: tuple[float, float] = (0.9, 0.99)
+    l2_weight: float = Field(1.0, ge=0)
+    perceptual_weight: float = Field(0.1, ge=0)
+    field_kind: Literal["mlp", "grid", "trunk"] = "trunk"
+    field_width: int | None = Field(None, ge=4, description="override the field's hidden width")
+    field_layers: int | None = Field(None, ge=1, description="override the field's depth")
+    # Per-step tensors are small (a few thousand ball samples): intra-op threads cost more in
+    # synchronisation than they gain, and are disastrous on a shared, oversubscribed machine.
+    threads: int | None = Field(1, ge=1, description="torch intra-op threads during distillation (None: leave as is)")
+    checkpoint_every: int = Field(100, ge=1)
+    prior_env_height: int = Field(32, ge=8, description="reprojection prior's splat resolution")
+    output_env_height: int = Field(32, ge=4, description="height of the preview env maps saved with the artefact")
+
+    # ------------------------------------------------------------------ schedules
+    def ev_at(self, step: int) -> float:
+        """Linear sweep 0 -> ev_min over the first ev_sweep_fraction of the steps."""
+        span = max(1, round(self.iterations * self.ev_sweep_fraction) - 1)
+        return self.ev_min * min(1.0, step / span)
+
+    def tau_min_at(self, step: int) -> float:
+        """tau_min annealed linearly 1 -> 0 over training (tau ~ U[tau_min, tau_max])."""
+        return max(0.0, 1.0 - step / max(1, self.iterations - 1))
+
+    @staticmethod
+    def steps_for_tau(tau: float) -> int:
+        return max(1, math.ceil(10.0 * tau))
+
+    def lr_at(self, step: int) -> float:
+        """Linear warm-up then cosine decay to lr * lr_min_ratio."""
+        if step < self.warmup_steps:
+            return self.lr * (step + 1) / self.warmup_steps
+        span = max(1, self.iterations - self.warmup_steps)
+        p = min(1.0, (step - self.warmup_steps) / span)
+        lo = self.lr * self.lr_min_ratio
+        return lo + 0.5 * (self.lr - lo) * (1.0 + math.cos(math.pi * p))
+
+
+PRESETS: dict[str, DistillConfig] = {
+    # CPU: ~1 min for a 20-frame 192x144 clip on 2 cores (bench/presets.py)
+    "draft": DistillConfig(name="draft", iterations=200, n_probes=9, work_height=72, lr=1e-2,
+                           warmup_steps=10, field_kind="trunk", checkpoint_every=50,
+                           prior_env_height=24, output_env_height=32),
+    # CPU: a 100-frame 320x240 clip in a few minutes
+    "standard": DistillConfig(name="standard", iterations=600, n_probes=9, work_height=120, lr=5e-3,
+                              warmup_steps=30, field_kind="trunk", checkpoint_every=100,
+                              prior_env_height=32, output_env_height=64),
+    # The paper's settings (GPU): full resolution ball crops, MLP 6 x 256
+    "paper": DistillConfig(name="paper", iterations=3000, n_probes=9, work_height=512, supersample=2,
+                           lr=1e-3, warmup_steps=100, field_kind="mlp", checkpoint_every=250,
+                           prior_env_height=64, output_env_height=128, threads=None),
+}
+
+
+def preset(name: str, **overrides) -> DistillConfig:
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    cfg = PRESETS[name]
+    return DistillConfig.model_validate({**cfg.model_dump(), **overrides}) if overrides else cfg

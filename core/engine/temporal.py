@@ -1,0 +1,127 @@
+"""Does the lighting change over time? Decide whether the light field gets a time input.
+
+Statistic (documented in docs/engine.md):
+1. Linearise frames (inverse tone map) and take luminance. With a moving camera, warp every
+   frame into the reference frame 0 with depth and poses (pixels that leave the view or fail
+   a 5 % depth-consistency test are dropped), so only co-visible surfaces are compared.
+2. Drop clipped (LDR >= 0.99) and near-black (LDR < 0.02) pixels, which carry no ratio.
+3. Average linear luminance in a coarse grid of blocks (BLOCKS_Y x BLOCKS_X) per frame and take
+   logs: l[t, b]. Block averaging suppresses sensor noise and block-compression artefacts.
+4. Deviation e[t] = mean over blocks of |l[t, b] - median_t l[t, b]|: how far frame t's
+   lighting is from the clip's typical lighting, on average over the image. A local lamp that
+   switches changes many blocks by a large factor; a small moving object changes few.
+   statistic = max_t e[t].
+5. Noise floor sigma = 1.4826 * MAD of consecutive block differences / sqrt(2) (a step change
+   happens at few frame pairs, so the MAD ignores it). threshold = max(ABS_FLOOR, K_SIGMA * sigma).
+uses_time = statistic > threshold.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+
+from core.conventions import inverse_tonemap, valid_depth_mask
+
+BLOCKS_Y, BLOCKS_X = 6, 8
+ABS_FLOOR = math.log(1.08)  # an 8 % mean change over the image is the smallest we call "lighting"
+K_SIGMA = 4.0
+CLIP_HI, DARK_LO = 0.99, 0.02
+ANALYSIS_HEIGHT = 72  # frames are area-downsampled to this height first (speed, noise)
+MIN_BLOCK_FRACTION = 0.2
+
+
+@dataclass(frozen=True)
+class TemporalDecision:
+    uses_time: bool
+    statistic: float
+    threshold: float
+    reason: str
+    mode: str = "auto"
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def _luminance(rgb: torch.Tensor) -> torch.Tensor:
+    return 0.2126 * rgb[..., 0] + 0.7152 * rgb[..., 1] + 0.0722 * rgb[..., 2]
+
+
+def _warp_to_reference(capture, frames: torch.Tensor, depth: torch.Tensor, intr) -> tuple[torch.Tensor, torch.Tensor]:
+    """Warp frames [T,h,w,3] into frame 0's view; returns (warped, valid [T,h,w])."""
+    from core.camera import Camera
+
+    T, h, w, _ = frames.shape
+    cam0 = Camera(intr, capture.poses[0])
+    pts = cam0.unproject(depth[0].double())  # [h, w, 3], NaN where invalid
+    ok0 = torch.isfinite(pts).all(-1)
+    warped, valid = [frames[0]], [ok0]
+    for i in range(1, T):
+        cam = Camera(intr, capture.poses[i])
+        u, v, z = cam.project(torch.nan_to_num(pts))
+        gx = (u / w) * 2 - 1
+        gy = (v / h) * 2 - 1
+        grid = torch.stack((gx, gy), -1).float()[None]
+        img = F.grid_sample(frames[i].permute(2, 0, 1)[None], grid, mode="bilinear", align_corners=False)[0]
+        dz = F.grid_sample(depth[i][None, None].nan_to_num(0.0), grid, mode="nearest", align_corners=False)[0, 0]
+        ok = ok0 & (z > 0) & (gx.abs() <= 1) & (gy.abs() <= 1) & ((dz.double() - z).abs() <= 0.05 * z)
+        warped.append(img.permute(1, 2, 0))
+        valid.append(ok)
+    return torch.stack(warped), torch.stack(valid)
+
+
+def block_log_luminance(capture) -> torch.Tensor:
+    """[T, B] log mean linear luminance per block (NaN where a block has too few usable pixels)."""
+    small = capture.resized(ANALYSIS_HEIGHT)
+    frames, depth = small.frames, small.depth
+    T, h, w, _ = frames.shape
+    if capture.static_camera:
+        covis = torch.ones(T, h, w, dtype=torch.bool)
+    else:
+        frames, covis = _warp_to_reference(capture, frames, torch.where(valid_depth_mask(depth), depth, torch.nan), small.intrinsics)
+    usable = covis & (frames.amax(-1) < CLIP_HI) & (frames.amax(-1) >= DARK_LO)
+    lum = _luminance(inverse_tonemap(frames))
+    num = F.adaptive_avg_pool2d(torch.where(usable, lum, 0.0)[:, None], (BLOCKS_Y, BLOCKS_X))
+    cnt = F.adaptive_avg_pool2d(usable.float()[:, None], (BLOCKS_Y, BLOCKS_X))
+    mean = num / cnt.clamp_min(1e-12)
+    out = torch.log(mean.clamp_min(1e-8))
+    out = torch.where(cnt >= MIN_BLOCK_FRACTION, out, torch.full_like(out, float("nan")))
+    return out.reshape(T, -1)
+
+
+def detect_temporal(capture) -> TemporalDecision:
+    """Automatic decision (see module docstring)."""
+    T = capture.num_frames
+    if T < 2:
+        return TemporalDecision(False, 0.0, 0.0, "single frame: no time input")
+    l = block_log_luminance(capture)  # [T, B]
+    keep = torch.isfinite(l).all(0)  # blocks usable in every frame
+    if int(keep.sum()) == 0:
+        return TemporalDecision(False, float("nan"), float("nan"),
+                                "no image block is usable in every frame (saturated/dark/occluded): assuming static lighting")
+    l = l[:, keep].double()
+    dev = (l - l.median(dim=0).values).abs().mean(dim=1)  # [T]
+    stat = float(dev.max())
+    diffs = (l[1:] - l[:-1]).flatten()
+    sigma = float(1.4826 * (diffs - diffs.median()).abs().median() / math.sqrt(2.0))
+    thr = max(ABS_FLOOR, K_SIGMA * sigma)
+    worst = int(dev.argmax())
+    uses = stat > thr
+    verb = "changes" if uses else "is stable"
+    reason = (f"lighting {verb}: max mean |log-luminance deviation| {stat:.3f} at frame {worst} vs threshold "
+              f"{thr:.3f} (noise sigma {sigma:.4f}, {int(keep.sum())} blocks"
+              f"{', camera motion compensated' if not capture.static_camera else ''})")
+    return TemporalDecision(uses, stat, thr, reason)
+
+
+def decide_temporal(capture, mode: str = "auto") -> TemporalDecision:
+    """Apply the user's override: 'on' / 'off' force the answer but still record the evidence."""
+    if mode not in ("auto", "on", "off"):
+        raise ValueError(f"temporal must be 'auto', 'on' or 'off', got {mode!r}")
+    auto = detect_temporal(capture)
+    if mode == "auto" or capture.num_frames < 2:
+        return TemporalDecision(auto.uses_time, auto.statistic, auto.threshold, auto.reason, mode)
+    forced = mode == "on"
+    return TemporalDecision(forced, auto.statistic, auto.threshold, f"forced {mode} by user; auto would say: {auto.reason}", mode)

@@ -1,0 +1,154 @@
+"""ReprojectionPrior: the embedded, weights-free default prior (a CLASSICAL BASELINE).
+
+It answers "what would a chrome ball at c show?" from the frame itself:
+
+1. Linearise the frame with the inverse tone map (at ev 0, the capture's exposure). A
+   clipped pixel (any channel >= CLIP_LDR) only says "at least white"; light sources are
+   what clips, so its radiance is multiplied by CLIP_BOOST (a documented, conservative
+   guess: real sources are often 10-1000x brighter, which no LDR frame can tell us).
+2. Unproject the frame with its depth into a coloured point cloud. The geometry is computed
+   once per distinct (pose, depth) — once in total for a static camera with static depth;
+   colours come from the requested frame, so lighting changes over time are followed.
+3. For each probe centre, splat the points into an equirect env map (ENV height from the
+   config) with a depth test: per env pixel only points within Z_TOLERANCE of the nearest
+   distance contribute (a z-buffer by distance from the probe), averaged.
+4. Fill directions the frame never observed by push-pull: average-pool the observed pixels
+   down a pyramid, then fill each hole from the next coarser level. This is a smooth
+   extrapolation of what was seen (e.g. the room behind the camera gets the average colour
+   of the nearby walls, floor and ceiling). No light is invented.
+5. Render the balls under those env maps (core.chrome_ball, probe-centre lookup) and tone
+   map at request.ev; pixels outside the balls are request.image.
+
+Limitations (by design): it cannot know lights outside the view, the true brightness of
+clipped sources, or view-dependent effects; it is the CPU-fast default and a baseline for
+the diffusion prior, not a replacement for it.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from core.conventions import direction_to_equirect_pixel, equirect_width, inverse_tonemap
+from core.priors.base import PriorError, PriorRequest
+from core.priors.known import ball_target
+
+CLIP_LDR = 0.99
+CLIP_BOOST = 8.0
+Z_TOLERANCE = 0.1  # relative: points within 10 % of the nearest distance share a pixel
+MIN_PROBE_DISTANCE = 1e-3  # metres; points closer than this to a probe are skipped
+
+
+def linearise(frames: torch.Tensor, clip_boost: float = CLIP_BOOST) -> torch.Tensor:
+    """LDR [..., 3] -> linear radiance (ev 0) with clipped pixels boosted by `clip_boost`."""
+    lin = inverse_tonemap(frames.clamp(0, 1))
+    clipped = frames.amax(dim=-1, keepdim=True) >= CLIP_LDR
+    return torch.where(clipped, lin * clip_boost, lin)
+
+
+def push_pull_fill(env: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Fill pixels with weight 0 in env [N, h, w, 3] from coarser averages (push-pull).
+
+    Observed pixels keep their values. With no observed pixel at all the result is 0."""
+    x = env.permute(0, 3, 1, 2)  # [N, 3, h, w]
+    w = weight[:, None].to(x.dtype)
+    levels = [(x, w)]
+    while min(x.shape[-2:]) > 1:
+        num = F.avg_pool2d(x * w, 2, ceil_mode=True)
+        den = F.avg_pool2d(w, 2, ceil_mode=True)
+        x = num / den.clamp_min(1e-12)
+        w = (den > 0).to(x.dtype)
+        levels.append((x, w))
+    filled = levels[-1][0]
+    for x, w in reversed(levels[:-1]):
+        up = F.interpolate(filled, size=x.shape[-2:], mode="bilinear", align_corners=False)
+        filled = torch.where(w > 0, x, up)
+    return filled.permute(0, 2, 3, 1).contiguous()
+
+
+class ReprojectionPrior:
+    name = "reprojection"
+
+    def __init__(self, env_height: int = 32, clip_boost: float = CLIP_BOOST):
+        if env_height < 4:
+            raise PriorError(f"env_height must be >= 4, got {env_height}")
+        self.env_height = int(env_height)
+        self.clip_boost = float(clip_boost)
+        self._capture = None
+        self._colors: torch.Tensor | None = None
+        self._points: dict[int, torch.Tensor] = {}
+        self._geometry_key: list[int] = []
+        self.point_cloud_builds = 0  # how many times geometry was unprojected (reported)
+
+    # ------------------------------------------------------------------ per capture
+    def bind(self, capture) -> None:
+        """Linearise all frames once and work out which frames share geometry."""
+        self._capture = capture
+        self._colors = linearise(capture.frames, self.clip_boost)
+        self._points = {}
+        self.point_cloud_builds = 0
+        # frames with the same pose and the same depth share one point cloud
+        key: list[int] = []
+        for i in range(capture.num_frames):
+            owner = i
+            for j in sorted(set(key)):
+                if torch.equal(capture.poses[i], capture.poses[j]) and torch.equal(
+                    torch.nan_to_num(capture.depth[i], nan=-1.0), torch.nan_to_num(capture.depth[j], nan=-1.0)
+                ):
+                    owner = j
+                    break
+            key.append(owner)
+        self._geometry_key = key
+
+    def points(self, frame_index: int) -> torch.Tensor:
+        """World points [H*W, 3] of a frame (NaN rows where depth is invalid), cached."""
+        owner = self._geometry_key[frame_index]
+        if owner not in self._points:
+            self._points[owner] = self._capture.camera(owner).unproject(self._capture.depth[owner].float()).reshape(-1, 3)
+            self.point_cloud_builds += 1
+        return self._points[owner]
+
+    # ------------------------------------------------------------------ per request
+    def envmaps(self, centers: torch.Tensor, frame_index: int) -> torch.Tensor:
+        """HDR env maps [N, h, 2h, 3] seen from `centers` [N, 3] in frame `frame_index`."""
+        if self._capture is None:
+            raise PriorError("ReprojectionPrior.bind(capture) must be called before use")
+        pts = self.points(frame_index)
+        col = self._colors[frame_index].reshape(-1, 3)
+        ok = torch.isfinite(pts).all(-1)
+        pts, col = pts[ok], col[ok]
+        h, w = self.env_height, equirect_width(self.env_height)
+        n = centers.shape[0]
+        rel = pts[None, :, :] - centers[:, None, :].to(pts.dtype)  # [N, P, 3]
+        dist = rel.norm(dim=-1)
+        row, colf = direction_to_equirect_pixel(rel, h)
+        r = row.round().long().clamp(0, h - 1)
+        c = colf.round().long().remainder(w)
+        keep = dist > MIN_PROBE_DISTANCE
+        key = (torch.arange(n)[:, None] * (h * w) + r * w + c)[keep]
+        dist_k = dist[keep]
+        col_k = col[None].expand(n, -1, 3)[keep]
+        nearest = torch.full((n * h * w,), float("inf"), dtype=dist.dtype).scatter_reduce(0, key, dist_k, reduce="amin")
+        front = dist_k <= nearest[key] * (1.0 + Z_TOLERANCE)
+        key, col_k = key[front], col_k[front]
+        acc = torch.zeros(n * h * w, 3, dtype=col.dtype).index_add(0, key, col_k)
+        cnt = torch.zeros(n * h * w, dtype=col.dtype).index_add(0, key, torch.ones_like(key, dtype=col.dtype))
+        env = (acc / cnt.clamp_min(1.0)[:, None]).reshape(n, h, w, 3)
+        return push_pull_fill(env, (cnt > 0).reshape(n, h, w))
+
+    def __call__(self, request: PriorRequest) -> torch.Tensor:
+        p = request.probes
+        with torch.no_grad():
+            env = self.envmaps(torch.as_tensor(p.centers, dtype=torch.float32), int(p.frame_index))
+        return ball_target(request, env)
+
+    def describe(self) -> dict:
+        return {
+            "name": self.name,
+            "kind": "classical reprojection baseline (no weights; cannot invent out-of-view lights)",
+            "env_height": self.env_height,
+            "clip_ldr": CLIP_LDR,
+            "clip_boost": self.clip_boost,
+            "z_tolerance": Z_TOLERANCE,
+            "hole_fill": "push-pull pyramid in the equirect domain",
+            "point_cloud_builds": self.point_cloud_builds,
+        }
