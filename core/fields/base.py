@@ -1,0 +1,129 @@
+"""LightField: the common shell of every field kind.
+
+A field answers L(x, t, d) in world units: it owns its `SceneBounds` (mirrored as buffers so
+a saved state dict is self-contained) and maps inputs to normalised coordinates before the
+kind-specific network sees them. Subclasses implement `logits(xn, tn, d) -> z [B, 3]` and
+the shell turns z into radiance with the bounded log-space activation of `FieldConfig`.
+
+Hard inputs, by design:
+* non-finite x / t are replaced by the box centre / capture start, and normalised positions
+  and times are clamped to [-1, 1]: a query outside the box is answered as at the nearest
+  point of the box (callers flag it via `SceneBounds.contains*`), so no input can produce an
+  unbounded encoding;
+* d is re-normalised; a zero or non-finite d becomes +y (any direction is as good);
+* radiance = exp(lo + (hi - lo) sigmoid(z)) is always finite and positive.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from core.conventions import equirect_directions, equirect_width
+from core.fields.config import FieldConfig
+from core.fields.normalization import SceneBounds
+
+# Rows per forward call in `envmaps`: bounds peak memory (the paper MLP keeps ~7 activations
+# of width 256 per row: 2^16 rows ~ 0.5 GB in training mode, far less under inference_mode).
+DEFAULT_CHUNK_ROWS = 1 << 16
+
+
+class LightField(nn.Module):
+    def __init__(self, config: FieldConfig, bounds: SceneBounds):
+        super().__init__()
+        self.config = config
+        self.bounds = bounds
+        self.register_buffer("bounds_lo", torch.tensor(bounds.lo, dtype=torch.float32))
+        self.register_buffer("bounds_hi", torch.tensor(bounds.hi, dtype=torch.float32))
+        self.register_buffer("time_range", torch.tensor([bounds.t0, bounds.t1], dtype=torch.float32))
+
+    @property
+    def uses_time(self) -> bool:
+        return self.config.uses_time
+
+    # ------------------------------------------------------------------ input handling
+    def normalize_inputs(self, x: torch.Tensor, t: torch.Tensor | None, d: torch.Tensor):
+        """World inputs -> (xn [B,3] in [-1,1], tn [B,1] in [-1,1] or None, unit d [B,3])."""
+        x = x.to(self.bounds_lo.dtype)
+        centre = 0.5 * (self.bounds_lo + self.bounds_hi)
+        x = torch.where(torch.isfinite(x), x, centre.expand_as(x))
+        xn = (2.0 * (x - self.bounds_lo) / (self.bounds_hi - self.bounds_lo) - 1.0).clamp(-1.0, 1.0)
+        tn = None
+        if self.uses_time:
+            if t is None:
+                raise ValueError("t is required: this field has a time input (config.uses_time=True)")
+            t = torch.as_tensor(t, dtype=xn.dtype, device=xn.device).reshape(-1)
+            if t.numel() == 1 and xn.shape[0] != 1:
+                t = t.expand(xn.shape[0])
+            if t.shape[0] != xn.shape[0]:
+                raise ValueError(f"t has {t.shape[0]} entries for {xn.shape[0]} positions")
+            t0, t1 = self.time_range[0], self.time_range[1]
+            t = torch.where(torch.isfinite(t), t, t0)
+            span = (t1 - t0).clamp_min(1e-12)
+            tn = torch.where(t1 > t0, 2.0 * (t - t0) / span - 1.0, torch.zeros_like(t)).clamp(-1.0, 1.0)[:, None]
+        return xn, tn, unit_directions(d.to(xn.dtype))
+
+    def activate(self, z: torch.Tensor) -> torch.Tensor:
+        lo, hi = self.config.log_radiance_min, self.config.log_radiance_max
+        return torch.exp(lo + (hi - lo) * torch.sigmoid(z))
+
+    def logit_for_radiance(self, radiance: float) -> float:
+        """The z whose activation is `radiance` (for initialising output biases)."""
+        lo, hi = self.config.log_radiance_min, self.config.log_radiance_max
+        s = min(max((math.log(max(radiance, 1e-30)) - lo) / (hi - lo), 1e-6), 1 - 1e-6)
+        return math.log(s / (1 - s))
+
+    # ------------------------------------------------------------------ evaluation
+    def logits(self, xn: torch.Tensor, tn: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
+        """x [B,3] world metres, t [B] seconds (ignored when uses_time=False), d [B,3] -> [B,3] > 0."""
+        xn, tn, d = self.normalize_inputs(x, t, d)
+        return self.activate(self.logits(xn, tn, d))
+
+    def envmaps(
+        self, xs: torch.Tensor, ts: torch.Tensor | None, height: int, chunk_rows: int = DEFAULT_CHUNK_ROWS
+    ) -> torch.Tensor:
+        """Env maps [P, H, 2H, 3] seen from probes xs [P,3] at times ts [P] (see conventions).
+
+        Generic path: evaluates every (probe, direction) pair in chunks of `chunk_rows`.
+        Kinds with shared per-probe work override `_envmap_logits`.
+        """
+        xs = torch.as_tensor(xs, dtype=torch.float32, device=self.bounds_lo.device).reshape(-1, 3)
+        if ts is not None:
+            ts = torch.as_tensor(ts, dtype=torch.float32, device=xs.device).reshape(-1)
+            if ts.numel() == 1 and xs.shape[0] != 1:
+                ts = ts.expand(xs.shape[0])
+            if ts.shape[0] != xs.shape[0]:
+                raise ValueError(f"ts has {ts.shape[0]} entries for {xs.shape[0]} probe positions")
+        height = int(height)
+        dirs = equirect_directions(height, device=xs.device).reshape(-1, 3)
+        xn, tn, _ = self.normalize_inputs(xs, ts, xs.new_tensor([[0.0, 1.0, 0.0]]).expand_as(xs))
+        z = self._envmap_logits(xn, tn, dirs, chunk_rows)  # [P, N, 3]
+        return self.activate(z).reshape(xs.shape[0], height, equirect_width(height), 3)
+
+    def _envmap_logits(self, xn, tn, dirs, chunk_rows: int) -> torch.Tensor:
+        n_probes, n_dirs = xn.shape[0], dirs.shape[0]
+        out = xn.new_empty(n_probes, n_dirs, 3)
+        probes_per_chunk = max(1, chunk_rows // n_dirs)
+        dirs_per_chunk = min(n_dirs, chunk_rows)
+        for p0 in range(0, n_probes, probes_per_chunk):
+            p1 = min(n_probes, p0 + probes_per_chunk)
+            for k0 in range(0, n_dirs, dirs_per_chunk):
+                k1 = min(n_dirs, k0 + dirs_per_chunk)
+                n_p, n_k = p1 - p0, k1 - k0
+                x_rows = xn[p0:p1, None].expand(n_p, n_k, 3).reshape(-1, 3)
+                t_rows = None if tn is None else tn[p0:p1, None].expand(n_p, n_k, 1).reshape(-1, 1)
+                d_rows = dirs[None, k0:k1].expand(n_p, n_k, 3).reshape(-1, 3)
+                out[p0:p1, k0:k1] = self.logits(x_rows, t_rows, d_rows).reshape(n_p, n_k, 3)
+        return out
+
+
+def unit_directions(d: torch.Tensor) -> torch.Tensor:
+    """Normalise d [B,3]; zero-length or non-finite rows become +y."""
+    d = torch.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0)
+    n = d.norm(dim=-1, keepdim=True)
+    up = torch.tensor([0.0, 1.0, 0.0], dtype=d.dtype, device=d.device).expand_as(d)
+    return torch.where(n > 1e-12, d / n.clamp_min(1e-12), up)

@@ -1,0 +1,94 @@
+"""Input encodings for light fields (pure torch, no custom kernels)."""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+
+class PositionalEncoding(nn.Module):
+    """NeRF positional encoding: [v, sin(2^k pi v), cos(2^k pi v)] for k < n_freqs.
+
+    Inputs are expected in [-1, 1] (normalised coordinates or unit directions), so the
+    lowest frequency spans the whole domain once. Output layout per frequency is
+    [sin(all dims), cos(all dims)]; `out_dim` tells the width. No parameters, so it adds
+    nothing to a state dict.
+    """
+
+    def __init__(self, in_dim: int, n_freqs: int, include_input: bool = True):
+        super().__init__()
+        if in_dim < 1 or n_freqs < 0:
+            raise ValueError(f"PositionalEncoding needs in_dim >= 1 and n_freqs >= 0, got {in_dim}, {n_freqs}")
+        self.in_dim = in_dim
+        self.n_freqs = n_freqs
+        self.include_input = include_input
+        scales = math.pi * 2.0 ** torch.arange(n_freqs, dtype=torch.float32)
+        self.register_buffer("scales", scales, persistent=False)
+
+    @property
+    def out_dim(self) -> int:
+        return self.in_dim * (2 * self.n_freqs + int(self.include_input))
+
+    def forward(self, v: torch.Tensor) -> torch.Tensor:
+        parts = [v] if self.include_input else []
+        if self.n_freqs:
+            arg = (v[..., None, :] * self.scales.to(v.dtype)[:, None]).flatten(-2)  # [..., F*D]
+            parts += [torch.sin(arg), torch.cos(arg)]
+        if not parts:
+            return v.new_zeros(*v.shape[:-1], 0)
+        return torch.cat(parts, dim=-1)
+
+
+class DenseGridEncoding(nn.Module):
+    """Learnable feature grid over [-1, 1]^D (D = 3 or 4), interpolated (tri/quadri)linearly.
+
+    A cheap, smooth alternative to a hash grid at the resolutions a room's lighting needs
+    (lighting varies slowly in space). Inputs outside [-1, 1] are clamped to the border.
+    Features start small (uniform +-1e-2) so the MLP on top dominates early training.
+    """
+
+    def __init__(self, resolution: tuple[int, ...], features: int):
+        super().__init__()
+        if len(resolution) not in (3, 4) or min(resolution) < 2:
+            raise ValueError(f"DenseGridEncoding resolution must be 3 or 4 sizes >= 2, got {resolution}")
+        self.resolution = tuple(int(r) for r in resolution)
+        self.features = int(features)
+        self.grid = nn.Parameter(torch.empty(*self.resolution, self.features).uniform_(-1e-2, 1e-2))
+
+    @property
+    def out_dim(self) -> int:
+        return self.features
+
+    def forward(self, v: torch.Tensor) -> torch.Tensor:
+        return multilinear_lookup(self.grid, v)
+
+
+def lattice_corners(v: torch.Tensor, dims: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Multilinear interpolation stencil on a lattice spanning [-1, 1]^D.
+
+    v [B, D] (clamped to [-1, 1]); lattice node r of axis a sits at -1 + 2 r / (dims[a] - 1),
+    so the lattice corners are the domain corners. Returns (flat row-major node index
+    [B, 2^D] long, weight [B, 2^D]); weights are >= 0 and sum to 1.
+    """
+    n_axes = len(dims)
+    size = torch.tensor(dims, device=v.device, dtype=v.dtype)
+    pos = (v.clamp(-1.0, 1.0) + 1.0) * 0.5 * (size - 1)  # [B, D] in [0, R-1]
+    i0 = torch.minimum(pos.floor(), size - 2)  # keep i0 + 1 in range at the upper border
+    frac = pos - i0
+    i0 = i0.long()
+    strides = [1] * n_axes
+    for a in range(n_axes - 2, -1, -1):
+        strides[a] = strides[a + 1] * dims[a + 1]
+    bits = torch.tensor([[(c >> a) & 1 for a in range(n_axes)] for c in range(2**n_axes)], device=v.device)  # [C, D]
+    stride = torch.tensor(strides, device=v.device)
+    index = ((i0[:, None, :] + bits[None]) * stride).sum(-1)  # [B, C]
+    weight = torch.where(bits[None].bool(), frac[:, None, :], 1.0 - frac[:, None, :]).prod(-1)  # [B, C]
+    return index, weight
+
+
+def multilinear_lookup(grid: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Interpolate grid [R0, .., R(D-1), C] at points v [B, D] in [-1, 1] (clamped) -> [B, C]."""
+    index, weight = lattice_corners(v, tuple(grid.shape[:-1]))
+    flat = grid.reshape(-1, grid.shape[-1])
+    return (weight[..., None] * flat[index]).sum(1)

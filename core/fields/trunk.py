@@ -1,0 +1,66 @@
+"""A faster field: a position/time trunk and a light-direction head.
+
+trunk(PE(xn), PE(tn)) -> feature f (per probe); head(f, PE(d)) -> 3 logits (per direction).
+An env map needs the trunk ONCE per probe, and the head's first layer is split as
+W [f, PE(d)] = W_f f + W_d PE(d), so per direction only the (small) head runs on a sum of a
+per-probe and a per-direction term. The head is narrow (64 by default) because lighting
+is mostly a function of direction with a slowly varying spatial modulation.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from core.fields.base import LightField
+from core.fields.config import FieldConfig
+from core.fields.encodings import PositionalEncoding
+from core.fields.normalization import SceneBounds
+
+INITIAL_RADIANCE = 1.0
+OUTPUT_WEIGHT_SCALE = 0.1
+
+
+class TrunkField(LightField):
+    def __init__(self, config: FieldConfig, bounds: SceneBounds):
+        super().__init__(config, bounds)
+        s = config.trunk
+        self.pe_x = PositionalEncoding(3, s.x_freqs)
+        self.pe_t = PositionalEncoding(1, s.t_freqs) if config.uses_time else None
+        self.pe_d = PositionalEncoding(3, s.d_freqs)
+        trunk_in = self.pe_x.out_dim + (self.pe_t.out_dim if self.pe_t else 0)
+        self.trunk = _relu_mlp(trunk_in, s.trunk_width, s.trunk_layers, s.feature_dim)
+        self.head_in = nn.Linear(s.feature_dim + self.pe_d.out_dim, s.head_width)
+        self.head = _relu_mlp(s.head_width, s.head_width, s.head_layers - 1, 3, relu_input=True)
+        last = self.head[-1]
+        with torch.no_grad():
+            last.weight.mul_(OUTPUT_WEIGHT_SCALE)
+            last.bias.fill_(self.logit_for_radiance(INITIAL_RADIANCE))
+
+    def features(self, xn: torch.Tensor, tn: torch.Tensor | None) -> torch.Tensor:
+        parts = [self.pe_x(xn)] + ([self.pe_t(tn)] if self.pe_t is not None else [])
+        return self.trunk(torch.cat(parts, dim=-1))
+
+    def logits(self, xn, tn, d):
+        return self.head(self.head_in(torch.cat((self.features(xn, tn), self.pe_d(d)), dim=-1)))
+
+    def _envmap_logits(self, xn, tn, dirs, chunk_rows: int) -> torch.Tensor:
+        f_dim = self.config.trunk.feature_dim
+        w, b = self.head_in.weight, self.head_in.bias
+        per_probe = self.features(xn, tn) @ w[:, :f_dim].T + b  # [P, head_width]
+        per_dir = self.pe_d(dirs) @ w[:, f_dim:].T  # [N, head_width]
+        out = xn.new_empty(xn.shape[0], dirs.shape[0], 3)
+        step = max(1, chunk_rows // dirs.shape[0])
+        for p0 in range(0, xn.shape[0], step):
+            out[p0 : p0 + step] = self.head(per_probe[p0 : p0 + step, None] + per_dir[None])
+        return out
+
+
+def _relu_mlp(n_in: int, width: int, hidden: int, n_out: int, relu_input: bool = False) -> nn.Sequential:
+    """[ReLU] -> hidden x (Linear, ReLU) -> Linear. With hidden = 0 it is ([ReLU,] Linear)."""
+    mods: list[nn.Module] = [nn.ReLU()] if relu_input else []
+    fan_in = n_in
+    for _ in range(hidden):
+        mods += [nn.Linear(fan_in, width), nn.ReLU()]
+        fan_in = width
+    mods.append(nn.Linear(fan_in, n_out))
+    return nn.Sequential(*mods)
