@@ -19,7 +19,7 @@ import numpy as np
 from core.io.exr import atomic_write, read_exr_channels
 from core.io.images import encode_png16, read_png16
 from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source, read_source
-from core.io.sniff import sniff_depth
+from core.io.sniff import npy_header, sniff_depth
 
 MM_PER_METRE = 1000.0
 _EXR_DEPTH_CHANNELS = ("Z", "depth", "Y", "R")
@@ -36,15 +36,6 @@ def _check_shape(shape: tuple, limits: MediaLimits, what: str) -> None:
         raise MediaError("too_many_pixels", f"{what} shape {shape} exceeds max_total_pixels={limits.max_total_pixels}")
 
 
-def _npy_header(fp) -> tuple[tuple, np.dtype]:
-    version = np.lib.format.read_magic(fp)
-    if version == (1, 0):
-        shape, _, dtype = np.lib.format.read_array_header_1_0(fp)
-    else:  # 2.0 and 3.0 share the 4-byte header length (3.0 only allows utf-8 field names)
-        shape, _, dtype = np.lib.format.read_array_header_2_0(fp)
-    return shape, dtype
-
-
 def _check_array_header(shape: tuple, dtype: np.dtype, limits: MediaLimits, what: str) -> None:
     if dtype.hasobject or not (np.issubdtype(dtype, np.floating) or np.issubdtype(dtype, np.integer)):
         raise MediaError("invalid_depth", f"{what} must be a real-valued float or integer array, got dtype {dtype}")
@@ -59,7 +50,7 @@ def _load_npz(data: bytes, limits: MediaLimits) -> np.ndarray:
                 keys = [n[:-4] if n.endswith(".npy") else n for n in names]
                 raise MediaError("invalid_depth", f".npz must hold exactly one array named 'depth', found {keys}")
             with archive.open("depth.npy") as member:
-                shape, dtype = _npy_header(member)
+                shape, dtype = npy_header(member)
                 _check_array_header(shape, dtype, limits, "depth array")
         with np.load(io.BytesIO(data), allow_pickle=False) as npz:
             return npz["depth"]
@@ -71,7 +62,7 @@ def _load_npz(data: bytes, limits: MediaLimits) -> np.ndarray:
 
 def _load_npy(data: bytes, limits: MediaLimits) -> np.ndarray:
     try:
-        shape, dtype = _npy_header(io.BytesIO(data))
+        shape, dtype = npy_header(io.BytesIO(data))
         _check_array_header(shape, dtype, limits, "depth array")
         return np.load(io.BytesIO(data), allow_pickle=False)
     except MediaError:

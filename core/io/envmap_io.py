@@ -17,7 +17,7 @@ from core.io.exr import atomic_write, encode_exr, read_exr
 from core.io.hdr import encode_hdr, read_hdr
 from core.io.images import encode_png
 from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, read_source
-from core.io.sniff import sniff_hdr_image
+from core.io.sniff import npy_header, sniff_hdr_image
 
 EnvmapFormat = Literal["exr", "hdr", "png", "npy"]
 MEDIA_TYPES: dict[str, str] = {
@@ -77,6 +77,18 @@ def save_envmap(path: str | os.PathLike, hdr: np.ndarray, fmt: EnvmapFormat | No
     return atomic_write(path, data)
 
 
+def _load_npy(data: bytes) -> np.ndarray:
+    try:
+        _, dtype = npy_header(io.BytesIO(data))
+        if dtype.hasobject:
+            raise MediaError("not_media", f".npy env map holds Python objects (dtype {dtype}), not numbers")
+        return np.load(io.BytesIO(data), allow_pickle=False)
+    except MediaError:  # a ValueError too: let it through unchanged
+        raise
+    except (ValueError, EOFError, OSError) as exc:
+        raise MediaError("truncated", f".npy env map is truncated or corrupt ({exc})") from None
+
+
 def load_envmap(source: str | os.PathLike | bytes, limits: MediaLimits = DEFAULT_LIMITS) -> np.ndarray:
     """float32 [H, W, 3] from EXR, Radiance .hdr or .npy, chosen by content, not name."""
     data = read_source(source, limits, "env map")
@@ -86,10 +98,7 @@ def load_envmap(source: str | os.PathLike | bytes, limits: MediaLimits = DEFAULT
     elif kind == "hdr":
         a = read_hdr(data, limits)
     elif kind == "npy":  # uncompressed, so read_source's byte limit bounds the allocation
-        try:
-            a = np.load(io.BytesIO(data), allow_pickle=False)
-        except (ValueError, EOFError, OSError) as exc:
-            raise MediaError("truncated", f".npy env map is truncated, corrupt or holds objects ({exc})") from None
+        a = _load_npy(data)
     else:
         raise MediaError("not_media", "env map must be OpenEXR, Radiance .hdr or .npy")
     a = _check_envmap(a)

@@ -22,7 +22,6 @@ HTTP_STATUS: dict[str, int] = {
     "unsupported_codec": 415,
     "wrong_bit_depth": 422,
     "invalid_depth": 422,
-    "no_frames": 422,
     "too_many_pixels": 413,
     "too_many_frames": 413,
     "too_large": 413,

@@ -1,7 +1,9 @@
 """Identify media by magic bytes, never by file name (names are user-controlled and lie)."""
 from __future__ import annotations
 
-from typing import Literal, Optional
+from typing import BinaryIO, Literal, Optional
+
+import numpy as np
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 EXR_MAGIC = b"\x76\x2f\x31\x01"
@@ -84,3 +86,14 @@ def sniff_hdr_image(data: bytes) -> Literal["exr", "hdr", "npy"] | None:
     if data.startswith(NPY_MAGIC):
         return "npy"
     return None
+
+
+def npy_header(fp: BinaryIO) -> tuple[tuple, np.dtype]:
+    """(shape, dtype) from an .npy stream's header, without reading the array data, so
+    callers can refuse object arrays and oversized shapes before any allocation."""
+    version = np.lib.format.read_magic(fp)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(fp)
+    else:  # 2.0 and 3.0 share the 4-byte header length (3.0 only allows utf-8 field names)
+        shape, _, dtype = np.lib.format.read_array_header_2_0(fp)
+    return tuple(shape), dtype

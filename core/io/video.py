@@ -89,14 +89,17 @@ def _open_container(source: Source, limits: MediaLimits):
 
 
 def _video_stream(container):
-    if not container.streams:  # a container cut before its stream table
-        raise MediaError("truncated", "video container is truncated or corrupt (no streams)")
     if not container.streams.video:
-        raise MediaError("not_media", "file has no video stream")
+        if container.streams.audio:
+            raise MediaError("not_media", "file has audio but no video stream")
+        # a video container cut inside its stream table opens with no or codec-less streams
+        raise MediaError("truncated", "video container is truncated or corrupt (no video stream found)")
     stream = container.streams.video[0]
     if stream.codec_context is None or stream.codec_context.codec is None:
         raise MediaError("unsupported_codec", f"no decoder for video codec {getattr(stream.codec_context, 'name', '?')!r}")
-    stream.thread_type = "AUTO"
+    # Slice threading only: with frame threading, a decode error in a cut file discards the
+    # frames already queued in other threads, so a truncated clip would yield none at all.
+    stream.thread_type = "SLICE"
     return stream
 
 
@@ -125,7 +128,7 @@ def read_video(source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_many
         declared = int(stream.frames or 0)
         frame_count = declared if declared > 0 else _count_packets(source, limits)
         if frame_count <= 0:
-            raise MediaError("no_frames", "video stream has no frames")
+            raise MediaError("truncated", "video stream has no frames (empty, truncated or corrupt file)")
         pixels = (ctx.width * ctx.height) if ctx.width and ctx.height else 1
         wanted = select_frame_indices(frame_count, pixels, limits, on_too_many)
         kept, indices = _decode_selected(container, stream, wanted, limits, warnings)
@@ -138,32 +141,43 @@ def read_video(source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_many
     return VideoFrames(frames, fps, np.asarray(indices, np.int64), frame_count, warnings)
 
 
+def _decoded_frames(container, stream, warnings: list[str]):
+    """Frames in presentation order. A cut or corrupt file ends the demuxing early; the
+    decoder is then flushed so frames it already holds (reordering delay) are not lost."""
+    try:
+        for packet in container.demux(stream):
+            try:
+                yield from packet.decode()  # the final empty packet flushes the decoder
+            except av.error.InvalidDataError as exc:
+                warnings.append(f"skipped a corrupt packet ({exc.strerror})")
+        return
+    except av.error.DecoderNotFoundError:
+        raise MediaError("unsupported_codec", f"no decoder for video codec {stream.codec_context.name!r}") from None
+    except av.error.FFmpegError as exc:
+        warnings.append(f"the file ends early or is corrupt ({exc.strerror})")
+    try:
+        yield from stream.codec_context.decode(None)
+    except av.error.FFmpegError:
+        pass
+
+
 def _decode_selected(container, stream, wanted: np.ndarray, limits: MediaLimits, warnings: list[str]):
     """uint8 frames at the `wanted` source indices (presentation order), stopping after the last."""
     wanted_set = set(wanted.tolist())
     last = int(wanted[-1])
     kept: list[np.ndarray] = []
     indices: list[int] = []
-    index = -1
-    try:
-        for frame in container.decode(stream):
-            index += 1
-            if index == 0:  # streams that did not declare a size are checked here
-                limits.check_pixels(frame.width, frame.height, "video frame")
-            if index in wanted_set:
-                rgb = frame.to_ndarray(format="rgb24")
-                if kept and rgb.shape != kept[0].shape:
-                    raise MediaError("shape_mismatch", f"frame {index} is {rgb.shape[1]}x{rgb.shape[0]}, frame 0 was {kept[0].shape[1]}x{kept[0].shape[0]}")
-                kept.append(rgb)
-                indices.append(index)
-            if index >= last:
-                break
-    except av.error.DecoderNotFoundError:
-        raise MediaError("unsupported_codec", f"no decoder for video codec {stream.codec_context.name!r}") from None
-    except av.error.FFmpegError as exc:
-        if not kept:
-            raise MediaError("truncated", f"video data is corrupt ({exc.strerror})") from None
-        warnings.append(f"decoding stopped at frame {index + 1}: {exc.strerror}")
+    for index, frame in enumerate(_decoded_frames(container, stream, warnings)):
+        if index == 0:  # streams that did not declare a size are checked here
+            limits.check_pixels(frame.width, frame.height, "video frame")
+        if index in wanted_set:
+            rgb = frame.to_ndarray(format="rgb24")
+            if kept and rgb.shape != kept[0].shape:
+                raise MediaError("shape_mismatch", f"frame {index} is {rgb.shape[1]}x{rgb.shape[0]}, frame 0 was {kept[0].shape[1]}x{kept[0].shape[0]}")
+            kept.append(rgb)
+            indices.append(index)
+        if index >= last:
+            break
     return kept, indices
 
 
