@@ -40,7 +40,7 @@ class ServiceSettings(BaseModel):
     broker_url: str | None = None  # None = embedded mode (lightfield serve starts Redis)
     api_keys: str | None = None  # "tenant:key,..." or a path to a file of such lines
     model_dirs: tuple[Path, ...] = ()  # where params.prior_weights may point
-    visibility_timeout_s: float = Field(3600.0, gt=0)  # broker re-delivery of unacked jobs
+    visibility_timeout_s: float = Field(600.0, gt=0)  # broker re-delivery of unacked jobs
     lease_ttl_s: float = Field(60.0, gt=0)  # a job's run lease; heartbeat every ttl/3
     field_cache_size: int = Field(8, gt=0)  # loaded light fields per API process
     readiness_timeout_s: float = Field(2.0, gt=0)  # worker ping in /readyz
