@@ -75,9 +75,10 @@ def irradiance(envmap: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
     h = check_envmap(envmap)
     dirs = equirect_directions(h, device=envmap.device, dtype=torch.float64).reshape(-1, 3)
     weighted = (envmap.to(torch.float64) * solid_angles(h, device=envmap.device, dtype=torch.float64)[..., None])
-    n = normal.to(torch.float64)
-    cos = (n.reshape(-1, 3) @ dirs.T).clamp_min(0.0)  # [N, HW]
-    e = cos @ weighted.reshape(-1, 3)
+    n = normal.to(device=envmap.device, dtype=torch.float64).reshape(-1, 3)
+    flat = weighted.reshape(-1, 3)
+    block = max(1, (1 << 24) // dirs.shape[0])  # bound the [block, HW] cosine matrix to ~128 MB
+    e = torch.cat([(chunk @ dirs.T).clamp_min(0.0) @ flat for chunk in n.split(block)]) if n.shape[0] else n
     return e.reshape(*normal.shape[:-1], 3).to(envmap.dtype)
 
 

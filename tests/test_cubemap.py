@@ -137,3 +137,45 @@ def test_bad_size_raises():
     with pytest.raises(CubemapError, match="size"):
         cubemap_directions(0)
     assert math.isfinite(float(equirect_to_cubemap(torch.ones(4, 8, 3), 1).sum()))
+
+
+# --- conversions documented in docs/conventions.md -------------------------------------
+def _bilinear_uv(img, u, v):
+    """Sample an [H, W, 3] image at texture coords (u right, v up from the bottom row), wrapping u."""
+    h, w = img.shape[:2]
+    col = u * w - 0.5
+    row = (1.0 - v) * h - 0.5
+    c0 = torch.floor(col)
+    r0 = torch.floor(row).clamp(0, h - 2)
+    tc, tr = (col - c0)[..., None], (row - r0).clamp(0, 1)[..., None]
+    c0 = c0.long() % w
+    c1 = (c0 + 1) % w
+    r0 = r0.long()
+    r1 = r0 + 1
+    return (img[r0, c0] * (1 - tc) + img[r0, c1] * tc) * (1 - tr) + (img[r1, c0] * (1 - tc) + img[r1, c1] * tc) * tr
+
+
+def test_threejs_equirect_conversion_is_a_quarter_turn_roll():
+    """three.js equirectUv: u = atan2(z, x)/2pi + 1/2, v = asin(y)/pi + 1/2 (flipY: row 0 = top)."""
+    h = 32
+    e = envmap_from_function(smooth, h, dtype=torch.float64)
+    three_img = torch.roll(e, shifts=-(2 * h) // 4, dims=1)
+    g = torch.Generator().manual_seed(0)
+    d = torch.nn.functional.normalize(torch.randn(200, 3, generator=g, dtype=torch.float64), dim=-1)
+    d = d[d[:, 1].abs() < 0.9]  # away from the pole rows (this sampler has no pole handling)
+    u = torch.atan2(d[:, 2], d[:, 0]) / (2 * math.pi) + 0.5
+    v = torch.asin(d[:, 1]) / math.pi + 0.5
+    assert (_bilinear_uv(three_img, u, v) - smooth(d)).abs().max() < 0.01
+
+
+@pytest.mark.parametrize("axis,lookup", [("x", (-1, 1, 1)), ("z", (1, 1, -1))])
+def test_mirrored_cube_maps_for_threejs_and_unity(axis, lookup):
+    """three.js CubeTexture samples (-x, y, z); Unity samples its own (x, y, -z): both see L(d)."""
+    from core.envmap import mirror_envmap
+
+    e = envmap_from_function(smooth, 64, dtype=torch.float64)
+    faces = equirect_to_cubemap(mirror_envmap(e, axis), 32)
+    g = torch.Generator().manual_seed(1)
+    d = torch.nn.functional.normalize(torch.randn(100, 3, generator=g, dtype=torch.float64), dim=-1)
+    seen = sample_cubemap(faces, d * torch.tensor(lookup, dtype=torch.float64))
+    assert (seen - smooth(d)).abs().max() < 0.03
