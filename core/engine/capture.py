@@ -11,6 +11,7 @@ Defaults when the user gives nothing (recorded in `Capture.warnings` / `depth_so
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import warnings as _warnings
@@ -23,9 +24,7 @@ import torch
 from core.camera import Camera, CameraError, Intrinsics
 from core.conventions import DEFAULT_HFOV_DEG, pixel_to_camera_ray, valid_depth_mask
 from core.engine.params import CaptureParams
-
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
-VIDEO_SUFFIXES = {".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".gif"}
+from core.io.limits import MediaLimits
 
 # Depth with fewer valid pixels than this (per frame) is hole-filled with a warning.
 MIN_VALID_DEPTH_FRACTION = 0.5
@@ -157,116 +156,32 @@ def fill_depth_holes(depth: torch.Tensor, max_iters: int = 64) -> torch.Tensor:
 
 
 # ---------------------------------------------------------------------------------------
-# Readers (core.io when present; small local fallbacks otherwise)
+# Readers (core.io: limits, magic-byte sniffing; MediaError propagates with its .code)
 # ---------------------------------------------------------------------------------------
-def _to_float_rgb(arr) -> torch.Tensor:
-    a = torch.as_tensor(np.asarray(arr))
-    if a.dtype == torch.uint8:
-        a = a.float() / 255.0
-    elif a.dtype in (torch.int16, torch.int32) or str(a.dtype) == "torch.uint16":
-        a = a.float() / 65535.0
-    a = a.float()
-    if a.ndim == 2:
-        a = a[..., None].expand(*a.shape, 3)
-    if a.shape[-1] == 4:
-        a = a[..., :3]
-    if a.shape[-1] != 3 and a.shape[0] == 3:  # CHW
-        a = a.permute(1, 2, 0)
-    return a.clamp(0, 1).contiguous()
+def _read_image(path: Path, limits: MediaLimits) -> torch.Tensor:
+    from core.io import read_image
+
+    return torch.from_numpy(np.ascontiguousarray(read_image(path, limits), dtype=np.float32))
 
 
-def _read_image(path: Path) -> torch.Tensor:
-    try:
-        from core.io import read_image  # type: ignore
-    except ImportError:
-        read_image = None
-    if read_image is not None:
-        img = read_image(path)
-        img = getattr(img, "pixels", img)
-        return _to_float_rgb(img)
-    from PIL import Image
+def _read_depth(path: Path, limits: MediaLimits) -> torch.Tensor:
+    """Depth file (.npz 'depth' / .npy / .exr / 16-bit PNG mm) -> float32 [T,H,W] or [H,W], NaN invalid."""
+    from core.io import read_depth
 
-    with Image.open(path) as im:
-        return _to_float_rgb(np.asarray(im.convert("RGB")))
+    return torch.from_numpy(np.ascontiguousarray(read_depth(path, limits), dtype=np.float32))
 
 
-def _read_video(path: Path, limits, max_frames: int | None) -> tuple[torch.Tensor, float | None]:
-    try:
-        from core.io import read_video  # type: ignore
-    except ImportError:
-        read_video = None
-    if read_video is not None:
-        vf = read_video(path, limits) if limits is not None else read_video(path)
-        frames = torch.stack([_to_float_rgb(f) for f in vf.frames]) if isinstance(vf.frames, list) else _to_float_rgb_batch(vf.frames)
-        fps = float(vf.fps) if getattr(vf, "fps", None) else None
-    else:
-        import av
+def _sniff(path: Path) -> str | None:
+    from core.io import sniff_media
 
-        out = []
-        with av.open(str(path)) as container:
-            stream = container.streams.video[0]
-            fps = float(stream.average_rate) if stream.average_rate else None
-            for frame in container.decode(stream):
-                out.append(torch.from_numpy(frame.to_ndarray(format="rgb24")).float() / 255.0)
-                if max_frames is not None and len(out) >= max_frames:
-                    break
-        if not out:
-            raise CaptureError("input", f"no decodable frames in {path.name}")
-        frames = torch.stack(out)
-    if max_frames is not None:
-        frames = frames[:max_frames]
-    return frames, fps
-
-
-def _to_float_rgb_batch(frames) -> torch.Tensor:
-    a = torch.as_tensor(np.asarray(frames))
-    if a.dtype == torch.uint8:
-        a = a.float() / 255.0
-    a = a.float()
-    if a.ndim == 4 and a.shape[1] == 3 and a.shape[-1] != 3:
-        a = a.permute(0, 2, 3, 1)
-    return a[..., :3].clamp(0, 1).contiguous()
-
-
-def _read_depth(path: Path) -> torch.Tensor:
-    """Depth file -> float32 [T, H, W] or [H, W] metres (NaN/<=0 invalid)."""
-    suffix = path.suffix.lower()
-    if suffix == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            if "depth" not in z:
-                raise CaptureError("depth", f"{path.name} has no array named 'depth' (found {list(z.keys())})")
-            return torch.from_numpy(np.asarray(z["depth"], dtype=np.float32))
-    if suffix == ".npy":
-        return torch.from_numpy(np.asarray(np.load(path, allow_pickle=False), dtype=np.float32))
-    try:
-        from core.io import read_depth  # type: ignore
-    except ImportError:
-        read_depth = None
-    if read_depth is not None:
-        d = read_depth(path)
-        return torch.as_tensor(np.asarray(getattr(d, "depth", d)), dtype=torch.float32)
-    if suffix == ".png":
-        import cv2
-
-        a = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if a is None or a.dtype != np.uint16:
-            raise CaptureError("depth", f"{path.name} must be a 16-bit PNG in millimetres")
-        return torch.from_numpy(a.astype(np.float32) / 1000.0)
-    if suffix == ".exr":
-        import OpenEXR
-
-        with OpenEXR.File(str(path)) as f:
-            ch = f.channels()
-            key = next(iter(ch))
-            a = np.asarray(ch[key].pixels, dtype=np.float32)
-        return torch.from_numpy(a[..., 0] if a.ndim == 3 else a)
-    raise CaptureError("depth", f"unsupported depth file type '{suffix}' (use .npz, .exr or 16-bit .png)")
+    with open(path, "rb") as f:
+        return sniff_media(f.read(64))
 
 
 # ---------------------------------------------------------------------------------------
 # Loading
 # ---------------------------------------------------------------------------------------
-def _read_capture_dir(root: Path, limits, max_frames: int | None) -> dict:
+def _read_capture_dir(root: Path, limits: MediaLimits) -> dict:
     index_path = root / "capture.json"
     try:
         index = json.loads(index_path.read_text())
@@ -275,22 +190,24 @@ def _read_capture_dir(root: Path, limits, max_frames: int | None) -> dict:
     if index.get("format") != "lightfield-capture":
         raise CaptureError("input", f"{index_path} is not a lightfield capture (format={index.get('format')!r})")
     names = index.get("frames") or []
-    if max_frames is not None:
-        names = names[:max_frames]
     if not names:
         raise CaptureError("frames", "capture.json lists no frames")
-    frames = torch.stack([_read_image(root / n) for n in names])
-    T = frames.shape[0]
-    out = {"frames": frames, "fps": float(index["fps"]) if index.get("fps") else None}
+    from core.io import select_frame_indices
+
+    h, w = int(index.get("intrinsics", {}).get("height", 1)), int(index.get("intrinsics", {}).get("width", 1))
+    keep = [int(i) for i in select_frame_indices(len(names), h * w, limits)]
+    frames = torch.stack([_read_image(root / names[i], limits) for i in keep])
+    out = {"frames": frames, "fps": float(index["fps"]) if index.get("fps") else None, "source_indices": keep,
+           "original_count": len(names)}
     intr = index.get("intrinsics")
     if intr:
         out["intrinsics_dict"] = intr
     poses = index.get("poses")
     if poses:
-        out["poses"] = poses[:T]
+        out["poses"] = [poses[i] for i in keep] if len(poses) == len(names) else poses
     if index.get("depth"):
-        d = _read_depth(root / index["depth"])
-        out["depth"] = d[:T] if d.ndim == 3 else d
+        d = _read_depth(root / index["depth"], limits)
+        out["depth"] = d[keep] if d.ndim == 3 and d.shape[0] == len(names) else d
         out["depth_source"] = f"file:{index['depth']}"
     return out
 
@@ -364,26 +281,37 @@ def _resolve_depth(depth, T: int, H: int, W: int, intr: Intrinsics, source: str 
     return d, source or "file"
 
 
-def load_capture(input_path, depth_path=None, params: CaptureParams | None = None, limits=None) -> Capture:
-    """Load an image, a video or a simulator capture directory (see module docstring)."""
+def load_capture(input_path, depth_path=None, params: CaptureParams | None = None,
+                 limits: MediaLimits | None = None) -> Capture:
+    """Load an image, a video or a simulator capture directory (see module docstring).
+
+    `params.max_frames` lowers `limits.max_frames`; longer videos are subsampled evenly by
+    core.io and each kept frame keeps its source time (source index / fps). Poses given for
+    every source frame are subsampled the same way.
+    """
+    from core.io import DEFAULT_LIMITS, read_video
+
     params = params or CaptureParams()
+    limits = limits or DEFAULT_LIMITS
+    if params.max_frames is not None and params.max_frames < limits.max_frames:
+        limits = dataclasses.replace(limits, max_frames=params.max_frames)
     path = Path(input_path)
     if not path.exists():
         raise CaptureError("input", f"{path} does not exist")
-    max_frames = params.max_frames
-    if limits is not None and getattr(limits, "max_frames", None):
-        max_frames = min(max_frames or limits.max_frames, limits.max_frames)
     warn: list[str] = []
-    loaded: dict = {}
     if path.is_dir():
-        loaded = _read_capture_dir(path, limits, max_frames)
-    elif path.suffix.lower() in VIDEO_SUFFIXES:
-        frames, fps = _read_video(path, limits, max_frames)
-        loaded = {"frames": frames, "fps": fps}
-    elif path.suffix.lower() in IMAGE_SUFFIXES:
-        loaded = {"frames": _read_image(path)[None]}
+        loaded = _read_capture_dir(path, limits)
     else:
-        raise CaptureError("input", f"unsupported input type '{path.suffix}' (image, video or capture directory)")
+        kind = _sniff(path)
+        if kind == "video":
+            vf = read_video(path, limits)
+            warn.extend(vf.warnings)
+            loaded = {"frames": torch.from_numpy(np.ascontiguousarray(vf.frames)), "fps": vf.fps,
+                      "source_indices": [int(i) for i in vf.source_frame_indices], "original_count": vf.original_frame_count}
+        elif kind == "image":
+            loaded = {"frames": _read_image(path, limits)[None]}
+        else:
+            raise CaptureError("input", f"{path.name} is neither an image, a video nor a capture directory")
 
     frames = loaded["frames"].float()
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] < 1:
@@ -391,23 +319,31 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
     T, H, W, _ = frames.shape
     if not torch.isfinite(frames).all():
         raise CaptureError("input", "frames contain non-finite values")
+    source_idx = loaded.get("source_indices") or list(range(T))
 
     fps = params.fps or loaded.get("fps") or 1.0
     if not (math.isfinite(fps) and fps > 0):
         raise CaptureError("fps", f"must be finite and > 0, got {fps}")
     intr = _resolve_intrinsics(params, loaded.get("intrinsics_dict"), W, H, warn)
-    poses = _resolve_poses(params.poses if params.poses is not None else loaded.get("poses"), T)
-    depth_arg = _read_depth(Path(depth_path)) if depth_path is not None else loaded.get("depth")
+    poses_in = loaded.get("poses")
+    if params.poses is not None:
+        poses_in = params.poses
+        if len(poses_in) == loaded.get("original_count", T) != T:
+            poses_in = [poses_in[i] for i in source_idx]
+    poses = _resolve_poses(poses_in, T)
+    depth_arg = _read_depth(Path(depth_path), limits) if depth_path is not None else loaded.get("depth")
+    if depth_path is not None and depth_arg.ndim == 3 and depth_arg.shape[0] == loaded.get("original_count", T) != T:
+        depth_arg = depth_arg[source_idx]
     depth_src = f"file:{Path(depth_path).name}" if depth_path is not None else loaded.get("depth_source")
     depth, depth_src = _resolve_depth(depth_arg, T, H, W, intr, depth_src, warn)
     for w in warn:
         _warnings.warn(w, stacklevel=2)
     return Capture(
-        frames=frames.contiguous(),
+        frames=frames.clamp(0, 1).contiguous(),
         depth=depth.contiguous(),
         intrinsics=intr,
         poses=poses,
-        times=torch.arange(T, dtype=torch.float32) / float(fps),
+        times=torch.tensor(source_idx, dtype=torch.float32) / float(fps),
         fps=float(fps),
         depth_source=depth_src,
         source=path.name,

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 from core.chrome_ball import ball_reflection_rays, composite, composite_depth, place_probe, render_balls
-from core.conventions import CONVENTIONS_VERSION, inverse_tonemap, tonemap, tonemap_unclipped, valid_depth_mask
+from core.conventions import inverse_tonemap, tonemap, tonemap_unclipped, valid_depth_mask
 from core.engine.capture import Capture, load_capture
 from core.engine.config import DistillConfig, preset
 from core.engine.losses import PerceptualLoss, masked_l2, perceptual_description
@@ -355,7 +355,6 @@ def run_job(
     reporter.stage("saving", 0.98, "writing artefact")
     wall = time.perf_counter() - t_start
     meta = {
-        "conventions_version": CONVENTIONS_VERSION,
         "time": {"t0": float(capture.times[0]), "t1": float(capture.times[-1]), "fps": capture.fps, "uses_time": decision.uses_time},
         "capture": capture.summary(),
         "working_resolution": {"width": work.width, "height": work.height, "intrinsics": work.intrinsics.as_dict()},
@@ -383,7 +382,6 @@ def run_job(
     }
     with timings("saving"):
         path = save_artefact(out_dir, result.field, meta)
-    meta["training"]["stage_timings"] = timings.as_dict()
     if checkpoint_dir is not None:
         _clear_checkpoint(Path(checkpoint_dir))
     if progress is not None:

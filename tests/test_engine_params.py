@@ -1,0 +1,74 @@
+"""JobParams / CaptureParams: the schema shared by `lightfield estimate --params` and the service."""
+import json
+
+import pytest
+from pydantic import ValidationError
+
+from core.engine.config import PRESETS, preset
+from core.engine.params import CaptureParams, IntrinsicsParams, JobParams, parse_job_params
+
+
+def test_defaults_are_the_documented_ones():
+    p = JobParams()
+    assert (p.preset, p.prior, p.temporal, p.field, p.seed) == ("draft", "reprojection", "auto", None, 0)
+
+
+@pytest.mark.parametrize(
+    "data, field",
+    [
+        ({"intrinsics": {"fx": 100, "fy": 100, "cx": 50}}, "cy"),
+        ({"intrinsics": {"fx": float("nan"), "fy": 1, "cx": 1, "cy": 1}}, "fx"),
+        ({"intrinsics": {"fx": -1, "fy": 1, "cx": 1, "cy": 1}}, "fx"),
+        ({"intrinsics": {"hfov_deg": 180}}, "hfov_deg"),
+        ({"intrinsics": {"hfov_deg": 60, "fx": 1, "fy": 1, "cx": 1, "cy": 1}}, "not both"),
+        ({"poses": [[1.0] * 15]}, "poses[0]"),
+        ({"poses": [[float("inf")] + [0.0] * 15]}, "non-finite"),
+        ({"fps": 0}, "fps"),
+        ({"fps": 241}, "fps"),
+        ({"max_frames": 0}, "max_frames"),
+        ({"preset": "fast"}, "preset"),
+        ({"prior": "oracle"}, "prior"),
+        ({"temporal": "maybe"}, "temporal"),
+        ({"field": "nerf"}, "field"),
+        ({"colour": 1}, "colour"),  # extra='forbid'
+    ],
+)
+def test_bad_params_name_the_field(data, field):
+    with pytest.raises(ValidationError) as exc:
+        JobParams.model_validate(data)
+    assert field in str(exc.value)
+
+
+def test_parse_json_string_file_and_overrides(tmp_path):
+    text = json.dumps({"intrinsics": {"hfov_deg": 50}, "fps": 10, "preset": "standard"})
+    f = tmp_path / "p.json"
+    f.write_text(text)
+    for src in (text, str(f)):
+        p = parse_job_params(src, preset=None, temporal="off")
+        assert p.intrinsics == IntrinsicsParams(hfov_deg=50) and p.fps == 10
+        assert p.preset == "standard"  # None override keeps the JSON's value
+        assert p.temporal == "off"
+    with pytest.raises(ValueError, match="--params"):
+        parse_job_params("{not json")
+
+
+def test_capture_params_are_a_subset_of_job_params():
+    assert set(CaptureParams.model_fields) <= set(JobParams.model_fields)
+
+
+def test_presets_schedules():
+    for name, cfg in PRESETS.items():
+        assert cfg.ev_at(0) == 0.0
+        assert cfg.ev_at(cfg.iterations - 1) == pytest.approx(cfg.ev_min)
+        assert cfg.tau_min_at(0) == 1.0 and cfg.tau_min_at(cfg.iterations - 1) == 0.0
+        lrs = [cfg.lr_at(s) for s in range(cfg.iterations)]
+        peak = max(lrs)
+        assert peak == pytest.approx(cfg.lr, rel=1e-6)
+        assert lrs[-1] < 0.2 * peak and lrs[0] < peak  # warm-up then decay
+    assert preset("paper").field_kind == "mlp" and preset("paper").n_probes == 9
+    assert preset("paper").guidance_scale == 12.5 and preset("paper").ev_min == -5
+    assert [preset("paper").steps_for_tau(t) for t in (0.0, 0.05, 0.5, 1.0)] == [1, 1, 5, 10]
+    with pytest.raises(ValidationError):
+        preset("draft", iterations=0)
+    with pytest.raises(ValueError, match="unknown preset"):
+        preset("turbo")
