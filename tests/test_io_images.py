@@ -105,7 +105,22 @@ def test_corrupt_inputs_have_specific_codes(tmp_path):
     assert err.value.code == "too_large"
     with pytest.raises(MediaError) as err:
         read_image(tmp_path / "missing.png")
-    assert err.value.code == "empty"
+    assert err.value.code == "not_found"
+    with pytest.raises(MediaError) as err:
+        read_image(tmp_path)  # a directory
+    assert err.value.code == "not_found"
+
+
+def test_16bit_grey_tiff_and_float_tiff():
+    grey = np.array([[0, 32768, 65535]], np.uint16)
+    buf = io.BytesIO()
+    Image.fromarray(grey).save(buf, format="TIFF")
+    np.testing.assert_allclose(read_image(buf.getvalue())[0, :, 0], grey[0] / 65535.0, rtol=1e-6)
+    buf = io.BytesIO()
+    Image.fromarray(np.full((2, 2), 3.5, np.float32)).save(buf, format="TIFF")
+    with pytest.raises(MediaError) as err:
+        read_image(buf.getvalue())
+    assert err.value.code == "unsupported_codec"
 
 
 def test_read_by_content_not_by_name(tmp_path):

@@ -1,4 +1,7 @@
 """Video decoding under limits (frame budget, stride, subsampling), mp4 writing, corrupt input."""
+import io
+
+import av
 import numpy as np
 import pytest
 from hypothesis import given
@@ -118,3 +121,32 @@ def test_select_frame_indices_refuses_frames_bigger_than_total_budget():
     with pytest.raises(MediaError) as err:
         select_frame_indices(10, 1000, MediaLimits(max_total_pixels=999))
     assert err.value.code == "too_many_pixels"
+
+
+def _mkv(codec: str, fmt: str = "matroska", frames: int = 7) -> bytes:
+    buf = io.BytesIO()
+    with av.open(buf, "w", format=fmt) as container:
+        stream = container.add_stream(codec, rate=15)
+        stream.width, stream.height, stream.pix_fmt = 32, 32, "yuv420p"
+        for i in range(frames):
+            for packet in stream.encode(av.VideoFrame.from_ndarray(np.full((32, 32, 3), 30 * i, np.uint8), format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return buf.getvalue()
+
+
+def test_webm_without_declared_frame_count_is_counted_then_subsampled():
+    data = _mkv("libvpx-vp9", "webm")
+    video = read_video(data, MediaLimits(max_frames=3))
+    assert video.original_frame_count == 7
+    np.testing.assert_array_equal(video.source_frame_indices, [0, 3, 6])
+    np.testing.assert_allclose(video.frames[:, 0, 0, 0] * 255, [0, 90, 180], atol=3)
+
+
+def test_unknown_codec_is_unsupported():
+    data = _mkv("libx264")
+    assert data.count(b"V_MPEG4/ISO/AVC") == 1
+    with pytest.raises(MediaError) as err:
+        read_video(data.replace(b"V_MPEG4/ISO/AVC", b"V_LIGHTFIELDXYZ"))  # same length, unknown CodecID
+    assert err.value.code == "unsupported_codec"

@@ -22,7 +22,11 @@ from core.io.exr import atomic_write
 from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source, read_source
 from core.io.sniff import PNG_MAGIC, sniff_image
 
-Image.MAX_IMAGE_PIXELS = max(Image.MAX_IMAGE_PIXELS or 0, MediaLimits.from_env().max_pixels)
+try:
+    _ENV_MAX_PIXELS = MediaLimits.from_env().max_pixels
+except ValueError:  # a bad variable is reported where limits are built, not at import
+    _ENV_MAX_PIXELS = DEFAULT_LIMITS.max_pixels
+Image.MAX_IMAGE_PIXELS = max(Image.MAX_IMAGE_PIXELS or 0, _ENV_MAX_PIXELS)
 
 
 def _png_bit_depth(data: bytes) -> int:
@@ -72,12 +76,12 @@ def read_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> np.ndarr
     image = _open_checked(data, limits)
     if image.format == "PNG" and _png_bit_depth(data) == 16:
         return _to_rgb(_decode_png16(data)).astype(np.float32) / np.float32(65535.0)
+    if image.mode in ("I", "F"):  # 32-bit integer / float samples: no defined white level
+        raise MediaError("unsupported_codec", f"{image.format} with 32-bit {image.mode!r} samples is not an LDR image; send HDR as EXR or .hdr")
     try:
         image.load()
-        if image.mode in ("I;16", "I;16B", "I;16L", "I", "F"):  # 16/32-bit grey TIFF etc.
-            grey = np.asarray(image, np.float32)
-            top = 65535.0 if image.mode.startswith("I;16") or grey.max() > 1.0 else 1.0
-            return _to_rgb(np.clip(grey / np.float32(top), 0.0, 1.0))
+        if image.mode.startswith("I;16"):  # 16-bit grey TIFF
+            return _to_rgb(np.asarray(image, np.float32) / np.float32(65535.0))
         rgb = image.convert("RGB")
     except Image.DecompressionBombError as exc:
         raise MediaError("too_many_pixels", str(exc)) from None

@@ -17,6 +17,7 @@ Source = Union[str, os.PathLike, bytes, bytearray, memoryview]
 # code -> suggested HTTP status (413 = too big, 415 = not a supported media type, 422 = bad content)
 HTTP_STATUS: dict[str, int] = {
     "empty": 422,
+    "not_found": 422,
     "truncated": 422,
     "not_media": 415,
     "unsupported_codec": 415,
@@ -113,10 +114,13 @@ def read_source(source: Source, limits: MediaLimits = DEFAULT_LIMITS, what: str 
         data = bytes(source)
         limits.check_bytes(len(data), what)
         return data
-    path = Path(source)
-    try:
-        size = path.stat().st_size
-    except FileNotFoundError:
-        raise MediaError("empty", f"{what} {str(path)!r} does not exist") from None
-    limits.check_bytes(size, f"{what} {str(path)!r}")
+    path = existing_file(source, what)
+    limits.check_bytes(path.stat().st_size, f"{what} {str(path)!r}")
     return path.read_bytes()
+
+
+def existing_file(source: str | os.PathLike, what: str = "file") -> Path:
+    path = Path(source)
+    if not path.is_file():
+        raise MediaError("not_found", f"{what} {str(path)!r} does not exist or is not a regular file")
+    return path

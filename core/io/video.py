@@ -20,7 +20,7 @@ from typing import Literal
 import av
 import numpy as np
 
-from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source
+from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source, existing_file
 from core.io.sniff import sniff_media, sniff_video
 
 OnTooMany = Literal["subsample", "error"]
@@ -73,9 +73,7 @@ def _open_container(source: Source, limits: MediaLimits):
         limits.check_bytes(len(data), "video")
         head, target = data[:_SNIFF_BYTES], io.BytesIO(data)
     else:
-        path = Path(source)
-        if not path.is_file():
-            raise MediaError("empty", f"video {str(path)!r} does not exist")
+        path = existing_file(source, "video")
         limits.check_bytes(path.stat().st_size, f"video {str(path)!r}")
         with path.open("rb") as f:
             head = f.read(_SNIFF_BYTES)
@@ -95,8 +93,8 @@ def _video_stream(container):
         # a video container cut inside its stream table opens with no or codec-less streams
         raise MediaError("truncated", "video container is truncated or corrupt (no video stream found)")
     stream = container.streams.video[0]
-    if stream.codec_context is None or stream.codec_context.codec is None:
-        raise MediaError("unsupported_codec", f"no decoder for video codec {getattr(stream.codec_context, 'name', '?')!r}")
+    if stream.codec_context is None:  # the container names a codec this ffmpeg does not know
+        raise MediaError("unsupported_codec", "the video stream's codec is unknown to the bundled ffmpeg; re-encode as H.264, VP9 or MPEG-4")
     # Slice threading only: with frame threading, a decode error in a cut file discards the
     # frames already queued in other threads, so a truncated clip would yield none at all.
     stream.thread_type = "SLICE"
