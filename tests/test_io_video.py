@@ -150,3 +150,14 @@ def test_unknown_codec_is_unsupported():
     with pytest.raises(MediaError) as err:
         read_video(data.replace(b"V_MPEG4/ISO/AVC", b"V_LIGHTFIELDXYZ"))  # same length, unknown CodecID
     assert err.value.code == "unsupported_codec"
+
+
+def test_animated_gif_decodes_as_video():
+    from PIL import Image
+
+    frames = [Image.new("RGB", (16, 8), (40 * i, 0, 0)) for i in range(4)]
+    buf = io.BytesIO()
+    frames[0].save(buf, format="GIF", save_all=True, append_images=frames[1:], duration=100, loop=0)
+    video = read_video(buf.getvalue())
+    assert video.frames.shape == (4, 8, 16, 3)
+    np.testing.assert_allclose(video.frames[:, 0, 0, 0] * 255, [0, 40, 80, 120], atol=2)

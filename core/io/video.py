@@ -5,7 +5,8 @@ Limits are applied from the stream header before decoding: the frame size agains
 the number of frames left after `frame_stride`. Too many frames are, by default,
 subsampled evenly over the whole clip (first and last kept), so a long clip still covers
 its full duration; `on_too_many='error'` refuses instead. Rotation metadata (phone
-videos) is not applied: frames come in stored orientation, like images.
+videos) is not applied: frames come in stored orientation, like images. Containers are
+recognised by magic bytes (MP4/MOV, WebM/Matroska, AVI, MPEG-PS, Ogg, and animated GIF).
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ import av
 import numpy as np
 
 from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source, existing_file
-from core.io.sniff import sniff_media, sniff_video
+from core.io.sniff import sniff_image, sniff_media, sniff_video
 
 OnTooMany = Literal["subsample", "error"]
 _SNIFF_BYTES = 64
@@ -78,12 +79,13 @@ def _open_container(source: Source, limits: MediaLimits):
         with path.open("rb") as f:
             head = f.read(_SNIFF_BYTES)
         target = str(path)
-    if sniff_media(head) != "video":
+    if sniff_media(head) != "video" and sniff_image(head) != "gif":  # animated GIFs decode as video
         raise MediaError("not_media", "not a supported video container (unrecognised magic bytes)")
     try:
         return av.open(target, mode="r"), head
     except av.error.FFmpegError as exc:
-        raise MediaError("truncated", f"{sniff_video(head)} container is truncated or corrupt ({exc.strerror})") from None
+        kind = sniff_video(head) or sniff_image(head)
+        raise MediaError("truncated", f"{kind} container is truncated or corrupt ({exc.strerror})") from None
 
 
 def _video_stream(container):
