@@ -12,6 +12,7 @@ import torch
 from core.camera import Camera
 from core.conventions import equirect_directions, frame_time
 from core.sim.cost import CostReport
+from core.sim.lamp_pixels import envmap_lamp_pixels, frame_lamp_pixels
 from core.sim.raycast import MIRROR, MISS, Hit, SceneGeometry, cast
 from core.sim.shading import ShadingContext, shade
 from core.sim.spec import SceneSpec, SceneSpecError
@@ -108,6 +109,10 @@ def render_view(ctx: ShadingContext, camera: Camera, mirrors=None) -> FrameRende
     origin, dirs = camera.pixel_rays()
     d = dirs.reshape(-1, 3)
     res = trace(ctx, origin, d, mirrors)
+    if mirrors is None:  # mirror renders (training export) keep one sample per pixel
+        with ctx.cost.track("lamp_pixels"):
+            for index, value in frame_lamp_pixels(ctx, camera, trace):
+                res.radiance[index] = value
     forward = -camera.c2w[:3, 2].to(torch.float32)
     depth = res.t * (d @ forward)
     depth = torch.where(torch.isfinite(res.t) & (res.first_kind != MISS), depth, torch.full_like(depth, float("nan")))
@@ -140,7 +145,11 @@ def render_envmap(scene: SceneSpec, x, t: float, height: int = 64, cost: CostRep
     p = check_probe(scene, x)[0]
     ctx = context(scene, frame_of_time(scene, t), cost)
     d = equirect_directions(height).reshape(-1, 3)
-    return trace(ctx, p, d).radiance.reshape(height, 2 * height, 3)
+    env = trace(ctx, p, d).radiance
+    with ctx.cost.track("lamp_pixels"):
+        for index, value in envmap_lamp_pixels(ctx, p, height, trace):
+            env[index] = value
+    return env.reshape(height, 2 * height, 3)
 
 
 def radiance(scene: SceneSpec, x: torch.Tensor, t: torch.Tensor, d: torch.Tensor, cost: CostReport | None = None) -> torch.Tensor:
