@@ -26,7 +26,7 @@ from typing import Callable, Union
 import torch
 
 from core.camera import Camera
-from core.conventions import equirect_directions, pixel_to_camera_ray, valid_depth_mask
+from core.conventions import camera_point_to_pixel, equirect_directions, pixel_to_camera_ray, valid_depth_mask
 
 RadianceFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -49,8 +49,14 @@ def _focal(camera: Camera) -> float:
     return math.sqrt(k.fx * k.fy)  # one focal length for (rarely) non-square pixels
 
 
+def _to_camera(camera: Camera, points: torch.Tensor) -> torch.Tensor:
+    """World points [..., 3] -> camera frame, float64, on the points' device (CUDA too)."""
+    w2c = camera.w2c.to(points.device)
+    return points.to(torch.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+
+
 def _planar_depth(camera: Camera, points: torch.Tensor) -> torch.Tensor:
-    return -camera.world_to_camera(points.to(torch.float64))[..., 2]
+    return -_to_camera(camera, points)[..., 2]
 
 
 def ball_radius(camera: Camera, center_world, diameter_fraction: float = 0.25) -> float:
@@ -139,7 +145,7 @@ def _projected_boxes(camera: Camera, centers: torch.Tensor, radii: torch.Tensor)
     l = (1, 0, -u0), is tangent when l^T C* l = 0: C*22 u0^2 - 2 C*02 u0 + C*00 = 0.
     """
     k = camera.intrinsics
-    c = camera.world_to_camera(centers)
+    c = _to_camera(camera, centers)
     c = c * torch.tensor([1.0, -1.0, -1.0], dtype=c.dtype, device=c.device)
     K = k.matrix(torch.float64).to(c.device)
     eye = torch.eye(3, dtype=c.dtype, device=c.device)
@@ -387,7 +393,7 @@ def unwrap_ball(
     converged = (reflected * d).sum(-1) > 1.0 - 1e-9
     facing = (n * v).sum(-1) > min_incidence_cos
 
-    u_px, v_px, _ = camera.project(p)
+    u_px, v_px, _ = camera_point_to_pixel(_to_camera(camera, p), k.fx, k.fy, k.cx, k.cy)
     u_px, v_px = torch.nan_to_num(u_px), torch.nan_to_num(v_px)
     inside = (u_px >= 0.5) & (u_px <= k.width - 0.5) & (v_px >= 0.5) & (v_px <= k.height - 0.5)
 

@@ -320,3 +320,23 @@ def test_unwrap_invalid_behind_the_ball():
     assert not bool(valid[int(row), int(col) % 32])
     row, col = direction_to_equirect_pixel(torch.tensor([0.0, 0.0, 1.0]), 16)
     assert bool(valid[int(row), int(col) % 32])
+
+
+def test_posed_camera_renders_the_same_image_with_rotated_directions():
+    still = make_camera()
+    angle = 0.7
+    pose = identity_pose()
+    pose[:3, :3] = torch.tensor(
+        [[math.cos(angle), 0.0, math.sin(angle)], [0.0, 1.0, 0.0], [-math.sin(angle), 0.0, math.cos(angle)]], dtype=torch.float64
+    )
+    pose[:3, 3] = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    moved = make_camera(pose=pose)
+    c0, r0 = place_probe(still, (20.0, 30.0), 3.0)
+    c1, r1 = place_probe(moved, (20.0, 30.0), 3.0)
+    assert r1 == pytest.approx(r0, rel=1e-6)
+    assert torch.allclose(c1.double(), pose[:3, :3] @ c0.double() + pose[:3, 3], atol=1e-5)
+    a = ball_reflection_rays(still, c0[None], torch.tensor([r0]))
+    b = ball_reflection_rays(moved, c1[None], torch.tensor([r1]))
+    assert torch.equal(a.pixel_index, b.pixel_index)
+    assert torch.allclose(b.direction, a.direction @ pose[:3, :3].T.float(), atol=1e-4)
+    assert torch.allclose(b.depth, a.depth, rtol=1e-4)
