@@ -18,7 +18,7 @@ from typing import Any, Callable
 class CachedField:
     artefact: Any  # core.engine.artefact.LightFieldArtefact
     lock: threading.Lock = field(default_factory=threading.Lock)
-    baked: dict = field(default_factory=dict)  # height -> fast-path grid, built on first use
+    baked: Any = None  # core.engine.bake.BakedField, loaded (or baked) on the first fast query
 
 
 class FieldCache:

@@ -67,9 +67,20 @@ def _numpy(hdr) -> np.ndarray:
     return np.ascontiguousarray(hdr, dtype=np.float32)
 
 
+def _query_error_type() -> type[Exception]:
+    try:
+        from core.engine.artefact import QueryError
+    except ImportError:  # an engine without it raises ValueError subclasses
+        return ValueError
+    return QueryError
+
+
 def envmap(cf: CachedField, x, t: float, height: int) -> tuple[np.ndarray, EvalFlags]:
-    with cf.lock:
-        hdr, flags = cf.artefact.envmap(x, t, height)
+    try:
+        with cf.lock:
+            hdr, flags = cf.artefact.envmap(x, t, height)
+    except _query_error_type() as exc:
+        raise InvalidInput(str(exc), code="invalid_query") from None
     return _numpy(hdr), _flags(flags)
 
 
@@ -87,13 +98,27 @@ def envmap_with_quality(cf: CachedField, x, t: float, height: int, quality: str)
     return (*envmap(cf, x, t, height), "exact")
 
 
-def baked_envmap(cf: CachedField, x, t: float, height: int):
-    raise NotImplementedError
+def baked_envmap(cf: CachedField, x, t: float, height: int) -> tuple[np.ndarray, EvalFlags]:
+    """Interpolated from the baked lattice (the worker bakes it after distillation; an
+    artefact without one is baked here once and saved beside it, atomically)."""
+    from core.engine.bake import load_or_bake
+
+    try:
+        with cf.lock:
+            if cf.baked is None:
+                cf.baked = load_or_bake(cf.artefact, save=True)
+            hdr, flags = cf.baked.envmap(x, t, height)
+    except _query_error_type() as exc:
+        raise InvalidInput(str(exc), code="invalid_query") from None
+    return _numpy(hdr), _flags(flags)
 
 
 def envmaps(cf: CachedField, xs, ts, height: int) -> tuple[np.ndarray, list[EvalFlags]]:
-    with cf.lock:
-        hdrs, flags = cf.artefact.envmaps(xs, ts, height)
+    try:
+        with cf.lock:
+            hdrs, flags = cf.artefact.envmaps(xs, ts, height)
+    except _query_error_type() as exc:
+        raise InvalidInput(str(exc), code="invalid_query") from None
     if isinstance(flags, dict):  # one dict of per-query arrays
         fx = np.broadcast_to(np.asarray(flags.get("extrapolated_x", False)), (len(xs),))
         ft = np.broadcast_to(np.asarray(flags.get("extrapolated_t", False)), (len(xs),))

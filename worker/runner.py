@@ -111,7 +111,8 @@ class JobRunner:
         cancelled_type = _cancelled_type()
         user_errors = _user_error_types()
         try:
-            relative = self._relative_artefact(self._call_engine(record, paths, lease), paths)
+            artefact = self._call_engine(record, paths, lease)
+            relative = self._relative_artefact(artefact, paths)
         except cancelled_type:
             if lease.lost.is_set():
                 return Outcome.ABANDONED
@@ -129,6 +130,7 @@ class JobRunner:
 
         if lease.lost.is_set():
             return Outcome.ABANDONED
+        self._prebake(job_id, artefact)
         self.store.update(job_id, allowed=("running",), state="succeeded", progress=1.0, stage="done",
                           eta_s=0.0, artefact=relative, finished_at=time.time())
         paths.remove_uploads()
@@ -160,6 +162,18 @@ class JobRunner:
             kwargs["prior"] = self.prior_provider(params.prior, params.prior_weights)
         depth = paths.upload_dir / record.depth_file if record.depth_file else None
         return Path(run_job(paths.upload_dir / record.input_file, depth, params, paths.artefact_dir, **kwargs))
+
+    def _prebake(self, job_id: str, artefact: Path) -> None:
+        """Precompute the quality=fast lattice now, so no API request pays for it. Optional:
+        a failure here only means the API bakes on the first fast query."""
+        try:
+            from core.engine.artefact import LightFieldArtefact
+            from core.engine.bake import load_or_bake
+
+            self.store.update(job_id, allowed=("running",), stage="baking", message="precomputing quality=fast")
+            load_or_bake(LightFieldArtefact.load(artefact), save=True)
+        except Exception:
+            log.warning("job %s: baking the fast path failed", job_id, exc_info=True)
 
     def _progress_writer(self, job_id: str):
         last = {"t": 0.0, "stage": None}
