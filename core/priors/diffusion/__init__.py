@@ -9,6 +9,7 @@ import importlib
 
 _EXPORTS = {
     "DiffusionPrior": "core.priors.diffusion.prior",
+    "build_diffusion_prior": "core.priors.diffusion.prior",
     "ModelCard": "core.priors.diffusion.card",
     "CARD_FILENAME": "core.priors.diffusion.card",
     "load_components": "core.priors.diffusion.loading",

@@ -137,3 +137,12 @@ def _combine(generated: torch.Tensor, per_ball: torch.Tensor) -> torch.Tensor:
     w = per_ball.to(generated).clamp(0.0, 1.0)[:, None]  # [B, 1, H, W]
     total = w.sum(0)
     return (w * generated).sum(0) / total.clamp(min=1e-6)
+
+
+def build_diffusion_prior(
+    weights: str | os.PathLike | None = None, device: str | torch.device | None = None, dtype: str | torch.dtype | None = None
+) -> DiffusionPrior:
+    """Registry entry point (`build_prior("diffusion", weights=DIR)`)."""
+    if weights is None:
+        raise PriorError("the diffusion prior needs weights: a local model directory (--prior-weights DIR)")
+    return DiffusionPrior.from_pretrained(weights, device=device, dtype=dtype)
