@@ -208,7 +208,9 @@ def ball_reflection_rays(camera: Camera, centers, radii, supersample: int = 2, p
     for b in range(N):
         s = int(min(max(supersample, math.ceil(_MIN_SAMPLES_ACROSS / max(float(across[b]), 1e-12))), _MAX_SUPERSAMPLE))
         pix, u, v = _ball_samples(boxes[b], s, pad, H, W, device)
-        pix_l.append(pix), u_l.append(u), v_l.append(v)
+        pix_l.append(pix)
+        u_l.append(u)
+        v_l.append(v)
         ball_l.append(torch.full_like(pix, b))
         w_l.append(torch.full(pix.shape, 1.0 / (s * s), dtype=torch.float64, device=device))
     pix, u, v = torch.cat(pix_l), torch.cat(u_l), torch.cat(v_l)
