@@ -249,9 +249,7 @@ class LightFieldArtefact:
         return hdr, self.flags(xs, ts)
 
     def flags(self, xs: torch.Tensor, ts: torch.Tensor | None) -> list[dict]:
-        inside_x = self.bounds.contains(xs.to(torch.float64)).tolist()
-        inside_t = [True] * xs.shape[0] if ts is None else self.bounds.contains_t(ts.to(torch.float64)).tolist()
-        return [{"extrapolated_x": not a, "extrapolated_t": not b} for a, b in zip(inside_x, inside_t)]
+        return extrapolation_flags(self.bounds, xs, ts)
 
     # ------------------------------------------------------------------ validation
     def _positions(self, x, name: str) -> torch.Tensor:
@@ -281,6 +279,13 @@ class LightFieldArtefact:
         if not torch.isfinite(t).all():
             raise QueryError("t must be finite (seconds from the first frame)")
         return t
+
+
+def extrapolation_flags(bounds: SceneBounds, xs: torch.Tensor, ts: torch.Tensor | None) -> list[dict]:
+    """Per query: is x outside the box, is t outside the capture's time range (None: never)."""
+    inside_x = bounds.contains(xs.to(torch.float64)).tolist()
+    inside_t = [True] * xs.shape[0] if ts is None else bounds.contains_t(ts.to(torch.float64)).tolist()
+    return [{"extrapolated_x": not a, "extrapolated_t": not b} for a, b in zip(inside_x, inside_t)]
 
 
 def check_height(height) -> int:

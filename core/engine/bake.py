@@ -1,0 +1,209 @@
+"""Baked fast path: env maps precomputed on a lattice of positions (and times), interpolated.
+
+`bake(artefact, grid=(nx, ny, nz), times=K, height=h)` evaluates the field once at the nodes
+of a regular lattice spanning the artefact's box (and K keyframes over its time range when
+the field has a time input) and keeps the env maps. A query then costs one multilinear
+blend of 8 (16 with time) maps plus a resize, independent of the field's size.
+
+Interpolation is LINEAR in radiance (a cache of radiance: blending preserves energy; a
+light moving between nodes cross-fades instead of vanishing). The price is accuracy
+between nodes and below the baked resolution; `bench/query_latency.py` measures it.
+
+Saved as `baked.safetensors` next to the artefact (atomic: temp file + os.replace) with
+the SHA-256 of the weights it was baked from, so a re-estimated artefact never answers
+from a stale bake.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load as load_safetensors_bytes
+from safetensors.torch import save_file
+
+from core.conventions import equirect_width
+from core.engine.artefact import ArtefactError, LightFieldArtefact, QueryError, check_height, extrapolation_flags
+from core.envmap import resize_envmap
+from core.fields.encodings import lattice_corners
+from core.fields.normalization import SceneBounds
+
+BAKED_FILE = "baked.safetensors"
+BAKE_SCHEMA_VERSION = 1
+DEFAULT_GRID = (5, 5, 5)
+DEFAULT_TIMES = 4
+DEFAULT_HEIGHT = 32
+MAX_BAKED_BYTES = 1 << 30  # refuse bakes over 1 GiB of float32 maps
+
+
+@dataclass
+class BakedField:
+    maps: torch.Tensor  # [K, nx, ny, nz, h, 2h, 3] radiance; K = 1 without a time input
+    bounds: SceneBounds
+    uses_time: bool
+    source_sha256: str  # weights the maps were baked from
+
+    @property
+    def grid(self) -> tuple[int, int, int]:
+        return tuple(self.maps.shape[1:4])
+
+    @property
+    def times(self) -> int:
+        return int(self.maps.shape[0])
+
+    @property
+    def height(self) -> int:
+        return int(self.maps.shape[4])
+
+    # ------------------------------------------------------------------ queries
+    def envmap(self, x, t=None, height: int | None = None) -> tuple[torch.Tensor, dict]:
+        """Interpolated env map [H, 2H, 3] at x [3], t, and flags (as LightFieldArtefact.envmap)."""
+        hdr, flags = self.envmaps(torch.as_tensor(x, dtype=torch.float32).reshape(1, 3), None if t is None else [t], height)
+        return hdr[0], flags[0]
+
+    def envmaps(self, xs, ts, height: int | None = None) -> tuple[torch.Tensor, list[dict]]:
+        xs = torch.as_tensor(xs, dtype=torch.float32).reshape(-1, 3)
+        if not torch.isfinite(xs).all():
+            raise QueryError("xs must be finite (metres)")
+        ts_t = None
+        if ts is not None:
+            ts_t = torch.as_tensor(ts, dtype=torch.float32).reshape(-1)
+            if ts_t.numel() == 1:
+                ts_t = ts_t.expand(xs.shape[0])
+            if ts_t.shape[0] != xs.shape[0] or not torch.isfinite(ts_t).all():
+                raise QueryError(f"ts must be {xs.shape[0]} finite times (seconds)")
+        elif self.uses_time:
+            raise QueryError(f"t is required: this light field varies over time [{self.bounds.t0:g}, {self.bounds.t1:g}] s")
+        height = self.height if height is None else check_height(height)
+        has_time_axis = self.maps.shape[0] > 1
+        dims = tuple(self.maps.shape[:4]) if has_time_axis else self.grid
+        node, weight = lattice_corners(self._lattice_coords(xs, ts_t if has_time_axis else None), dims)
+        flat = self.maps.reshape(-1, *self.maps.shape[4:])
+        blended = (weight[..., None, None, None] * flat[node]).sum(1)  # [P, h, 2h, 3]
+        if height != self.height:
+            blended = torch.stack([resize_envmap(m, height) for m in blended])
+        return blended, extrapolation_flags(self.bounds, xs, ts_t)
+
+    def _lattice_coords(self, xs: torch.Tensor, ts: torch.Tensor | None) -> torch.Tensor:
+        """[-1, 1] lattice coordinates (t first when there is a time axis), clamped to the box."""
+        xn = self.bounds.normalize_x(xs).clamp(-1.0, 1.0)
+        if ts is None:
+            return xn
+        tn = self.bounds.normalize_t(ts).clamp(-1.0, 1.0)
+        return torch.cat((tn[:, None], xn), dim=-1)
+
+    # ------------------------------------------------------------------ storage
+    def save(self, artefact_dir) -> Path:
+        """Write `baked.safetensors` into the artefact directory atomically; return its path."""
+        target = Path(artefact_dir) / BAKED_FILE
+        header = {
+            "schema_version": str(BAKE_SCHEMA_VERSION),
+            "bounds": json.dumps(self.bounds.to_dict()),
+            "uses_time": json.dumps(self.uses_time),
+            "source_sha256": self.source_sha256,
+        }
+        fd, tmp = tempfile.mkstemp(prefix=f".{BAKED_FILE}.tmp-", dir=target.parent)
+        os.close(fd)
+        try:
+            save_file({"maps": self.maps.contiguous()}, tmp, metadata=header)
+            with open(tmp, "rb+") as f:
+                os.fsync(f.fileno())
+            os.replace(tmp, target)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return target
+
+    @classmethod
+    def load(cls, artefact: LightFieldArtefact) -> "BakedField":
+        """The bake stored next to `artefact`; ArtefactError when missing, corrupt or stale."""
+        path = artefact.path / BAKED_FILE
+        if not path.is_file():
+            raise ArtefactError(f"artefact {artefact.path} has no {BAKED_FILE}")
+        data = path.read_bytes()
+        try:
+            maps = load_safetensors_bytes(data)["maps"]
+            header = _safetensors_metadata(data)
+        except (SafetensorError, KeyError, ValueError, RuntimeError) as exc:
+            raise ArtefactError(f"{BAKED_FILE} cannot be read: {exc}") from exc
+        if header.get("schema_version") != str(BAKE_SCHEMA_VERSION):
+            raise ArtefactError(f"{BAKED_FILE}: unsupported schema_version {header.get('schema_version')!r}")
+        if header.get("source_sha256") != artefact.weights_sha256:
+            raise ArtefactError(f"{BAKED_FILE} is stale: it was baked from other weights than {artefact.path}")
+        if maps.ndim != 7 or maps.shape[-1] != 3 or maps.shape[5] != 2 * maps.shape[4] or maps.dtype != torch.float32:
+            raise ArtefactError(f"{BAKED_FILE}: 'maps' has shape {tuple(maps.shape)} / {maps.dtype}, expected [K,nx,ny,nz,h,2h,3] float32")
+        if not torch.isfinite(maps).all():
+            raise ArtefactError(f"{BAKED_FILE}: 'maps' contains non-finite values")
+        return cls(maps, artefact.bounds, artefact.uses_time, artefact.weights_sha256)
+
+
+def bake(
+    artefact: LightFieldArtefact,
+    grid: tuple[int, int, int] = DEFAULT_GRID,
+    times: int = DEFAULT_TIMES,
+    height: int = DEFAULT_HEIGHT,
+    probes_per_batch: int = 8,
+) -> BakedField:
+    """Evaluate `artefact` on a lattice of env maps (`times` keyframes when it uses time)."""
+    grid = tuple(int(n) for n in grid)
+    if len(grid) != 3 or min(grid) < 2:
+        raise QueryError(f"grid must be three sizes >= 2, got {grid}")
+    n_times = keyframe_count(artefact, times)
+    height = check_height(height)
+    n_maps = n_times * grid[0] * grid[1] * grid[2]
+    size = n_maps * height * equirect_width(height) * 3 * 4
+    if size > MAX_BAKED_BYTES:
+        raise QueryError(f"bake of {n_maps} maps at height {height} needs {size / 2**20:.0f} MiB (> {MAX_BAKED_BYTES >> 20} MiB)")
+
+    b = artefact.bounds
+    axes = [torch.linspace(lo, hi, n, dtype=torch.float64) for lo, hi, n in zip(b.lo, b.hi, grid)]
+    xs = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3).to(torch.float32)
+    key_times = torch.linspace(b.t0, b.t1, n_times, dtype=torch.float64).to(torch.float32) if artefact.uses_time else None
+    maps = torch.empty(n_times, xs.shape[0], height, equirect_width(height), 3)
+    for k in range(n_times):
+        for p0 in range(0, xs.shape[0], probes_per_batch):
+            chunk = xs[p0 : p0 + probes_per_batch]
+            ts = None if key_times is None else key_times[k].expand(chunk.shape[0])
+            maps[k, p0 : p0 + chunk.shape[0]] = artefact.envmaps(chunk, ts, height)[0].cpu()
+    maps = maps.reshape(n_times, *grid, height, equirect_width(height), 3)
+    return BakedField(maps, b, artefact.uses_time, artefact.weights_sha256)
+
+
+def load_or_bake(
+    artefact: LightFieldArtefact,
+    grid: tuple[int, int, int] = DEFAULT_GRID,
+    times: int = DEFAULT_TIMES,
+    height: int = DEFAULT_HEIGHT,
+    save: bool = True,
+) -> BakedField:
+    """The stored bake when it is fresh and has this grid / times / height, else a new one
+    (saved next to the artefact when `save`)."""
+    try:
+        baked = BakedField.load(artefact)
+        if baked.grid == tuple(grid) and baked.times == keyframe_count(artefact, times) and baked.height == height:
+            return baked
+    except ArtefactError:
+        pass
+    baked = bake(artefact, grid, times, height)
+    if save:
+        baked.save(artefact.path)
+    return baked
+
+
+def keyframe_count(artefact: LightFieldArtefact, times: int) -> int:
+    """Time keyframes a bake needs: `times` (>= 2) for a field that varies over a time range, else 1."""
+    if not (artefact.uses_time and artefact.bounds.has_duration):
+        return 1
+    if int(times) < 2:
+        raise QueryError(f"times must be >= 2 for a field that varies over time, got {times}")
+    return int(times)
+
+
+def _safetensors_metadata(data: bytes) -> dict:
+    """The string metadata of a safetensors blob (header = 8-byte length + JSON)."""
+    n = int.from_bytes(data[:8], "little")
+    return json.loads(data[8 : 8 + n]).get("__metadata__", {}) or {}
