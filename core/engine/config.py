@@ -4,8 +4,9 @@
 annealed 1 -> 0, k = ceil(10 tau), guidance 12.5, Adam + warm-up + cosine LR, grad clipping.
 `draft` and `standard` keep the same loop but cut what CPU time pays for: the working frame
 resolution (the ball is 1/4 of the frame, so this is the ball resolution), iterations, and a
-lighter field (the trunk: the (x, t) trunk runs once per ball, only the small direction head
-runs per ball pixel). Wall times are measured by `bench/presets.py`, not promised here.
+narrower MLP (same encodings, 96 x 4 for draft, 128 x 6 for standard). At equal steps a
+narrow MLP recovered a known field about as well as the 6 x 256 one and clearly better than
+the trunk+head field (see docs/engine.md). Wall times are measured by `bench/presets.py`.
 """
 from __future__ import annotations
 
@@ -40,7 +41,7 @@ class DistillConfig(BaseModel):
     adam_betas: tuple[float, float] = (0.9, 0.99)
     l2_weight: float = Field(1.0, ge=0)
     perceptual_weight: float = Field(0.1, ge=0)
-    field_kind: Literal["mlp", "grid", "trunk"] = "trunk"
+    field_kind: Literal["mlp", "grid", "trunk"] = "mlp"
     field_width: int | None = Field(None, ge=4, description="override the field's hidden width")
     field_layers: int | None = Field(None, ge=1, description="override the field's depth")
     # Per-step tensors are small (a few thousand ball samples): intra-op threads cost more in
@@ -76,12 +77,12 @@ class DistillConfig(BaseModel):
 
 PRESETS: dict[str, DistillConfig] = {
     # CPU: ~1 min for a 20-frame 192x144 clip on 2 cores (bench/presets.py)
-    "draft": DistillConfig(name="draft", iterations=200, n_probes=9, work_height=72, lr=1e-2,
-                           warmup_steps=10, field_kind="trunk", checkpoint_every=50,
+    "draft": DistillConfig(name="draft", iterations=300, n_probes=9, work_height=72, lr=5e-3,
+                           warmup_steps=15, field_kind="mlp", field_width=96, field_layers=4, checkpoint_every=50,
                            prior_env_height=24, output_env_height=32),
     # CPU: a 100-frame 320x240 clip in a few minutes
-    "standard": DistillConfig(name="standard", iterations=600, n_probes=9, work_height=120, lr=5e-3,
-                              warmup_steps=30, field_kind="trunk", checkpoint_every=100,
+    "standard": DistillConfig(name="standard", iterations=800, n_probes=9, work_height=120, lr=5e-3,
+                              warmup_steps=30, field_kind="mlp", field_width=128, field_layers=6, checkpoint_every=100,
                               prior_env_height=32, output_env_height=64),
     # The paper's settings (GPU): full resolution ball crops, MLP 6 x 256
     "paper": DistillConfig(name="paper", iterations=3000, n_probes=9, work_height=512, supersample=2,

@@ -1,0 +1,124 @@
+"""Temporal detection: static clips (with noise / compression) get no time input, switching
+lights and dimming do; overrides and single frames."""
+import numpy as np
+import pytest
+import torch
+
+from core.conventions import tonemap
+from core.engine.capture import capture_from_arrays
+from core.engine.temporal import decide_temporal, detect_temporal
+
+H, W = 72, 96
+
+
+def _albedo(seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return 0.2 + 0.6 * torch.rand(H // 8, W // 8, 3, generator=g).repeat_interleave(8, 0).repeat_interleave(8, 1)
+
+
+def _lamp(center=(20, 25), radius=30.0):
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+    r2 = (v - center[0]) ** 2 + (u - center[1]) ** 2
+    return 1.5 * torch.exp(-r2 / (2 * radius**2))[..., None]
+
+
+def _frames(lamp_on, ambient=0.15, noise=0.0, quantise=True, seed=0):
+    """LDR frames of a Lambertian wall lit by an ambient term plus a lamp blob."""
+    g = torch.Generator().manual_seed(seed)
+    alb = _albedo()
+    out = []
+    for on in lamp_on:
+        rad = alb * (ambient + (_lamp() if on else 0.0))
+        ldr = tonemap(rad) + noise * torch.randn(H, W, 3, generator=g)
+        ldr = ldr.clamp(0, 1)
+        if quantise:
+            ldr = torch.round(ldr * 255) / 255
+        out.append(ldr)
+    return torch.stack(out)
+
+
+def _jpeg_roundtrip(frames, quality=40):
+    import cv2
+
+    out = []
+    for f in frames.numpy():
+        ok, buf = cv2.imencode(".jpg", (f * 255).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, quality])
+        out.append(cv2.imdecode(buf, cv2.IMREAD_UNCHANGED).astype(np.float32) / 255)
+    return torch.from_numpy(np.stack(out))
+
+
+def test_single_frame_has_no_time():
+    d = detect_temporal(capture_from_arrays(_frames([True])))
+    assert not d.uses_time and "single frame" in d.reason
+    # even forced on, one frame cannot carry time
+    assert not decide_temporal(capture_from_arrays(_frames([True])), "on").uses_time
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.02])
+def test_static_noisy_video_is_static(noise):
+    d = detect_temporal(capture_from_arrays(_frames([True] * 8, noise=noise, seed=1)))
+    assert not d.uses_time, d.reason
+    assert d.statistic < d.threshold
+
+
+def test_static_compressed_video_is_static():
+    frames = _jpeg_roundtrip(_frames([True] * 6, noise=0.01))
+    d = detect_temporal(capture_from_arrays(frames))
+    assert not d.uses_time, d.reason
+
+
+def test_lamp_switching_off_is_temporal():
+    d = detect_temporal(capture_from_arrays(_frames([True] * 4 + [False] * 4, noise=0.02)))
+    assert d.uses_time, d.reason
+    assert d.statistic > 2 * d.threshold
+
+
+def test_global_dimming_is_temporal_and_compression_does_not_hide_it():
+    frames = torch.stack([tonemap(_albedo() * 0.5 * s) for s in (1.0, 1.0, 0.6, 0.6)])
+    d = detect_temporal(capture_from_arrays(_jpeg_roundtrip(frames)))
+    assert d.uses_time, d.reason
+
+
+def test_overrides_keep_the_evidence():
+    cap = capture_from_arrays(_frames([True] * 4))
+    auto = detect_temporal(cap)
+    on, off = decide_temporal(cap, "on"), decide_temporal(cap, "off")
+    assert on.uses_time and not off.uses_time
+    assert on.statistic == auto.statistic and "forced on" in on.reason and on.mode == "on"
+    with pytest.raises(ValueError, match="temporal"):
+        decide_temporal(cap, "sometimes")
+
+
+def test_fully_saturated_video_does_not_crash():
+    d = detect_temporal(capture_from_arrays(torch.ones(4, H, W, 3)))
+    assert not d.uses_time and "usable" in d.reason
+
+
+def test_moving_camera_static_lighting_is_static_after_reprojection():
+    """A textured back wall seen by a panning-sideways camera: raw frames differ a lot, the
+    reprojected ones do not."""
+    from core.camera import Camera, Intrinsics
+
+    k = Intrinsics.from_hfov(W, H, 60.0)
+    z_wall = 3.0
+    frames, depths, poses = [], [], []
+    for i in range(4):
+        c2w = torch.eye(4, dtype=torch.float64)
+        c2w[0, 3] = 0.15 * i
+        cam = Camera(k, c2w)
+        origin, dirs = cam.pixel_rays(dtype=torch.float64)
+        s = z_wall / -dirs[..., 2]
+        p = origin + s[..., None] * dirs  # points on the wall z = -3
+        tex = 0.3 + 0.25 * (torch.sin(7 * p[..., 0]) * torch.cos(5 * p[..., 1]))[..., None].expand(H, W, 3)
+        frames.append(tonemap(tex.float()))
+        depths.append(torch.full((H, W), z_wall))
+        poses.append(c2w)
+    cap = capture_from_arrays(torch.stack(frames), torch.stack(depths), intrinsics=k, poses=torch.stack(poses))
+    assert not cap.static_camera
+    d = detect_temporal(cap)
+    assert not d.uses_time, d.reason
+    assert "motion compensated" in d.reason
+    # and the same pan with the light halved in the second half is temporal
+    frames2 = torch.stack([f if i < 2 else tonemap(torch.pow(f, 2.4) * 0.5) for i, f in enumerate(frames)])
+    cap2 = capture_from_arrays(frames2, torch.stack(depths), intrinsics=k, poses=torch.stack(poses))
+    assert detect_temporal(cap2).uses_time

@@ -1,0 +1,138 @@
+"""Known and reprojection priors: exact targets, untouched background, reprojected lights."""
+import math
+
+import pytest
+import torch
+
+from core.camera import Camera, Intrinsics
+from core.chrome_ball import ball_reflection_rays, composite, place_probe, render_balls
+from core.conventions import direction_to_theta_phi, inverse_tonemap, tonemap
+from core.engine.capture import capture_from_arrays
+from core.priors.base import PriorError, PriorRequest, ProbeGeometry
+from core.priors.known import KnownRadiancePrior
+from core.priors.registry import build_prior
+from core.priors.reprojection import CLIP_BOOST, ReprojectionPrior, linearise, push_pull_fill
+
+H, W = 48, 64
+
+
+def _request(capture, frame=0, pixels=((20.0, 24.0), (44.0, 30.0)), depth_frac=0.6, ev=0.0):
+    cam = capture.camera(frame)
+    placed = [place_probe(cam, uv, depth_frac * float(capture.depth[frame, int(uv[1]), int(uv[0])])) for uv in pixels]
+    centers = torch.stack([c for c, _ in placed])
+    radii = torch.tensor([r for _, r in placed])
+    rays = ball_reflection_rays(cam, centers, radii, supersample=1)
+    bg = inverse_tonemap(capture.frames[frame])
+    layer = render_balls(cam, centers, radii, lambda d, b: torch.full((d.shape[0], 3), 0.5), rays=rays)
+    image = tonemap(composite(bg, layer), ev).permute(2, 0, 1)
+    probes = ProbeGeometry(centers, radii, torch.tensor(pixels), cam, frame, float(capture.times[frame]))
+    req = PriorRequest(image, layer.coverage, capture.depth[frame], ev, 1.0, 10, 12.5, probes,
+                       extras={"frame_linear": bg, "ball_rays": rays})
+    return req, layer
+
+
+def _capture(frames=None, depth=3.0):
+    frames = torch.full((1, H, W, 3), 0.5) if frames is None else frames
+    return capture_from_arrays(frames, torch.full((frames.shape[0], H, W), depth), fps=1)
+
+
+def test_known_prior_renders_the_function_and_keeps_background():
+    cap = _capture(torch.rand(1, H, W, 3))
+    def up(x, t, d):  # brighter towards +y, same at every x
+        return (0.1 + d[:, 1:2].clamp_min(0) * 3.0).expand(-1, 3)
+
+    req, layer = _request(cap, ev=-1.0)
+    target = KnownRadiancePrior(up)(req)
+    inside = layer.total_coverage > 0
+    assert torch.equal(target[:, ~inside], req.image[:, ~inside])
+    # a fully covered pixel's value is the tone-mapped function averaged over its sample(s)
+    full = layer.total_coverage > 0.999
+    rays = req.extras["ball_rays"]
+    expect = torch.zeros(H * W, 3).index_add(0, rays.pixel_index, up(None, None, rays.direction) * rays.sample_weight[:, None])
+    expect = tonemap(expect.view(H, W, 3), -1.0).permute(2, 0, 1)
+    assert torch.allclose(target[:, full], expect[:, full], atol=1e-5)
+
+
+def test_uniform_scene_gives_uniform_ball():
+    """A room of one colour looks the same from every probe: the ball is that colour."""
+    cap = _capture(torch.full((1, H, W, 3), 0.4))
+    prior = ReprojectionPrior(env_height=16)
+    prior.bind(cap)
+    req, layer = _request(cap, ev=-2.0)
+    target = prior(req)
+    full = layer.total_coverage > 0.999
+    expect = tonemap(inverse_tonemap(torch.tensor(0.4)), -2.0)
+    assert torch.allclose(target[:, full], expect, atol=1e-4)
+    outside = layer.total_coverage == 0
+    assert torch.equal(target[:, outside], req.image[:, outside])
+
+
+def test_bright_patch_is_seen_in_its_true_direction():
+    frames = torch.full((1, H, W, 3), 0.3)
+    frames[0, 8:12, 40:44] = 1.0  # a clipped source on the back wall
+    cap = _capture(frames)
+    prior = ReprojectionPrior(env_height=32)
+    prior.bind(cap)
+    center = torch.tensor([[-0.4, -0.3, -1.5]])
+    env = prior.envmaps(center, 0)[0]
+    lum = env.sum(-1)
+    i, j = divmod(int(lum.argmax()), lum.shape[1])
+    # direction of the patch centre from the probe
+    patch = cap.camera(0).unproject(cap.depth[0])[10, 42]
+    d = patch - center[0]
+    theta, phi = direction_to_theta_phi(d)
+    h = 32
+    assert abs((i + 0.5) * math.pi / h - float(theta)) < 2.5 * math.pi / h
+    assert abs((j + 0.5) * 2 * math.pi / (2 * h) - math.pi - float(phi)) < 2.5 * math.pi / h
+    # the clipped patch is boosted far above linearised white (1.0)
+    assert float(env.max()) > 0.5 * CLIP_BOOST
+
+
+def test_point_cloud_is_built_once_for_a_static_camera():
+    cap = _capture(torch.rand(3, H, W, 3))
+    prior = ReprojectionPrior(env_height=8)
+    prior.bind(cap)
+    for i in range(3):
+        prior.envmaps(torch.zeros(1, 3) + torch.tensor([0, 0, -1.0]), i)
+    assert prior.point_cloud_builds == 1
+    # but the colours follow the frame
+    a = prior.envmaps(torch.tensor([[0, 0, -1.0]]), 0)
+    b = prior.envmaps(torch.tensor([[0, 0, -1.0]]), 1)
+    assert not torch.equal(a, b)
+
+
+def test_push_pull_keeps_observed_and_fills_within_range():
+    g = torch.Generator().manual_seed(0)
+    env = torch.rand(2, 8, 16, 3, generator=g) + 0.5
+    mask = torch.rand(2, 8, 16, generator=g) > 0.7
+    out = push_pull_fill(torch.where(mask[..., None], env, 0.0), mask)
+    assert torch.equal(out[mask], env[mask])
+    assert (out >= 0.5 - 1e-6).all() and (out <= 1.5 + 1e-6).all()
+
+
+def test_linearise_boosts_only_clipped_pixels():
+    x = torch.tensor([[0.5, 0.5, 0.5], [1.0, 0.2, 0.2]])
+    lin = linearise(x)
+    assert torch.allclose(lin[0], inverse_tonemap(x[0]))
+    assert torch.allclose(lin[1], inverse_tonemap(x[1]) * CLIP_BOOST)
+
+
+def test_hard_frames_stay_finite():
+    for frame in (torch.zeros(1, H, W, 3), torch.ones(1, H, W, 3)):
+        cap = _capture(frame)
+        prior = ReprojectionPrior(env_height=8)
+        prior.bind(cap)
+        req, _ = _request(cap, ev=-5.0)
+        out = prior(req)
+        assert torch.isfinite(out).all() and out.min() >= 0 and out.max() <= 1
+
+
+def test_registry():
+    assert isinstance(build_prior("reprojection", env_height=8), ReprojectionPrior)
+    assert isinstance(build_prior("known", fn=lambda x, t, d: d.abs()), KnownRadiancePrior)
+    with pytest.raises(PriorError, match="unknown prior"):
+        build_prior("magic")
+    with pytest.raises(PriorError, match="fn="):
+        build_prior("known")
+    with pytest.raises(PriorError):
+        ReprojectionPrior(env_height=8).envmaps(torch.zeros(1, 3), 0)  # not bound
