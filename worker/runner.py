@@ -131,6 +131,7 @@ class JobRunner:
         if lease.lost.is_set():
             return Outcome.ABANDONED
         self._prebake(job_id, artefact)
+        self._save_ui_preview(record, paths)
         self.store.update(job_id, allowed=("running",), state="succeeded", progress=1.0, stage="done",
                           eta_s=0.0, artefact=relative, finished_at=time.time())
         paths.remove_uploads()
@@ -174,6 +175,21 @@ class JobRunner:
             load_or_bake(LightFieldArtefact.load(artefact), save=True)
         except Exception:
             log.warning("job %s: baking the fast path failed", job_id, exc_info=True)
+
+    def _save_ui_preview(self, record, paths: JobPaths) -> None:
+        """Keep small frames + depth for the web page (service.capture_preview) before the
+        uploads are deleted. Optional: without it the page cannot show frames."""
+        try:
+            from core.engine.params import JobParams
+            from core.io.limits import MediaLimits
+            from service.capture_preview import write_capture_preview
+
+            depth = paths.upload_dir / record.depth_file if record.depth_file else None
+            write_capture_preview(paths.upload_dir / record.input_file, depth,
+                                  JobParams.model_validate_json(record.params or "{}"), paths.job_dir,
+                                  MediaLimits.from_env())
+        except Exception:
+            log.warning("job %s: storing the UI preview failed", record.id, exc_info=True)
 
     def _progress_writer(self, job_id: str):
         last = {"t": 0.0, "stage": None}

@@ -1,0 +1,185 @@
+"""A small copy of a job's capture (frames, depth, cameras) kept for the web page.
+
+The worker deletes a job's uploads once the job succeeds, but the page needs the frame at
+time t to click on, and the depth at the clicked pixel to place a probe just in front of
+the surface. So, before the uploads go, the worker stores a preview beside the artefact:
+
+    <job_dir>/preview/capture.safetensors   frames uint8 [T,h,w,3], depth float16 [T,h,w]
+                                            (NaN where invalid), poses float64 [T,4,4],
+                                            times float32 [T] (seconds from the first frame)
+    <job_dir>/preview/capture.json          format, version, intrinsics at the preview
+                                            size, fps, depth source, source frame count
+
+It is loaded with the engine's own `load_capture`, so its cameras, times and fallback depth
+are exactly the ones the light field was estimated with. At most PREVIEW_MAX_HEIGHT rows
+and PREVIEW_MAX_FRAMES frames (evenly spaced) are kept, which bounds it to a few tens of MB.
+Written to a temporary sibling and renamed, like the artefact; never unpickled.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+PREVIEW_DIR = "preview"
+TENSORS_FILE = "capture.safetensors"
+META_FILE = "capture.json"
+FORMAT = "lightfield-ui-preview"
+VERSION = 1
+PREVIEW_MAX_HEIGHT = 360
+PREVIEW_MAX_FRAMES = 120
+
+
+class PreviewError(ValueError):
+    """A stored preview is missing, corrupt or inconsistent (the message names the part)."""
+
+
+@dataclass(frozen=True)
+class CapturePreview:
+    frames: np.ndarray  # uint8 [T, h, w, 3]
+    depth: np.ndarray  # float32 [T, h, w] planar metres, NaN where invalid
+    poses: np.ndarray  # float64 [T, 4, 4] camera-to-world
+    times: np.ndarray  # float32 [T] seconds from the first frame
+    intrinsics: dict  # fx, fy, cx, cy, width, height at the preview size
+    fps: float
+    depth_source: str
+    source_frames: int  # frames the engine saw (before the preview's subsampling)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.frames.shape[0])
+
+    @property
+    def height(self) -> int:
+        return int(self.frames.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.frames.shape[2])
+
+    def nearest_frame(self, t: float) -> int:
+        """Index of the stored frame closest in time to t (ties: the earlier frame)."""
+        return int(np.argmin(np.abs(self.times.astype(np.float64) - float(t))))
+
+    def camera(self, index: int):
+        from core.camera import Camera, Intrinsics
+
+        return Camera(Intrinsics(**self.intrinsics), self.poses[index])
+
+
+def preview_dir(job_dir: Path) -> Path:
+    return Path(job_dir) / PREVIEW_DIR
+
+
+def _evenly_spaced(count: int, keep: int) -> np.ndarray:
+    if count <= keep:
+        return np.arange(count)
+    return np.unique(np.round(np.linspace(0, count - 1, keep)).astype(np.int64))
+
+
+def preview_from_capture(capture, max_height: int = PREVIEW_MAX_HEIGHT, max_frames: int = PREVIEW_MAX_FRAMES) -> CapturePreview:
+    """Downsample a core.engine.capture.Capture (area-averaged frames, nearest-surface depth)."""
+    import torch
+
+    small = capture.resized(max_height)
+    keep = _evenly_spaced(small.num_frames, max_frames)
+    frames = (small.frames[keep].clamp(0, 1) * 255.0).round().to(torch.uint8).numpy()
+    depth = small.depth[keep].numpy().astype(np.float32)
+    depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan).astype(np.float32)
+    return CapturePreview(
+        frames=np.ascontiguousarray(frames),
+        depth=depth,
+        poses=small.poses[keep].numpy().astype(np.float64),
+        times=small.times[keep].numpy().astype(np.float32),
+        intrinsics=small.intrinsics.as_dict(),
+        fps=float(small.fps),
+        depth_source=str(small.depth_source),
+        source_frames=int(capture.num_frames),
+    )
+
+
+def save_preview(preview: CapturePreview, job_dir: Path) -> Path:
+    """Write the preview under job_dir atomically (temp sibling + rename); return its directory."""
+    from safetensors.numpy import save_file
+
+    job_dir = Path(job_dir)
+    job_dir.mkdir(parents=True, exist_ok=True)
+    final = preview_dir(job_dir)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{PREVIEW_DIR}.tmp-", dir=job_dir))
+    try:
+        save_file({
+            "frames": preview.frames,
+            "depth": preview.depth.astype(np.float16),
+            "poses": preview.poses.astype(np.float64),
+            "times": preview.times.astype(np.float32),
+        }, str(tmp / TENSORS_FILE))
+        meta = {"format": FORMAT, "version": VERSION, "intrinsics": preview.intrinsics, "fps": preview.fps,
+                "depth_source": preview.depth_source, "source_frames": preview.source_frames}
+        (tmp / META_FILE).write_text(json.dumps(meta, indent=2))
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return final
+
+
+def write_capture_preview(input_path, depth_path, params, job_dir: Path, limits=None) -> Path:
+    """Load the job's input as the engine does and store its preview (the worker's hook).
+    Idempotent: an existing preview (a re-delivered job) is kept."""
+    import warnings
+
+    from core.engine.capture import load_capture
+
+    if (preview_dir(job_dir) / META_FILE).is_file():
+        return preview_dir(job_dir)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the engine already reported them for this capture
+        capture = load_capture(input_path, depth_path, params, limits)
+    return save_preview(preview_from_capture(capture), job_dir)
+
+
+def load_preview(job_dir: Path) -> CapturePreview:
+    """Read and validate a stored preview; raises PreviewError (FileNotFoundError if absent)."""
+    from safetensors import SafetensorError
+    from safetensors.numpy import load_file
+
+    root = preview_dir(job_dir)
+    if not (root / META_FILE).is_file():
+        raise FileNotFoundError(f"no capture preview in {root}")
+    try:
+        meta = json.loads((root / META_FILE).read_text())
+        tensors = load_file(str(root / TENSORS_FILE))
+    except (OSError, ValueError, SafetensorError) as exc:
+        raise PreviewError(f"capture preview in {root} is unreadable: {exc}") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("version") != VERSION:
+        raise PreviewError(f"{META_FILE}: not a {FORMAT} v{VERSION} document")
+    missing = {"frames", "depth", "poses", "times"} - set(tensors)
+    if missing:
+        raise PreviewError(f"{TENSORS_FILE}: missing tensors {sorted(missing)}")
+    frames, depth, poses, times = (tensors[k] for k in ("frames", "depth", "poses", "times"))
+    if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] < 1:
+        raise PreviewError(f"{TENSORS_FILE}: frames must be uint8 [T,h,w,3], got {frames.dtype} {frames.shape}")
+    t, h, w = frames.shape[:3]
+    if depth.shape != (t, h, w) or poses.shape != (t, 4, 4) or times.shape != (t,):
+        raise PreviewError(f"{TENSORS_FILE}: depth {depth.shape}, poses {poses.shape}, times {times.shape} "
+                           f"do not match {t} frames of {h}x{w}")
+    if not (np.isfinite(poses).all() and np.isfinite(times).all()):
+        raise PreviewError(f"{TENSORS_FILE}: poses and times must be finite")
+    intr = meta.get("intrinsics")
+    if not isinstance(intr, dict) or intr.get("width") != w or intr.get("height") != h:
+        raise PreviewError(f"{META_FILE}: intrinsics must describe the {w}x{h} preview frames")
+    fps = meta.get("fps")
+    if not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
+        raise PreviewError(f"{META_FILE}: fps must be a positive number, got {fps!r}")
+    return CapturePreview(frames=frames, depth=depth.astype(np.float32), poses=poses.astype(np.float64),
+                          times=times.astype(np.float32), intrinsics=intr, fps=float(fps),
+                          depth_source=str(meta.get("depth_source", "")),
+                          source_frames=int(meta.get("source_frames", t)))
