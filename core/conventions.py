@@ -64,9 +64,13 @@ def direction_to_theta_phi(d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]
     correct there, and samplers must not depend on it.
     """
     x, y, z = d.unbind(-1)
-    rho = torch.sqrt(x * x + z * z)
+    rho2 = x * x + z * z
+    off_axis = rho2 > 0
+    # Double `where` keeps values unchanged off the axis and makes the gradient 0 (not NaN,
+    # from sqrt'(0) and atan2(0, 0)) on it; on the axis phi is exactly 0 as documented.
+    rho = torch.where(off_axis, torch.sqrt(torch.where(off_axis, rho2, torch.ones_like(rho2))), torch.zeros_like(rho2))
     theta = torch.atan2(rho, y)
-    phi = torch.atan2(x, -z)
+    phi = torch.atan2(torch.where(off_axis, x, torch.zeros_like(x)), torch.where(off_axis, -z, torch.ones_like(z)))
     return theta, phi
 
 

@@ -90,3 +90,12 @@ def test_tonemap_is_monotonic():
 def test_valid_depth_mask():
     depth = torch.tensor([0.0, float("nan"), float("inf"), -float("inf"), -1.0, 1e-6, 2.5])
     assert valid_depth_mask(depth).tolist() == [False, False, False, False, False, True, True]
+
+
+def test_poles_have_phi_zero_and_finite_gradients():
+    d = torch.tensor([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 2.0, -0.0], [0.0, 0.0, 0.0]], requires_grad=True)
+    theta, phi = direction_to_theta_phi(d)
+    assert phi.tolist() == [0.0, 0.0, 0.0, 0.0]
+    assert theta.tolist() == pytest.approx([0.0, math.pi, 0.0, 0.0])
+    (theta.sum() + phi.sum()).backward()
+    assert torch.isfinite(d.grad).all()
