@@ -43,11 +43,11 @@ class MLPField(LightField):
             self.output.bias.fill_(self.logit_for_radiance(INITIAL_RADIANCE))
 
     def encode(self, xn: torch.Tensor, tn: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
-        parts = [self.pe_x(xn)]
-        if self.pe_t is not None:
-            parts.append(self.pe_t(tn))
-        parts.append(self.pe_d(d))
-        return torch.cat(parts, dim=-1)
+        """[PE(xn), PE(tn), PE(d)]: probe part first, direction part last (see _envmap_logits)."""
+        return torch.cat((self._probe_encoding(xn, tn), self.pe_d(d)), dim=-1)
+
+    def _probe_encoding(self, xn: torch.Tensor, tn: torch.Tensor | None) -> torch.Tensor:
+        return self.pe_x(xn) if self.pe_t is None else torch.cat((self.pe_x(xn), self.pe_t(tn)), dim=-1)
 
     def logits(self, xn, tn, d):
         e = self.encode(xn, tn, d)
@@ -57,3 +57,36 @@ class MLPField(LightField):
                 h = torch.cat((h, e), dim=-1)
             h = torch.relu(layer(h))
         return self.output(h)
+
+    def _envmap_logits(self, xn, tn, dirs, chunk_rows: int) -> torch.Tensor:
+        """Every layer that reads the encoding is linear in it, so it splits into a per-probe
+        term (PE(x), PE(t) columns) plus a per-direction term (PE(d) columns): the
+        encodings and those products are computed once, not once per (probe, direction)."""
+        e_probe = self._probe_encoding(xn, tn)  # [P, Ep]
+        e_dir = self.pe_d(dirs)  # [N, Ed]
+        n_probe_cols = e_probe.shape[1]
+
+        def split(layer: nn.Linear, offset: int):
+            w = layer.weight
+            per_probe = e_probe @ w[:, offset : offset + n_probe_cols].T + layer.bias  # [P, W]
+            per_dir = e_dir @ w[:, offset + n_probe_cols :].T  # [N, W]
+            return per_probe, per_dir
+
+        first = split(self.layers[0], 0)
+        skip = None
+        if self.skip_layer is not None and self.skip_layer != 1:
+            skip_layer = self.layers[self.skip_layer - 1]
+            skip = split(skip_layer, skip_layer.in_features - n_probe_cols - e_dir.shape[1])
+        out = xn.new_empty(xn.shape[0], dirs.shape[0], 3)
+        step = max(1, chunk_rows // dirs.shape[0])
+        for p0 in range(0, xn.shape[0], step):
+            sl = slice(p0, p0 + step)
+            h = torch.relu(first[0][sl, None] + first[1][None])
+            for i, layer in enumerate(self.layers[1:], start=2):
+                if skip is not None and i == self.skip_layer:
+                    w_h = layer.weight[:, : layer.in_features - n_probe_cols - e_dir.shape[1]]
+                    h = torch.relu(h @ w_h.T + skip[0][sl, None] + skip[1][None])
+                else:
+                    h = torch.relu(layer(h))
+            out[sl] = self.output(h)
+        return out
