@@ -175,20 +175,24 @@ def bake(
 
 def load_or_bake(
     artefact: LightFieldArtefact,
-    grid: tuple[int, int, int] = DEFAULT_GRID,
-    times: int = DEFAULT_TIMES,
-    height: int = DEFAULT_HEIGHT,
+    grid: tuple[int, int, int] | None = None,
+    times: int | None = None,
+    height: int | None = None,
     save: bool = True,
 ) -> BakedField:
-    """The stored bake when it is fresh and has this grid / times / height, else a new one
-    (saved next to the artefact when `save`)."""
+    """The stored bake when it is fresh and matches every spec given (None: any), else a new
+    one with the given spec (defaults for the rest), saved next to the artefact when `save`."""
     try:
         baked = BakedField.load(artefact)
-        if baked.grid == tuple(grid) and baked.times == keyframe_count(artefact, times) and baked.height == height:
+        if (
+            (grid is None or baked.grid == tuple(grid))
+            and (times is None or baked.times == keyframe_count(artefact, times))
+            and (height is None or baked.height == height)
+        ):
             return baked
     except ArtefactError:
         pass
-    baked = bake(artefact, grid, times, height)
+    baked = bake(artefact, grid or DEFAULT_GRID, DEFAULT_TIMES if times is None else times, height or DEFAULT_HEIGHT)
     if save:
         baked.save(artefact.path)
     return baked
