@@ -195,6 +195,12 @@ def _area_downsample(envmap: torch.Tensor, height: int) -> torch.Tensor:
     """
     h_in, w_in = envmap.shape[0], envmap.shape[1]
     w_out = equirect_width(height)
+    if h_in % height == 0:  # integer factor: sum k x k blocks of L dw (same result, O(pixels))
+        k = h_in // height
+        omega_in = solid_angles(h_in, device=envmap.device, dtype=torch.float64)
+        weighted = (envmap.to(torch.float64) * omega_in[..., None]).reshape(height, k, w_out, k, -1).sum(dim=(1, 3))
+        omega_out = solid_angles(height, device=envmap.device, dtype=torch.float64)
+        return (weighted / omega_out[..., None]).to(envmap.dtype)
     rows = _overlap_matrix(1.0 - _row_cos_edges(height), 1.0 - _row_cos_edges(h_in))  # cos-measure overlaps
     rows = rows / rows.sum(dim=1, keepdim=True)
     cols = _overlap_matrix(
