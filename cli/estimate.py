@@ -78,7 +78,6 @@ def run(args: argparse.Namespace) -> int:
     from core.io import MediaError
     from core.priors.base import PriorError
 
-    warnings.formatwarning = lambda message, *_a, **_k: f"warning: {message}\n"
     out = Path(args.output)
     try:
         params = parse_job_params(args.params, preset=args.preset, prior=args.prior, prior_weights=args.prior_weights,
@@ -92,7 +91,10 @@ def run(args: argparse.Namespace) -> int:
         shutil.rmtree(ckpt, ignore_errors=True)
     bar = None if args.quiet else ProgressBar()
     try:
-        path = run_job(args.input, args.depth, params, out, progress=bar, checkpoint_dir=ckpt, config=config)
+        with warnings.catch_warnings():  # restores showwarning afterwards
+            warnings.simplefilter("always")
+            warnings.showwarning = lambda message, *_a, **_k: print(f"warning: {message}", file=sys.stderr)
+            path = run_job(args.input, args.depth, params, out, progress=bar, checkpoint_dir=ckpt, config=config)
     except (CaptureError, MediaError, PriorError, ValidationError) as exc:
         print(f"\nerror: {exc}", file=sys.stderr)
         return 2
