@@ -207,52 +207,60 @@ def sphere_hits(center: torch.Tensor, radius: torch.Tensor, o: torch.Tensor, d: 
     return t.min(-1)
 
 
+def _room_and_furniture(geom: SceneGeometry, o: torch.Tensor, d: torch.Tensor):
+    """Nearest room-surface hit (bounding box exit or a wall block) and nearest furniture
+    hit: (t_room, room face [N], room normal, t_furniture, furniture index, furniture normal)."""
+    t_exit, ax_exit = room_exit(geom, o, d)
+    t_solid, i_solid, ax_solid = _solids(geom, o, _safe_inv(d))
+    n_solid = _axis_normal(ax_solid, d)
+    inf = torch.full_like(t_solid, float("inf"))
+    is_block = i_solid >= geom.num_furniture
+    use_block = is_block & (t_solid < t_exit)
+    t_room = torch.where(use_block, t_solid, t_exit)
+    # face index 0..5 = (-x, +x, -y floor, +y ceiling, -z, +z): the side of the room the
+    # surface bounds, i.e. where its inward normal points away from
+    exit_face = ax_exit * 2 + (d.gather(1, ax_exit[:, None]).squeeze(1) > 0).long()
+    block_face = ax_solid * 2 + (n_solid.gather(1, ax_solid[:, None]).squeeze(1) < 0).long()
+    room_face = torch.where(use_block, block_face, exit_face)
+    room_normal = torch.where(use_block[:, None], n_solid, _axis_normal(ax_exit, d))
+    t_furniture = torch.where(is_block, inf, t_solid)
+    return t_room, room_face, room_normal, t_furniture, i_solid, n_solid
+
+
+def _sphere_normal(p: torch.Tensor, centers: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    if len(centers) == 0:
+        return torch.zeros_like(p)
+    sn = p - centers[index]
+    return sn / sn.norm(dim=-1, keepdim=True).clamp_min(TINY)
+
+
 def cast(geom: SceneGeometry, lights: LightState, o: torch.Tensor, d: torch.Tensor, mirrors=None) -> Hit:
     """First hit of rays o [N, 3] (or [3]), unit d [N, 3] against the whole scene.
 
     `mirrors` = (centers [K, 3], radii [K]) adds mirror spheres (training export)."""
     o = o.expand_as(d) if o.dim() == 1 else o
-    inv = _safe_inv(d)
-    n = len(d)
-    t_room, ax_room = room_exit(geom, o, d)
-    t_solid, i_solid, ax_solid = _solids(geom, o, inv)
-    # a wall block is part of the room: re-label its hits as room faces (by facing side)
-    is_block = i_solid >= geom.num_furniture
-    n_solid = _axis_normal(ax_solid, d)
-    block_face = ax_solid * 2 + (n_solid.gather(1, ax_solid[:, None]).squeeze(1) < 0).long()
-    t_box = torch.where(is_block, torch.full_like(t_solid, float("inf")), t_solid)
-    t_block = torch.where(is_block, t_solid, torch.full_like(t_solid, float("inf")))
-    use_block = t_block < t_room
-    t_room = torch.where(use_block, t_block, t_room)
+    t_room, room_face, room_normal, t_furn, i_furn, furn_normal = _room_and_furniture(geom, o, d)
     t_rect, i_rect = _rects(lights, o, d)
     t_lamp, i_lamp = sphere_hits(lights.lamp_center, lights.lamp_radius, o, d)
-    cands = [t_room, t_box, t_rect, t_lamp]
-    if mirrors is not None:
-        t_mir, i_mir = sphere_hits(mirrors[0], mirrors[1], o, d)
-        cands.append(t_mir)
-    t_all = torch.stack(cands, -1)
-    t, which = t_all.min(-1)
+    no_mirrors = (torch.zeros(0, 3), torch.zeros(0))
+    t_mir, i_mir = sphere_hits(*(mirrors if mirrors is not None else no_mirrors), o, d)
+    t, which = torch.stack([t_room, t_furn, t_rect, t_lamp, t_mir], -1).min(-1)  # order = kinds 1..5
     kind = torch.where(torch.isfinite(t), which + 1, torch.full_like(which, MISS))
-    room_face = ax_room * 2 + (d.gather(1, ax_room[:, None]).squeeze(1) > 0).long()
-    room_face = torch.where(use_block, block_face, room_face)
-    index = torch.zeros(n, dtype=torch.long)
-    index = torch.where(kind == ROOM, room_face, index)
-    index = torch.where(kind == FURNITURE, i_solid, index)
-    index = torch.where(kind == PANEL, i_rect, index)
-    index = torch.where(kind == LAMP, i_lamp, index)
-    normal = torch.zeros_like(d)
-    normal = torch.where((kind == ROOM)[:, None], torch.where(use_block[:, None], n_solid, _axis_normal(ax_room, d)), normal)
-    normal = torch.where((kind == FURNITURE)[:, None], n_solid, normal)
-    if len(lights.rect_center):
-        normal = torch.where((kind == PANEL)[:, None], lights.rect_normal[i_rect], normal)
     p = o + torch.where(torch.isfinite(t), t, torch.zeros_like(t))[:, None] * d
-    if len(lights.lamp_center):
-        sn = p - lights.lamp_center[i_lamp]
-        normal = torch.where((kind == LAMP)[:, None], sn / sn.norm(dim=-1, keepdim=True).clamp_min(TINY), normal)
-    if mirrors is not None:
-        index = torch.where(kind == MIRROR, i_mir, index)
-        sn = p - mirrors[0][i_mir] if len(mirrors[0]) else torch.zeros_like(p)
-        normal = torch.where((kind == MIRROR)[:, None], sn / sn.norm(dim=-1, keepdim=True).clamp_min(TINY), normal)
+    rect_normal = lights.rect_normal[i_rect] if len(lights.rect_center) else torch.zeros_like(d)
+    candidates = {
+        ROOM: (room_face, room_normal),
+        FURNITURE: (i_furn, furn_normal),
+        PANEL: (i_rect, rect_normal),
+        LAMP: (i_lamp, _sphere_normal(p, lights.lamp_center, i_lamp)),
+        MIRROR: (i_mir, _sphere_normal(p, no_mirrors[0] if mirrors is None else mirrors[0], i_mir)),
+    }
+    index = torch.zeros(len(d), dtype=torch.long)
+    normal = torch.zeros_like(d)
+    for k, (idx, nrm) in candidates.items():
+        sel = kind == k
+        index = torch.where(sel, idx, index)
+        normal = torch.where(sel[:, None], nrm, normal)
     return Hit(t=t, kind=kind, index=index, normal=normal)
 
 

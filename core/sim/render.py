@@ -154,14 +154,16 @@ def render_envmap(scene: SceneSpec, x, t: float, height: int = 64, cost: CostRep
 
 def radiance(scene: SceneSpec, x: torch.Tensor, t: torch.Tensor, d: torch.Tensor, cost: CostReport | None = None) -> torch.Tensor:
     """Ground-truth radiance [B, 3] arriving at x [B, 3] (metres) at time t [B] (seconds)
-    from directions d [B, 3] (need not be unit). Points outside free space get 0."""
+    from directions d [B, 3] (need not be unit). Points outside free space, zero or
+    non-finite directions and non-finite times get 0."""
     x = torch.as_tensor(x, dtype=torch.float32).reshape(-1, 3)
     d = torch.as_tensor(d, dtype=torch.float32).reshape(-1, 3)
     t = torch.as_tensor(t, dtype=torch.float64).reshape(-1).expand(len(x))
-    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    norm = d.norm(dim=-1, keepdim=True)
+    d = d / norm.clamp_min(1e-12)
     out = torch.zeros(len(x), 3)
     geom = geometry(scene)
-    free = geom.inside_room(x) & ~geom.inside_furniture(x)
+    free = geom.inside_room(x) & ~geom.inside_furniture(x) & torch.isfinite(norm[:, 0]) & (norm[:, 0] > 1e-12) & torch.isfinite(t)
     for tv in torch.unique(t):
         sel = (t == tv) & free
         if sel.any():

@@ -6,7 +6,6 @@ scenes are small and the ray caster intersects every primitive at once.
 """
 from __future__ import annotations
 
-import math
 from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, field_serializer, field_validator, model_validator
@@ -25,13 +24,7 @@ class SceneSpecError(ValueError):
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-def _finite(name: str, values) -> None:
-    for v in values:
-        if not math.isfinite(v):
-            raise ValueError(f"{name} must be finite, got {values}")
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Box(_Model):
@@ -42,13 +35,9 @@ class Box(_Model):
 
     @model_validator(mode="after")
     def _ordered(self):
-        _finite("box corner", self.lo + self.hi)
         if any(h <= l for l, h in zip(self.lo, self.hi)):
             raise ValueError(f"box needs lo < hi on every axis, got lo={self.lo} hi={self.hi}")
         return self
-
-    def contains(self, p, margin: float = 0.0) -> bool:
-        return all(l + margin < x < h - margin for l, x, h in zip(self.lo, p, self.hi))
 
 
 class RoomAlbedo(_Model):
@@ -115,7 +104,6 @@ class AreaEmitter(_Model):
 
     @model_validator(mode="after")
     def _check(self):
-        _finite("emitter radiance", self.radiance)
         if min(self.size) <= 0:
             raise ValueError(f"area emitter size must be > 0, got {self.size}")
         if min(self.radiance) < 0:
@@ -135,7 +123,6 @@ class Lamp(_Model):
 
     @model_validator(mode="after")
     def _check(self):
-        _finite("lamp radiance", self.radiance)
         if min(self.radiance) < 0:
             raise ValueError(f"lamp radiance must be >= 0, got {self.radiance}")
         return self
