@@ -14,6 +14,7 @@ from service.context import AppContext
 from service.errors import install_error_handlers
 from service.fieldcache import FieldCache
 from service.metrics import Metrics, MetricsMiddleware
+from service import routes_ui
 from service.routes import health, jobs, lightfield
 from service.store import JobStore, connect
 from worker.app import make_celery
@@ -42,7 +43,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     app.state.metrics = Metrics(store)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     install_error_handlers(app)
-    for module in (jobs, lightfield, health):
+    for module in (jobs, lightfield, routes_ui, health):
         app.include_router(module.router)
     if UI_DIR.is_dir():
         app.mount("/ui", StaticFiles(directory=UI_DIR, html=True), name="ui")

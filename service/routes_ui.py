@@ -1,0 +1,190 @@
+"""What the web page needs beyond the public query API: the frames it clicks on, probe
+placement along a pixel's ray, and chrome/diffuse balls composited into a frame.
+
+All four read the capture preview the worker stores beside a succeeded job's artefact
+(service.capture_preview) and use the same auth, ownership and `not_ready` rules as
+/lightfield/{id}. Geometry lives in service.ui_probes and core; rendering in
+core.engine.insertion. Included by service.app.create_app.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from fastapi import APIRouter, Depends, Query, Response
+from fastapi.concurrency import run_in_threadpool
+from pydantic import BaseModel, Field
+
+from core.conventions import CONVENTIONS_SUMMARY
+from service.capture_preview import PreviewError, StoredPreview, load_preview
+from service.context import AppContext, Tenant, get_ctx, get_tenant, owned_job
+from service.errors import Conflict, ErrorBody, InvalidInput, NotFound
+from service.fieldcache import CachedField
+from service.storage import JobPaths
+from service.ui_probes import ProbeError, place
+
+router = APIRouter(tags=["ui"])
+_ERRORS = {s: {"model": ErrorBody} for s in (401, 404, 409, 413, 422)}
+CONVENTIONS_HEADER = "X-Lightfield-Conventions"
+MAX_INSERTED_PROBES = 16
+MAX_INSERTION_ENV_HEIGHT = 128
+T_HELP = "seconds from the first frame; the stored frame nearest in time is used"
+
+
+class Flags(BaseModel):
+    x: bool = Field(description="x lies outside the scene bounds the field was trained on")
+    t: bool = Field(description="t lies outside the capture's time range")
+
+
+class CaptureView(BaseModel):
+    id: str
+    width: int = Field(description="width of the stored preview frames (pixels)")
+    height: int
+    frames: int = Field(description="stored preview frames (evenly spaced over the capture)")
+    source_frames: int = Field(description="frames the estimation used")
+    times: list[float] = Field(description="time of each stored frame, seconds from the first frame")
+    fps: float
+    intrinsics: dict = Field(description="fx, fy, cx, cy, width, height of the preview frames")
+    depth_source: str
+    uses_time: bool = Field(description="whether the light field varies over time")
+    bounds: dict = Field(description="scene box lo/hi (metres) and time range t0/t1 of the field")
+
+
+class ProbeView(BaseModel):
+    u: float
+    v: float
+    t: float
+    frame_index: int
+    frame_time: float
+    surface_depth: float | None = Field(description="planar depth (m) of the surface at the pixel; null when unknown")
+    default_depth: float = Field(description="planar depth (m) that puts the drawn ball just in front of the surface")
+    depth: float = Field(description="planar depth (m) used")
+    x: tuple[float, float, float] = Field(description="world position of the probe (metres): pass as x to the queries")
+    radius: float = Field(description="radius (m) of the ball drawn at the probe by /insertion")
+    extrapolated: Flags
+
+
+def _job_paths(job_id: str, tenant: Tenant, ctx: AppContext) -> tuple[JobPaths, CachedField]:
+    record = owned_job(job_id, tenant, ctx)
+    if record.state != "succeeded":
+        raise Conflict(f"job {job_id} is {record.state}; its frames and light field exist once it has succeeded",
+                       code="not_ready")
+    paths = JobPaths.for_job(ctx.settings.data_dir, record.tenant_hash, record.id)
+    return paths, ctx.fields.get(record.id, ctx.settings.data_dir / record.artefact)
+
+
+def _load(job_id: str, tenant: Tenant, ctx: AppContext) -> tuple[StoredPreview, CachedField]:
+    paths, cf = _job_paths(job_id, tenant, ctx)
+    try:
+        return load_preview(paths.job_dir), cf
+    except FileNotFoundError:
+        raise NotFound(f"job {job_id} has no stored frames (it finished before the page's previews existed)",
+                       code="frames_unavailable") from None
+    except PreviewError as exc:
+        raise NotFound(f"job {job_id}: stored frames are unreadable ({exc})", code="frames_unavailable") from None
+
+
+def _check_t(t: float) -> float:
+    if not math.isfinite(t):
+        raise InvalidInput(f"t must be a finite number of seconds, got {t}", code="invalid_t")
+    return float(t)
+
+
+def _field_time(cf: CachedField, preview: StoredPreview, index: int) -> float | None:
+    """The field's time input for stored frame `index` (None for a field without time)."""
+    return float(preview.times[index]) if cf.artefact.uses_time else None
+
+
+def _flags(cf: CachedField, x, t: float | None) -> Flags:
+    import torch
+
+    ts = None if t is None else torch.tensor([t], dtype=torch.float32)
+    flags = cf.artefact.flags(torch.tensor([x], dtype=torch.float32), ts)[0]
+    return Flags(x=bool(flags["extrapolated_x"]), t=bool(flags["extrapolated_t"]))
+
+
+@router.get("/lightfield/{job_id}/capture", response_model=CaptureView, responses=_ERRORS,
+            summary="The stored preview of the capture: frame size, times, intrinsics (for the web page)")
+def get_capture(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+    preview, cf = _load(job_id, tenant, ctx)
+    return CaptureView(id=job_id, width=preview.width, height=preview.height, frames=preview.num_frames,
+                       source_frames=preview.source_frames, times=[round(float(t), 6) for t in preview.times],
+                       fps=preview.fps, intrinsics=preview.intrinsics, depth_source=preview.depth_source,
+                       uses_time=bool(cf.artefact.uses_time), bounds=cf.artefact.bounds.to_dict())
+
+
+@router.get("/lightfield/{job_id}/frame", response_class=Response, responses={
+    200: {"content": {"image/png": {}}, "description": "the stored frame nearest in time to t"}, **_ERRORS},
+    summary="A frame of the capture as PNG (preview resolution)")
+def get_frame(job_id: str, t: float = Query(0.0, description=T_HELP),
+              tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+    from core.io.images import encode_png
+
+    preview, _ = _load(job_id, tenant, ctx)
+    index = preview.nearest_frame(_check_t(t))
+    return Response(encode_png(preview.frame(index)), media_type="image/png", headers={
+        "X-Lightfield-Frame-Index": str(index), "X-Lightfield-Frame-Time": f"{float(preview.times[index]):.6g}",
+        "Cache-Control": "private, max-age=3600"})
+
+
+@router.get("/lightfield/{job_id}/probe", response_model=ProbeView, responses=_ERRORS,
+            summary="Place a probe on the ray through a pixel: world x at a planar depth (default: just in front of the surface)")
+def get_probe(job_id: str, u: float = Query(..., description="fraction of the frame width, 0 = left edge"),
+              v: float = Query(..., description="fraction of the frame height, 0 = top edge"),
+              t: float = Query(0.0, description=T_HELP),
+              depth: float | None = Query(None, description="planar depth in metres along the pixel's ray"),
+              tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+    preview, cf = _load(job_id, tenant, ctx)
+    try:
+        p = place(preview, u, v, _check_t(t), depth)
+    except ProbeError as exc:
+        raise InvalidInput(str(exc), code="invalid_probe") from None
+    frame_time = float(preview.times[p.frame_index])
+    return ProbeView(u=p.u, v=p.v, t=t, frame_index=p.frame_index, frame_time=frame_time,
+                     surface_depth=p.surface_depth, default_depth=p.default_depth, depth=p.depth, x=p.x,
+                     radius=p.radius, extrapolated=_flags(cf, p.x, _field_time(cf, preview, p.frame_index)))
+
+
+def _render_insertion(preview: StoredPreview, cf: CachedField, index: int, points_text: str, env_height: int) -> bytes:
+    import torch
+
+    from core.chrome_ball import BallPlacementError
+    from core.engine.insertion import InsertionError, insert_objects, parse_points
+    from core.io.images import encode_png
+
+    try:
+        points = parse_points(points_text)
+    except InsertionError as exc:
+        raise InvalidInput(str(exc), code="invalid_points") from None
+    if len(points) > MAX_INSERTED_PROBES:
+        raise InvalidInput(f"points: at most {MAX_INSERTED_PROBES} probes, got {len(points)}", code="invalid_points")
+    t = _field_time(cf, preview, index)
+
+    def envmaps_at(xs: torch.Tensor, t_: float | None) -> torch.Tensor:
+        ts = None if t_ is None else torch.full((xs.shape[0],), float(t_))
+        with cf.lock:
+            return cf.artefact.envmaps(xs, ts, env_height)[0]
+
+    frame = torch.from_numpy(preview.frame(index).astype(np.float32) / 255.0)
+    try:
+        out = insert_objects(frame, torch.from_numpy(preview.depth_map(index)), preview.camera(index), envmaps_at, t,
+                             points, env_height)
+    except (InsertionError, BallPlacementError) as exc:
+        raise InvalidInput(f"points: {exc}", code="invalid_points") from None
+    return encode_png(out.numpy())
+
+
+@router.get("/lightfield/{job_id}/insertion", response_class=Response, responses={
+    200: {"content": {"image/png": {}}, "description": "the frame with the balls composited"}, **_ERRORS},
+    summary="A chrome ball and a diffuse sphere at each point, lit by the field and composited into the frame")
+async def get_insertion(job_id: str, t: float = Query(0.0, description=T_HELP),
+                        points: str = Query(..., description="'u,v,depth;...': u, v fractions of width/height, "
+                                                             "depth planar metres (as `lightfield preview --points`)"),
+                        env_height: int = Query(32, ge=4, le=MAX_INSERTION_ENV_HEIGHT,
+                                                description="env map rows used to light the balls"),
+                        tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+    preview, cf = await run_in_threadpool(_load, job_id, tenant, ctx)
+    index = preview.nearest_frame(_check_t(t))
+    data = await run_in_threadpool(_render_insertion, preview, cf, index, points, env_height)
+    return Response(data, media_type="image/png", headers={
+        CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, "X-Lightfield-Frame-Index": str(index)})
