@@ -3,6 +3,7 @@ import pytest
 import torch
 
 from core.engine.artefact import ArtefactError, LightFieldArtefact, QueryError, save_artefact
+from core.envmap import resize_envmap
 from core.engine.bake import BAKED_FILE, BakedField, bake, load_or_bake
 from core.fields import FieldConfig, SceneBounds, build_field
 from core.fields.config import TrunkSettings
@@ -63,6 +64,9 @@ def test_baked_resamples_to_other_heights_and_flags_outside(tmp_path):
     assert small.shape == (4, 8, 3) and big.shape == (16, 32, 3)
     assert flags == {"extrapolated_x": True, "extrapolated_t": False}
     assert torch.isfinite(small).all() and (small > 0).all()
+    native, _ = baked.envmap((0.0, 0.0, 0.0), None, 8)
+    assert torch.allclose(big, resize_envmap(native, 16), rtol=1e-5)  # cached stencil == core resize
+    assert torch.allclose(baked.envmap((0.0, 0.0, 0.0), None, 4)[0], resize_envmap(native, 4), rtol=1e-5)
 
 
 def test_save_load_and_staleness(tmp_path):

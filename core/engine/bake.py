@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -26,10 +26,11 @@ from safetensors import SafetensorError
 from safetensors.torch import load as load_safetensors_bytes
 from safetensors.torch import save_file
 
-from core.conventions import equirect_width
+from core.conventions import equirect_directions, equirect_width
 from core.engine.artefact import ArtefactError, LightFieldArtefact, QueryError, check_height, extrapolation_flags
 from core.envmap import resize_envmap
 from core.fields.encodings import lattice_corners
+from core.fields.grid import equirect_stencil, pad_poles
 from core.fields.normalization import SceneBounds
 
 BAKED_FILE = "baked.safetensors"
@@ -46,6 +47,7 @@ class BakedField:
     bounds: SceneBounds
     uses_time: bool
     source_sha256: str  # weights the maps were baked from
+    _stencils: dict = field(default_factory=dict, repr=False)  # query height -> upsampling stencil
 
     @property
     def grid(self) -> tuple[int, int, int]:
@@ -84,9 +86,21 @@ class BakedField:
         node, weight = lattice_corners(self._lattice_coords(xs, ts_t if has_time_axis else None), dims)
         flat = self.maps.reshape(-1, *self.maps.shape[4:])
         blended = (weight[..., None, None, None] * flat[node]).sum(1)  # [P, h, 2h, 3]
-        if height != self.height:
-            blended = torch.stack([resize_envmap(m, height) for m in blended])
-        return blended, extrapolation_flags(self.bounds, xs, ts_t)
+        return self._resize(blended, height), extrapolation_flags(self.bounds, xs, ts_t)
+
+    def _resize(self, maps: torch.Tensor, height: int) -> torch.Tensor:
+        """[P, h, 2h, 3] -> [P, height, 2 height, 3]: area-correct down (core.envmap), bilinear up
+        through a stencil cached per height (same rule as core.envmap.sample_envmap)."""
+        if height == self.height:
+            return maps
+        if height < self.height:
+            return torch.stack([resize_envmap(m, height) for m in maps])
+        if height not in self._stencils:
+            dirs = equirect_directions(height).reshape(-1, 3)
+            self._stencils[height] = equirect_stencil(dirs, self.height)
+        index, weight = self._stencils[height]
+        up = (weight[None, :, :, None] * pad_poles(maps)[:, index]).sum(2)
+        return up.reshape(maps.shape[0], height, equirect_width(height), 3)
 
     def _lattice_coords(self, xs: torch.Tensor, ts: torch.Tensor | None) -> torch.Tensor:
         """[-1, 1] lattice coordinates (t first when there is a time axis), clamped to the box."""
