@@ -217,3 +217,14 @@ def test_envmap_conserves_a_tiny_lamps_energy_at_any_resolution():
         env = render_envmap(s, (2.0, 1.5, 2.0), 0.0, height)
         power = float((env[..., 0] * solid_angles(height)).sum())
         assert power == pytest.approx(expected, rel=0.03)
+
+
+def test_hard_suite_has_what_it_promises():
+    s = small("hard")
+    frame = render_frame(s, 0)
+    lamp = next(e for e in s.emitters if e.kind == "lamp")
+    assert min(lamp.radiance) >= 1e4 * float(frame.hdr.mean(-1).median())
+    windows = [e for e in s.emitters if e.kind == "window"]
+    assert windows and all(min(w.radiance) * 2.0 ** s.sensor.ev >= 1.0 for w in windows)  # saturate in LDR
+    top = next(f.box for f in s.furniture if f.name.endswith("top"))
+    assert any(top.lo[0] < p.x[0] < top.hi[0] and top.lo[2] < p.x[2] < top.hi[2] and p.x[1] < top.lo[1] for p in s.probes)

@@ -29,9 +29,11 @@ RESOLUTION = (192, 144)
 ROOM = Box(lo=(0.0, 0.0, 0.0), hi=(5.0, 2.8, 4.0))
 
 
-def table(x: float, z: float, width: float = 1.4, depth: float = 0.8, height: float = 0.75, name: str = "table") -> list[Furniture]:
+def table(
+    x: float, z: float, width: float = 1.4, depth: float = 0.8, height: float = 0.75, name: str = "table", albedo=(0.45, 0.3, 0.2)
+) -> list[Furniture]:
     """A table top slab plus four legs, centred at (x, z); a probe fits under it."""
-    top = Furniture(name=f"{name}-top", box=Box(lo=(x - width / 2, height - 0.04, z - depth / 2), hi=(x + width / 2, height, z + depth / 2)), albedo=(0.45, 0.3, 0.2))
+    top = Furniture(name=f"{name}-top", box=Box(lo=(x - width / 2, height - 0.04, z - depth / 2), hi=(x + width / 2, height, z + depth / 2)), albedo=albedo)
     legs = []
     for sx in (-1, 1):
         for sz in (-1, 1):
@@ -155,17 +157,17 @@ def moving_camera() -> SceneSpec:
 
 
 def hard() -> SceneSpec:
-    """Dark room, a tiny lamp 1e4x brighter than the lit walls, saturated windows, a probe
-    under a table, a dolly camera and a compressed, noisy sensor."""
+    """Dark room, a tiny lamp >= 1e4x brighter than the lit walls, saturated windows (LDR 1 at
+    ev 0), a probe under a table, a dolly camera and a compressed, noisy sensor."""
     return SceneSpec(
         name="hard",
         seed=505,
         room=Room(boxes=[ROOM], albedo=RoomAlbedo(floor=(0.06, 0.05, 0.05), ceiling=(0.1, 0.1, 0.1), walls=(0.08, 0.08, 0.09))),
-        furniture=table(2.5, 1.5, width=1.6, depth=1.0),
+        furniture=table(2.5, 1.5, width=1.6, depth=1.0, albedo=(0.12, 0.08, 0.06)),
         emitters=[
-            Lamp(name="tiny-lamp", center=(1.0, 1.6, 2.5), radius=0.015, radiance=(2.0e4, 1.8e4, 1.5e4)),
-            AreaEmitter(kind="window", name="window-left", center=(0.0, 1.5, 1.5), facing="+x", size=(1.0, 1.2), radiance=(60.0, 60.0, 66.0)),
-            AreaEmitter(kind="window", name="window-back", center=(3.5, 1.5, 0.0), facing="+z", size=(1.2, 1.2), radiance=(60.0, 62.0, 70.0)),
+            Lamp(name="tiny-lamp", center=(1.0, 1.6, 2.5), radius=0.015, radiance=(500.0, 450.0, 380.0)),
+            AreaEmitter(kind="window", name="window-left", center=(0.0, 1.5, 1.5), facing="+x", size=(1.0, 1.2), radiance=(6.0, 6.0, 6.6)),
+            AreaEmitter(kind="window", name="window-back", center=(3.5, 1.5, 0.0), facing="+z", size=(1.2, 1.2), radiance=(6.0, 6.2, 7.0)),
         ],
         camera=_camera(position=(2.5, 1.4, 3.8), path=DollyPath(position_end=(2.5, 1.3, 3.0))),
         frames=10,
