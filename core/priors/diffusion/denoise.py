@@ -18,6 +18,7 @@ import torch
 from core.priors.base import PriorError
 from core.priors.diffusion.exposure import ExposureEmbedding
 from core.priors.diffusion.loading import PriorComponents
+from core.priors.diffusion.network import inpaint_forward
 
 
 @dataclass
@@ -78,26 +79,17 @@ class InpaintDenoiser:
         reps = 2 if guided else 1
         x = self.scheduler.scale_model_input(latents, t).repeat(reps, 1, 1, 1)
         dt = self.c.dtype
-        tokens = emb.tokens.to(self.c.device, dt)
-        down, mid = self.c.controlnet(
+        out = inpaint_forward(
+            self.c.unet,
+            self.c.controlnet,
             x.to(dt),
             t,
-            encoder_hidden_states=tokens,
-            controlnet_cond=cond.control.repeat(reps, 1, 1, 1).to(self.c.device, dt),
-            conditioning_scale=self.c.card.controlnet_conditioning_scale,
-            return_dict=False,
-        )
-        unet_in = torch.cat(
-            [x, cond.mask.repeat(reps, 1, 1, 1), cond.masked_image_latents.repeat(reps, 1, 1, 1)], dim=1
-        )
-        out = self.c.unet(
-            unet_in.to(dt),
-            t,
-            encoder_hidden_states=tokens,
-            down_block_additional_residuals=down,
-            mid_block_additional_residual=mid,
-            return_dict=False,
-        )[0].float()
+            emb.tokens.to(self.c.device, dt),
+            cond.mask.repeat(reps, 1, 1, 1).to(dt),
+            cond.masked_image_latents.repeat(reps, 1, 1, 1).to(dt),
+            cond.control.repeat(reps, 1, 1, 1).to(self.c.device, dt),
+            self.c.card.controlnet_conditioning_scale,
+        ).float()
         if not guided:
             return out
         uncond, text = out.chunk(2)
