@@ -263,3 +263,12 @@ def test_reserved_meta_keys_and_unserialisable_values(tmp_path):
     save_artefact(tmp_path / "c", small_field(), {"conventions_version": CONVENTIONS_VERSION, "arr": torch.arange(3)})
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
     assert json.loads((tmp_path / "c" / META_FILE).read_text())["arr"] == [0, 1, 2]
+
+
+def test_crafted_huge_config_is_refused_without_allocating(saved):
+    """Shapes are checked on the meta device first: a config implying 10^12 parameters is an
+    ArtefactError, not an out-of-memory crash."""
+    _, path = saved
+    _edit_json(path, lambda d: d["field"]["mlp"].update(width=1_000_000))
+    with pytest.raises(ArtefactError, match="has shape"):
+        LightFieldArtefact.load(path)

@@ -211,8 +211,11 @@ class LightFieldArtefact:
             bounds = SceneBounds.from_dict(meta["bounds"])
         except BoundsError as exc:
             raise ArtefactError(f"{META_FILE}: 'bounds' is invalid: {exc}") from exc
+        with torch.device("meta"):  # shapes only: a crafted config cannot make us allocate
+            expected = build_field(config, bounds).state_dict()
+        tensors = _read_weights(path, meta, expected, bounds)
         field = build_field(config, bounds)
-        field.load_state_dict(_read_weights(path, meta, field))
+        field.load_state_dict(tensors)
         field = field.to(device).eval().requires_grad_(False)
         return cls(path, field, meta)
 
@@ -331,7 +334,8 @@ def _read_meta(path: Path) -> dict:
     return meta
 
 
-def _read_weights(path: Path, meta: dict, field: LightField) -> dict[str, torch.Tensor]:
+def _read_weights(path: Path, meta: dict, expected: dict[str, torch.Tensor], bounds: SceneBounds) -> dict[str, torch.Tensor]:
+    """The weights, checked against the checksum in meta and the expected names / shapes."""
     weights_path = path / WEIGHTS_FILE
     if not weights_path.is_file():
         raise ArtefactError(f"artefact {path} is missing {WEIGHTS_FILE}")
@@ -344,7 +348,6 @@ def _read_weights(path: Path, meta: dict, field: LightField) -> dict[str, torch.
         tensors = load_safetensors_bytes(data)
     except (SafetensorError, ValueError, RuntimeError) as exc:
         raise ArtefactError(f"{WEIGHTS_FILE} cannot be parsed as safetensors: {exc}") from exc
-    expected = field.state_dict()
     missing, unexpected = sorted(set(expected) - set(tensors)), sorted(set(tensors) - set(expected))
     if missing or unexpected:
         raise ArtefactError(f"{WEIGHTS_FILE} does not match the field config: missing {missing}, unexpected {unexpected}")
@@ -356,7 +359,12 @@ def _read_weights(path: Path, meta: dict, field: LightField) -> dict[str, torch.
             raise ArtefactError(f"{WEIGHTS_FILE}: tensor {name!r} has dtype {got.dtype}, expected float32")
         if not torch.isfinite(got).all():
             raise ArtefactError(f"{WEIGHTS_FILE}: tensor {name!r} contains non-finite values")
-    for name in ("bounds_lo", "bounds_hi", "time_range"):
-        if not torch.allclose(tensors[name], expected[name], rtol=1e-6, atol=1e-6):
+    from_json = {
+        "bounds_lo": torch.tensor(bounds.lo, dtype=torch.float32),
+        "bounds_hi": torch.tensor(bounds.hi, dtype=torch.float32),
+        "time_range": torch.tensor([bounds.t0, bounds.t1], dtype=torch.float32),
+    }
+    for name, ref in from_json.items():
+        if not torch.allclose(tensors[name], ref, rtol=1e-6, atol=1e-6):
             raise ArtefactError(f"{WEIGHTS_FILE}: {name} {tensors[name].tolist()} disagrees with {META_FILE} 'bounds'")
     return tensors

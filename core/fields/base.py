@@ -122,8 +122,9 @@ class LightField(nn.Module):
 
 
 def unit_directions(d: torch.Tensor) -> torch.Tensor:
-    """Normalise d [B,3]; zero-length or non-finite rows become +y."""
-    d = torch.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0)
+    """Normalise d [B,3]; zero-length rows and rows with a non-finite component become +y."""
+    finite = torch.isfinite(d).all(dim=-1, keepdim=True)
+    d = torch.where(finite, d, torch.zeros_like(d))
     n = d.norm(dim=-1, keepdim=True)
     up = torch.tensor([0.0, 1.0, 0.0], dtype=d.dtype, device=d.device).expand_as(d)
-    return torch.where(n > 1e-12, d / n.clamp_min(1e-12), up)
+    return torch.where(n > 1e-30, d / n.clamp_min(1e-30), up)
