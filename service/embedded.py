@@ -62,6 +62,11 @@ def serve(host: str, port: int, settings: ServiceSettings, log_level: str = "inf
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     redis_proc: RedisProcess | None = None
     supervisor: WorkerSupervisor | None = None
+    # uvicorn re-raises the signal that stopped it once it has shut down; with the default
+    # handlers that would kill this process before the children are stopped in order.
+    received: list[int] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, _frame: received.append(signum))
     try:
         if not settings.broker_url:
             redis_proc = start_redis(settings.data_dir / "redis")
@@ -73,6 +78,8 @@ def serve(host: str, port: int, settings: ServiceSettings, log_level: str = "inf
             log.info("embedded mode: Redis and one worker started (logs in %s)", settings.data_dir)
         from service.app import create_app
 
+        if received:  # asked to stop while starting up
+            return 0
         config = uvicorn.Config(create_app(settings), host=host, port=port, log_level=log_level,
                                 timeout_graceful_shutdown=5)
         uvicorn.Server(config).run()  # handles SIGINT/SIGTERM itself and returns

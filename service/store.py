@@ -206,6 +206,9 @@ class JobStore:
         if not ok:
             raise JobLimitReached(f"at most {max_in_flight} jobs may be queued or running per tenant")
 
+    def in_flight(self, thash: str) -> int:
+        return int(self.client.scard(self._inflight_key(thash)))
+
     def get(self, job_id: str) -> JobRecord | None:
         raw = self.client.hgetall(self._job_key(job_id))
         return JobRecord.from_redis(raw) if raw else None

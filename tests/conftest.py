@@ -134,14 +134,15 @@ class ServiceStack:
         from service.processes import stop
 
         self.stop_api()
-        for proc in self.workers:
-            stop(proc, signal.SIGTERM, grace_s=10)
+        for proc in self.workers:  # cold shutdown: tests keep nothing a warm one would save
+            stop(proc, signal.SIGQUIT, grace_s=5)
         if self.redis is not None:
             self.redis.stop()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def service_stack(tmp_path_factory):
+    """One stack for the whole session (tests that break things build their own)."""
     stack = ServiceStack(tmp_path_factory.mktemp("stack"))
     try:
         stack.start(workers=1)

@@ -138,12 +138,21 @@ def test_body_that_is_not_multipart_is_415(alice):
     _error(alice.post("/jobs", json={"file": "x"}), 415, "not_multipart")
 
 
-def test_upload_over_the_byte_limit_is_413_without_storing_it(make_stack):
-    stack = make_stack(workers=0, LIGHTFIELD_MAX_UPLOAD_BYTES="100000")
-    with stack.client() as c:
-        _error(c.post("/jobs", files={"file": ("big.png", b"\x89PNG\r\n\x1a\n" + b"\0" * 200_000)}), 413, "too_large")
-        assert c.get("/healthz").status_code == 200
-    assert not any(p.is_file() for p in (stack.data_dir / "uploads").rglob("*"))
+def test_byte_and_in_flight_limits(make_stack, tiny_image):
+    # no worker: accepted jobs stay queued, so the in-flight limit is reached deterministically
+    stack = make_stack(workers=0, LIGHTFIELD_MAX_UPLOAD_BYTES="100000", LIGHTFIELD_MAX_JOBS_IN_FLIGHT="1")
+    with stack.client("alice") as alice, stack.client("bob") as bob:
+        _error(alice.post("/jobs", files={"file": ("big.png", b"\x89PNG\r\n\x1a\n" + b"\0" * 200_000)}),
+               413, "too_large")
+        assert not any(p.is_file() for p in (stack.data_dir / "uploads").rglob("*"))
+        first = _post(alice, {"file": ("room.png", tiny_image.read_bytes())})
+        assert first.status_code == 202 and first.json()["state"] == "queued"
+        _error(_post(alice, {"file": ("room.png", tiny_image.read_bytes())}), 429, "too_many_jobs")
+        assert _post(bob, {"file": ("room.png", tiny_image.read_bytes())}).status_code == 202  # per tenant
+        # cancelling the queued job frees the slot at once (nobody holds its lease)
+        assert alice.delete(f"/jobs/{first.json()['id']}").json()["state"] == "cancelled"
+        assert _post(alice, {"file": ("room.png", tiny_image.read_bytes())}).status_code == 202
+        _error(stack.client("alice").get("/readyz"), 503, "not_ready")  # no worker answers
 
 
 def test_unknown_and_malformed_ids_are_404(alice):

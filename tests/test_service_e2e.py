@@ -126,12 +126,19 @@ def test_envmap_flags_extrapolation_and_batch_matches_single_queries(stack, imag
         assert too_many.status_code == 413 and too_many.json()["error"]["code"] == "batch_too_large"
 
 
-def test_fast_quality_is_answered_and_says_what_it_used(stack, image_job):
+def test_fast_quality_uses_the_worker_baked_lattice_and_stays_close_to_exact(stack, image_job):
+    assert list((stack.data_dir / "artefacts").glob(f"*/{image_job}/lightfield/baked.safetensors"))
     with stack.client() as c:
-        resp = get_map(c, image_job, "npy", x="0,0,-1", height=8, quality="fast")
-        assert resp.headers["x-lightfield-quality"] in ("fast", "exact")
-        if resp.headers["x-lightfield-quality"] == "exact":
-            assert resp.content == get_map(c, image_job, "npy", x="0,0,-1", height=8).content
+        x = inside_point(c, image_job)
+        fast = get_map(c, image_job, "npy", x=x, height=16, quality="fast")
+        assert fast.headers["x-lightfield-quality"] == "fast"
+        exact = get_map(c, image_job, "npy", x=x, height=16, quality="exact")
+        assert exact.headers["x-lightfield-quality"] == "exact"
+        a = np.load(__import__("io").BytesIO(fast.content))
+        b = np.load(__import__("io").BytesIO(exact.content))
+        assert a.shape == b.shape and np.isfinite(a).all()
+        # the lattice blends neighbouring nodes: close in energy, not bit-identical
+        assert abs(a.mean() - b.mean()) <= 0.25 * b.mean()
 
 
 def test_sh_and_cubemap_outputs(stack, image_job):
@@ -204,12 +211,26 @@ def test_deleting_a_finished_job_removes_record_and_artefacts(stack, tiny_image)
 
 
 # -- resilience: a stack per test, with longer jobs ------------------------------------------
-LONG_DISTILL = '{"iterations": 400, "checkpoint_every": 4, "work_height": 24, "warmup_steps": 2}'
+LONG_ITERATIONS = 160
+LONG_DISTILL = json.dumps({"iterations": LONG_ITERATIONS, "checkpoint_every": 4, "work_height": 24, "warmup_steps": 2})
 
 
-def test_cancel_stops_a_running_job_within_seconds(make_stack, tiny_image):
-    stack = make_stack(workers=1, LIGHTFIELD_DISTILL_OVERRIDES=LONG_DISTILL)
-    stack.wait_ready()
+@pytest.fixture(scope="module")
+def long_stack(tmp_path_factory):
+    """A stack whose jobs run long enough to be cancelled or killed mid-run."""
+    from conftest import ServiceStack
+
+    stack = ServiceStack(tmp_path_factory.mktemp("long"), extra_env={"LIGHTFIELD_DISTILL_OVERRIDES": LONG_DISTILL})
+    try:
+        stack.start(workers=1)
+        stack.wait_ready()
+        yield stack
+    finally:
+        stack.stop()
+
+
+def test_cancel_stops_a_running_job_within_seconds(long_stack, tiny_image):
+    stack = long_stack
     with stack.client() as c:
         running = submit(c, tiny_image)
         queued = submit(c, tiny_image)
@@ -228,10 +249,8 @@ def test_cancel_stops_a_running_job_within_seconds(make_stack, tiny_image):
         stack.wait_ready()  # the worker is free again
 
 
-def test_kill_9_worker_mid_job_resumes_from_checkpoint(make_stack, tiny_image):
-    distill = '{"iterations": 80, "checkpoint_every": 4, "work_height": 24, "warmup_steps": 2}'
-    stack = make_stack(workers=1, LIGHTFIELD_DISTILL_OVERRIDES=distill)
-    stack.wait_ready()
+def test_kill_9_worker_mid_job_resumes_from_checkpoint(long_stack, tiny_image):
+    stack = long_stack  # runs after the cancel test: this one kills the stack's first worker
     with stack.client() as c:
         job = submit(c, tiny_image)
         ckpt = wait_until(lambda: next(iter((stack.data_dir / "artefacts").glob(f"*/{job}/checkpoint/*.json")), None),
@@ -240,7 +259,9 @@ def test_kill_9_worker_mid_job_resumes_from_checkpoint(make_stack, tiny_image):
         before = c.get(f"/jobs/{job}").json()
         assert before["state"] == "running" and ckpt.exists()
         time.sleep(5)  # > visibility timeout: the broker re-delivers to the spare, the lease holds it off
-        assert c.get(f"/jobs/{job}").json()["attempts"] == 1
+        mid = c.get(f"/jobs/{job}").json()
+        assert mid["state"] == "running" and mid["attempts"] == 1, mid
+        assert mid["iteration"] < mid["total"] - 8, "job too fast to kill mid-run; raise its iterations"
         stack.workers[0].send_signal(signal.SIGKILL)
         stack.workers[0].wait(timeout=10)
         final = wait_job(c, job, timeout_s=120)
@@ -248,18 +269,15 @@ def test_kill_9_worker_mid_job_resumes_from_checkpoint(make_stack, tiny_image):
         assert final["attempts"] == 2 and final["resumed"] is True
         training = c.get(f"/lightfield/{job}").json()["metadata"]["training"]
         assert training["resumed_from"] >= 4  # continued from the checkpoint, not from step 0
-        assert training["iterations"] == 80
+        assert training["iterations"] == LONG_ITERATIONS
 
 
-def test_job_records_survive_an_api_restart(make_stack, tiny_image):
-    stack = make_stack(workers=1)
-    stack.wait_ready()
+def test_job_records_survive_an_api_restart(stack, image_job):
     with stack.client() as c:
-        job = submit(c, tiny_image)
-        before = wait_job(c, job)
+        before = c.get(f"/jobs/{image_job}").json()
     stack.stop_api()
     stack.start_api()
     with stack.client() as c:
-        after = c.get(f"/jobs/{job}").json()
+        after = c.get(f"/jobs/{image_job}").json()
         assert after["state"] == before["state"] == "succeeded" and after["created_at"] == before["created_at"]
-        assert get_map(c, job, "npy", x="0,0,-1", height=8).status_code == 200
+        assert get_map(c, image_job, "npy", x="0,0,-1", height=8).status_code == 200

@@ -75,6 +75,8 @@ def _finalise_upload(path: Path, suffix: str, stem: str) -> str:
              summary="Submit an image or video for light-field estimation")
 async def create_job(request: Request, tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     limit = ctx.settings.limits.max_jobs_in_flight
+    if await run_in_threadpool(ctx.store.in_flight, tenant.hash) >= limit:  # before reading the body
+        raise TooManyJobs(f"at most {limit} jobs may be queued or running per tenant")
     job_id = new_job_id()
     paths = JobPaths.for_job(ctx.settings.data_dir, tenant.hash, job_id)
     paths.upload_dir.mkdir(parents=True, exist_ok=False)
