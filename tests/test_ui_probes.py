@@ -1,0 +1,163 @@
+"""The web page's server side without a browser: the stored capture preview and probe placement."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from core.camera import Camera, Intrinsics
+from service.capture_preview import (
+    META_FILE, TENSORS_FILE, CapturePreview, PreviewError, load_preview, preview_dir, preview_from_capture,
+    save_preview,
+)
+from service.ui_probes import ProbeError, fallback_depth, pixel_of, place, radius_ratio, surface_depth
+
+W, H = 64, 48
+WALL = 3.0
+
+
+def rotation_y(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    return np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+
+
+def make_preview(depth: np.ndarray | None = None, frames: int = 3, fps: float = 4.0) -> CapturePreview:
+    """A camera turned 30 deg about +y and moved to (1, 1.5, 2), facing a wall at planar depth 3 m."""
+    pose = np.eye(4)
+    pose[:3, :3] = rotation_y(30.0)
+    pose[:3, 3] = (1.0, 1.5, 2.0)
+    if depth is None:
+        depth = np.full((frames, H, W), WALL, np.float32)
+    rng = np.random.default_rng(0)
+    return CapturePreview(
+        frames=rng.integers(0, 256, (frames, H, W, 3), dtype=np.uint8), depth=depth.astype(np.float32),
+        poses=np.repeat(pose[None], frames, 0), times=(np.arange(frames) / fps).astype(np.float32),
+        intrinsics=Intrinsics.from_hfov(W, H, 60.0).as_dict(), fps=fps, depth_source="test", source_frames=frames)
+
+
+# ---------------------------------------------------------------------------------------
+# Probe placement
+# ---------------------------------------------------------------------------------------
+@settings(max_examples=40, deadline=None)
+@given(u=st.floats(0.0, 1.0), v=st.floats(0.0, 1.0), depth=st.floats(0.05, 50.0))
+def test_probe_lies_on_the_clicked_pixels_ray_at_the_requested_planar_depth(u, v, depth):
+    preview = make_preview()
+    p = place(preview, u, v, t=0.0, depth=depth)
+    pu, pv, pz = preview.camera(0).project(torch.tensor([p.x], dtype=torch.float64))
+    assert (float(pu[0]), float(pv[0])) == pytest.approx(pixel_of(u, v, W, H), abs=1e-4)
+    assert float(pz[0]) == pytest.approx(depth, rel=1e-5)
+    assert p.depth == depth and p.surface_depth == pytest.approx(WALL)
+
+
+def test_default_depth_puts_the_ball_just_in_front_of_the_surface():
+    preview = make_preview()
+    p = place(preview, 0.3, 0.6, t=0.0)
+    assert p.depth == p.default_depth
+    gap = WALL - (p.depth + p.radius)  # nearest point of the ball along the axis vs the wall
+    assert 0.0 < gap < 0.5 * p.radius
+    assert p.radius == pytest.approx(radius_ratio(preview.camera(0)) * p.depth, rel=1e-5)
+
+
+def test_surface_depth_falls_back_to_neighbours_then_to_the_frame():
+    depth = np.full((H, W), np.nan, np.float32)
+    depth[10:13, 20:23] = [[2.0, 2.0, 2.0], [2.0, np.nan, 4.0], [4.0, 4.0, 4.0]]
+    assert surface_depth(depth, 21.5, 11.5) == pytest.approx(3.0)  # median of the 8 valid neighbours
+    assert surface_depth(depth, 20.5, 10.5) == 2.0  # the pixel's own value when valid
+    assert surface_depth(depth, 50.5, 40.5) is None
+    assert fallback_depth(depth) == pytest.approx(3.0)
+    assert fallback_depth(np.full((H, W), np.nan, np.float32)) == 2.0
+
+
+def test_probe_over_a_hole_uses_the_frames_depth_and_says_the_surface_is_unknown():
+    depth = np.full((1, H, W), np.nan, np.float32)
+    depth[0, :, :8] = 5.0
+    p = place(make_preview(depth, frames=1), 0.9, 0.5, t=0.0)
+    assert p.surface_depth is None
+    assert p.default_depth < 5.0 and np.isfinite(p.x).all()
+    p = place(make_preview(np.full((1, H, W), -1.0, np.float32), frames=1), 0.5, 0.5, t=0.0)
+    assert p.surface_depth is None and p.default_depth < 2.0
+
+
+@pytest.mark.parametrize("kw, field", [
+    ({"u": 1.5}, "u"), ({"u": float("nan")}, "u"), ({"v": -0.1}, "v"),
+    ({"depth": 0.0}, "depth"), ({"depth": -2.0}, "depth"), ({"depth": float("inf")}, "depth"),
+])
+def test_bad_probe_requests_name_the_field(kw, field):
+    args = {"u": 0.5, "v": 0.5, "depth": None, **kw}
+    with pytest.raises(ProbeError, match=rf"^{field}"):
+        place(make_preview(), args["u"], args["v"], 0.0, args["depth"])
+
+
+def test_probe_uses_the_frame_nearest_in_time():
+    preview = make_preview(frames=5, fps=4.0)  # t = 0, .25, .5, .75, 1
+    assert [preview.nearest_frame(t) for t in (-3.0, 0.1, 0.13, 0.74, 9.0)] == [0, 0, 1, 3, 4]
+    assert place(preview, 0.5, 0.5, t=0.6).frame_index == 2
+
+
+# ---------------------------------------------------------------------------------------
+# Stored preview
+# ---------------------------------------------------------------------------------------
+def test_preview_round_trips_and_reads_single_frames(tmp_path):
+    depth = np.full((3, H, W), 2.5, np.float32)
+    depth[1, :4, :4] = np.nan
+    preview = make_preview(depth)
+    save_preview(preview, tmp_path)
+    stored = load_preview(tmp_path)
+    assert (stored.num_frames, stored.height, stored.width) == (3, H, W)
+    for i in range(3):
+        np.testing.assert_array_equal(stored.frame(i), preview.frames[i])
+        np.testing.assert_allclose(stored.depth_map(i), preview.depth[i], rtol=1e-3)  # float16 on disk
+    assert np.isnan(stored.depth_map(1)[:4, :4]).all()
+    np.testing.assert_array_equal(stored.poses, preview.poses)
+    np.testing.assert_array_equal(stored.times, preview.times)
+    assert stored.intrinsics == preview.intrinsics and stored.fps == preview.fps
+    p_mem, p_disk = place(preview, 0.2, 0.7, 0.3), place(stored, 0.2, 0.7, 0.3)
+    assert p_disk.x == pytest.approx(p_mem.x, rel=1e-3)
+
+
+def test_saving_again_replaces_the_preview_atomically(tmp_path):
+    save_preview(make_preview(frames=2), tmp_path)
+    save_preview(make_preview(frames=4), tmp_path)
+    assert load_preview(tmp_path).num_frames == 4
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["preview"]  # no temporary siblings left
+
+
+def test_damaged_previews_are_refused(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        load_preview(tmp_path)
+    save_preview(make_preview(), tmp_path)
+    tensors = preview_dir(tmp_path) / TENSORS_FILE
+    data = tensors.read_bytes()
+    tensors.write_bytes(data[: len(data) // 2])
+    with pytest.raises(PreviewError, match="unreadable"):
+        load_preview(tmp_path)
+    save_preview(make_preview(), tmp_path)
+    meta_path = preview_dir(tmp_path) / META_FILE
+    meta = json.loads(meta_path.read_text())
+    meta_path.write_text(json.dumps({**meta, "version": 99}))
+    with pytest.raises(PreviewError, match="v1"):
+        load_preview(tmp_path)
+    meta_path.write_text(json.dumps({**meta, "intrinsics": {**meta["intrinsics"], "width": W + 1}}))
+    with pytest.raises(PreviewError, match="intrinsics"):
+        load_preview(tmp_path)
+
+
+def test_preview_from_capture_bounds_size_and_keeps_first_and_last_frames():
+    from core.engine.capture import capture_from_arrays
+
+    frames = torch.rand(10, 90, 120, 3)
+    depth = torch.full((10, 90, 120), 2.0)
+    depth[:, 0, 0] = float("nan")
+    cap = capture_from_arrays(frames, depth, fps=5.0)
+    p = preview_from_capture(cap, max_height=30, max_frames=4)
+    assert p.frames.shape == (4, 30, 40, 3) and p.frames.dtype == np.uint8
+    np.testing.assert_allclose(p.times, [0.0, 0.6, 1.2, 1.8], atol=1e-6)  # frames 0, 3, 6, 9
+    assert p.intrinsics["width"] == 40 and p.intrinsics["fx"] == pytest.approx(cap.intrinsics.fx / 3)
+    assert np.nanmin(p.depth) == pytest.approx(2.0) and p.source_frames == 10
+    assert Camera(Intrinsics(**p.intrinsics), torch.eye(4, dtype=torch.float64)).intrinsics.hfov_deg == pytest.approx(
+        cap.intrinsics.hfov_deg)

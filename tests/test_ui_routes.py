@@ -1,0 +1,170 @@
+"""The page's HTTP routes (service.routes_ui) in-process: a real Redis job store, an artefact and
+a capture preview written to disk, no worker. Auth, tenancy and error codes as in the API."""
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from core.camera import Intrinsics
+from core.engine.artefact import save_artefact
+from core.fields import FieldConfig, SceneBounds, build_field
+from core.fields.config import GridSettings
+from service.auth import tenant_hash
+from service.capture_preview import CapturePreview, save_preview
+from service.storage import JobPaths, new_job_id
+from service.store import JobRecord
+from service.routes_ui import MAX_INSERTED_PROBES
+
+KEYS = {"alice": "alice-key-0001", "bob": "bob-key-00002"}
+W, H, T, FPS = 40, 30, 4, 2.0
+WALL = 3.0
+BOUNDS = SceneBounds((-3.0, -2.0, -4.0), (3.0, 2.0, 0.5), t0=0.0, t1=(T - 1) / FPS)
+
+
+def bright_field():
+    """A 2x2x2 grid field that is the same, fairly bright, everywhere (so balls are visible)."""
+    cfg = FieldConfig(kind="grid", uses_time=True, grid=GridSettings(resolution=(2, 2, 2), env_height=4, time_keyframes=2))
+    field = build_field(cfg, BOUNDS)
+    with torch.no_grad():
+        for p in field.parameters():
+            p.fill_(0.0)
+    return field
+
+
+def preview() -> CapturePreview:
+    yy = np.linspace(0, 1, H, dtype=np.float32)[None, :, None, None]
+    frames = np.broadcast_to(yy * np.array([60, 50, 40], np.float32) + 20, (T, H, W, 3)).round().astype(np.uint8)
+    return CapturePreview(frames=np.ascontiguousarray(frames + np.arange(T, dtype=np.uint8)[:, None, None, None]),
+                          depth=np.full((T, H, W), WALL, np.float32), poses=np.repeat(np.eye(4)[None], T, 0),
+                          times=(np.arange(T) / FPS).astype(np.float32), intrinsics=Intrinsics.from_hfov(W, H).as_dict(),
+                          fps=FPS, depth_source="test", source_frames=T)
+
+
+@pytest.fixture(scope="module")
+def app_env(tmp_path_factory):
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from service.config import ServiceSettings
+    from service.processes import start_redis
+
+    root = tmp_path_factory.mktemp("ui-routes")
+    redis = start_redis(root / "redis")
+    try:
+        settings = ServiceSettings(data_dir=root / "data", broker_url=redis.url,
+                                   api_keys=",".join(f"{t}:{k}" for t, k in KEYS.items()))
+        app = create_app(settings)
+        with TestClient(app) as client:
+            yield client, app.state.ctx
+    finally:
+        redis.stop()
+
+
+def add_job(ctx, state="succeeded", with_preview=True, tenant="alice") -> str:
+    job = new_job_id()
+    record = JobRecord(id=job, tenant=tenant, tenant_hash=tenant_hash(tenant), input_kind="video")
+    ctx.store.create(record, max_in_flight=100)
+    paths = JobPaths.for_job(ctx.settings.data_dir, record.tenant_hash, job)
+    if state == "succeeded":
+        save_artefact(paths.artefact_dir, bright_field(), {"capture": {"fps": FPS}})
+        if with_preview:
+            save_preview(preview(), paths.job_dir)
+        relative = str(paths.artefact_dir.relative_to(ctx.settings.data_dir))
+        assert ctx.store.update(job, allowed=("queued",), state="succeeded", artefact=relative)
+    elif state != "queued":
+        assert ctx.store.update(job, allowed=("queued",), state=state)
+    return job
+
+
+def get(client, path, tenant="alice", **params):
+    headers = {"Authorization": f"Bearer {KEYS[tenant]}"} if tenant else {}
+    return client.get(path, params=params, headers=headers)
+
+
+def png(resp) -> np.ndarray:
+    assert resp.status_code == 200, resp.text
+    assert resp.headers["content-type"] == "image/png"
+    return np.asarray(Image.open(io.BytesIO(resp.content)).convert("RGB"))
+
+
+@pytest.fixture(scope="module")
+def job(app_env):
+    return add_job(app_env[1])
+
+
+def test_capture_describes_the_stored_frames(app_env, job):
+    client, _ = app_env
+    body = get(client, f"/lightfield/{job}/capture").json()
+    assert (body["width"], body["height"], body["frames"]) == (W, H, T)
+    assert body["times"] == pytest.approx([i / FPS for i in range(T)])
+    assert body["uses_time"] is True and body["bounds"]["t1"] == pytest.approx(BOUNDS.t1)
+
+
+def test_frame_is_the_stored_frame_nearest_in_time(app_env, job):
+    client, _ = app_env
+    stored = preview().frames
+    for t, index in ((0.0, 0), (0.74, 1), (0.76, 2), (99.0, T - 1), (-5.0, 0)):
+        resp = get(client, f"/lightfield/{job}/frame", t=t)
+        np.testing.assert_array_equal(png(resp), stored[index])
+        assert resp.headers["x-lightfield-frame-index"] == str(index)
+
+
+def test_probe_places_a_point_just_in_front_of_the_clicked_surface(app_env, job):
+    client, _ = app_env
+    body = get(client, f"/lightfield/{job}/probe", u=0.5, v=0.5, t=0.0).json()
+    assert body["surface_depth"] == pytest.approx(WALL)
+    assert body["depth"] == body["default_depth"] < WALL - body["radius"]
+    # identity camera looking along -z: the image centre is straight ahead
+    assert body["x"] == pytest.approx([0.0, 0.0, -body["depth"]], abs=1e-5)
+    assert body["extrapolated"] == {"x": False, "t": False}
+    moved = get(client, f"/lightfield/{job}/probe", u=0.5, v=0.5, t=0.0, depth=1.0).json()
+    assert moved["depth"] == 1.0 and moved["x"] == pytest.approx([0.0, 0.0, -1.0], abs=1e-5)
+    far = get(client, f"/lightfield/{job}/probe", u=0.5, v=0.5, t=0.0, depth=50.0).json()
+    assert far["extrapolated"]["x"] is True
+
+
+def test_insertion_draws_balls_at_the_probe_and_leaves_the_rest_of_the_frame(app_env, job):
+    client, _ = app_env
+    frame = png(get(client, f"/lightfield/{job}/frame", t=0.5))
+    out = png(get(client, f"/lightfield/{job}/insertion", t=0.5, points=f"0.3,0.5,{WALL - 0.5}"))
+    assert out.shape == frame.shape
+    diff = np.abs(out.astype(int) - frame.astype(int)).max(-1)
+    ball_px = (int(0.5 * H), int(0.3 * W))
+    assert diff[ball_px] > 20, "no ball at the probe"
+    assert diff[:, -8:].max() <= 1 and diff[:4].max() <= 1, "pixels far from the balls changed"
+    two = png(get(client, f"/lightfield/{job}/insertion", t=0.5, points=f"0.3,0.5,2.5;0.8,0.2,2.5"))
+    assert np.abs(two.astype(int) - frame.astype(int)).max(-1)[int(0.2 * H), int(0.8 * W)] > 20
+
+
+@pytest.mark.parametrize("path, params, status, code", [
+    ("probe", {"u": 1.5, "v": 0.5}, 422, "invalid_probe"),
+    ("probe", {"u": 0.5, "v": 0.5, "depth": -1}, 422, "invalid_probe"),
+    ("probe", {"u": 0.5, "v": 0.5, "t": "nan"}, 422, "invalid_t"),
+    ("frame", {"t": "inf"}, 422, "invalid_t"),
+    ("insertion", {"points": "0.5,0.5,abc"}, 422, "invalid_points"),
+    ("insertion", {"points": "2,0.5,1"}, 422, "invalid_points"),
+    ("insertion", {"points": ";".join(["0.5,0.5,2"] * (MAX_INSERTED_PROBES + 1))}, 422, "invalid_points"),
+    ("insertion", {"points": "0.5,0.5,2", "env_height": 100000}, 422, "invalid_request"),
+])
+def test_bad_requests_get_a_specific_4xx(app_env, job, path, params, status, code):
+    client, _ = app_env
+    resp = get(client, f"/lightfield/{job}/{path}", **params)
+    assert resp.status_code == status, resp.text
+    assert resp.json()["error"]["code"] == code
+
+
+def test_auth_tenancy_and_job_state_rules(app_env, job):
+    client, ctx = app_env
+    assert get(client, f"/lightfield/{job}/frame", tenant=None).status_code == 401
+    resp = get(client, f"/lightfield/{job}/frame", tenant="bob")
+    assert resp.status_code == 404 and resp.json()["error"]["code"] == "job_not_found"
+    running = add_job(ctx, state="running")
+    resp = get(client, f"/lightfield/{running}/capture")
+    assert resp.status_code == 409 and resp.json()["error"]["code"] == "not_ready"
+    bare = add_job(ctx, with_preview=False)
+    resp = get(client, f"/lightfield/{bare}/probe", u=0.5, v=0.5)
+    assert resp.status_code == 404 and resp.json()["error"]["code"] == "frames_unavailable"
