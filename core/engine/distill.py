@@ -201,8 +201,6 @@ def distill(
     field_cfg = build_field_config(cfg, field_kind, uses_time)
     field = build_field(field_cfg, bounds or scene_bounds(capture))
     opt = torch.optim.Adam(field.parameters(), lr=cfg.lr, betas=cfg.adam_betas)
-    perceptual = PerceptualLoss()
-    frames_lin = inverse_tonemap(capture.frames)  # background radiance at ev 0 (no boost)
     fingerprint = _fingerprint(capture, cfg, field_cfg, seed, prior)
 
     start, losses = 0, []
@@ -210,10 +208,16 @@ def distill(
         restored = _load_checkpoint(Path(checkpoint_dir), field, opt, gen, fingerprint)
         if restored is not None:
             start, losses = restored
+    trainer = _Trainer(capture, inverse_tonemap(capture.frames), prior, field, opt, cfg, gen, PerceptualLoss(), timings)
     reporter.begin(start)
     with _torch_threads(cfg.threads):
-        _loop(start, capture, frames_lin, prior, field, opt, cfg, gen, perceptual, timings, reporter,
-              checkpoint_dir, losses, fingerprint)
+        for step in range(start, cfg.iterations):
+            reporter.check_cancel()
+            losses.append(trainer.step(step))
+            if checkpoint_dir is not None and (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.iterations:
+                with timings("checkpoint"):
+                    _save_checkpoint(Path(checkpoint_dir), field, opt, gen, step + 1, losses, fingerprint)
+            reporter.step(step + 1, cfg.iterations, losses[-1])
     field.eval()
     return DistillResult(field, losses, timings, cfg.iterations, resumed_from=start,
                          stats={"field_config": field_cfg.model_dump(), "perceptual": perceptual_description()})
@@ -230,68 +234,70 @@ def _torch_threads(n: int | None):
         torch.set_num_threads(old)
 
 
-def _loop(start, capture, frames_lin, prior, field, opt, cfg, gen, perceptual, timings, reporter,
-          checkpoint_dir, losses, fingerprint) -> None:
-    for step in range(start, cfg.iterations):
-        reporter.check_cancel()
-        loss = _step(step, capture, frames_lin, prior, field, opt, cfg, gen, perceptual, timings)
-        losses.append(loss)
-        if checkpoint_dir is not None and ((step + 1) % cfg.checkpoint_every == 0) and step + 1 < cfg.iterations:
-            with timings("checkpoint"):
-                _save_checkpoint(Path(checkpoint_dir), field, opt, gen, step + 1, losses, fingerprint)
-        reporter.step(step + 1, cfg.iterations, loss)
+@dataclass
+class _Trainer:
+    """The state one optimisation step needs; `step(k)` runs step k and returns its loss."""
 
+    capture: Capture
+    frames_lin: torch.Tensor  # [T, H, W, 3] ball-free background radiance at ev 0 (no clip boost)
+    prior: Prior
+    field: LightField
+    opt: torch.optim.Optimizer
+    cfg: DistillConfig
+    gen: torch.Generator
+    perceptual: PerceptualLoss
+    timings: StageTimer
 
-def _step(step: int, capture: Capture, frames_lin: torch.Tensor, prior: Prior, field: LightField,
-          opt: torch.optim.Optimizer, cfg: DistillConfig, gen: torch.Generator, perceptual, timings: StageTimer) -> float:
-    i = int(torch.randint(capture.num_frames, (1,), generator=gen))
-    ev = cfg.ev_at(step)
-    tau_min = cfg.tau_min_at(step)
-    tau = float(tau_min + (cfg.tau_max - tau_min) * torch.rand(1, generator=gen, dtype=torch.float64))
-    cam = capture.camera(i)
-    t = float(capture.times[i])
+    def step(self, step: int) -> float:
+        capture, cfg, gen, timings, field = self.capture, self.cfg, self.gen, self.timings, self.field
+        i = int(torch.randint(capture.num_frames, (1,), generator=gen))
+        ev = cfg.ev_at(step)
+        tau_min = cfg.tau_min_at(step)
+        tau = float(tau_min + (cfg.tau_max - tau_min) * torch.rand(1, generator=gen, dtype=torch.float64))
+        cam = capture.camera(i)
+        t = float(capture.times[i])
 
-    with timings("probe_geometry"):
-        pixels, depths = sample_probes(capture, i, cfg, gen)
-        placed = [place_probe(cam, pixels[n], float(depths[n]), cfg.ball_diameter_fraction) for n in range(cfg.n_probes)]
-        centers = torch.stack([c for c, _ in placed])
-        radii = torch.tensor([r for _, r in placed], dtype=torch.float32)
-        rays = ball_reflection_rays(cam, centers, radii, supersample=cfg.supersample)
+        with timings("probe_geometry"):
+            pixels, depths = sample_probes(capture, i, cfg, gen)
+            placed = [place_probe(cam, pixels[n], float(depths[n]), cfg.ball_diameter_fraction) for n in range(cfg.n_probes)]
+            centers = torch.stack([c for c, _ in placed])
+            radii = torch.tensor([r for _, r in placed], dtype=torch.float32)
+            rays = ball_reflection_rays(cam, centers, radii, supersample=cfg.supersample)
 
-    with timings("field_render"):
-        t_rows = torch.full((rays.direction.shape[0],), t)
+        with timings("field_render"):
+            t_rows = torch.full((rays.direction.shape[0],), t)
 
-        def radiance(directions: torch.Tensor, ball_index: torch.Tensor) -> torch.Tensor:
-            return field(centers[ball_index], t_rows, directions)
+            def radiance(directions: torch.Tensor, ball_index: torch.Tensor) -> torch.Tensor:
+                return field(centers[ball_index], t_rows, directions)
 
-        layer = render_balls(cam, centers, radii, radiance, rays=rays)
-        comp = composite(frames_lin[i], layer)
-        pred = tonemap_unclipped(comp, ev).permute(2, 0, 1)
-        image = tonemap(comp.detach(), ev).permute(2, 0, 1)
-        mask = layer.total_coverage.detach()
+            layer = render_balls(cam, centers, radii, radiance, rays=rays)
+            comp = composite(self.frames_lin[i], layer)
+            pred = tonemap_unclipped(comp, ev).permute(2, 0, 1)
+            image = tonemap(comp.detach(), ev).permute(2, 0, 1)
+            mask = layer.total_coverage.detach()
 
-    with timings("prior"):
-        probes = ProbeGeometry(centers, radii, pixels.float(), cam, i, t)
-        request = PriorRequest(
-            image=image, ball_masks=layer.coverage.detach(), depth=composite_depth(capture.depth[i], layer),
-            ev=ev, tau=tau, steps=cfg.steps_for_tau(tau), guidance_scale=cfg.guidance_scale, probes=probes,
-            generator=gen, extras={"frame_linear": frames_lin[i], "ball_rays": rays},
-        )
-        target = prior(request).detach().to(pred.dtype)
-        target = torch.nan_to_num(target, nan=0.0).clamp(0.0, 1.0)
+        with timings("prior"):
+            probes = ProbeGeometry(centers, radii, pixels.float(), cam, i, t)
+            request = PriorRequest(
+                image=image, ball_masks=layer.coverage.detach(), depth=composite_depth(capture.depth[i], layer),
+                ev=ev, tau=tau, steps=cfg.steps_for_tau(tau), guidance_scale=cfg.guidance_scale, probes=probes,
+                generator=gen, extras={"frame_linear": self.frames_lin[i], "ball_rays": rays},
+            )
+            target = self.prior(request).detach().to(pred.dtype)
+            target = torch.nan_to_num(target, nan=0.0).clamp(0.0, 1.0)
 
-    with timings("optimisation"):
-        loss = cfg.l2_weight * masked_l2(pred, target, mask)
-        if cfg.perceptual_weight > 0:
-            loss = loss + cfg.perceptual_weight * perceptual(pred.clamp(0, 1), target, mask)
-        for g in opt.param_groups:
-            g["lr"] = cfg.lr_at(step)
-        opt.zero_grad(set_to_none=True)
-        if torch.isfinite(loss):
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(field.parameters(), cfg.grad_clip)
-            opt.step()
-    return float(loss.detach())
+        with timings("optimisation"):
+            loss = cfg.l2_weight * masked_l2(pred, target, mask)
+            if cfg.perceptual_weight > 0:
+                loss = loss + cfg.perceptual_weight * self.perceptual(pred.clamp(0, 1), target, mask)
+            for g in self.opt.param_groups:
+                g["lr"] = cfg.lr_at(step)
+            self.opt.zero_grad(set_to_none=True)
+            if torch.isfinite(loss):
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(field.parameters(), cfg.grad_clip)
+                self.opt.step()
+        return float(loss.detach())
 
 
 # ---------------------------------------------------------------------------------------
