@@ -5,6 +5,7 @@ perfect mirror balls placed in the view frustum without touching geometry, the H
 with and without balls, the ball mask and the planar depth with balls. Balls are rendered
 by the same ray caster (reflected rays see the scene and other balls); they cast no
 shadows and add no indirect light, so outside the mask the two images are identical.
+Pixels at ball edges are the mean of 3 x 3 sub-samples; the mask stores the coverage.
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ import numpy as np
 import torch
 
 from core.camera import Camera
-from core.sim.raycast import sphere_hits
+from core.sim.raycast import MIRROR, sphere_hits
 from core.sim.render import context, geometry, render_view, trace
 from core.sim.spec import SceneSpec, SceneSpecError
 from core.sim.state import intrinsics_of, pose_from_yaw_pitch
@@ -27,6 +28,7 @@ TRAINING_FORMAT = "lightfield-balls"
 TRAINING_VERSION = 1
 MAX_BALLS = 9
 CAMERA_ATTEMPTS = 20
+BALL_SUPERSAMPLE = 3  # sub-samples per pixel side at ball pixels (anti-aliased edges and mask)
 
 
 @dataclass(frozen=True)
@@ -104,7 +106,7 @@ def place_balls(scene: SceneSpec, camera: Camera, bg_depth: torch.Tensor, count:
 class BallSample:
     image_with_balls: torch.Tensor  # [H, W, 3] linear HDR
     background: torch.Tensor  # [H, W, 3] linear HDR
-    ball_mask: torch.Tensor  # [H, W] bool
+    ball_mask: torch.Tensor  # [H, W] float coverage in [0, 1]
     depth_with_balls: torch.Tensor  # [H, W] planar metres, NaN where no surface
     centers: torch.Tensor  # [N, 3]
     radii: torch.Tensor  # [N]
@@ -126,19 +128,43 @@ def render_sample(scene: SceneSpec, index: int, cfg: BallPlacement = BallPlaceme
             break
     else:
         raise SceneSpecError(f"scene {scene.name!r}, sample {index}: no ball fits in {CAMERA_ATTEMPTS} random views")
+    h, w = camera.intrinsics.height, camera.intrinsics.width
     origin, dirs = camera.pixel_rays()
     d = dirs.reshape(-1, 3)
-    t_ball = sphere_hits(centers, radii, origin.expand_as(d), d)[0]
     forward = -camera.c2w[:3, 2].to(torch.float32)
+    t_ball = sphere_hits(centers, radii, origin.expand_as(d), d)[0]
     t_bg = bg.depth.reshape(-1) / (d @ forward)
-    mask = torch.isfinite(t_ball) & ~(t_ball >= torch.nan_to_num(t_bg, nan=float("inf")))
-    image = bg.hdr.reshape(-1, 3).clone()
+    centre_on_ball = torch.isfinite(t_ball) & ~(t_ball >= torch.nan_to_num(t_bg, nan=float("inf")))
     depth = bg.depth.reshape(-1).clone()
-    if mask.any():
-        image[mask] = trace(ctx, origin, d[mask], (centers, radii)).radiance
-        depth[mask] = t_ball[mask] * (d[mask] @ forward)
-    h, w = camera.intrinsics.height, camera.intrinsics.width
-    return BallSample(image.reshape(h, w, 3), bg.hdr, mask.reshape(h, w), depth.reshape(h, w), centers, radii, camera, frame)
+    depth[centre_on_ball] = t_ball[centre_on_ball] * (d[centre_on_ball] @ forward)
+    image, coverage = _antialiased_balls(ctx, camera, centers, radii, bg.hdr, centre_on_ball.reshape(h, w))
+    return BallSample(image, bg.hdr, coverage, depth.reshape(h, w), centers, radii, camera, frame)
+
+
+def _antialiased_balls(ctx, camera: Camera, centers, radii, background: torch.Tensor, centre_on_ball: torch.Tensor):
+    """Pixels near the balls as the mean of s x s sub-samples (balls + scene); returns the
+    image [H, W, 3] and the ball coverage [H, W] in [0, 1]. Pixels with zero coverage keep
+    the background exactly."""
+    k = camera.intrinsics
+    near = torch.nn.functional.max_pool2d(centre_on_ball[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
+    pix = torch.nonzero(near.reshape(-1)).squeeze(1)
+    image = background.reshape(-1, 3).clone()
+    coverage = torch.zeros(k.height * k.width)
+    if len(pix):
+        s = BALL_SUPERSAMPLE
+        a = (torch.arange(s, dtype=torch.float64) + 0.5) / s
+        rows, cols = (pix // k.width).double(), (pix % k.width).double()
+        uu = (cols[:, None, None] + a[None, None, :]).expand(-1, s, s)
+        vv = (rows[:, None, None] + a[None, :, None]).expand(-1, s, s)
+        ray = torch.stack(((uu - k.cx) / k.fx, -(vv - k.cy) / k.fy, -torch.ones_like(uu)), -1) @ camera.c2w[:3, :3].T
+        d = (ray / ray.norm(dim=-1, keepdim=True)).to(torch.float32).reshape(-1, 3)
+        res = trace(ctx, camera.position.to(torch.float32), d, (centers, radii))
+        cov = (res.first_kind == MIRROR).float().reshape(len(pix), s * s).mean(1)
+        mean = res.radiance.reshape(len(pix), s * s, 3).mean(1)
+        hit = cov > 0
+        image[pix[hit]] = mean[hit]
+        coverage[pix] = cov
+    return image.reshape(k.height, k.width, 3), coverage.reshape(k.height, k.width)
 
 
 def write_sample(sample: BallSample, out: Path, scene_name: str, fps: float) -> None:
@@ -149,7 +175,7 @@ def write_sample(sample: BallSample, out: Path, scene_name: str, fps: float) -> 
     out.mkdir(parents=True, exist_ok=True)
     write_exr(out / "image_with_balls.exr", sample.image_with_balls.numpy())
     write_exr(out / "background.exr", sample.background.numpy())
-    write_png(out / "ball_mask.png", sample.ball_mask.numpy().astype(np.uint8) * 255)
+    write_png(out / "ball_mask.png", sample.ball_mask.numpy())  # 8-bit: round(255 * coverage)
     write_depth_npz(out / "depth_with_balls.npz", sample.depth_with_balls.numpy())
     u, v, _ = sample.camera.project(sample.centers.to(torch.float64))
     meta = {
