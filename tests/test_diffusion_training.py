@@ -222,3 +222,16 @@ def test_resume_gives_identical_weights(tiny_dir, data_dir, tmp_path):
     assert prior.describe()["card"]["fine_tuning"]["iterations"] == 4
     log_lines = (tmp_path / "straight" / "train_log.jsonl").read_text().splitlines()
     assert [json.loads(line)["step"] for line in log_lines] == [1, 2, 3, 4]
+
+
+def test_trainer_runs_on_simulator_export(tiny_dir, tmp_path):
+    """End to end on what `lightfield simulate --training-export` writes (small, 2 views)."""
+    from core.sim.suites import suite
+    from core.sim.training import write_training_export
+
+    scene = suite("static").model_copy(update={"resolution": (48, 36)})
+    write_training_export(scene, tmp_path / "export", 2)
+    result = train_prior(tmp_path / "export", tiny_dir, tmp_path / "out",
+                         TrainConfig(iterations=2, batch=2, micro_batch=1, lr=1e-4, checkpoint_every=1))
+    assert len(result.losses) == 2 and all(np.isfinite(result.losses)) and result.losses[0] > 0
+    assert [p.name for p in sorted((tmp_path / "out" / "checkpoints").glob("step-*"))] == ["step-000001", "step-000002"]
