@@ -230,3 +230,15 @@ def test_hard_suite_has_what_it_promises():
     assert windows and all(min(w.radiance) * 2.0 ** s.sensor.ev >= 1.0 for w in windows)  # saturate in LDR
     top = next(f.box for f in s.furniture if f.name.endswith("top"))
     assert any(top.lo[0] < p.x[0] < top.hi[0] and top.lo[2] < p.x[2] < top.hi[2] and p.x[1] < top.lo[1] for p in s.probes)
+
+
+def test_diffusion_trainer_reads_the_training_export(tmp_path):
+    data = pytest.importorskip("core.priors.diffusion.data")
+    from core.sim.training import write_training_export
+
+    s = small("spatial").model_copy(update={"resolution": (32, 24)}).with_effects({"emission", "direct"})
+    write_training_export(s, tmp_path, views=2)
+    ds = data.BallDataset(tmp_path, (16, 16))
+    item = ds[1]
+    assert len(ds) == 2 and tuple(item["hdr"].shape) == (3, 16, 16)
+    assert 0.0 < float(item["coverage"].max()) <= 1.0
