@@ -242,3 +242,15 @@ def test_diffusion_trainer_reads_the_training_export(tmp_path):
     item = ds[1]
     assert len(ds) == 2 and tuple(item["hdr"].shape) == (3, 16, 16)
     assert 0.0 < float(item["coverage"].max()) <= 1.0
+
+
+def test_spec_refuses_lights_and_cameras_in_walls():
+    base = suite("static").model_dump()
+    lamp = {"kind": "lamp", "center": [9.0, 1.0, 1.0], "radius": 0.05, "radiance": [1, 1, 1]}
+    with pytest.raises(ValidationError, match=r"emitters\[2\].*outside the room"):
+        SceneSpec.model_validate({**base, "emitters": [*base["emitters"], lamp]})
+    window = {**base["emitters"][1], "facing": "-x"}  # on the x = 0 wall but facing out of the room
+    with pytest.raises(ValidationError, match=r"emitters\[0\].*does not face into the room"):
+        SceneSpec.model_validate({**base, "emitters": [window]})
+    with pytest.raises(ValidationError, match="camera.position"):
+        SceneSpec.model_validate({**base, "camera": {**base["camera"], "position": [2.3, 0.73, 1.6]}})  # inside the table top

@@ -228,10 +228,31 @@ class SceneSpec(_Model):
 
     @model_validator(mode="after")
     def _consistent(self):
-        for p in self.probes:
-            if p.t > (self.frames - 1) / self.fps + 1e-9:
-                raise ValueError(f"probe t={p.t} is after the last frame ({(self.frames - 1) / self.fps} s)")
+        """Catch placements that would silently render nonsense (a light inside a wall...)."""
+        for i, p in enumerate(self.probes):
+            if p.t > self.duration + 1e-9:
+                raise ValueError(f"probes[{i}].t={p.t} is after the last frame ({self.duration} s)")
+        if not self._in_free_space(self.camera.position):
+            raise ValueError(f"camera.position {self.camera.position} is outside the room or inside furniture")
+        for i, e in enumerate(self.emitters):
+            where = f"emitters[{i}] ({e.name or e.kind})"
+            if isinstance(e, Lamp):
+                if not self._in_free_space(e.center):
+                    raise ValueError(f"{where}: centre {e.center} is outside the room or inside furniture")
+            else:
+                axis, sign = "xyz".index(e.facing[1]), (1.0 if e.facing[0] == "+" else -1.0)
+                front = list(e.center)
+                front[axis] += sign * 0.01
+                if not self._in_room(front):
+                    raise ValueError(f"{where}: centre {e.center} facing {e.facing} does not face into the room (put it on a wall or ceiling)")
         return self
+
+    def _in_room(self, p) -> bool:
+        return any(all(lo < x < hi for lo, x, hi in zip(b.lo, p, b.hi)) for b in self.room.boxes)
+
+    def _in_free_space(self, p) -> bool:
+        inside_furniture = any(all(f.box.lo[a] <= p[a] <= f.box.hi[a] for a in range(3)) for f in self.furniture)
+        return self._in_room(p) and not inside_furniture
 
     @property
     def duration(self) -> float:
