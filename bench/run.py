@@ -1,0 +1,151 @@
+"""`lightfield bench`: accuracy vs time on simulated suites, real panoramas, scaling, stability.
+
+    lightfield bench [--quick] [-o DIR] [--hdri-dir DIR] [--sections ...]
+
+Writes DIR/results.json (every number + the machine), DIR/results.md (tables) and Pareto
+plots (DIR/pareto_*.png). `--quick` uses tiny budgets (documented in the output) so it
+finishes in minutes on 2 cores; its numbers show trends, not converged accuracy.
+"""
+from __future__ import annotations
+
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from bench.methods import Budget, core_methods, sweep_methods
+from bench.suite.measure import machine_info
+
+SUITE_NAMES = ("spatial", "temporal", "moving-camera", "hard")
+SECTIONS = ("simulated", "panoramas", "scaling", "stability")
+DEFAULT_HDRI_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "hdri"  # ../shared/hdri from the repo
+DEFAULT_OUT_DIR = Path(__file__).resolve().parent / "results"
+
+
+@dataclass(frozen=True)
+class Mode:
+    """Everything the quick and full modes differ in."""
+
+    name: str
+    resolution: tuple[int, int] | None  # suite render size (None: the suite's own 192x144)
+    gt_height: int
+    sphere_size: int
+    base_iterations: int
+    iterations: tuple[int, ...]
+    widths: tuple[tuple[int, int], ...]
+    work_heights: tuple[int, ...]
+    probes: tuple[int, ...]
+    sweep_suites: tuple[str, ...]
+    panorama_limit: int | None  # panoramas per split (None: all)
+    note: str
+
+    def budget(self) -> Budget:
+        from core.engine.config import preset
+
+        base = preset("draft", iterations=self.base_iterations)
+        return Budget(base, self.iterations, self.widths, self.work_heights, self.probes)
+
+
+QUICK = Mode(
+    name="quick", resolution=(128, 96), gt_height=64, sphere_size=32, base_iterations=40,
+    iterations=(20, 40, 80), widths=((32, 3), (96, 4), (256, 6)), work_heights=(48, 72, 96), probes=(1, 9, 16),
+    sweep_suites=("spatial",), panorama_limit=3,
+    note=("QUICK MODE: tiny budgets (40 distillation steps for the reference MLP instead of the draft preset's 300), "
+          "suites rendered at 128x96, spheres rendered at 32 px, budget sweep and ablations on the spatial suite only, "
+          "3 panoramas per split. Numbers show trends and costs, not converged accuracy."),
+)
+FULL = Mode(
+    name="full", resolution=None, gt_height=64, sphere_size=64, base_iterations=300,
+    iterations=(100, 300, 800), widths=((32, 3), (96, 4), (128, 6), (256, 6)), work_heights=(48, 72, 120), probes=(1, 4, 9, 16),
+    sweep_suites=SUITE_NAMES, panorama_limit=None,
+    note="FULL MODE: the draft preset's 300 steps as reference, budget sweep and ablations on every suite.",
+)
+
+
+@dataclass
+class BenchOptions:
+    quick: bool = False
+    out_dir: Path = DEFAULT_OUT_DIR
+    hdri_dir: Path = DEFAULT_HDRI_DIR
+    cache_dir: Path | None = None
+    suites: tuple[str, ...] = SUITE_NAMES
+    sections: tuple[str, ...] = SECTIONS
+    keep_artefacts: bool = False
+    extra: dict = field(default_factory=dict)
+
+
+def log(msg: str) -> None:
+    print(f"[bench] {msg}", file=sys.stderr, flush=True)
+
+
+def default_cache_dir() -> Path:
+    import os
+
+    root = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(root) / "lightfield" / "bench"
+
+
+def run_simulated(mode: Mode, opts: BenchOptions, workdir: Path) -> dict:
+    from bench.suite.sections import run_suite
+    from bench.suite.simulated import load_suite
+
+    budget = mode.budget()
+    cache = opts.cache_dir or default_cache_dir()
+    out: dict = {"budget": {"base": budget.base.model_dump(), "iterations": budget.iterations, "widths": budget.widths,
+                            "work_heights": budget.work_heights, "probes": budget.probes},
+                 "sweep_suites": list(mode.sweep_suites), "suites": {}}
+    for name in opts.suites:
+        log(f"suite {name}: preparing capture")
+        suite = load_suite(name, cache, mode.resolution, mode.gt_height)
+        methods = core_methods() + (sweep_methods(budget) if name in mode.sweep_suites else [])
+        t0 = time.perf_counter()
+        results = run_suite(suite, methods, budget, workdir, mode.sphere_size)
+        out["suites"][name] = {"suite": suite.describe(), "wall_s": round(time.perf_counter() - t0, 1), "methods": results}
+    return out
+
+
+def run_bench(opts: BenchOptions) -> dict:
+    """Run the selected sections and write results.json, results.md and the plots."""
+    from bench import report
+
+    import torch
+
+    mode = QUICK if opts.quick else FULL
+    started = time.perf_counter()
+    # One intra-op thread everywhere: distillation already runs single-threaded (the engine's
+    # default), and on a shared or oversubscribed CPU extra threads make latencies erratic.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    results: dict = {"mode": mode.name, "note": mode.note, "mode_settings": asdict(mode), "machine": machine_info(),
+                     "sections": list(opts.sections)}
+    workdir = Path(tempfile.mkdtemp(prefix="lightfield-bench-"))
+    try:
+        if "simulated" in opts.sections:
+            results["simulated"] = run_simulated(mode, opts, workdir)
+        if "panoramas" in opts.sections:
+            from bench.real_panoramas import run_panoramas
+
+            results["real_panoramas"] = run_panoramas(opts.hdri_dir, mode.panorama_limit, mode.sphere_size, quick=opts.quick)
+        if "scaling" in opts.sections:
+            from bench.scaling import run_scaling
+
+            results["scaling"] = run_scaling(quick=opts.quick, workdir=workdir)
+        if "stability" in opts.sections:
+            from bench.suite.stability import run_stability
+
+            results["stability"] = run_stability(quick=opts.quick, workdir=workdir)
+    finally:
+        torch.set_num_threads(threads)
+        if opts.keep_artefacts:
+            log(f"artefacts kept in {workdir}")
+        else:
+            shutil.rmtree(workdir, ignore_errors=True)
+    results["total_wall_s"] = round(time.perf_counter() - started, 1)
+    report.write_all(results, Path(opts.out_dir))
+    if Path(opts.out_dir).resolve() == DEFAULT_OUT_DIR.resolve() and opts.sections == SECTIONS and opts.suites == SUITE_NAMES:
+        # only a complete run into the committed results directory refreshes the README
+        command = "lightfield bench" + (" --quick" if opts.quick else "")
+        report.update_readme(DEFAULT_OUT_DIR.parent / "README.md", results, command)
+    return results

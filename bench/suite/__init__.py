@@ -1,0 +1,1 @@
+"""Building blocks of `lightfield bench`: measurement, evaluation, simulated suites, stability."""

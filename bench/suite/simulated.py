@@ -1,0 +1,179 @@
+"""Simulated suites with ground truth: capture directories (cached), held-out probes, and
+the time series used for flicker and switch lag.
+
+Captures are written with the simulator's own `write_capture` (docs/simulator.md) and read
+back with the engine's `load_capture`, so every method sees exactly what a user's job sees.
+Rendering dominates the first run, so capture directories are cached under a key of the
+scene spec (any change to the spec or the resolution re-renders).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from core.sim.spec import ProbePoint, SceneSpec
+
+SERIES_HEIGHT = 16  # env-map height of flicker / lag time series (brightness only matters)
+SWITCH_SAMPLES_PER_FRAME = 4
+SWITCH_WINDOW_FRAMES = 2  # frames either side of a switch
+MAX_SERIES_POSITIONS = 2
+
+
+@dataclass
+class Series:
+    """Env maps over time at one position: a static-light stretch (flicker) or a switch (lag)."""
+
+    kind: str  # "stretch" | "switch"
+    x: tuple[float, float, float]
+    times: torch.Tensor  # [K] seconds
+    gt: torch.Tensor  # [K, h, 2h, 3]
+    switch_frame: int | None = None
+
+
+@dataclass
+class SuiteData:
+    name: str
+    scene: SceneSpec
+    capture_dir: Path
+    probes: list[ProbePoint]
+    gt: torch.Tensor  # [P, H, 2H, 3] ground truth at the held-out probes
+    global_point: tuple[float, float, float]
+    global_time: float
+    series: list[Series] = field(default_factory=list)
+    render_seconds: float = 0.0  # 0 when the capture came from the cache
+
+    @property
+    def eval_height(self) -> int:
+        return int(self.gt.shape[1])
+
+    def describe(self) -> dict:
+        return {
+            "frames": self.scene.frames,
+            "fps": self.scene.fps,
+            "resolution": list(self.scene.resolution),
+            "effects": sorted(self.scene.effects),
+            "held_out_probes": [{"x": list(p.x), "t": p.t} for p in self.probes],
+            "global_probe": {"x": list(self.global_point), "t": self.global_time},
+            "series": [{"kind": s.kind, "x": list(s.x), "samples": len(s.times), "switch_frame": s.switch_frame} for s in self.series],
+            "gt_height": self.eval_height,
+            "render_seconds": round(self.render_seconds, 2),
+        }
+
+
+def scene_key(scene: SceneSpec) -> str:
+    return hashlib.sha256(scene.model_dump_json().encode()).hexdigest()[:12]
+
+
+def prepare_capture(scene: SceneSpec, cache_dir: Path, gt_height: int) -> tuple[Path, float]:
+    """The capture directory of `scene` (rendered now unless cached); (path, render seconds)."""
+    import time
+
+    from core.sim.capture import write_capture
+
+    w, h = scene.resolution
+    out = Path(cache_dir) / f"{scene.name}-{w}x{h}-gt{gt_height}-{scene_key(scene)}"
+    if (out / "capture.json").is_file():
+        return out, 0.0
+    t0 = time.perf_counter()
+    write_capture(scene, out, envmap_height=gt_height, video=False)
+    return out, time.perf_counter() - t0
+
+
+def switch_frames(scene: SceneSpec) -> list[int]:
+    """Frames at which some emitter turns on or off (Keyframe.on switches exactly there)."""
+    frames = set()
+    for emitter in scene.emitters:
+        schedule = getattr(emitter, "schedule", None)
+        state = True
+        for kf in (schedule.keyframes if schedule else []):
+            if kf.on != state and 0 < kf.frame < scene.frames:
+                frames.add(int(kf.frame))
+            state = kf.on
+    return sorted(frames)
+
+
+def global_probe_point(scene: SceneSpec, capture) -> tuple[float, float, float]:
+    """The DiffusionLight-style single probe: the centre of the visible scene's bounding box
+    (from unprojected depth), moved towards the camera until it is in free space."""
+    from core.engine.distill import scene_bounds
+    from core.sim.render import ProbeError, check_probe
+
+    b = scene_bounds(capture)
+    centre = torch.tensor([(lo + hi) / 2 for lo, hi in zip(b.lo, b.hi)], dtype=torch.float64)
+    cam = capture.poses[capture.num_frames // 2, :3, 3]
+    for k in range(21):
+        p = centre + (cam - centre) * (k / 20.0)
+        try:
+            check_probe(scene, p.tolist())
+            return tuple(float(v) for v in p)
+        except ProbeError:
+            continue
+    return tuple(float(v) for v in cam)
+
+
+def _gt_series(scene: SceneSpec, x, times: torch.Tensor) -> torch.Tensor:
+    from core.sim.render import render_envmap
+
+    return torch.stack([render_envmap(scene, x, float(t), SERIES_HEIGHT) for t in times])
+
+
+def build_series(scene: SceneSpec) -> list[Series]:
+    """Flicker stretches between switches (every frame time) and dense windows around switches,
+    at up to MAX_SERIES_POSITIONS distinct held-out probe positions."""
+    if scene.frames < 2:
+        return []
+    positions: list[tuple] = []
+    for p in scene.probes:
+        if tuple(p.x) not in positions:
+            positions.append(tuple(p.x))
+    positions = positions[:MAX_SERIES_POSITIONS]
+    switches = switch_frames(scene)
+    bounds = [0, *switches, scene.frames]
+    out: list[Series] = []
+    for x in positions:
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            if b - a >= 2:
+                times = torch.arange(a, b, dtype=torch.float64) / scene.fps
+                out.append(Series("stretch", x, times, _gt_series(scene, x, times)))
+        for s in switches:
+            lo, hi = max(0, s - SWITCH_WINDOW_FRAMES), min(scene.frames - 1, s + SWITCH_WINDOW_FRAMES)
+            k = (hi - lo) * SWITCH_SAMPLES_PER_FRAME + 1
+            times = torch.linspace(lo / scene.fps, hi / scene.fps, k, dtype=torch.float64)
+            out.append(Series("switch", x, times, _gt_series(scene, x, times), switch_frame=s))
+    return out
+
+
+def load_suite(name: str, cache_dir: Path, resolution: tuple[int, int] | None, gt_height: int) -> SuiteData:
+    """Render (or reuse) a suite's capture and collect its ground truth."""
+    from core.engine.capture import load_capture
+    from core.io.exr import read_exr
+    from core.sim.suites import suite
+
+    scene = suite(name)
+    if resolution is not None:
+        scene = scene.model_copy(update={"resolution": tuple(resolution)})
+    capture_dir, render_seconds = prepare_capture(scene, cache_dir, gt_height)
+    doc = json.loads((capture_dir / "capture.json").read_text())
+    gt = torch.stack([torch.from_numpy(read_exr(capture_dir / p["envmap"])[..., :3].copy()).float() for p in doc["probes"]])
+    capture = load_capture(capture_dir)
+    mid = capture.num_frames // 2
+    return SuiteData(
+        name=name,
+        scene=scene,
+        capture_dir=capture_dir,
+        probes=list(scene.probes),
+        gt=gt,
+        global_point=global_probe_point(scene, capture),
+        global_time=float(capture.times[mid]),
+        series=build_series(scene),
+        render_seconds=render_seconds,
+    )
+
+
+def nearest_frame(t: float, fps: float, frames: int) -> int:
+    return int(min(frames - 1, max(0, math.floor(t * fps + 0.5))))
