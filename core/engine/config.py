@@ -81,8 +81,8 @@ PRESETS: dict[str, DistillConfig] = {
                            warmup_steps=15, field_kind="mlp", field_width=96, field_layers=4, checkpoint_every=50,
                            prior_env_height=24, output_env_height=32),
     # CPU: a 100-frame 320x240 clip in a few minutes
-    "standard": DistillConfig(name="standard", iterations=800, n_probes=9, work_height=120, lr=5e-3,
-                              warmup_steps=30, field_kind="mlp", field_width=128, field_layers=6, checkpoint_every=100,
+    "standard": DistillConfig(name="standard", iterations=600, n_probes=9, work_height=120, lr=5e-3,
+                              warmup_steps=30, field_kind="mlp", field_width=128, field_layers=4, checkpoint_every=100,
                               prior_env_height=32, output_env_height=64),
     # The paper's settings (GPU): full resolution ball crops, MLP 6 x 256
     "paper": DistillConfig(name="paper", iterations=3000, n_probes=9, work_height=512, supersample=2,

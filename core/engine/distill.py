@@ -287,6 +287,7 @@ class _Trainer:
             target = torch.nan_to_num(target, nan=0.0).clamp(0.0, 1.0)
 
         with timings("optimisation"):
+            pred, target, mask = _crop_to_mask(pred, target, mask, pad=4)
             loss = cfg.l2_weight * masked_l2(pred, target, mask)
             if cfg.perceptual_weight > 0:
                 loss = loss + cfg.perceptual_weight * self.perceptual(pred.clamp(0, 1), target, mask)
@@ -298,6 +299,18 @@ class _Trainer:
                 torch.nn.utils.clip_grad_norm_(field.parameters(), cfg.grad_clip)
                 self.opt.step()
         return float(loss.detach())
+
+
+def _crop_to_mask(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, pad: int):
+    """Crop [3,H,W] images and the [H,W] mask to the balls' bounding box plus `pad` pixels
+    (the SSIM window's reach), so the loss never touches pixels no ball covers."""
+    rows = torch.nonzero(mask.amax(1) > 0)
+    cols = torch.nonzero(mask.amax(0) > 0)
+    if rows.numel() == 0:
+        return pred, target, mask
+    r0, r1 = max(int(rows[0]) - pad, 0), min(int(rows[-1]) + pad + 1, mask.shape[0])
+    c0, c1 = max(int(cols[0]) - pad, 0), min(int(cols[-1]) + pad + 1, mask.shape[1])
+    return pred[:, r0:r1, c0:c1], target[:, r0:r1, c0:c1], mask[r0:r1, c0:c1]
 
 
 # ---------------------------------------------------------------------------------------
