@@ -234,6 +234,8 @@ class SceneSpec(_Model):
                 raise ValueError(f"probes[{i}].t={p.t} is after the last frame ({self.duration} s)")
         if not self._in_free_space(self.camera.position):
             raise ValueError(f"camera.position {self.camera.position} is outside the room or inside furniture")
+        if isinstance(self.camera.path, DollyPath) and not self._in_free_space(self.camera.path.position_end):
+            raise ValueError(f"camera.path.position_end {self.camera.path.position_end} is outside the room or inside furniture")
         for i, e in enumerate(self.emitters):
             where = f"emitters[{i}] ({e.name or e.kind})"
             if isinstance(e, Lamp):
