@@ -45,24 +45,30 @@ class LightField(nn.Module):
     # ------------------------------------------------------------------ input handling
     def normalize_inputs(self, x: torch.Tensor, t: torch.Tensor | None, d: torch.Tensor):
         """World inputs -> (xn [B,3] in [-1,1], tn [B,1] in [-1,1] or None, unit d [B,3])."""
-        x = x.to(self.bounds_lo.dtype)
+        xn = self._normalize_x(x)
+        return xn, self._normalize_t(t, xn.shape[0]), unit_directions(d.to(xn.dtype))
+
+    def _normalize_x(self, x: torch.Tensor) -> torch.Tensor:
+        x = torch.as_tensor(x, dtype=self.bounds_lo.dtype, device=self.bounds_lo.device).reshape(-1, 3)
         centre = 0.5 * (self.bounds_lo + self.bounds_hi)
         x = torch.where(torch.isfinite(x), x, centre.expand_as(x))
-        xn = (2.0 * (x - self.bounds_lo) / (self.bounds_hi - self.bounds_lo) - 1.0).clamp(-1.0, 1.0)
-        tn = None
-        if self.uses_time:
-            if t is None:
-                raise ValueError("t is required: this field has a time input (config.uses_time=True)")
-            t = torch.as_tensor(t, dtype=xn.dtype, device=xn.device).reshape(-1)
-            if t.numel() == 1 and xn.shape[0] != 1:
-                t = t.expand(xn.shape[0])
-            if t.shape[0] != xn.shape[0]:
-                raise ValueError(f"t has {t.shape[0]} entries for {xn.shape[0]} positions")
-            t0, t1 = self.time_range[0], self.time_range[1]
-            t = torch.where(torch.isfinite(t), t, t0)
-            span = (t1 - t0).clamp_min(1e-12)
-            tn = torch.where(t1 > t0, 2.0 * (t - t0) / span - 1.0, torch.zeros_like(t)).clamp(-1.0, 1.0)[:, None]
-        return xn, tn, unit_directions(d.to(xn.dtype))
+        return (2.0 * (x - self.bounds_lo) / (self.bounds_hi - self.bounds_lo) - 1.0).clamp(-1.0, 1.0)
+
+    def _normalize_t(self, t, n: int) -> torch.Tensor | None:
+        """Seconds (scalar or [n]) -> [n, 1] in [-1, 1]; None when the field has no time input."""
+        if not self.uses_time:
+            return None
+        if t is None:
+            raise ValueError("t is required: this field has a time input (config.uses_time=True)")
+        t = torch.as_tensor(t, dtype=self.bounds_lo.dtype, device=self.bounds_lo.device).reshape(-1)
+        if t.numel() == 1 and n != 1:
+            t = t.expand(n)
+        if t.shape[0] != n:
+            raise ValueError(f"t has {t.shape[0]} entries for {n} positions")
+        t0, t1 = self.time_range[0], self.time_range[1]
+        t = torch.where(torch.isfinite(t), t, t0)
+        span = (t1 - t0).clamp_min(1e-12)
+        return torch.where(t1 > t0, 2.0 * (t - t0) / span - 1.0, torch.zeros_like(t)).clamp(-1.0, 1.0)[:, None]
 
     def activate(self, z: torch.Tensor) -> torch.Tensor:
         lo, hi = self.config.log_radiance_min, self.config.log_radiance_max
@@ -91,18 +97,28 @@ class LightField(nn.Module):
         Generic path: evaluates every (probe, direction) pair in chunks of `chunk_rows`.
         Kinds with shared per-probe work override `_envmap_logits`.
         """
-        xs = torch.as_tensor(xs, dtype=torch.float32, device=self.bounds_lo.device).reshape(-1, 3)
-        if ts is not None:
-            ts = torch.as_tensor(ts, dtype=torch.float32, device=xs.device).reshape(-1)
-            if ts.numel() == 1 and xs.shape[0] != 1:
-                ts = ts.expand(xs.shape[0])
-            if ts.shape[0] != xs.shape[0]:
-                raise ValueError(f"ts has {ts.shape[0]} entries for {xs.shape[0]} probe positions")
+        xn = self._normalize_x(xs)
+        tn = self._normalize_t(ts, xn.shape[0])
         height = int(height)
-        dirs = equirect_directions(height, device=xs.device).reshape(-1, 3)
-        xn, tn, _ = self.normalize_inputs(xs, ts, xs.new_tensor([[0.0, 1.0, 0.0]]).expand_as(xs))
+        dirs = equirect_directions(height, device=xn.device).reshape(-1, 3)
         z = self._envmap_logits(xn, tn, dirs, chunk_rows)  # [P, N, 3]
-        return self.activate(z).reshape(xs.shape[0], height, equirect_width(height), 3)
+        return self.activate(z).reshape(xn.shape[0], height, equirect_width(height), 3)
+
+    def probe_radiance(self, xs: torch.Tensor, ts, probe_index: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """Radiance [B,3] of rows that share a few probe positions (differentiable).
+
+        Row b looks along d[b] from xs[probe_index[b]] at ts[probe_index[b]] (ts: [P], a scalar
+        or None). Equals forward(xs[probe_index], ts[probe_index], d), but kinds with per-probe
+        work (trunk, MLP encoding layers) do it once per probe: the distillation's ball
+        rendering path, where thousands of rows share 9 probes.
+        """
+        xn = self._normalize_x(xs)
+        tn = self._normalize_t(ts, xn.shape[0])
+        index = torch.as_tensor(probe_index, dtype=torch.long, device=xn.device).reshape(-1)
+        return self.activate(self._probe_logits(xn, tn, index, unit_directions(d.to(xn.dtype))))
+
+    def _probe_logits(self, xn, tn, index, d) -> torch.Tensor:
+        return self.logits(xn[index], None if tn is None else tn[index], d)
 
     def _envmap_logits(self, xn, tn, dirs, chunk_rows: int) -> torch.Tensor:
         n_probes, n_dirs = xn.shape[0], dirs.shape[0]

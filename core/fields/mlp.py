@@ -29,6 +29,7 @@ class MLPField(LightField):
         self.pe_t = PositionalEncoding(1, s.t_freqs) if config.uses_time else None
         self.pe_d = PositionalEncoding(3, s.d_freqs)
         enc_dim = self.pe_x.out_dim + (self.pe_t.out_dim if self.pe_t else 0) + self.pe_d.out_dim
+        self.encoding_dim = enc_dim
         self.skip_layer = s.skip_layer
         layers = []
         for i in range(1, s.layers + 1):
@@ -58,35 +59,38 @@ class MLPField(LightField):
             h = torch.relu(layer(h))
         return self.output(h)
 
+    def _split_encoding_layers(self, e_probe: torch.Tensor, e_dir: torch.Tensor) -> dict:
+        """Every layer that reads the encoding is linear in it, so its pre-activation splits
+        into a per-probe term (PE(x), PE(t) columns, + bias) and a per-direction term (PE(d)
+        columns). Returns {layer number: (probe term [P, W], direction term [N, W])}."""
+        n_probe_cols, n_dir_cols = e_probe.shape[1], e_dir.shape[1]
+        terms = {}
+        for i, layer in enumerate(self.layers, start=1):
+            if i == 1 or i == self.skip_layer:
+                w = layer.weight[:, layer.in_features - n_probe_cols - n_dir_cols :]
+                terms[i] = (e_probe @ w[:, :n_probe_cols].T + layer.bias, e_dir @ w[:, n_probe_cols:].T)
+        return terms
+
+    def _layers_from_terms(self, encoded) -> torch.Tensor:
+        """The network, given `encoded(i)` = layer i's pre-activation contribution of the encoding."""
+        h = torch.relu(encoded(1))
+        for i, layer in enumerate(self.layers[1:], start=2):
+            if i == self.skip_layer:
+                w_h = layer.weight[:, : layer.in_features - self.encoding_dim]
+                h = torch.relu(h @ w_h.T + encoded(i))
+            else:
+                h = torch.relu(layer(h))
+        return self.output(h)
+
+    def _probe_logits(self, xn, tn, index, d) -> torch.Tensor:
+        terms = self._split_encoding_layers(self._probe_encoding(xn, tn), self.pe_d(d))
+        return self._layers_from_terms(lambda i: terms[i][0][index] + terms[i][1])
+
     def _envmap_logits(self, xn, tn, dirs, chunk_rows: int) -> torch.Tensor:
-        """Every layer that reads the encoding is linear in it, so it splits into a per-probe
-        term (PE(x), PE(t) columns) plus a per-direction term (PE(d) columns): the
-        encodings and those products are computed once, not once per (probe, direction)."""
-        e_probe = self._probe_encoding(xn, tn)  # [P, Ep]
-        e_dir = self.pe_d(dirs)  # [N, Ed]
-        n_probe_cols = e_probe.shape[1]
-
-        def split(layer: nn.Linear, offset: int):
-            w = layer.weight
-            per_probe = e_probe @ w[:, offset : offset + n_probe_cols].T + layer.bias  # [P, W]
-            per_dir = e_dir @ w[:, offset + n_probe_cols :].T  # [N, W]
-            return per_probe, per_dir
-
-        first = split(self.layers[0], 0)
-        skip = None
-        if self.skip_layer is not None and self.skip_layer != 1:
-            skip_layer = self.layers[self.skip_layer - 1]
-            skip = split(skip_layer, skip_layer.in_features - n_probe_cols - e_dir.shape[1])
+        terms = self._split_encoding_layers(self._probe_encoding(xn, tn), self.pe_d(dirs))
         out = xn.new_empty(xn.shape[0], dirs.shape[0], 3)
         step = max(1, chunk_rows // dirs.shape[0])
         for p0 in range(0, xn.shape[0], step):
             sl = slice(p0, p0 + step)
-            h = torch.relu(first[0][sl, None] + first[1][None])
-            for i, layer in enumerate(self.layers[1:], start=2):
-                if skip is not None and i == self.skip_layer:
-                    w_h = layer.weight[:, : layer.in_features - n_probe_cols - e_dir.shape[1]]
-                    h = torch.relu(h @ w_h.T + skip[0][sl, None] + skip[1][None])
-                else:
-                    h = torch.relu(layer(h))
-            out[sl] = self.output(h)
+            out[sl] = self._layers_from_terms(lambda i: terms[i][0][sl, None] + terms[i][1][None])
         return out

@@ -43,11 +43,18 @@ class TrunkField(LightField):
     def logits(self, xn, tn, d):
         return self.head(self.head_in(torch.cat((self.features(xn, tn), self.pe_d(d)), dim=-1)))
 
-    def _envmap_logits(self, xn, tn, dirs, chunk_rows: int) -> torch.Tensor:
+    def _split_head_input(self, xn, tn, d) -> tuple[torch.Tensor, torch.Tensor]:
+        """head_in(f, PE(d)) = (W_f f + b) [P, head_width] + W_d PE(d) [N, head_width]."""
         f_dim = self.config.trunk.feature_dim
         w, b = self.head_in.weight, self.head_in.bias
-        per_probe = self.features(xn, tn) @ w[:, :f_dim].T + b  # [P, head_width]
-        per_dir = self.pe_d(dirs) @ w[:, f_dim:].T  # [N, head_width]
+        return self.features(xn, tn) @ w[:, :f_dim].T + b, self.pe_d(d) @ w[:, f_dim:].T
+
+    def _probe_logits(self, xn, tn, index, d) -> torch.Tensor:
+        per_probe, per_row = self._split_head_input(xn, tn, d)
+        return self.head(per_probe[index] + per_row)
+
+    def _envmap_logits(self, xn, tn, dirs, chunk_rows: int) -> torch.Tensor:
+        per_probe, per_dir = self._split_head_input(xn, tn, dirs)
         out = xn.new_empty(xn.shape[0], dirs.shape[0], 3)
         step = max(1, chunk_rows // dirs.shape[0])
         for p0 in range(0, xn.shape[0], step):
