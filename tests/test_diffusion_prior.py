@@ -135,13 +135,14 @@ def test_batched_cfg_equals_separate_branches(prior):
     coverage = req.ball_masks.sum(0).clamp(max=1)[None]
     c, latents, _ = prior._condition(req.image, coverage, req.depth, req.ev)
     den = prior.denoiser
-    t = den.timesteps(0.5, 5)[0]
-    x = torch.randn_like(latents, generator=None)
-    guided = den.predict_noise(x, t, c, 2.5)
-    text = den.predict_noise(x, t, c, 1.0)
+    scheduler, timesteps = den.schedule(0.5, 5)
+    t = timesteps[0]
+    x = torch.randn(latents.shape, generator=torch.Generator().manual_seed(0))
+    guided = den.predict_noise(scheduler, x, t, c, 2.5)
+    text = den.predict_noise(scheduler, x, t, c, 1.0)
     from dataclasses import replace
 
-    uncond = den.predict_noise(x, t, replace(c, embedding=c.null_embedding), 1.0)
+    uncond = den.predict_noise(scheduler, x, t, replace(c, embedding=c.null_embedding), 1.0)
     torch.testing.assert_close(guided, uncond + 2.5 * (text - uncond), rtol=1e-4, atol=1e-5)
 
 

@@ -37,7 +37,7 @@ class InpaintDenoiser:
         from diffusers import DDIMScheduler
 
         self.c = components
-        self.scheduler = DDIMScheduler.from_config(components.scheduler.config, timestep_spacing="trailing")
+        self._scheduler_config = DDIMScheduler.from_config(components.scheduler.config, timestep_spacing="trailing").config
 
     @property
     def latent_scale(self) -> float:
@@ -57,27 +57,33 @@ class InpaintDenoiser:
         return self.c.vae.decode(z).sample.float()
 
     # -- schedule -----------------------------------------------------------------------
-    def timesteps(self, tau: float, steps: int) -> torch.Tensor:
-        """The k = `steps` timesteps used for noise level `tau` (also sets the scheduler's step size)."""
+    def schedule(self, tau: float, steps: int):
+        """A fresh DDIM scheduler set up for noise level `tau`, and its k = `steps` timesteps.
+
+        Fresh per call because set_timesteps mutates the scheduler, and a worker may share
+        one prior between threads.
+        """
+        from diffusers import DDIMScheduler
+
         if not (0.0 < tau <= 1.0):
             raise PriorError(f"tau must be in (0, 1] to denoise, got {tau}")
-        total = self.scheduler.config.num_train_timesteps
+        total = self._scheduler_config.num_train_timesteps
         if not (1 <= steps <= total):
             raise PriorError(f"steps must be in [1, {total}], got {steps}")
-        n = min(total, max(steps, round(steps / tau)))
-        self.scheduler.set_timesteps(n, device=self.c.device)
-        return self.scheduler.timesteps[-steps:]
+        scheduler = DDIMScheduler.from_config(self._scheduler_config)
+        scheduler.set_timesteps(min(total, max(steps, round(steps / tau))), device=self.c.device)
+        return scheduler, scheduler.timesteps[-steps:]
 
     # -- one network evaluation -----------------------------------------------------------
     @torch.no_grad()
     def predict_noise(
-        self, latents: torch.Tensor, t: torch.Tensor, cond: InpaintCondition, guidance_scale: float
+        self, scheduler, latents: torch.Tensor, t: torch.Tensor, cond: InpaintCondition, guidance_scale: float
     ) -> torch.Tensor:
         """Guided model output for `latents` at timestep t; one UNet call (both CFG branches batched)."""
         guided = guidance_scale != 1.0
         emb = ExposureEmbedding.cat([cond.null_embedding, cond.embedding]) if guided else cond.embedding
         reps = 2 if guided else 1
-        x = self.scheduler.scale_model_input(latents, t).repeat(reps, 1, 1, 1)
+        x = scheduler.scale_model_input(latents, t).repeat(reps, 1, 1, 1)
         dt = self.c.dtype
         out = inpaint_forward(
             self.c.unet,
@@ -109,14 +115,14 @@ class InpaintDenoiser:
         """Noise `image_latents` to ~tau*T and denoise in `steps` DDIM steps, keeping the background."""
         from diffusers.utils.torch_utils import randn_tensor
 
-        timesteps = self.timesteps(tau, steps)
+        scheduler, timesteps = self.schedule(tau, steps)
         x0 = image_latents.float()
         noise = randn_tensor(x0.shape, generator=generator, device=x0.device, dtype=x0.dtype)
         keep = 1.0 - cond.mask.float()
-        x = self.scheduler.add_noise(x0, noise, timesteps[:1])
+        x = scheduler.add_noise(x0, noise, timesteps[:1])
         for i, t in enumerate(timesteps):
-            eps = self.predict_noise(x, t, cond, guidance_scale)
-            x = self.scheduler.step(eps, t, x, eta=0.0, return_dict=False)[0]
-            background = x0 if i + 1 == len(timesteps) else self.scheduler.add_noise(x0, noise, timesteps[i + 1 : i + 2])
+            eps = self.predict_noise(scheduler, x, t, cond, guidance_scale)
+            x = scheduler.step(eps, t, x, eta=0.0, return_dict=False)[0]
+            background = x0 if i + 1 == len(timesteps) else scheduler.add_noise(x0, noise, timesteps[i + 1 : i + 2])
             x = keep * background + (1.0 - keep) * x
         return x
