@@ -298,7 +298,10 @@ def test_downloaded_exr_parses_and_matches_the_api(finished_page, browser, downl
 
     if not browser.execute_script("return document.querySelectorAll('#probe-list li[data-probe]').length"):
         click_frame(browser, *CLICK_UV)
-    wait_for(browser, "return !document.getElementById('probe-detail').hidden", 30)
+    frame = browser.execute_script("return Number(document.getElementById('time-slider').value)")
+    selected = browser.execute_script("return document.querySelector('#probe-list li.selected').dataset.probe")
+    key = wait_until(lambda: (k := envmap_key(browser)) and k.split("|")[:2] == [selected, str(frame)] and k, 30,
+                     what="the selected probe's env map")
     for f in downloads.glob("*"):
         f.unlink()
     browser.find_element("css selector", "[data-download=exr]").click()
@@ -307,9 +310,8 @@ def test_downloaded_exr_parses_and_matches_the_api(finished_page, browser, downl
     hdr = read_exr(exr.read_bytes())
     assert hdr.shape == (256, 512, 3) and np.isfinite(hdr).all() and hdr.min() >= 0
 
-    key = envmap_key(browser)
-    number, frame, x = key.split("|")[:3]
-    t = float(frame) / finished_page["doc"]["fps"]
+    x = key.split("|")[2]
+    t = frame / finished_page["doc"]["fps"]
     with ui_stack.client() as c:
         ref = c.get(f"/lightfield/{job_id(browser)}/envmap", params={"x": x, "t": t, "format": "exr", "height": 256})
     np.testing.assert_allclose(hdr, read_exr(ref.content), rtol=1e-5, atol=1e-7)

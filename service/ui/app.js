@@ -126,7 +126,7 @@
     loss: (v) => (v == null || !isFinite(v) ? "—" : v < 1e-3 ? v.toExponential(2) : v.toPrecision(3)),
     metres: (v) => (v == null ? "—" : `${v.toFixed(v < 10 ? 2 : 1)} m`),
     time: (t) => `t = ${t.toFixed(3)} s`,
-    vec: (x) => x.map((c) => c.toFixed(2)).join(", "),
+    vec: (x) => x.map((c) => (Math.abs(c) < 0.005 ? 0 : c).toFixed(2)).join(", "),
     when(iso) {
       const d = new Date(iso);
       return isNaN(d) ? "" : d.toLocaleString(undefined, { month: "short", day: "numeric", hour: "2-digit", minute: "2-digit" });
@@ -280,6 +280,23 @@
   }
 
   // ------------------------------------------------------------------ upload
+  let pendingUrl = null;
+  /** Show the file being estimated (from the local disk, nothing is downloaded). */
+  function showPending(file) {
+    if (pendingUrl) URL.revokeObjectURL(pendingUrl);
+    pendingUrl = file ? URL.createObjectURL(file) : null;
+    const box = $("pending-media");
+    box.replaceChildren();
+    $("pending").hidden = !file;
+    if (!file) return;
+    $("empty-state").hidden = true;
+    $("pending-name").textContent = file.name;
+    const media = document.createElement(file.type.startsWith("video/") ? "video" : "img");
+    if (media.tagName === "VIDEO") Object.assign(media, { muted: true, loop: true, autoplay: true, playsInline: true });
+    media.src = pendingUrl;
+    box.append(media);
+  }
+
   function jobParams() {
     const params = { preset: $("preset-input").value, temporal: $("temporal-input").value };
     const fps = parseFloat($("fps-input").value);
@@ -306,6 +323,7 @@
     try {
       const view = await apiJson("/jobs", { method: "POST", body: form });
       closeResult();
+      showPending(file);
       refreshJobs();
       watchJob(view.id).catch(reportError);
     } catch (e) {
@@ -390,12 +408,26 @@
   function closeResult() {
     Object.assign(view, { id: null, capture: null, probes: [], selected: null, nextNumber: 1, autoExposed: false });
     $("result").hidden = true;
+    $("no-frames").hidden = true;
     $("empty-state").hidden = false;
+    showPending(null);
     stopPlaying();
   }
 
   async function openResult(id) {
-    const capture = await apiJson(`/lightfield/${id}/capture`);
+    history.replaceState(null, "", `#job=${id}`);
+    let capture;
+    try {
+      capture = await apiJson(`/lightfield/${id}/capture`);
+    } catch (error) {
+      if (error instanceof ApiError && error.code === "frames_unavailable") {
+        $("empty-state").hidden = true;
+        $("no-frames").hidden = false;
+        return;
+      }
+      throw error;
+    }
+    showPending(null);
     Object.assign(view, { id, capture, frameIndex: 0, probes: [], selected: null, nextNumber: 1, autoExposed: false });
     const slider = $("time-slider");
     slider.max = String(capture.frames - 1);
@@ -496,7 +528,7 @@
       m.className = `marker${selected ? " selected" : ""}`;
       m.style.left = `${100 * p.u}%`;
       m.style.top = `${100 * p.v}%`;
-      m.textContent = String(p.number);
+      m.append(Object.assign(document.createElement("span"), { textContent: String(p.number) }));
       m.title = `probe ${p.number}`;
       m.addEventListener("click", (e) => { e.stopPropagation(); selectProbe(p.number); });
       markers.append(m);
