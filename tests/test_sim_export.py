@@ -74,7 +74,6 @@ def test_planar_depth_of_a_wall_facing_camera_is_analytic():
 
 
 def test_write_capture_parses_with_consistent_shapes(tmp_path):
-    from core.io.depth import read_depth
     from core.io.exr import read_exr
     from core.io.images import read_image
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 
 from core.camera import Camera, Intrinsics
-from core.sim.spec import AreaEmitter, CameraSpec, Lamp, SceneSpec, Schedule
+from core.sim.spec import AreaEmitter, CameraSpec, SceneSpec, Schedule
 
 # A frame index computed as t * fps may land a hair below an integer; switching must not.
 FRAME_EPS = 1e-6
