@@ -20,8 +20,10 @@ $(STAMP): pyproject.toml constraints.txt
 demo: $(STAMP)
 	$(VENV)/bin/lightfield demo
 
+# PASSIVE: idle OpenMP threads sleep instead of spinning, so the test suite's subprocesses
+# (Celery workers, uvicorn) do not starve each other on a 2-core machine.
 test: $(STAMP)
-	$(PY) -m pytest -q
+	OMP_WAIT_POLICY=PASSIVE $(PY) -m pytest -q
 
 bench: $(STAMP)
 	$(VENV)/bin/lightfield bench --quick -o bench/results
