@@ -236,3 +236,19 @@ def test_run_job_writes_a_loadable_artefact(tmp_path):
     stages = [e.stage for e in events]
     assert stages[0] == "loading" and stages[-1] == "done"
     assert all(a.fraction <= b.fraction + 1e-9 for a, b in zip(events, events[1:]))
+
+
+@pytest.mark.slow  # importing diffusers/transformers dominates
+def test_run_job_with_the_tiny_diffusion_prior(tmp_path):
+    """The diffusion prior plugs in unchanged (a tiny random local model: contract, not quality)."""
+    from core.io import write_png
+    from core.priors.diffusion import build_tiny_model
+
+    weights = build_tiny_model(tmp_path / "tiny")
+    write_png(tmp_path / "in.png", torch.rand(H, W, 3, generator=torch.Generator().manual_seed(0)).numpy())
+    with pytest.warns(UserWarning):
+        out = run_job(tmp_path / "in.png", None, JobParams(prior="diffusion", prior_weights=str(weights)),
+                      tmp_path / "art", config=tiny(iterations=2))
+    meta = json.loads((out / "lightfield.json").read_text())
+    assert meta["prior"]["name"] == "diffusion" and len(meta["training"]["loss_curve"]) == 2
+    assert all(torch.isfinite(torch.tensor(meta["training"]["loss_curve"])))

@@ -136,3 +136,5 @@ def test_registry():
         build_prior("known")
     with pytest.raises(PriorError):
         ReprojectionPrior(env_height=8).envmaps(torch.zeros(1, 3), 0)  # not bound
+    with pytest.raises(PriorError, match="weights"):
+        build_prior("diffusion")  # needs a local model directory
