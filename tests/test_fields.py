@@ -174,10 +174,20 @@ def smooth_log_radiance(x: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     return base + lobe[:, None] * torch.tensor([1.0, 0.8, 0.6]) - 1.0
 
 
+@pytest.fixture
+def single_thread():
+    """Tiny models run faster on one thread (and do not fight parallel test workers)."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
 @pytest.mark.parametrize("kind", KINDS)
-def test_field_fits_a_known_smooth_function(kind):
-    """Plain regression in log space: 300 Adam steps cut the log-radiance RMSE on held-out
-    points by at least 5x (what the distillation relies on: the field can represent it)."""
+def test_field_fits_a_known_smooth_function(kind, single_thread):
+    """Plain regression in log space: 200 Adam steps cut the log-radiance RMSE on held-out
+    points by at least 8x (observed 17-20x; what the distillation relies on: the field can
+    represent such lighting)."""
     torch.manual_seed(0)
     field = build_field(tiny_config(kind, uses_time=False), BOUNDS)
     lo, hi = torch.tensor(BOUNDS.lo), torch.tensor(BOUNDS.hi)
@@ -196,14 +206,14 @@ def test_field_fits_a_known_smooth_function(kind):
     before = rmse()
     lr = 0.05 if kind == "grid" else 3e-3
     opt = torch.optim.Adam(field.parameters(), lr=lr)
-    for _ in range(300):
-        x, d, y = batch(512)
+    for _ in range(200):
+        x, d, y = batch(256)
         loss = (field(x, None, d).log() - y).pow(2).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
     after = rmse()
-    assert after < before / 5, (kind, before, after)
+    assert after < before / 8, (kind, before, after)
 
 
 @pytest.mark.parametrize("kind", KINDS)
