@@ -95,3 +95,12 @@ def test_insertion_under_uniform_light_is_analytic():
     # scene geometry in front of an object hides it
     hidden = insert_objects(frame, torch.full((72, 96), 1.0), cam, envmaps_at, None, pts, env_height=16)
     assert torch.allclose(hidden, tonemap(inverse_tonemap(frame)), atol=1e-6)
+
+
+def test_preview_mp4(estimated, tmp_path):
+    from core.io import read_video
+
+    tmp, _ = estimated
+    assert main(["preview", str(tmp / "out"), "--input", str(tmp / "in.png"), "-o", str(tmp_path / "p.mp4")]) == 0
+    video = read_video(tmp_path / "p.mp4")
+    assert video.frames.shape[0] == 1 and video.frames.shape[1:3] == (H, W)
