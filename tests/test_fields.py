@@ -14,17 +14,21 @@ from core.fields.config import GridSettings, MLPSettings, TrunkSettings
 from core.fields.encodings import PositionalEncoding, lattice_corners, multilinear_lookup
 from core.fields.grid import equirect_stencil, pad_poles
 
-KINDS = ["mlp", "grid", "trunk"]
+KINDS = ["mlp", "grid", "trunk", "trunk+grid"]
 BOUNDS = SceneBounds((-2.0, -1.0, -4.0), (2.0, 2.0, 0.5), t0=0.0, t1=3.0)
 
 
 def tiny_config(kind: str, uses_time: bool = True) -> FieldConfig:
+    """Small settings per kind; 'trunk+grid' is the trunk with its dense x feature grid."""
+    x_grid = (3, 3, 3) if kind == "trunk+grid" else None
     return FieldConfig(
-        kind=kind,
+        kind=kind.split("+")[0],
         uses_time=uses_time,
         mlp=MLPSettings(width=32, layers=3, skip_layer=2, x_freqs=2, t_freqs=1, d_freqs=3),
         grid=GridSettings(resolution=(2, 2, 2), env_height=8, time_keyframes=2),
-        trunk=TrunkSettings(trunk_width=32, trunk_layers=2, feature_dim=16, head_width=32, head_layers=2, x_freqs=2, d_freqs=3),
+        trunk=TrunkSettings(
+            trunk_width=32, trunk_layers=2, feature_dim=16, head_width=32, head_layers=2, x_freqs=2, d_freqs=3, x_grid=x_grid
+        ),
     )
 
 
@@ -49,7 +53,10 @@ HARD_D = torch.tensor(
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("uses_time", [True, False])
 def test_hard_inputs_give_finite_positive_radiance(kind, uses_time):
-    field = randomise(build_field(field_preset(kind, uses_time), BOUNDS), scale=0.5)
+    cfg = field_preset(kind.split("+")[0], uses_time)  # full-size presets
+    if kind == "trunk+grid":
+        cfg = cfg.model_copy(update={"trunk": cfg.trunk.model_copy(update={"x_grid": (4, 4, 4)})})
+    field = randomise(build_field(cfg, BOUNDS), scale=0.5)
     out = field(HARD_X, HARD_T, HARD_D)
     assert out.shape == (6, 3) and out.dtype == torch.float32
     assert torch.isfinite(out).all() and (out > 0).all()

@@ -66,6 +66,16 @@ class TrunkSettings(_Strict):
     feature_dim: int = Field(64, ge=1)
     head_width: int = Field(64, ge=1)
     head_layers: int = Field(2, ge=1)
+    # Optional learnable dense feature grid over the box, concatenated to PE(x): local
+    # capacity near lights without widening the trunk. None = PE only.
+    x_grid: tuple[int, int, int] | None = None
+    x_grid_features: int = Field(8, ge=1, le=64)
+
+    @model_validator(mode="after")
+    def _grid_positive(self):
+        if self.x_grid is not None and min(self.x_grid) < 2:
+            raise ValueError(f"trunk.x_grid must be >= 2 per axis, got {self.x_grid}")
+        return self
 
 
 class FieldConfig(_Strict):

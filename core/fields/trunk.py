@@ -1,6 +1,6 @@
 """A faster field: a position/time trunk and a light-direction head.
 
-trunk(PE(xn), PE(tn)) -> feature f (per probe); head(f, PE(d)) -> 3 logits (per direction).
+trunk(PE(xn), PE(tn)[, dense grid features at xn]) -> feature f (per probe); head(f, PE(d)) -> 3 logits (per direction).
 An env map needs the trunk ONCE per probe, and the head's first layer is split as
 W [f, PE(d)] = W_f f + W_d PE(d), so per direction only the (small) head runs on a sum of a
 per-probe and a per-direction term. The head is narrow (64 by default) because lighting
@@ -13,7 +13,7 @@ from torch import nn
 
 from core.fields.base import LightField
 from core.fields.config import FieldConfig
-from core.fields.encodings import PositionalEncoding
+from core.fields.encodings import DenseGridEncoding, PositionalEncoding
 from core.fields.normalization import SceneBounds
 
 INITIAL_RADIANCE = 1.0
@@ -27,7 +27,9 @@ class TrunkField(LightField):
         self.pe_x = PositionalEncoding(3, s.x_freqs)
         self.pe_t = PositionalEncoding(1, s.t_freqs) if config.uses_time else None
         self.pe_d = PositionalEncoding(3, s.d_freqs)
+        self.x_grid = DenseGridEncoding(s.x_grid, s.x_grid_features) if s.x_grid is not None else None
         trunk_in = self.pe_x.out_dim + (self.pe_t.out_dim if self.pe_t else 0)
+        trunk_in += self.x_grid.out_dim if self.x_grid is not None else 0
         self.trunk = _relu_mlp(trunk_in, s.trunk_width, s.trunk_layers, s.feature_dim)
         self.head_in = nn.Linear(s.feature_dim + self.pe_d.out_dim, s.head_width)
         self.head = _relu_mlp(s.head_width, s.head_width, s.head_layers - 1, 3, relu_input=True)
@@ -38,6 +40,8 @@ class TrunkField(LightField):
 
     def features(self, xn: torch.Tensor, tn: torch.Tensor | None) -> torch.Tensor:
         parts = [self.pe_x(xn)] + ([self.pe_t(tn)] if self.pe_t is not None else [])
+        if self.x_grid is not None:
+            parts.append(self.x_grid(xn))
         return self.trunk(torch.cat(parts, dim=-1))
 
     def logits(self, xn, tn, d):
