@@ -47,7 +47,10 @@
         const body = await response.json();
         if (body && body.error) ({ code, message } = body.error);
       } catch (_) { /* not JSON */ }
-      if (response.status === 401) keyStatus("API key required", "bad");
+      if (response.status === 401) {
+        keyStatus(auth.key ? "key rejected" : "API key required", "bad");
+        if (!auth.key) $("api-key").focus();
+      }
       throw new ApiError(response.status, code, message);
     }
     return response;
@@ -85,6 +88,7 @@
 
   function reportError(error) {
     if (error === STALE || (error && error.name === "AbortError")) return;
+    if (error instanceof ApiError && error.status === 401) return; // shown next to the key field
     console.error(error);
     const toast = $("toast");
     toast.textContent = error instanceof ApiError ? `${error.message} (${error.code})` : String(error.message || error);
@@ -109,6 +113,7 @@
       await api("/jobs?limit=1");
       keyStatus(auth.key ? "key accepted" : "no key needed", "ok");
       refreshJobs();
+      if (linkedJob() && linkedJob() !== view.id) openJob(linkedJob()).catch(reportError);
     } catch (error) {
       if (!(error instanceof ApiError && error.status === 401)) reportError(error);
       else keyStatus("key rejected", "bad");
@@ -417,9 +422,13 @@
   async function openResult(id) {
     history.replaceState(null, "", `#job=${id}`);
     let capture;
+    $("empty-state").hidden = true;
+    $("loading").hidden = false;
     try {
       capture = await apiJson(`/lightfield/${id}/capture`);
     } catch (error) {
+      $("loading").hidden = true;
+      $("empty-state").hidden = false;
       if (error instanceof ApiError && error.code === "frames_unavailable") {
         $("empty-state").hidden = true;
         $("no-frames").hidden = false;
@@ -427,6 +436,7 @@
       }
       throw error;
     }
+    $("loading").hidden = true;
     showPending(null);
     Object.assign(view, { id, capture, frameIndex: 0, probes: [], selected: null, nextNumber: 1, autoExposed: false });
     const slider = $("time-slider");
@@ -463,12 +473,23 @@
     try {
       const blob = await frameSlot(async () => (await api(path)).blob());
       await showBlob($("frame-img"), blob, key);
+      fitFrame();
       $("frame-label").textContent = `${view.frameIndex + 1} / ${view.capture.frames}`;
       $("viewer-busy").hidden = true;
     } catch (error) {
       if (error !== STALE) $("viewer-busy").hidden = true;
       throw error;
     }
+  }
+
+  /** As large as the card allows, but no taller than 72 % of the window (portrait videos). */
+  function fitFrame() {
+    const img = $("frame-img");
+    if (!img.naturalWidth) return;
+    const box = img.closest(".viewer").clientWidth;
+    if (!box) return;
+    const aspect = img.naturalWidth / img.naturalHeight;
+    $("viewer").style.width = `${Math.min(box, 0.72 * window.innerHeight * aspect)}px`;
   }
 
   // ------------------------------------------------------------------ probes
@@ -692,6 +713,9 @@
   }
 
   // ------------------------------------------------------------------ wiring
+  /** The job named in the address (…/ui/#job=ID), so a link or a reload reopens it. */
+  const linkedJob = () => new URLSearchParams(location.hash.slice(1)).get("job");
+
   function onFrameClick(event) {
     if (!view.capture) return;
     const rect = $("frame-img").getBoundingClientRect();
@@ -725,12 +749,14 @@
     for (const b of document.querySelectorAll("[data-download]")) {
       b.addEventListener("click", () => download(b.dataset.download));
     }
-    window.addEventListener("resize", () => lossChart.draw());
+    window.addEventListener("resize", () => { lossChart.draw(); fitFrame(); });
     setExposure(0);
     lossChart.draw();
     refreshJobs();
-    const linked = new URLSearchParams(location.hash.slice(1)).get("job");
-    if (linked) openJob(linked).catch(reportError);
+    window.addEventListener("hashchange", () => {
+      if (linkedJob() && linkedJob() !== view.id) openJob(linkedJob()).catch(reportError);
+    });
+    if (linkedJob()) openJob(linkedJob()).catch(reportError);
   }
 
   init();
