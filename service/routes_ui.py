@@ -20,6 +20,7 @@ from service.capture_preview import PreviewError, StoredPreview, load_preview
 from service.context import AppContext, Tenant, get_ctx, get_tenant, owned_job
 from service.errors import Conflict, ErrorBody, InvalidInput, NotFound
 from service.fieldcache import CachedField
+from service.models import Flags
 from service.storage import JobPaths
 from service.ui_probes import ProbeError, place
 
@@ -29,11 +30,6 @@ CONVENTIONS_HEADER = "X-Lightfield-Conventions"
 MAX_INSERTED_PROBES = 16
 MAX_INSERTION_ENV_HEIGHT = 128
 T_HELP = "seconds from the first frame; the stored frame nearest in time is used"
-
-
-class Flags(BaseModel):
-    x: bool = Field(description="x lies outside the scene bounds the field was trained on")
-    t: bool = Field(description="t lies outside the capture's time range")
 
 
 class CaptureView(BaseModel):
@@ -64,24 +60,33 @@ class ProbeView(BaseModel):
     extrapolated: Flags
 
 
-def _job_paths(job_id: str, tenant: Tenant, ctx: AppContext) -> tuple[JobPaths, CachedField]:
+def _succeeded(job_id: str, tenant: Tenant, ctx: AppContext):
     record = owned_job(job_id, tenant, ctx)
     if record.state != "succeeded":
         raise Conflict(f"job {job_id} is {record.state}; its frames and light field exist once it has succeeded",
                        code="not_ready")
+    return record
+
+
+def _stored_preview(record, ctx: AppContext) -> StoredPreview:
     paths = JobPaths.for_job(ctx.settings.data_dir, record.tenant_hash, record.id)
-    return paths, ctx.fields.get(record.id, ctx.settings.data_dir / record.artefact)
+    try:
+        return load_preview(paths.job_dir)
+    except FileNotFoundError:
+        raise NotFound(f"job {record.id} has no stored frames (it finished before the page's previews existed)",
+                       code="frames_unavailable") from None
+    except PreviewError as exc:
+        raise NotFound(f"job {record.id}: stored frames are unreadable ({exc})", code="frames_unavailable") from None
+
+
+def _preview(job_id: str, tenant: Tenant, ctx: AppContext) -> StoredPreview:
+    return _stored_preview(_succeeded(job_id, tenant, ctx), ctx)
 
 
 def _load(job_id: str, tenant: Tenant, ctx: AppContext) -> tuple[StoredPreview, CachedField]:
-    paths, cf = _job_paths(job_id, tenant, ctx)
-    try:
-        return load_preview(paths.job_dir), cf
-    except FileNotFoundError:
-        raise NotFound(f"job {job_id} has no stored frames (it finished before the page's previews existed)",
-                       code="frames_unavailable") from None
-    except PreviewError as exc:
-        raise NotFound(f"job {job_id}: stored frames are unreadable ({exc})", code="frames_unavailable") from None
+    """The preview and the (cached) light field of a succeeded job."""
+    record = _succeeded(job_id, tenant, ctx)
+    return _stored_preview(record, ctx), ctx.fields.get(record.id, ctx.settings.data_dir / record.artefact)
 
 
 def _check_t(t: float) -> float:
@@ -120,7 +125,7 @@ def get_frame(job_id: str, t: float = Query(0.0, description=T_HELP),
               tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     from core.io.images import encode_png
 
-    preview, _ = _load(job_id, tenant, ctx)
+    preview = _preview(job_id, tenant, ctx)
     index = preview.nearest_frame(_check_t(t))
     return Response(encode_png(preview.frame(index)), media_type="image/png", headers={
         "X-Lightfield-Frame-Index": str(index), "X-Lightfield-Frame-Time": f"{float(preview.times[index]):.6g}",
