@@ -235,6 +235,8 @@ def test_cancel_stops_a_running_job_within_seconds(long_stack, tiny_image):
         running = submit(c, tiny_image)
         queued = submit(c, tiny_image)
         wait_until(lambda: c.get(f"/jobs/{running}").json()["iteration"] >= 2, 90, what="distillation steps")
+        not_yet = c.get(f"/lightfield/{running}/envmap", params={"x": "0,0,-1"})
+        assert not_yet.status_code == 409 and not_yet.json()["error"]["code"] == "not_ready"
         # the second job waits behind the first (one job per worker): cancelling it is immediate
         gone = c.delete(f"/jobs/{queued}")
         assert gone.status_code == 202 and gone.json()["state"] == "cancelled"
