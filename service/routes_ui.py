@@ -8,8 +8,6 @@ core.engine.insertion. Included by service.app.create_app.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from fastapi import APIRouter, Depends, Query, Response
 from fastapi.concurrency import run_in_threadpool
@@ -21,6 +19,7 @@ from service.context import AppContext, Tenant, get_ctx, get_tenant, owned_job
 from service.errors import Conflict, ErrorBody, InvalidInput, NotFound
 from service.fieldcache import CachedField
 from service.models import Flags
+from service.queries import check_t
 from service.storage import JobPaths
 from service.ui_probes import ProbeError, place
 
@@ -89,12 +88,6 @@ def _load(job_id: str, tenant: Tenant, ctx: AppContext) -> tuple[StoredPreview, 
     return _stored_preview(record, ctx), ctx.fields.get(record.id, ctx.settings.data_dir / record.artefact)
 
 
-def _check_t(t: float) -> float:
-    if not math.isfinite(t):
-        raise InvalidInput(f"t must be a finite number of seconds, got {t}", code="invalid_t")
-    return float(t)
-
-
 def _field_time(cf: CachedField, preview: StoredPreview, index: int) -> float | None:
     """The field's time input for stored frame `index` (None for a field without time)."""
     return float(preview.times[index]) if cf.artefact.uses_time else None
@@ -126,7 +119,7 @@ def get_frame(job_id: str, t: float = Query(0.0, description=T_HELP),
     from core.io.images import encode_png
 
     preview = _preview(job_id, tenant, ctx)
-    index = preview.nearest_frame(_check_t(t))
+    index = preview.nearest_frame(check_t(t))
     return Response(encode_png(preview.frame(index)), media_type="image/png", headers={
         "X-Lightfield-Frame-Index": str(index), "X-Lightfield-Frame-Time": f"{float(preview.times[index]):.6g}",
         "Cache-Control": "private, max-age=3600"})
@@ -141,7 +134,7 @@ def get_probe(job_id: str, u: float = Query(..., description="fraction of the fr
               tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     preview, cf = _load(job_id, tenant, ctx)
     try:
-        p = place(preview, u, v, _check_t(t), depth)
+        p = place(preview, u, v, check_t(t), depth)
     except ProbeError as exc:
         raise InvalidInput(str(exc), code="invalid_probe") from None
     frame_time = float(preview.times[p.frame_index])
@@ -189,7 +182,7 @@ async def get_insertion(job_id: str, t: float = Query(0.0, description=T_HELP),
                                                 description="env map rows used to light the balls"),
                         tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     preview, cf = await run_in_threadpool(_load, job_id, tenant, ctx)
-    index = preview.nearest_frame(_check_t(t))
+    index = preview.nearest_frame(check_t(t))
     data = await run_in_threadpool(_render_insertion, preview, cf, index, points, env_height)
     return Response(data, media_type="image/png", headers={
         CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, "X-Lightfield-Frame-Index": str(index)})

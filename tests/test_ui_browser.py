@@ -7,9 +7,7 @@ switch, download the EXR. Screenshots go to tests/artifacts/ (gitignored).
 """
 from __future__ import annotations
 
-import json
 import math
-import shutil
 import time
 from pathlib import Path
 
