@@ -64,11 +64,17 @@ class BakedField:
     # ------------------------------------------------------------------ queries
     def envmap(self, x, t=None, height: int | None = None) -> tuple[torch.Tensor, dict]:
         """Interpolated env map [H, 2H, 3] at x [3], t, and flags (as LightFieldArtefact.envmap)."""
-        hdr, flags = self.envmaps(torch.as_tensor(x, dtype=torch.float32).reshape(1, 3), None if t is None else [t], height)
+        x = torch.as_tensor(x, dtype=torch.float32)
+        if x.numel() != 3:
+            raise QueryError(f"x must be one position [3], got shape {tuple(x.shape)}")
+        hdr, flags = self.envmaps(x, None if t is None else [t], height)
         return hdr[0], flags[0]
 
     def envmaps(self, xs, ts, height: int | None = None) -> tuple[torch.Tensor, list[dict]]:
-        xs = torch.as_tensor(xs, dtype=torch.float32).reshape(-1, 3)
+        xs = torch.as_tensor(xs, dtype=torch.float32)
+        if xs.ndim == 0 or xs.shape[-1] != 3 or xs.numel() == 0:
+            raise QueryError(f"xs must have shape [3] or [N, 3], got {tuple(xs.shape)}")
+        xs = xs.reshape(-1, 3)
         if not torch.isfinite(xs).all():
             raise QueryError("xs must be finite (metres)")
         ts_t = None
