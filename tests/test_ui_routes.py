@@ -25,9 +25,9 @@ WALL = 3.0
 BOUNDS = SceneBounds((-3.0, -2.0, -4.0), (3.0, 2.0, 0.5), t0=0.0, t1=(T - 1) / FPS)
 
 
-def bright_field():
+def bright_field(uses_time: bool = True):
     """A 2x2x2 grid field that is the same, fairly bright, everywhere (so balls are visible)."""
-    cfg = FieldConfig(kind="grid", uses_time=True, grid=GridSettings(resolution=(2, 2, 2), env_height=4, time_keyframes=2))
+    cfg = FieldConfig(kind="grid", uses_time=uses_time, grid=GridSettings(resolution=(2, 2, 2), env_height=4, time_keyframes=2))
     field = build_field(cfg, BOUNDS)
     with torch.no_grad():
         for p in field.parameters():
@@ -64,13 +64,13 @@ def app_env(tmp_path_factory):
         redis.stop()
 
 
-def add_job(ctx, state="succeeded", with_preview=True, tenant="alice") -> str:
+def add_job(ctx, state="succeeded", with_preview=True, tenant="alice", uses_time=True) -> str:
     job = new_job_id()
     record = JobRecord(id=job, tenant=tenant, tenant_hash=tenant_hash(tenant), input_kind="video")
     ctx.store.create(record, max_in_flight=100)
     paths = JobPaths.for_job(ctx.settings.data_dir, record.tenant_hash, job)
     if state == "succeeded":
-        save_artefact(paths.artefact_dir, bright_field(), {"capture": {"fps": FPS}})
+        save_artefact(paths.artefact_dir, bright_field(uses_time), {"capture": {"fps": FPS}})
         if with_preview:
             save_preview(preview(), paths.job_dir)
         relative = str(paths.artefact_dir.relative_to(ctx.settings.data_dir))
@@ -138,6 +138,17 @@ def test_insertion_draws_balls_at_the_probe_and_leaves_the_rest_of_the_frame(app
     assert diff[:, -8:].max() <= 1 and diff[:4].max() <= 1, "pixels far from the balls changed"
     two = png(get(client, f"/lightfield/{job}/insertion", t=0.5, points=f"0.3,0.5,2.5;0.8,0.2,2.5"))
     assert np.abs(two.astype(int) - frame.astype(int)).max(-1)[int(0.2 * H), int(0.8 * W)] > 20
+
+
+def test_a_field_without_time_is_queried_without_t(app_env):
+    client, ctx = app_env
+    job = add_job(ctx, uses_time=False)
+    assert get(client, f"/lightfield/{job}/capture").json()["uses_time"] is False
+    probe = get(client, f"/lightfield/{job}/probe", u=0.5, v=0.5, t=1.0).json()
+    assert probe["extrapolated"] == {"x": False, "t": False}
+    out = png(get(client, f"/lightfield/{job}/insertion", t=1.0, points="0.5,0.5,2.0"))
+    frame = png(get(client, f"/lightfield/{job}/frame", t=1.0))
+    assert np.abs(out.astype(int) - frame.astype(int)).max() > 20
 
 
 @pytest.mark.parametrize("path, params, status, code", [
