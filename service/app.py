@@ -1,6 +1,7 @@
 """The FastAPI application: `create_app(settings)`; `app` for `uvicorn service.app:app`."""
 from __future__ import annotations
 
+import functools
 import logging
 from pathlib import Path
 
@@ -55,9 +56,14 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     return app
 
 
+@functools.lru_cache(maxsize=1)
+def _app_from_env() -> FastAPI:
+    return create_app()
+
+
 def __getattr__(name: str):
-    # `uvicorn service.app:app` (and the Docker image) build the app from the environment
-    # lazily, so importing this module has no side effects.
+    # `uvicorn service.app:app` builds the app from the environment on first access, so
+    # importing this module (tests, `lightfield serve`) has no side effects.
     if name == "app":
-        return create_app()
+        return _app_from_env()
     raise AttributeError(name)

@@ -25,11 +25,20 @@ class LaunchError(RuntimeError):
     """A child process could not be started or did not become ready."""
 
 
-def _die_with_parent() -> None:  # runs in the child between fork and exec
+def _load_prctl():
     try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-    except OSError:
-        pass
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
+
+# Resolved once in the parent: the child, between fork and exec, only makes the call (no
+# dlopen, no allocation, nothing that could wait on a lock another thread held at fork).
+_PRCTL = _load_prctl() if sys.platform.startswith("linux") else None
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    _PRCTL(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def spawn(cmd: list[str], env: dict[str, str] | None = None, log_path: Path | None = None) -> subprocess.Popen:
@@ -37,7 +46,7 @@ def spawn(cmd: list[str], env: dict[str, str] | None = None, log_path: Path | No
     try:
         return subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                 start_new_session=True,
-                                preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+                                preexec_fn=_die_with_parent if _PRCTL is not None else None)
     finally:
         if log_path:
             out.close()
