@@ -48,7 +48,8 @@ class Method:
     family: Family
     group: str  # baseline | paper | budget | ablation | query | upper-bound
     description: str
-    prior: Literal["reprojection", "oracle"] = "reprojection"
+    prior: Literal["reprojection", "oracle", "diffusion"] = "reprojection"
+    prior_weights: str | None = None  # local model directory (diffusion prior only)
     field: str | None = None
     overrides: tuple[tuple[str, Any], ...] = ()  # DistillConfig overrides
     exposure: Literal["sweep", "uniform"] = "sweep"
@@ -64,7 +65,7 @@ class Method:
     @property
     def training_key(self) -> tuple:
         """Methods that differ only in the query mode share one distillation."""
-        return (self.family, self.prior, self.field, self.overrides, self.exposure)
+        return (self.family, self.prior, self.prior_weights, self.field, self.overrides, self.exposure)
 
     def describe(self, base: DistillConfig) -> dict:
         cfg = self.config(base)
@@ -89,9 +90,16 @@ class Budget:
     probes: tuple[int, ...]
 
 
-def core_methods() -> list[Method]:
+def core_methods(diffusion_weights: str | None = None) -> list[Method]:
     """Run on every suite: baselines, the paper's field, its grid ablation, the trunk, the
-    baked query mode and the oracle upper bounds of the key methods."""
+    baked query mode and the oracle upper bounds of the key methods (plus the diffusion
+    prior's distilled fields when local weights are given)."""
+    extra = [] if diffusion_weights is None else [
+        Method("mlp-diffusion", "field", "paper", "MLP distilled from the diffusion prior (the paper's full method)", field="mlp",
+               prior="diffusion", prior_weights=str(diffusion_weights)),
+        Method("grid-diffusion", "field", "paper", "grid distilled from the diffusion prior", field="grid",
+               prior="diffusion", prior_weights=str(diffusion_weights)),
+    ]
     return [
         Method("global", "global", "baseline", "one env map: reprojection prior at the scene centre (DiffusionLight-style)"),
         Method("global-oracle", "global", "upper-bound", "one env map: the TRUE map at the scene centre (best single map)", prior="oracle"),
@@ -102,7 +110,7 @@ def core_methods() -> list[Method]:
         Method("trunk", "field", "paper", "trunk+head field distilled (engine's faster field)", field="trunk"),
         Method("mlp-oracle", "field", "upper-bound", "MLP distilled from the oracle prior (upper bound of distillation)", field="mlp", prior="oracle"),
         Method("grid-oracle", "field", "upper-bound", "grid distilled from the oracle prior", field="grid", prior="oracle"),
-    ]
+    ] + extra
 
 
 def sweep_methods(budget: Budget) -> list[Method]:
@@ -223,7 +231,10 @@ def distill_artefact(method: Method, suite: SuiteData, base: DistillConfig, out_
         from core.sim.oracle import OracleSimPrior
 
         prior = OracleSimPrior(suite.scene)
-    params = JobParams(preset="draft", prior="reprojection", field=cfg.field_kind, seed=0)
+    if method.prior == "diffusion":
+        params = JobParams(preset="draft", prior="diffusion", prior_weights=method.prior_weights, field=cfg.field_kind, seed=0)
+    else:
+        params = JobParams(preset="draft", prior="reprojection", field=cfg.field_kind, seed=0)
     with measured() as m:
         path = run_job(suite.capture_dir, None, params, out_dir, prior=prior, config=cfg)
     meta = json.loads((Path(path) / "lightfield.json").read_text())

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Iterable
 
@@ -138,7 +139,7 @@ def headline_rows(sim: dict) -> tuple[list[str], list[list]]:
         ok = {k for k, e in s["methods"].items() if not e.get("error")}
         names = ok if names is None else names & ok
     order = [k for k in next(iter(suites.values()))["methods"]] if suites else []
-    headers = ["method", "prior", "time to answer (s)", "query (ms)", "diffuse rel si-RMSE", "matte rel si-RMSE", "mirror rel si-RMSE",
+    headers = ["method", "prior", "CPU s to answer", "wall s to answer", "query CPU (ms)", "diffuse rel si-RMSE", "matte rel si-RMSE", "mirror rel si-RMSE",
                "diffuse ang (°)", "mirror ang (°)", "excess flicker", "switch lag (frames)", "switch captured"]
     rows = []
     for name in order:
@@ -362,3 +363,26 @@ def update_readme(readme: Path, results: dict, command: str) -> bool:
         return False
     readme.write_text(text[:a] + readme_section(results, command) + text[b + len(README_END):])
     return True
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Re-render results.md, the plots (and, with --readme, the README block) from a results.json.
+
+    The numbers are the JSON's: nothing is re-measured."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=main.__doc__.split("\n")[0])
+    parser.add_argument("results_json", type=Path)
+    parser.add_argument("--readme", type=Path, default=None, help="README whose generated block to refresh")
+    parser.add_argument("--command", default="lightfield bench --quick", help="the command that produced the JSON")
+    args = parser.parse_args(argv)
+    results = json.loads(args.results_json.read_text())
+    write_all(results, args.results_json.parent)
+    if args.readme is not None and not update_readme(args.readme, results, args.command):
+        print(f"{args.readme}: no generated block markers", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

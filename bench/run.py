@@ -52,15 +52,15 @@ QUICK = Mode(
     name="quick", resolution=(128, 96), gt_height=64, sphere_size=32, base_iterations=40,
     iterations=(20, 40, 80), widths=((32, 3), (96, 4), (256, 6)), work_heights=(48, 72, 96), probes=(1, 9, 16),
     sweep_suites=("spatial",), panorama_limit=3,
-    note=("QUICK MODE: tiny budgets (40 distillation steps for the reference MLP instead of the draft preset's 300), "
-          "suites rendered at 128x96, spheres rendered at 32 px, budget sweep and ablations on the spatial suite only, "
-          "3 panoramas per split. Numbers show trends and costs, not converged accuracy."),
+    note=("QUICK MODE: {it} distillation steps for the reference MLP (the draft preset uses 300), "
+          "suites rendered at 128x96, spheres rendered at 32 px, budget sweep and ablations on {sweep}, "
+          "3 panoramas per split. Small budgets show trends and costs, not converged accuracy."),
 )
 FULL = Mode(
     name="full", resolution=None, gt_height=64, sphere_size=64, base_iterations=300,
     iterations=(100, 300, 800), widths=((32, 3), (96, 4), (128, 6), (256, 6)), work_heights=(48, 72, 120), probes=(1, 4, 9, 16),
     sweep_suites=SUITE_NAMES, panorama_limit=None,
-    note="FULL MODE: the draft preset's 300 steps as reference, budget sweep and ablations on every suite.",
+    note="FULL MODE: {it} steps for the reference MLP (the draft preset has 300), budget sweep and ablations on {sweep}.",
 )
 
 
@@ -73,7 +73,9 @@ class BenchOptions:
     suites: tuple[str, ...] = SUITE_NAMES
     sections: tuple[str, ...] = SECTIONS
     keep_artefacts: bool = False
-    extra: dict = field(default_factory=dict)
+    iterations: int | None = None  # override the reference budget (the sweep scales with it)
+    sweep_suites: tuple[str, ...] | None = None  # override the mode's (empty: core methods only)
+    diffusion_weights: Path | None = None  # local diffusion prior weights: adds mlp/grid-diffusion
 
 
 def log(msg: str) -> None:
@@ -85,6 +87,20 @@ def default_cache_dir() -> Path:
 
     root = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(root) / "lightfield" / "bench"
+
+
+def resolve_mode(opts: BenchOptions) -> Mode:
+    """The quick or full mode with the user's overrides (recorded in the results' note)."""
+    from dataclasses import replace
+
+    mode = QUICK if opts.quick else FULL
+    if opts.iterations is not None:
+        n = int(opts.iterations)
+        mode = replace(mode, base_iterations=n, iterations=(max(1, n // 2), n, 2 * n))
+    if opts.sweep_suites is not None:
+        mode = replace(mode, sweep_suites=tuple(opts.sweep_suites))
+    sweep = ", ".join(mode.sweep_suites) if mode.sweep_suites else "no suite"
+    return replace(mode, note=mode.note.format(it=mode.base_iterations, sweep=sweep))
 
 
 def run_simulated(mode: Mode, opts: BenchOptions, workdir: Path) -> dict:
@@ -99,7 +115,7 @@ def run_simulated(mode: Mode, opts: BenchOptions, workdir: Path) -> dict:
     for name in opts.suites:
         log(f"suite {name}: preparing capture")
         suite = load_suite(name, cache, mode.resolution, mode.gt_height)
-        methods = core_methods() + (sweep_methods(budget) if name in mode.sweep_suites else [])
+        methods = core_methods(opts.diffusion_weights) + (sweep_methods(budget) if name in mode.sweep_suites else [])
         t0 = time.perf_counter()
         results = run_suite(suite, methods, budget, workdir, mode.sphere_size)
         out["suites"][name] = {"suite": suite.describe(), "wall_s": round(time.perf_counter() - t0, 1), "methods": results}
@@ -112,7 +128,7 @@ def run_bench(opts: BenchOptions) -> dict:
 
     import torch
 
-    mode = QUICK if opts.quick else FULL
+    mode = resolve_mode(opts)
     started = time.perf_counter()
     # One intra-op thread everywhere: distillation already runs single-threaded (the engine's
     # default), and on a shared or oversubscribed CPU extra threads make latencies erratic.
@@ -144,7 +160,8 @@ def run_bench(opts: BenchOptions) -> dict:
             shutil.rmtree(workdir, ignore_errors=True)
     results["total_wall_s"] = round(time.perf_counter() - started, 1)
     report.write_all(results, Path(opts.out_dir))
-    if Path(opts.out_dir).resolve() == DEFAULT_OUT_DIR.resolve() and opts.sections == SECTIONS and opts.suites == SUITE_NAMES:
+    complete = opts.sections == SECTIONS and opts.suites == SUITE_NAMES and opts.iterations is None and opts.sweep_suites is None
+    if Path(opts.out_dir).resolve() == DEFAULT_OUT_DIR.resolve() and complete:
         # only a complete run into the committed results directory refreshes the README
         command = "lightfield bench" + (" --quick" if opts.quick else "")
         report.update_readme(DEFAULT_OUT_DIR.parent / "README.md", results, command)

@@ -12,6 +12,9 @@ def add_arguments(p) -> None:
     p.add_argument("--suites", default=None, help="comma-separated subset of spatial,temporal,moving-camera,hard")
     p.add_argument("--sections", default=None, help="comma-separated subset of simulated,panoramas,scaling,stability")
     p.add_argument("--keep-artefacts", action="store_true", help="keep the distilled artefacts (printed path)")
+    p.add_argument("--iterations", type=int, default=None, help="override the reference distillation budget (steps); the iteration sweep uses half and double")
+    p.add_argument("--diffusion-weights", default=None, help="local diffusion prior model directory: also distil mlp/grid from it")
+    p.add_argument("--sweep-suites", default=None, help="suites that get the budget sweep and ablations ('none' for core methods only)")
 
 
 def _subset(value: str | None, allowed: tuple[str, ...], flag: str) -> tuple[str, ...]:
@@ -22,6 +25,12 @@ def _subset(value: str | None, allowed: tuple[str, ...], flag: str) -> tuple[str
     if bad or not items:
         raise SystemExit(f"lightfield bench: {flag} must be a comma-separated subset of {','.join(allowed)}; got {value!r}")
     return items
+
+
+def _positive(value: int | None, flag: str) -> int | None:
+    if value is not None and value < 1:
+        raise SystemExit(f"lightfield bench: {flag} must be >= 1, got {value}")
+    return value
 
 
 def run(args) -> int:
@@ -37,6 +46,9 @@ def run(args) -> int:
         suites=_subset(args.suites, SUITE_NAMES, "--suites"),
         sections=_subset(args.sections, SECTIONS, "--sections"),
         keep_artefacts=args.keep_artefacts,
+        iterations=_positive(args.iterations, "--iterations"),
+        diffusion_weights=Path(args.diffusion_weights) if args.diffusion_weights else None,
+        sweep_suites=None if args.sweep_suites is None else (() if args.sweep_suites.strip() == "none" else _subset(args.sweep_suites, SUITE_NAMES, "--sweep-suites")),
     )
     results = run_bench(opts)
     print(f"wrote {opts.out_dir / 'results.json'}, {opts.out_dir / 'results.md'} ({results['total_wall_s']} s)")

@@ -147,6 +147,16 @@ def test_markdown_shows_given_numbers_errors_and_only_common_methods_in_headline
     assert "ERROR: ValueError: boom" in md
 
 
+def test_every_table_row_has_one_cell_per_header():
+    from bench.report import SUITE_HEADERS, headline_rows, suite_rows
+
+    suites = {"a": {"suite": {"held_out_probes": [{}]}, "methods": {"m": _entry(1.0, 1.0, 1.0, 0.5),
+                                                                     "bad": _entry(0, 0, 0, 0, error="RuntimeError: x")}}}
+    headers, rows = headline_rows({"suites": suites})
+    assert rows and all(len(r) == len(headers) for r in rows)
+    assert all(len(r) == len(SUITE_HEADERS) for r in suite_rows(suites["a"]))
+
+
 def test_sanitize_makes_strict_json():
     doc = sanitize({"a": float("nan"), "b": (1, float("inf")), "c": torch.tensor([1.5])})
     assert json.loads(json.dumps(doc, allow_nan=False)) == {"a": None, "b": [1, None], "c": [1.5]}
