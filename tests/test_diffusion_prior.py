@@ -275,6 +275,18 @@ def test_missing_sub_model_or_card_is_named(tiny_dir, tmp_path, no_network):
         DiffusionPrior.from_pretrained(broken)
     with pytest.raises(PriorError, match="dtype"):
         DiffusionPrior.from_pretrained(tiny_dir, dtype="float8")
+    with pytest.raises(PriorError, match="float16 is not supported on CPU"):
+        DiffusionPrior.from_pretrained(tiny_dir, device="cpu", dtype="fp16")
+
+
+def test_pickled_weights_are_refused(tiny_dir, tmp_path, no_network):
+    import shutil
+
+    pickled = tmp_path / "pickled"
+    shutil.copytree(tiny_dir, pickled)
+    (pickled / "unet" / "diffusion_pytorch_model.safetensors").rename(pickled / "unet" / "diffusion_pytorch_model.bin")
+    with pytest.raises(PriorError, match="cannot load prior weights"):
+        DiffusionPrior.from_pretrained(pickled)
 
 
 def test_registry_builds_the_diffusion_prior(tiny_dir):

@@ -15,6 +15,7 @@ Weights must be safetensors: pickled .bin checkpoints are refused (they execute 
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from dataclasses import dataclass
@@ -143,14 +144,15 @@ def load_components(
 
     common = dict(local_files_only=True, use_safetensors=True, torch_dtype=dt)
     try:
-        unet = UNet2DConditionModel.from_pretrained(path, subfolder="unet", **common)
-        controlnet = ControlNetModel.from_pretrained(path, subfolder="controlnet", **common)
-        vae = AutoencoderKL.from_pretrained(path, subfolder="vae", **common)
-        text_encoder = _text_encoder_class(path).from_pretrained(
-            path / "text_encoder", local_files_only=True, use_safetensors=True, dtype=dt
-        )
-        tokenizer = CLIPTokenizer.from_pretrained(path / "tokenizer", local_files_only=True)
-        scheduler = DDIMScheduler.from_pretrained(path, subfolder="scheduler", local_files_only=True)
+        with quiet_loading():
+            unet = UNet2DConditionModel.from_pretrained(path, subfolder="unet", **common)
+            controlnet = ControlNetModel.from_pretrained(path, subfolder="controlnet", **common)
+            vae = AutoencoderKL.from_pretrained(path, subfolder="vae", **common)
+            text_encoder = _text_encoder_class(path).from_pretrained(
+                path / "text_encoder", local_files_only=True, use_safetensors=True, dtype=dt
+            )
+            tokenizer = CLIPTokenizer.from_pretrained(path / "tokenizer", local_files_only=True)
+            scheduler = DDIMScheduler.from_pretrained(path, subfolder="scheduler", local_files_only=True)
     except (OSError, ValueError, EnvironmentError) as exc:
         raise PriorError(f"cannot load prior weights from {str(path)!r}: {exc}") from exc
 
@@ -159,6 +161,24 @@ def load_components(
     for m in (unet, controlnet, vae, text_encoder):
         m.to(dev).eval().requires_grad_(False)
     return comps
+
+
+@contextlib.contextmanager
+def quiet_loading():
+    """Silence diffusers' / transformers' per-file loading bars (they clutter CLI and worker logs)."""
+    import diffusers.utils.logging as dlog
+    import transformers.utils.logging as tlog
+
+    saved = (dlog.is_progress_bar_enabled(), tlog.is_progress_bar_enabled())
+    dlog.disable_progress_bar()
+    tlog.disable_progress_bar()
+    try:
+        yield
+    finally:
+        if saved[0]:
+            dlog.enable_progress_bar()
+        if saved[1]:
+            tlog.enable_progress_bar()
 
 
 def _check_compatible(c: PriorComponents) -> None:

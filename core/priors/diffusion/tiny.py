@@ -152,9 +152,23 @@ def tiny_scheduler():
 
 def build_tiny_model(out_dir: str | Path, config: TinyConfig = TinyConfig()) -> Path:
     """Write a randomly initialised prior (all sub-models + model card) to `out_dir`."""
+    from core.priors.diffusion.loading import quiet_loading
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    torch.manual_seed(config.seed)
+    with torch.random.fork_rng(devices=[]), quiet_loading():  # seeded init without touching the caller's RNG
+        torch.manual_seed(config.seed)
+        _write_models(out, config)
+    ModelCard(
+        resolution=config.resolution,
+        multi_ball=config.multi_ball,
+        default_guidance_scale=3.0,
+        base="tiny random test model (core.priors.diffusion.tiny)",
+    ).save(out)
+    return out
+
+
+def _write_models(out: Path, config: TinyConfig) -> None:
     write_byte_level_tokenizer(out / "tokenizer")
     vocab_size = len(json.loads((out / "tokenizer" / "vocab.json").read_text(encoding="utf-8")))
     unet = tiny_unet(config)
@@ -163,10 +177,3 @@ def build_tiny_model(out_dir: str | Path, config: TinyConfig = TinyConfig()) -> 
     tiny_vae(config).save_pretrained(out / "vae", safe_serialization=True)
     tiny_text_encoder(config, vocab_size).save_pretrained(out / "text_encoder", safe_serialization=True)
     tiny_scheduler().save_pretrained(out / "scheduler")
-    ModelCard(
-        resolution=config.resolution,
-        multi_ball=config.multi_ball,
-        default_guidance_scale=3.0,
-        base="tiny random test model (core.priors.diffusion.tiny)",
-    ).save(out)
-    return out
