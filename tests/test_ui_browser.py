@@ -215,6 +215,8 @@ def test_progress_is_live_and_reaches_100_percent(finished_page, browser):
     assert any(0 < p < 100 for p in percents), f"no intermediate progress was shown: {seen}"
     assert percents == sorted(percents), f"progress went backwards: {seen}"
     assert browser.find_element("id", "job-state").get_attribute("data-state") == "succeeded"
+    urls = browser.execute_script("return performance.getEntriesByType('resource').map(e => e.name)")
+    assert any(u.endswith("/events") for u in urls), "progress did not come from the event stream"
     # the loss curve received points from the event stream (or the artefact's curve)
     assert browser.execute_script("return document.getElementById('loss-chart').width > 0")
     assert text(browser, "progress-loss") not in ("", "—")
@@ -323,3 +325,14 @@ def test_the_api_key_never_appears_in_a_url(finished_page, browser):
     assert browser.execute_script("return sessionStorage.getItem('lightfield.apiKey')") == KEY
     errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE" and "401" not in e["message"]]
     assert not errors, errors
+
+
+def test_a_bad_upload_shows_the_services_message(finished_page, browser, tmp_path):
+    bogus = tmp_path / "notes.txt"
+    bogus.write_text("not a picture")
+    browser.find_element("id", "file-input").send_keys(str(bogus))
+    browser.find_element("id", "upload-button").click()
+    wait_for(browser, "return !document.getElementById('upload-error').hidden", 30, "the upload error")
+    assert "not an image or a video" in text(browser, "upload-error")
+    assert not browser.find_element("id", "result").get_attribute("hidden"), "the open job was closed"
+    screenshot(browser, "7_bad_upload")

@@ -442,8 +442,7 @@
     const slider = $("time-slider");
     slider.max = String(capture.frames - 1);
     slider.value = "0";
-    slider.disabled = capture.frames < 2;
-    $("play-button").disabled = capture.frames < 2;
+    $("time-row").hidden = capture.frames < 2; // a single image has no time to scrub
     $("time-label").textContent = fmt.time(capture.times[0]);
     $("capture-info").textContent = [
       `${capture.width}×${capture.height} preview`,
