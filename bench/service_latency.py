@@ -94,7 +94,8 @@ def main(argv=None) -> int:
     data_dir = root / "data"
     redis = start_redis(root / "redis")
     api = None
-    results: dict = {"threads": args.threads, "reps": args.reps, "cpu_count": os.cpu_count(), "rows": []}
+    results: dict = {"threads": args.threads, "reps": args.reps, "cpu_count": os.cpu_count(),
+                     "load_average_at_start": [round(v, 2) for v in os.getloadavg()], "rows": []}
     try:
         store = JobStore(connect(redis.url))
         port = free_port()

@@ -23,8 +23,9 @@ class ServiceLimits(BaseModel):
 
     model_config = ConfigDict(frozen=True)
 
-    max_upload_bytes: int = Field(512 * 1024**2, gt=0, description="input file size")
-    max_depth_bytes: int = Field(512 * 1024**2, gt=0, description="depth file size")
+    # 200 MiB = core.io's MediaLimits.max_bytes default: a larger upload could not be decoded
+    max_upload_bytes: int = Field(200 * 1024**2, gt=0, description="input file size")
+    max_depth_bytes: int = Field(200 * 1024**2, gt=0, description="depth file size")
     max_params_bytes: int = Field(1024**2, gt=0, description="params JSON size")
     max_envmap_height: int = Field(1024, gt=0, description="env map height (width = 2 x height)")
     max_cubemap_size: int = Field(1024, gt=0, description="cube map face edge")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import io
 import json
 import signal
 import time
@@ -93,7 +94,7 @@ def test_envmap_formats_agree_with_each_other(stack, image_job):
         npy_resp = get_map(c, image_job, "npy", x=x, height=16)
         assert npy_resp.headers["x-lightfield-conventions"] == CONVENTIONS_SUMMARY
         assert npy_resp.headers["x-lightfield-extrapolated"] == "none"
-        ref = np.load(__import__("io").BytesIO(npy_resp.content), allow_pickle=False)
+        ref = np.load(io.BytesIO(npy_resp.content), allow_pickle=False)
         assert ref.shape == (16, 32, 3) and ref.dtype == np.float32 and np.isfinite(ref).all() and (ref >= 0).all()
         exr = read_exr(get_map(c, image_job, "exr", x=x, height=16).content)
         np.testing.assert_allclose(exr[..., :3], ref, rtol=1e-6, atol=0)
@@ -118,9 +119,9 @@ def test_envmap_flags_extrapolation_and_batch_matches_single_queries(stack, imag
         items = batch.json()["items"]
         assert [i["extrapolated"]["x"] for i in items[:2]] == [False, True]
         for q, item in zip(queries, items):
-            single = np.load(__import__("io").BytesIO(
+            single = np.load(io.BytesIO(
                 get_map(c, image_job, "npy", x=",".join(map(str, q["x"])), height=8).content))
-            batched = np.load(__import__("io").BytesIO(base64.b64decode(item["data_base64"])))
+            batched = np.load(io.BytesIO(base64.b64decode(item["data_base64"])))
             np.testing.assert_allclose(batched, single, rtol=1e-5, atol=1e-7)
         too_many = c.post(f"/lightfield/{image_job}/envmaps", json={"queries": queries * 100, "height": 8})
         assert too_many.status_code == 413 and too_many.json()["error"]["code"] == "batch_too_large"
@@ -134,8 +135,8 @@ def test_fast_quality_uses_the_worker_baked_lattice_and_stays_close_to_exact(sta
         assert fast.headers["x-lightfield-quality"] == "fast"
         exact = get_map(c, image_job, "npy", x=x, height=16, quality="exact")
         assert exact.headers["x-lightfield-quality"] == "exact"
-        a = np.load(__import__("io").BytesIO(fast.content))
-        b = np.load(__import__("io").BytesIO(exact.content))
+        a = np.load(io.BytesIO(fast.content))
+        b = np.load(io.BytesIO(exact.content))
         assert a.shape == b.shape and np.isfinite(a).all()
         # the lattice blends neighbouring nodes: close in energy, not bit-identical
         assert abs(a.mean() - b.mean()) <= 0.25 * b.mean()
@@ -159,7 +160,7 @@ def test_sh_and_cubemap_outputs(stack, image_job):
         faces = cube.json()["faces"]
         assert [f["name"] for f in faces] == ["+X", "-X", "+Y", "-Y", "+Z", "-Z"]
         decoded = np.stack([read_exr(base64.b64decode(f["data_base64"]))[..., :3] for f in faces])
-        npy = np.load(__import__("io").BytesIO(
+        npy = np.load(io.BytesIO(
             c.get(f"/lightfield/{image_job}/cubemap", params={"x": "0,0,-1", "size": 8, "format": "npy"}).content))
         assert npy.shape == (6, 8, 8, 3)
         np.testing.assert_allclose(decoded, npy, rtol=1e-6)
@@ -176,7 +177,7 @@ def test_video_job_answers_in_time(stack, tiny_video):
         meta = c.get(f"/lightfield/{job}").json()["metadata"]
         assert meta["time"]["uses_time"] is True
         x = inside_point(c, job)
-        maps = [np.load(__import__("io").BytesIO(get_map(c, job, "npy", x=x, t=t, height=8).content))
+        maps = [np.load(io.BytesIO(get_map(c, job, "npy", x=x, t=t, height=8).content))
                 for t in (0.0, 5 / 6)]
         assert all(m.shape == (8, 16, 3) and np.isfinite(m).all() for m in maps)
         late = get_map(c, job, "npy", x=x, t=100, height=8)
