@@ -69,6 +69,9 @@ def error_code_of(exc: BaseException) -> str:
     code = getattr(exc, "code", None)
     if isinstance(code, str) and code:
         return code
+    field = getattr(exc, "field", None)  # CaptureError names its input, as the API's codes do
+    if isinstance(field, str) and field.isidentifier():
+        return f"invalid_{field}"
     return {"CaptureError": "invalid_capture", "CameraError": "invalid_camera",
             "PriorError": "prior_unavailable"}.get(type(exc).__name__, "invalid_input")
 
@@ -111,7 +114,7 @@ class JobRunner:
         cancelled_type = _cancelled_type()
         user_errors = _user_error_types()
         try:
-            artefact = self._call_engine(record, paths, lease)
+            artefact = self._finished_artefact(paths) or self._call_engine(record, paths, lease)
             relative = self._relative_artefact(artefact, paths)
         except cancelled_type:
             if lease.lost.is_set():
@@ -163,6 +166,14 @@ class JobRunner:
             kwargs["prior"] = self.prior_provider(params.prior, params.prior_weights)
         depth = paths.upload_dir / record.depth_file if record.depth_file else None
         return Path(run_job(paths.upload_dir / record.input_file, depth, params, paths.artefact_dir, **kwargs))
+
+    @staticmethod
+    def _finished_artefact(paths: JobPaths) -> Path | None:
+        """An artefact a previous run saved before dying (the engine renames a complete
+        directory into place, so its metadata file means it is whole): finish, don't redo."""
+        from core.engine.artefact import META_FILE
+
+        return paths.artefact_dir if (paths.artefact_dir / META_FILE).is_file() else None
 
     def _prebake(self, job_id: str, artefact: Path) -> None:
         """Precompute the quality=fast lattice now, so no API request pays for it. Optional:

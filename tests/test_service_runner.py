@@ -1,0 +1,153 @@
+"""worker.runner.JobRunner's decisions against a real Redis, with scripted engines standing in
+for core.engine (selected through LIGHTFIELD_ENGINE): skip, re-queue, resume-free finish,
+failure codes, cancel and a lost lease."""
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from service.auth import tenant_hash
+from service.config import ServiceSettings
+from service.storage import JobPaths, new_job_id
+from service.store import JobRecord, JobStore, connect
+from worker.runner import JobRunner, Outcome
+
+CALLS: list[str] = []
+
+
+def engine_ok(input_path, depth_path, params, out_dir, progress=None, should_cancel=None, checkpoint_dir=None, **kw):
+    CALLS.append("ok")
+    out_dir.mkdir(parents=True)
+    (out_dir / "lightfield.json").write_text("{}")
+    return out_dir
+
+
+def engine_bad_depth(*a, **kw):
+    from core.engine.capture import CaptureError
+
+    raise CaptureError("depth", "no valid pixels")
+
+
+def engine_crash(*a, **kw):
+    raise RuntimeError("/secret/path/model.bin exploded")
+
+
+def engine_until_cancelled(input_path, depth_path, params, out_dir, should_cancel=None, **kw):
+    from core.engine.progress import Cancelled
+
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        if should_cancel():
+            raise Cancelled("job cancelled")
+        time.sleep(0.02)
+    raise AssertionError("never cancelled")
+
+
+@pytest.fixture(scope="module")
+def redis_url(tmp_path_factory):
+    from service.processes import start_redis
+
+    proc = start_redis(tmp_path_factory.mktemp("redis"))
+    try:
+        yield proc.url
+    finally:
+        proc.stop()
+
+
+@pytest.fixture
+def runner(redis_url, tmp_path, monkeypatch):
+    settings = ServiceSettings(data_dir=tmp_path, broker_url=redis_url, lease_ttl_s=2.0)
+    CALLS.clear()
+
+    def make(engine: str) -> JobRunner:
+        monkeypatch.setenv("LIGHTFIELD_ENGINE", f"test_service_runner:{engine}")
+        return JobRunner(JobStore(connect(redis_url)), settings)
+
+    return make
+
+
+def _job(r: JobRunner) -> tuple[str, JobPaths]:
+    rec = JobRecord(id=new_job_id(), tenant="t", tenant_hash=tenant_hash("t"), input_kind="image",
+                    input_file="input.png")
+    r.store.create(rec, max_in_flight=100)
+    paths = JobPaths.for_job(r.settings.data_dir, rec.tenant_hash, rec.id)
+    paths.upload_dir.mkdir(parents=True)
+    (paths.upload_dir / "input.png").write_bytes(b"\x89PNG")
+    return rec.id, paths
+
+
+def test_success_records_a_relative_artefact_and_removes_uploads(runner):
+    r = runner("engine_ok")
+    job, paths = _job(r)
+    assert r.run(job) is Outcome.SUCCEEDED
+    rec = r.store.get(job)
+    assert (rec.state, rec.attempts, rec.progress) == ("succeeded", 1, 1.0)
+    assert r.settings.data_dir / rec.artefact == paths.artefact_dir
+    assert not paths.upload_dir.exists()
+    assert r.run(job) is Outcome.SKIPPED and CALLS == ["ok"]  # a late duplicate does nothing
+
+
+def test_a_saved_artefact_is_not_recomputed_on_redelivery(runner):
+    r = runner("engine_crash")  # would fail if called
+    job, paths = _job(r)
+    paths.artefact_dir.mkdir(parents=True)
+    (paths.artefact_dir / "lightfield.json").write_text("{}")
+    assert r.run(job) is Outcome.SUCCEEDED
+
+
+def test_a_held_lease_requeues_instead_of_running(runner):
+    r = runner("engine_ok")
+    job, _ = _job(r)
+    assert r.store.acquire_lease(job, "someone-else", ttl_s=5)
+    assert r.run(job) is Outcome.REQUEUE
+    assert r.store.get(job).state == "queued" and CALLS == []
+
+
+def test_cancel_before_start_skips_the_engine(runner):
+    r = runner("engine_ok")
+    job, _ = _job(r)
+    r.store.request_cancel(job)
+    assert r.run(job) is Outcome.SKIPPED
+    assert r.store.get(job).state == "cancelled" and CALLS == []
+
+
+def test_input_errors_fail_with_the_field_named(runner):
+    r = runner("engine_bad_depth")
+    job, paths = _job(r)
+    assert r.run(job) is Outcome.FAILED
+    rec = r.store.get(job)
+    assert (rec.state, rec.error_code) == ("failed", "invalid_depth") and "no valid pixels" in rec.error_message
+    assert not paths.upload_dir.exists()
+
+
+def test_engine_crashes_fail_without_leaking_internals(runner):
+    r = runner("engine_crash")
+    job, _ = _job(r)
+    assert r.run(job) is Outcome.FAILED
+    rec = r.store.get(job)
+    assert rec.error_code == "engine_error" and "/secret" not in rec.error_message
+
+
+def test_cancel_while_running_stops_at_the_next_check(runner):
+    r = runner("engine_until_cancelled")
+    job, paths = _job(r)
+    threading.Timer(0.3, r.store.request_cancel, args=[job]).start()
+    t0 = time.monotonic()
+    assert r.run(job) is Outcome.CANCELLED
+    assert time.monotonic() - t0 < 2.0
+    assert r.store.get(job).state == "cancelled" and not paths.job_dir.exists()
+    assert not r.store.lease_held(job)  # released on the way out
+
+
+def test_a_lost_lease_abandons_the_run_without_touching_the_record(runner):
+    r = runner("engine_until_cancelled")
+    job, _ = _job(r)
+    # another party takes over the lease (as if ours had expired): the heartbeat notices
+    threading.Timer(0.3, lambda: (r.store.client.delete(f"lf:job:{job}:lease"),
+                                  r.store.acquire_lease(job, "new-owner", 5))).start()
+    assert r.run(job) is Outcome.ABANDONED
+    rec = r.store.get(job)
+    assert rec.state == "running"  # the new owner decides the outcome
+    assert r.store.client.get(f"lf:job:{job}:lease") == "new-owner"
