@@ -91,3 +91,12 @@ def paste_outside(generated: torch.Tensor, image: torch.Tensor, coverage: torch.
     """Blend the generated balls in by their coverage; where coverage is 0 the input is copied exactly."""
     blended = coverage * generated + (1.0 - coverage) * image
     return torch.where(coverage > 0, blended, image)
+
+
+def combine_per_ball(generated: torch.Tensor, per_ball: torch.Tensor) -> torch.Tensor:
+    """[B, 3, H, W] generations -> one image: B = 1 is taken as is; else each ball's pixels from its own pass."""
+    if generated.shape[0] == 1:
+        return generated[0]
+    w = per_ball.to(generated).clamp(0.0, 1.0)[:, None]  # [B, 1, H, W]
+    total = w.sum(0)
+    return (w * generated).sum(0) / total.clamp(min=1e-6)

@@ -13,9 +13,11 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from core.priors.base import PriorError, PriorRequest
+from core.conventions import DEFAULT_BRACKET_EVS
+from core.priors.base import PriorError, PriorRequest, ProbeGeometry
 from core.priors.diffusion.conditioning import (
     binary_mask_at,
+    combine_per_ball,
     depth_to_control,
     latent_mask,
     model_size,
@@ -77,13 +79,26 @@ class DiffusionPrior:
             image_latents, cond, float(request.tau), int(request.steps), float(request.guidance_scale), request.generator
         )
         generated = resize(to_unit(self.denoiser.decode(latents)), tuple(image.shape[-2:])).to(image.device)
-        return paste_outside(_combine(generated, per_ball), image, coverage)
+        return paste_outside(combine_per_ball(generated, per_ball), image, coverage)
 
-    def sample_balls(self, *args, **kwargs) -> "BallSamples":
-        """Direct sampling from pure noise at several exposures; see sampling.sample_balls."""
+    def sample_balls(
+        self,
+        image: torch.Tensor,
+        masks: torch.Tensor,
+        depth: torch.Tensor,
+        probes: ProbeGeometry,
+        evs: tuple[float, ...] = DEFAULT_BRACKET_EVS,
+        seed: int = 0,
+        median_over: int = 1,
+        steps: int = 30,
+        guidance_scale: float | None = None,
+        env_height: int = 64,
+    ) -> "BallSamples":
+        """Direct sampling: inpaint from pure noise at each EV, unwrap, merge to HDR (see sampling.py)."""
         from core.priors.diffusion.sampling import sample_balls
 
-        return sample_balls(self, *args, **kwargs)
+        return sample_balls(self, image, masks, depth, probes, evs=evs, seed=seed, median_over=median_over,
+                            steps=steps, guidance_scale=guidance_scale, env_height=env_height)
 
     # -- helpers ----------------------------------------------------------------------------
     def model_size(self, height: int, width: int) -> tuple[int, int]:
@@ -128,15 +143,6 @@ def _validated(request: PriorRequest) -> tuple[torch.Tensor, torch.Tensor, torch
     if not request.guidance_scale >= 0.0:
         raise PriorError(f"request.guidance_scale must be >= 0, got {request.guidance_scale}")
     return image.float(), masks.float(), depth
-
-
-def _combine(generated: torch.Tensor, per_ball: torch.Tensor) -> torch.Tensor:
-    """[B, 3, H, W] generations -> one image: B = 1 is taken as is; else each ball's pixels from its own pass."""
-    if generated.shape[0] == 1:
-        return generated[0]
-    w = per_ball.to(generated).clamp(0.0, 1.0)[:, None]  # [B, 1, H, W]
-    total = w.sum(0)
-    return (w * generated).sum(0) / total.clamp(min=1e-6)
 
 
 def build_diffusion_prior(

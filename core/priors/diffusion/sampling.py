@@ -19,7 +19,14 @@ import torch
 
 from core.conventions import DEFAULT_BRACKET_EVS
 from core.priors.base import PriorError, ProbeGeometry
-from core.priors.diffusion.conditioning import binary_mask_at, depth_to_control, paste_outside, resize, union_coverage
+from core.priors.diffusion.conditioning import (
+    binary_mask_at,
+    combine_per_ball,
+    depth_to_control,
+    paste_outside,
+    resize,
+    union_coverage,
+)
 
 if TYPE_CHECKING:
     from core.priors.diffusion.prior import DiffusionPrior
@@ -108,7 +115,7 @@ def sample_balls(
                 generator=torch.Generator(device="cpu").manual_seed(seed + j),
                 output_type="pt",
             ).images.float()
-            runs.append(_combine_balls(resize(out.cpu(), (h, w)), per_ball))
+            runs.append(combine_per_ball(resize(out.cpu(), (h, w)), per_ball))
         ldr = torch.stack(runs).median(dim=0).values if median_over > 1 else runs[0]
         images[float(ev)] = paste_outside(ldr.clamp(0.0, 1.0), image.float(), coverage)
     seconds = time.perf_counter() - start
@@ -121,12 +128,6 @@ def sample_balls(
         inpaintings=len(evs) * median_over,
         settings={"evs": list(map(float, evs)), "seed": seed, "median_over": median_over, "steps": steps, "guidance_scale": guidance},
     )
-
-
-def _combine_balls(generated: torch.Tensor, per_ball: torch.Tensor) -> torch.Tensor:
-    from core.priors.diffusion.prior import _combine
-
-    return _combine(generated, per_ball)
 
 
 def _unwrap_and_merge(images: dict[float, torch.Tensor], probes: ProbeGeometry, env_height: int):
