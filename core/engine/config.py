@@ -77,11 +77,11 @@ class DistillConfig(BaseModel):
 
 PRESETS: dict[str, DistillConfig] = {
     # CPU: ~1 min for a 20-frame 192x144 clip on 2 cores (bench/presets.py)
-    "draft": DistillConfig(name="draft", iterations=300, n_probes=9, work_height=72, lr=5e-3,
+    "draft": DistillConfig(name="draft", iterations=400, n_probes=9, work_height=72, lr=5e-3,
                            warmup_steps=15, field_kind="mlp", field_width=96, field_layers=4, checkpoint_every=50,
                            prior_env_height=24, output_env_height=32),
     # CPU: a 100-frame 320x240 clip in a few minutes
-    "standard": DistillConfig(name="standard", iterations=600, n_probes=9, work_height=120, lr=5e-3,
+    "standard": DistillConfig(name="standard", iterations=1000, n_probes=9, work_height=120, lr=5e-3,
                               warmup_steps=30, field_kind="mlp", field_width=128, field_layers=4, checkpoint_every=100,
                               prior_env_height=32, output_env_height=64),
     # The paper's settings (GPU): full resolution ball crops, MLP 6 x 256
