@@ -227,25 +227,26 @@
     }
   }
 
-  function showJob(view) {
+  function showJob(record) {
     $("progress-card").hidden = false;
     const state = $("job-state");
-    state.textContent = view.state;
-    state.dataset.state = view.state;
-    const pct = Math.round(100 * (view.state === "succeeded" ? 1 : view.progress || 0));
+    state.textContent = record.state;
+    state.dataset.state = record.state;
+    // floor: "100 %" only once the job has really succeeded
+    const pct = record.state === "succeeded" ? 100 : Math.min(99, Math.floor(100 * (record.progress || 0)));
     $("progress-fill").style.width = `${pct}%`;
     $("progress-bar").setAttribute("aria-valuenow", String(pct));
     $("progress-percent").textContent = `${pct} %`;
-    $("progress-stage").textContent = view.stage || view.state;
-    $("progress-iteration").textContent = view.total ? `${view.iteration} / ${view.total}` : "—";
-    $("progress-loss").textContent = fmt.loss(view.loss);
-    $("progress-eta").textContent = TERMINAL.has(view.state) ? "—" : fmt.seconds(view.eta_s);
-    $("job-message").textContent = TERMINAL.has(view.state) ? "" : view.message || "";
+    $("progress-stage").textContent = record.stage || record.state;
+    $("progress-iteration").textContent = record.total ? `${record.iteration} / ${record.total}` : "—";
+    $("progress-loss").textContent = fmt.loss(record.loss);
+    $("progress-eta").textContent = TERMINAL.has(record.state) ? "—" : fmt.seconds(record.eta_s);
+    $("job-message").textContent = TERMINAL.has(record.state) ? "" : record.message || "";
     const error = $("job-error");
-    error.hidden = !view.error;
-    error.textContent = view.error ? `${view.error.message} (${view.error.code})` : "";
-    $("cancel-button").hidden = TERMINAL.has(view.state);
-    if (view.stage === "distill" && view.iteration > 0) lossChart.add(view.iteration, view.loss);
+    error.hidden = !record.error;
+    error.textContent = record.error ? `${record.error.message} (${record.error.code})` : "";
+    $("cancel-button").hidden = TERMINAL.has(record.state);
+    if (record.stage === "distill" && record.iteration > 0) lossChart.add(record.iteration, record.loss);
   }
 
   async function watchJob(id) {
@@ -326,11 +327,11 @@
     button.disabled = true;
     button.textContent = "Uploading…";
     try {
-      const view = await apiJson("/jobs", { method: "POST", body: form });
+      const created = await apiJson("/jobs", { method: "POST", body: form });
       closeResult();
       showPending(file);
       refreshJobs();
-      watchJob(view.id).catch(reportError);
+      watchJob(created.id).catch(reportError);
     } catch (e) {
       error.textContent = e instanceof ApiError ? e.message : `Upload failed: ${e.message}`;
       error.hidden = false;
@@ -365,7 +366,7 @@
       b.querySelector(".job-state").textContent = j.state;
       b.querySelector(".job-state").dataset.state = j.state;
       b.querySelector(".job-when").textContent = `${fmt.when(j.created_at)} · ${j.params.preset || ""}`;
-      b.addEventListener("click", () => openJob(j.id));
+      b.addEventListener("click", () => openJob(j.id).catch(reportError));
       li.append(b);
       ul.append(li);
     }
