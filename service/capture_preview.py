@@ -5,7 +5,8 @@ time t to click on, and the depth at the clicked pixel to place a probe just in 
 the surface. So, before the uploads go, the worker stores a preview beside the artefact:
 
     <job_dir>/preview/capture.safetensors   frames uint8 [T,h,w,3], depth float16 [T,h,w]
-                                            (NaN where invalid), poses float64 [T,4,4],
+                                            (NaN where invalid; beyond 65504 m it reads as
+                                            inf, i.e. invalid), poses float64 [T,4,4],
                                             times float32 [T] (seconds from the first frame)
     <job_dir>/preview/capture.json          format, version, intrinsics at the preview
                                             size, fps, depth source, source frame count
@@ -94,19 +95,24 @@ def _evenly_spaced(count: int, keep: int) -> np.ndarray:
 
 
 def preview_from_capture(capture, max_height: int = PREVIEW_MAX_HEIGHT, max_frames: int = PREVIEW_MAX_FRAMES) -> CapturePreview:
-    """Downsample a core.engine.capture.Capture (area-averaged frames, nearest-surface depth)."""
+    """Downsample a core.engine.capture.Capture: pick frames first (cheap), then the engine's own
+    resize (area-averaged frames, nearest-surface depth)."""
+    import dataclasses
+
     import torch
 
-    small = capture.resized(max_height)
-    keep = _evenly_spaced(small.num_frames, max_frames)
-    frames = (small.frames[keep].clamp(0, 1) * 255.0).round().to(torch.uint8).numpy()
-    depth = small.depth[keep].numpy().astype(np.float32)
+    keep = torch.from_numpy(_evenly_spaced(capture.num_frames, max_frames))
+    picked = dataclasses.replace(capture, frames=capture.frames[keep], depth=capture.depth[keep],
+                                 poses=capture.poses[keep], times=capture.times[keep])
+    small = picked.resized(max_height)
+    frames = (small.frames.clamp(0, 1) * 255.0).round().to(torch.uint8).numpy()
+    depth = small.depth.numpy().astype(np.float32)
     depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan).astype(np.float32)
     return CapturePreview(
         frames=np.ascontiguousarray(frames),
         depth=depth,
-        poses=small.poses[keep].numpy().astype(np.float64),
-        times=small.times[keep].numpy().astype(np.float32),
+        poses=small.poses.numpy().astype(np.float64),
+        times=small.times.numpy().astype(np.float32),
         intrinsics=small.intrinsics.as_dict(),
         fps=float(small.fps),
         depth_source=str(small.depth_source),
