@@ -138,7 +138,8 @@ def test_unknown_input_and_missing_file(tmp_path):
 def test_video_times_and_max_frames(tmp_path):
     frames = np.stack([np.full((16, 16, 3), i / 10, np.float32) for i in range(6)])
     path = write_video(tmp_path / "v.mp4", frames, fps=5)
-    cap = load_capture(path, params=CaptureParams(max_frames=3))
+    with pytest.warns(UserWarning, match="assum"):
+        cap = load_capture(path, params=CaptureParams(max_frames=3))
     assert cap.num_frames == 3 and cap.fps == pytest.approx(5)
     # evenly subsampled frames keep their source times
     assert cap.times[0] == 0.0 and cap.times[-1] > cap.times[1] > 0
