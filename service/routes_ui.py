@@ -28,6 +28,10 @@ _ERRORS = {s: {"model": ErrorBody} for s in (401, 404, 409, 413, 422)}
 CONVENTIONS_HEADER = "X-Lightfield-Conventions"
 MAX_INSERTED_PROBES = 16
 MAX_INSERTION_ENV_HEIGHT = 128
+# Balls are rendered into a frame of at most this many rows: the perspective-exact ball
+# rendering costs ~2 s for 4 probes at 360 rows on 2 CPU cores, and the browser scales the
+# picture to the card anyway (see bench/ui_latency.py).
+INSERTION_MAX_HEIGHT = 240
 T_HELP = "seconds from the first frame; the stored frame nearest in time is used"
 
 
@@ -143,6 +147,22 @@ def get_probe(job_id: str, u: float = Query(..., description="fraction of the fr
                      radius=p.radius, extrapolated=_flags(cf, p.x, _field_time(cf, preview, p.frame_index)))
 
 
+def _insertion_frame(preview: StoredPreview, index: int):
+    """Frame [h,w,3] float in [0,1], depth [h,w] and camera of stored frame `index`, at most
+    INSERTION_MAX_HEIGHT rows (the engine's own resize: area-averaged colour, nearest depth)."""
+    import torch
+
+    from core.engine.capture import Capture
+
+    capture = Capture(frames=torch.from_numpy(preview.frame(index).astype(np.float32) / 255.0)[None],
+                      depth=torch.from_numpy(preview.depth_map(index))[None],
+                      intrinsics=preview.camera(index).intrinsics,
+                      poses=torch.from_numpy(preview.poses[index : index + 1]),
+                      times=torch.from_numpy(preview.times[index : index + 1]), fps=preview.fps,
+                      depth_source=preview.depth_source).resized(INSERTION_MAX_HEIGHT)
+    return capture.frames[0], capture.depth[0], capture.camera(0)
+
+
 def _render_insertion(preview: StoredPreview, cf: CachedField, index: int, points_text: str, env_height: int) -> bytes:
     import torch
 
@@ -163,10 +183,9 @@ def _render_insertion(preview: StoredPreview, cf: CachedField, index: int, point
         with cf.lock:
             return cf.artefact.envmaps(xs, ts, env_height)[0]
 
-    frame = torch.from_numpy(preview.frame(index).astype(np.float32) / 255.0)
+    frame, depth, camera = _insertion_frame(preview, index)
     try:
-        out = insert_objects(frame, torch.from_numpy(preview.depth_map(index)), preview.camera(index), envmaps_at, t,
-                             points, env_height)
+        out = insert_objects(frame, depth, camera, envmaps_at, t, points, env_height)
     except (InsertionError, BallPlacementError) as exc:
         raise InvalidInput(f"points: {exc}", code="invalid_points") from None
     return encode_png(out.numpy())

@@ -151,6 +151,19 @@ def test_a_field_without_time_is_queried_without_t(app_env):
     assert np.abs(out.astype(int) - frame.astype(int)).max() > 20
 
 
+def test_insertion_of_a_large_frame_is_rendered_at_the_capped_height(app_env, job, monkeypatch):
+    import service.routes_ui as routes_ui
+
+    client, _ = app_env
+    monkeypatch.setattr(routes_ui, "INSERTION_MAX_HEIGHT", H // 2)
+    out = png(get(client, f"/lightfield/{job}/insertion", t=0.0, points="0.5,0.5,2.5"))
+    assert out.shape == (H // 2, W // 2, 3)
+    frame = png(get(client, f"/lightfield/{job}/frame", t=0.0)).astype(float)
+    half = frame.reshape(H // 2, 2, W // 2, 2, 3).mean(axis=(1, 3))  # area average, as the engine resizes
+    assert np.abs(out[:3].astype(float) - half[:3]).max() <= 1.5  # untouched rows keep the picture
+    assert np.abs(out.astype(float) - half).max(-1)[H // 4, W // 4] > 20  # the ball at the probe
+
+
 @pytest.mark.parametrize("path, params, status, code", [
     ("probe", {"u": 1.5, "v": 0.5}, 422, "invalid_probe"),
     ("probe", {"u": 0.5, "v": 0.5, "depth": -1}, 422, "invalid_probe"),
