@@ -74,7 +74,7 @@ class DiffusionPrior:
         if request.steps == 0 or request.tau <= 0.0 or not bool((coverage > 0).any()):
             return image.clone()
         per_ball = masks if not self.components.card.multi_ball else coverage[None]
-        cond, image_latents, size = self._condition(image, per_ball, depth, request.ev)
+        cond, image_latents = self.condition(image, per_ball, depth, request.ev)
         latents = self.denoiser.refine(
             image_latents, cond, float(request.tau), int(request.steps), float(request.guidance_scale), request.generator
         )
@@ -105,10 +105,10 @@ class DiffusionPrior:
         c = self.components
         return model_size(height, width, c.card.resolution, c.size_multiple)
 
-    def _condition(
+    def condition(
         self, image: torch.Tensor, per_ball: torch.Tensor, depth: torch.Tensor, ev: float
-    ) -> tuple[InpaintCondition, torch.Tensor, tuple[int, int]]:
-        """Model-space inputs for a batch of B = per_ball.shape[0] inpaintings of `image`."""
+    ) -> tuple[InpaintCondition, torch.Tensor]:
+        """Model-space conditioning and clean image latents for B = per_ball.shape[0] inpaintings of `image`."""
         c = self.components
         b = per_ball.shape[0]
         size = self.model_size(*image.shape[-2:])
@@ -124,7 +124,7 @@ class DiffusionPrior:
             embedding=self.conditioner(ev).repeat(b),
             null_embedding=self.conditioner.null_embedding(b),
         )
-        return cond, latents[:1].expand(b, -1, -1, -1), size
+        return cond, latents[:1].expand(b, -1, -1, -1)
 
 
 def _validated(request: PriorRequest) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
