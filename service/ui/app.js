@@ -469,12 +469,19 @@
       ? `/lightfield/${view.id}/insertion?${query({ t, points: framePoints() })}`
       : `/lightfield/${view.id}/frame?${query({ t })}`;
     const key = `${view.frameIndex}|${withBalls ? framePoints() : "plain"}`;
+    const img = $("frame-img");
+    $("frame-label").textContent = `${view.frameIndex + 1} / ${view.capture.frames}`;
     $("viewer-busy").hidden = false;
     try {
+      if (withBalls && !(img.dataset.key || "").startsWith(`${view.frameIndex}|`)) {
+        // a new frame: show it at once, the balls follow when rendered (they take a moment)
+        const plain = await frameSlot(async () => (await api(`/lightfield/${view.id}/frame?${query({ t })}`)).blob());
+        await showBlob(img, plain, `${view.frameIndex}|plain`);
+        fitFrame();
+      }
       const blob = await frameSlot(async () => (await api(path)).blob());
-      await showBlob($("frame-img"), blob, key);
+      await showBlob(img, blob, key);
       fitFrame();
-      $("frame-label").textContent = `${view.frameIndex + 1} / ${view.capture.frames}`;
       $("viewer-busy").hidden = true;
     } catch (error) {
       if (error !== STALE) $("viewer-busy").hidden = true;
