@@ -71,6 +71,24 @@ def _finalise_upload(path: Path, suffix: str, stem: str) -> str:
     return name
 
 
+async def _accept_upload(request: Request, ctx: AppContext, tenant: Tenant, job_id: str, paths: JobPaths) -> JobRecord:
+    """Stream the form to the job's upload dir, validate it as the worker will load it, and
+    return the record to create. Raises a 4xx ApiError for any bad part."""
+    form = await FormReader(paths.upload_dir, ctx.settings.limits).read(
+        request.headers.get("content-type"), request.headers.get("content-length"), request.stream())
+    params = parse_params(form.texts.get("params"), ctx)
+    kind, suffix = classify_input(form.files["file"])
+    input_name = _finalise_upload(form.files["file"], suffix, "input")
+    depth_name = ""
+    if "depth" in form.files:
+        depth_name = _finalise_upload(form.files["depth"], classify_depth(form.files["depth"]), "depth")
+    async with ctx.validation_slots:
+        await run_in_threadpool(check_capture, paths.upload_dir / input_name,
+                                paths.upload_dir / depth_name if depth_name else None, params)
+    return JobRecord(id=job_id, tenant=tenant.name, tenant_hash=tenant.hash, input_kind=kind,
+                     input_file=input_name, depth_file=depth_name, params=params.model_dump_json())
+
+
 @router.post("/jobs", status_code=202, response_model=JobView, responses=_ERRORS, openapi_extra=_MULTIPART_SCHEMA,
              summary="Submit an image or video for light-field estimation")
 async def create_job(request: Request, tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
@@ -81,24 +99,12 @@ async def create_job(request: Request, tenant: Tenant = Depends(get_tenant), ctx
     paths = JobPaths.for_job(ctx.settings.data_dir, tenant.hash, job_id)
     paths.upload_dir.mkdir(parents=True, exist_ok=False)
     try:
-        form = await FormReader(paths.upload_dir, ctx.settings.limits).read(
-            request.headers.get("content-type"), request.headers.get("content-length"), request.stream())
-        params = parse_params(form.texts.get("params"), ctx)
-        kind, suffix = classify_input(form.files["file"])
-        input_name = _finalise_upload(form.files["file"], suffix, "input")
-        depth_name = ""
-        if "depth" in form.files:
-            depth_name = _finalise_upload(form.files["depth"], classify_depth(form.files["depth"]), "depth")
-        async with ctx.validation_slots:
-            await run_in_threadpool(check_capture, paths.upload_dir / input_name,
-                                    paths.upload_dir / depth_name if depth_name else None, params)
-        record = JobRecord(id=job_id, tenant=tenant.name, tenant_hash=tenant.hash, input_kind=kind,
-                           input_file=input_name, depth_file=depth_name, params=params.model_dump_json())
-        await run_in_threadpool(ctx.store.create, record, limit)
+        record = await _accept_upload(request, ctx, tenant, job_id, paths)
+        await run_in_threadpool(ctx.store.create, record, limit)  # atomic re-check of the limit
     except JobLimitReached as exc:
         paths.remove_all()
         raise TooManyJobs(str(exc)) from None
-    except BaseException:
+    except BaseException:  # including a client that disconnects mid-upload
         paths.remove_all()
         raise
     try:
