@@ -122,3 +122,36 @@ def test_moving_camera_static_lighting_is_static_after_reprojection():
     frames2 = torch.stack([f if i < 2 else tonemap(torch.pow(f, 2.4) * 0.5) for i, f in enumerate(frames)])
     cap2 = capture_from_arrays(frames2, torch.stack(depths), intrinsics=k, poses=torch.stack(poses))
     assert detect_temporal(cap2).uses_time
+
+
+def test_dark_noisy_static_room_is_static():
+    """Most pixels hover around the near-black cut-off; noise moves them across it from frame
+    to frame, which must not read as a lighting change (same pixel set in every frame)."""
+    g = torch.Generator().manual_seed(3)
+    rad = _albedo() * 0.0004  # LDR ~ 0.02-0.04
+    frames = torch.stack([(tonemap(rad) + 0.01 * torch.randn(H, W, 3, generator=g)).clamp(0, 1) for _ in range(8)])
+    d = detect_temporal(capture_from_arrays(torch.round(frames * 255) / 255))
+    assert not d.uses_time, d.reason
+
+
+@pytest.mark.slow
+def test_simulator_suites_hard_is_static_temporal_is_not(tmp_path):
+    """The `hard` suite (static lights; dolly camera, noise, compression, saturated windows)
+    read as temporal before linear-space resampling; the `temporal` suite switches a panel."""
+    import warnings
+
+    from core.engine.capture import load_capture
+    from core.sim.capture import write_capture
+    from core.sim.suites import hard, temporal
+
+    decisions = {}
+    for name, spec in (("hard", hard()), ("temporal", temporal())):
+        frames = 4 if name == "hard" else spec.frames
+        small = spec.model_copy(update={"frames": frames, "resolution": (96, 72), "probes": []})
+        write_capture(small, tmp_path / name, envmap_height=8, video=False)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            decisions[name] = detect_temporal(load_capture(tmp_path / name))
+    assert not decisions["hard"].uses_time, decisions["hard"].reason
+    assert decisions["hard"].statistic < 0.75 * decisions["hard"].threshold
+    assert decisions["temporal"].uses_time, decisions["temporal"].reason

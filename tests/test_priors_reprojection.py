@@ -138,3 +138,26 @@ def test_registry():
         ReprojectionPrior(env_height=8).envmaps(torch.zeros(1, 3), 0)  # not bound
     with pytest.raises(PriorError, match="weights"):
         build_prior("diffusion")  # needs a local model directory
+
+
+def test_merged_views_let_a_moving_camera_see_what_other_frames_saw():
+    """Frame 1 looks 90 degrees to the right at a bright wall; with merge_views=2 a request for
+    frame 0 sees that wall in the +x direction, without merging it cannot."""
+    frames = torch.full((2, H, W, 3), 0.3)
+    frames[1] = 0.95
+    yaw = torch.tensor([[0.0, 0, -1, 0], [0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 0, 1]], dtype=torch.float64)  # looks along +x
+    poses = torch.stack([torch.eye(4, dtype=torch.float64), yaw])
+    cap = capture_from_arrays(frames, torch.full((2, H, W), 3.0), poses=poses)
+    right = torch.tensor([[1.0, 0.0, 0.0]])
+    h = 16
+    from core.envmap import sample_envmap
+
+    seen = {}
+    for merge in (1, 2):
+        prior = ReprojectionPrior(env_height=h, merge_views=merge)
+        prior.bind(cap)
+        env = prior.envmaps(torch.zeros(1, 3), 0)[0]
+        seen[merge] = float(sample_envmap(env, right)[0, 0])
+        assert prior.views_for(0) == ([0] if merge == 1 else [0, 1])
+    assert seen[2] > 3 * seen[1]
+    assert seen[2] == pytest.approx(float(inverse_tonemap(torch.tensor(0.95))), rel=0.05)

@@ -38,6 +38,7 @@ CHECKPOINT_FILE = "checkpoint.safetensors"
 CHECKPOINT_META = "checkpoint.json"
 BOUNDS_MAX_POINTS = 200_000
 LOSS_CURVE_MAX_POINTS = 1000
+REPROJECTION_MERGE_VIEWS = 4
 
 __all__ = ["Cancelled", "DistillResult", "distill", "run_job", "sample_probes", "build_field_config"]
 
@@ -358,7 +359,10 @@ def run_job(
     reporter.stage("point_cloud", 0.07, "building the prior")
     with timings("point_cloud"):
         if prior is None:
-            kw = {"env_height": cfg.prior_env_height} if params.prior == "reprojection" else {}
+            kw = {}
+            if params.prior == "reprojection":  # static light + moving camera: pool the views
+                merge = 1 if decision.uses_time or capture.static_camera else REPROJECTION_MERGE_VIEWS
+                kw = {"env_height": cfg.prior_env_height, "merge_views": merge}
             prior = build_prior(params.prior, weights=params.prior_weights, **kw)
         prior.bind(work)
         bounds = scene_bounds(work)

@@ -1,10 +1,13 @@
 """Does the lighting change over time? Decide whether the light field gets a time input.
 
 Statistic (documented in docs/engine.md):
-1. Linearise frames (inverse tone map) and take luminance. With a moving camera, warp every
-   frame into the reference frame 0 with depth and poses (pixels that leave the view or fail
-   a 5 % depth-consistency test are dropped), so only co-visible surfaces are compared.
-2. Drop clipped (LDR >= 0.99) and near-black (LDR < 0.02) pixels, which carry no ratio.
+1. Linearise frames (inverse tone map) and take luminance, then area-downsample (linear
+   values are resampled, never gamma-encoded ones, whose averaging biases linear means when
+   there is noise). With a moving camera, warp every frame into the reference frame 0 with
+   depth and poses (pixels that leave the view or fail a 5 % depth-consistency test are
+   dropped), so only co-visible surfaces are compared.
+2. Drop clipped (LDR >= 0.99) and near-black (LDR < 0.02) pixels, which carry no ratio;
+   a pixel is used only if it is usable in EVERY frame (same pixel set for all frames).
 3. Average linear luminance in a coarse grid of blocks (BLOCKS_Y x BLOCKS_X) per frame and take
    logs: l[t, b]. Block averaging suppresses sensor noise and block-compression artefacts.
 4. Deviation e[t] = mean over blocks of |l[t, b] - median_t l[t, b]|: how far frame t's
@@ -49,22 +52,22 @@ def _luminance(rgb: torch.Tensor) -> torch.Tensor:
     return 0.2126 * rgb[..., 0] + 0.7152 * rgb[..., 1] + 0.0722 * rgb[..., 2]
 
 
-def _warp_to_reference(capture, frames: torch.Tensor, depth: torch.Tensor, intr) -> tuple[torch.Tensor, torch.Tensor]:
-    """Warp frames [T,h,w,3] into frame 0's view; returns (warped, valid [T,h,w])."""
+def _warp_to_reference(capture, planes: torch.Tensor, depth: torch.Tensor, intr) -> tuple[torch.Tensor, torch.Tensor]:
+    """Warp per-frame planes [T,h,w,C] into frame 0's view; returns (warped, covisible [T,h,w])."""
     from core.camera import Camera
 
-    T, h, w, _ = frames.shape
+    T, h, w, _ = planes.shape
     cam0 = Camera(intr, capture.poses[0])
     pts = cam0.unproject(depth[0].double())  # [h, w, 3], NaN where invalid
     ok0 = torch.isfinite(pts).all(-1)
-    warped, valid = [frames[0]], [ok0]
+    warped, valid = [planes[0]], [ok0]
     for i in range(1, T):
         cam = Camera(intr, capture.poses[i])
         u, v, z = cam.project(torch.nan_to_num(pts))
         gx = (u / w) * 2 - 1
         gy = (v / h) * 2 - 1
         grid = torch.stack((gx, gy), -1).float()[None]
-        img = F.grid_sample(frames[i].permute(2, 0, 1)[None], grid, mode="bilinear", align_corners=False)[0]
+        img = F.grid_sample(planes[i].permute(2, 0, 1)[None], grid, mode="bilinear", align_corners=False)[0]
         dz = F.grid_sample(depth[i][None, None].nan_to_num(0.0), grid, mode="nearest", align_corners=False)[0, 0]
         ok = ok0 & (z > 0) & (gx.abs() <= 1) & (gy.abs() <= 1) & ((dz.double() - z).abs() <= 0.05 * z)
         warped.append(img.permute(1, 2, 0))
@@ -72,17 +75,33 @@ def _warp_to_reference(capture, frames: torch.Tensor, depth: torch.Tensor, intr)
     return torch.stack(warped), torch.stack(valid)
 
 
+def _analysis_planes(capture, h: int, w: int) -> torch.Tensor:
+    """[T, h, w, 2]: linear luminance and a 0/1 'usable' plane, linearised BEFORE any
+    resampling (averaging gamma-encoded noise would bias linear means downwards)."""
+    out = []
+    for f in capture.frames:
+        peak = f.amax(-1)
+        usable = ((peak < CLIP_HI) & (peak >= DARK_LO)).float()
+        planes = torch.stack((_luminance(inverse_tonemap(f)), usable), 0)[None]
+        out.append(F.interpolate(planes, size=(h, w), mode="area")[0].permute(1, 2, 0))
+    return torch.stack(out)
+
+
 def block_log_luminance(capture) -> torch.Tensor:
     """[T, B] log mean linear luminance per block (NaN where a block has too few usable pixels)."""
     small = capture.resized(ANALYSIS_HEIGHT)
-    frames, depth = small.frames, small.depth
-    T, h, w, _ = frames.shape
+    T, h, w = small.depth.shape
+    planes = _analysis_planes(capture, h, w)
     if capture.static_camera:
         covis = torch.ones(T, h, w, dtype=torch.bool)
     else:
-        frames, covis = _warp_to_reference(capture, frames, torch.where(valid_depth_mask(depth), depth, torch.nan), small.intrinsics)
-    usable = covis & (frames.amax(-1) < CLIP_HI) & (frames.amax(-1) >= DARK_LO)
-    lum = _luminance(inverse_tonemap(frames))
+        depth = torch.where(valid_depth_mask(small.depth), small.depth, torch.nan)
+        planes, covis = _warp_to_reference(capture, planes, depth, small.intrinsics)
+    lum = planes[..., 0]
+    usable = covis & (planes[..., 1] > 0.999)  # every source pixel under the footprint usable
+    # the SAME pixels in every frame: a per-frame pixel set would bias block means whenever
+    # noise pushes dim pixels across DARK_LO
+    usable = usable.all(dim=0, keepdim=True).expand_as(usable)
     num = F.adaptive_avg_pool2d(torch.where(usable, lum, 0.0)[:, None], (BLOCKS_Y, BLOCKS_X))
     cnt = F.adaptive_avg_pool2d(usable.float()[:, None], (BLOCKS_Y, BLOCKS_X))
     mean = num / cnt.clamp_min(1e-12)

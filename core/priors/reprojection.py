@@ -8,7 +8,9 @@ It answers "what would a chrome ball at c show?" from the frame itself:
    guess: real sources are often 10-1000x brighter, which no LDR frame can tell us).
 2. Unproject the frame with its depth into a coloured point cloud. The geometry is computed
    once per distinct (pose, depth) — once in total for a static camera with static depth;
-   colours come from the requested frame, so lighting changes over time are followed.
+   colours come from the requested frame, so lighting changes over time are followed. When
+   the engine has decided the lighting is static, a moving camera's request also splats up
+   to `merge_views - 1` other viewpoints (evenly spaced), so a probe sees what any frame saw.
 3. For each probe centre, splat the points into an equirect env map (ENV height from the
    config) with a depth test: per env pixel only points within Z_TOLERANCE of the nearest
    distance contribute (a z-buffer by distance from the probe), averaged.
@@ -68,11 +70,17 @@ def push_pull_fill(env: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
 class ReprojectionPrior:
     name = "reprojection"
 
-    def __init__(self, env_height: int = 32, clip_boost: float = CLIP_BOOST):
+    def __init__(self, env_height: int = 32, clip_boost: float = CLIP_BOOST, merge_views: int = 1):
+        """`merge_views` > 1 (only valid when the lighting is static): splat the point clouds
+        of up to that many distinct viewpoints (the requested frame's plus evenly spaced
+        others), so a moving camera's probe sees what any frame saw."""
         if env_height < 4:
             raise PriorError(f"env_height must be >= 4, got {env_height}")
+        if merge_views < 1:
+            raise PriorError(f"merge_views must be >= 1, got {merge_views}")
         self.env_height = int(env_height)
         self.clip_boost = float(clip_boost)
+        self.merge_views = int(merge_views)
         self._capture = None
         self._colors: torch.Tensor | None = None
         self._points: dict[int, torch.Tensor] = {}
@@ -107,13 +115,24 @@ class ReprojectionPrior:
             self.point_cloud_builds += 1
         return self._points[owner]
 
+    def views_for(self, frame_index: int) -> list[int]:
+        """Frames whose point clouds a request for `frame_index` splats (see merge_views)."""
+        own = self._geometry_key[frame_index]
+        if self.merge_views == 1:
+            return [frame_index]
+        owners = sorted(set(self._geometry_key) - {own})
+        k = min(self.merge_views - 1, len(owners))
+        picked = [owners[round(j * (len(owners) - 1) / max(k - 1, 1))] for j in range(k)] if k else []
+        return [frame_index] + sorted(set(picked))
+
     # ------------------------------------------------------------------ per request
     def envmaps(self, centers: torch.Tensor, frame_index: int) -> torch.Tensor:
         """HDR env maps [N, h, 2h, 3] seen from `centers` [N, 3] in frame `frame_index`."""
         if self._capture is None:
             raise PriorError("ReprojectionPrior.bind(capture) must be called before use")
-        pts = self.points(frame_index)
-        col = self._colors[frame_index].reshape(-1, 3)
+        views = self.views_for(frame_index)
+        pts = torch.cat([self.points(v) for v in views])
+        col = torch.cat([self._colors[v].reshape(-1, 3) for v in views])
         ok = torch.isfinite(pts).all(-1)
         pts, col = pts[ok], col[ok]
         h, w = self.env_height, equirect_width(self.env_height)
@@ -150,5 +169,6 @@ class ReprojectionPrior:
             "clip_boost": self.clip_boost,
             "z_tolerance": Z_TOLERANCE,
             "hole_fill": "push-pull pyramid in the equirect domain",
+            "merge_views": self.merge_views,
             "point_cloud_builds": self.point_cloud_builds,
         }
