@@ -18,7 +18,7 @@ from service.metrics import Metrics, MetricsMiddleware
 from service import routes_ui
 from service.routes import health, jobs, lightfield
 from service.store import JobStore, connect
-from worker.app import make_celery
+from worker.celery_config import make_celery
 
 log = logging.getLogger("lightfield.service")
 UI_DIR = Path(__file__).parent / "ui"

@@ -10,7 +10,7 @@ from prometheus_client.core import GaugeMetricFamily
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from service.store import JobStore
-from worker.app import QUEUE
+from worker.celery_config import QUEUE
 
 log = logging.getLogger("lightfield.service")
 

@@ -20,7 +20,7 @@ from service.storage import JobPaths, new_job_id
 from service.store import JobLimitReached, JobRecord
 from service.upload import FormReader
 from service.validation import check_capture, classify_depth, classify_input
-from worker.app import TASK_NAME
+from worker.celery_config import TASK_NAME
 
 log = logging.getLogger("lightfield.service")
 router = APIRouter(tags=["jobs"])
