@@ -37,7 +37,8 @@ from core.priors.known import ball_target
 CLIP_LDR = 0.99
 CLIP_BOOST = 8.0
 Z_TOLERANCE = 0.1  # relative: points within 10 % of the nearest distance share a pixel
-MIN_PROBE_DISTANCE = 1e-3  # metres; points closer than this to a probe are skipped
+MIN_PROBE_DISTANCE = 1e-3
+OTHER_VIEW_STRIDE = 3  # merged viewpoints contribute a third of their points (cost)  # metres; points closer than this to a probe are skipped
 
 
 def linearise(frames: torch.Tensor, clip_boost: float = CLIP_BOOST) -> torch.Tensor:
@@ -131,8 +132,10 @@ class ReprojectionPrior:
         if self._capture is None:
             raise PriorError("ReprojectionPrior.bind(capture) must be called before use")
         views = self.views_for(frame_index)
-        pts = torch.cat([self.points(v) for v in views])
-        col = torch.cat([self._colors[v].reshape(-1, 3) for v in views])
+        # the other views only fill in what this one misses: every OTHER_VIEW_STRIDE-th point
+        stride = [1] + [OTHER_VIEW_STRIDE] * (len(views) - 1)
+        pts = torch.cat([self.points(v)[::k] for v, k in zip(views, stride)])
+        col = torch.cat([self._colors[v].reshape(-1, 3)[::k] for v, k in zip(views, stride)])
         ok = torch.isfinite(pts).all(-1)
         pts, col = pts[ok], col[ok]
         h, w = self.env_height, equirect_width(self.env_height)
