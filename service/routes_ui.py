@@ -19,9 +19,9 @@ from service.context import AppContext, Tenant, get_ctx, get_tenant, owned_job
 from service.errors import Conflict, ErrorBody, InvalidInput, NotFound
 from service.fieldcache import CachedField
 from service.models import Flags
-from service.queries import check_t
+from service.queries import check_t, parse_x
 from service.storage import JobPaths
-from service.ui_probes import ProbeError, place
+from service.ui_probes import ProbeError, locate, place
 
 router = APIRouter(tags=["ui"])
 _ERRORS = {s: {"model": ErrorBody} for s in (401, 404, 409, 413, 422)}
@@ -33,6 +33,7 @@ MAX_INSERTION_ENV_HEIGHT = 128
 # picture to the card anyway (see bench/ui_latency.py).
 INSERTION_MAX_HEIGHT = 240
 T_HELP = "seconds from the first frame; the stored frame nearest in time is used"
+X_HELP = "world position 'X,Y,Z' in metres"
 
 
 class CaptureView(BaseModel):
@@ -50,14 +51,15 @@ class CaptureView(BaseModel):
 
 
 class ProbeView(BaseModel):
-    u: float
-    v: float
+    u: float | None = Field(description="fraction of the frame width (outside [0, 1]: off the frame; null: behind the camera)")
+    v: float | None = Field(description="fraction of the frame height")
     t: float
     frame_index: int
     frame_time: float
+    visible: bool = Field(description="the probe is in front of the camera and inside the frame")
     surface_depth: float | None = Field(description="planar depth (m) of the surface at the pixel; null when unknown")
     default_depth: float = Field(description="planar depth (m) that puts the drawn ball just in front of the surface")
-    depth: float = Field(description="planar depth (m) used")
+    depth: float = Field(description="planar depth (m) of the probe (<= 0: behind the camera)")
     x: tuple[float, float, float] = Field(description="world position of the probe (metres): pass as x to the queries")
     radius: float = Field(description="radius (m) of the ball drawn at the probe by /insertion")
     extrapolated: Flags
@@ -130,19 +132,26 @@ def get_frame(job_id: str, t: float = Query(0.0, description=T_HELP),
 
 
 @router.get("/lightfield/{job_id}/probe", response_model=ProbeView, responses=_ERRORS,
-            summary="Place a probe on the ray through a pixel: world x at a planar depth (default: just in front of the surface)")
-def get_probe(job_id: str, u: float = Query(..., description="fraction of the frame width, 0 = left edge"),
-              v: float = Query(..., description="fraction of the frame height, 0 = top edge"),
+            summary="Place a probe on the ray through a pixel (default depth: just in front of the surface), "
+                    "or find where a world point x appears in the frame at t")
+def get_probe(job_id: str,
+              u: float | None = Query(None, description="fraction of the frame width, 0 = left edge"),
+              v: float | None = Query(None, description="fraction of the frame height, 0 = top edge"),
               t: float = Query(0.0, description=T_HELP),
               depth: float | None = Query(None, description="planar depth in metres along the pixel's ray"),
+              x: str | None = Query(None, description="instead of u, v, depth: " + X_HELP),
               tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+    if (x is None) == (u is None or v is None):
+        raise InvalidInput("give either u and v (a pixel, with an optional depth) or x (a world point)",
+                           code="invalid_probe")
+    point = parse_x(x) if x is not None else None
     preview, cf = _load(job_id, tenant, ctx)
     try:
-        p = place(preview, u, v, check_t(t), depth)
+        p = locate(preview, point, check_t(t)) if point is not None else place(preview, u, v, check_t(t), depth)
     except ProbeError as exc:
         raise InvalidInput(str(exc), code="invalid_probe") from None
     frame_time = float(preview.times[p.frame_index])
-    return ProbeView(u=p.u, v=p.v, t=t, frame_index=p.frame_index, frame_time=frame_time,
+    return ProbeView(u=p.u, v=p.v, t=t, frame_index=p.frame_index, frame_time=frame_time, visible=p.visible,
                      surface_depth=p.surface_depth, default_depth=p.default_depth, depth=p.depth, x=p.x,
                      radius=p.radius, extrapolated=_flags(cf, p.x, _field_time(cf, preview, p.frame_index)))
 

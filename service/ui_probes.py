@@ -28,14 +28,15 @@ class ProbeError(ValueError):
 
 @dataclass(frozen=True)
 class ProbePlacement:
-    u: float  # fraction of the width
-    v: float  # fraction of the height
+    u: float | None  # fraction of the width (outside [0, 1]: off the frame; None: behind the camera)
+    v: float | None  # fraction of the height
     frame_index: int
+    visible: bool  # in front of the camera and inside the frame
     surface_depth: float | None  # planar metres at the pixel (None: no valid depth near it)
     default_depth: float  # just in front of the surface
-    depth: float  # the depth actually used
+    depth: float  # planar depth of the probe centre (<= 0: behind the camera)
     x: tuple[float, float, float]  # world position of the probe centre (metres)
-    radius: float  # radius of the ball the page draws there (metres)
+    radius: float  # radius of the ball the page draws there (metres; 0 when behind the camera)
 
 
 def check_fraction(value: float, name: str) -> float:
@@ -102,5 +103,27 @@ def place(preview, u: float, v: float, t: float, depth: float | None = None) -> 
         centre, radius = place_probe(camera, (px, py), used, INSERTION_DIAMETER_FRACTION)
     except BallPlacementError as exc:
         raise ProbeError(f"depth: {exc}") from None
-    return ProbePlacement(u=u, v=v, frame_index=index, surface_depth=surface, default_depth=default, depth=used,
-                          x=tuple(float(c) for c in centre.tolist()), radius=float(radius))
+    return ProbePlacement(u=u, v=v, frame_index=index, visible=True, surface_depth=surface, default_depth=default,
+                          depth=used, x=tuple(float(c) for c in centre.tolist()), radius=float(radius))
+
+
+def locate(preview, x, t: float) -> ProbePlacement:
+    """Where a probe fixed in the world at x appears in the frame nearest t. The page keeps
+    probes fixed in the world, so with a moving camera a probe stays put as time changes."""
+    import torch
+
+    point = tuple(float(c) for c in x)
+    if len(point) != 3 or not all(math.isfinite(c) for c in point):
+        raise ProbeError(f"x must be three finite numbers (metres), got {x}")
+    index = preview.nearest_frame(t)
+    camera = preview.camera(index)
+    pu, pv, pz = (float(a[0]) for a in camera.project(torch.tensor([point], dtype=torch.float64)))
+    in_front = pz > 0
+    u, v = (pu / preview.width, pv / preview.height) if in_front else (None, None)
+    visible = in_front and 0.0 <= u <= 1.0 and 0.0 <= v <= 1.0
+    depth_map = preview.depth_map(index)
+    surface = surface_depth(depth_map, *pixel_of(u, v, preview.width, preview.height)) if visible else None
+    k = radius_ratio(camera)
+    default = front_of_surface(surface if surface is not None else fallback_depth(depth_map), k)
+    return ProbePlacement(u=u, v=v, frame_index=index, visible=visible, surface_depth=surface, default_depth=default,
+                          depth=pz, x=point, radius=k * pz if in_front else 0.0)

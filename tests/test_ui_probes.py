@@ -15,7 +15,7 @@ from service.capture_preview import (
     META_FILE, TENSORS_FILE, CapturePreview, PreviewError, load_preview, preview_dir, preview_from_capture,
     save_preview, write_capture_preview,
 )
-from service.ui_probes import ProbeError, fallback_depth, pixel_of, place, radius_ratio, surface_depth
+from service.ui_probes import ProbeError, fallback_depth, locate, pixel_of, place, radius_ratio, surface_depth
 
 W, H = 64, 48
 WALL = 3.0
@@ -97,6 +97,37 @@ def test_probe_uses_the_frame_nearest_in_time():
     preview = make_preview(frames=5, fps=4.0)  # t = 0, .25, .5, .75, 1
     assert [preview.nearest_frame(t) for t in (-3.0, 0.1, 0.13, 0.74, 9.0)] == [0, 0, 1, 3, 4]
     assert place(preview, 0.5, 0.5, t=0.6).frame_index == 2
+
+
+def test_a_world_probe_is_found_again_in_the_frames_of_a_moving_camera():
+    """Camera translating along +x by 0.5 m per frame, looking along -z (analytic projection)."""
+    preview = make_preview(frames=3)
+    poses = np.repeat(np.eye(4)[None], 3, 0)
+    poses[:, 0, 3] = [0.0, 0.5, 1.0]
+    preview = CapturePreview(**{**preview.__dict__, "poses": poses})
+    p0 = place(preview, 0.5, 0.5, t=0.0, depth=2.0)
+    assert p0.x == pytest.approx((0.0, 0.0, -2.0), abs=1e-5)
+    again = locate(preview, p0.x, t=0.0)
+    assert (again.u, again.v, again.depth, again.visible) == pytest.approx((0.5, 0.5, 2.0, True), abs=1e-6)
+    assert again.radius == pytest.approx(p0.radius, rel=1e-5)
+    fx = preview.intrinsics["fx"]
+    later = locate(preview, p0.x, t=0.25)  # frame 1: the point is 0.5 m to the camera's left
+    assert later.frame_index == 1 and later.visible
+    assert later.u == pytest.approx(0.5 - fx * 0.5 / 2.0 / W, abs=1e-6) and later.depth == pytest.approx(2.0)
+    assert later.surface_depth == pytest.approx(WALL)
+
+
+def test_probes_behind_the_camera_or_off_the_frame_are_not_visible():
+    preview = make_preview()
+    camera = preview.camera(0)
+    behind = (camera.c2w[:3, :3] @ torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) + camera.position).tolist()
+    p = locate(preview, behind, 0.0)
+    assert not p.visible and p.u is None and p.depth < 0 and p.radius == 0.0
+    aside = (camera.c2w[:3, :3] @ torch.tensor([50.0, 0.0, -1.0], dtype=torch.float64) + camera.position).tolist()
+    p = locate(preview, aside, 0.0)
+    assert not p.visible and p.u > 1.0 and p.surface_depth is None
+    with pytest.raises(ProbeError, match="^x"):
+        locate(preview, (0.0, float("nan"), 0.0), 0.0)
 
 
 # ---------------------------------------------------------------------------------------

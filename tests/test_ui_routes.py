@@ -127,6 +127,15 @@ def test_probe_places_a_point_just_in_front_of_the_clicked_surface(app_env, job)
     assert far["extrapolated"]["x"] is True
 
 
+def test_probe_by_world_point_reports_where_it_appears(app_env, job):
+    client, _ = app_env
+    body = get(client, f"/lightfield/{job}/probe", x="0,0,-2", t=1.0).json()
+    assert body["visible"] is True and (body["u"], body["v"]) == pytest.approx((0.5, 0.5))
+    assert body["depth"] == pytest.approx(2.0) and body["frame_index"] == 2
+    behind = get(client, f"/lightfield/{job}/probe", x="0,0,2", t=1.0).json()
+    assert behind["visible"] is False and behind["u"] is None
+
+
 def test_insertion_draws_balls_at_the_probe_and_leaves_the_rest_of_the_frame(app_env, job):
     client, _ = app_env
     frame = png(get(client, f"/lightfield/{job}/frame", t=0.5))
@@ -168,6 +177,9 @@ def test_insertion_of_a_large_frame_is_rendered_at_the_capped_height(app_env, jo
     ("probe", {"u": 1.5, "v": 0.5}, 422, "invalid_probe"),
     ("probe", {"u": 0.5, "v": 0.5, "depth": -1}, 422, "invalid_probe"),
     ("probe", {"u": 0.5, "v": 0.5, "t": "nan"}, 422, "invalid_t"),
+    ("probe", {"u": 0.5}, 422, "invalid_probe"),
+    ("probe", {"u": 0.5, "v": 0.5, "x": "0,0,-1"}, 422, "invalid_probe"),
+    ("probe", {"x": "0,0"}, 422, "invalid_x"),
     ("frame", {"t": "inf"}, 422, "invalid_t"),
     ("insertion", {"points": "0.5,0.5,abc"}, 422, "invalid_points"),
     ("insertion", {"points": "2,0.5,1"}, 422, "invalid_points"),

@@ -457,14 +457,18 @@
     await refreshFrame();
   }
 
+  /** The probes in view at this frame, as /insertion's points "u,v,depth;...". */
   function framePoints() {
-    return view.probes.map((p) => `${p.u.toFixed(5)},${p.v.toFixed(5)},${p.placement.depth.toPrecision(6)}`).join(";");
+    return view.probes
+      .filter((p) => p.placement.visible)
+      .map(({ placement: pl }) => `${pl.u.toFixed(5)},${pl.v.toFixed(5)},${pl.depth.toPrecision(6)}`)
+      .join(";");
   }
 
   async function refreshFrame() {
     if (!view.capture) return;
     const t = frameTime();
-    const withBalls = $("balls-toggle").checked && view.probes.length > 0;
+    const withBalls = $("balls-toggle").checked && framePoints() !== "";
     const path = withBalls
       ? `/lightfield/${view.id}/insertion?${query({ t, points: framePoints() })}`
       : `/lightfield/${view.id}/frame?${query({ t })}`;
@@ -500,15 +504,22 @@
   }
 
   // ------------------------------------------------------------------ probes
-  async function placeProbe(probe) {
-    const params = { u: probe.u, v: probe.v, t: frameTime() };
-    if (probe.depth != null) params.depth = probe.depth;
+  // A probe is a point fixed in the world: created on a pixel's ray, then followed from frame
+  // to frame by its world position x (with a moving camera it moves on screen, not in the room).
+  async function placeOnPixel(probe, u, v, depth = null) {
+    const params = { u, v, t: frameTime() };
+    if (depth != null) params.depth = depth;
+    probe.placement = await apiJson(`/lightfield/${view.id}/probe?${query(params)}`);
+  }
+
+  async function followProbe(probe) {
+    const params = { x: probe.placement.x.join(","), t: frameTime() };
     probe.placement = await apiJson(`/lightfield/${view.id}/probe?${query(params)}`);
   }
 
   async function addProbe(u, v) {
-    const probe = { number: view.nextNumber++, u, v, depth: null, placement: null };
-    await placeProbe(probe);
+    const probe = { number: view.nextNumber++, placement: null };
+    await placeOnPixel(probe, u, v);
     view.probes.push(probe);
     view.selected = probe.number;
     renderProbes();
@@ -543,19 +554,21 @@
       const li = document.createElement("li");
       li.className = selected ? "selected" : "";
       li.dataset.probe = String(p.number);
-      li.dataset.u = String(p.u);
-      li.dataset.v = String(p.v);
+      li.dataset.u = String(p.placement.u);
+      li.dataset.v = String(p.placement.v);
       li.innerHTML = '<span class="probe-index"></span><span class="probe-text"></span><button type="button" class="remove" aria-label="remove probe">×</button>';
       li.querySelector(".probe-index").textContent = String(p.number);
-      li.querySelector(".probe-text").textContent = `x ${fmt.vec(p.placement.x)} · ${fmt.metres(p.placement.depth)}`;
+      li.querySelector(".probe-text").textContent = `x ${fmt.vec(p.placement.x)} · ` +
+        (p.placement.visible ? fmt.metres(p.placement.depth) : "not in this frame");
       li.addEventListener("click", () => selectProbe(p.number));
       li.querySelector(".remove").addEventListener("click", (e) => { e.stopPropagation(); removeProbe(p.number); });
       list.append(li);
+      if (!p.placement.visible) continue;
 
       const m = document.createElement("div");
       m.className = `marker${selected ? " selected" : ""}`;
-      m.style.left = `${100 * p.u}%`;
-      m.style.top = `${100 * p.v}%`;
+      m.style.left = `${100 * p.placement.u}%`;
+      m.style.top = `${100 * p.placement.v}%`;
       m.append(Object.assign(document.createElement("span"), { textContent: String(p.number) }));
       m.title = `probe ${p.number}`;
       m.addEventListener("click", (e) => { e.stopPropagation(); selectProbe(p.number); });
@@ -577,23 +590,26 @@
     $("probe-detail").hidden = !p;
     if (!p) return;
     const pl = p.placement;
-    $("depth-slider").value = String(depthToSlider(p, pl.depth));
-    $("depth-label").textContent = fmt.metres(pl.depth);
+    $("depth-slider").disabled = $("depth-reset").disabled = !pl.visible;
+    $("depth-slider").value = String(pl.visible ? depthToSlider(p, pl.depth) : 0);
+    $("depth-label").textContent = pl.visible ? fmt.metres(pl.depth) : "—";
     $("probe-position").textContent =
       `probe ${p.number} · x = (${fmt.vec(pl.x)}) m · surface ${fmt.metres(pl.surface_depth)} · ball radius ${fmt.metres(pl.radius)}`;
-    const warn = [];
+    let warn = [];
     if (pl.extrapolated.x) warn.push("outside the region the capture saw");
     if (pl.extrapolated.t) warn.push("outside the captured time range");
-    if (pl.surface_depth == null) warn.push("no depth at this pixel: the default depth is a guess");
+    if (warn.length) warn = [`Extrapolated: ${warn.join("; ")}.`];
+    if (!pl.visible) warn.push("Not in view in this frame (behind or beside the camera); its light is still shown.");
+    else if (pl.surface_depth == null) warn.push("No depth at this pixel: the default depth is a guess.");
     $("probe-warning").hidden = !warn.length;
-    $("probe-warning").textContent = warn.length ? `Extrapolated: ${warn.join("; ")}.` : "";
+    $("probe-warning").textContent = warn.join(" ");
   }
 
+  /** Move the selected probe along its pixel's ray in this frame (null: the default depth). */
   async function setProbeDepth(depth) {
     const p = selectedProbe();
-    if (!p) return;
-    p.depth = depth;
-    await placeProbe(p);
+    if (!p || !p.placement.visible) return;
+    await placeOnPixel(p, p.placement.u, p.placement.v, depth);
     renderProbes();
     await Promise.all([refreshFrame(), refreshEnvmap()]);
   }
@@ -656,7 +672,7 @@
     view.frameIndex = index;
     $("time-slider").value = String(index);
     $("time-label").textContent = fmt.time(frameTime());
-    await Promise.all(view.probes.map(placeProbe));
+    await Promise.all(view.probes.map(followProbe));
     renderProbes();
     await Promise.all([refreshFrame(), refreshEnvmap()]);
   }
