@@ -173,3 +173,17 @@ def test_resized_keeps_nearest_depth_and_scales_intrinsics():
     cap = capture_from_arrays(torch.rand(1, 8, 8, 3), d).resized(4)
     assert cap.depth.shape == (1, 4, 4) and cap.depth[0, 0, 0] == 1.0 and cap.depth[0, 3, 3] == 4.0
     assert cap.intrinsics.width == 4 and cap.intrinsics.fx == pytest.approx(capture_from_arrays(torch.rand(1, 8, 8, 3), d).intrinsics.fx / 2)
+
+
+def test_capture_directory_with_bad_intrinsics(tmp_path):
+    (tmp_path / "frames").mkdir()
+    write_png(tmp_path / "frames" / "0.png", np.full((8, 8, 3), 0.5, np.float32))
+    index = {"format": "lightfield-capture", "version": 1, "fps": 4, "frame_count": 1, "frames": ["frames/0.png"],
+             "intrinsics": {"fx": 0.0, "fy": 10, "cx": 4, "cy": 4, "width": 8, "height": 8}}
+    (tmp_path / "capture.json").write_text(json.dumps(index))
+    with pytest.raises(CaptureError) as exc:
+        load_capture(tmp_path)
+    assert exc.value.field == "intrinsics" and "fx" in str(exc.value)
+    (tmp_path / "capture.json").write_text(json.dumps({"format": "something-else"}))
+    with pytest.raises(CaptureError, match="not a lightfield capture"):
+        load_capture(tmp_path)
