@@ -86,7 +86,7 @@ class PerceptualLoss:
             from safetensors.torch import load_file
 
             net = lpips.LPIPS(pretrained=False, net="alex", pnet_rand=True, verbose=False)
-            net.load_state_dict(load_file(os.environ["LIGHTFIELD_LPIPS_WEIGHTS"]), strict=False)
+            net.load_state_dict(load_file(os.environ["LIGHTFIELD_LPIPS_WEIGHTS"]))  # strict: no silently random layers
             self._lpips = net.eval().requires_grad_(False)
 
     def __call__(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
