@@ -48,6 +48,8 @@ def run(args: argparse.Namespace) -> int:
     except (ValidationError, TrainConfigError, TrainingDataError, PriorError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if not result.main_process:
+        return 0
     print(json.dumps({
         "output": str(result.out_dir), "from_step": result.start_step, "to_step": result.final_step,
         "final_loss": result.losses[-1] if result.losses else None, "seconds": round(result.seconds, 2),

@@ -162,8 +162,9 @@ class TrainResult:
     out_dir: Path
     start_step: int
     final_step: int
-    losses: list[float]
+    losses: list[float]  # per optimizer step, averaged over processes
     seconds: float
+    main_process: bool = True
 
 
 def train_prior(data_dir: str | Path, base_dir: str | Path, out_dir: str | Path, cfg: TrainConfig,
@@ -223,6 +224,8 @@ def train_prior(data_dir: str | Path, base_dir: str | Path, out_dir: str | Path,
         accelerator.clip_grad_norm_(network.parameters(), cfg.max_grad_norm)
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
+        if world > 1:  # log the loss of the whole batch, not of this rank's share
+            step_loss = float(accelerator.reduce(torch.tensor(step_loss, device=accelerator.device), "mean"))
         losses.append(step_loss)
         done = step + 1
         if accelerator.is_main_process and (done % cfg.log_every == 0 or done == cfg.iterations):
@@ -245,7 +248,7 @@ def train_prior(data_dir: str | Path, base_dir: str | Path, out_dir: str | Path,
                         {"config": cfg.model_dump(), "base": str(base_dir), "data": str(data_dir)},
                         keep=cfg.keep_checkpoints)
         export_model(accelerator.unwrap_model(network), comps, out, cfg, data_dir)
-    return TrainResult(out, start, cfg.iterations, losses, time.perf_counter() - t0)
+    return TrainResult(out, start, cfg.iterations, losses, time.perf_counter() - t0, accelerator.is_main_process)
 
 
 def export_model(network: InpaintNetwork, comps: PriorComponents, out: Path, cfg: TrainConfig, data_dir) -> None:
