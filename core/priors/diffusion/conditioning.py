@@ -25,12 +25,20 @@ _QUANTILE_MAX_ELEMENTS = 1 << 20  # torch.quantile has an input size limit; a st
 
 
 def model_size(height: int, width: int, resolution: tuple[int, int], multiple: int) -> tuple[int, int]:
-    """Size with the card's pixel count and the frame's aspect ratio, sides multiples of `multiple`."""
+    """Size with the card's pixel count and the frame's aspect ratio, sides multiples of `multiple`.
+
+    Sides are capped at twice the card's longer side, so a panorama strip cannot ask the
+    model for a huge canvas (its aspect ratio is squeezed instead).
+    """
     area = resolution[0] * resolution[1]
+    longest = 2 * max(resolution)
     aspect = width / height
     h = math.sqrt(area / aspect)
     w = h * aspect
-    snap = lambda x: max(multiple, int(round(x / multiple)) * multiple)  # noqa: E731
+
+    def snap(x: float) -> int:
+        return min(max(multiple, int(round(x / multiple)) * multiple), max(multiple, longest // multiple * multiple))
+
     return snap(h), snap(w)
 
 

@@ -121,9 +121,6 @@ class StepOrder(Sampler):
             yield self.index_at(k * self.world + self.rank)
             k += 1
 
-    def __len__(self) -> int:  # infinite stream; DataLoader only needs a number
-        return 2**62
-
 
 def _chw(a: np.ndarray) -> torch.Tensor:
     t = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
