@@ -235,3 +235,27 @@ def test_trainer_runs_on_simulator_export(tiny_dir, tmp_path):
                          TrainConfig(iterations=2, batch=2, micro_batch=1, lr=1e-4, checkpoint_every=1))
     assert len(result.losses) == 2 and all(np.isfinite(result.losses)) and result.losses[0] > 0
     assert [p.name for p in sorted((tmp_path / "out" / "checkpoints").glob("step-*"))] == ["step-000001", "step-000002"]
+
+
+def test_exposure_dropout_replaces_zeta_by_the_null_embedding(tiny_dir, data_dir):
+    """With dropout the loss no longer depends on ev's embedding; without, it does."""
+    from dataclasses import replace
+
+    from core.priors.diffusion.exposure import ExposureConditioner
+    from core.priors.diffusion.network import InpaintNetwork
+
+    comps = load_components(tiny_dir)
+    card = comps.card
+    cond = ExposureConditioner(comps.text_encoder, comps.tokenizer, card.prompts.max, card.prompts.min, card.ev_min)
+    net = InpaintNetwork(comps.unet, comps.controlnet)
+    batch = torch.utils.data.default_collate([BallDataset(data_dir, (32, 48))[0]])
+    draws = sample_draws(torch.Generator().manual_seed(2), 1, (4, 4, 6), card.ev_min, 1000, 0.0)
+    prepared = prepare_batch(comps, batch, draws)  # the target's exposure is fixed here
+
+    def loss(ev, drop):
+        d = replace(draws, ev=torch.tensor([ev]), drop=torch.tensor([drop]))
+        with torch.no_grad():
+            return float(training_loss(net, comps, cond, prepared, d))
+
+    assert loss(0.0, True) == loss(card.ev_min, True)
+    assert loss(0.0, False) != loss(card.ev_min, False)
