@@ -14,6 +14,7 @@ from core.priors.diffusion.conditioning import (
     latent_mask,
     model_size,
     paste_outside,
+    to_unit,
 )
 from core.priors.diffusion.exposure import exposure_weight, interpolate
 
@@ -91,3 +92,8 @@ def test_paste_and_combine_keep_uncovered_pixels_exactly(seed):
     assert torch.equal(out[:, cov == 0], image[:, cov == 0])
     only_first = (masks[0] > 0) & (masks[1] == 0) & (cov == 1)
     torch.testing.assert_close(out[:, only_first], generated[0][:, only_first])
+
+
+def test_to_unit_maps_the_vae_range_and_survives_nan():
+    x = torch.tensor([-1.0, 0.0, 1.0, 3.0, float("nan"), float("inf"), float("-inf")])
+    assert torch.equal(to_unit(x), torch.tensor([0.0, 0.5, 1.0, 1.0, 0.5, 1.0, 0.0]))

@@ -92,7 +92,9 @@ def to_signed(image01: torch.Tensor) -> torch.Tensor:
 
 
 def to_unit(image_signed: torch.Tensor) -> torch.Tensor:
-    return ((image_signed + 1.0) * 0.5).clamp(0.0, 1.0)
+    """[-1, 1] -> [0, 1]; a NaN (e.g. a float16 overflow in the VAE) becomes mid grey, so the
+    prior's contract (an image in [0, 1]) holds whatever the network does."""
+    return torch.nan_to_num((image_signed + 1.0) * 0.5, nan=0.5).clamp(0.0, 1.0)
 
 
 def paste_outside(generated: torch.Tensor, image: torch.Tensor, coverage: torch.Tensor) -> torch.Tensor:
