@@ -3,9 +3,9 @@ resolution and probes per step N (log-log fitted exponents), and query latency v
 height (exact field vs baked lattice).
 
 Each distillation point runs in a FRESH subprocess so its peak memory is clean: the child
-reports its own wall time; the parent reads the child's peak RSS (ru_maxrss from os.wait4)
-and subtracts that of a baseline child that imports everything and builds the capture but
-does not distil. The capture is synthetic (smooth seeded colours, the engine's assumed
+reports its own times and its peak RSS (VmHWM of its own address space; ru_maxrss would
+include the forking parent's pages), and the parent subtracts the peak of a baseline child
+that only imports. The capture is synthetic (smooth seeded colours, the engine's assumed
 box-room depth): cost does not depend on what the pixels show.
 
     python -m bench.scaling --point '{"frames": 4, "height": 72, "probes": 9, "iterations": 10}'
@@ -64,19 +64,24 @@ def run_point(point: dict) -> dict:
     return {"seconds": seconds, "cpu_seconds": cpu, "finite_losses": ok}
 
 
+def peak_rss_mb() -> float | None:
+    """This process's peak RSS since exec (VmHWM), None where /proc is unavailable."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0  # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def measure_point(point: dict) -> dict:
-    """Parent side: run one point in a subprocess; wall time (child) and peak RSS (wait4)."""
-    proc = subprocess.Popen([sys.executable, "-m", "bench.scaling", "--point", json.dumps(point)], cwd=REPO,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "OMP_NUM_THREADS": "1"})
-    out = proc.stdout.read()
-    err = proc.stderr.read()
-    _, status, usage = os.wait4(proc.pid, 0)
-    proc.returncode = os.waitstatus_to_exitcode(status)
+    """Parent side: run one point in a subprocess and read its JSON line."""
+    proc = subprocess.run([sys.executable, "-m", "bench.scaling", "--point", json.dumps(point)], cwd=REPO,
+                          capture_output=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
     if proc.returncode != 0:
-        return {"error": err.decode(errors="replace")[-400:]}
-    result = json.loads(out.decode().strip().splitlines()[-1])
-    result["peak_rss_mb"] = usage.ru_maxrss / 1024.0  # Linux: kilobytes
-    return result
+        return {"error": proc.stderr.decode(errors="replace")[-400:]}
+    return json.loads(proc.stdout.decode().strip().splitlines()[-1])
 
 
 def loglog_exponent(xs: list[float], ys: list[float]) -> float | None:
@@ -131,7 +136,7 @@ def run_scaling(quick: bool = False, workdir: Path | None = None) -> dict:
     iterations = 10 if quick else 50
     sweeps = QUICK_SWEEPS if quick else FULL_SWEEPS
     baseline = measure_point({**CENTRE, "iterations": 0})
-    base_rss = baseline.get("peak_rss_mb", 0.0)
+    base_rss = baseline.get("peak_rss_mb") or 0.0
     cache: dict = {}
     out: dict = {
         "note": (f"Each point: {iterations} distillation steps of the draft MLP on a synthetic capture, reprojection prior, "
@@ -152,7 +157,7 @@ def run_scaling(quick: bool = False, workdir: Path | None = None) -> dict:
             errors.append(r.get("error"))
             secs.append(r.get("seconds"))
             cpus.append(r.get("cpu_seconds"))
-            mems.append(None if "peak_rss_mb" not in r else max(0.0, r["peak_rss_mb"] - base_rss))
+            mems.append(None if r.get("peak_rss_mb") is None else max(0.0, r["peak_rss_mb"] - base_rss))
         out["sweeps"][axis] = {"unit": UNITS[axis], "values": values, "seconds": cpus, "wall_seconds": secs, "peak_rss_delta_mb": mems,
                                "time_exponent": loglog_exponent(values, cpus), "wall_time_exponent": loglog_exponent(values, secs),
                                "memory_exponent": loglog_exponent(values, mems),
@@ -173,7 +178,9 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     torch.set_num_threads(1)
-    print(json.dumps(run_point(json.loads(args.point))))
+    result = run_point(json.loads(args.point))
+    result["peak_rss_mb"] = peak_rss_mb()
+    print(json.dumps(result))
     return 0
 
 

@@ -160,3 +160,18 @@ def test_every_table_row_has_one_cell_per_header():
 def test_sanitize_makes_strict_json():
     doc = sanitize({"a": float("nan"), "b": (1, float("inf")), "c": torch.tensor([1.5])})
     assert json.loads(json.dumps(doc, allow_nan=False)) == {"a": None, "b": [1, None], "c": [1.5]}
+
+
+def test_update_readme_replaces_only_the_named_block(tmp_path):
+    from bench.report import readme_markers, update_readme
+
+    main_start, main_end = readme_markers()
+    b_start, b_end = readme_markers("draft-budget")
+    readme = tmp_path / "README.md"
+    readme.write_text(f"intro\n{main_start}\nold main\n{main_end}\nmiddle\n{b_start}\nold b\n{b_end}\ntail\n")
+    results = {"mode": "quick", "note": "n", "machine": {"git_commit": "abc"}, "total_wall_s": 1.0}
+    assert update_readme(readme, results, "lightfield bench --quick --iterations 300", block="draft-budget")
+    text = readme.read_text()
+    assert "old main" in text and "old b" not in text and "--iterations 300" in text
+    assert text.startswith("intro\n") and text.endswith("tail\n") and "middle" in text
+    assert not update_readme(tmp_path / "missing.md", results, "x")
