@@ -287,6 +287,7 @@ def scaling_plot(scaling: dict, path: Path) -> Path | None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     sweeps = scaling.get("sweeps", {})
     if not sweeps:
@@ -297,9 +298,13 @@ def scaling_plot(scaling: dict, path: Path) -> Path | None:
         pairs = [(x, y) for x, y in zip(xs, ys) if x and y]
         if pairs:
             ax.loglog([p[0] for p in pairs], [p[1] for p in pairs], "o-")
+            for x, y in pairs:  # log axes spanning less than a decade have no labelled ticks
+                ax.annotate(fmt(y), (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
         ax.set_title(f"{name} (slope {fmt(s.get('time_exponent'))})", fontsize=9)
         ax.set_xlabel(s.get("unit", name), fontsize=8)
-        ax.set_ylabel("seconds", fontsize=8)
+        ax.set_ylabel("CPU seconds", fontsize=8)
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.tick_params(labelsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
