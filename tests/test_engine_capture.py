@@ -187,3 +187,90 @@ def test_capture_directory_with_bad_intrinsics(tmp_path):
     (tmp_path / "capture.json").write_text(json.dumps({"format": "something-else"}))
     with pytest.raises(CaptureError, match="not a lightfield capture"):
         load_capture(tmp_path)
+
+
+# ---------------------------------------------------------------------------------------
+# Limits reach every decoder, and GIFs are videos
+# ---------------------------------------------------------------------------------------
+def _depth_npz(path, h, w, value=2.0):
+    np.savez(path, depth=np.full((h, w), value, np.float32))
+    return path
+
+
+def test_image_over_the_pixel_limit_is_refused(tmp_path):
+    from core.io import MediaError, MediaLimits
+
+    path, _ = _image(tmp_path, h=24, w=32)  # 768 pixels
+    with pytest.raises(MediaError) as exc:
+        load_capture(path, limits=MediaLimits(max_pixels=700))
+    assert exc.value.code == "too_many_pixels"
+    with pytest.warns(UserWarning):
+        assert load_capture(path, limits=MediaLimits(max_pixels=768)).frames.shape == (1, 24, 32, 3)
+
+
+def test_depth_file_is_read_under_the_limits(tmp_path):
+    from core.io import MediaError, MediaLimits
+
+    path, _ = _image(tmp_path, h=16, w=16)
+    big = _depth_npz(tmp_path / "big.npz", 24, 32)  # a bomb-like depth: more pixels than allowed
+    with pytest.raises(MediaError) as exc:  # refused by the pixel limit, before any size comparison
+        load_capture(path, big, limits=MediaLimits(max_pixels=700))
+    assert exc.value.code == "too_many_pixels"
+    small = _depth_npz(tmp_path / "small.npz", 16, 16)
+    with pytest.raises(MediaError) as exc:
+        load_capture(path, small, limits=MediaLimits(max_bytes=small.stat().st_size - 1))
+    assert exc.value.code == "too_large"
+
+
+def test_capture_directory_depth_obeys_the_limits(tmp_path):
+    from core.io import MediaError, MediaLimits
+
+    write_png(tmp_path / "f.png", np.full((12, 16, 3), 0.5, np.float32))
+    depth = _depth_npz(tmp_path / "depth.npz", 12, 16)
+    (tmp_path / "capture.json").write_text(json.dumps(
+        {"format": "lightfield-capture", "version": 1, "frames": ["f.png"], "depth": "depth.npz"}))
+    frame_bytes = (tmp_path / "f.png").stat().st_size
+    assert depth.stat().st_size > frame_bytes  # so max_bytes between the two refuses only the depth
+    with pytest.raises(MediaError) as exc:
+        load_capture(tmp_path, limits=MediaLimits(max_bytes=frame_bytes))
+    assert exc.value.code == "too_large" and "depth" in str(exc.value)
+
+
+def test_limits_default_to_the_environment(tmp_path, monkeypatch):
+    from core.io import MediaError
+
+    path, _ = _image(tmp_path, h=24, w=32)
+    monkeypatch.setenv("LIGHTFIELD_MAX_PIXELS", "700")
+    with pytest.raises(MediaError) as exc:
+        load_capture(path)
+    assert exc.value.code == "too_many_pixels" and "700" in str(exc.value)
+
+
+def _gif(path, values, duration_ms=100, hw=(24, 32)):
+    from PIL import Image
+
+    frames = [Image.fromarray(np.full((*hw, 3), v, np.uint8)) for v in values]
+    frames[0].save(path, save_all=len(frames) > 1, append_images=frames[1:], duration=duration_ms, loop=0)
+    return path
+
+
+def test_animated_gif_is_read_as_a_video(tmp_path):
+    path = _gif(tmp_path / "clip.gif", (30, 120, 220), duration_ms=100)
+    with pytest.warns(UserWarning):
+        cap = load_capture(path)
+    assert cap.num_frames == 3 and cap.fps == pytest.approx(10.0)
+    assert cap.times.tolist() == pytest.approx([0.0, 0.1, 0.2])
+    means = cap.frames.mean(dim=(1, 2, 3))
+    assert torch.allclose(means, torch.tensor([30, 120, 220]) / 255.0, atol=2 / 255)
+
+
+def test_gif_obeys_frame_and_pixel_limits(tmp_path):
+    from core.io import MediaError, MediaLimits
+
+    path = _gif(tmp_path / "clip.gif", (10, 60, 110, 160, 210, 250))
+    with pytest.warns(UserWarning):
+        cap = load_capture(path, params=CaptureParams(max_frames=3))
+    assert cap.num_frames == 3 and cap.times[-1] > cap.times[0]  # evenly subsampled, source times kept
+    with pytest.raises(MediaError) as exc:
+        load_capture(path, limits=MediaLimits(max_pixels=700))
+    assert exc.value.code == "too_many_pixels"

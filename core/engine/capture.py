@@ -161,21 +161,25 @@ def fill_depth_holes(depth: torch.Tensor, max_iters: int = 64) -> torch.Tensor:
 def _read_image(path: Path, limits: MediaLimits) -> torch.Tensor:
     from core.io import read_image
 
-    return torch.from_numpy(np.ascontiguousarray(read_image(path, limits), dtype=np.float32))
+    return torch.from_numpy(np.ascontiguousarray(read_image(path, limits=limits), dtype=np.float32))
 
 
 def _read_depth(path: Path, limits: MediaLimits) -> torch.Tensor:
     """Depth file (.npz 'depth' / .npy / .exr / 16-bit PNG mm) -> float32 [T,H,W] or [H,W], NaN invalid."""
     from core.io import read_depth
 
-    return torch.from_numpy(np.ascontiguousarray(read_depth(path, limits), dtype=np.float32))
+    return torch.from_numpy(np.ascontiguousarray(read_depth(path, limits=limits), dtype=np.float32))
 
 
 def _sniff(path: Path) -> str | None:
+    """'image', 'video' or None from magic bytes. A GIF is a 'video' (possibly animated), as
+    the service's upload validation classifies it, so every frame is decoded under the limits."""
     from core.io import sniff_media
+    from core.io.sniff import sniff_image
 
     with open(path, "rb") as f:
-        return sniff_media(f.read(64))
+        head = f.read(64)
+    return "video" if sniff_image(head) == "gif" else sniff_media(head)
 
 
 # ---------------------------------------------------------------------------------------
@@ -285,14 +289,16 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
                  limits: MediaLimits | None = None) -> Capture:
     """Load an image, a video or a simulator capture directory (see module docstring).
 
-    `params.max_frames` lowers `limits.max_frames`; longer videos are subsampled evenly by
-    core.io and each kept frame keeps its source time (source index / fps). Poses given for
-    every source frame are subsampled the same way.
+    `limits=None` reads them from the environment (`MediaLimits.from_env`: LIGHTFIELD_MAX_PIXELS
+    etc.), so the CLI honours the same variables as the service. `params.max_frames` lowers
+    `limits.max_frames`; longer videos are subsampled evenly by core.io and each kept frame
+    keeps its source time (source index / fps). Poses given for every source frame are
+    subsampled the same way.
     """
-    from core.io import DEFAULT_LIMITS, read_video
+    from core.io import read_video
 
     params = params or CaptureParams()
-    limits = limits or DEFAULT_LIMITS
+    limits = limits or MediaLimits.from_env()
     if params.max_frames is not None and params.max_frames < limits.max_frames:
         limits = dataclasses.replace(limits, max_frames=params.max_frames)
     path = Path(input_path)
