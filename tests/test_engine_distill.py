@@ -232,6 +232,7 @@ def test_run_job_writes_a_loadable_artefact(tmp_path):
     assert meta["training"]["perceptual"]["kind"] == "ssim"
     assert meta["prior"]["name"] == "reprojection" and meta["simulated"]["point_cloud_builds"] == 1
     assert len(meta["training"]["loss_curve"]) == 5
+    assert meta["training"]["device"] == ("cuda" if torch.cuda.is_available() else "cpu")
     assert {"loading", "prior", "field_render", "optimisation"} <= set(meta["training"]["stage_timings"])
     stages = [e.stage for e in events]
     assert stages[0] == "loading" and stages[-1] == "done"
@@ -252,3 +253,47 @@ def test_run_job_with_the_tiny_diffusion_prior(tmp_path):
     meta = json.loads((out / "lightfield.json").read_text())
     assert meta["prior"]["name"] == "diffusion" and len(meta["training"]["loss_curve"]) == 2
     assert all(torch.isfinite(torch.tensor(meta["training"]["loss_curve"])))
+
+
+# ---------------------------------------------------------------------------------------
+# Device
+# ---------------------------------------------------------------------------------------
+def test_explicit_cpu_device_equals_the_default_here(monkeypatch):
+    from core.engine.config import resolve_device
+
+    monkeypatch.delenv("LIGHTFIELD_DEVICE", raising=False)
+    if torch.cuda.is_available():
+        pytest.skip("'auto' is CUDA on this machine")
+    assert resolve_device("auto") == torch.device("cpu")
+    cap = capture_from_arrays(torch.rand(2, H, W, 3, generator=torch.Generator().manual_seed(4)))
+    runs = []
+    for device in ("auto", "cpu"):
+        prior = ReprojectionPrior(env_height=8)
+        prior.bind(cap)
+        result = distill(cap, prior, tiny(iterations=6, device=device), uses_time=True, seed=5)
+        assert result.stats["device"] == "cpu"
+        runs.append(_weights(result.field))
+    assert all(torch.equal(runs[0][k], runs[1][k]) for k in runs[0])
+
+
+def test_cuda_without_cuda_is_a_clear_error(monkeypatch, tmp_path):
+    from core.engine.config import DeviceError, resolve_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.delenv("LIGHTFIELD_DEVICE", raising=False)
+    with pytest.raises(DeviceError, match=r"DistillConfig\.device='cuda'.*CUDA is not available"):
+        resolve_device("cuda")
+    monkeypatch.setenv("LIGHTFIELD_DEVICE", "cuda:1")  # the environment overrides the config
+    with pytest.raises(DeviceError, match=r"LIGHTFIELD_DEVICE='cuda:1'"):
+        resolve_device("cpu")
+    monkeypatch.setenv("LIGHTFIELD_DEVICE", "tpu")
+    with pytest.raises(DeviceError, match=r"LIGHTFIELD_DEVICE='tpu'"):
+        resolve_device("auto")
+    monkeypatch.setenv("LIGHTFIELD_DEVICE", "cpu")
+    assert resolve_device("cuda") == torch.device("cpu")
+    # run_job refuses before reading its input (the input does not even exist)
+    monkeypatch.delenv("LIGHTFIELD_DEVICE")
+    with pytest.raises(DeviceError, match="device"):
+        run_job(tmp_path / "missing.png", None, JobParams(), tmp_path / "art", config=tiny(iterations=2, device="cuda"))
+    with pytest.raises(ValueError, match="device"):  # malformed values are refused by the schema too
+        tiny(device="gpu")

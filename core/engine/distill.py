@@ -26,7 +26,7 @@ import torch
 from core.chrome_ball import ball_reflection_rays, composite, composite_depth, place_probe, render_balls
 from core.conventions import inverse_tonemap, tonemap, tonemap_unclipped, valid_depth_mask
 from core.engine.capture import Capture, load_capture
-from core.engine.config import DistillConfig, preset
+from core.engine.config import DistillConfig, preset, resolve_device
 from core.engine.losses import PerceptualLoss, masked_l2, perceptual_description
 from core.engine.params import JobParams
 from core.engine.progress import Cancelled, CancelCheck, ProgressCallback, Reporter, StageTimer
@@ -129,11 +129,11 @@ def _save_checkpoint(ckpt_dir: Path, field: LightField, opt: torch.optim.Optimiz
     from safetensors.torch import save_file
 
     ckpt_dir.mkdir(parents=True, exist_ok=True)
-    tensors = {f"field.{k}": v.detach().contiguous() for k, v in field.state_dict().items()}
+    tensors = {f"field.{k}": v.detach().cpu().contiguous() for k, v in field.state_dict().items()}
     sd = opt.state_dict()
     for idx, st in sd["state"].items():
         for key, val in st.items():
-            tensors[f"opt.{idx}.{key}"] = torch.as_tensor(val).detach().clone().contiguous()
+            tensors[f"opt.{idx}.{key}"] = torch.as_tensor(val).detach().cpu().clone().contiguous()
     tensors["rng"] = gen.get_state().clone()
     tensors["losses"] = torch.tensor(losses, dtype=torch.float64)
     tmp = ckpt_dir / (CHECKPOINT_FILE + ".tmp")
@@ -174,7 +174,9 @@ def _load_checkpoint(ckpt_dir: Path, field: LightField, opt: torch.optim.Optimiz
 def _fingerprint(capture: Capture, cfg: DistillConfig, field_cfg: FieldConfig, seed: int, prior: Prior) -> str:
     h = hashlib.sha256()
     h.update(capture.frames.numpy().tobytes()[:: max(1, capture.frames.numel() // 100_000)])
-    h.update(json.dumps([cfg.model_dump(), field_cfg.model_dump(), seed, getattr(prior, "name", "?")], sort_keys=True, default=str).encode())
+    # the device is not part of it: a checkpoint written on a GPU resumes on CPU and back
+    h.update(json.dumps([cfg.model_dump(exclude={"device"}), field_cfg.model_dump(), seed, getattr(prior, "name", "?")],
+                        sort_keys=True, default=str).encode())
     return h.hexdigest()[:32]
 
 
@@ -194,13 +196,18 @@ def distill(
     timings: StageTimer | None = None,
     bounds: SceneBounds | None = None,
 ) -> DistillResult:
-    """Optimise a field on `capture` (already at working resolution; prior already bound)."""
+    """Optimise a field on `capture` (already at working resolution; prior already bound).
+
+    The field, the frames and the per-step tensors live on `resolve_device(cfg.device)`; the
+    random choices (one CPU generator) and the field's initialisation stay on CPU, so a seed
+    gives the same run on any device up to floating-point differences of the device's kernels."""
     reporter = reporter or Reporter(None, None)
     timings = timings or StageTimer()
-    torch.manual_seed(seed)  # field initialisation
+    device = resolve_device(cfg.device)
+    torch.manual_seed(seed)  # field initialisation (on CPU, then moved)
     gen = torch.Generator().manual_seed(seed)
     field_cfg = build_field_config(cfg, field_kind, uses_time)
-    field = build_field(field_cfg, bounds or scene_bounds(capture))
+    field = build_field(field_cfg, bounds or scene_bounds(capture)).to(device)
     opt = torch.optim.Adam(field.parameters(), lr=cfg.lr, betas=cfg.adam_betas)
     fingerprint = _fingerprint(capture, cfg, field_cfg, seed, prior)
 
@@ -209,7 +216,8 @@ def distill(
         restored = _load_checkpoint(Path(checkpoint_dir), field, opt, gen, fingerprint)
         if restored is not None:
             start, losses = restored
-    trainer = _Trainer(capture, inverse_tonemap(capture.frames), prior, field, opt, cfg, gen, PerceptualLoss(), timings)
+    trainer = _Trainer(capture, inverse_tonemap(capture.frames).to(device), capture.depth.to(device), prior, field, opt,
+                       cfg, gen, PerceptualLoss(), timings, device)
     reporter.begin(start)
     with _torch_threads(cfg.threads):
         for step in range(start, cfg.iterations):
@@ -220,8 +228,9 @@ def distill(
                     _save_checkpoint(Path(checkpoint_dir), field, opt, gen, step + 1, losses, fingerprint)
             reporter.step(step + 1, cfg.iterations, losses[-1])
     field.eval()
-    return DistillResult(field, losses, timings, cfg.iterations, resumed_from=start,
-                         stats={"field_config": field_cfg.model_dump(), "perceptual": perceptual_description()})
+    return DistillResult(field.cpu(), losses, timings, cfg.iterations, resumed_from=start,
+                         stats={"field_config": field_cfg.model_dump(), "perceptual": perceptual_description(),
+                                "device": str(device)})
 
 
 @contextmanager
@@ -239,8 +248,9 @@ def _torch_threads(n: int | None):
 class _Trainer:
     """The state one optimisation step needs; `step(k)` runs step k and returns its loss."""
 
-    capture: Capture
-    frames_lin: torch.Tensor  # [T, H, W, 3] ball-free background radiance at ev 0 (no clip boost)
+    capture: Capture  # on CPU: probe sampling and geometry are small, sequential work
+    frames_lin: torch.Tensor  # [T, H, W, 3] ball-free background radiance at ev 0 (no clip boost), on `device`
+    depth: torch.Tensor  # [T, H, W] capture.depth on `device`
     prior: Prior
     field: LightField
     opt: torch.optim.Optimizer
@@ -248,6 +258,7 @@ class _Trainer:
     gen: torch.Generator
     perceptual: PerceptualLoss
     timings: StageTimer
+    device: torch.device
 
     def step(self, step: int) -> float:
         capture, cfg, gen, timings, field = self.capture, self.cfg, self.gen, self.timings, self.field
@@ -266,10 +277,12 @@ class _Trainer:
             rays = ball_reflection_rays(cam, centers, radii, supersample=cfg.supersample)
 
         with timings("field_render"):
-            t_rows = torch.full((rays.direction.shape[0],), t)
+            dev = self.device
+            centers_dev = centers.to(dev)
+            t_rows = torch.full((rays.direction.shape[0],), t, device=dev)
 
             def radiance(directions: torch.Tensor, ball_index: torch.Tensor) -> torch.Tensor:
-                return field(centers[ball_index], t_rows, directions)
+                return field(centers_dev[ball_index.to(dev)], t_rows, directions.to(dev))
 
             layer = render_balls(cam, centers, radii, radiance, rays=rays)
             comp = composite(self.frames_lin[i], layer)
@@ -278,13 +291,15 @@ class _Trainer:
             mask = layer.total_coverage.detach()
 
         with timings("prior"):
+            pd = _prior_device(self.prior)
             probes = ProbeGeometry(centers, radii, pixels.float(), cam, i, t)
             request = PriorRequest(
-                image=image, ball_masks=layer.coverage.detach(), depth=composite_depth(capture.depth[i], layer),
-                ev=ev, tau=tau, steps=cfg.steps_for_tau(tau), guidance_scale=cfg.guidance_scale, probes=probes,
-                generator=gen, extras={"frame_linear": self.frames_lin[i], "ball_rays": rays},
+                image=image.to(pd), ball_masks=layer.coverage.detach().to(pd),
+                depth=composite_depth(self.depth[i], layer).to(pd), ev=ev, tau=tau, steps=cfg.steps_for_tau(tau),
+                guidance_scale=cfg.guidance_scale, probes=probes, generator=gen,
+                extras={"frame_linear": self.frames_lin[i].to(pd), "ball_rays": rays},
             )
-            target = self.prior(request).detach().to(pred.dtype)
+            target = self.prior(request).detach().to(device=pred.device, dtype=pred.dtype)
             target = torch.nan_to_num(target, nan=0.0).clamp(0.0, 1.0)
 
         with timings("optimisation"):
@@ -300,6 +315,13 @@ class _Trainer:
                 torch.nn.utils.clip_grad_norm_(field.parameters(), cfg.grad_clip)
                 self.opt.step()
         return float(loss.detach())
+
+
+def _prior_device(prior: Prior) -> torch.device:
+    """Where a prior wants its request tensors: its own `device` attribute if it declares one,
+    else CPU. The geometric priors (reprojection, known) keep their point clouds and ball
+    geometry on CPU; the diffusion prior moves inputs to its model's device itself."""
+    return torch.device(getattr(prior, "device", None) or "cpu")
 
 
 def _crop_to_mask(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, pad: int):
@@ -346,6 +368,7 @@ def run_job(
     timings = StageTimer()
     reporter = Reporter(progress, should_cancel)
     cfg = config or preset(params.preset)
+    device = resolve_device(cfg.device)  # an unavailable device fails before any work
 
     reporter.stage("loading", 0.0, "reading input")
     with timings("loading"):
@@ -363,6 +386,8 @@ def run_job(
             if params.prior == "reprojection":  # static light + moving camera: pool the views
                 merge = 1 if decision.uses_time or capture.static_camera else REPROJECTION_MERGE_VIEWS
                 kw = {"env_height": cfg.prior_env_height, "merge_views": merge}
+            elif params.prior == "diffusion":
+                kw = {"device": str(device)}
             prior = build_prior(params.prior, weights=params.prior_weights, **kw)
         prior.bind(work)
         bounds = scene_bounds(work)
@@ -391,7 +416,7 @@ def run_job(
             "loss_curve": _decimate(result.losses, LOSS_CURVE_MAX_POINTS),
             "final_loss": result.losses[-1] if result.losses else None,
             "wall_time_s": round(wall, 3),
-            "device": "cpu",
+            "device": result.stats["device"],
             "threads": cfg.threads or torch.get_num_threads(),
             "perceptual": result.stats["perceptual"],
             "stage_timings": timings.as_dict(),

@@ -38,7 +38,7 @@ def _gaussian_window(size: int = 7, sigma: float = 1.5, dtype=torch.float32) -> 
 
 def masked_ssim_loss(pred_ldr: torch.Tensor, target_ldr: torch.Tensor, mask: torch.Tensor, size: int = 7) -> torch.Tensor:
     """1 - SSIM averaged over masked pixels (local statistics with a Gaussian window)."""
-    win = _gaussian_window(size, dtype=pred_ldr.dtype)
+    win = _gaussian_window(size, dtype=pred_ldr.dtype).to(pred_ldr.device)
     x, y = pred_ldr.clamp(0, 1)[None], target_ldr.clamp(0, 1)[None]
     pad = size // 2
 
@@ -92,5 +92,6 @@ class PerceptualLoss:
     def __call__(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         if self._lpips is None:
             return masked_ssim_loss(pred, target, mask)
+        self._lpips.to(pred.device)  # pragma: no cover - no-op once there
         d = self._lpips(pred[None] * 2 - 1, target[None] * 2 - 1, retPerLayer=False, normalize=False)  # pragma: no cover
         return d.mean()  # pragma: no cover
