@@ -165,4 +165,5 @@ def run_bench(opts: BenchOptions) -> dict:
         # only a complete run into the committed results directory refreshes the README
         command = "lightfield bench" + (" --quick" if opts.quick else "")
         report.update_readme(DEFAULT_OUT_DIR.parent / "README.md", results, command)
+        report.update_readme(DEFAULT_OUT_DIR.parents[1] / "README.md", results, command, prefix="bench/results/")
     return results
