@@ -16,6 +16,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
+pytest_plugins = ["diffusion_fixtures"]  # lazy: builds nothing unless a test asks
+
 TENANTS = {"alice": "alice-key-0001", "bob": "bob-key-00002"}
 
 # Tiny, fast jobs: the engine's draft preset cut down to a few steps, checkpointing often so

@@ -20,25 +20,7 @@ from core.priors.diffusion.tiny import TinyConfig
 
 H, W = 40, 56  # deliberately not the model's 32 x 32 nor a multiple of 16
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """The tiny model is too small to gain from intra-op threads; one thread avoids
-    oversubscription (tens of times slower) when other jobs share the CPU."""
-    saved = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(saved)
-
-
-@pytest.fixture(scope="module")
-def tiny_dir(tmp_path_factory):
-    return build_tiny_model(tmp_path_factory.mktemp("tiny_prior"), TinyConfig(resolution=(32, 32)))
-
-
-@pytest.fixture(scope="module")
-def prior(tiny_dir):
-    return DiffusionPrior.from_pretrained(tiny_dir)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/diffusion_fixtures.py
 
 
 @pytest.fixture(scope="module")

@@ -11,30 +11,12 @@ import torch
 from core.camera import Camera, Intrinsics, identity_pose
 from core.chrome_ball import place_probe, render_balls
 from core.priors.base import PriorError, ProbeGeometry
-from core.priors.diffusion import DiffusionPrior, build_tiny_model
-from core.priors.diffusion.tiny import TinyConfig
+from core.priors.diffusion import DiffusionPrior
 
 H, W = 40, 56
 EVS = (0.0, -5.0)
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """The tiny model is too small to gain from intra-op threads (see test_diffusion_prior)."""
-    saved = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(saved)
-
-
-@pytest.fixture(scope="module")
-def tiny_dir(tmp_path_factory):
-    return build_tiny_model(tmp_path_factory.mktemp("tiny_sampling"), TinyConfig(resolution=(32, 32)))
-
-
-@pytest.fixture(scope="module")
-def prior(tiny_dir):
-    return DiffusionPrior.from_pretrained(tiny_dir)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/diffusion_fixtures.py
 
 
 @pytest.fixture(scope="module")

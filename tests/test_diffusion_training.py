@@ -8,10 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from core.priors.diffusion import build_tiny_model
 from core.priors.diffusion.data import BallDataset, StepOrder, TrainingDataError, read_dataset_info
 from core.priors.diffusion.loading import load_components
-from core.priors.diffusion.tiny import TinyConfig
 from core.priors.diffusion.train import (
     TrainConfig,
     TrainConfigError,
@@ -23,6 +21,8 @@ from core.priors.diffusion.train import (
 )
 
 RES = (24, 40)  # dataset resolution (H, W); the tiny model works at 32 x 32 pixels' worth
+
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/diffusion_fixtures.py
 
 
 def write_samples(root: Path, count: int = 3, res=RES, seed: int = 0) -> Path:
@@ -55,21 +55,6 @@ def write_samples(root: Path, count: int = 3, res=RES, seed: int = 0) -> Path:
         (d / "meta.json").write_text(json.dumps({"balls": balls, "intrinsics": {}, "c2w": np.eye(4).ravel().tolist()}))
     (root / "dataset.json").write_text(json.dumps({"format": "lightfield-balls", "version": 1, "count": count, "resolution": list(res)}))
     return root
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """The tiny model is too small to gain from intra-op threads; one thread avoids
-    oversubscription (tens of times slower) when other jobs share the CPU."""
-    saved = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(saved)
-
-
-@pytest.fixture(scope="module")
-def tiny_dir(tmp_path_factory):
-    return build_tiny_model(tmp_path_factory.mktemp("tiny_train"), TinyConfig(resolution=(32, 32)))
 
 
 @pytest.fixture(scope="module")
