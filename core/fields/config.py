@@ -24,12 +24,17 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-class MLPSettings(_Strict):
-    """The paper's MLP: PE(x) 6 freqs, PE(t) 4, PE(d) 4; 6 x 256 ReLU, skip into layer 3."""
+class EncodingSettings(_Strict):
+    """Positional-encoding frequencies of the network kinds: PE(x) 6, PE(t) 4, PE(d) 4."""
 
     x_freqs: int = Field(6, ge=0, le=16)
     t_freqs: int = Field(4, ge=0, le=16)
     d_freqs: int = Field(4, ge=0, le=16)
+
+
+class MLPSettings(EncodingSettings):
+    """The paper's MLP: PE(x) 6 freqs, PE(t) 4, PE(d) 4; 6 x 256 ReLU, skip into layer 3."""
+
     width: int = Field(256, ge=1)
     layers: int = Field(6, ge=1)
     skip_layer: int | None = Field(3, ge=1, description="1-based hidden layer that also receives the input encoding")
@@ -55,12 +60,9 @@ class GridSettings(_Strict):
         return self
 
 
-class TrunkSettings(_Strict):
+class TrunkSettings(EncodingSettings):
     """Faster field: trunk over (x, t) -> feature; head over (feature, PE(d)) -> radiance."""
 
-    x_freqs: int = Field(6, ge=0, le=16)
-    t_freqs: int = Field(4, ge=0, le=16)
-    d_freqs: int = Field(4, ge=0, le=16)
     trunk_width: int = Field(128, ge=1)
     trunk_layers: int = Field(3, ge=1)
     feature_dim: int = Field(64, ge=1)
