@@ -16,6 +16,7 @@ Hard inputs, by design:
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import torch
 from torch import nn
@@ -27,6 +28,11 @@ from core.fields.normalization import SceneBounds
 # Rows per forward call in `envmaps`: bounds peak memory (the paper MLP keeps ~7 activations
 # of width 256 per row: 2^16 rows ~ 0.5 GB in training mode, far less under inference_mode).
 DEFAULT_CHUNK_ROWS = 1 << 16
+
+# An untrained field answers about this radiance everywhere (small output weights), so the
+# first renders are a plain grey room rather than random 12-decade noise.
+INITIAL_RADIANCE = 1.0
+OUTPUT_WEIGHT_SCALE = 0.1
 
 
 class LightField(nn.Module):
@@ -79,6 +85,12 @@ class LightField(nn.Module):
         lo, hi = self.config.log_radiance_min, self.config.log_radiance_max
         s = min(max((math.log(max(radiance, 1e-30)) - lo) / (hi - lo), 1e-6), 1 - 1e-6)
         return math.log(s / (1 - s))
+
+    def _start_near_initial_radiance(self, output: nn.Linear) -> None:
+        """Shrink the last layer's weights and set its bias to the logit of INITIAL_RADIANCE."""
+        with torch.no_grad():
+            output.weight.mul_(OUTPUT_WEIGHT_SCALE)
+            output.bias.fill_(self.logit_for_radiance(INITIAL_RADIANCE))
 
     # ------------------------------------------------------------------ evaluation
     def logits(self, xn: torch.Tensor, tn: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
@@ -135,6 +147,13 @@ class LightField(nn.Module):
                 d_rows = dirs[None, k0:k1].expand(n_p, n_k, 3).reshape(-1, 3)
                 out[p0:p1, k0:k1] = self.logits(x_rows, t_rows, d_rows).reshape(n_p, n_k, 3)
         return out
+
+
+def probe_chunks(n_probes: int, n_dirs: int, chunk_rows: int) -> Iterator[slice]:
+    """Slices of whole probes whose (probe, direction) rows fit in `chunk_rows` (>= 1 probe each):
+    the chunking of the kinds that evaluate all directions of a probe at once."""
+    step = max(1, chunk_rows // n_dirs)
+    return (slice(p0, p0 + step) for p0 in range(0, n_probes, step))
 
 
 def unit_directions(d: torch.Tensor) -> torch.Tensor:

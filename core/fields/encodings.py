@@ -6,6 +6,8 @@ import math
 import torch
 from torch import nn
 
+from core.fields.config import EncodingSettings
+
 
 class PositionalEncoding(nn.Module):
     """NeRF positional encoding: [v, sin(2^k pi v), cos(2^k pi v)] for k < n_freqs.
@@ -38,6 +40,14 @@ class PositionalEncoding(nn.Module):
         if not parts:
             return v.new_zeros(*v.shape[:-1], 0)
         return torch.cat(parts, dim=-1)
+
+
+def nerf_encodings(
+    settings: EncodingSettings, uses_time: bool
+) -> tuple[PositionalEncoding, PositionalEncoding | None, PositionalEncoding]:
+    """PE(x), PE(t) (None for a field without a time input) and PE(d) at the settings' frequencies."""
+    pe_t = PositionalEncoding(1, settings.t_freqs) if uses_time else None
+    return PositionalEncoding(3, settings.x_freqs), pe_t, PositionalEncoding(3, settings.d_freqs)
 
 
 class DenseGridEncoding(nn.Module):

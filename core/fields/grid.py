@@ -16,12 +16,10 @@ import torch
 from torch import nn
 
 from core.conventions import direction_to_equirect_pixel, equirect_directions, equirect_width
-from core.fields.base import LightField
+from core.fields.base import INITIAL_RADIANCE, LightField, probe_chunks
 from core.fields.config import FieldConfig
 from core.fields.encodings import lattice_corners
 from core.fields.normalization import SceneBounds
-
-INITIAL_RADIANCE = 1.0
 
 
 class GridField(LightField):
@@ -59,9 +57,8 @@ class GridField(LightField):
         pix, w_pix = equirect_stencil(dirs, h)  # [N, 4]
         padded = pad_poles(blended)  # [P, texels, 3]
         out = xn.new_empty(xn.shape[0], dirs.shape[0], 3)
-        step = max(1, chunk_rows // dirs.shape[0])
-        for p0 in range(0, xn.shape[0], step):
-            out[p0 : p0 + step] = (w_pix[None, :, :, None] * padded[p0 : p0 + step, pix]).sum(2)
+        for sl in probe_chunks(xn.shape[0], dirs.shape[0], chunk_rows):
+            out[sl] = (w_pix[None, :, :, None] * padded[sl, pix]).sum(2)
         return out
 
 

@@ -10,24 +10,17 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from core.fields.base import LightField
+from core.fields.base import LightField, probe_chunks
 from core.fields.config import FieldConfig
-from core.fields.encodings import PositionalEncoding
+from core.fields.encodings import nerf_encodings
 from core.fields.normalization import SceneBounds
-
-# The untrained field starts near this radiance everywhere (small output weights), so the
-# first renders are a plain grey room rather than random 12-decade noise.
-INITIAL_RADIANCE = 1.0
-OUTPUT_WEIGHT_SCALE = 0.1
 
 
 class MLPField(LightField):
     def __init__(self, config: FieldConfig, bounds: SceneBounds):
         super().__init__(config, bounds)
         s = config.mlp
-        self.pe_x = PositionalEncoding(3, s.x_freqs)
-        self.pe_t = PositionalEncoding(1, s.t_freqs) if config.uses_time else None
-        self.pe_d = PositionalEncoding(3, s.d_freqs)
+        self.pe_x, self.pe_t, self.pe_d = nerf_encodings(s, config.uses_time)
         enc_dim = self.pe_x.out_dim + (self.pe_t.out_dim if self.pe_t else 0) + self.pe_d.out_dim
         self.encoding_dim = enc_dim
         self.skip_layer = s.skip_layer
@@ -39,9 +32,7 @@ class MLPField(LightField):
             layers.append(nn.Linear(fan_in, s.width))
         self.layers = nn.ModuleList(layers)
         self.output = nn.Linear(s.width, 3)
-        with torch.no_grad():
-            self.output.weight.mul_(OUTPUT_WEIGHT_SCALE)
-            self.output.bias.fill_(self.logit_for_radiance(INITIAL_RADIANCE))
+        self._start_near_initial_radiance(self.output)
 
     def encode(self, xn: torch.Tensor, tn: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
         """[PE(xn), PE(tn), PE(d)]: probe part first, direction part last (see _envmap_logits)."""
@@ -89,8 +80,6 @@ class MLPField(LightField):
     def _envmap_logits(self, xn, tn, dirs, chunk_rows: int) -> torch.Tensor:
         terms = self._split_encoding_layers(self._probe_encoding(xn, tn), self.pe_d(dirs))
         out = xn.new_empty(xn.shape[0], dirs.shape[0], 3)
-        step = max(1, chunk_rows // dirs.shape[0])
-        for p0 in range(0, xn.shape[0], step):
-            sl = slice(p0, p0 + step)
+        for sl in probe_chunks(xn.shape[0], dirs.shape[0], chunk_rows):
             out[sl] = self._layers_from_terms(lambda i: terms[i][0][sl, None] + terms[i][1][None])
         return out

@@ -11,32 +11,24 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from core.fields.base import LightField
+from core.fields.base import LightField, probe_chunks
 from core.fields.config import FieldConfig
-from core.fields.encodings import DenseGridEncoding, PositionalEncoding
+from core.fields.encodings import DenseGridEncoding, nerf_encodings
 from core.fields.normalization import SceneBounds
-
-INITIAL_RADIANCE = 1.0
-OUTPUT_WEIGHT_SCALE = 0.1
 
 
 class TrunkField(LightField):
     def __init__(self, config: FieldConfig, bounds: SceneBounds):
         super().__init__(config, bounds)
         s = config.trunk
-        self.pe_x = PositionalEncoding(3, s.x_freqs)
-        self.pe_t = PositionalEncoding(1, s.t_freqs) if config.uses_time else None
-        self.pe_d = PositionalEncoding(3, s.d_freqs)
+        self.pe_x, self.pe_t, self.pe_d = nerf_encodings(s, config.uses_time)
         self.x_grid = DenseGridEncoding(s.x_grid, s.x_grid_features) if s.x_grid is not None else None
         trunk_in = self.pe_x.out_dim + (self.pe_t.out_dim if self.pe_t else 0)
         trunk_in += self.x_grid.out_dim if self.x_grid is not None else 0
         self.trunk = _relu_mlp(trunk_in, s.trunk_width, s.trunk_layers, s.feature_dim)
         self.head_in = nn.Linear(s.feature_dim + self.pe_d.out_dim, s.head_width)
         self.head = _relu_mlp(s.head_width, s.head_width, s.head_layers - 1, 3, relu_input=True)
-        last = self.head[-1]
-        with torch.no_grad():
-            last.weight.mul_(OUTPUT_WEIGHT_SCALE)
-            last.bias.fill_(self.logit_for_radiance(INITIAL_RADIANCE))
+        self._start_near_initial_radiance(self.head[-1])
 
     def features(self, xn: torch.Tensor, tn: torch.Tensor | None) -> torch.Tensor:
         parts = [self.pe_x(xn)] + ([self.pe_t(tn)] if self.pe_t is not None else [])
@@ -60,9 +52,8 @@ class TrunkField(LightField):
     def _envmap_logits(self, xn, tn, dirs, chunk_rows: int) -> torch.Tensor:
         per_probe, per_dir = self._split_head_input(xn, tn, dirs)
         out = xn.new_empty(xn.shape[0], dirs.shape[0], 3)
-        step = max(1, chunk_rows // dirs.shape[0])
-        for p0 in range(0, xn.shape[0], step):
-            out[p0 : p0 + step] = self.head(per_probe[p0 : p0 + step, None] + per_dir[None])
+        for sl in probe_chunks(xn.shape[0], dirs.shape[0], chunk_rows):
+            out[sl] = self.head(per_probe[sl, None] + per_dir[None])
         return out
 
 
