@@ -103,6 +103,14 @@ def _to_bgr(a: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(a, cv2.COLOR_RGBA2BGRA if a.shape[2] == 4 else cv2.COLOR_RGB2BGR)
 
 
+def _png_bytes(a: np.ndarray) -> bytes:
+    """PNG bytes of a checked uint8/uint16 RGB(A) or grey array (cv2 wants BGR order)."""
+    ok, buf = cv2.imencode(".png", _to_bgr(np.ascontiguousarray(a)))
+    if not ok:
+        raise MediaError("shape_mismatch", f"PNG encoder refused an array of shape {a.shape}")
+    return buf.tobytes()
+
+
 def encode_png(ldr: np.ndarray) -> bytes:
     """8-bit PNG bytes from float in [0, 1] (clipped, rounded) or uint8, RGB(A) or grey."""
     a = _check_image_array(ldr, "PNG image")
@@ -111,10 +119,7 @@ def encode_png(ldr: np.ndarray) -> bytes:
         if not np.isfinite(a).all():
             raise MediaError("non_finite", f"PNG image has {int((~np.isfinite(a)).sum())} NaN/inf values")
         a = np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
-    ok, buf = cv2.imencode(".png", _to_bgr(np.ascontiguousarray(a)))
-    if not ok:
-        raise MediaError("shape_mismatch", f"PNG encoder refused an array of shape {a.shape}")
-    return buf.tobytes()
+    return _png_bytes(a)
 
 
 def write_png(path: str | os.PathLike, ldr: np.ndarray) -> Path:
@@ -132,10 +137,7 @@ def encode_png16(array: np.ndarray) -> bytes:
         if a.size and (a.min() < 0 or a.max() > 65535):
             raise MediaError("shape_mismatch", f"16-bit PNG values must be in 0..65535, got {a.min()}..{a.max()}")
         a = a.astype(np.uint16)
-    ok, buf = cv2.imencode(".png", _to_bgr(np.ascontiguousarray(a)))
-    if not ok:
-        raise MediaError("shape_mismatch", f"PNG encoder refused an array of shape {a.shape}")
-    return buf.tobytes()
+    return _png_bytes(a)
 
 
 def write_png16(path: str | os.PathLike, array: np.ndarray) -> Path:
