@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -142,16 +143,23 @@ class ServiceStack:
             self.redis.stop()
 
 
-@pytest.fixture(scope="session")
-def service_stack(tmp_path_factory):
-    """One stack for the whole session (tests that break things build their own)."""
-    stack = ServiceStack(tmp_path_factory.mktemp("stack"))
+@contextmanager
+def running_stack(root: Path, extra_env: dict[str, str] | None = None, workers: int = 1):
+    """A started stack whose workers answer /readyz, stopped on exit whatever happens."""
+    stack = ServiceStack(root, extra_env=dict(extra_env or {}))
     try:
-        stack.start(workers=1)
+        stack.start(workers=workers)
         stack.wait_ready()
         yield stack
     finally:
         stack.stop()
+
+
+@pytest.fixture(scope="session")
+def service_stack(tmp_path_factory):
+    """One stack for the whole session (tests that break things build their own)."""
+    with running_stack(tmp_path_factory.mktemp("stack")) as stack:
+        yield stack
 
 
 @pytest.fixture

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import TENANTS, wait_until
+from conftest import TENANTS, running_stack, wait_until
 from core.conventions import CONVENTIONS_SUMMARY, tonemap
 
 pytestmark = pytest.mark.slow
@@ -219,15 +219,8 @@ LONG_DISTILL = json.dumps({"iterations": LONG_ITERATIONS, "checkpoint_every": 4,
 @pytest.fixture(scope="module")
 def long_stack(tmp_path_factory):
     """A stack whose jobs run long enough to be cancelled or killed mid-run."""
-    from conftest import ServiceStack
-
-    stack = ServiceStack(tmp_path_factory.mktemp("long"), extra_env={"LIGHTFIELD_DISTILL_OVERRIDES": LONG_DISTILL})
-    try:
-        stack.start(workers=1)
-        stack.wait_ready()
+    with running_stack(tmp_path_factory.mktemp("long"), {"LIGHTFIELD_DISTILL_OVERRIDES": LONG_DISTILL}) as stack:
         yield stack
-    finally:
-        stack.stop()
 
 
 def test_cancel_stops_a_running_job_within_seconds(long_stack, tiny_image):

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import TENANTS, ServiceStack, wait_until
+from conftest import TENANTS, running_stack, wait_until
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")
@@ -58,13 +58,8 @@ def switch_capture(tmp_path_factory) -> tuple[Path, dict]:
 
 @pytest.fixture(scope="module")
 def ui_stack(tmp_path_factory):
-    stack = ServiceStack(tmp_path_factory.mktemp("ui-stack"), extra_env={"LIGHTFIELD_DISTILL_OVERRIDES": UI_DISTILL})
-    try:
-        stack.start(workers=1)
-        stack.wait_ready()
+    with running_stack(tmp_path_factory.mktemp("ui-stack"), {"LIGHTFIELD_DISTILL_OVERRIDES": UI_DISTILL}) as stack:
         yield stack
-    finally:
-        stack.stop()
 
 
 @pytest.fixture(scope="module")
