@@ -8,7 +8,7 @@ and differentiable with respect to the map (and, for `sample_envmap`, the direct
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import torch
 
@@ -125,6 +125,62 @@ def mirror_envmap(envmap: torch.Tensor, axis: str) -> torch.Tensor:
 # ---------------------------------------------------------------------------------------
 # Sampling
 # ---------------------------------------------------------------------------------------
+class EquirectTaps(NamedTuple):
+    """Bilinear taps of directions on the pole-padded layout of `pad_poles`.
+
+    upper_row: padded row above the direction (0 = north pole row, 1..H = map rows,
+    H + 1 = south pole row; the lower tap is upper_row + 1), long; row_weight: weight of the
+    lower row; col0 / col1: left / right column (wrapped at the seam), long; col_weight:
+    weight of col1. Between the first (last) row centre and the pole the value blends
+    towards the pole row, so sampling is continuous everywhere, poles included.
+    """
+
+    upper_row: torch.Tensor
+    row_weight: torch.Tensor
+    col0: torch.Tensor
+    col1: torch.Tensor
+    col_weight: torch.Tensor
+
+
+def equirect_taps(d: torch.Tensor, height: int) -> EquirectTaps:
+    """The taps of directions d [..., 3] (finite; need not be unit) on an h x 2h map."""
+    h, w = int(height), equirect_width(height)
+    row, col = direction_to_equirect_pixel(d, h)
+    row = row.clamp(-0.5, h - 0.5)
+    in_top, in_bottom = row < 0.0, row > h - 1
+    r0 = torch.floor(row).clamp(0, max(h - 2, 0))
+    t_row = row - r0
+    upper = r0 + 1  # padded index of the upper row
+    # polar caps: between the pole (at row -1/2 / H - 1/2) and the nearest row centre
+    upper = torch.where(in_top, torch.zeros_like(upper), upper)
+    t_row = torch.where(in_top, (row + 0.5) / 0.5, t_row)
+    upper = torch.where(in_bottom, torch.full_like(upper, h), upper)
+    t_row = torch.where(in_bottom, (row - (h - 1)) / 0.5, t_row)
+    c0f = torch.floor(col)
+    c0 = c0f.long().remainder(w)
+    return EquirectTaps(upper.long(), t_row, c0, (c0 + 1).remainder(w), col - c0f)
+
+
+def pad_poles(maps: torch.Tensor) -> torch.Tensor:
+    """[M, h, w, C] -> [M, (h + 2) * w, C] with a pole row (the mean of the first / last row)
+    above and below: the layout `equirect_taps` and `equirect_stencil` index."""
+    top = maps[:, :1].mean(dim=2, keepdim=True).expand(-1, 1, maps.shape[2], -1)
+    bottom = maps[:, -1:].mean(dim=2, keepdim=True).expand(-1, 1, maps.shape[2], -1)
+    return torch.cat((top, maps, bottom), dim=1).reshape(maps.shape[0], -1, maps.shape[-1])
+
+
+def equirect_stencil(d: torch.Tensor, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """`sample_envmap` as a gather: (texel index into the padded layout [N, 4] long, weight
+    [N, 4]) for unit directions d [N, 3], so one call can read a different map per row."""
+    w = equirect_width(height)
+    upper, t_row, c0, c1, t_col = equirect_taps(d, height)
+    index = torch.stack((upper * w + c0, upper * w + c1, (upper + 1) * w + c0, (upper + 1) * w + c1), dim=-1)
+    weight = torch.stack(
+        ((1 - t_row) * (1 - t_col), (1 - t_row) * t_col, t_row * (1 - t_col), t_row * t_col), dim=-1
+    )
+    return index, weight.to(d.dtype)
+
+
 def sample_envmap(envmap: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """Bilinear radiance lookup for directions d [..., 3] (need not be unit) -> [..., 3].
 
@@ -140,33 +196,11 @@ def sample_envmap(envmap: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         raise EnvmapError(f"directions must have shape [..., 3], got {tuple(d.shape)}")
     finite = torch.isfinite(d).all(dim=-1)
     d_safe = torch.where(finite[..., None], d, torch.zeros_like(d))
-    row, col = direction_to_equirect_pixel(d_safe.to(torch.promote_types(d.dtype, torch.float32)), h)
-
-    # Padded rows: index 0 = north pole (mean of row 0), 1..H = map rows, H + 1 = south pole.
-    top = envmap[:1].mean(dim=1, keepdim=True).expand(1, w, 3)
-    bottom = envmap[-1:].mean(dim=1, keepdim=True).expand(1, w, 3)
-    padded = torch.cat((top, envmap, bottom), dim=0).reshape(-1, 3)
-
-    row = row.clamp(-0.5, h - 0.5)
-    in_top = row < 0.0
-    in_bottom = row > h - 1
-    r0 = torch.floor(row).clamp(0, max(h - 2, 0))
-    t_row = row - r0
-    lo = r0 + 1  # padded index of the upper neighbour
-    # polar caps: between the pole (at row -1/2 / H - 1/2) and the nearest row centre
-    lo = torch.where(in_top, torch.zeros_like(lo), lo)
-    t_row = torch.where(in_top, (row + 0.5) / 0.5, t_row)
-    lo = torch.where(in_bottom, torch.full_like(lo, h), lo)
-    t_row = torch.where(in_bottom, (row - (h - 1)) / 0.5, t_row)
-    hi = lo + 1
-
-    c0 = torch.floor(col)
-    t_col = (col - c0)[..., None]
-    c0 = c0.long().remainder(w)
-    c1 = (c0 + 1).remainder(w)
-    lo_i, hi_i = lo.long(), hi.long()
+    lo_i, t_row, c0, c1, t_col = equirect_taps(d_safe.to(torch.promote_types(d.dtype, torch.float32)), h)
+    hi_i = lo_i + 1
+    padded = pad_poles(envmap[None])[0]
     t_row = t_row[..., None].to(envmap.dtype)
-    t_col = t_col.to(envmap.dtype)
+    t_col = t_col[..., None].to(envmap.dtype)
 
     def at(r, c):
         return padded[r * w + c]

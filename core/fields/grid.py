@@ -6,8 +6,8 @@ input, `time_keyframes` such lattices span the capture's time range. L(x, t, d) 
 multilinear over (t, x, y, z) and bilinear over d, in the logit domain (so interpolation
 is geometric in radiance, like the other kinds' log-space outputs).
 
-Direction sampling follows `core.envmap.sample_envmap` exactly (seam wrap, pole caps that
-blend to the row mean), re-implemented here as a gather stencil so one call can read
+Direction sampling is `core.envmap.sample_envmap`'s rule (seam wrap, pole caps that blend
+to the row mean) as the gather stencil `core.envmap.equirect_stencil`, so one call can read
 a different map per row; tests check the two agree.
 """
 from __future__ import annotations
@@ -15,7 +15,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from core.conventions import direction_to_equirect_pixel, equirect_directions, equirect_width
+from core.conventions import equirect_directions, equirect_width
+from core.envmap import equirect_stencil, pad_poles
 from core.fields.base import INITIAL_RADIANCE, LightField, probe_chunks
 from core.fields.config import FieldConfig
 from core.fields.encodings import lattice_corners
@@ -60,44 +61,6 @@ class GridField(LightField):
         for sl in probe_chunks(xn.shape[0], dirs.shape[0], chunk_rows):
             out[sl] = (w_pix[None, :, :, None] * padded[sl, pix]).sum(2)
         return out
-
-
-def pad_poles(maps: torch.Tensor) -> torch.Tensor:
-    """[M, h, w, 3] -> [M, (h + 2) * w, 3] with a pole row (the mean of the first / last row)
-    above and below, the layout `equirect_stencil` indexes."""
-    top = maps[:, :1].mean(dim=2, keepdim=True).expand(-1, 1, maps.shape[2], -1)
-    bottom = maps[:, -1:].mean(dim=2, keepdim=True).expand(-1, 1, maps.shape[2], -1)
-    return torch.cat((top, maps, bottom), dim=1).reshape(maps.shape[0], -1, maps.shape[-1])
-
-
-def equirect_stencil(d: torch.Tensor, height: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Bilinear taps of unit directions d [N, 3] on a pole-padded h x 2h map.
-
-    Returns (texel index into the (h + 2) x 2h padded layout [N, 4] long, weight [N, 4]).
-    Same rule as core.envmap.sample_envmap: columns wrap at the seam; between the first
-    (last) row centre and the pole the value blends towards the pole row.
-    """
-    h, w = int(height), equirect_width(height)
-    row, col = direction_to_equirect_pixel(d, h)
-    row = row.clamp(-0.5, h - 0.5)
-    in_top, in_bottom = row < 0.0, row > h - 1
-    r0 = torch.floor(row).clamp(0, max(h - 2, 0))
-    t_row = row - r0
-    upper = r0 + 1  # padded index of the upper row
-    upper = torch.where(in_top, torch.zeros_like(upper), upper)
-    t_row = torch.where(in_top, (row + 0.5) / 0.5, t_row)
-    upper = torch.where(in_bottom, torch.full_like(upper, h), upper)
-    t_row = torch.where(in_bottom, (row - (h - 1)) / 0.5, t_row)
-    upper = upper.long()
-    c0f = torch.floor(col)
-    t_col = col - c0f
-    c0 = c0f.long().remainder(w)
-    c1 = (c0 + 1).remainder(w)
-    index = torch.stack((upper * w + c0, upper * w + c1, (upper + 1) * w + c0, (upper + 1) * w + c1), dim=-1)
-    weight = torch.stack(
-        ((1 - t_row) * (1 - t_col), (1 - t_row) * t_col, t_row * (1 - t_col), t_row * t_col), dim=-1
-    )
-    return index, weight.to(d.dtype)
 
 
 def _prod(values) -> int:
