@@ -8,11 +8,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core.conventions import equirect_directions
-from core.envmap import sample_envmap
+from core.envmap import equirect_stencil, pad_poles, sample_envmap
 from core.fields import FieldConfig, SceneBounds, build_field, field_preset
 from core.fields.config import GridSettings, MLPSettings, TrunkSettings
 from core.fields.encodings import PositionalEncoding, lattice_corners, multilinear_lookup
-from core.fields.grid import equirect_stencil, pad_poles
 
 KINDS = ["mlp", "grid", "trunk", "trunk+grid"]
 BOUNDS = SceneBounds((-2.0, -1.0, -4.0), (2.0, 2.0, 0.5), t0=0.0, t1=3.0)

@@ -28,9 +28,8 @@ from safetensors.torch import save_file
 
 from core.conventions import equirect_directions, equirect_width
 from core.engine.artefact import ArtefactError, LightFieldArtefact, QueryError, check_height, extrapolation_flags
-from core.envmap import resize_envmap
+from core.envmap import equirect_stencil, pad_poles, resize_envmap
 from core.fields.encodings import lattice_corners
-from core.fields.grid import equirect_stencil, pad_poles
 from core.fields.normalization import SceneBounds
 
 BAKED_FILE = "baked.safetensors"
