@@ -96,6 +96,9 @@ def run(args: argparse.Namespace) -> int:
           f"  env maps     {env_dir}  (probeK_estimate.exr; probeK_estimate_vs_truth.png: top estimate, bottom truth)\n"
           f"  preview      {preview}\n"
           f"  summary      {out / 'summary.json'}")
+    if not args.no_service:  # the job record persists with the data dir
+        print(f"query it again: LIGHTFIELD_DATA_DIR={out / 'service'} lightfield serve, then\n"
+              f"  curl 'http://127.0.0.1:8000/lightfield/{backend.job_id}/envmap?x=1.6,0.3,2.0&format=png' -o env.png")
     return 0
 
 
