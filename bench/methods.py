@@ -18,7 +18,6 @@ exposure sampling is a `DistillConfig` subclass whose `ev_at(step)` draws ev uni
 """
 from __future__ import annotations
 
-import random
 import statistics
 import time
 from dataclasses import dataclass, field
@@ -33,13 +32,6 @@ from core.engine.config import DistillConfig
 from core.envmap import resize_envmap
 
 Family = Literal["global", "per-probe", "field"]
-
-
-class UniformExposureConfig(DistillConfig):
-    """The paper's ablation: ev ~ U[ev_min, 0] at every step instead of the linear sweep."""
-
-    def ev_at(self, step: int) -> float:
-        return self.ev_min * random.Random(f"uniform-ev:{step}").random()
 
 
 @dataclass(frozen=True)
@@ -59,8 +51,8 @@ class Method:
         data = {**base.model_dump(), **dict(self.overrides), "name": self.name}
         if self.field is not None:
             data["field_kind"] = self.field
-        cls = UniformExposureConfig if self.exposure == "uniform" else DistillConfig
-        return cls.model_validate(data)
+        data["ev_schedule"] = self.exposure
+        return DistillConfig.model_validate(data)
 
     @property
     def training_key(self) -> tuple:

@@ -56,6 +56,16 @@ def test_capture_params_are_a_subset_of_job_params():
     assert set(CaptureParams.model_fields) <= set(JobParams.model_fields)
 
 
+def test_uniform_exposure_ablation_covers_the_range_and_repeats_per_step():
+    sweep = preset("draft")
+    uniform = sweep.model_copy(update={"ev_schedule": "uniform"})
+    evs = [uniform.ev_at(s) for s in range(200)]
+    assert all(sweep.ev_min <= e <= 0.0 for e in evs)
+    assert min(evs) < 0.8 * sweep.ev_min and max(evs) > 0.2 * sweep.ev_min  # spread, not a sweep
+    assert any(b > a for a, b in zip(evs, evs[1:]))  # not monotone like the sweep
+    assert evs == [uniform.ev_at(s) for s in range(200)]  # a resumed run sees the same exposures
+
+
 def test_presets_schedules():
     for name, cfg in PRESETS.items():
         assert cfg.ev_at(0) == 0.0

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import random
 import re
 from typing import Literal
 
@@ -42,6 +43,8 @@ class DistillConfig(BaseModel):
     probe_depth_fraction: tuple[float, float] = (0.5, 0.95)
     ev_min: float = Field(DEFAULT_EV_MIN, le=0.0)
     ev_sweep_fraction: float = Field(1.0, gt=0, le=1.0, description="ev reaches ev_min after this fraction of steps")
+    ev_schedule: Literal["sweep", "uniform"] = Field(
+        "sweep", description="'sweep' (paper): linear 0 -> ev_min; 'uniform' (the paper's ablation): ev ~ U[ev_min, 0] each step")
     guidance_scale: float = 12.5
     tau_max: float = 1.0
     lr: float = Field(5e-3, gt=0)
@@ -65,7 +68,10 @@ class DistillConfig(BaseModel):
 
     # ------------------------------------------------------------------ schedules
     def ev_at(self, step: int) -> float:
-        """Linear sweep 0 -> ev_min over the first ev_sweep_fraction of the steps."""
+        """Linear sweep 0 -> ev_min over the first ev_sweep_fraction of the steps, or (ablation)
+        a uniform draw in [ev_min, 0] that depends only on the step, so a resumed run repeats it."""
+        if self.ev_schedule == "uniform":
+            return self.ev_min * random.Random(f"uniform-ev:{step}").random()
         span = max(1, round(self.iterations * self.ev_sweep_fraction) - 1)
         return self.ev_min * min(1.0, step / span)
 

@@ -279,10 +279,11 @@ class _Trainer:
         with timings("field_render"):
             dev = self.device
             centers_dev = centers.to(dev)
-            t_rows = torch.full((rays.direction.shape[0],), t, device=dev)
+            t_probes = torch.full((centers.shape[0],), t, device=dev)
 
             def radiance(directions: torch.Tensor, ball_index: torch.Tensor) -> torch.Tensor:
-                return field(centers_dev[ball_index.to(dev)], t_rows, directions.to(dev))
+                # per-probe work (trunk, encodings of x and t) once per ball, not per ball sample
+                return field.probe_radiance(centers_dev, t_probes, ball_index.to(dev), directions.to(dev))
 
             layer = render_balls(cam, centers, radii, radiance, rays=rays)
             comp = composite(self.frames_lin[i], layer)
