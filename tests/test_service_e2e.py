@@ -212,7 +212,9 @@ def test_deleting_a_finished_job_removes_record_and_artefacts(stack, tiny_image)
 
 
 # -- resilience: a stack per test, with longer jobs ------------------------------------------
-LONG_ITERATIONS = 160
+# Long enough that an idle machine is still mid-run after the 5 s lease check (160 steps
+# finished within it); short enough that a loaded CI machine finishes the resumed job.
+LONG_ITERATIONS = 800
 LONG_DISTILL = json.dumps({"iterations": LONG_ITERATIONS, "checkpoint_every": 4, "work_height": 24, "warmup_steps": 2})
 
 
@@ -260,7 +262,7 @@ def test_kill_9_worker_mid_job_resumes_from_checkpoint(long_stack, tiny_image):
         assert mid["iteration"] < mid["total"] - 8, "job too fast to kill mid-run; raise its iterations"
         stack.workers[0].send_signal(signal.SIGKILL)
         stack.workers[0].wait(timeout=10)
-        final = wait_job(c, job, timeout_s=120)
+        final = wait_job(c, job, timeout_s=400)
         assert final["state"] == "succeeded", (final, stack.log("worker1"))
         assert final["attempts"] == 2 and final["resumed"] is True
         training = c.get(f"/lightfield/{job}").json()["metadata"]["training"]
