@@ -32,7 +32,7 @@ pytestmark = [
 ]
 
 # Enough steps for the draft field to learn the switch (24, the shared stack's setting, is not).
-UI_DISTILL = '{"iterations": 80, "checkpoint_every": 1000, "work_height": 24, "warmup_steps": 4}'
+UI_DISTILL = '{"iterations": 200, "checkpoint_every": 1000, "work_height": 24, "warmup_steps": 4}'
 SWITCH_FRAME = 8  # core.sim.suites.PANEL_OFF_FRAME
 BEFORE_FRAME, AFTER_FRAME = 4, 12
 CAPTURE_SIZE = (48, 36)
