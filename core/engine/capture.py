@@ -7,13 +7,15 @@ Defaults when the user gives nothing (recorded in `Capture.warnings` / `depth_so
 * depth: the given file, else the geometric assumption `assumed_box_depth` (a 5 x 3 x 4 m box
   room seen from a camera 1.5 m above the floor looking at the back wall; the SCALE IS
   ARBITRARY and so is the geometry — good enough to place probes and splat colours, not a
-  measurement). An optional depth estimator is not built (see docs/engine.md).
+  measurement); or, when the env var `DEPTH_MODEL_ENV` (LIGHTFIELD_DEPTH_MODEL) names a
+  local model directory, a learned estimator (`core.engine.depth_model`, relative scale).
 """
 from __future__ import annotations
 
 import dataclasses
 import json
 import math
+import os
 import warnings as _warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +31,7 @@ from core.io.limits import MediaLimits
 # Depth with fewer valid pixels than this (per frame) is hole-filled with a warning.
 MIN_VALID_DEPTH_FRACTION = 0.5
 ASSUMED_DEPTH_SOURCE = "assumed:box-room 5x3x4 m, camera 1.5 m above floor, arbitrary scale"
+DEPTH_MODEL_ENV = "LIGHTFIELD_DEPTH_MODEL"
 
 
 class CaptureError(ValueError):
@@ -285,6 +288,15 @@ def _resolve_depth(depth, T: int, H: int, W: int, intr: Intrinsics, source: str 
     return d, source or "file"
 
 
+def _estimate_depth(frames: torch.Tensor, intr: Intrinsics, model_dir: str, warn: list[str]) -> tuple[torch.Tensor, str]:
+    from core.engine.depth_model import load_depth_estimator
+
+    estimator = load_depth_estimator(model_dir)
+    warn.append(f"no depth given: estimated by the model in {DEPTH_MODEL_ENV} ({estimator.depth_source}); "
+                "probe placement and reprojection are approximate")
+    return estimator(frames, intr), estimator.depth_source
+
+
 def load_capture(input_path, depth_path=None, params: CaptureParams | None = None,
                  limits: MediaLimits | None = None) -> Capture:
     """Load an image, a video or a simulator capture directory (see module docstring).
@@ -341,6 +353,8 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
     if depth_path is not None and depth_arg.ndim == 3 and depth_arg.shape[0] == loaded.get("original_count", T) != T:
         depth_arg = depth_arg[source_idx]
     depth_src = f"file:{Path(depth_path).name}" if depth_path is not None else loaded.get("depth_source")
+    if depth_arg is None and os.environ.get(DEPTH_MODEL_ENV):
+        depth_arg, depth_src = _estimate_depth(frames, intr, os.environ[DEPTH_MODEL_ENV], warn)
     depth, depth_src = _resolve_depth(depth_arg, T, H, W, intr, depth_src, warn)
     for w in warn:
         _warnings.warn(w, stacklevel=2)
