@@ -7,6 +7,16 @@
 ARG PYTHON_IMAGE=python:3.11.11-slim-bookworm
 ARG CUDA_IMAGE=nvidia/cuda:12.8.1-cudnn-runtime-ubuntu24.04
 
+# ---------------------------------------------------------------- the package sources (listed once)
+FROM scratch AS sources
+WORKDIR /src
+COPY pyproject.toml README.md ./
+COPY core ./core
+COPY service ./service
+COPY worker ./worker
+COPY cli ./cli
+COPY bench ./bench
+
 # ---------------------------------------------------------------- CPU: build the venv
 FROM ${PYTHON_IMAGE} AS build-cpu
 ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
@@ -16,12 +26,7 @@ ENV PATH=/opt/venv/bin:$PATH
 WORKDIR /src
 COPY constraints.txt ./
 RUN pip install -c constraints.txt --extra-index-url "${TORCH_INDEX}" torch==2.13.0
-COPY pyproject.toml README.md ./
-COPY core ./core
-COPY service ./service
-COPY worker ./worker
-COPY cli ./cli
-COPY bench ./bench
+COPY --from=sources /src ./
 RUN pip install -c constraints.txt --extra-index-url "${TORCH_INDEX}" .
 
 # ---------------------------------------------------------------- CPU runtime
@@ -59,12 +64,7 @@ WORKDIR /src
 COPY constraints.txt ./
 RUN grep -v '^torch==' constraints.txt > constraints-cuda.txt \
     && pip install -c constraints-cuda.txt --index-url "${TORCH_INDEX}" torch==2.13.0
-COPY pyproject.toml README.md ./
-COPY core ./core
-COPY service ./service
-COPY worker ./worker
-COPY cli ./cli
-COPY bench ./bench
+COPY --from=sources /src ./
 RUN pip install -c constraints-cuda.txt --extra-index-url "${TORCH_INDEX}" .
 
 # ---------------------------------------------------------------- CUDA runtime (GPU worker)
