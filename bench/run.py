@@ -52,7 +52,7 @@ QUICK = Mode(
     name="quick", resolution=(128, 96), gt_height=64, sphere_size=32, base_iterations=40,
     iterations=(20, 40, 80), widths=((32, 3), (96, 4), (256, 6)), work_heights=(48, 72, 96), probes=(1, 9, 16),
     sweep_suites=("spatial",), panorama_limit=3,
-    note=("QUICK MODE: {it} distillation steps for the reference MLP (the draft preset uses 300), "
+    note=("QUICK MODE: {it} distillation steps for the reference MLP (the draft preset uses {draft}), "
           "suites rendered at 128x96, spheres rendered at 32 px, budget sweep and ablations on {sweep}, "
           "3 panoramas per split. Small budgets show trends and costs, not converged accuracy."),
 )
@@ -60,7 +60,7 @@ FULL = Mode(
     name="full", resolution=None, gt_height=64, sphere_size=64, base_iterations=300,
     iterations=(100, 300, 800), widths=((32, 3), (96, 4), (128, 6), (256, 6)), work_heights=(48, 72, 120), probes=(1, 4, 9, 16),
     sweep_suites=SUITE_NAMES, panorama_limit=None,
-    note="FULL MODE: {it} steps for the reference MLP (the draft preset has 300), budget sweep and ablations on {sweep}.",
+    note="FULL MODE: {it} steps for the reference MLP (the draft preset has {draft}), budget sweep and ablations on {sweep}.",
 )
 
 
@@ -99,8 +99,11 @@ def resolve_mode(opts: BenchOptions) -> Mode:
         mode = replace(mode, base_iterations=n, iterations=(max(1, n // 2), n, 2 * n))
     if opts.sweep_suites is not None:
         mode = replace(mode, sweep_suites=tuple(opts.sweep_suites))
+    from core.engine.config import PRESETS
+
     sweep = ", ".join(mode.sweep_suites) if mode.sweep_suites else "no suite"
-    return replace(mode, note=mode.note.format(it=mode.base_iterations, sweep=sweep))
+    note = mode.note.format(it=mode.base_iterations, draft=PRESETS["draft"].iterations, sweep=sweep)
+    return replace(mode, note=note)
 
 
 def run_simulated(mode: Mode, opts: BenchOptions, workdir: Path) -> dict:
