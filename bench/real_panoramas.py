@@ -20,7 +20,6 @@ percentile-normalised, so the photo's unknown exposure does not matter).
 from __future__ import annotations
 
 import csv
-import math
 import random
 import time
 from pathlib import Path
@@ -51,11 +50,10 @@ def read_manifest(hdri_dir: Path) -> list[dict]:
 
 
 def camera_rotation(yaw_deg: float, pitch_deg: float) -> torch.Tensor:
-    """Camera-to-world rotation: pitch about x (up positive), then yaw about +y."""
-    y, p = math.radians(yaw_deg), math.radians(pitch_deg)
-    ry = torch.tensor([[math.cos(y), 0, math.sin(y)], [0, 1, 0], [-math.sin(y), 0, math.cos(y)]], dtype=torch.float64)
-    rx = torch.tensor([[1, 0, 0], [0, math.cos(p), -math.sin(p)], [0, math.sin(p), math.cos(p)]], dtype=torch.float64)
-    return ry @ rx
+    """Camera-to-world rotation: pitch about x (up positive), then yaw about +y (the simulator's camera rule)."""
+    from core.sim.state import pose_from_yaw_pitch
+
+    return pose_from_yaw_pitch((0.0, 0.0, 0.0), yaw_deg, pitch_deg)[:3, :3]
 
 
 def view_for(filename: str) -> tuple[float, float]:
