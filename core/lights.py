@@ -25,10 +25,8 @@ import torch
 
 from core.conventions import equirect_directions
 from core.envmap import check_envmap, solid_angles
+from core.exposure import luminance
 from core.sh import project_sh, to_arcore_27
-
-# Rec. 709 / sRGB luminance weights for linear RGB.
-LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 
 
 @dataclass(frozen=True)
@@ -70,11 +68,6 @@ class DominantLight:
             "ambient_sh": self.ambient_sh.tolist(),
             "ambient_sh_arcore27": to_arcore_27(self.ambient_sh),
         }
-
-
-def luminance(rgb: torch.Tensor) -> torch.Tensor:
-    w = torch.tensor(LUMINANCE_WEIGHTS, dtype=rgb.dtype, device=rgb.device)
-    return rgb @ w
 
 
 def _connected_region(mask: np.ndarray, seed: tuple[int, int]) -> np.ndarray:
