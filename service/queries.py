@@ -6,6 +6,7 @@ with the same codes: x must be three finite numbers, t finite, sizes within the 
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,9 +57,9 @@ def check_size(value: int, limit: int, name: str) -> int:
     return value
 
 
-def _flags(raw) -> EvalFlags:
-    get = raw.get if isinstance(raw, dict) else (lambda k, d=False: getattr(raw, k, d))
-    return EvalFlags(bool(get("extrapolated_x", False)), bool(get("extrapolated_t", False)))
+def _flags(raw: dict) -> EvalFlags:
+    """From the engine's per-query flag dict (LightFieldArtefact and BakedField alike)."""
+    return EvalFlags(bool(raw["extrapolated_x"]), bool(raw["extrapolated_t"]))
 
 
 def _numpy(hdr) -> np.ndarray:
@@ -67,20 +68,20 @@ def _numpy(hdr) -> np.ndarray:
     return np.ascontiguousarray(hdr, dtype=np.float32)
 
 
-def _query_error_type() -> type[Exception]:
+@contextmanager
+def _as_invalid_input():
+    """The engine's QueryError (a query it refuses) becomes the API's 422 invalid_query."""
+    from core.engine.artefact import QueryError
+
     try:
-        from core.engine.artefact import QueryError
-    except ImportError:  # an engine without it raises ValueError subclasses
-        return ValueError
-    return QueryError
+        yield
+    except QueryError as exc:
+        raise InvalidInput(str(exc), code="invalid_query") from None
 
 
 def envmap(cf: CachedField, x, t: float, height: int) -> tuple[np.ndarray, EvalFlags]:
-    try:
-        with cf.lock:
-            hdr, flags = cf.artefact.envmap(x, t, height)
-    except _query_error_type() as exc:
-        raise InvalidInput(str(exc), code="invalid_query") from None
+    with _as_invalid_input(), cf.lock:
+        hdr, flags = cf.artefact.envmap(x, t, height)
     return _numpy(hdr), _flags(flags)
 
 
@@ -103,29 +104,17 @@ def baked_envmap(cf: CachedField, x, t: float, height: int) -> tuple[np.ndarray,
     artefact without one is baked here once and saved beside it, atomically)."""
     from core.engine.bake import load_or_bake
 
-    try:
-        with cf.lock:
-            if cf.baked is None:
-                cf.baked = load_or_bake(cf.artefact, save=True)
-            hdr, flags = cf.baked.envmap(x, t, height)
-    except _query_error_type() as exc:
-        raise InvalidInput(str(exc), code="invalid_query") from None
+    with _as_invalid_input(), cf.lock:
+        if cf.baked is None:
+            cf.baked = load_or_bake(cf.artefact, save=True)
+        hdr, flags = cf.baked.envmap(x, t, height)
     return _numpy(hdr), _flags(flags)
 
 
 def envmaps(cf: CachedField, xs, ts, height: int) -> tuple[np.ndarray, list[EvalFlags]]:
-    try:
-        with cf.lock:
-            hdrs, flags = cf.artefact.envmaps(xs, ts, height)
-    except _query_error_type() as exc:
-        raise InvalidInput(str(exc), code="invalid_query") from None
-    if isinstance(flags, dict):  # one dict of per-query arrays
-        fx = np.broadcast_to(np.asarray(flags.get("extrapolated_x", False)), (len(xs),))
-        ft = np.broadcast_to(np.asarray(flags.get("extrapolated_t", False)), (len(xs),))
-        per = [EvalFlags(bool(a), bool(b)) for a, b in zip(fx, ft)]
-    else:
-        per = [_flags(f) for f in flags]
-    return _numpy(hdrs), per
+    with _as_invalid_input(), cf.lock:
+        hdrs, flags = cf.artefact.envmaps(xs, ts, height)
+    return _numpy(hdrs), [_flags(f) for f in flags]
 
 
 def spherical_harmonics(cf: CachedField, x, t: float):
