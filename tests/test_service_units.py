@@ -221,3 +221,34 @@ def test_store_lease_is_exclusive_and_expires(store):
 
     time.sleep(0.45)
     assert store.acquire_lease(job, "b", ttl_s=0.3)
+
+
+# -- field cache -----------------------------------------------------------------------------
+def test_field_cache_loads_each_key_once_under_concurrent_misses_and_evicts_least_recent(tmp_path):
+    import threading
+    import time
+
+    from service.fieldcache import FieldCache
+
+    loads: list = []
+
+    def slow_loader(directory):
+        loads.append(directory)
+        time.sleep(0.05)  # keep the first load in flight while the other threads miss
+        return object()
+
+    cache = FieldCache(capacity=2, loader=slow_loader)
+    got: list = []
+    threads = [threading.Thread(target=lambda: got.append(cache.get("a", tmp_path / "a"))) for _ in range(6)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert len(loads) == 1 and all(item is got[0] for item in got)
+    cache.get("b", tmp_path / "b")
+    cache.get("a", tmp_path / "a")  # a is now the most recent; c pushes b out
+    cache.get("c", tmp_path / "c")
+    assert len(cache) == 2 and len(loads) == 3
+    assert cache.get("a", tmp_path / "a") is got[0]
+    cache.get("b", tmp_path / "b")
+    assert len(loads) == 4 and loads[-1] == tmp_path / "b"
