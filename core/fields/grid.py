@@ -12,6 +12,8 @@ a different map per row; tests check the two agree.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -32,7 +34,7 @@ class GridField(LightField):
         h = s.env_height
         init = self.logit_for_radiance(INITIAL_RADIANCE)
         # [keys * nx * ny * nz, h, 2h, 3] logits, lattice nodes in row-major (t, x, y, z) order
-        self.maps = nn.Parameter(torch.full((_prod(self.lattice_dims), h, equirect_width(h), 3), init))
+        self.maps = nn.Parameter(torch.full((math.prod(self.lattice_dims), h, equirect_width(h), 3), init))
 
     def _lattice_coords(self, xn: torch.Tensor, tn: torch.Tensor | None) -> torch.Tensor:
         return xn if tn is None else torch.cat((tn, xn), dim=-1)
@@ -61,10 +63,3 @@ class GridField(LightField):
         for sl in probe_chunks(xn.shape[0], dirs.shape[0], chunk_rows):
             out[sl] = (w_pix[None, :, :, None] * padded[sl, pix]).sum(2)
         return out
-
-
-def _prod(values) -> int:
-    out = 1
-    for v in values:
-        out *= int(v)
-    return out

@@ -37,8 +37,8 @@ from core.priors.known import ball_target
 CLIP_LDR = 0.99
 CLIP_BOOST = 8.0
 Z_TOLERANCE = 0.1  # relative: points within 10 % of the nearest distance share a pixel
-MIN_PROBE_DISTANCE = 1e-3
-OTHER_VIEW_STRIDE = 3  # merged viewpoints contribute a third of their points (cost)  # metres; points closer than this to a probe are skipped
+MIN_PROBE_DISTANCE = 1e-3  # metres; points closer than this to a probe are skipped
+OTHER_VIEW_STRIDE = 3  # merged viewpoints contribute a third of their points (cost)
 
 
 def linearise(frames: torch.Tensor, clip_boost: float = CLIP_BOOST) -> torch.Tensor:
