@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import torch
 
-from core.conventions import DEFAULT_HFOV_DEG, camera_point_to_pixel, pixel_to_camera_ray
+from core.conventions import DEFAULT_HFOV_DEG, camera_point_to_pixel, pixel_to_camera_ray, valid_depth_mask
 
 
 class CameraError(ValueError):
@@ -88,16 +88,19 @@ class Camera:
     def w2c(self) -> torch.Tensor:
         return torch.linalg.inv(self.c2w)
 
-    def pixel_rays(self, dtype=torch.float32, device=None) -> tuple[torch.Tensor, torch.Tensor]:
-        """World-space ray origins [3] and unit directions [H, W, 3] through every pixel centre."""
+    def _camera_rays(self) -> torch.Tensor:
+        """Camera-frame rays [H, W, 3] (z = -1, float64) through every pixel centre."""
         k = self.intrinsics
         v, u = torch.meshgrid(
             torch.arange(k.height, dtype=torch.float64) + 0.5,
             torch.arange(k.width, dtype=torch.float64) + 0.5,
             indexing="ij",
         )
-        d_cam = pixel_to_camera_ray(u, v, k.fx, k.fy, k.cx, k.cy)
-        d = d_cam @ self.c2w[:3, :3].T
+        return pixel_to_camera_ray(u, v, k.fx, k.fy, k.cx, k.cy)
+
+    def pixel_rays(self, dtype=torch.float32, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """World-space ray origins [3] and unit directions [H, W, 3] through every pixel centre."""
+        d = self._camera_rays() @ self.c2w[:3, :3].T
         d = d / d.norm(dim=-1, keepdim=True)
         return self.position.to(dtype=dtype, device=device), d.to(dtype=dtype, device=device)
 
@@ -106,24 +109,16 @@ class Camera:
         k = self.intrinsics
         if tuple(depth.shape) != (k.height, k.width):
             raise CameraError(f"depth shape {tuple(depth.shape)} does not match image {k.height}x{k.width}")
-        v, u = torch.meshgrid(
-            torch.arange(k.height, dtype=torch.float64) + 0.5,
-            torch.arange(k.width, dtype=torch.float64) + 0.5,
-            indexing="ij",
-        )
-        ray = pixel_to_camera_ray(u, v, k.fx, k.fy, k.cx, k.cy)  # z = -1
+        ray = self._camera_rays()  # z = -1
         d64 = depth.to(torch.float64)
-        ok = torch.isfinite(d64) & (d64 > 0)
-        p_cam = ray * torch.where(ok, d64, torch.full_like(d64, float("nan")))[..., None]
+        p_cam = ray * torch.where(valid_depth_mask(d64), d64, torch.full_like(d64, float("nan")))[..., None]
         p = p_cam @ self.c2w[:3, :3].T + self.c2w[:3, 3]
         return p.to(depth.dtype if depth.is_floating_point() else torch.float32)
 
     def project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """World points [..., 3] -> (u, v, planar depth); depth <= 0 means behind the camera."""
-        w2c = self.w2c.to(points.dtype)
-        p_cam = points @ w2c[:3, :3].T + w2c[:3, 3]
         k = self.intrinsics
-        return camera_point_to_pixel(p_cam, k.fx, k.fy, k.cx, k.cy)
+        return camera_point_to_pixel(self.world_to_camera(points), k.fx, k.fy, k.cx, k.cy)
 
     def world_to_camera(self, points: torch.Tensor) -> torch.Tensor:
         w2c = self.w2c.to(points.dtype)
