@@ -30,7 +30,7 @@ from core.priors.diffusion.card import ModelCard
 from core.priors.diffusion.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
 from core.priors.diffusion.conditioning import latent_mask, model_size, to_signed
 from core.priors.diffusion.data import BallDataset, StepOrder, read_dataset_info
-from core.priors.diffusion.exposure import ExposureConditioner, exposure_weight, interpolate
+from core.priors.diffusion.exposure import ExposureConditioner
 from core.priors.diffusion.loading import PriorComponents, load_components
 from core.priors.diffusion.network import InpaintNetwork
 
@@ -145,9 +145,7 @@ def training_loss(network, comps: PriorComponents, conditioner: ExposureConditio
     t = draws.timesteps.to(dev)
     noise = draws.noise.to(dev)
     noisy = scheduler.add_noise(prepared.latents, noise, t)
-    w = exposure_weight(draws.ev, conditioner.ev_min)
-    tokens = interpolate(w, conditioner.max.tokens, conditioner.min.tokens)
-    tokens = torch.where(draws.drop.to(dev)[:, None, None], conditioner.null.tokens, tokens)
+    tokens = torch.where(draws.drop.to(dev)[:, None, None], conditioner.null.tokens, conditioner(draws.ev).tokens)
     if scheduler.config.prediction_type == "v_prediction":
         target = scheduler.get_velocity(prepared.latents, noise, t)
     else:
