@@ -46,23 +46,12 @@ def engine_entrypoint() -> Callable:
 
 def _user_error_types() -> tuple[type[BaseException], ...]:
     """Errors caused by the job's input: recorded with their code, never retried."""
-    types: list[type[BaseException]] = []
-    for module, name in (("core.io.limits", "MediaError"), ("core.engine.capture", "CaptureError"),
-                         ("core.camera", "CameraError"), ("core.priors.base", "PriorError")):
-        try:
-            types.append(getattr(importlib.import_module(module), name))
-        except (ImportError, AttributeError):
-            continue
-    return tuple(types)
+    from core.camera import CameraError
+    from core.engine.capture import CaptureError
+    from core.io.limits import MediaError
+    from core.priors.base import PriorError
 
-
-def _cancelled_type() -> type[BaseException]:
-    for module in ("core.engine.distill", "core.engine.progress"):
-        try:
-            return getattr(importlib.import_module(module), "Cancelled")
-        except (ImportError, AttributeError):
-            continue
-    raise ImportError("core.engine.progress.Cancelled is missing")
+    return (MediaError, CaptureError, CameraError, PriorError)
 
 
 def error_code_of(exc: BaseException) -> str:
@@ -111,12 +100,13 @@ class JobRunner:
             return Outcome.SKIPPED
         log.info("job %s: run %d%s", job_id, record.attempts + 1, " (resuming)" if resumed else "")
 
-        cancelled_type = _cancelled_type()
+        from core.engine.progress import Cancelled
+
         user_errors = _user_error_types()
         try:
             artefact = self._finished_artefact(paths) or self._call_engine(record, paths, lease)
             relative = self._relative_artefact(artefact, paths)
-        except cancelled_type:
+        except Cancelled:
             if lease.lost.is_set():
                 return Outcome.ABANDONED
             self.store.update(job_id, allowed=("running",), state="cancelled", finished_at=time.time(),
