@@ -12,9 +12,9 @@ Families (all read the same capture directory through the engine's `load_capture
              paper's "w/o MLP" 3x3x3 ablation, trunk = the engine's faster field), queried
              exactly (`LightFieldArtefact.envmaps`) or through the baked lattice (`core.engine.bake`).
 
-Ablations the engine has no switch for are built here without touching it: uniform
-exposure sampling is a `DistillConfig` subclass whose `ev_at(step)` draws ev uniformly in
-[ev_min, 0] from a seeded hash of the step instead of the 0 -> ev_min sweep.
+Ablations are `DistillConfig` overrides: e.g. uniform exposure sampling is the engine's
+`ev_schedule="uniform"` (ev drawn uniformly in [ev_min, 0] per step instead of the
+0 -> ev_min sweep).
 """
 from __future__ import annotations
 
