@@ -101,13 +101,14 @@ def preview_from_capture(capture, max_height: int = PREVIEW_MAX_HEIGHT, max_fram
 
     import torch
 
+    from core.conventions import valid_depth_mask
+
     keep = torch.from_numpy(_evenly_spaced(capture.num_frames, max_frames))
     picked = dataclasses.replace(capture, frames=capture.frames[keep], depth=capture.depth[keep],
                                  poses=capture.poses[keep], times=capture.times[keep])
     small = picked.resized(max_height)
     frames = (small.frames.clamp(0, 1) * 255.0).round().to(torch.uint8).numpy()
-    depth = small.depth.numpy().astype(np.float32)
-    depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan).astype(np.float32)
+    depth = torch.where(valid_depth_mask(small.depth), small.depth, float("nan")).numpy().astype(np.float32)
     return CapturePreview(
         frames=np.ascontiguousarray(frames),
         depth=depth,
