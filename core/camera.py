@@ -121,7 +121,8 @@ class Camera:
         return camera_point_to_pixel(self.world_to_camera(points), k.fx, k.fy, k.cx, k.cy)
 
     def world_to_camera(self, points: torch.Tensor) -> torch.Tensor:
-        w2c = self.w2c.to(points.dtype)
+        """World points [..., 3] -> camera frame, in the points' dtype and device."""
+        w2c = self.w2c.to(dtype=points.dtype, device=points.device)
         return points @ w2c[:3, :3].T + w2c[:3, 3]
 
 

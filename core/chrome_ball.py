@@ -27,6 +27,7 @@ import torch
 
 from core.camera import Camera
 from core.conventions import camera_point_to_pixel, equirect_directions, pixel_to_camera_ray, valid_depth_mask
+from core.envmap import equirect_stencil, pad_poles
 
 RadianceFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -51,8 +52,7 @@ def _focal(camera: Camera) -> float:
 
 def _to_camera(camera: Camera, points: torch.Tensor) -> torch.Tensor:
     """World points [..., 3] -> camera frame, float64, on the points' device (CUDA too)."""
-    w2c = camera.w2c.to(points.device)
-    return points.to(torch.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+    return camera.world_to_camera(points.to(torch.float64))
 
 
 def _planar_depth(camera: Camera, points: torch.Tensor) -> torch.Tensor:
@@ -262,15 +262,14 @@ class BallLayer:
 
 
 def _envmap_radiance(envmaps: torch.Tensor) -> RadianceFn:
-    from core.envmap import sample_envmap  # lands with the env-map module
+    """`sample_envmap` of each sample's own ball map, as one gather (core.envmap's stencil)."""
+    height = envmaps.shape[1]
+    padded = pad_poles(envmaps)  # [N, texels, C]
 
     def fn(directions: torch.Tensor, ball_index: torch.Tensor) -> torch.Tensor:
-        out = envmaps.new_zeros(directions.shape[0], envmaps.shape[-1])
-        for b in range(envmaps.shape[0]):
-            sel = ball_index == b
-            if bool(sel.any()):
-                out = out.index_put((sel.nonzero()[:, 0],), sample_envmap(envmaps[b], directions[sel].to(envmaps.device)))
-        return out
+        index, weight = equirect_stencil(directions.to(envmaps.device), height)
+        texels = padded[ball_index.to(envmaps.device)[:, None], index]  # [M, 4, C]
+        return (texels * weight.to(envmaps.dtype)[..., None]).sum(1)
 
     return fn
 
