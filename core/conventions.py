@@ -138,9 +138,9 @@ def expose(radiance: torch.Tensor, ev: float | torch.Tensor) -> torch.Tensor:
 def tonemap(radiance: torch.Tensor, ev: float | torch.Tensor = 0.0) -> torch.Tensor:
     """LDR = clip((2^ev L)^(1/2.4), 0, 1). Negative or non-finite radiance maps to 0/1 safely."""
     x = expose(radiance, ev)
+    # clip before the power: values > 1 saturate anyway, and the gradient stays bounded
     x = torch.nan_to_num(x, nan=0.0, posinf=1.0, neginf=0.0).clamp(0.0, 1.0)
-    # clamp before the power: values > 1 saturate anyway, and the gradient stays bounded
-    return x.clamp_min(0.0).pow(1.0 / GAMMA)
+    return x.pow(1.0 / GAMMA)
 
 
 def tonemap_unclipped(radiance: torch.Tensor, ev: float | torch.Tensor = 0.0) -> torch.Tensor:
