@@ -49,14 +49,6 @@ class ServiceSettings(BaseModel):
     distill_overrides: dict = Field(default_factory=dict)
     limits: ServiceLimits = ServiceLimits()
 
-    @property
-    def uploads_root(self) -> Path:
-        return self.data_dir / "uploads"
-
-    @property
-    def artefacts_root(self) -> Path:
-        return self.data_dir / "artefacts"
-
     @classmethod
     def from_env(cls, environ: dict[str, str] | None = None) -> "ServiceSettings":
         env = os.environ if environ is None else environ
