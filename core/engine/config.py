@@ -64,7 +64,6 @@ class DistillConfig(BaseModel):
     device: str = Field("auto", pattern=DEVICE_PATTERN,
                         description="'auto' (CUDA if available, else CPU), 'cpu', 'cuda' or 'cuda:N'; env LIGHTFIELD_DEVICE overrides")
     prior_env_height: int = Field(32, ge=8, description="reprojection prior's splat resolution")
-    output_env_height: int = Field(32, ge=4, description="height of the preview env maps saved with the artefact")
 
     # ------------------------------------------------------------------ schedules
     def ev_at(self, step: int) -> float:
@@ -117,15 +116,15 @@ PRESETS: dict[str, DistillConfig] = {
     # CPU: ~1 min for a 20-frame 192x144 clip on 2 cores (bench/presets.py)
     "draft": DistillConfig(name="draft", iterations=400, n_probes=9, work_height=72, lr=5e-3,
                            warmup_steps=15, field_kind="mlp", field_width=96, field_layers=4, checkpoint_every=50,
-                           prior_env_height=24, output_env_height=32),
+                           prior_env_height=24),
     # CPU: a 100-frame 320x240 clip in a few minutes
     "standard": DistillConfig(name="standard", iterations=1000, n_probes=9, work_height=120, lr=5e-3,
                               warmup_steps=30, field_kind="mlp", field_width=128, field_layers=4, checkpoint_every=100,
-                              prior_env_height=32, output_env_height=64),
+                              prior_env_height=32),
     # The paper's settings (GPU): full resolution ball crops, MLP 6 x 256
     "paper": DistillConfig(name="paper", iterations=3000, n_probes=9, work_height=512, supersample=2,
                            lr=1e-3, warmup_steps=100, field_kind="mlp", checkpoint_every=250,
-                           prior_env_height=64, output_env_height=128, threads=None),
+                           prior_env_height=64, threads=None),
 }
 
 
