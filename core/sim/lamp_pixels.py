@@ -22,7 +22,7 @@ import math
 import torch
 
 from core.camera import Camera
-from core.conventions import direction_to_equirect_pixel, equirect_directions, theta_phi_to_direction
+from core.conventions import direction_to_equirect_pixel, equirect_directions, pixel_to_camera_ray, theta_phi_to_direction
 from core.sim.shading import ShadingContext, tangent_frame
 
 SUBSAMPLES = 4  # per pixel side, for the background part of a refined pixel
@@ -143,7 +143,7 @@ def frame_lamp_pixels(ctx: ShadingContext, camera: Camera, trace_fn) -> list[tup
     rows, cols = (candidates // k.width).double(), (candidates % k.width).double()
     uu = (cols[:, None, None] + a[None, None, :]).expand(-1, s, s)
     vv = (rows[:, None, None] + a[None, :, None]).expand(-1, s, s)
-    ray = torch.stack(((uu - k.cx) / k.fx, -(vv - k.cy) / k.fy, -torch.ones_like(uu)), -1) @ camera.c2w[:3, :3].T
+    ray = pixel_to_camera_ray(uu, vv, k.fx, k.fy, k.cx, k.cy) @ camera.c2w[:3, :3].T
     d_sub = (ray / ray.norm(dim=-1, keepdim=True)).float().reshape(-1, 3)
     w_sub = torch.full((len(d_sub),), 1.0 / (s * s))
     pix_sub = candidates.repeat_interleave(s * s)
