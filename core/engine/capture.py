@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from core.camera import Camera, CameraError, Intrinsics
-from core.conventions import DEFAULT_HFOV_DEG, pixel_to_camera_ray, valid_depth_mask
+from core.conventions import DEFAULT_HFOV_DEG, frame_time, pixel_to_camera_ray, valid_depth_mask
 from core.engine.params import CaptureParams
 from core.io.limits import MediaLimits
 
@@ -363,7 +363,7 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
         depth=depth.contiguous(),
         intrinsics=intr,
         poses=poses,
-        times=torch.tensor(source_idx, dtype=torch.float32) / float(fps),
+        times=frame_time(torch.tensor(source_idx, dtype=torch.float32), fps),
         fps=float(fps),
         depth_source=depth_src,
         source=path.name,
@@ -383,4 +383,4 @@ def capture_from_arrays(frames: torch.Tensor, depth: torch.Tensor | None = None,
     p = _resolve_poses(None if poses is None else torch.as_tensor(poses, dtype=torch.float64), T)
     d, src = _resolve_depth(depth, T, H, W, intr, "arrays" if depth is not None else None, warn)
     return Capture(frames.clamp(0, 1).contiguous(), d.contiguous(), intr, p,
-                   torch.arange(T, dtype=torch.float32) / float(fps), float(fps), src, source, warn)
+                   frame_time(torch.arange(T, dtype=torch.float32), fps), float(fps), src, source, warn)
