@@ -17,7 +17,8 @@ import time
 from pathlib import Path
 from typing import Callable
 
-TERMINAL_STATES = ("succeeded", "failed", "cancelled")
+from service.store import TERMINAL_STATES
+
 
 
 class EmbeddedServiceError(RuntimeError):

@@ -7,7 +7,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from service.errors import ErrorDetail
-from service.store import JobRecord
+from service.store import JobRecord, JobState
 
 EnvmapFormat = Literal["exr", "hdr", "png", "npy"]
 Quality = Literal["exact", "fast"]
@@ -26,7 +26,7 @@ class JobLinks(BaseModel):
 
 class JobView(BaseModel):
     id: str
-    state: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    state: JobState
     progress: float = Field(description="0..1 over the whole job")
     stage: str
     iteration: int

@@ -17,12 +17,12 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import dataclass, field, fields
-from typing import Iterable, Literal
+from typing import Iterable, Literal, get_args
 
 import redis
 
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-JOB_STATES: tuple[str, ...] = ("queued", "running", "succeeded", "failed", "cancelled")
+JOB_STATES: tuple[str, ...] = get_args(JobState)
 ACTIVE_STATES = ("queued", "running")
 TERMINAL_STATES = ("succeeded", "failed", "cancelled")
 PREFIX = "lf:"
