@@ -56,7 +56,7 @@ def write_capture(
 
     `probes=None` uses the scene's own held-out probes."""
     from core.io.depth import write_depth_npz
-    from core.io.exr import write_exr
+    from core.io.exr import atomic_write, write_exr
     from core.io.images import write_png
     from core.io.video import write_video
 
@@ -106,7 +106,6 @@ def write_capture(
         "exposure_ev": exposure_ev(scene),
         "probes": probe_docs,
     }
-    tmp = out / ".capture.json.tmp"
-    tmp.write_text(json.dumps(doc, indent=2))
-    os.replace(tmp, out / "capture.json")  # written last: a capture.json means a complete capture
+    # written last and atomically: a capture.json means a complete capture
+    atomic_write(out / "capture.json", json.dumps(doc, indent=2).encode())
     return {**doc, "cost": cost.as_dict()}
