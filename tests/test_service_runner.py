@@ -111,6 +111,7 @@ def test_cancel_before_start_skips_the_engine(runner):
     r.store.request_cancel(job)
     assert r.run(job) is Outcome.SKIPPED
     assert r.store.get(job).state == "cancelled" and CALLS == []
+    assert r.store.get(job).state == "cancelled" and CALLS == []
 
 
 def test_input_errors_fail_with_the_field_named(runner):
