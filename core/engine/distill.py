@@ -219,9 +219,9 @@ def distill(
     trainer = _Trainer(capture, inverse_tonemap(capture.frames).to(device), capture.depth.to(device), prior, field, opt,
                        cfg, gen, PerceptualLoss(), timings, device)
     reporter.begin(start)
+    reporter.check_cancel()  # then once per step, in reporter.step (a store query in the worker)
     with _torch_threads(cfg.threads):
         for step in range(start, cfg.iterations):
-            reporter.check_cancel()
             losses.append(trainer.step(step))
             if checkpoint_dir is not None and (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.iterations:
                 with timings("checkpoint"):
