@@ -77,6 +77,18 @@ def _subpixel_offsets(s: int) -> torch.Tensor:
     return (torch.arange(s, dtype=torch.float64) + 0.5) / s
 
 
+def subpixel_rays(camera: Camera, pixels: torch.Tensor, s: int) -> torch.Tensor:
+    """Unit world directions [P * s * s, 3] (float32) of the s x s stratified sub-samples of
+    flat pixel indices `pixels` [P], pixel-major, then sub-row, then sub-column."""
+    k = camera.intrinsics
+    a = _subpixel_offsets(s)
+    rows, cols = (pixels // k.width).double(), (pixels % k.width).double()
+    uu = (cols[:, None, None] + a[None, None, :]).expand(-1, s, s)
+    vv = (rows[:, None, None] + a[None, :, None]).expand(-1, s, s)
+    ray = pixel_to_camera_ray(uu, vv, k.fx, k.fy, k.cx, k.cy) @ camera.c2w[:3, :3].T
+    return (ray / ray.norm(dim=-1, keepdim=True)).float().reshape(-1, 3)
+
+
 def envmap_lamp_pixels(ctx: ShadingContext, probe: torch.Tensor, height: int, trace_fn) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """[(flat pixel indices, mean radiance [P, 3])] for env-map pixels near lit lamps."""
     axis, alpha = _lamp_cones(ctx, probe)
@@ -139,12 +151,7 @@ def frame_lamp_pixels(ctx: ShadingContext, camera: Camera, trace_fn) -> list[tup
     if len(candidates) == 0:
         return []
     s = SUBSAMPLES
-    a = _subpixel_offsets(s)
-    rows, cols = (candidates // k.width).double(), (candidates % k.width).double()
-    uu = (cols[:, None, None] + a[None, None, :]).expand(-1, s, s)
-    vv = (rows[:, None, None] + a[None, :, None]).expand(-1, s, s)
-    ray = pixel_to_camera_ray(uu, vv, k.fx, k.fy, k.cx, k.cy) @ camera.c2w[:3, :3].T
-    d_sub = (ray / ray.norm(dim=-1, keepdim=True)).float().reshape(-1, 3)
+    d_sub = subpixel_rays(camera, candidates, s)
     w_sub = torch.full((len(d_sub),), 1.0 / (s * s))
     pix_sub = candidates.repeat_interleave(s * s)
     outside = ~_inside_any_cone(d_sub, axis, alpha)

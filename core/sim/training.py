@@ -18,6 +18,8 @@ from pathlib import Path
 import torch
 
 from core.camera import Camera
+from core.conventions import frame_time, pixel_to_camera_ray
+from core.sim.lamp_pixels import subpixel_rays
 from core.sim.raycast import MIRROR, sphere_hits
 from core.sim.render import context, geometry, render_view, trace
 from core.sim.spec import SceneSpec, SceneSpecError
@@ -82,7 +84,7 @@ def place_balls(scene: SceneSpec, camera: Camera, bg_depth: torch.Tensor, count:
                 continue
             z = _uniform(g, cfg.ball_depth[0], min(cfg.ball_depth[1], surface))
             r = r_px * z / k.fx
-            ray = torch.tensor([(u - k.cx) / k.fx * z, -(v - k.cy) / k.fy * z, -z], dtype=torch.float64)
+            ray = z * pixel_to_camera_ray(torch.tensor(u, dtype=torch.float64), torch.tensor(v, dtype=torch.float64), k.fx, k.fy, k.cx, k.cy)
             c = (camera.c2w[:3, :3] @ ray + camera.c2w[:3, 3]).to(torch.float32)
             if z - r < 0.1 or z + r > surface - cfg.gap:
                 continue
@@ -151,12 +153,7 @@ def _antialiased_balls(ctx, camera: Camera, centers, radii, background: torch.Te
     coverage = torch.zeros(k.height * k.width)
     if len(pix):
         s = BALL_SUPERSAMPLE
-        a = (torch.arange(s, dtype=torch.float64) + 0.5) / s
-        rows, cols = (pix // k.width).double(), (pix % k.width).double()
-        uu = (cols[:, None, None] + a[None, None, :]).expand(-1, s, s)
-        vv = (rows[:, None, None] + a[None, :, None]).expand(-1, s, s)
-        ray = torch.stack(((uu - k.cx) / k.fx, -(vv - k.cy) / k.fy, -torch.ones_like(uu)), -1) @ camera.c2w[:3, :3].T
-        d = (ray / ray.norm(dim=-1, keepdim=True)).to(torch.float32).reshape(-1, 3)
+        d = subpixel_rays(camera, pix, s)
         res = trace(ctx, camera.position.to(torch.float32), d, (centers, radii))
         cov = (res.first_kind == MIRROR).float().reshape(len(pix), s * s).mean(1)
         mean = res.radiance.reshape(len(pix), s * s, 3).mean(1)
@@ -184,7 +181,7 @@ def write_sample(sample: BallSample, out: Path, scene_name: str, fps: float) -> 
         ],
         "intrinsics": sample.camera.intrinsics.as_dict(),
         "c2w": sample.camera.c2w.reshape(-1).tolist(),
-        "source": {"renderer": "lightfield-sim", "scene": scene_name, "frame": sample.frame, "time": sample.frame / fps},
+        "source": {"renderer": "lightfield-sim", "scene": scene_name, "frame": sample.frame, "time": frame_time(sample.frame, fps)},
     }
     (out / "meta.json").write_text(json.dumps(meta, indent=2))
 
