@@ -41,10 +41,9 @@ def tonemapped_preview(hdr: np.ndarray, ev: float = 0.0) -> np.ndarray:
     """uint8 [H, W, 3] preview: the paper's tone map at exposure `ev`, rounded."""
     import torch  # only previews need torch; keep format conversion importable without it
 
-    from core.conventions import tonemap
+    from core.exposure import to_uint8, tonemap
 
-    ldr = tonemap(torch.from_numpy(np.ascontiguousarray(hdr)), float(ev)).numpy()
-    return np.round(ldr * 255.0).astype(np.uint8)
+    return to_uint8(tonemap(torch.from_numpy(np.ascontiguousarray(hdr)), float(ev))).numpy()
 
 
 def encode_envmap(hdr: np.ndarray, fmt: EnvmapFormat, ev: float = 0.0, half: bool = False) -> tuple[bytes, str]:
