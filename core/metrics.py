@@ -98,21 +98,19 @@ def render_probe_spheres(envmaps: list[torch.Tensor], material: Material, size: 
     # Diffuse and matte filter maps area-downsampled straight from the input (for inputs
     # of 128 x 256 or a multiple of it the pixel edges nest, so this equals resizing to
     # 128 x 256 first); skipping the intermediate map saves most of the cost.
-    envs = envmaps
-    device = envs[0].device
+    device = envmaps[0].device
     n, mask = sphere_normals(size, device=device)
     normals = n[mask]
     if material == "mirror":
         d = _reflect_view(normals)
-        envs = [resize_envmap(e, EVAL_HEIGHT) if e.shape[0] != EVAL_HEIGHT else e for e in envs]
-        values = [MIRROR_REFLECTANCE * sample_envmap(e.to(torch.float64), d) for e in envs]
+        values = [MIRROR_REFLECTANCE * sample_envmap(resize_envmap(e, EVAL_HEIGHT).to(torch.float64), d) for e in envmaps]
     elif material == "diffuse":
         # normalised cosine filter = E(n) / pi; Lambertian radiance = albedo E / pi
-        values = [DIFFUSE_ALBEDO * v for v in _lobe_integral(envs, DIFFUSE_MAP_HEIGHT, normals, lambda c: c.clamp_min(0.0))]
+        values = [DIFFUSE_ALBEDO * v for v in _lobe_integral(envmaps, DIFFUSE_MAP_HEIGHT, normals, lambda c: c.clamp_min(0.0))]
     else:
         k = MATTE_PHONG_EXPONENT
         lobe = lambda c: c.clamp_min(0.0) ** k  # noqa: E731
-        values = [MATTE_REFLECTANCE * v for v in _lobe_integral(envs, MATTE_MAP_HEIGHT, _reflect_view(normals), lobe)]
+        values = [MATTE_REFLECTANCE * v for v in _lobe_integral(envmaps, MATTE_MAP_HEIGHT, _reflect_view(normals), lobe)]
     images = []
     for v in values:
         image = torch.zeros(size, size, 3, dtype=torch.float32, device=device)
