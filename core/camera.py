@@ -42,13 +42,6 @@ class Intrinsics:
         f = 0.5 * width / math.tan(math.radians(hfov_deg) / 2.0)
         return cls(f, f, width / 2.0, height / 2.0, width, height)
 
-    @classmethod
-    def from_matrix(cls, K, width: int, height: int) -> "Intrinsics":
-        K = torch.as_tensor(K, dtype=torch.float64)
-        if K.shape != (3, 3):
-            raise CameraError(f"K must be 3x3, got {tuple(K.shape)}")
-        return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), width, height)
-
     def matrix(self, dtype=torch.float32) -> torch.Tensor:
         return torch.tensor([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=dtype)
 
