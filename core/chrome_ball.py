@@ -26,7 +26,7 @@ from typing import Callable, Union
 import torch
 
 from core.camera import Camera
-from core.conventions import camera_point_to_pixel, equirect_directions, pixel_to_camera_ray, valid_depth_mask
+from core.conventions import OPENCV_TO_OURS, camera_point_to_pixel, equirect_directions, pixel_to_camera_ray, valid_depth_mask
 from core.envmap import equirect_stencil, pad_poles
 
 RadianceFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -146,7 +146,7 @@ def _projected_boxes(camera: Camera, centers: torch.Tensor, radii: torch.Tensor)
     """
     k = camera.intrinsics
     c = _to_camera(camera, centers)
-    c = c * torch.tensor([1.0, -1.0, -1.0], dtype=c.dtype, device=c.device)
+    c = c @ OPENCV_TO_OURS[:3, :3].to(c)  # its own inverse: ours -> OpenCV
     K = k.matrix(torch.float64).to(c.device)
     eye = torch.eye(3, dtype=c.dtype, device=c.device)
     M = c[:, :, None] * c[:, None, :] - (radii**2)[:, None, None] * eye
