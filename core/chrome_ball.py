@@ -26,7 +26,7 @@ from typing import Callable, Union
 import torch
 
 from core.camera import Camera
-from core.conventions import OPENCV_TO_OURS, camera_point_to_pixel, equirect_directions, pixel_to_camera_ray, valid_depth_mask
+from core.conventions import OPENCV_TO_OURS, equirect_directions, pixel_to_camera_ray, valid_depth_mask
 from core.envmap import equirect_stencil, pad_poles
 
 RadianceFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -394,7 +394,7 @@ def unwrap_ball(
     converged = (reflected * d).sum(-1) > 1.0 - 1e-9
     facing = (n * v).sum(-1) > min_incidence_cos
 
-    u_px, v_px, _ = camera_point_to_pixel(_to_camera(camera, p), k.fx, k.fy, k.cx, k.cy)
+    u_px, v_px, _ = camera.project(p)
     u_px, v_px = torch.nan_to_num(u_px), torch.nan_to_num(v_px)
     inside = (u_px >= 0.5) & (u_px <= k.width - 0.5) & (v_px >= 0.5) & (v_px <= k.height - 0.5)
 
