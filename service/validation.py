@@ -71,6 +71,7 @@ def check_capture(input_path: Path, depth_path: Path | None, params) -> dict:
     from core.camera import CameraError
     from core.engine.capture import CaptureError, load_capture
     from core.io.limits import MediaError, MediaLimits
+    from worker.runner import error_code_of
 
     try:
         with warnings.catch_warnings():
@@ -78,9 +79,6 @@ def check_capture(input_path: Path, depth_path: Path | None, params) -> dict:
             capture = load_capture(input_path, depth_path, params, MediaLimits.from_env())
     except MediaError as exc:
         raise media_error_to_api(exc) from None
-    except CaptureError as exc:
-        field = getattr(exc, "field", "input")
-        raise InvalidInput(str(exc), code=f"invalid_{field}") from None
-    except CameraError as exc:
-        raise InvalidInput(str(exc), code="invalid_intrinsics") from None
+    except (CaptureError, CameraError) as exc:
+        raise InvalidInput(str(exc), code=error_code_of(exc)) from None
     return {"frames": capture.num_frames, "width": capture.width, "height": capture.height}

@@ -152,3 +152,13 @@ def test_a_lost_lease_abandons_the_run_without_touching_the_record(runner):
     rec = r.store.get(job)
     assert rec.state == "running"  # the new owner decides the outcome
     assert r.store.client.get(f"lf:job:{job}:lease") == "new-owner"
+
+
+def test_input_errors_get_the_codes_the_api_documents():
+    from core.camera import CameraError
+    from core.engine.capture import CaptureError
+    from worker.runner import error_code_of
+
+    assert error_code_of(CaptureError("poses", "not 4x4")) == "invalid_poses"
+    assert error_code_of(CameraError("fx must be positive")) == "invalid_intrinsics"  # as docs/api.md lists it
+    assert error_code_of(RuntimeError("boom")) == "invalid_input"

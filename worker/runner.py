@@ -55,13 +55,15 @@ def _user_error_types() -> tuple[type[BaseException], ...]:
 
 
 def error_code_of(exc: BaseException) -> str:
+    """The API error code of an input error: the same whether the upload check
+    (service.validation) or the worker meets it, as docs/api.md lists them."""
     code = getattr(exc, "code", None)
     if isinstance(code, str) and code:
         return code
     field = getattr(exc, "field", None)  # CaptureError names its input, as the API's codes do
     if isinstance(field, str) and field.isidentifier():
         return f"invalid_{field}"
-    return {"CaptureError": "invalid_capture", "CameraError": "invalid_camera",
+    return {"CaptureError": "invalid_capture", "CameraError": "invalid_intrinsics",
             "PriorError": "prior_unavailable"}.get(type(exc).__name__, "invalid_input")
 
 
