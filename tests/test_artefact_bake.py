@@ -104,7 +104,7 @@ def test_bake_argument_errors(tmp_path):
     baked = bake(art, grid=(2, 2, 2), times=2, height=4)
     with pytest.raises(QueryError, match="t is required"):
         baked.envmap((0, 0, 0), None)
-    with pytest.raises(QueryError, match="x must be one position"):
+    with pytest.raises(QueryError, match=r"x must have shape \[3\]"):
         baked.envmap((0, 0), 1.0)
     with pytest.raises(QueryError, match="finite"):
         baked.envmap((0, float("inf"), 0), 1.0)

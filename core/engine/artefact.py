@@ -256,32 +256,39 @@ class LightFieldArtefact:
 
     # ------------------------------------------------------------------ validation
     def _positions(self, x, name: str) -> torch.Tensor:
-        x = _as_tensor(x, name, self.device)
-        if x.ndim == 0 or x.shape[-1] != 3:
-            raise QueryError(f"{name} must have shape [3] or [N, 3], got {tuple(x.shape)}")
-        x = x.reshape(-1, 3)
-        if x.shape[0] == 0:
-            raise QueryError(f"{name} is empty")
-        if not torch.isfinite(x).all():
-            raise QueryError(f"{name} must be finite (metres), got {x[~torch.isfinite(x).all(-1)][0].tolist()}")
-        return x
+        return query_positions(x, name, self.device)
 
     def _times(self, t, n: int) -> torch.Tensor | None:
-        """t as [n] seconds, or None. Required when the field has a time input."""
-        if t is None:
-            if self.uses_time:
-                raise QueryError(
-                    f"t is required: this light field varies over time [{self.bounds.t0:g}, {self.bounds.t1:g}] s"
-                )
-            return None
-        t = _as_tensor(t, "t", self.device).reshape(-1)
-        if t.numel() == 1:
-            t = t.expand(n)
-        if t.shape[0] != n:
-            raise QueryError(f"t has {t.shape[0]} values for {n} positions")
-        if not torch.isfinite(t).all():
-            raise QueryError("t must be finite (seconds from the first frame)")
-        return t
+        return query_times(t, n, self.bounds, self.uses_time, self.device)
+
+
+def query_positions(x, name: str, device="cpu") -> torch.Tensor:
+    """A position query as finite [N, 3] metres (N >= 1); QueryError naming `name` otherwise."""
+    x = _as_tensor(x, name, device)
+    if x.ndim == 0 or x.shape[-1] != 3:
+        raise QueryError(f"{name} must have shape [3] or [N, 3], got {tuple(x.shape)}")
+    x = x.reshape(-1, 3)
+    if x.shape[0] == 0:
+        raise QueryError(f"{name} is empty")
+    if not torch.isfinite(x).all():
+        raise QueryError(f"{name} must be finite (metres), got {x[~torch.isfinite(x).all(-1)][0].tolist()}")
+    return x
+
+
+def query_times(t, n: int, bounds: SceneBounds, uses_time: bool, device="cpu") -> torch.Tensor | None:
+    """t as [n] finite seconds (a scalar is broadcast), or None. Required when `uses_time`."""
+    if t is None:
+        if uses_time:
+            raise QueryError(f"t is required: this light field varies over time [{bounds.t0:g}, {bounds.t1:g}] s")
+        return None
+    t = _as_tensor(t, "t", device).reshape(-1)
+    if t.numel() == 1:
+        t = t.expand(n)
+    if t.shape[0] != n:
+        raise QueryError(f"t has {t.shape[0]} values for {n} positions")
+    if not torch.isfinite(t).all():
+        raise QueryError("t must be finite (seconds from the first frame)")
+    return t
 
 
 def extrapolation_flags(bounds: SceneBounds, xs: torch.Tensor, ts: torch.Tensor | None) -> list[dict]:

@@ -27,7 +27,8 @@ from safetensors.torch import load as load_safetensors_bytes
 from safetensors.torch import save_file
 
 from core.conventions import equirect_directions, equirect_width
-from core.engine.artefact import ArtefactError, LightFieldArtefact, QueryError, check_height, extrapolation_flags
+from core.engine.artefact import (ArtefactError, LightFieldArtefact, QueryError, check_height, extrapolation_flags,
+                                  query_positions, query_times)
 from core.envmap import equirect_stencil, pad_poles, resize_envmap
 from core.fields.encodings import lattice_corners
 from core.fields.normalization import SceneBounds
@@ -63,28 +64,15 @@ class BakedField:
     # ------------------------------------------------------------------ queries
     def envmap(self, x, t=None, height: int | None = None) -> tuple[torch.Tensor, dict]:
         """Interpolated env map [H, 2H, 3] at x [3], t, and flags (as LightFieldArtefact.envmap)."""
-        x = torch.as_tensor(x, dtype=torch.float32)
-        if x.numel() != 3:
-            raise QueryError(f"x must be one position [3], got shape {tuple(x.shape)}")
+        x = query_positions(x, "x")
+        if x.shape[0] != 1:
+            raise QueryError(f"x must be one position [3], got {x.shape[0]}")
         hdr, flags = self.envmaps(x, None if t is None else [t], height)
         return hdr[0], flags[0]
 
     def envmaps(self, xs, ts, height: int | None = None) -> tuple[torch.Tensor, list[dict]]:
-        xs = torch.as_tensor(xs, dtype=torch.float32)
-        if xs.ndim == 0 or xs.shape[-1] != 3 or xs.numel() == 0:
-            raise QueryError(f"xs must have shape [3] or [N, 3], got {tuple(xs.shape)}")
-        xs = xs.reshape(-1, 3)
-        if not torch.isfinite(xs).all():
-            raise QueryError("xs must be finite (metres)")
-        ts_t = None
-        if ts is not None:
-            ts_t = torch.as_tensor(ts, dtype=torch.float32).reshape(-1)
-            if ts_t.numel() == 1:
-                ts_t = ts_t.expand(xs.shape[0])
-            if ts_t.shape[0] != xs.shape[0] or not torch.isfinite(ts_t).all():
-                raise QueryError(f"ts must be {xs.shape[0]} finite times (seconds)")
-        elif self.uses_time:
-            raise QueryError(f"t is required: this light field varies over time [{self.bounds.t0:g}, {self.bounds.t1:g}] s")
+        xs = query_positions(xs, "xs")
+        ts_t = query_times(ts, xs.shape[0], self.bounds, self.uses_time)
         height = self.height if height is None else check_height(height)
         has_time_axis = self.maps.shape[0] > 1
         dims = tuple(self.maps.shape[:4]) if has_time_axis else self.grid
