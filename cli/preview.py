@@ -36,7 +36,6 @@ def render_preview(artefact_dir, input_path, output, depth=None, points=None, fr
     import warnings
 
     import numpy as np
-    import torch
 
     from core.engine.artefact import LightFieldArtefact
     from core.engine.capture import load_capture
@@ -50,7 +49,7 @@ def render_preview(artefact_dir, input_path, output, depth=None, points=None, fr
         capture = load_capture(input_path, depth, capture_params_from_meta(art.meta))
 
     def envmaps_at(xs, t):
-        return art.envmaps(xs, None if t is None else torch.full((xs.shape[0],), float(t)), env_height)[0]
+        return art.envmaps(xs, t, env_height)[0]  # a scalar t applies to every position
 
     def render(i: int) -> np.ndarray:
         t = float(capture.times[i]) if art.uses_time else None
