@@ -25,7 +25,7 @@ import torch
 
 from core.chrome_ball import ball_reflection_rays, composite, composite_depth, place_probe, render_balls
 from core.conventions import inverse_tonemap, tonemap, tonemap_unclipped, valid_depth_mask
-from core.engine.capture import Capture, load_capture
+from core.engine.capture import Capture, load_capture, median_valid_depth
 from core.engine.config import DistillConfig, preset, resolve_device
 from core.engine.losses import PerceptualLoss, masked_l2, perceptual_description
 from core.engine.params import JobParams
@@ -74,10 +74,8 @@ def sample_probes(capture: Capture, frame_index: int, cfg: DistillConfig, gen: t
     v = ((cells // gx).double() + jitter[:, 1]) * (H / gy)
     u, v = u.clamp(0.5, W - 0.5), v.clamp(0.5, H - 0.5)
     depth = capture.depth[frame_index]
-    valid = valid_depth_mask(depth)
-    fallback = float(depth[valid].median()) if bool(valid.any()) else 2.0
     d = depth[v.long().clamp(0, H - 1), u.long().clamp(0, W - 1)].double()
-    d = torch.where(valid_depth_mask(d), d, torch.full_like(d, fallback))
+    d = torch.where(valid_depth_mask(d), d, torch.full_like(d, median_valid_depth(depth)))
     k = capture.intrinsics
     p = 0.5 * cfg.ball_diameter_fraction * min(H, W)
     r_over_z = p / math.sqrt(k.fx * k.fy + p * p)

@@ -16,6 +16,7 @@ import torch
 from core.camera import Camera
 from core.chrome_ball import BallLayer, ball_reflection_rays, composite, place_probe, render_balls
 from core.conventions import equirect_directions, inverse_tonemap, tonemap, valid_depth_mask
+from core.engine.capture import median_valid_depth
 from core.envmap import irradiance, sample_envmap
 
 ALBEDO = 0.6
@@ -61,8 +62,7 @@ def place_objects(camera: Camera, depth: torch.Tensor, points: list[InsertionPoi
     """Centres [2N, 3] and radii [2N]: N mirror balls at the points, then N diffuse spheres
     just right of them (2.3 radii along the camera's right axis, same depth)."""
     k = camera.intrinsics
-    valid = valid_depth_mask(depth)
-    fallback = float(depth[valid].median()) if bool(valid.any()) else 2.0
+    fallback = median_valid_depth(depth)
     right = camera.c2w[:3, 0].to(torch.float32)
     balls, spheres, radii = [], [], []
     for p in points:
