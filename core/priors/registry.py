@@ -22,18 +22,10 @@ def build_prior(name: str, weights: str | None = None, **kw) -> Prior:
         if "fn" not in kw:
             raise PriorError("prior 'known' needs fn=callable(x, t, d) -> radiance")
         return KnownRadiancePrior(**kw)
-    if name == "diffusion":
-        module = _optional("core.priors.diffusion", "the diffusion prior")
-        factory = getattr(module, "build_diffusion_prior", None) or getattr(module, "DiffusionPrior", None)
-        if factory is None:
-            raise PriorError("core.priors.diffusion provides neither build_diffusion_prior nor DiffusionPrior")
-        return factory(weights, **kw) if weights is not None else factory(**kw)
+    if name == "diffusion":  # raises PriorError without weights
+        return _optional("core.priors.diffusion.prior", "the diffusion prior").build_diffusion_prior(weights, **kw)
     if name == "oracle":
-        module = _optional("core.sim.oracle", "the simulator's oracle prior")
-        factory = getattr(module, "OracleSimPrior", None) or getattr(module, "build_oracle_prior", None)
-        if factory is None:
-            raise PriorError("core.sim.oracle provides neither OracleSimPrior nor build_oracle_prior")
-        return factory(**kw)
+        return _optional("core.sim.oracle", "the simulator's oracle prior").OracleSimPrior(**kw)
     raise PriorError(f"unknown prior {name!r}; choose one of {', '.join(PRIOR_NAMES)}")
 
 
