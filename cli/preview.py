@@ -53,7 +53,7 @@ def render_preview(artefact_dir, input_path, output, depth=None, points=None, fr
 
     def render(i: int) -> np.ndarray:
         t = float(capture.times[i]) if art.uses_time else None
-        out = insert_objects(capture.frames[i], capture.depth[i], capture.camera(i), envmaps_at, t, pts, env_height)
+        out = insert_objects(capture.frames[i], capture.depth[i], capture.camera(i), envmaps_at, t, pts)
         return out.numpy()
 
     output = Path(output)

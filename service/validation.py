@@ -76,7 +76,8 @@ def check_capture(input_path: Path, depth_path: Path | None, params) -> dict:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            capture = load_capture(input_path, depth_path, params, MediaLimits.from_env())
+            capture = load_capture(input_path, depth_path, params, MediaLimits.from_env(),
+                                   estimate_depth=False)  # the worker runs the depth model, not the API
     except MediaError as exc:
         raise media_error_to_api(exc) from None
     except (CaptureError, CameraError) as exc:

@@ -83,7 +83,7 @@ def test_insertion_under_uniform_light_is_analytic():
         return torch.full((xs.shape[0], 16, 32, 3), L)
 
     pts = [InsertionPoint(0.3, 0.5, 2.0)]
-    out = insert_objects(frame, depth, cam, envmaps_at, None, pts, env_height=16)
+    out = insert_objects(frame, depth, cam, envmaps_at, None, pts)
     centers, radii = place_objects(cam, depth, pts)
     u_ball, v_ball, _ = cam.project(centers.double())
     ball = out[int(v_ball[0]), int(u_ball[0])]
@@ -93,7 +93,7 @@ def test_insertion_under_uniform_light_is_analytic():
     far = out[5, 90]
     assert torch.allclose(far, frame[5, 90], atol=1e-6)
     # scene geometry in front of an object hides it
-    hidden = insert_objects(frame, torch.full((72, 96), 1.0), cam, envmaps_at, None, pts, env_height=16)
+    hidden = insert_objects(frame, torch.full((72, 96), 1.0), cam, envmaps_at, None, pts)
     assert torch.allclose(hidden, tonemap(inverse_tonemap(frame)), atol=1e-6)
 
 

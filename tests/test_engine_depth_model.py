@@ -156,6 +156,14 @@ def test_a_bad_env_var_fails_the_load_with_a_depth_error(image_path, monkeypatch
     assert info.value.field == "depth" and DEPTH_MODEL_ENV in str(info.value)
 
 
+def test_estimate_depth_false_skips_the_model(image_path, monkeypatch, tmp_path):
+    """The service's upload check loads captures with estimate_depth=False: the model runs in
+    the worker, not in the API process (a bad directory would fail if it were read)."""
+    monkeypatch.setenv(DEPTH_MODEL_ENV, str(tmp_path / "nope"))
+    cap = load_capture(image_path, estimate_depth=False)
+    assert cap.depth_source.startswith("assumed:")
+
+
 def test_estimated_depth_feeds_run_job(tiny_dir, image_path, monkeypatch, tmp_path):
     from core.engine.config import preset
     from core.engine.distill import run_job

@@ -306,14 +306,15 @@ def _estimate_depth(frames: torch.Tensor, intr: Intrinsics, model_dir: str, warn
 
 
 def load_capture(input_path, depth_path=None, params: CaptureParams | None = None,
-                 limits: MediaLimits | None = None) -> Capture:
+                 limits: MediaLimits | None = None, estimate_depth: bool = True) -> Capture:
     """Load an image, a video or a simulator capture directory (see module docstring).
 
     `limits=None` reads them from the environment (`MediaLimits.from_env`: LIGHTFIELD_MAX_PIXELS
     etc.), so the CLI honours the same variables as the service. `params.max_frames` lowers
     `limits.max_frames`; longer videos are subsampled evenly by core.io and each kept frame
     keeps its source time (source index / fps). Poses given for every source frame are
-    subsampled the same way.
+    subsampled the same way. `estimate_depth=False` never runs the learned depth model
+    (the service's upload check: the worker runs it).
     """
     from core.io import read_video
 
@@ -361,7 +362,7 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
     if depth_path is not None and depth_arg.ndim == 3 and depth_arg.shape[0] == loaded.get("original_count", T) != T:
         depth_arg = depth_arg[source_idx]
     depth_src = f"file:{Path(depth_path).name}" if depth_path is not None else loaded.get("depth_source")
-    if depth_arg is None and os.environ.get(DEPTH_MODEL_ENV):
+    if depth_arg is None and estimate_depth and os.environ.get(DEPTH_MODEL_ENV):
         depth_arg, depth_src = _estimate_depth(frames, intr, os.environ[DEPTH_MODEL_ENV], warn)
     depth, depth_src = _resolve_depth(depth_arg, T, H, W, intr, depth_src, warn)
     for w in warn:

@@ -80,7 +80,7 @@ def place_objects(camera: Camera, depth: torch.Tensor, points: list[InsertionPoi
 
 
 def insert_objects(frame_ldr: torch.Tensor, depth: torch.Tensor, camera: Camera, envmaps_at, t: float | None,
-                   points: list[InsertionPoint], env_height: int = 32, ev: float = 0.0) -> torch.Tensor:
+                   points: list[InsertionPoint], ev: float = 0.0) -> torch.Tensor:
     """Frame [H, W, 3] LDR with the objects composited (LDR). `envmaps_at(xs [P,3], t) -> [P,h,2h,3]`."""
     centers, radii = place_objects(camera, depth, points)
     n = len(points)
