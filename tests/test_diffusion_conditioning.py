@@ -97,3 +97,19 @@ def test_paste_and_combine_keep_uncovered_pixels_exactly(seed):
 def test_to_unit_maps_the_vae_range_and_survives_nan():
     x = torch.tensor([-1.0, 0.0, 1.0, 3.0, float("nan"), float("inf"), float("-inf")])
     assert torch.equal(to_unit(x), torch.tensor([0.0, 0.5, 1.0, 1.0, 0.5, 1.0, 0.0]))
+
+
+def test_prior_device_follows_the_engines_rule(monkeypatch):
+    """One device rule (core.device): LIGHTFIELD_DEVICE overrides the prior's argument too, so
+    the engine and the diffusion prior never disagree about where work runs."""
+    import torch
+
+    from core.priors.base import PriorError
+    from core.priors.diffusion.loading import resolve_device
+
+    monkeypatch.delenv("LIGHTFIELD_DEVICE", raising=False)
+    assert resolve_device(None) == torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(PriorError, match="device"):
+        resolve_device("tpu")
+    monkeypatch.setenv("LIGHTFIELD_DEVICE", "cpu")
+    assert resolve_device("cuda") == torch.device("cpu")

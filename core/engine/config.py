@@ -11,22 +11,13 @@ the trunk+head field (see docs/engine.md). Wall times are measured by `bench/pre
 from __future__ import annotations
 
 import math
-import os
 import random
-import re
 from typing import Literal
 
-import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from core.conventions import DEFAULT_EV_MIN
-
-DEVICE_ENV = "LIGHTFIELD_DEVICE"  # overrides DistillConfig.device (deployments pick the GPU, not each job)
-DEVICE_PATTERN = r"^(auto|cpu|cuda(:\d+)?)$"
-
-
-class DeviceError(ValueError):
-    """The requested torch device is malformed or not available; the message names the setting."""
+from core.device import DEVICE_ENV, DEVICE_PATTERN, DeviceError, resolve_device  # noqa: F401  (re-exported)
 
 
 class DistillConfig(BaseModel):
@@ -90,26 +81,6 @@ class DistillConfig(BaseModel):
         p = min(1.0, (step - self.warmup_steps) / span)
         lo = self.lr * self.lr_min_ratio
         return lo + 0.5 * (self.lr - lo) * (1.0 + math.cos(math.pi * p))
-
-
-def resolve_device(setting: str = "auto", environ: dict[str, str] | None = None) -> torch.device:
-    """The torch device distillation runs on: LIGHTFIELD_DEVICE if set, else `setting`.
-    'auto' means CUDA when torch sees a GPU, else CPU; an explicit CUDA device without one
-    is an error (a GPU preset silently running for hours on CPU is worse than failing)."""
-    env = os.environ if environ is None else environ
-    raw = (env.get(DEVICE_ENV) or "").strip()
-    source, value = (DEVICE_ENV, raw) if raw else ("DistillConfig.device", setting)
-    if not re.match(DEVICE_PATTERN, value):
-        raise DeviceError(f"{source}={value!r}: expected 'auto', 'cpu', 'cuda' or 'cuda:N'")
-    if value == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(value)
-    if device.type == "cuda":
-        if not torch.cuda.is_available():
-            raise DeviceError(f"{source}={value!r} but CUDA is not available (use 'auto' or 'cpu')")
-        if device.index is not None and device.index >= torch.cuda.device_count():
-            raise DeviceError(f"{source}={value!r} but only {torch.cuda.device_count()} CUDA device(s) exist")
-    return device
 
 
 PRESETS: dict[str, DistillConfig] = {

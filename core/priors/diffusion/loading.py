@@ -24,6 +24,8 @@ from typing import Any
 
 import torch
 
+from core.device import DeviceError, resolve_device as core_resolve_device
+
 from core.priors.base import PriorError
 from core.priors.diffusion.card import ModelCard
 
@@ -69,15 +71,11 @@ class PriorComponents:
 
 
 def resolve_device(device: str | torch.device | None) -> torch.device:
-    if device is None:
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    """The engine's rule (core.device): LIGHTFIELD_DEVICE overrides, None means 'auto'."""
     try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError) as exc:
-        raise PriorError(f"device: cannot parse {device!r}") from exc
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise PriorError(f"device: {device!r} requested but CUDA is not available")
-    return dev
+        return core_resolve_device("auto" if device is None else str(device), source="prior device")
+    except DeviceError as exc:
+        raise PriorError(f"device: {exc}") from None
 
 
 def resolve_dtype(dtype: str | torch.dtype | None, device: torch.device) -> torch.dtype:
