@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import math
 
+import pytest
+
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -102,8 +104,6 @@ def test_to_unit_maps_the_vae_range_and_survives_nan():
 def test_prior_device_follows_the_engines_rule(monkeypatch):
     """One device rule (core.device): LIGHTFIELD_DEVICE overrides the prior's argument too, so
     the engine and the diffusion prior never disagree about where work runs."""
-    import torch
-
     from core.priors.base import PriorError
     from core.priors.diffusion.loading import resolve_device
 
