@@ -59,8 +59,8 @@ def make_artefact(kind: str, out: Path) -> Path:
 def register_job(store, data_dir: Path, artefact: Path) -> str:
     """A succeeded job record owning a copy of `artefact` (what a worker would leave)."""
     from service.auth import tenant_hash
-    from service.storage import JobPaths, new_job_id
-    from service.store import JobRecord
+    from jobs.storage import JobPaths, new_job_id
+    from jobs.store import JobRecord
 
     job = new_job_id()
     paths = JobPaths.for_job(data_dir, tenant_hash(TENANT), job)
@@ -85,7 +85,7 @@ def main(argv=None) -> int:
 
     from core.engine.artefact import LightFieldArtefact
     from service.processes import free_port, spawn, start_redis, stop
-    from service.store import JobStore, connect
+    from jobs.store import JobStore, connect
 
     torch.set_num_threads(args.threads)
     heights = [int(h) for h in args.heights.split(",")]

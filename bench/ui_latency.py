@@ -29,9 +29,9 @@ def _job(ctx, height: int) -> str:
     from core.fields import FieldConfig, SceneBounds, build_field
     from core.fields.config import MLPSettings
     from service.auth import LOCAL_TENANT, tenant_hash
-    from service.capture_preview import CapturePreview, save_preview
-    from service.storage import JobPaths, new_job_id
-    from service.store import JobRecord
+    from jobs.capture_preview import CapturePreview, save_preview
+    from jobs.storage import JobPaths, new_job_id
+    from jobs.store import JobRecord
 
     width, frames = height * 4 // 3, 16
     cfg = preset("draft")
@@ -74,7 +74,7 @@ def main(argv=None) -> int:
     from fastapi.testclient import TestClient
 
     from service.app import create_app
-    from service.capture_preview import PREVIEW_MAX_HEIGHT
+    from jobs.capture_preview import PREVIEW_MAX_HEIGHT
     from service.config import ServiceSettings
     from service.processes import start_redis
 

@@ -15,7 +15,8 @@ def run(args) -> int:
     import sys
 
     from service.auth import AuthConfigError
-    from service.config import ServiceSettings, SettingsError
+    from jobs.settings import SettingsError
+    from service.config import ServiceSettings
     from service.embedded import serve
     from service.processes import LaunchError
 

@@ -17,8 +17,8 @@ from service.fieldcache import FieldCache
 from service.metrics import Metrics, MetricsMiddleware
 from service import routes_ui
 from service.routes import health, jobs, lightfield
-from service.store import JobStore, connect
-from worker.celery_config import make_celery
+from jobs.store import JobStore, connect
+from jobs.queue import make_celery
 
 log = logging.getLogger("lightfield.service")
 UI_DIR = Path(__file__).parent / "ui"

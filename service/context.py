@@ -12,8 +12,8 @@ from service.auth import KeyRing, tenant_hash
 from service.config import ServiceSettings
 from service.errors import NotFound
 from service.fieldcache import FieldCache
-from service.storage import is_job_id
-from service.store import JobRecord, JobStore
+from jobs.storage import is_job_id
+from jobs.store import JobRecord, JobStore
 
 
 @dataclass

@@ -7,7 +7,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from service.errors import ErrorDetail
-from service.store import JobRecord, JobState
+from jobs.store import JobRecord, JobState
 
 EnvmapFormat = Literal["exr", "hdr", "png", "npy"]
 Quality = Literal["exact", "fast"]

@@ -2,7 +2,7 @@
 placement along a pixel's ray, and chrome/diffuse balls composited into a frame.
 
 All four read the capture preview the worker stores beside a succeeded job's artefact
-(service.capture_preview) and use the same auth, ownership and `not_ready` rules as
+(service.stored_preview) and use the same auth, ownership and `not_ready` rules as
 /lightfield/{id}. Geometry lives in service.ui_probes and core; rendering in
 core.engine.insertion. Included by service.app.create_app.
 """
@@ -14,13 +14,13 @@ from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 
 from core.conventions import CONVENTIONS_SUMMARY
-from service.capture_preview import PreviewError, StoredPreview, load_preview
+from service.stored_preview import PreviewError, StoredPreview, load_preview
 from service.context import AppContext, Tenant, get_ctx, get_tenant, owned_job
 from service.errors import Conflict, ErrorBody, InvalidInput, NotFound
 from service.fieldcache import CachedField
 from service.models import Flags
 from service.queries import check_t, parse_x
-from service.storage import JobPaths
+from jobs.storage import JobPaths
 from service.ui_probes import ProbeError, locate, place
 
 router = APIRouter(tags=["ui"])

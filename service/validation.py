@@ -71,7 +71,7 @@ def check_capture(input_path: Path, depth_path: Path | None, params) -> dict:
     from core.camera import CameraError
     from core.engine.capture import CaptureError, load_capture
     from core.io.limits import MediaError, MediaLimits
-    from worker.runner import error_code_of
+    from jobs.errors import error_code_of
 
     try:
         with warnings.catch_warnings():

@@ -11,10 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core.camera import Camera, Intrinsics
-from service.capture_preview import (
-    META_FILE, TENSORS_FILE, CapturePreview, PreviewError, load_preview, preview_dir, preview_from_capture,
-    save_preview, write_capture_preview,
+from jobs.capture_preview import (
+    META_FILE, TENSORS_FILE, CapturePreview, preview_dir, preview_from_capture, save_preview, write_capture_preview,
 )
+from service.stored_preview import PreviewError, load_preview
 from service.ui_probes import ProbeError, fallback_depth, locate, pixel_of, place, radius_ratio, surface_depth
 
 W, H = 64, 48

@@ -14,9 +14,9 @@ from core.engine.artefact import save_artefact
 from core.fields import FieldConfig, SceneBounds, build_field
 from core.fields.config import GridSettings
 from service.auth import tenant_hash
-from service.capture_preview import CapturePreview, save_preview
-from service.storage import JobPaths, new_job_id
-from service.store import JobRecord
+from jobs.capture_preview import CapturePreview, save_preview
+from jobs.storage import JobPaths, new_job_id
+from jobs.store import JobRecord
 from service.routes_ui import MAX_INSERTED_PROBES
 
 KEYS = {"alice": "alice-key-0001", "bob": "bob-key-00002"}

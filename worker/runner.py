@@ -1,14 +1,13 @@
 """One delivery of a distillation job: lease, run the engine, record the outcome.
 
 Kept free of Celery so its decisions (skip, re-queue, resume, fail) are plain functions of
-the job record, the lease and the engine's behaviour. `worker.tasks` is the Celery shim.
+the job record, the lease and the engine's behaviour. The engine is a constructor argument
+(the project's `run_job` in worker.app, scripted engines in tests); `worker.tasks` is the
+Celery shim.
 """
 from __future__ import annotations
 
-import importlib
-import inspect
 import logging
-import os
 import shutil
 import time
 from dataclasses import dataclass
@@ -16,14 +15,14 @@ from enum import Enum
 from pathlib import Path
 from typing import Callable
 
-from service.config import ServiceSettings
-from service.storage import JobPaths
-from service.store import JobStore
-from worker.lease import RunLease
+from jobs.errors import error_code_of, user_error_types
+from jobs.lease import RunLease
+from jobs.settings import JobSettings
+from jobs.storage import JobPaths
+from jobs.store import JobStore
 
 log = logging.getLogger("lightfield.worker")
 
-DEFAULT_ENGINE = "core.engine.distill:run_job"
 PROGRESS_MIN_INTERVAL_S = 0.2  # progress writes per job are throttled to ~5/s
 
 
@@ -36,41 +35,13 @@ class Outcome(str, Enum):
     ABANDONED = "abandoned"  # lease lost mid-run: another worker owns the job now
 
 
-def engine_entrypoint() -> Callable:
-    """The engine's run_job. LIGHTFIELD_ENGINE ("module:function") swaps it, e.g. for an
-    instrumented engine in experiments; the default is the project's engine."""
-    spec = os.environ.get("LIGHTFIELD_ENGINE", DEFAULT_ENGINE)
-    module, _, name = spec.partition(":")
-    return getattr(importlib.import_module(module), name)
-
-
-def _user_error_types() -> tuple[type[BaseException], ...]:
-    """Errors caused by the job's input: recorded with their code, never retried."""
-    from core.camera import CameraError
-    from core.engine.capture import CaptureError
-    from core.io.limits import MediaError
-    from core.priors.base import PriorError
-
-    return (MediaError, CaptureError, CameraError, PriorError)
-
-
-def error_code_of(exc: BaseException) -> str:
-    """The API error code of an input error: the same whether the upload check
-    (service.validation) or the worker meets it, as docs/api.md lists them."""
-    code = getattr(exc, "code", None)
-    if isinstance(code, str) and code:
-        return code
-    field = getattr(exc, "field", None)  # CaptureError names its input, as the API's codes do
-    if isinstance(field, str) and field.isidentifier():
-        return f"invalid_{field}"
-    return {"CaptureError": "invalid_capture", "CameraError": "invalid_intrinsics",
-            "PriorError": "prior_unavailable"}.get(type(exc).__name__, "invalid_input")
-
-
 @dataclass
 class JobRunner:
     store: JobStore
-    settings: ServiceSettings
+    settings: JobSettings
+    # run_job(input, depth, params, out_dir, *, progress, should_cancel, checkpoint_dir,
+    #         limits, config=None, prior=None) -> artefact dir (core.engine's signature)
+    engine: Callable[..., Path]
     prior_provider: Callable[[str, str | None], object] | None = None
 
     def run(self, job_id: str) -> Outcome:
@@ -104,7 +75,7 @@ class JobRunner:
 
         from core.engine.progress import Cancelled
 
-        user_errors = _user_error_types()
+        user_errors = user_error_types()
         try:
             artefact = self._finished_artefact(paths) or self._call_engine(record, paths, lease)
             relative = self._relative_artefact(artefact, paths)
@@ -138,26 +109,23 @@ class JobRunner:
         from core.io.limits import MediaLimits
 
         params = JobParams.model_validate_json(record.params or "{}")
-        run_job = engine_entrypoint()
         paths.job_dir.mkdir(parents=True, exist_ok=True)
         kwargs = dict(
             progress=self._progress_writer(record.id),
             should_cancel=lambda: lease.lost.is_set() or self.store.cancel_requested(record.id),
             checkpoint_dir=paths.checkpoint_dir,
+            limits=MediaLimits.from_env(),
         )
-        accepted = inspect.signature(run_job).parameters
-        if "limits" in accepted:
-            kwargs["limits"] = MediaLimits.from_env()
-        if self.settings.distill_overrides and "config" in accepted:
+        if self.settings.distill_overrides:
             from core.engine.config import preset
 
             kwargs["config"] = preset(params.preset, **self.settings.distill_overrides)
         # Only weight-loading priors are worth keeping across jobs; the engine builds cheap
         # ones itself with its preset's settings.
-        if self.prior_provider is not None and params.prior == "diffusion" and "prior" in accepted:
+        if self.prior_provider is not None and params.prior == "diffusion":
             kwargs["prior"] = self.prior_provider(params.prior, params.prior_weights)
         depth = paths.upload_dir / record.depth_file if record.depth_file else None
-        return Path(run_job(paths.upload_dir / record.input_file, depth, params, paths.artefact_dir, **kwargs))
+        return Path(self.engine(paths.upload_dir / record.input_file, depth, params, paths.artefact_dir, **kwargs))
 
     @staticmethod
     def _finished_artefact(paths: JobPaths) -> Path | None:
@@ -180,12 +148,12 @@ class JobRunner:
             log.warning("job %s: baking the fast path failed", job_id, exc_info=True)
 
     def _save_ui_preview(self, record, paths: JobPaths) -> None:
-        """Keep small frames + depth for the web page (service.capture_preview) before the
+        """Keep small frames + depth for the web page (jobs.capture_preview) before the
         uploads are deleted. Optional: without it the page cannot show frames."""
         try:
             from core.engine.params import JobParams
             from core.io.limits import MediaLimits
-            from service.capture_preview import write_capture_preview
+            from jobs.capture_preview import write_capture_preview
 
             depth = paths.upload_dir / record.depth_file if record.depth_file else None
             write_capture_preview(paths.upload_dir / record.input_file, depth,
