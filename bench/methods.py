@@ -160,7 +160,7 @@ def _timed_queries(run: "MethodRun", fn, calls) -> list:
 
 def _bound_prior(suite: SuiteData, cfg: DistillConfig):
     """The reprojection prior bound to the capture at the working resolution (as run_job does)."""
-    from core.engine.capture import load_capture
+    from core.capture.load import load_capture
     from core.priors.reprojection import ReprojectionPrior
 
     work = load_capture(suite.capture_dir).resized(cfg.work_height)

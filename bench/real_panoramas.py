@@ -81,7 +81,7 @@ def ldr_photo(hdr: torch.Tensor) -> torch.Tensor:
 
 
 def estimate_reprojection(ldr: torch.Tensor, intr) -> torch.Tensor:
-    from core.engine.capture import capture_from_arrays
+    from core.capture.load import capture_from_arrays
     from core.envmap import resize_envmap
     from core.priors.reprojection import ReprojectionPrior
 

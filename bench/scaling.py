@@ -32,7 +32,7 @@ QUERY_HEIGHTS = {"quick": [16, 32, 64, 128], "full": [16, 32, 64, 128, 256, 512]
 def synthetic_capture(frames: int, height: int):
     import torch
 
-    from core.engine.capture import capture_from_arrays
+    from core.capture.load import capture_from_arrays
 
     width = height * 4 // 3
     g = torch.Generator().manual_seed(frames * 1000 + height)

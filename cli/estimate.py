@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
 
     from pydantic import ValidationError
 
-    from core.engine.capture import CaptureError
+    from core.capture.base import CaptureError
     from core.engine.config import preset
     from core.engine.distill import run_job
     from core.engine.params import parse_job_params

@@ -91,7 +91,7 @@ def _evenly_spaced(count: int, keep: int) -> np.ndarray:
 
 
 def preview_from_capture(capture, max_height: int = PREVIEW_MAX_HEIGHT, max_frames: int = PREVIEW_MAX_FRAMES) -> CapturePreview:
-    """Downsample a core.engine.capture.Capture: pick frames first (cheap), then the engine's own
+    """Downsample a core.capture.base.Capture: pick frames first (cheap), then the engine's own
     resize (area-averaged frames, nearest-surface depth)."""
     import dataclasses
 
@@ -149,7 +149,7 @@ def write_capture_preview(input_path, depth_path, params, job_dir: Path, limits=
     Idempotent: an existing preview (a re-delivered job) is kept."""
     import warnings
 
-    from core.engine.capture import load_capture
+    from core.capture.load import load_capture
 
     if (preview_dir(job_dir) / META_FILE).is_file():
         return preview_dir(job_dir)

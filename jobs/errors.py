@@ -6,7 +6,7 @@ from __future__ import annotations
 def user_error_types() -> tuple[type[BaseException], ...]:
     """Errors caused by the job's input: recorded with their code, never retried."""
     from core.camera import CameraError
-    from core.engine.capture import CaptureError
+    from core.capture.base import CaptureError
     from core.io.limits import MediaError
     from core.priors.base import PriorError
 

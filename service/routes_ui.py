@@ -161,7 +161,7 @@ def _insertion_frame(preview: StoredPreview, index: int):
     INSERTION_MAX_HEIGHT rows (the engine's own resize: area-averaged colour, nearest depth)."""
     import torch
 
-    from core.engine.capture import Capture
+    from core.capture.base import Capture
 
     capture = Capture(frames=torch.from_numpy(preview.frame(index).astype(np.float32) / 255.0)[None],
                       depth=torch.from_numpy(preview.depth_map(index))[None],

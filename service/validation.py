@@ -69,7 +69,8 @@ def media_error_to_api(exc) -> ApiError:
 def check_capture(input_path: Path, depth_path: Path | None, params) -> dict:
     """Load the capture as the worker will; returns a short summary or raises a 4xx ApiError."""
     from core.camera import CameraError
-    from core.engine.capture import CaptureError, load_capture
+    from core.capture.base import CaptureError
+    from core.capture.load import load_capture
     from core.io.limits import MediaError, MediaLimits
     from jobs.errors import error_code_of
 

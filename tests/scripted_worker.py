@@ -14,7 +14,7 @@ from worker.tasks import register_distill_task
 
 def engine_bad_depth(*a, **kw):
     """Fails as an engine does on an upload whose depth has no valid pixel."""
-    from core.engine.capture import CaptureError
+    from core.capture.base import CaptureError
 
     raise CaptureError("depth", "no valid pixels")
 

@@ -8,7 +8,7 @@ import torch
 from core.chrome_ball import place_probe
 from core.conventions import equirect_directions
 from core.engine import distill as distill_module
-from core.engine.capture import capture_from_arrays
+from core.capture.load import capture_from_arrays
 from core.engine.config import preset
 from core.engine.distill import distill, run_job, sample_probes
 from core.engine.params import JobParams

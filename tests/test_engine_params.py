@@ -5,7 +5,8 @@ import pytest
 from pydantic import ValidationError
 
 from core.engine.config import PRESETS, preset
-from core.engine.params import CaptureParams, IntrinsicsParams, JobParams, parse_job_params
+from core.capture.params import CaptureParams, IntrinsicsParams
+from core.engine.params import JobParams, parse_job_params
 
 
 def test_defaults_are_the_documented_ones():

@@ -25,7 +25,7 @@ def engine_ok(input_path, depth_path, params, out_dir, progress=None, should_can
 
 
 def engine_bad_depth(*a, **kw):
-    from core.engine.capture import CaptureError
+    from core.capture.base import CaptureError
 
     raise CaptureError("depth", "no valid pixels")
 
@@ -155,7 +155,7 @@ def test_a_lost_lease_abandons_the_run_without_touching_the_record(runner):
 
 def test_input_errors_get_the_codes_the_api_documents():
     from core.camera import CameraError
-    from core.engine.capture import CaptureError
+    from core.capture.base import CaptureError
     from jobs.errors import error_code_of
 
     assert error_code_of(CaptureError("poses", "not 4x4")) == "invalid_poses"

@@ -109,7 +109,7 @@ def test_write_capture_parses_with_consistent_shapes(tmp_path):
 
 
 def test_engine_loads_simulated_capture_unchanged(tmp_path):
-    capture_mod = pytest.importorskip("core.engine.capture")
+    capture_mod = pytest.importorskip("core.capture.load")
     s = small("moving-camera", frames=3)
     write_capture(s, tmp_path, envmap_height=4)
     cap = capture_mod.load_capture(tmp_path)

@@ -179,7 +179,7 @@ def test_damaged_previews_are_refused(tmp_path):
 
 
 def test_preview_from_capture_bounds_size_and_keeps_first_and_last_frames():
-    from core.engine.capture import capture_from_arrays
+    from core.capture.load import capture_from_arrays
 
     frames = torch.rand(10, 90, 120, 3)
     depth = torch.full((10, 90, 120), 2.0)

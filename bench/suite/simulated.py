@@ -150,7 +150,7 @@ def build_series(scene: SceneSpec) -> list[Series]:
 
 def load_suite(name: str, cache_dir: Path, resolution: tuple[int, int] | None, gt_height: int) -> SuiteData:
     """Render (or reuse) a suite's capture and collect its ground truth."""
-    from core.engine.capture import load_capture
+    from core.capture.load import load_capture
     from core.io.exr import read_exr
     from core.sim.suites import suite
 

@@ -25,12 +25,14 @@ import torch
 
 from core.chrome_ball import ball_reflection_rays, composite, composite_depth, place_probe, render_balls
 from core.conventions import inverse_tonemap, tonemap, tonemap_unclipped, valid_depth_mask
-from core.engine.capture import Capture, load_capture, median_valid_depth
+from core.capture.base import Capture
+from core.capture.depth import median_valid_depth
+from core.capture.load import load_capture
 from core.engine.config import DistillConfig, preset, resolve_device
 from core.engine.losses import PerceptualLoss, masked_l2, perceptual_description
 from core.engine.params import JobParams
 from core.engine.progress import Cancelled, CancelCheck, ProgressCallback, Reporter, StageTimer
-from core.engine.temporal import TemporalDecision, decide_temporal
+from core.capture.temporal import TemporalDecision, decide_temporal
 from core.fields import FieldConfig, LightField, SceneBounds, build_field, field_preset
 from core.priors.base import Prior, PriorRequest, ProbeGeometry
 

@@ -13,14 +13,12 @@ Implementations:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import torch
 
 from core.camera import Camera
-
-if TYPE_CHECKING:  # avoid an import cycle; the engine's Capture is only a type here
-    from core.engine.capture import Capture
+from core.capture.base import Capture
 
 
 class PriorError(RuntimeError):
@@ -61,7 +59,7 @@ class PriorRequest:
 class Prior(Protocol):
     name: str
 
-    def bind(self, capture: "Capture") -> None:
+    def bind(self, capture: Capture) -> None:
         """Called once per job before distillation (precompute per-capture state)."""
 
     def __call__(self, request: PriorRequest) -> torch.Tensor:

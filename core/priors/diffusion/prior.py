@@ -32,7 +32,7 @@ from core.priors.diffusion.exposure import ExposureConditioner
 from core.priors.diffusion.loading import PriorComponents, load_components
 
 if TYPE_CHECKING:
-    from core.engine.capture import Capture
+    from core.capture.base import Capture
     from core.priors.diffusion.sampling import BallSamples
 
 

@@ -10,8 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core.camera import Intrinsics
-from core.engine.capture import DEPTH_MODEL_ENV, CaptureError, assumed_box_depth, load_capture
-from core.engine.depth_model import disparity_to_depth, load_depth_estimator
+from core.capture.base import CaptureError
+from core.capture.depth import assumed_box_depth
+from core.capture.load import DEPTH_MODEL_ENV, load_capture
+from core.capture.depth_model import disparity_to_depth, load_depth_estimator
 
 H, W = 24, 36
 
