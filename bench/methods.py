@@ -10,7 +10,7 @@ Families (all read the same capture directory through the engine's `load_capture
              would be the ground truth itself, so it is not run.
 * field      a light field distilled by the engine's `run_job` (mlp = the paper's, grid = the
              paper's "w/o MLP" 3x3x3 ablation, trunk = the engine's faster field), queried
-             exactly (`LightFieldArtefact.envmaps`) or through the baked lattice (`core.engine.bake`).
+             exactly (`LightFieldArtefact.envmaps`) or through the baked lattice (`core.fields.bake`).
 
 Ablations are `DistillConfig` overrides: e.g. uniform exposure sampling is the engine's
 `ev_schedule="uniform"` (ev drawn uniformly in [ev_min, 0] per step instead of the
@@ -243,12 +243,12 @@ def distill_artefact(method: Method, suite: SuiteData, base: DistillConfig, out_
 
 def query_field(run: MethodRun, artefact_dir: Path, suite: SuiteData) -> None:
     """Fill run.envmaps / series / query_ms from an artefact, exactly or through a bake."""
-    from core.engine.artefact import LightFieldArtefact
+    from core.fields.artefact import LightFieldArtefact
 
     art = LightFieldArtefact.load(artefact_dir)
     source = art
     if run.method.query == "baked":
-        from core.engine.bake import bake
+        from core.fields.bake import bake
 
         with measured() as mb:
             source = bake(art)

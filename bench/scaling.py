@@ -102,8 +102,8 @@ def query_latency(heights: list[int], repeats: int = 3) -> dict:
 
     import torch
 
-    from core.engine.artefact import LightFieldArtefact, save_artefact
-    from core.engine.bake import bake
+    from core.fields.artefact import LightFieldArtefact, save_artefact
+    from core.fields.bake import bake
     from core.engine.config import preset
     from core.engine.distill import build_field_config
     from core.fields import SceneBounds, build_field

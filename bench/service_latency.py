@@ -48,11 +48,11 @@ def timed(fn, probes: list[str], reps: int) -> dict:
 
 
 def make_artefact(kind: str, out: Path) -> Path:
-    from core.engine.artefact import save_artefact
-    from core.fields import SceneBounds, build_field, field_preset
+    from core.fields.artefact import save_artefact
+    from core.fields import FieldConfig, SceneBounds, build_field
 
     bounds = SceneBounds((-2.5, -1.5, -4.0), (2.5, 1.5, 0.5), 0.0, 0.0)
-    field = build_field(field_preset(kind, uses_time=False), bounds)
+    field = build_field(FieldConfig(kind=kind, uses_time=False), bounds)
     return save_artefact(out, field, {"bench": "service_latency"})
 
 
@@ -83,7 +83,7 @@ def main(argv=None) -> int:
     import httpx
     import torch
 
-    from core.engine.artefact import LightFieldArtefact
+    from core.fields.artefact import LightFieldArtefact
     from service.processes import free_port, spawn, start_redis, stop
     from jobs.store import JobStore, connect
 

@@ -24,10 +24,10 @@ def _job(ctx, height: int) -> str:
     import torch
 
     from core.camera import Intrinsics
-    from core.engine.artefact import save_artefact
+    from core.fields.artefact import save_artefact
     from core.engine.config import preset
     from core.fields import FieldConfig, SceneBounds, build_field
-    from core.fields.config import MLPSettings
+    from core.fields.mlp import MLPSettings
     from service.auth import LOCAL_TENANT, tenant_hash
     from jobs.capture_preview import CapturePreview, save_preview
     from jobs.storage import JobPaths, new_job_id

@@ -211,7 +211,7 @@ class _LocalRun:
         import warnings
 
         from cli.estimate import ProgressBar
-        from core.engine.artefact import LightFieldArtefact
+        from core.fields.artefact import LightFieldArtefact
         from core.engine.config import preset
         from core.engine.distill import run_job
         from core.engine.params import JobParams

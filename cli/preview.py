@@ -37,7 +37,7 @@ def render_preview(artefact_dir, input_path, output, depth=None, points=None, fr
 
     import numpy as np
 
-    from core.engine.artefact import LightFieldArtefact
+    from core.fields.artefact import LightFieldArtefact
     from core.capture.load import load_capture
     from core.engine.insertion import insert_objects, parse_points
     from core.io import write_png, write_video
@@ -68,7 +68,7 @@ def render_preview(artefact_dir, input_path, output, depth=None, points=None, fr
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.engine.artefact import ArtefactError
+    from core.fields.artefact import ArtefactError
     from core.capture.base import CaptureError
     from core.engine.insertion import InsertionError
     from core.io import MediaError

@@ -68,7 +68,7 @@ def test_sampling_rejects_bad_settings(prior, scene):
 
 
 def test_distillation_with_the_tiny_prior_completes_and_stays_finite(tiny_dir, tmp_path):
-    from core.engine.artefact import LightFieldArtefact
+    from core.fields.artefact import LightFieldArtefact
     from core.engine.config import DistillConfig
     from core.engine.distill import run_job
     from core.engine.params import JobParams

@@ -214,7 +214,7 @@ def test_sample_probes_are_spread_and_in_front_of_the_surface():
 
 
 def test_run_job_writes_a_loadable_artefact(tmp_path):
-    from core.engine.artefact import LightFieldArtefact
+    from core.fields.artefact import LightFieldArtefact
     from core.io import write_png
 
     img = torch.rand(H, W, 3, generator=torch.Generator().manual_seed(0)).numpy()

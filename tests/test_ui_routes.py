@@ -10,9 +10,9 @@ import torch
 from PIL import Image
 
 from core.camera import Intrinsics
-from core.engine.artefact import save_artefact
+from core.fields.artefact import save_artefact
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.config import GridSettings
+from core.fields.grid import GridSettings
 from service.auth import tenant_hash
 from jobs.capture_preview import CapturePreview, save_preview
 from jobs.storage import JobPaths, new_job_id

@@ -131,7 +131,7 @@ class JobRunner:
     def _finished_artefact(paths: JobPaths) -> Path | None:
         """An artefact a previous run saved before dying (the engine renames a complete
         directory into place, so its metadata file means it is whole): finish, don't redo."""
-        from core.engine.artefact import META_FILE
+        from core.fields.artefact import META_FILE
 
         return paths.artefact_dir if (paths.artefact_dir / META_FILE).is_file() else None
 
@@ -139,8 +139,8 @@ class JobRunner:
         """Precompute the quality=fast lattice now, so no API request pays for it. Optional:
         a failure here only means the API bakes on the first fast query."""
         try:
-            from core.engine.artefact import LightFieldArtefact
-            from core.engine.bake import load_or_bake
+            from core.fields.artefact import LightFieldArtefact
+            from core.fields.bake import load_or_bake
 
             self.store.update(job_id, allowed=("running",), stage="baking", message="precomputing quality=fast")
             load_or_bake(LightFieldArtefact.load(artefact), save=True)

@@ -131,7 +131,7 @@ def _queries(art) -> tuple[list, list]:
 def run_case(case: Case, workdir: Path, iterations: int) -> dict:
     import torch
 
-    from core.engine.artefact import LightFieldArtefact
+    from core.fields.artefact import LightFieldArtefact
     from core.engine.config import preset
     from core.engine.distill import run_job
     from core.engine.params import JobParams

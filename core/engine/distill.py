@@ -33,7 +33,7 @@ from core.engine.losses import PerceptualLoss, masked_l2, perceptual_description
 from core.engine.params import JobParams
 from core.engine.progress import Cancelled, CancelCheck, ProgressCallback, Reporter, StageTimer
 from core.capture.temporal import TemporalDecision, decide_temporal
-from core.fields import FieldConfig, LightField, SceneBounds, build_field, field_preset
+from core.fields import FieldConfig, LightField, SceneBounds, build_field
 from core.priors.base import Prior, PriorRequest, ProbeGeometry
 
 CHECKPOINT_FILE = "checkpoint.safetensors"
@@ -92,17 +92,17 @@ def sample_probes(capture: Capture, frame_index: int, cfg: DistillConfig, gen: t
 # Field construction
 # ---------------------------------------------------------------------------------------
 def build_field_config(cfg: DistillConfig, kind: str | None, uses_time: bool) -> FieldConfig:
-    base = field_preset(kind or cfg.field_kind, uses_time=uses_time)
-    upd: dict = {}
+    base = FieldConfig(kind=kind or cfg.field_kind, uses_time=uses_time)
     if base.kind == "mlp" and (cfg.field_width or cfg.field_layers):
-        layers = cfg.field_layers or base.mlp.layers
-        skip = base.mlp.skip_layer if base.mlp.skip_layer and base.mlp.skip_layer <= layers else None
-        upd["mlp"] = base.mlp.model_copy(update={"width": cfg.field_width or base.mlp.width, "layers": layers, "skip_layer": skip})
+        mlp = base.section("mlp")
+        layers = cfg.field_layers or mlp.layers
+        skip = mlp.skip_layer if mlp.skip_layer and mlp.skip_layer <= layers else None
+        base = base.with_section("mlp", width=cfg.field_width or mlp.width, layers=layers, skip_layer=skip)
     if base.kind == "trunk" and (cfg.field_width or cfg.field_layers):
-        upd["trunk"] = base.trunk.model_copy(update={
-            "trunk_width": cfg.field_width or base.trunk.trunk_width,
-            "trunk_layers": cfg.field_layers or base.trunk.trunk_layers})
-    return FieldConfig.model_validate({**base.model_dump(), **{k: v.model_dump() for k, v in upd.items()}})
+        trunk = base.section("trunk")
+        base = base.with_section("trunk", trunk_width=cfg.field_width or trunk.trunk_width,
+                                 trunk_layers=cfg.field_layers or trunk.trunk_layers)
+    return base
 
 
 def scene_bounds(capture: Capture) -> SceneBounds:
@@ -362,7 +362,7 @@ def run_job(
     """Load the capture, decide time, distil, save the artefact to `out_dir`; returns its path.
 
     `prior` overrides params.prior (tests, the oracle); `config` overrides the preset."""
-    from core.engine.artefact import save_artefact
+    from core.fields.artefact import save_artefact
     from core.priors.registry import build_prior
 
     t_start = time.perf_counter()
