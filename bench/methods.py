@@ -5,9 +5,9 @@ Families (all read the same capture directory through the engine's `load_capture
              (DiffusionLight-style); with the oracle prior it is the TRUE map at that point,
              i.e. the best any single env map can do.
 * per-probe  the prior's estimate at each held-out probe independently, no distillation
-             (the paper's "Ours-sampling" analogue). Only for priors that can answer at an
-             arbitrary point directly (the reprojection prior's `envmaps`); with the oracle it
-             would be the ground truth itself, so it is not run.
+             (the paper's "Ours-sampling" analogue). Only for priors that declare the envmaps
+             capability (core.priors.base.PriorCapabilities; the reprojection prior); with the
+             oracle it would be the ground truth itself, so it is not run.
 * field      a light field distilled by the engine's `run_job` (mlp = the paper's, grid = the
              paper's "w/o MLP" 3x3x3 ablation, trunk = the engine's faster field), queried
              exactly (`LightFieldArtefact.envmaps`) or through the baked lattice (`core.fields.bake`).
@@ -27,7 +27,7 @@ from typing import Any, Literal
 import torch
 
 from bench.suite.measure import Measurement, measured
-from bench.suite.simulated import SERIES_HEIGHT, SuiteData, nearest_frame
+from bench.suite.simulated import SERIES_HEIGHT, SuiteData
 from core.engine.config import DistillConfig
 from core.envmap import resize_envmap
 
@@ -166,7 +166,7 @@ def _bound_prior(suite: SuiteData, cfg: DistillConfig):
     work = load_capture(suite.capture_dir).resized(cfg.work_height)
     prior = ReprojectionPrior(env_height=cfg.prior_env_height)
     prior.bind(work)
-    return prior, work
+    return prior
 
 
 def run_global(method: Method, suite: SuiteData, base: DistillConfig) -> MethodRun:
@@ -179,9 +179,9 @@ def run_global(method: Method, suite: SuiteData, base: DistillConfig) -> MethodR
         if method.prior == "oracle":
             env = render_envmap(suite.scene, suite.global_point, suite.global_time, h)
         else:
-            prior, work = _bound_prior(suite, cfg)
-            frame = nearest_frame(suite.global_time, work.fps, work.num_frames)
-            env = prior.envmaps(torch.tensor([suite.global_point], dtype=torch.float32), frame)[0]
+            prior = _bound_prior(suite, cfg)
+            env = prior.envmaps(torch.tensor([suite.global_point], dtype=torch.float32), suite.global_time,
+                                prior.env_height)[0]
     run.prepare = m
     maps = _timed_queries(run, lambda: resize_envmap(env, h), [()] * len(suite.probes))
     run.envmaps = torch.stack(maps)
@@ -196,13 +196,11 @@ def run_per_probe(method: Method, suite: SuiteData, base: DistillConfig) -> Meth
     run = MethodRun(method)
     cfg = method.config(base)
     with measured() as m:
-        prior, work = _bound_prior(suite, cfg)
+        prior = _bound_prior(suite, cfg)
     run.prepare = m
 
     def estimate(x, t, height):
-        frame = nearest_frame(float(t), work.fps, work.num_frames)
-        env = prior.envmaps(torch.tensor([x], dtype=torch.float32), frame)[0]
-        return resize_envmap(env, height)
+        return prior.envmaps(torch.tensor([x], dtype=torch.float32), float(t), height)[0]
 
     maps = _timed_queries(run, estimate, [(p.x, p.t, suite.eval_height) for p in suite.probes])
     run.envmaps = torch.stack(maps)

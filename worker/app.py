@@ -7,7 +7,7 @@ from core.engine.distill import run_job
 from jobs.queue import make_celery
 from jobs.settings import JobSettings
 from jobs.store import JobStore, connect
-from worker.prior_cache import get_prior
+from worker.prior_cache import cached_prior
 from worker.runner import JobRunner
 from worker.tasks import register_distill_task
 
@@ -16,7 +16,7 @@ app = make_celery(settings)
 
 
 def _runner() -> JobRunner:
-    return JobRunner(JobStore(connect(settings.broker_url)), settings, engine=run_job, prior_provider=get_prior)
+    return JobRunner(JobStore(connect(settings.broker_url)), settings, engine=run_job, prior_factory=cached_prior)
 
 
 distill = register_distill_task(app, _runner)

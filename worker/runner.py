@@ -40,9 +40,10 @@ class JobRunner:
     store: JobStore
     settings: JobSettings
     # run_job(input, depth, params, out_dir, *, progress, should_cancel, checkpoint_dir,
-    #         limits, config=None, prior=None) -> artefact dir (core.engine's signature)
+    #         limits, config=None, prior_factory=None) -> artefact dir (core.engine's signature)
     engine: Callable[..., Path]
-    prior_provider: Callable[[str, str | None], object] | None = None
+    # how the engine builds the job's prior (worker.prior_cache keeps weight-loading ones); None: the engine's own
+    prior_factory: Callable[..., object] | None = None
 
     def run(self, job_id: str) -> Outcome:
         record = self.store.get(job_id)
@@ -120,10 +121,8 @@ class JobRunner:
             from core.engine.config import preset
 
             kwargs["config"] = preset(params.preset, **self.settings.distill_overrides)
-        # Only weight-loading priors are worth keeping across jobs; the engine builds cheap
-        # ones itself with its preset's settings.
-        if self.prior_provider is not None and params.prior == "diffusion":
-            kwargs["prior"] = self.prior_provider(params.prior, params.prior_weights)
+        if self.prior_factory is not None:
+            kwargs["prior_factory"] = self.prior_factory
         depth = paths.upload_dir / record.depth_file if record.depth_file else None
         return Path(self.engine(paths.upload_dir / record.input_file, depth, params, paths.artefact_dir, **kwargs))
 

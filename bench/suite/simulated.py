@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -174,6 +173,3 @@ def load_suite(name: str, cache_dir: Path, resolution: tuple[int, int] | None, g
         render_seconds=render_seconds,
     )
 
-
-def nearest_frame(t: float, fps: float, frames: int) -> int:
-    return int(min(frames - 1, max(0, math.floor(t * fps + 0.5))))

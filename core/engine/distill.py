@@ -40,7 +40,6 @@ CHECKPOINT_FILE = "checkpoint.safetensors"
 CHECKPOINT_META = "checkpoint.json"
 BOUNDS_MAX_POINTS = 200_000
 LOSS_CURVE_MAX_POINTS = 1000
-REPROJECTION_MERGE_VIEWS = 4
 
 __all__ = ["Cancelled", "DistillResult", "distill", "run_job", "sample_probes", "build_field_config"]
 
@@ -292,7 +291,7 @@ class _Trainer:
             mask = layer.total_coverage.detach()
 
         with timings("prior"):
-            pd = _prior_device(self.prior)
+            pd = self.prior.device
             probes = ProbeGeometry(centers, radii, pixels.float(), cam, i, t)
             request = PriorRequest(
                 image=image.to(pd), ball_masks=layer.coverage.detach().to(pd),
@@ -316,13 +315,6 @@ class _Trainer:
                 torch.nn.utils.clip_grad_norm_(field.parameters(), cfg.grad_clip)
                 self.opt.step()
         return float(loss.detach())
-
-
-def _prior_device(prior: Prior) -> torch.device:
-    """Where a prior wants its request tensors: its own `device` attribute if it declares one,
-    else CPU. The geometric priors (reprojection, known) keep their point clouds and ball
-    geometry on CPU; the diffusion prior moves inputs to its model's device itself."""
-    return torch.device(getattr(prior, "device", None) or "cpu")
 
 
 def _crop_to_mask(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, pad: int):
@@ -358,12 +350,15 @@ def run_job(
     prior: Prior | None = None,
     limits=None,
     config: DistillConfig | None = None,
+    prior_factory=None,
 ) -> Path:
     """Load the capture, decide time, distil, save the artefact to `out_dir`; returns its path.
 
-    `prior` overrides params.prior (tests, the oracle); `config` overrides the preset."""
+    `prior` overrides params.prior (tests, the oracle); `config` overrides the preset;
+    `prior_factory(name, settings, device)` builds the job's prior (default
+    core.priors.registry.build_prior; the worker's keeps weight-loading priors)."""
     from core.fields.artefact import save_artefact
-    from core.priors.registry import build_prior
+    from core.priors.registry import build_prior, prior_class
 
     t_start = time.perf_counter()
     timings = StageTimer()
@@ -383,18 +378,16 @@ def run_job(
     reporter.stage("point_cloud", 0.07, "building the prior")
     with timings("point_cloud"):
         if prior is None:
-            kw = {}
-            if params.prior == "reprojection":  # static light + moving camera: pool the views
-                merge = 1 if decision.uses_time or capture.static_camera else REPROJECTION_MERGE_VIEWS
-                kw = {"env_height": cfg.prior_env_height, "merge_views": merge}
-            elif params.prior == "diffusion":
-                kw = {"device": str(device)}
-            prior = build_prior(params.prior, weights=params.prior_weights, **kw)
-        prior.bind(work)
+            settings = {"env_height": cfg.prior_env_height} if params.prior == "reprojection" else {}
+            # the job's prior_weights is the `weights` setting of the priors that load weights
+            if params.prior_weights is not None and "weights" in prior_class(params.prior).Config.model_fields:
+                settings["weights"] = params.prior_weights
+            prior = (prior_factory or build_prior)(params.prior, settings, device)
+        prior.bind(work, lighting_changes=decision.uses_time)
         bounds = scene_bounds(work)
-        if hasattr(prior, "points"):  # build the geometry now so its cost is reported here
+        if prior.capabilities.frame_geometry:  # build the geometry now so its cost is reported here
             for i in _distinct_geometry(work):
-                prior.points(i)
+                prior.prepare_frame(i)
 
     reporter.stage("distill", 0.1, f"{cfg.iterations} steps")
     result = distill(work, prior, cfg, decision.uses_time, field_kind=params.field, seed=params.seed,
@@ -403,11 +396,12 @@ def run_job(
 
     reporter.stage("saving", 0.98, "writing artefact")
     wall = time.perf_counter() - t_start
+    prior_description = prior.describe()
     meta = {
         "time": {"t0": float(capture.times[0]), "t1": float(capture.times[-1]), "fps": capture.fps, "uses_time": decision.uses_time},
         "capture": capture.summary(),
         "working_resolution": {"width": work.width, "height": work.height, "intrinsics": work.intrinsics.as_dict()},
-        "prior": prior.describe(),
+        "prior": prior_description,
         "temporal": decision.as_dict(),
         "params": params.model_dump(),
         "distill_config": cfg.model_dump(),
@@ -424,7 +418,7 @@ def run_job(
         },
         "simulated": {
             "time_input": decision.uses_time,
-            "point_cloud_builds": getattr(prior, "point_cloud_builds", None),
+            "point_cloud_builds": prior_description.get("point_cloud_builds"),
             "camera": "static" if capture.static_camera else "moving",
             "rendered": "ball pixels only (field evaluated at ball centres for reflected directions)",
         },
