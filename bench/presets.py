@@ -48,7 +48,7 @@ def make_clip(out: Path, frames: int, width: int, height: int, unique: int) -> d
 
 
 def bench_preset(name: str, unique: int, workdir: Path) -> dict:
-    from core.engine.distill import run_job
+    from core.engine import run_job
     from core.engine.params import JobParams
 
     frames, w, h = SIZES[name]

@@ -46,16 +46,18 @@ def run_point(point: dict) -> dict:
     the baseline whose peak RSS is subtracted, so memory includes the capture itself)."""
     import torch
 
-    from core.engine.config import preset
-    from core.engine.distill import distill, scene_bounds
-    from core.priors.reprojection import ReprojectionPrior
+    from core.engine.distill import distill
+    from core.engine.presets import preset
+    from core.engine.scene import scene_bounds
+    from core.priors.registry import build_prior
 
     if point["iterations"] == 0:
         return {"seconds": 0.0, "cpu_seconds": 0.0}
     capture = synthetic_capture(point["frames"], point["height"])
-    cfg = preset("draft", iterations=point["iterations"], n_probes=point["probes"], work_height=point["height"], checkpoint_every=10**6)
+    cfg = preset("draft").with_overrides({"distill": dict(iterations=point["iterations"], n_probes=point["probes"],
+                                                          work_height=point["height"], checkpoint_every=10**6)})
     t0, c0 = time.perf_counter(), time.process_time()
-    prior = ReprojectionPrior(env_height=cfg.prior_env_height)
+    prior = build_prior("reprojection", cfg.prior_settings("reprojection"))
     prior.bind(capture)
     result = distill(capture, prior, cfg, uses_time=point["frames"] > 1, bounds=scene_bounds(capture))
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -104,13 +106,11 @@ def query_latency(heights: list[int], repeats: int = 3) -> dict:
 
     from core.fields.artefact import LightFieldArtefact, save_artefact
     from core.fields.bake import bake
-    from core.engine.config import preset
-    from core.engine.distill import build_field_config
+    from core.engine.presets import preset
     from core.fields import SceneBounds, build_field
 
-    cfg = preset("draft")
     bounds = SceneBounds(lo=(-2.5, -1.5, -4.0), hi=(2.5, 1.5, 0.0), t0=0.0, t1=2.0)
-    field = build_field(build_field_config(cfg, "mlp", True), bounds)
+    field = build_field(preset("draft").field.with_kind("mlp"), bounds)
     with tempfile.TemporaryDirectory() as tmp:
         art = LightFieldArtefact.load(save_artefact(Path(tmp) / "a", field, {}))
         t0 = time.perf_counter()

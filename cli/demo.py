@@ -12,7 +12,7 @@
    whole room: the field's own maps averaged over the probes), so the table shows what
    querying the field per point buys; stop the service.
 
-`--no-service` runs the same job in-process (`core.engine.distill.run_job`, no subprocesses)
+`--no-service` runs the same job in-process (`core.engine.run_job`, no subprocesses)
 and writes the same outputs.
 """
 from __future__ import annotations
@@ -212,13 +212,13 @@ class _LocalRun:
 
         from cli.estimate import ProgressBar
         from core.fields.artefact import LightFieldArtefact
-        from core.engine.config import preset
-        from core.engine.distill import run_job
+        from core.engine import run_job
+        from core.engine.presets import preset
         from core.engine.params import JobParams
 
         params = JobParams.model_validate(upload.params)
         overrides = _distill_overrides(self.args)
-        config = preset(params.preset, **overrides) if overrides else None
+        config = preset(params.preset).with_overrides({"distill": overrides}) if overrides else None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the service path does not show them either
             self.artefact_dir = run_job(upload.file, upload.depth, params, self.out / "lightfield", config=config,

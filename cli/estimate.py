@@ -71,8 +71,8 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from core.capture.base import CaptureError
-    from core.engine.config import preset
-    from core.engine.distill import run_job
+    from core.engine import run_job
+    from core.engine.presets import preset
     from core.engine.params import parse_job_params
     from core.engine.progress import Cancelled
     from core.io import MediaError
@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     except (ValidationError, ValueError) as exc:
         print(f"error: invalid parameters: {exc}", file=sys.stderr)
         return 2
-    config = preset(params.preset, iterations=args.iterations) if args.iterations else None
+    config = preset(params.preset).with_overrides({"distill.iterations": args.iterations}) if args.iterations else None
     ckpt = checkpoint_dir_for(out)
     if not args.resume:
         shutil.rmtree(ckpt, ignore_errors=True)

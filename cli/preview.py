@@ -39,7 +39,7 @@ def render_preview(artefact_dir, input_path, output, depth=None, points=None, fr
 
     from core.fields.artefact import LightFieldArtefact
     from core.capture.load import load_capture
-    from core.engine.insertion import insert_objects, parse_points
+    from core.insertion import insert_objects, parse_points
     from core.io import write_png, write_video
 
     art = LightFieldArtefact.load(artefact_dir)
@@ -70,7 +70,7 @@ def render_preview(artefact_dir, input_path, output, depth=None, points=None, fr
 def run(args: argparse.Namespace) -> int:
     from core.fields.artefact import ArtefactError
     from core.capture.base import CaptureError
-    from core.engine.insertion import InsertionError
+    from core.insertion import InsertionError
     from core.io import MediaError
 
     try:

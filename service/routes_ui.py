@@ -4,7 +4,7 @@ placement along a pixel's ray, and chrome/diffuse balls composited into a frame.
 All four read the capture preview the worker stores beside a succeeded job's artefact
 (service.stored_preview) and use the same auth, ownership and `not_ready` rules as
 /lightfield/{id}. Geometry lives in service.ui_probes and core; rendering in
-core.engine.insertion. Included by service.app.create_app.
+core.insertion. Included by service.app.create_app.
 """
 from __future__ import annotations
 
@@ -176,7 +176,7 @@ def _render_insertion(preview: StoredPreview, cf: CachedField, index: int, point
     import torch
 
     from core.chrome_ball import BallPlacementError
-    from core.engine.insertion import InsertionError, insert_objects, parse_points
+    from core.insertion import InsertionError, insert_objects, parse_points
     from core.io.images import encode_png
 
     try:

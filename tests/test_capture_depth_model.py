@@ -167,12 +167,12 @@ def test_estimate_depth_false_skips_the_model(image_path, monkeypatch, tmp_path)
 
 
 def test_estimated_depth_feeds_run_job(tiny_dir, image_path, monkeypatch, tmp_path):
-    from core.engine.config import preset
-    from core.engine.distill import run_job
+    from core.engine import run_job
+    from core.engine.presets import preset
     from core.engine.params import JobParams
 
     monkeypatch.setenv(DEPTH_MODEL_ENV, str(tiny_dir))
-    cfg = preset("draft", work_height=H, checkpoint_every=1000, warmup_steps=2, iterations=4)
+    cfg = preset("draft").with_overrides({"distill": dict(work_height=H, checkpoint_every=1000, warmup_steps=2, iterations=4)})
     with pytest.warns(UserWarning):
         out = run_job(image_path, None, JobParams(seed=0), tmp_path / "art", config=cfg)
     meta = json.loads((out / "lightfield.json").read_text())

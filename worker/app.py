@@ -3,7 +3,7 @@
 The API builds its own app with `jobs.queue.make_celery(settings)` to enqueue."""
 from __future__ import annotations
 
-from core.engine.distill import run_job
+from core.engine import run_job
 from jobs.queue import make_celery
 from jobs.settings import JobSettings
 from jobs.store import JobStore, connect

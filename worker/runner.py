@@ -118,9 +118,9 @@ class JobRunner:
             limits=MediaLimits.from_env(),
         )
         if self.settings.distill_overrides:
-            from core.engine.config import preset
+            from core.engine.presets import preset
 
-            kwargs["config"] = preset(params.preset, **self.settings.distill_overrides)
+            kwargs["config"] = preset(params.preset).with_overrides({"distill": self.settings.distill_overrides})
         if self.prior_factory is not None:
             kwargs["prior_factory"] = self.prior_factory
         depth = paths.upload_dir / record.depth_file if record.depth_file else None

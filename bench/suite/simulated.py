@@ -99,7 +99,7 @@ def switch_frames(scene: SceneSpec) -> list[int]:
 def global_probe_point(scene: SceneSpec, capture) -> tuple[float, float, float]:
     """The DiffusionLight-style single probe: the centre of the visible scene's bounding box
     (from unprojected depth), moved towards the camera until it is in free space."""
-    from core.engine.distill import scene_bounds
+    from core.engine.scene import scene_bounds
     from core.sim.render import ProbeError, check_probe
 
     b = scene_bounds(capture)

@@ -132,8 +132,8 @@ def run_case(case: Case, workdir: Path, iterations: int) -> dict:
     import torch
 
     from core.fields.artefact import LightFieldArtefact
-    from core.engine.config import preset
-    from core.engine.distill import run_job
+    from core.engine import run_job
+    from core.engine.presets import preset
     from core.engine.params import JobParams
 
     d = workdir / f"stability-{case.name}"
@@ -143,7 +143,7 @@ def run_case(case: Case, workdir: Path, iterations: int) -> dict:
         inp, depth = case.make(d, quick=iterations < 50)
         with measured() as m, warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            path = run_job(inp, depth, JobParams(preset="draft"), d / "artefact", config=preset("draft", iterations=iterations))
+            path = run_job(inp, depth, JobParams(preset="draft"), d / "artefact", config=preset("draft").with_overrides({"distill.iterations": iterations}))
             art = LightFieldArtefact.load(path)
             xs, ts = _queries(art)
             hdr, flags = art.envmaps(torch.tensor(xs, dtype=torch.float32), torch.tensor(ts, dtype=torch.float32), QUERY_HEIGHT)
