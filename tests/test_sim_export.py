@@ -232,7 +232,7 @@ def test_hard_suite_has_what_it_promises():
 
 
 def test_diffusion_trainer_reads_the_training_export(tmp_path):
-    data = pytest.importorskip("core.priors.diffusion.data")
+    data = pytest.importorskip("core.training.diffusion.data")
     from core.sim.training import write_training_export
 
     s = small("spatial").model_copy(update={"resolution": (32, 24)}).with_effects({"emission", "direct"})
