@@ -41,7 +41,7 @@ class Method:
     family: Family
     group: str  # baseline | paper | budget | ablation | query | upper-bound
     description: str
-    prior: Literal["reprojection", "oracle", "diffusion"] = "reprojection"
+    prior: str = "reprojection"  # a registered prior (core.priors.registry)
     prior_weights: str | None = None  # local model directory (diffusion prior only)
     field: str | None = None
     overrides: tuple[tuple[str, Any], ...] = ()  # EngineConfig overrides by dotted key

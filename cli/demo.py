@@ -23,6 +23,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from cli import choices
+
 HELP = "Simulate a room, estimate its light field through the embedded service, and compare with the truth."
 SUITE = "spatial"
 ENV_HEIGHT = 64  # of the env maps fetched and compared
@@ -33,7 +35,7 @@ PREVIEW_ENV_HEIGHT = 32
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", default="demo-output", help="output directory (default ./demo-output)")
-    p.add_argument("--preset", choices=["draft", "standard", "paper"], default="draft")
+    p.add_argument("--preset", choices=choices.PRESETS, metavar="PRESET", default="draft", help="one of %(choices)s")
     p.add_argument("--iterations", type=int, default=None, help="override the preset's step count")
     p.add_argument("--no-service", action="store_true",
                    help="run the job in this process instead of through the embedded service (no subprocesses)")

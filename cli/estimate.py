@@ -7,6 +7,8 @@ import sys
 import time
 from pathlib import Path
 
+from cli import choices
+
 HELP = "Estimate a spatiotemporal HDR light field from an image, a video or a simulator capture directory."
 
 
@@ -15,11 +17,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", required=True, help="artefact directory to write")
     p.add_argument("--depth", default=None, help="planar depth in metres: .npz ('depth' [T,H,W] or [H,W]), .exr, 16-bit PNG (mm)")
     p.add_argument("--params", default=None, help="job parameters as a JSON string or file (same schema as the service)")
-    p.add_argument("--preset", choices=["draft", "standard", "paper"], default=None)
-    p.add_argument("--prior", choices=["reprojection", "diffusion"], default=None)
+    p.add_argument("--preset", choices=choices.PRESETS, metavar="PRESET", default=None, help="one of %(choices)s")
+    p.add_argument("--prior", choices=choices.PRIORS, metavar="PRIOR", default=None, help="one of %(choices)s")
     p.add_argument("--prior-weights", default=None, help="local model directory of the diffusion prior")
-    p.add_argument("--temporal", choices=["auto", "on", "off"], default=None)
-    p.add_argument("--field", choices=["mlp", "grid", "trunk"], default=None, help="field kind (default: the preset's)")
+    p.add_argument("--temporal", choices=choices.TEMPORAL_MODES, metavar="MODE", default=None, help="one of %(choices)s")
+    p.add_argument("--field", choices=choices.FIELDS, metavar="KIND", default=None,
+                   help="field kind, one of %(choices)s (default: the preset's)")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--iterations", type=int, default=None, help="override the preset's step count")
     p.add_argument("--resume", dest="resume", action="store_true", default=True,

@@ -13,11 +13,15 @@ from typing import Literal
 from pydantic import field_validator
 
 from core.capture.params import CaptureParams
+from core.capture.temporal import TemporalMode
+from core.engine.presets import preset_names
+from core.fields import field_kinds
+from core.priors.registry import job_prior_names
 
-PresetName = Literal["draft", "standard", "paper"]
-PriorName = Literal["reprojection", "diffusion"]
-TemporalMode = Literal["auto", "on", "off"]
-FieldKind = Literal["mlp", "grid", "trunk"]
+# the choices are the registries' names (a registered preset, prior or field kind is offered here)
+PresetName = Literal[preset_names()]
+PriorName = Literal[job_prior_names()]
+FieldKind = Literal[field_kinds()]
 
 
 class JobParams(CaptureParams):
