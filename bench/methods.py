@@ -226,7 +226,6 @@ def run_per_probe(method: Method, suite: SuiteData, base: EngineConfig) -> Metho
 
 def distill_artefact(method: Method, suite: SuiteData, base: EngineConfig, out_dir: Path) -> tuple[Path, Measurement, dict]:
     """run_job on the suite's capture directory; returns (artefact dir, measurement, training info)."""
-    import json
 
     from core.engine import run_job
     from core.engine.params import JobParams
@@ -242,8 +241,8 @@ def distill_artefact(method: Method, suite: SuiteData, base: EngineConfig, out_d
     else:
         params = JobParams(preset="draft", prior="reprojection", field=cfg.field.kind, seed=0)
     with measured() as m:
-        path = run_job(suite.capture_dir, None, params, out_dir, prior=prior, config=cfg)
-    meta = json.loads((Path(path) / "lightfield.json").read_text())
+        result = run_job(suite.capture_dir, None, params, out_dir, prior=prior, config=cfg)
+    meta = result.artefact.meta
     training = meta.get("training", {})
     info = {
         "uses_time": meta.get("time", {}).get("uses_time"),
@@ -252,7 +251,7 @@ def distill_artefact(method: Method, suite: SuiteData, base: EngineConfig, out_d
         "stage_timings": training.get("stage_timings"),
         "weights_bytes": meta.get("weights", {}).get("bytes"),
     }
-    return Path(path), m, info
+    return result.path, m, info
 
 
 def query_field(run: MethodRun, artefact_dir: Path, suite: SuiteData) -> None:

@@ -147,7 +147,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for kind in args.kinds.split(","):
             field, stats = fit(kind, steps, batch=2048)
-            art = LightFieldArtefact.load(save_artefact(Path(tmp) / kind, field, {}))
+            art = save_artefact(Path(tmp) / kind, field, {})
             entry = {**stats, "parameters": sum(p.numel() for p in field.parameters()), "exact": {}, "baked": {}}
             for h in HEIGHTS:
                 entry["exact"][f"{h}x{2 * h}"] = time_queries(lambda x, t, h=h: art.envmap(x, t, h), probes, reps[h])

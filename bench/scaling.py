@@ -104,7 +104,7 @@ def query_latency(heights: list[int], repeats: int = 3) -> dict:
 
     import torch
 
-    from core.fields.artefact import LightFieldArtefact, save_artefact
+    from core.fields.artefact import save_artefact
     from core.fields.bake import bake
     from core.engine.presets import preset
     from core.fields import SceneBounds, build_field
@@ -112,7 +112,7 @@ def query_latency(heights: list[int], repeats: int = 3) -> dict:
     bounds = SceneBounds(lo=(-2.5, -1.5, -4.0), hi=(2.5, 1.5, 0.0), t0=0.0, t1=2.0)
     field = build_field(preset("draft").field.with_kind("mlp"), bounds)
     with tempfile.TemporaryDirectory() as tmp:
-        art = LightFieldArtefact.load(save_artefact(Path(tmp) / "a", field, {}))
+        art = save_artefact(Path(tmp) / "a", field, {})
         t0 = time.perf_counter()
         baked = bake(art)
         bake_s = time.perf_counter() - t0

@@ -53,7 +53,7 @@ def make_artefact(kind: str, out: Path) -> Path:
 
     bounds = SceneBounds((-2.5, -1.5, -4.0), (2.5, 1.5, 0.5), 0.0, 0.0)
     field = build_field(FieldConfig(kind=kind, uses_time=False), bounds)
-    return save_artefact(out, field, {"bench": "service_latency"})
+    return save_artefact(out, field, {"bench": "service_latency"}).path
 
 
 def register_job(store, data_dir: Path, artefact: Path) -> str:

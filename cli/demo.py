@@ -213,7 +213,6 @@ class _LocalRun:
         import warnings
 
         from cli.estimate import ProgressBar
-        from core.fields.artefact import LightFieldArtefact
         from core.engine import run_job
         from core.engine.presets import preset
         from core.engine.params import JobParams
@@ -223,11 +222,11 @@ class _LocalRun:
         config = preset(params.preset).with_overrides({"distill": overrides}) if overrides else None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the service path does not show them either
-            self.artefact_dir = run_job(upload.file, upload.depth, params, self.out / "lightfield", config=config,
-                                        progress=None if self.args.quiet else ProgressBar(),
-                                        checkpoint_dir=self.out / "lightfield.checkpoint")
+            result = run_job(upload.file, upload.depth, params, self.out / "lightfield", config=config,
+                             progress=None if self.args.quiet else ProgressBar(),
+                             checkpoint_dir=self.out / "lightfield.checkpoint")
         self.upload = upload
-        self._art = LightFieldArtefact.load(self.artefact_dir)
+        self.artefact_dir, self._art = result.path, result.artefact
 
     def save_envmap(self, x, t: float, path: Path) -> str:
         import torch

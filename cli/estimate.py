@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         with warnings.catch_warnings():  # restores showwarning afterwards
             warnings.simplefilter("always")
             warnings.showwarning = lambda message, *_a, **_k: print(f"warning: {message}", file=sys.stderr)
-            path = run_job(args.input, args.depth, params, out, progress=bar, checkpoint_dir=ckpt, config=config)
+            result = run_job(args.input, args.depth, params, out, progress=bar, checkpoint_dir=ckpt, config=config)
     except (CaptureError, MediaError, PriorError, ValidationError) as exc:
         print(f"\nerror: {exc}", file=sys.stderr)
         return 2
@@ -105,9 +105,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"\ncancelled; resume with the same command (checkpoint in {ckpt})", file=sys.stderr)
         return 130
     shutil.rmtree(ckpt, ignore_errors=True)
-    meta = json.loads((path / "lightfield.json").read_text())
+    meta = result.artefact.meta
     tr = meta.get("training", {})
-    print(json.dumps({"artefact": str(path), "uses_time": meta.get("temporal", {}).get("uses_time"),
+    print(json.dumps({"artefact": str(result.path), "uses_time": meta.get("temporal", {}).get("uses_time"),
                       "iterations": tr.get("iterations"), "final_loss": tr.get("final_loss"),
                       "wall_time_s": tr.get("wall_time_s"), "depth_source": meta.get("capture", {}).get("depth_source")}))
     return 0

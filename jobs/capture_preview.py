@@ -12,8 +12,8 @@ the surface. So, before the uploads go, the worker stores a preview beside the a
     <job_dir>/preview/capture.json          format, version, intrinsics at the preview
                                             size, fps, depth source, source frame count
 
-It is loaded with the engine's own `load_capture`, so its cameras, times and fallback depth
-are exactly the ones the light field was estimated with. At most PREVIEW_MAX_HEIGHT rows
+It is made from the capture the engine decoded for the job (run_job's `on_capture`), so its
+cameras, times and fallback depth are exactly the ones the light field was estimated with. At most PREVIEW_MAX_HEIGHT rows
 and PREVIEW_MAX_FRAMES frames (evenly spaced) are kept, which bounds it to a few tens of MB.
 Written to a temporary sibling and renamed, like the artefact; never unpickled.
 """
@@ -144,16 +144,9 @@ def save_preview(preview: CapturePreview, job_dir: Path) -> Path:
     return final
 
 
-def write_capture_preview(input_path, depth_path, params, job_dir: Path, limits=None) -> Path:
-    """Load the job's input as the engine does and store its preview (the worker's hook).
+def write_capture_preview(capture, job_dir: Path) -> Path:
+    """Store the preview of the capture the engine decoded (the worker's on_capture hook).
     Idempotent: an existing preview (a re-delivered job) is kept."""
-    import warnings
-
-    from core.capture.load import load_capture
-
     if (preview_dir(job_dir) / META_FILE).is_file():
         return preview_dir(job_dir)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the engine already reported them for this capture
-        capture = load_capture(input_path, depth_path, params, limits)
     return save_preview(preview_from_capture(capture), job_dir)

@@ -23,7 +23,8 @@ class AppContext:
     store: JobStore
     celery: Celery
     fields: FieldCache
-    # upload checks decode media: one at a time per process keeps memory bounded
+    # upload checks hold a file (up to its byte limit) and one decoded video frame: one at a
+    # time per process keeps memory bounded
     validation_slots: asyncio.Semaphore = field(default_factory=lambda: asyncio.Semaphore(1))
 
 

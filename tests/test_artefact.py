@@ -35,7 +35,7 @@ def small_field(kind="mlp", uses_time=True, seed=0):
 @pytest.fixture
 def saved(tmp_path):
     field = small_field()
-    path = save_artefact(tmp_path / "art", field, {"capture": {"fps": 10.0}, "training": {"loss_curve": [1.0, float("nan")]}})
+    path = save_artefact(tmp_path / "art", field, {"capture": {"fps": 10.0}, "training": {"loss_curve": [1.0, float("nan")]}}).path
     return field, path
 
 
@@ -43,7 +43,7 @@ def saved(tmp_path):
 @pytest.mark.parametrize("uses_time", [True, False])
 def test_round_trip_is_bit_identical(tmp_path, kind, uses_time):
     field = small_field(kind, uses_time)
-    art = LightFieldArtefact.load(save_artefact(tmp_path / "a", field, {}))
+    art = LightFieldArtefact.load(save_artefact(tmp_path / "a", field, {}).path)
     x = torch.tensor([[0.1, 0.2, -1.0], [9.0, 0.0, 0.0]])
     t = torch.tensor([0.5, 2.0]) if uses_time else None
     d = torch.nn.functional.normalize(torch.tensor([[0.0, 1.0, 0.0], [1.0, -1.0, 0.5]]), dim=-1)
@@ -96,7 +96,7 @@ def test_query_errors_name_the_offending_input(saved):
 
 
 def test_static_field_accepts_missing_time(tmp_path):
-    art = LightFieldArtefact.load(save_artefact(tmp_path / "s", small_field(uses_time=False), {}))
+    art = LightFieldArtefact.load(save_artefact(tmp_path / "s", small_field(uses_time=False), {}).path)
     a, flags = art.envmap((0, 0, -1), None, 4)
     b, _ = art.envmap((0, 0, -1), 2.0, 4)
     assert torch.equal(a, b) and flags == {"extrapolated_x": False, "extrapolated_t": False}
@@ -221,7 +221,7 @@ def test_failure_mid_write_leaves_no_partial_artefact(tmp_path, monkeypatch):
 
 def test_failed_overwrite_keeps_the_previous_artefact(tmp_path, monkeypatch):
     field = small_field(seed=1)
-    path = save_artefact(tmp_path / "a", field, {"run": 1})
+    path = save_artefact(tmp_path / "a", field, {"run": 1}).path
     before = LightFieldArtefact.load(path).radiance([[0, 0, 0]], [0.0], [[0, 1, 0]])
 
     real_replace = os.replace

@@ -25,7 +25,7 @@ def smooth_artefact(tmp_path, uses_time=True, seed=0, name="a"):
         for p in field.parameters():
             p.copy_(torch.randn(p.shape, generator=g) * 0.3)
         field.head[-1].weight.mul_(1.0 / 3.0)
-    return LightFieldArtefact.load(save_artefact(tmp_path / name, field, {}))
+    return LightFieldArtefact.load(save_artefact(tmp_path / name, field, {}).path)
 
 
 @pytest.mark.parametrize("uses_time", [True, False])

@@ -20,7 +20,7 @@ def artefact_dir(tmp_path):
     with torch.no_grad():
         for p in field.parameters():
             p.normal_(0, 0.5, generator=torch.Generator().manual_seed(3))
-    return save_artefact(tmp_path / "lf", field, {})
+    return save_artefact(tmp_path / "lf", field, {}).path
 
 
 def test_npy_output_equals_the_query_api(artefact_dir, tmp_path, capsys):

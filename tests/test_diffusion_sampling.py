@@ -83,7 +83,7 @@ def test_distillation_with_the_tiny_prior_completes_and_stays_finite(tiny_dir, t
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "depth assumed" for a bare image
-            out = run_job(tmp_path / "in.png", None, JobParams(seed=2), tmp_path / "art", prior=prior, config=cfg)
+            out = run_job(tmp_path / "in.png", None, JobParams(seed=2), tmp_path / "art", prior=prior, config=cfg).path
     finally:
         handle.remove()
     assert len(calls) >= 3  # the prior ran at every step (>= 1 denoising step each)

@@ -224,7 +224,7 @@ def test_run_job_writes_a_loadable_artefact(tmp_path):
     events = []
     with pytest.warns(UserWarning):
         out = run_job(tmp_path / "in.png", None, JobParams(seed=1), tmp_path / "art", progress=events.append,
-                      config=tiny(iterations=5))
+                      config=tiny(iterations=5)).path
     art = LightFieldArtefact.load(out)
     env, flags = art.envmap(torch.tensor([0.0, 0.0, -1.0]), None, 8)
     assert torch.isfinite(env).all()
@@ -251,7 +251,7 @@ def test_run_job_with_the_tiny_diffusion_prior(tmp_path):
     write_png(tmp_path / "in.png", torch.rand(H, W, 3, generator=torch.Generator().manual_seed(0)).numpy())
     with pytest.warns(UserWarning):
         out = run_job(tmp_path / "in.png", None, JobParams(prior="diffusion", prior_weights=str(weights)),
-                      tmp_path / "art", config=tiny(iterations=2))
+                      tmp_path / "art", config=tiny(iterations=2)).path
     meta = json.loads((out / "lightfield.json").read_text())
     assert meta["prior"]["name"] == "diffusion" and len(meta["training"]["loss_curve"]) == 2
     assert all(torch.isfinite(torch.tensor(meta["training"]["loss_curve"])))

@@ -60,7 +60,7 @@ def test_a_new_field_is_one_class_and_its_registration(tmp_path):
         assert "constant-test" in field_kinds()
         cfg = FieldConfig(kind="constant-test", uses_time=False).with_section(value=3.0)
         field = build_field(cfg, BOUNDS)
-        art = LightFieldArtefact.load(save_artefact(tmp_path / "a", field))
+        art = LightFieldArtefact.load(save_artefact(tmp_path / "a", field).path)
         env, _ = art.envmap(torch.zeros(3), None, 4)
         torch.testing.assert_close(env, torch.full_like(env, 3.0), rtol=1e-4, atol=1e-4)
         with pytest.raises(ValueError, match="already registered"):

@@ -17,11 +17,20 @@ from worker.runner import JobRunner, Outcome
 CALLS: list[str] = []
 
 
-def engine_ok(input_path, depth_path, params, out_dir, progress=None, should_cancel=None, checkpoint_dir=None, **kw):
+def engine_ok(input_path, depth_path, params, out_dir, on_capture=None, **kw):
+    """A tiny real artefact, and the engine's hand-over of the decoded capture."""
+    import torch
+
+    from core.capture.load import capture_from_arrays
+    from core.engine import JobResult
+    from core.fields import FieldConfig, SceneBounds, build_field
+    from core.fields.artefact import save_artefact
+
     CALLS.append("ok")
-    out_dir.mkdir(parents=True)
-    (out_dir / "lightfield.json").write_text("{}")
-    return out_dir
+    on_capture(capture_from_arrays(torch.full((2, 12, 16, 3), 0.5)))
+    field = build_field(FieldConfig(kind="grid", uses_time=False, grid={"resolution": (2, 2, 2), "env_height": 4}),
+                        SceneBounds((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), 0.0, 0.0))
+    return JobResult(save_artefact(out_dir, field))
 
 
 def engine_bad_depth(*a, **kw):
@@ -77,14 +86,20 @@ def _job(r: JobRunner) -> tuple[str, JobPaths]:
     return rec.id, paths
 
 
-def test_success_records_a_relative_artefact_and_removes_uploads(runner):
+def test_success_records_a_relative_artefact_and_removes_uploads(runner, monkeypatch):
+    from core.fields.artefact import LightFieldArtefact
+    from jobs.capture_preview import META_FILE, preview_dir
+
     r = runner(engine_ok)
     job, paths = _job(r)
+    monkeypatch.setattr(LightFieldArtefact, "load", lambda *a, **k: pytest.fail("the artefact was read back"))
     assert r.run(job) is Outcome.SUCCEEDED
     rec = r.store.get(job)
     assert (rec.state, rec.attempts, rec.progress) == ("succeeded", 1, 1.0)
     assert r.settings.data_dir / rec.artefact == paths.artefact_dir
     assert not paths.upload_dir.exists()
+    assert (paths.artefact_dir / "baked.safetensors").is_file()  # baked from the field in memory
+    assert (preview_dir(paths.job_dir) / META_FILE).is_file()  # from the capture the engine decoded
     assert r.run(job) is Outcome.SKIPPED and CALLS == ["ok"]  # a late duplicate does nothing
 
 
@@ -191,3 +206,28 @@ def test_a_real_celery_worker_runs_the_runner_with_an_injected_engine(redis_url,
         stop(proc, signal.SIGQUIT, grace_s=5)
     assert (done.state, done.error_code) == ("failed", "invalid_depth")
     assert not paths.upload_dir.exists()
+
+
+def test_one_job_decodes_its_upload_once(redis_url, tmp_path, tiny_video, monkeypatch):
+    """The real engine through the runner: the video is decoded once (the UI preview reuses
+    the engine's capture) and the artefact is baked from memory."""
+    import core.io
+    from core.engine import run_job
+    from core.fields.artefact import LightFieldArtefact
+
+    decodes = []
+    real_read_video = core.io.read_video
+    monkeypatch.setattr(core.io, "read_video", lambda *a, **k: decodes.append(1) or real_read_video(*a, **k))
+    monkeypatch.setattr(LightFieldArtefact, "load", lambda *a, **k: pytest.fail("the artefact was read back"))
+    settings = JobSettings(data_dir=tmp_path, broker_url=redis_url, lease_ttl_s=5.0,
+                           distill_overrides={"iterations": 2, "work_height": 24, "warmup_steps": 1})
+    r = JobRunner(JobStore(connect(redis_url)), settings, engine=run_job)
+    rec = JobRecord(id=new_job_id(), tenant="t", tenant_hash=tenant_hash("t"), input_kind="video", input_file="input.mp4")
+    r.store.create(rec, max_in_flight=100)
+    paths = JobPaths.for_job(tmp_path, rec.tenant_hash, rec.id)
+    paths.upload_dir.mkdir(parents=True)
+    (paths.upload_dir / "input.mp4").write_bytes(tiny_video.read_bytes())
+    with pytest.warns(UserWarning):  # no depth, no intrinsics given
+        assert r.run(rec.id) is Outcome.SUCCEEDED
+    assert len(decodes) == 1
+    assert (paths.artefact_dir / "baked.safetensors").is_file() and (paths.job_dir / "preview").is_dir()

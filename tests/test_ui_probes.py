@@ -195,18 +195,20 @@ def test_preview_from_capture_bounds_size_and_keeps_first_and_last_frames():
 
 
 def test_worker_hook_stores_the_capture_as_the_engine_loads_it_once(tmp_path):
+    from core.capture.load import load_capture
     from core.engine.params import JobParams
     from core.io.images import write_png
 
     image = np.zeros((30, 40, 3), np.float32)
     image[:, 20:] = 1.0
-    first = write_png(tmp_path / "a.png", image)
-    second = write_png(tmp_path / "b.png", 1.0 - image)
     params = JobParams(intrinsics={"hfov_deg": 90.0})
-    write_capture_preview(first, None, params, tmp_path / "job")
+    with pytest.warns(UserWarning):  # the assumed depth
+        first = load_capture(write_png(tmp_path / "a.png", image), None, params)
+        second = load_capture(write_png(tmp_path / "b.png", 1.0 - image), None, params)
+    write_capture_preview(first, tmp_path / "job")
     stored = load_preview(tmp_path / "job")
     assert stored.num_frames == 1 and stored.frame(0)[0, 0].tolist() == [0, 0, 0]
     assert stored.intrinsics["fx"] == pytest.approx(20.0)  # hfov 90 deg over 40 px
     assert np.isfinite(stored.depth_map(0)).any()  # the engine's assumed depth, not nothing
-    write_capture_preview(second, None, params, tmp_path / "job")  # a re-delivered job keeps its preview
+    write_capture_preview(second, tmp_path / "job")  # a re-delivered job keeps its preview
     assert load_preview(tmp_path / "job").frame(0)[0, 0].tolist() == [0, 0, 0]

@@ -13,13 +13,17 @@ import time
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 from jobs.errors import error_code_of, user_error_types
 from jobs.lease import RunLease
 from jobs.settings import JobSettings
 from jobs.storage import JobPaths
 from jobs.store import JobStore
+
+if TYPE_CHECKING:
+    from core.engine import JobResult
+    from core.fields.artefact import LightFieldArtefact
 
 log = logging.getLogger("lightfield.worker")
 
@@ -39,9 +43,9 @@ class Outcome(str, Enum):
 class JobRunner:
     store: JobStore
     settings: JobSettings
-    # run_job(input, depth, params, out_dir, *, progress, should_cancel, checkpoint_dir,
-    #         limits, config=None, prior_factory=None) -> artefact dir (core.engine's signature)
-    engine: Callable[..., Path]
+    # core.engine.run_job(input, depth, params, out_dir, *, progress, should_cancel, checkpoint_dir,
+    #                    limits, on_capture, config=None, prior_factory=None) -> JobResult
+    engine: Callable[..., "JobResult"]
     # how the engine builds the job's prior (worker.prior_cache keeps weight-loading ones); None: the engine's own
     prior_factory: Callable[..., object] | None = None
 
@@ -78,8 +82,8 @@ class JobRunner:
 
         user_errors = user_error_types()
         try:
-            artefact = self._finished_artefact(paths) or self._call_engine(record, paths, lease)
-            relative = self._relative_artefact(artefact, paths)
+            result = None if self._artefact_saved(paths) else self._call_engine(record, paths, lease)
+            relative = self._relative_artefact(result.path if result else paths.artefact_dir, paths)
         except Cancelled:
             if lease.lost.is_set():
                 return Outcome.ABANDONED
@@ -97,15 +101,14 @@ class JobRunner:
 
         if lease.lost.is_set():
             return Outcome.ABANDONED
-        self._prebake(job_id, artefact)
-        self._save_ui_preview(record, paths)
+        self._prebake(job_id, result.artefact if result else paths.artefact_dir)
         self.store.update(job_id, allowed=("running",), state="succeeded", progress=1.0, stage="done",
                           eta_s=0.0, artefact=relative, finished_at=time.time())
         paths.remove_uploads()
         shutil.rmtree(paths.checkpoint_dir, ignore_errors=True)
         return Outcome.SUCCEEDED
 
-    def _call_engine(self, record, paths: JobPaths, lease: RunLease) -> Path:
+    def _call_engine(self, record, paths: JobPaths, lease: RunLease) -> "JobResult":
         from core.engine.params import JobParams
         from core.io.limits import MediaLimits
 
@@ -116,6 +119,7 @@ class JobRunner:
             should_cancel=lambda: lease.lost.is_set() or self.store.cancel_requested(record.id),
             checkpoint_dir=paths.checkpoint_dir,
             limits=MediaLimits.from_env(),
+            on_capture=lambda capture: self._save_ui_preview(record.id, capture, paths),
         )
         if self.settings.distill_overrides:
             from core.engine.presets import preset
@@ -124,42 +128,40 @@ class JobRunner:
         if self.prior_factory is not None:
             kwargs["prior_factory"] = self.prior_factory
         depth = paths.upload_dir / record.depth_file if record.depth_file else None
-        return Path(self.engine(paths.upload_dir / record.input_file, depth, params, paths.artefact_dir, **kwargs))
+        return self.engine(paths.upload_dir / record.input_file, depth, params, paths.artefact_dir, **kwargs)
 
     @staticmethod
-    def _finished_artefact(paths: JobPaths) -> Path | None:
-        """An artefact a previous run saved before dying (the engine renames a complete
-        directory into place, so its metadata file means it is whole): finish, don't redo."""
+    def _artefact_saved(paths: JobPaths) -> bool:
+        """Whether a previous run saved the artefact before dying (the engine renames a
+        complete directory into place, so its metadata file means it is whole): finish, don't redo."""
         from core.fields.artefact import META_FILE
 
-        return paths.artefact_dir if (paths.artefact_dir / META_FILE).is_file() else None
+        return (paths.artefact_dir / META_FILE).is_file()
 
-    def _prebake(self, job_id: str, artefact: Path) -> None:
-        """Precompute the quality=fast lattice now, so no API request pays for it. Optional:
-        a failure here only means the API bakes on the first fast query."""
+    def _prebake(self, job_id: str, artefact: "LightFieldArtefact | Path") -> None:
+        """Precompute the quality=fast lattice now, from the field in memory (or the directory
+        a previous run saved), so no API request pays for it. Optional: a failure here only
+        means the API bakes on the first fast query."""
         try:
             from core.fields.artefact import LightFieldArtefact
             from core.fields.bake import load_or_bake
 
             self.store.update(job_id, allowed=("running",), stage="baking", message="precomputing quality=fast")
-            load_or_bake(LightFieldArtefact.load(artefact), save=True)
+            load_or_bake(LightFieldArtefact.load(artefact) if isinstance(artefact, Path) else artefact, save=True)
         except Exception:
             log.warning("job %s: baking the fast path failed", job_id, exc_info=True)
 
-    def _save_ui_preview(self, record, paths: JobPaths) -> None:
-        """Keep small frames + depth for the web page (jobs.capture_preview) before the
-        uploads are deleted. Optional: without it the page cannot show frames."""
+    @staticmethod
+    def _save_ui_preview(job_id: str, capture, paths: JobPaths) -> None:
+        """Keep small frames + depth of the engine's decoded capture for the web page
+        (jobs.capture_preview), since the uploads are deleted when the job ends. Optional:
+        without it the page cannot show frames."""
         try:
-            from core.engine.params import JobParams
-            from core.io.limits import MediaLimits
             from jobs.capture_preview import write_capture_preview
 
-            depth = paths.upload_dir / record.depth_file if record.depth_file else None
-            write_capture_preview(paths.upload_dir / record.input_file, depth,
-                                  JobParams.model_validate_json(record.params or "{}"), paths.job_dir,
-                                  MediaLimits.from_env())
+            write_capture_preview(capture, paths.job_dir)
         except Exception:
-            log.warning("job %s: storing the UI preview failed", record.id, exc_info=True)
+            log.warning("job %s: storing the UI preview failed", job_id, exc_info=True)
 
     def _progress_writer(self, job_id: str):
         last = {"t": 0.0, "stage": None}

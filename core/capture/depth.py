@@ -64,24 +64,29 @@ def fill_depth_holes(depth: torch.Tensor, max_iters: int = 64) -> torch.Tensor:
 
 
 
+def check_depth_shape(shape: tuple[int, ...], T: int, H: int, W: int) -> None:
+    """CaptureError(field='depth') unless depth of `shape` fits T frames of W x H: [H, W] or
+    [1 or T, H, W] (one map for every frame, or one per frame)."""
+    if len(shape) not in (2, 3):
+        raise CaptureError("depth", f"expected [T, H, W] or [H, W], got shape {tuple(shape)}")
+    if tuple(shape[-2:]) != (H, W):
+        raise CaptureError("depth", f"depth size {shape[-1]}x{shape[-2]} does not match frame size {W}x{H}")
+    maps = shape[0] if len(shape) == 3 else 1
+    if maps not in (1, T):
+        raise CaptureError("depth", f"{maps} depth maps for {T} frames (give 1 or {T})")
+
+
 def resolve_depth(depth, T: int, H: int, W: int, intr: Intrinsics, source: str | None,
-                   warn: list[str]) -> tuple[torch.Tensor, str]:
+                  warn: list[str]) -> tuple[torch.Tensor, str]:
+    """Per-frame depth [T, H, W] (NaN invalid) from the given depth, holes filled where most of
+    a frame is invalid, or the assumed box room when none is given; and its source label."""
     if depth is None:
         warn.append("no depth given: using the assumed box-room geometry (arbitrary scale); "
                     "probe placement and reprojection are approximate")
         return assumed_box_depth(intr).expand(T, H, W).clone(), ASSUMED_DEPTH_SOURCE
     d = torch.as_tensor(depth, dtype=torch.float32)
-    if d.ndim == 2:
-        d = d[None]
-    if d.ndim != 3:
-        raise CaptureError("depth", f"expected [T, H, W] or [H, W], got shape {tuple(d.shape)}")
-    if tuple(d.shape[1:]) != (H, W):
-        raise CaptureError("depth", f"depth size {d.shape[2]}x{d.shape[1]} does not match frame size {W}x{H}")
-    if d.shape[0] == 1 and T > 1:
-        d = d.expand(T, H, W)
-    elif d.shape[0] != T:
-        raise CaptureError("depth", f"{d.shape[0]} depth maps for {T} frames (give 1 or {T})")
-    d = d.clone()
+    check_depth_shape(tuple(d.shape), T, H, W)
+    d = (d[None] if d.ndim == 2 else d).expand(T, H, W).clone()
     valid = valid_depth_mask(d)
     if not valid.any():
         raise CaptureError("depth", "no valid pixels (all non-finite or <= 0)")

@@ -48,7 +48,7 @@ def _read_depth(path: Path, limits: MediaLimits) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(read_depth(path, limits=limits), dtype=np.float32))
 
 
-def _sniff(path: Path) -> str | None:
+def sniff_capture_file(path: Path) -> str | None:
     """'image', 'video' or None from magic bytes. A GIF is a 'video' (possibly animated), as
     the service's upload validation classifies it, so every frame is decoded under the limits."""
     from core.io import sniff_media
@@ -93,7 +93,7 @@ def _read_capture_dir(root: Path, limits: MediaLimits) -> dict:
     return out
 
 
-def _resolve_intrinsics(params: CaptureParams, file_intr: dict | None, width: int, height: int,
+def resolve_intrinsics(params: CaptureParams, file_intr: dict | None, width: int, height: int,
                         warn: list[str]) -> Intrinsics:
     try:
         if params.intrinsics is not None:
@@ -112,7 +112,23 @@ def _resolve_intrinsics(params: CaptureParams, file_intr: dict | None, width: in
     return Intrinsics.from_hfov(width, height, DEFAULT_HFOV_DEG)
 
 
-def _resolve_poses(poses, T: int) -> torch.Tensor:
+def kept_poses(given, T: int, source_count: int, source_indices: list[int]):
+    """The given poses of the kept frames: poses given for every source frame follow the
+    frames' subsampling; any other count is kept as is (resolve_poses refuses a mismatch)."""
+    if given is not None and len(given) == source_count != T:
+        return [given[i] for i in source_indices]
+    return given
+
+
+def effective_limits(params: CaptureParams, limits: MediaLimits | None) -> MediaLimits:
+    """`limits` (default: from the environment), with params.max_frames lowering max_frames."""
+    limits = limits or MediaLimits.from_env()
+    if params.max_frames is not None and params.max_frames < limits.max_frames:
+        limits = dataclasses.replace(limits, max_frames=params.max_frames)
+    return limits
+
+
+def resolve_poses(poses, T: int) -> torch.Tensor:
     if poses is None:
         return torch.eye(4, dtype=torch.float64).expand(T, 4, 4).clone()
     p = torch.as_tensor(poses, dtype=torch.float64)
@@ -137,22 +153,20 @@ def _estimate_depth(frames: torch.Tensor, intr: Intrinsics, model_dir: str, warn
 
 
 def load_capture(input_path, depth_path=None, params: CaptureParams | None = None,
-                 limits: MediaLimits | None = None, estimate_depth: bool = True) -> Capture:
+                 limits: MediaLimits | None = None) -> Capture:
     """Load an image, a video or a simulator capture directory (see module docstring).
 
     `limits=None` reads them from the environment (`MediaLimits.from_env`: LIGHTFIELD_MAX_PIXELS
     etc.), so the CLI honours the same variables as the service. `params.max_frames` lowers
     `limits.max_frames`; longer videos are subsampled evenly by core.io and each kept frame
     keeps its source time (source index / fps). Poses given for every source frame are
-    subsampled the same way. `estimate_depth=False` never runs the learned depth model
-    (the service's upload check: the worker runs it).
+    subsampled the same way. (The service's upload check reads headers only:
+    core.capture.probe.probe_capture.)
     """
     from core.io import read_video
 
     params = params or CaptureParams()
-    limits = limits or MediaLimits.from_env()
-    if params.max_frames is not None and params.max_frames < limits.max_frames:
-        limits = dataclasses.replace(limits, max_frames=params.max_frames)
+    limits = effective_limits(params, limits)
     path = Path(input_path)
     if not path.exists():
         raise CaptureError("input", f"{path} does not exist")
@@ -160,7 +174,7 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
     if path.is_dir():
         loaded = _read_capture_dir(path, limits)
     else:
-        kind = _sniff(path)
+        kind = sniff_capture_file(path)
         if kind == "video":
             vf = read_video(path, limits)
             warn.extend(vf.warnings)
@@ -182,18 +196,14 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
     fps = params.fps or loaded.get("fps") or 1.0
     if not (math.isfinite(fps) and fps > 0):
         raise CaptureError("fps", f"must be finite and > 0, got {fps}")
-    intr = _resolve_intrinsics(params, loaded.get("intrinsics_dict"), W, H, warn)
-    poses_in = loaded.get("poses")
-    if params.poses is not None:
-        poses_in = params.poses
-        if len(poses_in) == loaded.get("original_count", T) != T:
-            poses_in = [poses_in[i] for i in source_idx]
-    poses = _resolve_poses(poses_in, T)
+    intr = resolve_intrinsics(params, loaded.get("intrinsics_dict"), W, H, warn)
+    given_poses = loaded.get("poses") if params.poses is None else kept_poses(params.poses, T, loaded.get("original_count", T), source_idx)
+    poses = resolve_poses(given_poses, T)
     depth_arg = _read_depth(Path(depth_path), limits) if depth_path is not None else loaded.get("depth")
     if depth_path is not None and depth_arg.ndim == 3 and depth_arg.shape[0] == loaded.get("original_count", T) != T:
         depth_arg = depth_arg[source_idx]
     depth_src = f"file:{Path(depth_path).name}" if depth_path is not None else loaded.get("depth_source")
-    if depth_arg is None and estimate_depth and os.environ.get(DEPTH_MODEL_ENV):
+    if depth_arg is None and os.environ.get(DEPTH_MODEL_ENV):
         depth_arg, depth_src = _estimate_depth(frames, intr, os.environ[DEPTH_MODEL_ENV], warn)
     depth, depth_src = resolve_depth(depth_arg, T, H, W, intr, depth_src, warn)
     for w in warn:
@@ -220,7 +230,7 @@ def capture_from_arrays(frames: torch.Tensor, depth: torch.Tensor | None = None,
     T, H, W, _ = frames.shape
     warn: list[str] = []
     intr = intrinsics or Intrinsics.from_hfov(W, H, DEFAULT_HFOV_DEG)
-    p = _resolve_poses(None if poses is None else torch.as_tensor(poses, dtype=torch.float64), T)
+    p = resolve_poses(None if poses is None else torch.as_tensor(poses, dtype=torch.float64), T)
     d, src = resolve_depth(depth, T, H, W, intr, "arrays" if depth is not None else None, warn)
     return Capture(frames.clamp(0, 1).contiguous(), d.contiguous(), intr, p,
                    frame_time(torch.arange(T, dtype=torch.float32), fps), float(fps), src, source, warn)

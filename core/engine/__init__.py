@@ -6,6 +6,6 @@
     config.py       EngineConfig / DistillConfig            presets.py   draft / standard / paper
     params.py       JobParams (the user's job schema)       losses.py, progress.py
 """
-from core.engine.job import run_job
+from core.engine.job import JobResult, run_job
 
-__all__ = ["run_job"]
+__all__ = ["JobResult", "run_job"]

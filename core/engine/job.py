@@ -1,14 +1,18 @@
-"""The job entry point, `run_job`, used by the CLI and the Celery worker: load the capture,
-decide whether the lighting changes over time, build and bind the prior, distil the field
-(core.engine.distill) and save the artefact with what the job simulated and what it cost."""
+"""The job entry point, `run_job`, used by the CLI and the Celery worker: load the capture
+(the one decode of the job; `on_capture` lets the caller reuse it), decide whether the
+lighting changes over time, build and bind the prior, distil the field (core.engine.distill)
+and save the artefact with what the job simulated and what it cost; the result carries the
+saved artefact in memory, so callers query or bake it without reading it back."""
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import torch
 
+from core.capture.base import Capture
 from core.capture.load import load_capture
 from core.capture.temporal import TemporalDecision, decide_temporal
 from core.device import resolve_device
@@ -19,12 +23,21 @@ from core.engine.params import JobParams
 from core.engine.presets import preset
 from core.engine.progress import CancelCheck, Progress, ProgressCallback, Reporter, StageTimer
 from core.engine.scene import distinct_geometry, scene_bounds
-from core.fields.artefact import save_artefact
+from core.fields.artefact import LightFieldArtefact, save_artefact
 from core.priors.base import Prior
 from core.priors.registry import build_prior, prior_class
 
 LOSS_CURVE_MAX_POINTS = 1000
 PriorFactory = Callable[[str, dict, torch.device], Prior]
+
+
+@dataclass(frozen=True)
+class JobResult:
+    artefact: LightFieldArtefact  # the saved artefact, in memory (field, lightfield.json, path)
+
+    @property
+    def path(self) -> Path:
+        return self.artefact.path
 
 
 def job_prior_settings(config: EngineConfig, params: JobParams) -> dict:
@@ -55,12 +68,14 @@ def run_job(
     limits=None,
     config: EngineConfig | None = None,
     prior_factory: PriorFactory = build_prior,
-) -> Path:
-    """Load the capture, decide time, distil, save the artefact to `out_dir`; returns its path.
+    on_capture: Callable[[Capture], None] | None = None,
+) -> JobResult:
+    """Load the capture, decide time, distil, save the artefact to `out_dir`.
 
     `prior` overrides params.prior (tests, the oracle); `config` overrides the preset
     params.preset; `prior_factory(name, settings, device)` builds the job's prior (the
-    worker's keeps weight-loading priors across jobs)."""
+    worker's keeps weight-loading priors across jobs); `on_capture(capture)` receives the
+    decoded capture at full resolution right after loading (the worker's UI preview)."""
     t_start = time.perf_counter()
     timings = StageTimer()
     reporter = Reporter(progress, should_cancel)
@@ -71,6 +86,8 @@ def run_job(
     reporter.stage("loading", 0.0, "reading input")
     with timings("loading"):
         capture = load_capture(input_path, depth_path, params, limits)
+    if on_capture is not None:
+        on_capture(capture)
     reporter.stage("temporal", 0.04, "detecting lighting changes")
     with timings("temporal"):
         decision: TemporalDecision = decide_temporal(capture, params.temporal)
@@ -121,9 +138,10 @@ def run_job(
         },
     }
     with timings("saving"):
-        path = save_artefact(out_dir, result.field, meta)
+        artefact = save_artefact(out_dir, result.field, meta)
     if checkpoint_dir is not None:
         clear_checkpoint(Path(checkpoint_dir))
     if progress is not None:
-        progress(Progress("done", result.iterations, result.iterations, meta["training"]["final_loss"], 1.0, 0.0, str(path)))
-    return Path(path)
+        progress(Progress("done", result.iterations, result.iterations, meta["training"]["final_loss"], 1.0, 0.0,
+                          str(artefact.path)))
+    return JobResult(artefact)
