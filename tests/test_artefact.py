@@ -267,3 +267,15 @@ def test_crafted_huge_config_is_refused_without_allocating(saved):
     _edit_json(path, lambda d: d["field"]["mlp"].update(width=1_000_000))
     with pytest.raises(ArtefactError, match="has shape"):
         LightFieldArtefact.load(path)
+
+
+def test_save_returns_the_artefact_exactly_as_loading_it_would(tmp_path):
+    field = small_field(seed=3)
+    saved = save_artefact(tmp_path / "a", field, {"note": [1.5, float("inf")]})
+    loaded = LightFieldArtefact.load(saved.path)
+    assert saved.meta == loaded.meta and saved.weights_sha256 == loaded.weights_sha256
+    a, b = saved.field.state_dict(), loaded.field.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert saved.field is not field and not any(p.requires_grad for p in saved.field.parameters())
+    x = torch.tensor([[0.1, 0.2, -0.5]])
+    torch.testing.assert_close(saved.envmaps(x, [0.5], 8)[0], loaded.envmaps(x, [0.5], 8)[0], rtol=0, atol=0)
