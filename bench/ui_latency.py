@@ -24,13 +24,13 @@ def _job(ctx, height: int) -> str:
     import torch
 
     from core.camera import Intrinsics
-    from core.fields.artefact import save_artefact
     from core.engine.presets import preset
     from core.fields import SceneBounds, build_field
-    from service.auth import LOCAL_TENANT, tenant_hash
+    from core.fields.artefact import save_artefact
     from jobs.capture_preview import CapturePreview, save_preview
     from jobs.storage import JobPaths, new_job_id
     from jobs.store import JobRecord
+    from service.auth import LOCAL_TENANT, tenant_hash
 
     width, frames = height * 4 // 3, 16
     field = build_field(preset("draft").field.with_kind("mlp"),
@@ -71,8 +71,8 @@ def main(argv=None) -> int:
 
     from fastapi.testclient import TestClient
 
-    from service.app import create_app
     from jobs.capture_preview import PREVIEW_MAX_HEIGHT
+    from service.app import create_app
     from service.config import ServiceSettings
     from service.processes import start_redis
 

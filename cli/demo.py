@@ -214,8 +214,8 @@ class _LocalRun:
 
         from cli.estimate import ProgressBar
         from core.engine import run_job
-        from core.engine.presets import preset
         from core.engine.params import JobParams
+        from core.engine.presets import preset
 
         params = JobParams.model_validate(upload.params)
         overrides = _distill_overrides(self.args)

@@ -75,8 +75,8 @@ def run(args: argparse.Namespace) -> int:
 
     from core.capture.base import CaptureError
     from core.engine import run_job
-    from core.engine.presets import preset
     from core.engine.params import parse_job_params
+    from core.engine.presets import preset
     from core.engine.progress import Cancelled
     from core.io import MediaError
     from core.priors.base import PriorError

@@ -14,8 +14,8 @@ def run(args) -> int:
     import logging
     import sys
 
-    from service.auth import AuthConfigError
     from jobs.settings import SettingsError
+    from service.auth import AuthConfigError
     from service.config import ServiceSettings
     from service.embedded import serve
     from service.processes import LaunchError

@@ -8,12 +8,12 @@ from celery import Celery
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from jobs.storage import is_job_id
+from jobs.store import JobRecord, JobStore
 from service.auth import KeyRing, tenant_hash
 from service.config import ServiceSettings
 from service.errors import NotFound
 from service.fieldcache import FieldCache
-from jobs.storage import is_job_id
-from jobs.store import JobRecord, JobStore
 
 
 @dataclass

@@ -9,8 +9,8 @@ from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import GaugeMetricFamily
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from jobs.store import JobStore
 from jobs.queue import QUEUE
+from jobs.store import JobStore
 
 log = logging.getLogger("lightfield.service")
 

@@ -6,8 +6,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.errors import ErrorDetail
 from jobs.store import JobRecord, JobState
+from service.errors import ErrorDetail
 
 EnvmapFormat = Literal["exr", "hdr", "png", "npy"]
 Quality = Literal["exact", "fast"]

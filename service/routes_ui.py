@@ -14,13 +14,13 @@ from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 
 from core.conventions import CONVENTIONS_SUMMARY
-from service.stored_preview import PreviewError, StoredPreview, load_preview
+from jobs.storage import JobPaths
 from service.context import AppContext, Tenant, get_ctx, get_tenant, owned_job
 from service.errors import Conflict, ErrorBody, InvalidInput, NotFound
 from service.fieldcache import CachedField
 from service.models import Flags
 from service.queries import check_t, parse_x
-from jobs.storage import JobPaths
+from service.stored_preview import PreviewError, StoredPreview, load_preview
 from service.ui_probes import ProbeError, locate, place
 
 router = APIRouter(tags=["ui"])

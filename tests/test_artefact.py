@@ -7,8 +7,8 @@ import torch
 
 import core.fields.artefact as artefact_mod
 from core.conventions import CONVENTIONS_VERSION
-from core.fields.artefact import ArtefactError, LightFieldArtefact, META_FILE, QueryError, WEIGHTS_FILE, save_artefact
 from core.fields import FieldConfig, SceneBounds, build_field
+from core.fields.artefact import ArtefactError, LightFieldArtefact, META_FILE, QueryError, WEIGHTS_FILE, save_artefact
 from core.fields.grid import GridSettings
 from core.fields.mlp import MLPSettings
 from core.fields.trunk import TrunkSettings

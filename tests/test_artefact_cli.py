@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from cli.main import main
-from core.fields.artefact import LightFieldArtefact, save_artefact
 from core.fields import FieldConfig, SceneBounds, build_field
+from core.fields.artefact import LightFieldArtefact, save_artefact
 from core.fields.mlp import MLPSettings
 from core.io.envmap_io import load_envmap
 

@@ -12,8 +12,8 @@ from hypothesis import strategies as st
 from core.camera import Intrinsics
 from core.capture.base import CaptureError
 from core.capture.depth import assumed_box_depth
-from core.capture.load import DEPTH_MODEL_ENV, load_capture
 from core.capture.depth_model import disparity_to_depth, load_depth_estimator
+from core.capture.load import DEPTH_MODEL_ENV, load_capture
 
 H, W = 24, 36
 
@@ -169,8 +169,8 @@ def test_the_upload_check_never_runs_the_model(image_path, monkeypatch, tmp_path
 
 def test_estimated_depth_feeds_run_job(tiny_dir, image_path, monkeypatch, tmp_path):
     from core.engine import run_job
-    from core.engine.presets import preset
     from core.engine.params import JobParams
+    from core.engine.presets import preset
 
     monkeypatch.setenv(DEPTH_MODEL_ENV, str(tiny_dir))
     cfg = preset("draft").with_overrides({"distill": dict(work_height=H, checkpoint_every=1000, warmup_steps=2, iterations=4)})

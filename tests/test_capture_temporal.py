@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from core.conventions import tonemap
 from core.capture.load import capture_from_arrays
 from core.capture.temporal import decide_temporal, detect_temporal
+from core.conventions import tonemap
 
 H, W = 72, 96
 

@@ -68,10 +68,10 @@ def test_sampling_rejects_bad_settings(prior, scene):
 
 
 def test_distillation_with_the_tiny_prior_completes_and_stays_finite(tiny_dir, tmp_path):
-    from core.fields.artefact import LightFieldArtefact
     from core.engine import run_job
     from core.engine.config import DistillConfig, EngineConfig
     from core.engine.params import JobParams
+    from core.fields.artefact import LightFieldArtefact
     from core.io import write_png
 
     write_png(tmp_path / "in.png", torch.rand(24, 32, 3, generator=torch.Generator().manual_seed(0)).numpy())

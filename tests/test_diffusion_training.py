@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from core.training.diffusion.data import BallDataset, StepOrder, TrainingDataError, read_dataset_info
 from core.priors.diffusion.loading import load_components
+from core.training.diffusion.data import BallDataset, StepOrder, TrainingDataError, read_dataset_info
 from core.training.diffusion.train import (
     TrainConfig,
     TrainConfigError,

@@ -5,15 +5,15 @@ import json
 import pytest
 import torch
 
+from core.capture.load import capture_from_arrays
 from core.chrome_ball import place_probe
 from core.conventions import equirect_directions
-from core.capture.load import capture_from_arrays
 from core.engine import run_job
 from core.engine import trainer as trainer_module
 from core.engine.distill import distill
+from core.engine.params import JobParams
 from core.engine.presets import preset
 from core.engine.probes import sample_probes
-from core.engine.params import JobParams
 from core.engine.progress import Cancelled, Reporter
 from core.priors.known import KnownRadiancePrior
 from core.priors.reprojection import ReprojectionPrior

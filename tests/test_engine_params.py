@@ -4,9 +4,9 @@ import json
 import pytest
 from pydantic import ValidationError
 
-from core.engine.presets import PRESETS, preset
 from core.capture.params import CaptureParams, IntrinsicsParams
 from core.engine.params import JobParams, parse_job_params
+from core.engine.presets import PRESETS, preset
 
 
 def test_defaults_are_the_documented_ones():

@@ -10,10 +10,10 @@ from hypothesis import strategies as st
 from core.conventions import equirect_directions
 from core.envmap import equirect_stencil, pad_poles, sample_envmap
 from core.fields import FieldConfig, SceneBounds, build_field
+from core.fields.encodings import PositionalEncoding, lattice_corners, multilinear_lookup
 from core.fields.grid import GridSettings
 from core.fields.mlp import MLPSettings
 from core.fields.trunk import TrunkSettings
-from core.fields.encodings import PositionalEncoding, lattice_corners, multilinear_lookup
 
 KINDS = ["mlp", "grid", "trunk", "trunk+grid"]
 BOUNDS = SceneBounds((-2.0, -1.0, -4.0), (2.0, 2.0, 0.5), t0=0.0, t1=3.0)

@@ -5,9 +5,9 @@ import pytest
 import torch
 
 from core.camera import Camera, Intrinsics
+from core.capture.load import capture_from_arrays
 from core.chrome_ball import ball_reflection_rays, composite, place_probe, render_balls
 from core.conventions import direction_to_theta_phi, inverse_tonemap, tonemap
-from core.capture.load import capture_from_arrays
 from core.priors.base import PriorError, PriorRequest, ProbeGeometry
 from core.priors.known import KnownRadiancePrior
 from core.priors.registry import build_prior

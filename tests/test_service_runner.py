@@ -8,10 +8,10 @@ import time
 
 import pytest
 
-from service.auth import tenant_hash
 from jobs.settings import JobSettings
 from jobs.storage import JobPaths, new_job_id
 from jobs.store import JobRecord, JobStore, connect
+from service.auth import tenant_hash
 from worker.runner import JobRunner, Outcome
 
 CALLS: list[str] = []

@@ -156,8 +156,8 @@ def test_training_export_balls_are_valid(tmp_path):
 
 
 def test_oracle_prior_keeps_pixels_outside_masks_and_matches_ground_truth():
-    from core.chrome_ball import ball_reflection_rays
     from core.camera import Camera
+    from core.chrome_ball import ball_reflection_rays
     from core.conventions import tonemap
     from core.priors.base import ProbeGeometry, PriorRequest
     from core.sim.oracle import OracleSimPrior

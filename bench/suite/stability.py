@@ -132,8 +132,8 @@ def run_case(case: Case, workdir: Path, iterations: int) -> dict:
     import torch
 
     from core.engine import run_job
-    from core.engine.presets import preset
     from core.engine.params import JobParams
+    from core.engine.presets import preset
 
     d = workdir / f"stability-{case.name}"
     d.mkdir(parents=True, exist_ok=True)
