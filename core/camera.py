@@ -16,6 +16,34 @@ class CameraError(ValueError):
     """Invalid camera parameters or a point that cannot be projected (e.g. behind the camera)."""
 
 
+# What a capture may claim (checked where user input becomes a camera: core.capture.load,
+# hence also the service's upload check). Indoor scenes: a camera 10 km from the origin is
+# a unit error, and float32 fields lose centimetres there. A pinhole beyond 170 degrees or
+# below 1 degree of field of view is not a camera this method can use.
+MAX_POSE_TRANSLATION_M = 1e4
+RIGID_TOLERANCE = 1e-2  # |R^T R - I|, |det R - 1|, last row vs [0, 0, 0, 1]
+MIN_FOV_DEG, MAX_FOV_DEG = 1.0, 170.0
+
+
+def check_rigid_pose(c2w, what: str = "pose") -> None:
+    """Raise CameraError unless `c2w` [4, 4] is a finite rigid camera-to-world transform
+    (orthonormal rotation with det +1, last row [0, 0, 0, 1], translation within
+    MAX_POSE_TRANSLATION_M). The message names `what` and the first rule broken."""
+    p = torch.as_tensor(c2w, dtype=torch.float64)
+    if p.shape != (4, 4) or not torch.isfinite(p).all():
+        raise CameraError(f"{what} must be a finite 4x4 matrix")
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
+    if (p[3] - bottom).abs().max() > RIGID_TOLERANCE:
+        raise CameraError(f"{what}: last row must be [0, 0, 0, 1], got {p[3].tolist()}")
+    r = p[:3, :3]
+    if (r.T @ r - torch.eye(3, dtype=torch.float64)).abs().max() > RIGID_TOLERANCE:
+        raise CameraError(f"{what}: rotation part is not orthonormal (a rigid camera-to-world transform is expected)")
+    if abs(float(torch.linalg.det(r)) - 1.0) > RIGID_TOLERANCE:
+        raise CameraError(f"{what}: rotation part has determinant {float(torch.linalg.det(r)):.3g}, expected +1")
+    if p[:3, 3].abs().max() > MAX_POSE_TRANSLATION_M:
+        raise CameraError(f"{what}: translation {p[:3, 3].tolist()} m is beyond +-{MAX_POSE_TRANSLATION_M:g} m")
+
+
 @dataclass(frozen=True)
 class Intrinsics:
     fx: float
@@ -53,6 +81,22 @@ class Intrinsics:
     @property
     def hfov_deg(self) -> float:
         return math.degrees(2.0 * math.atan(0.5 * self.width / self.fx))
+
+    @property
+    def vfov_deg(self) -> float:
+        return math.degrees(2.0 * math.atan(0.5 * self.height / self.fy))
+
+    def check_plausible(self) -> "Intrinsics":
+        """Raise CameraError unless both fields of view lie in [MIN_FOV_DEG, MAX_FOV_DEG] and the
+        principal point lies within one image size of the centre (a user-given camera)."""
+        for name, fov in (("fx", self.hfov_deg), ("fy", self.vfov_deg)):
+            if not MIN_FOV_DEG <= fov <= MAX_FOV_DEG:
+                raise CameraError(f"intrinsics.{name} gives a {fov:.4g} deg field of view for a "
+                                  f"{self.width}x{self.height} image; expected {MIN_FOV_DEG:g} to {MAX_FOV_DEG:g} deg")
+        if abs(self.cx - self.width / 2) > self.width or abs(self.cy - self.height / 2) > self.height:
+            raise CameraError(f"intrinsics.cx, cy = ({self.cx:g}, {self.cy:g}) lie more than one image size "
+                              f"from the centre of the {self.width}x{self.height} image")
+        return self
 
     def as_dict(self) -> dict:
         return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "width": self.width, "height": self.height}

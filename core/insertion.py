@@ -22,6 +22,7 @@ from core.envmap import irradiance, sample_envmap
 ALBEDO = 0.6
 DEFAULT_POINTS = ((0.3, 0.7, None), (0.7, 0.7, None))
 DEFAULT_DEPTH_FRACTION = 0.7  # of the scene depth at the pixel, when a point gives none
+MAX_POINT_DEPTH_M = 1e4  # indoor scenes; beyond this float32 geometry degenerates
 
 
 class InsertionError(ValueError):
@@ -50,8 +51,8 @@ def parse_points(text: str | None) -> list[InsertionPoint]:
             raise InsertionError(f"points[{k}] {item!r}: expected finite 'u,v[,depth]'")
         if not (0.0 <= vals[0] <= 1.0 and 0.0 <= vals[1] <= 1.0):
             raise InsertionError(f"points[{k}] {item!r}: u and v are fractions of the image in [0, 1]")
-        if len(vals) == 3 and vals[2] <= 0:
-            raise InsertionError(f"points[{k}] {item!r}: depth must be > 0 metres")
+        if len(vals) == 3 and not 0 < vals[2] <= MAX_POINT_DEPTH_M:
+            raise InsertionError(f"points[{k}] {item!r}: depth must be in (0, {MAX_POINT_DEPTH_M:g}] metres")
         points.append(InsertionPoint(vals[0], vals[1], vals[2] if len(vals) == 3 else None))
     if not points:
         raise InsertionError("points: no point given")

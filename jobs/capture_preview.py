@@ -10,12 +10,15 @@ the surface. So, before the uploads go, the worker stores a preview beside the a
                                             inf, i.e. invalid), poses float64 [T,4,4],
                                             times float32 [T] (seconds from the first frame)
     <job_dir>/preview/capture.json          format, version, intrinsics at the preview
-                                            size, fps, depth source, source frame count
+                                            size, fps, depth source, source frame count,
+                                            SHA-256 of capture.safetensors and of itself
 
 It is made from the capture the engine decoded for the job (run_job's `on_capture`), so its
 cameras, times and fallback depth are exactly the ones the light field was estimated with. At most PREVIEW_MAX_HEIGHT rows
 and PREVIEW_MAX_FRAMES frames (evenly spaced) are kept, which bounds it to a few tens of MB.
-Written to a temporary sibling and renamed, like the artefact; never unpickled.
+Written to a temporary sibling and renamed, like the artefact; never unpickled. The reader
+(service.stored_preview) verifies both checksums before serving a byte (version 1 previews,
+written before checksums existed, are read without).
 """
 from __future__ import annotations
 
@@ -28,11 +31,14 @@ from pathlib import Path
 
 import numpy as np
 
+from core.integrity import seal_document
+
 PREVIEW_DIR = "preview"
 TENSORS_FILE = "capture.safetensors"
 META_FILE = "capture.json"
 FORMAT = "lightfield-ui-preview"
-VERSION = 1
+VERSION = 2  # 2: checksums (core.integrity); 1 is still read
+READABLE_VERSIONS = (1, 2)
 PREVIEW_MAX_HEIGHT = 360
 PREVIEW_MAX_FRAMES = 120
 
@@ -133,8 +139,9 @@ def save_preview(preview: CapturePreview, job_dir: Path) -> Path:
             "times": preview.times.astype(np.float32),
         }, str(tmp / TENSORS_FILE))
         meta = {"format": FORMAT, "version": VERSION, "intrinsics": preview.intrinsics, "fps": preview.fps,
-                "depth_source": preview.depth_source, "source_frames": preview.source_frames}
-        (tmp / META_FILE).write_text(json.dumps(meta, indent=2))
+                "depth_source": preview.depth_source, "source_frames": preview.source_frames,
+                "tensors_sha256": file_sha256(tmp / TENSORS_FILE)}
+        (tmp / META_FILE).write_text(json.dumps(seal_document(meta), indent=2))
         if final.exists():
             shutil.rmtree(final)
         os.replace(tmp, final)
@@ -142,6 +149,17 @@ def save_preview(preview: CapturePreview, job_dir: Path) -> Path:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return final
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file, read in 1 MiB blocks (previews reach tens of MB)."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def write_capture_preview(capture, job_dir: Path) -> Path:

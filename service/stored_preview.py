@@ -1,17 +1,56 @@
-"""Reading a job's stored capture preview (format and writer: jobs.capture_preview)."""
+"""Reading a job's stored capture preview (format and writer: jobs.capture_preview).
+
+Both files are checked against the checksums recorded when they were written before any
+byte is served. Hashing tens of MB per request would cost more than the request, so a
+verified file is remembered by its identity on disk (inode, size, mtime): any rewrite,
+including a corruption through the filesystem, changes that identity and is verified anew.
+"""
 from __future__ import annotations
 
 import json
 import math
+import os
+import threading
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
 
-from jobs.capture_preview import META_FILE, FORMAT, TENSORS_FILE, VERSION, PreviewCameras, preview_dir
+from core.integrity import IntegrityError, verify_document
+from jobs.capture_preview import (FORMAT, META_FILE, READABLE_VERSIONS, TENSORS_FILE, PreviewCameras, file_sha256,
+                                  preview_dir)
 
 
 class PreviewError(ValueError):
     """A stored preview is missing, corrupt or inconsistent (the message names the part)."""
+
+
+class PreviewCorrupt(PreviewError):
+    """A stored preview file does not match the checksum recorded when it was written."""
+
+
+_VERIFIED_MAX = 256
+_verified: "OrderedDict[tuple, str]" = OrderedDict()  # file identity -> its sha256
+_verified_lock = threading.Lock()
+
+
+def _identity(path: Path) -> tuple:
+    st = os.stat(path)
+    return (str(path), st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+def _verify_tensors(path: Path, expected: str) -> None:
+    key = _identity(path)
+    with _verified_lock:
+        known = _verified.get(key)
+    if known is None:
+        known = file_sha256(path)
+        with _verified_lock:
+            _verified[key] = known
+            while len(_verified) > _VERIFIED_MAX:
+                _verified.popitem(last=False)
+    if known != expected:
+        raise PreviewCorrupt(f"{TENSORS_FILE}: checksum mismatch (the file was modified or corrupted after it was written)")
 
 
 class StoredPreview(PreviewCameras):
@@ -57,6 +96,14 @@ def load_preview(job_dir: Path) -> StoredPreview:
         raise FileNotFoundError(f"no capture preview in {root}")
     try:
         meta = json.loads((root / META_FILE).read_text())
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("version") not in READABLE_VERSIONS:
+            raise PreviewError(f"{META_FILE}: not a {FORMAT} document of version {READABLE_VERSIONS}")
+        if meta["version"] >= 2:  # version 1 was written before checksums existed
+            try:
+                verify_document(meta, META_FILE)
+            except IntegrityError as exc:
+                raise PreviewCorrupt(str(exc)) from None
+            _verify_tensors(root / TENSORS_FILE, meta.get("tensors_sha256"))
         with safe_open(str(root / TENSORS_FILE), framework="numpy") as f:
             if set(f.keys()) != set(_DTYPES):
                 raise PreviewError(f"{TENSORS_FILE}: expected tensors {sorted(_DTYPES)}, got {sorted(f.keys())}")
@@ -66,9 +113,7 @@ def load_preview(job_dir: Path) -> StoredPreview:
     except (OSError, ValueError, SafetensorError) as exc:
         if isinstance(exc, PreviewError):
             raise
-        raise PreviewError(f"capture preview in {root} is unreadable: {exc}") from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("version") != VERSION:
-        raise PreviewError(f"{META_FILE}: not a {FORMAT} v{VERSION} document")
+        raise PreviewCorrupt(f"capture preview in {root.name}/ is unreadable: {exc}") from None
     if dtypes != _DTYPES:
         raise PreviewError(f"{TENSORS_FILE}: dtypes must be {_DTYPES}, got {dtypes}")
     fs = shapes["frames"]

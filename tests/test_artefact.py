@@ -103,10 +103,25 @@ def test_static_field_accepts_missing_time(tmp_path):
 
 
 # ------------------------------------------------------------------ damage
-def _edit_json(path, fn):
+def _edit_json(path, fn, reseal: bool = True):
+    """Edit lightfield.json; `reseal` recomputes its checksum, as a crafted file would, so the
+    deeper checks below are what refuses it."""
+    from core.integrity import seal_document
+
     doc = json.loads((path / META_FILE).read_text())
     fn(doc)
-    (path / META_FILE).write_text(json.dumps(doc))
+    (path / META_FILE).write_text(json.dumps(seal_document(doc) if reseal else doc))
+
+
+def test_edited_or_truncated_json_is_a_checksum_mismatch_or_unparseable(saved):
+    _, path = saved
+    original = (path / META_FILE).read_text()
+    _edit_json(path, lambda d: d["capture"].update(fps=11.0), reseal=False)  # valid JSON, other content
+    with pytest.raises(ArtefactError, match="lightfield.json: checksum mismatch"):
+        LightFieldArtefact.load(path)
+    (path / META_FILE).write_text(original[: len(original) // 2])
+    with pytest.raises(ArtefactError, match="not valid JSON"):
+        LightFieldArtefact.load(path)
 
 
 def test_missing_files(saved, tmp_path):

@@ -93,6 +93,31 @@ def test_corrupt_bake_is_refused(tmp_path):
         BakedField.load(art)
 
 
+def test_flipped_bytes_in_the_maps_are_refused_and_rebaked(tmp_path):
+    """Issue 14: flipped bytes in baked.safetensors parsed fine and answered 1e-22..7e19.
+    The maps' checksum refuses them; load_or_bake bakes again from the verified field."""
+    art = smooth_artefact(tmp_path)
+    good = load_or_bake(art, grid=(2, 2, 2), times=2, height=4)
+    data = bytearray((art.path / BAKED_FILE).read_bytes())
+    for k in range(1, 40, 3):  # inside the float data, far from the header
+        data[-4 * k] ^= 0x7F
+    (art.path / BAKED_FILE).write_bytes(bytes(data))
+    with pytest.raises(ArtefactError, match="checksum mismatch"):
+        BakedField.load(art)
+    again = load_or_bake(art, grid=(2, 2, 2), times=2, height=4)
+    assert torch.equal(again.maps, good.maps)
+    assert torch.equal(BakedField.load(art).maps, good.maps)  # the corrupt file was replaced
+
+
+def test_upsampling_stencils_are_a_bounded_cache(tmp_path):
+    from core.fields.bake import STENCIL_CACHE_SIZE
+
+    baked = bake(smooth_artefact(tmp_path, uses_time=False), grid=(2, 2, 2), height=4)
+    for h in range(5, 5 + 3 * STENCIL_CACHE_SIZE):
+        baked.envmap((0.0, 0.0, 0.0), None, h)
+    assert len(baked._stencils) == STENCIL_CACHE_SIZE
+
+
 def test_bake_argument_errors(tmp_path):
     art = smooth_artefact(tmp_path)
     with pytest.raises(QueryError, match="grid"):

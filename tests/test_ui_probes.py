@@ -159,23 +159,39 @@ def test_saving_again_replaces_the_preview_atomically(tmp_path):
 
 
 def test_damaged_previews_are_refused(tmp_path):
+    from core.integrity import seal_document
+    from service.stored_preview import PreviewCorrupt
+
     with pytest.raises(FileNotFoundError):
         load_preview(tmp_path)
     save_preview(make_preview(), tmp_path)
     tensors = preview_dir(tmp_path) / TENSORS_FILE
     data = tensors.read_bytes()
     tensors.write_bytes(data[: len(data) // 2])
-    with pytest.raises(PreviewError, match="unreadable"):
+    with pytest.raises(PreviewCorrupt, match="checksum mismatch"):
+        load_preview(tmp_path)
+    # issue 14: flipped bytes inside the frames parsed fine and /frame served garbage
+    save_preview(make_preview(), tmp_path)
+    flipped = bytearray(tensors.read_bytes())
+    flipped[-200:-100] = bytes(b ^ 0xFF for b in flipped[-200:-100])
+    tensors.write_bytes(bytes(flipped))
+    with pytest.raises(PreviewCorrupt, match="capture.safetensors: checksum mismatch"):
         load_preview(tmp_path)
     save_preview(make_preview(), tmp_path)
     meta_path = preview_dir(tmp_path) / META_FILE
     meta = json.loads(meta_path.read_text())
-    meta_path.write_text(json.dumps({**meta, "version": 99}))
-    with pytest.raises(PreviewError, match="v1"):
+    meta_path.write_text(json.dumps({**meta, "fps": 99.0}))  # edited without a new checksum
+    with pytest.raises(PreviewCorrupt, match="capture.json: checksum mismatch"):
         load_preview(tmp_path)
-    meta_path.write_text(json.dumps({**meta, "intrinsics": {**meta["intrinsics"], "width": W + 1}}))
+    meta_path.write_text(json.dumps({**meta, "version": 99}))
+    with pytest.raises(PreviewError, match="version"):
+        load_preview(tmp_path)
+    meta_path.write_text(json.dumps(seal_document({**meta, "intrinsics": {**meta["intrinsics"], "width": W + 1}})))
     with pytest.raises(PreviewError, match="intrinsics"):
         load_preview(tmp_path)
+    legacy = {k: v for k, v in meta.items() if k not in ("tensors_sha256", "document_sha256")}
+    meta_path.write_text(json.dumps({**legacy, "version": 1}))  # written before checksums: still read
+    assert load_preview(tmp_path).num_frames == make_preview().num_frames
 
 
 def test_preview_from_capture_bounds_size_and_keeps_first_and_last_frames():

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.camera import CameraError, Intrinsics
+from core.camera import CameraError, Intrinsics, check_rigid_pose
 from core.capture.base import Capture, CaptureError
 from core.capture.depth import resolve_depth
 from core.capture.params import CaptureParams
@@ -99,13 +99,13 @@ def resolve_intrinsics(params: CaptureParams, file_intr: dict | None, width: int
         if params.intrinsics is not None:
             p = params.intrinsics
             if p.hfov_deg is not None:
-                return Intrinsics.from_hfov(width, height, p.hfov_deg)
-            return Intrinsics(p.fx, p.fy, p.cx, p.cy, width, height)
+                return Intrinsics.from_hfov(width, height, p.hfov_deg).check_plausible()
+            return Intrinsics(p.fx, p.fy, p.cx, p.cy, width, height).check_plausible()
         if file_intr is not None:
             k = Intrinsics(float(file_intr["fx"]), float(file_intr["fy"]), float(file_intr["cx"]),
                            float(file_intr["cy"]), int(file_intr.get("width", width)),
                            int(file_intr.get("height", height)))
-            return k if (k.width, k.height) == (width, height) else k.scaled(width, height)
+            return (k if (k.width, k.height) == (width, height) else k.scaled(width, height)).check_plausible()
     except CameraError as exc:
         raise CaptureError("intrinsics", str(exc)) from None
     warn.append(f"no intrinsics given: assuming a centred pinhole with {DEFAULT_HFOV_DEG:g} deg horizontal FOV")
@@ -140,6 +140,11 @@ def resolve_poses(poses, T: int) -> torch.Tensor:
         raise CaptureError("poses", f"{p.shape[0]} poses for {T} frames (they must match)")
     if not torch.isfinite(p).all():
         raise CaptureError("poses", "contains non-finite values")
+    for i in range(p.shape[0]):
+        try:
+            check_rigid_pose(p[i], f"poses[{i}]")
+        except CameraError as exc:
+            raise CaptureError("poses", str(exc)) from None
     return p
 
 

@@ -16,7 +16,8 @@ MAX_FRAMES_LIMIT = 10_000  # hard ceiling; MediaLimits may be stricter
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # strict: JSON true is not 1.0, "2" is not 2 (a typo must not become a value)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
 
 class IntrinsicsParams(_Strict):

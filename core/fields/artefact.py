@@ -5,7 +5,7 @@ is then renamed onto the final name, so a reader never sees a half-written artef
 that name; an existing artefact is moved aside first and removed only after the rename
 (restored if the rename fails). Crashed writers leave only hidden `.NAME.tmp-*` siblings.
 
-Loading never unpickles: the JSON is parsed and validated (schema and conventions
+Loading never unpickles: the JSON is parsed and validated (its own SHA-256, schema and conventions
 versions, field config, bounds, SHA-256 of the weights), then the safetensors bytes are
 checked tensor by tensor against the state dict the config implies. Any mismatch raises
 `ArtefactError` naming the file and the field at fault.
@@ -31,12 +31,13 @@ from safetensors.torch import save_file
 
 from core.conventions import CONVENTIONS_SUMMARY, CONVENTIONS_VERSION
 from core.fields import BoundsError, FieldConfig, LightField, SceneBounds, build_field
+from core.integrity import DOCUMENT_HASH_KEY, IntegrityError, seal_document, verify_document
 
 SCHEMA_VERSION = 1
 WEIGHTS_FILE = "field.safetensors"
 META_FILE = "lightfield.json"
 MAX_ENVMAP_HEIGHT = 4096  # a 4096 x 8192 map is 400 MB of float32; refuse beyond that
-RESERVED_KEYS = ("schema_version", "conventions_version", "conventions", "field", "bounds", "weights")
+RESERVED_KEYS = ("schema_version", "conventions_version", "conventions", "field", "bounds", "weights", DOCUMENT_HASH_KEY)
 
 
 class ArtefactError(ValueError):
@@ -72,6 +73,7 @@ def save_artefact(out_dir, field: LightField, meta: dict | None = None) -> "Ligh
         save_file(state, str(weights), metadata={"schema_version": str(SCHEMA_VERSION)})
         _fsync_file(weights)
         document["weights"] = {"file": WEIGHTS_FILE, "sha256": _sha256(weights.read_bytes()), "bytes": weights.stat().st_size}
+        document = seal_document(document)
         _write_json(tmp / META_FILE, document)
         _fsync_dir(tmp)
         _replace_dir(tmp, out_dir)
@@ -327,6 +329,10 @@ def _read_meta(path: Path) -> dict:
         raise ArtefactError(f"{meta_path} is not valid JSON: {exc}") from exc
     if not isinstance(meta, dict):
         raise ArtefactError(f"{meta_path} must hold a JSON object, got {type(meta).__name__}")
+    try:  # artefacts written before the document checksum existed have none
+        verify_document(meta, META_FILE, required=False)
+    except IntegrityError as exc:
+        raise ArtefactError(str(exc)) from None
     if meta.get("schema_version") != SCHEMA_VERSION:
         raise ArtefactError(
             f"{META_FILE}: unsupported schema_version {meta.get('schema_version')!r} (this build reads {SCHEMA_VERSION})"

@@ -11,13 +11,16 @@ between nodes and below the baked resolution; `bench/query_latency.py` measures 
 
 Saved as `baked.safetensors` next to the artefact (atomic: temp file + os.replace) with
 the SHA-256 of the weights it was baked from, so a re-estimated artefact never answers
-from a stale bake.
+from a stale bake, and the SHA-256 of its own maps, so a corrupted bake is refused (and
+re-baked by `load_or_bake`) instead of answering with garbage.
 """
 from __future__ import annotations
 
 import json
+import logging
 import os
 import tempfile
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,6 +35,9 @@ from core.fields.artefact import (ArtefactError, LightFieldArtefact, QueryError,
                                   query_positions, query_times)
 from core.fields.encodings import lattice_corners
 from core.fields.normalization import SceneBounds
+from core.integrity import sha256_bytes
+
+log = logging.getLogger("lightfield.fields")
 
 BAKED_FILE = "baked.safetensors"
 BAKE_SCHEMA_VERSION = 1
@@ -39,6 +45,7 @@ DEFAULT_GRID = (5, 5, 5)
 DEFAULT_TIMES = 4
 DEFAULT_HEIGHT = 32
 MAX_BAKED_BYTES = 1 << 30  # refuse bakes over 1 GiB of float32 maps
+STENCIL_CACHE_SIZE = 4  # upsampling stencils kept per bake (one at height 1024 is ~100 MB)
 
 
 @dataclass
@@ -47,7 +54,7 @@ class BakedField:
     bounds: SceneBounds
     uses_time: bool
     source_sha256: str  # weights the maps were baked from
-    _stencils: dict = field(default_factory=dict, repr=False)  # query height -> upsampling stencil
+    _stencils: OrderedDict = field(default_factory=OrderedDict, repr=False)  # query height -> stencil (LRU)
 
     @property
     def grid(self) -> tuple[int, int, int]:
@@ -91,6 +98,9 @@ class BakedField:
         if height not in self._stencils:
             dirs = equirect_directions(height).reshape(-1, 3)
             self._stencils[height] = equirect_stencil(dirs, self.height)
+            while len(self._stencils) > STENCIL_CACHE_SIZE:  # bounded: heights are client-chosen
+                self._stencils.popitem(last=False)
+        self._stencils.move_to_end(height)
         index, weight = self._stencils[height]
         up = (weight[None, :, :, None] * pad_poles(maps)[:, index]).sum(2)
         return up.reshape(maps.shape[0], height, equirect_width(height), 3)
@@ -112,6 +122,7 @@ class BakedField:
             "bounds": json.dumps(self.bounds.to_dict()),
             "uses_time": json.dumps(self.uses_time),
             "source_sha256": self.source_sha256,
+            "maps_sha256": _maps_sha256(self.maps),
         }
         fd, tmp = tempfile.mkstemp(prefix=f".{BAKED_FILE}.tmp-", dir=target.parent)
         os.close(fd)
@@ -143,6 +154,8 @@ class BakedField:
             raise ArtefactError(f"{BAKED_FILE} is stale: it was baked from other weights than {artefact.path}")
         if maps.ndim != 7 or maps.shape[-1] != 3 or maps.shape[5] != 2 * maps.shape[4] or maps.dtype != torch.float32:
             raise ArtefactError(f"{BAKED_FILE}: 'maps' has shape {tuple(maps.shape)} / {maps.dtype}, expected [K,nx,ny,nz,h,2h,3] float32")
+        if header.get("maps_sha256") != _maps_sha256(maps):
+            raise ArtefactError(f"{BAKED_FILE}: checksum mismatch (missing, or the maps were corrupted after baking)")
         if not torch.isfinite(maps).all():
             raise ArtefactError(f"{BAKED_FILE}: 'maps' contains non-finite values")
         return cls(maps, artefact.bounds, artefact.uses_time, artefact.weights_sha256)
@@ -197,12 +210,17 @@ def load_or_bake(
             and (height is None or baked.height == height)
         ):
             return baked
-    except ArtefactError:
-        pass
+    except ArtefactError as exc:
+        if (artefact.path / BAKED_FILE).is_file():  # refused (corrupt, stale, old format): bake anew
+            log.warning("%s: re-baking: %s", artefact.path, exc)
     baked = bake(artefact, grid or DEFAULT_GRID, DEFAULT_TIMES if times is None else times, height or DEFAULT_HEIGHT)
     if save:
         baked.save(artefact.path)
     return baked
+
+
+def _maps_sha256(maps: torch.Tensor) -> str:
+    return sha256_bytes(maps.detach().cpu().contiguous().numpy().tobytes())
 
 
 def keyframe_count(artefact: LightFieldArtefact, times: int) -> int:
