@@ -46,3 +46,17 @@ def make_celery(settings: JobSettings) -> Celery:
     )
     return app
 
+
+
+def requeue_unacknowledged(app: Celery) -> int:
+    """Put every delivered-but-unacknowledged message back at the head of its queue; returns
+    how many. Only correct when NO worker is alive (embedded mode: its one worker just died,
+    or the service is starting): a live worker's messages would then run twice. Without this
+    a job whose worker was killed waits for the visibility timeout (10 min by default)."""
+    with app.connection_for_write() as conn:
+        channel = conn.default_channel
+        client = channel.client
+        tags = client.hkeys(channel.unacked_key)
+        for tag in tags:
+            channel.qos.restore_by_tag(tag, client=client, leftmost=True)
+    return len(tags)

@@ -275,3 +275,9 @@ class JobStore:
 
     def lease_held(self, job_id: str) -> bool:
         return bool(self.client.exists(self._lease_key(job_id)))
+
+    def clear_leases(self) -> int:
+        """Drop every run lease; returns how many. Only correct when no worker is alive (the
+        embedded mode's restart of its one worker): their holders are gone."""
+        keys = list(self.client.scan_iter(match=f"{PREFIX}job:*:lease", count=500))
+        return int(self.client.delete(*keys)) if keys else 0

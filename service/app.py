@@ -4,6 +4,7 @@ from __future__ import annotations
 import functools
 import logging
 from pathlib import Path
+from typing import Callable
 
 from fastapi import FastAPI
 from fastapi.responses import RedirectResponse
@@ -11,13 +12,15 @@ from fastapi.staticfiles import StaticFiles
 
 from jobs.queue import make_celery
 from jobs.store import JobStore, connect
-from service import routes_ui
+from service import openapi, routes_ui
 from service.auth import KeyRing
+from service.bodylimits import BodyLimits
 from service.config import ServiceSettings
 from service.context import AppContext
 from service.errors import install_error_handlers
 from service.fieldcache import FieldCache
 from service.metrics import Metrics, MetricsMiddleware
+from service.origin import OriginGuard
 from service.routes import health, jobs, lightfield
 
 log = logging.getLogger("lightfield.service")
@@ -31,19 +34,28 @@ Conventions (frames, equirect layout, tone map) are in every query response's
 `X-Lightfield-Conventions` header. See docs/api.md."""
 
 
-def create_app(settings: ServiceSettings | None = None) -> FastAPI:
+def create_app(settings: ServiceSettings | None = None,
+               dependency_states: Callable[[], dict[str, str]] | None = None) -> FastAPI:
+    """The API. `dependency_states` (embedded mode: the supervisor's) is what /healthz reports."""
     settings = settings or ServiceSettings.from_env()
     if not settings.broker_url:
         raise RuntimeError("LIGHTFIELD_BROKER_URL is not set (use `lightfield serve`, which starts Redis itself)")
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     store = JobStore(connect(settings.broker_url))
-    ctx = AppContext(settings=settings, keyring=KeyRing.parse(settings.api_keys), store=store,
+    keyring = KeyRing.parse(settings.api_keys)
+    ctx = AppContext(settings=settings, keyring=keyring, store=store,
                      celery=make_celery(settings), fields=FieldCache(settings.field_cache_size))
     app = FastAPI(title="lightfield", version="0.1.0", description=DESCRIPTION)
     app.state.ctx = ctx
     app.state.metrics = Metrics(store)
+    app.state.dependency_states = dependency_states
+    # outermost last: metrics see every answer, including the guards' refusals
+    app.add_middleware(BodyLimits, max_json_bytes=settings.limits.max_json_bytes, timeouts=settings.timeouts)
+    app.add_middleware(OriginGuard, keyless=not keyring.enabled, allowed_hosts=settings.allowed_hosts,
+                       allowed_origins=settings.allowed_origins)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     install_error_handlers(app)
+    openapi.install(app, settings)
     for module in (jobs, lightfield, routes_ui, health):
         app.include_router(module.router)
     if UI_DIR.is_dir():

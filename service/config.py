@@ -26,6 +26,28 @@ class ServiceLimits(BaseModel):
     max_batch: int = Field(64, gt=0, description="queries per POST /lightfield/{id}/envmaps")
     max_jobs_in_flight: int = Field(4, gt=0, description="queued + running jobs per tenant")
     max_page_size: int = Field(100, gt=0, description="GET /jobs page size")
+    # a batch of 64 queries is ~4 KB of JSON; 256 KiB bounds what the event loop parses
+    max_json_bytes: int = Field(256 * 1024, gt=0, description="JSON request body size")
+    # queued field evaluations per light field, in env map pixels (an exact 1024-row map is 2 Mpx)
+    max_pending_pixels: int = Field(1 << 25, gt=0, description="env map pixels queued per light field")
+
+
+class HttpTimeouts(BaseModel):
+    """Bounds on every wait a client can impose on the server (slowloris, dripped bodies)."""
+
+    model_config = ConfigDict(frozen=True)
+
+    header_s: float = Field(10.0, gt=0, description="a request's line and headers must arrive within this")
+    body_idle_s: float = Field(15.0, gt=0, description="longest pause between two body chunks")
+    body_grace_s: float = Field(10.0, ge=0, description="body time allowed before the minimum rate applies")
+    body_min_rate: float = Field(4096.0, gt=0, description="bytes/s a body must average after the grace time")
+    keep_alive_s: float = Field(5.0, gt=0, description="idle keep-alive connections are closed after this")
+    max_connections: int = Field(512, gt=0, description="open connections + requests in progress (503 beyond)")
+
+
+# env var suffix -> HttpTimeouts field
+_TIMEOUT_ENV = {"HEADER_TIMEOUT": "header_s", "BODY_TIMEOUT": "body_idle_s", "BODY_GRACE": "body_grace_s",
+                "MIN_BODY_RATE": "body_min_rate", "KEEP_ALIVE": "keep_alive_s", "MAX_CONNECTIONS": "max_connections"}
 
 
 class ServiceSettings(JobSettings):
@@ -34,6 +56,11 @@ class ServiceSettings(JobSettings):
     field_cache_size: int = Field(8, gt=0)  # loaded light fields per API process
     readiness_timeout_s: float = Field(2.0, gt=0)  # worker ping in /readyz
     limits: ServiceLimits = ServiceLimits()
+    timeouts: HttpTimeouts = HttpTimeouts()
+    # with no API keys: Host names (besides loopback) and Origins (besides the server's own)
+    # a browser may use; see service.origin
+    allowed_hosts: tuple[str, ...] = ()
+    allowed_origins: tuple[str, ...] = ()
 
     @classmethod
     def _values_from_env(cls, env: Mapping[str, str]) -> dict:
@@ -47,6 +74,15 @@ class ServiceSettings(JobSettings):
             values["limits"] = ServiceLimits(**limits)
         except ValueError as exc:
             raise SettingsError(f"invalid {ENV_PREFIX}MAX_* limit: {exc}") from None
+        timeouts = {field: env_number(env, ENV_PREFIX + key, int if field == "max_connections" else float)
+                    for key, field in _TIMEOUT_ENV.items() if ENV_PREFIX + key in env}
+        try:
+            values["timeouts"] = HttpTimeouts(**timeouts)
+        except ValueError as exc:
+            raise SettingsError(f"invalid {ENV_PREFIX}* timeout: {exc}") from None
+        for name in ("allowed_hosts", "allowed_origins"):
+            if env.get(ENV_PREFIX + name.upper()):
+                values[name] = tuple(v.strip().lower() for v in env[ENV_PREFIX + name.upper()].split(",") if v.strip())
         if env.get(ENV_PREFIX + "API_KEYS"):
             values["api_keys"] = env[ENV_PREFIX + "API_KEYS"]
         if env.get(ENV_PREFIX + "MODEL_DIRS"):

@@ -1,9 +1,13 @@
 """`lightfield serve`: the API, plus (with no broker configured) its own Redis and worker.
 
 Embedded mode (no LIGHTFIELD_BROKER_URL): start a private Redis (loopback, random password,
-AOF in <data_dir>/redis), one Celery worker subprocess (restarted if it dies) and uvicorn in
-this process; on SIGINT/SIGTERM uvicorn stops first, then the worker (warm shutdown, its
-unfinished job stays in the queue and resumes from its checkpoint next time), then Redis.
+AOF in <data_dir>/redis) and one Celery worker subprocess, both supervised
+(service.supervisor: restarted when they die, with bounds, logged; /healthz reports them),
+and uvicorn in this process. Before the worker starts, and whenever it is restarted, the
+jobs the previous worker held are given back to the queue at once (it was the only worker,
+so nothing else can hold them) instead of after the visibility timeout. On SIGINT/SIGTERM
+uvicorn stops first, then the worker (warm shutdown, its unfinished job stays in the queue
+and resumes from its checkpoint next time), then Redis.
 Distributed mode (LIGHTFIELD_BROKER_URL=redis://...): only the API; run `lightfield worker`
 anywhere that reaches the same Redis and storage root.
 """
@@ -12,56 +16,53 @@ from __future__ import annotations
 import logging
 import os
 import signal
-import subprocess
-import threading
-from dataclasses import dataclass, field
-from pathlib import Path
 
 from service.auth import KeyRing, require_loopback
 from service.config import ServiceSettings
-from service.processes import RedisProcess, child_env, spawn, start_redis, stop, worker_command
+from service.processes import child_env, free_port, spawn, start_redis, stop, worker_command
+from service.supervisor import Child, Supervisor
 
 log = logging.getLogger("lightfield.serve")
 WORKER_GRACE_S = 20.0
-RESTART_BACKOFF_S = 2.0
 
 
-@dataclass
-class WorkerSupervisor:
-    """Keeps one worker subprocess alive until stopped."""
+def recover_abandoned_jobs(settings: ServiceSettings) -> None:
+    """Re-queue what a dead (only) worker held and drop its run leases, so its job resumes now."""
+    from jobs.queue import make_celery, requeue_unacknowledged
+    from jobs.store import JobStore, connect
 
-    env: dict[str, str]
-    log_path: Path
-    proc: subprocess.Popen | None = None
-    _stopping: threading.Event = field(default_factory=threading.Event)
-    _thread: threading.Thread | None = None
+    requeued = requeue_unacknowledged(make_celery(settings))
+    leases = JobStore(connect(settings.broker_url)).clear_leases()
+    if requeued or leases:
+        log.warning("re-queued %d unacknowledged job message(s), dropped %d stale run lease(s)", requeued, leases)
 
-    def start(self) -> None:
-        self.proc = spawn(worker_command("embedded"), env=self.env, log_path=self.log_path)
-        self._thread = threading.Thread(target=self._watch, name="worker-supervisor", daemon=True)
-        self._thread.start()
 
-    def _watch(self) -> None:
-        while not self._stopping.wait(RESTART_BACKOFF_S):
-            if self.proc is not None and self.proc.poll() is not None:
-                log.warning("worker exited with %s; restarting (see %s)", self.proc.returncode, self.log_path)
-                self.proc = spawn(worker_command("embedded"), env=self.env, log_path=self.log_path)
+def embedded_children(settings: ServiceSettings) -> tuple[list[Child], str]:
+    """Redis and the worker as supervised children, and the broker URL they share."""
+    import secrets
 
-    def stop(self) -> None:
-        self._stopping.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5)
-        if self.proc is not None:
-            stop(self.proc, signal.SIGTERM, grace_s=WORKER_GRACE_S)
+    redis_dir = settings.data_dir / "redis"
+    port, password = free_port(), secrets.token_hex(16)
+    url = f"redis://:{password}@127.0.0.1:{port}/0"
+    settings = settings.model_copy(update={"broker_url": url})
+    env = child_env(LIGHTFIELD_BROKER_URL=url, LIGHTFIELD_DATA_DIR=str(settings.data_dir.resolve()))
+    log_path = settings.data_dir / "worker.log"
+    redis = Child("redis", start=lambda: start_redis(redis_dir, port=port, password=password).proc,
+                  stop=lambda proc: stop(proc, signal.SIGTERM, grace_s=15.0))  # SIGTERM: Redis flushes its AOF
+    worker = Child("worker", start=lambda: spawn(worker_command("embedded"), env=env, log_path=log_path),
+                   stop=lambda proc: stop(proc, signal.SIGTERM, grace_s=WORKER_GRACE_S),
+                   before_restart=lambda: recover_abandoned_jobs(settings))
+    return [redis, worker], url
 
 
 def serve(host: str, port: int, settings: ServiceSettings, log_level: str = "info") -> int:
     import uvicorn
 
+    from service.server import server_config
+
     require_loopback(host, KeyRing.parse(settings.api_keys))
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    redis_proc: RedisProcess | None = None
-    supervisor: WorkerSupervisor | None = None
+    supervisor: Supervisor | None = None
     # uvicorn re-raises the signal that stopped it once it has shut down; with the default
     # handlers that would kill this process before the children are stopped in order.
     received: list[int] = []
@@ -69,23 +70,26 @@ def serve(host: str, port: int, settings: ServiceSettings, log_level: str = "inf
         signal.signal(sig, lambda signum, _frame: received.append(signum))
     try:
         if not settings.broker_url:
-            redis_proc = start_redis(settings.data_dir / "redis")
-            os.environ["LIGHTFIELD_BROKER_URL"] = redis_proc.url
+            children, url = embedded_children(settings)
+            os.environ["LIGHTFIELD_BROKER_URL"] = url
             os.environ["LIGHTFIELD_DATA_DIR"] = str(settings.data_dir.resolve())
-            settings = settings.model_copy(update={"broker_url": redis_proc.url})
-            supervisor = WorkerSupervisor(child_env(), settings.data_dir / "worker.log")
-            supervisor.start()
+            settings = settings.model_copy(update={"broker_url": url})
+            redis, worker = children
+            supervisor = Supervisor(children)
+            # Redis first; then what a previous run's worker held goes back to the queue
+            # before this run's worker starts (a killed `serve` leaves it unacknowledged)
+            redis.proc, redis.state = redis.start(), "running"
+            recover_abandoned_jobs(settings)
+            worker.proc, worker.state = worker.start(), "running"
+            supervisor.start_watching()
             log.info("embedded mode: Redis and one worker started (logs in %s)", settings.data_dir)
         from service.app import create_app
 
         if received:  # asked to stop while starting up
             return 0
-        config = uvicorn.Config(create_app(settings), host=host, port=port, log_level=log_level,
-                                timeout_graceful_shutdown=5)
-        uvicorn.Server(config).run()  # handles SIGINT/SIGTERM itself and returns
+        app = create_app(settings, dependency_states=supervisor.states if supervisor else None)
+        uvicorn.Server(server_config(app, host, port, settings.timeouts, log_level)).run()
         return 0
     finally:
         if supervisor is not None:
             supervisor.stop()
-        if redis_proc is not None:
-            redis_proc.stop()

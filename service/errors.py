@@ -3,7 +3,9 @@
 User-triggerable failures raise an `ApiError` subclass; the handlers installed by
 `install_error_handlers` turn those, FastAPI's own validation errors and unexpected
 exceptions into that body. Unexpected exceptions are logged with a traceback and answered
-with a generic message, so internals (paths, stack frames) never reach a client.
+with a generic message, so internals (paths, stack frames) never reach a client. Losing
+Redis (broker and job store) is not unexpected: it is a 503 `broker_unavailable` with
+`Retry-After`, like every other 429/503 the API sends.
 """
 from __future__ import annotations
 
@@ -25,6 +27,10 @@ class ErrorDetail(BaseModel):
 
 class ErrorBody(BaseModel):
     error: ErrorDetail
+
+
+RETRY_AFTER_BROKER_S = 5  # Redis restarts in about a second (embedded) or fails over
+RETRY_AFTER_JOBS_S = 30  # a draft job takes about a minute
 
 
 class ApiError(Exception):
@@ -53,8 +59,21 @@ class NotFound(ApiError):
     status, default_code = 404, "not_found"
 
 
+class RequestTimeout(ApiError):
+    status, default_code = 408, "request_timeout"
+
+    def __init__(self, message: str, code: str | None = None):
+        super().__init__(message, code, headers={"Connection": "close"})
+
+
 class Conflict(ApiError):
     status, default_code = 409, "conflict"
+
+
+class Gone(ApiError):
+    """A stored file of the job failed verification: it is never served, and never retried."""
+
+    status, default_code = 410, "artefact_corrupt"
 
 
 class PayloadTooLarge(ApiError):
@@ -69,12 +88,33 @@ class InvalidInput(ApiError):
     status, default_code = 422, "invalid_input"
 
 
+class Forbidden(ApiError):
+    status, default_code = 403, "forbidden"
+
+
 class TooManyJobs(ApiError):
     status, default_code = 429, "too_many_jobs"
+
+    def __init__(self, message: str, retry_after_s: int = RETRY_AFTER_JOBS_S):
+        super().__init__(message, headers={"Retry-After": str(retry_after_s)})
 
 
 class ServiceUnavailable(ApiError):
     status, default_code = 503, "unavailable"
+
+    def __init__(self, message: str, code: str | None = None, retry_after_s: int = RETRY_AFTER_BROKER_S):
+        super().__init__(message, code, headers={"Retry-After": str(retry_after_s)})
+
+
+def broker_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions that mean Redis (broker and job store) is unreachable right now."""
+    import redis
+    from kombu.exceptions import OperationalError
+
+    return (redis.exceptions.ConnectionError, redis.exceptions.TimeoutError, OperationalError)
+
+
+BROKER_DOWN = "the job store and queue (Redis) are unreachable; try again shortly"
 
 
 def error_response(status: int, code: str, message: str, headers: dict[str, str] | None = None) -> JSONResponse:
@@ -92,7 +132,22 @@ def describe_validation_errors(errors) -> str:
     return "; ".join(parts)
 
 
-_HTTP_CODES = {404: "not_found", 405: "method_not_allowed", 401: "unauthorized", 413: "too_large"}
+_HTTP_CODES = {404: "not_found", 405: "method_not_allowed", 401: "unauthorized", 413: "too_large",
+               408: "body_timeout"}
+# query/body fields whose invalid values have their own code (docs/api.md, "Errors")
+_FIELD_CODES = {"x": "invalid_x", "t": "invalid_t", "ev": "invalid_ev", "offset": "invalid_offset",
+                "limit": "invalid_limit", "height": "invalid_height", "size": "invalid_size", "queries": "invalid_query"}
+
+
+def validation_code(errors) -> str:
+    """The code of a request validation failure: the first offending field's own code when
+    it has one (so `t=inf` is `invalid_t` whichever layer refused it), else invalid_request."""
+    for err in errors:
+        names = [p for p in err.get("loc", ()) if isinstance(p, str) and p not in ("body", "query", "path", "header")]
+        for name in reversed(names):  # the most specific first: queries.3.x -> invalid_x
+            if name in _FIELD_CODES:
+                return _FIELD_CODES[name]
+    return "invalid_request"
 
 
 def install_error_handlers(app: FastAPI) -> None:
@@ -102,7 +157,14 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_request: Request, exc: RequestValidationError):
-        return error_response(422, "invalid_request", describe_validation_errors(exc.errors()))
+        return error_response(422, validation_code(exc.errors()), describe_validation_errors(exc.errors()))
+
+    async def _broker_down(request: Request, exc: Exception):
+        log.warning("%s %s: Redis unreachable (%s)", request.method, request.url.path, type(exc).__name__)
+        return error_response(503, "broker_unavailable", BROKER_DOWN, {"Retry-After": str(RETRY_AFTER_BROKER_S)})
+
+    for cls in broker_errors():
+        app.add_exception_handler(cls, _broker_down)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_request: Request, exc: StarletteHTTPException):

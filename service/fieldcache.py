@@ -1,8 +1,9 @@
-"""Loaded light fields, cached per API process (bounded LRU), evaluated one query at a time.
+"""Loaded light fields, cached per API process (bounded LRU).
 
-Loading an artefact costs a file read and a module build; keeping the last few in memory
-makes repeated queries on the same job pay only the evaluation. Each cached field carries a
-lock: torch evaluation already uses every core, so running two queries on one field at once
+Loading an artefact costs a file read, a checksum and a module build; keeping the last few
+in memory makes repeated queries on the same job pay only the evaluation. Each cached field
+carries its batcher (service.evaluator: concurrent queries become one field call) and a
+lock: torch evaluation already uses every core, so running two calls on one field at once
 only adds memory, and it keeps modules that cache buffers safe.
 """
 from __future__ import annotations
@@ -19,6 +20,7 @@ class CachedField:
     artefact: Any  # core.fields.artefact.LightFieldArtefact
     lock: threading.Lock = field(default_factory=threading.Lock)
     baked: Any = None  # core.fields.bake.BakedField, loaded (or baked) on the first fast query
+    batcher: Any = None  # service.evaluator.FieldBatcher, created on the first query
 
 
 class FieldCache:

@@ -13,6 +13,8 @@ from jobs.queue import QUEUE
 from jobs.store import JobStore
 
 log = logging.getLogger("lightfield.service")
+# label values come from a fixed set: a client inventing methods must not grow /metrics
+KNOWN_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 
 
 class JobCollector:
@@ -67,5 +69,6 @@ class MetricsMiddleware:
             route = scope.get("route")
             # route templates, never raw paths: job ids would explode the label cardinality
             name = getattr(route, "path", "unmatched")
-            self.metrics.requests.labels(scope["method"], name, str(status["code"])).inc()
-            self.metrics.latency.labels(scope["method"], name).observe(time.perf_counter() - start)
+            method = scope["method"] if scope["method"] in KNOWN_METHODS else "other"
+            self.metrics.requests.labels(method, name, str(status["code"])).inc()
+            self.metrics.latency.labels(method, name).observe(time.perf_counter() - start)

@@ -2,9 +2,9 @@
 from __future__ import annotations
 
 from datetime import datetime, timezone
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt
 
 from jobs.store import JobRecord, JobState
 from service.errors import ErrorDetail
@@ -85,19 +85,25 @@ class Flags(BaseModel):
     t: bool = Field(description="t lies outside the capture's time range")
 
 
+# JSON numbers only (strict: `true` is not 1, "2" is not 2), within what the queries accept
+Coordinate = Annotated[StrictFloat, Field(ge=-1e6, le=1e6, description="metres")]
+Seconds = Annotated[StrictFloat, Field(ge=-1e9, le=1e9)]
+
+
 class EnvmapQuery(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    x: tuple[float, float, float] = Field(description="world position in metres")
-    t: float = Field(0.0, description="seconds from the first frame")
+    x: tuple[Coordinate, Coordinate, Coordinate] = Field(description="world position in metres")
+    t: Seconds = Field(0.0, description="seconds from the first frame")
 
 
 class EnvmapBatchRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    queries: list[EnvmapQuery] = Field(min_length=1)
-    height: int = Field(64, ge=1)
+    queries: list[EnvmapQuery] = Field(min_length=1, description="at most LIGHTFIELD_MAX_BATCH queries")
+    height: StrictInt = Field(64, ge=1, description="rows (at most LIGHTFIELD_MAX_ENVMAP_HEIGHT); "
+                              "queries x 2 height^2 <= 8388608 pixels")
     format: EnvmapFormat = "npy"
-    ev: float = 0.0
-    quality: Quality = "exact"
+    ev: StrictFloat = Field(0.0, ge=-64, le=64, description="exposure of PNG previews")
+    quality: Quality = Field("fast", description="fast = baked lattice, interpolated; exact = the field")
 
 
 class EncodedEnvmap(BaseModel):
@@ -147,6 +153,8 @@ class CubemapResponse(BaseModel):
 
 class Health(BaseModel):
     status: Literal["ok"]
+    dependencies: dict[str, str] = Field(default_factory=dict, description="embedded mode: state of the "
+                                         "supervised Redis and worker processes ('running')")
 
 
 class Readiness(BaseModel):

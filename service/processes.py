@@ -97,13 +97,15 @@ class RedisProcess:
         stop(self.proc, signal.SIGTERM, grace_s=15.0)  # SIGTERM: Redis flushes the AOF and exits
 
 
-def start_redis(data_dir: Path, port: int | None = None, timeout_s: float = 15.0) -> RedisProcess:
-    """A loopback-only Redis with a random password and AOF persistence in `data_dir`."""
+def start_redis(data_dir: Path, port: int | None = None, timeout_s: float = 15.0,
+                password: str | None = None) -> RedisProcess:
+    """A loopback-only Redis with a (random unless given) password and AOF persistence in
+    `data_dir`. A restart with the same port and password keeps every client's URL valid."""
     import redis
 
     data_dir.mkdir(parents=True, exist_ok=True)
     port = port or free_port()
-    password = secrets.token_hex(16)
+    password = password or secrets.token_hex(16)
     cmd = [redis_server_binary(), "--port", str(port), "--bind", "127.0.0.1", "--requirepass", password,
            "--dir", str(data_dir), "--appendonly", "yes", "--appendfsync", "everysec", "--save", "",
            "--protected-mode", "yes", "--daemonize", "no", "--loglevel", "warning"]

@@ -1,21 +1,34 @@
-"""Evaluating a cached light field for the HTTP layer (blocking: run in a threadpool).
+"""Evaluating a cached light field for the HTTP layer.
 
 Validation of the query values lives here too, so every endpoint refuses the same things
-with the same codes: x must be three finite numbers, t finite, sizes within the limits.
+with the same codes: x must be three finite numbers within +-MAX_ABS_X_M, t finite within
++-MAX_ABS_T_S, sizes within the limits. Evaluation goes through the field's FieldBatcher
+(service.evaluator): `envmap_answer` queues one map and awaits it.
+
+Quality: `fast` (the default) interpolates the lattice of env maps the worker baked
+(core.fields.bake) and upsamples it to the requested height; `exact` evaluates the field at
+every pixel. docs/api.md ("Query speed") gives the cost and the error of each.
 """
 from __future__ import annotations
 
 import math
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Any, Callable
 
 import numpy as np
 
 from service.errors import InvalidInput, PayloadTooLarge
+from service.evaluator import EnvmapAnswer, EnvmapRequest, FieldBatcher, group_requests
 from service.fieldcache import CachedField
 
 MAX_ABS_EV = 64.0
+MAX_ABS_X_M = 1e6  # positions: metres from the capture's origin (indoor scenes span metres)
+MAX_ABS_T_S = 1e9  # times: seconds from the first frame
 SH_ENVMAP_HEIGHT = 128  # enough to isolate a small light; SH only needs band 2
+DEFAULT_QUALITY = "fast"
+_NUMBER = r"\s*[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?\s*"
+X_PATTERN = rf"^{_NUMBER},{_NUMBER},{_NUMBER}$"
 
 
 @dataclass(frozen=True)
@@ -34,14 +47,15 @@ def parse_x(text: str) -> tuple[float, float, float]:
         values = tuple(float(p) for p in parts)
     except ValueError:
         values = ()
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise InvalidInput(f"x must be three finite numbers 'X,Y,Z' (metres), got {text[:80]!r}", code="invalid_x")
+    if len(values) != 3 or not all(math.isfinite(v) and abs(v) <= MAX_ABS_X_M for v in values):
+        raise InvalidInput(f"x must be three finite numbers 'X,Y,Z' in metres within +-{MAX_ABS_X_M:g}, "
+                           f"got {text[:80]!r}", code="invalid_x")
     return values  # type: ignore[return-value]
 
 
 def check_t(t: float) -> float:
-    if not math.isfinite(t):
-        raise InvalidInput(f"t must be a finite number of seconds, got {t}", code="invalid_t")
+    if not (math.isfinite(t) and abs(t) <= MAX_ABS_T_S):
+        raise InvalidInput(f"t must be a finite number of seconds within +-{MAX_ABS_T_S:g}, got {t}", code="invalid_t")
     return float(t)
 
 
@@ -79,55 +93,66 @@ def _as_invalid_input():
         raise InvalidInput(str(exc), code="invalid_query") from None
 
 
-def envmap(cf: CachedField, x, t: float, height: int) -> tuple[np.ndarray, EvalFlags]:
-    with _as_invalid_input(), cf.lock:
-        hdr, flags = cf.artefact.envmap(x, t, height)
-    return _numpy(hdr), _flags(flags)
-
-
-def envmap_with_quality(cf: CachedField, x, t: float, height: int, quality: str):
-    """(hdr, flags, quality used): 'fast' reads the baked lattice, anything else the field."""
-    if quality == "fast":
-        return (*baked_envmap(cf, x, t, height), "fast")
-    return (*envmap(cf, x, t, height), "exact")
-
-
-def baked_envmap(cf: CachedField, x, t: float, height: int) -> tuple[np.ndarray, EvalFlags]:
-    """Interpolated from the baked lattice (the worker bakes it after distillation; an
-    artefact without one is baked here once and saved beside it, atomically)."""
+def _baked(cf: CachedField):
+    """The worker's bake (verified; a missing, stale or corrupt one is baked again here once
+    and saved beside the artefact, atomically). Call with cf.lock held."""
     from core.fields.bake import load_or_bake
 
-    with _as_invalid_input(), cf.lock:
-        if cf.baked is None:
-            cf.baked = load_or_bake(cf.artefact, save=True)
-        hdr, flags = cf.baked.envmap(x, t, height)
-    return _numpy(hdr), _flags(flags)
+    if cf.baked is None:
+        cf.baked = load_or_bake(cf.artefact, save=True)
+    return cf.baked
 
 
-def envmaps(cf: CachedField, xs, ts, height: int) -> tuple[np.ndarray, list[EvalFlags]]:
-    with _as_invalid_input(), cf.lock:
-        hdrs, flags = cf.artefact.envmaps(xs, ts, height)
-    return _numpy(hdrs), [_flags(f) for f in flags]
+def evaluate_requests(cf: CachedField, requests: list[EnvmapRequest]) -> list[EnvmapAnswer]:
+    """One field call per (quality, height) group, then each request's `finish` (blocking)."""
+    answers: list[EnvmapAnswer | None] = [None] * len(requests)
+    for (quality, height), indices in group_requests(requests).items():
+        xs = [requests[i].x for i in indices]
+        ts = [requests[i].t for i in indices]
+        with _as_invalid_input(), cf.lock:
+            source = _baked(cf) if quality == "fast" else cf.artefact
+            hdrs, flags = source.envmaps(xs, ts, height)
+        hdrs = _numpy(hdrs)
+        for k, i in enumerate(indices):
+            finish = requests[i].finish
+            answers[i] = EnvmapAnswer(finish(hdrs[k]) if finish else hdrs[k], _flags(flags[k]), quality)
+    return answers  # type: ignore[return-value]
 
 
-def spherical_harmonics(cf: CachedField, x, t: float):
-    """(ambient SH as ARCore 27 floats, dominant light, flags): ARCore Environmental HDR split."""
+def batcher(cf: CachedField, max_pending_pixels: int) -> FieldBatcher:
+    """The field's batcher (created on first use, on the event loop)."""
+    if cf.batcher is None:
+        cf.batcher = FieldBatcher(lambda requests: evaluate_requests(cf, requests), max_pending_pixels)
+    return cf.batcher
+
+
+async def envmap_answer(cf: CachedField, x, t: float, height: int, quality: str, max_pending_pixels: int,
+                        finish: Callable[[np.ndarray], Any] | None = None) -> EnvmapAnswer:
+    """Queue one env map on the field's batcher and await it (value = finish(hdr) or hdr)."""
+    request = EnvmapRequest(tuple(float(v) for v in x), float(t), int(height), quality, finish)
+    return await batcher(cf, max_pending_pixels).submit(request)
+
+
+def sh_from_envmap(hdr: np.ndarray):
+    """(ambient SH as ARCore 27 floats, dominant light) of an env map: ARCore Environmental HDR split."""
     import torch
 
     from core.lights import extract_dominant_light
     from core.sh import to_arcore_27
 
-    hdr, flags = envmap(cf, x, t, SH_ENVMAP_HEIGHT)
     light = extract_dominant_light(torch.from_numpy(hdr))
-    return to_arcore_27(light.ambient_sh), light, flags
+    return to_arcore_27(light.ambient_sh), light
 
 
-def cubemap(cf: CachedField, x, t: float, size: int) -> tuple[np.ndarray, EvalFlags]:
-    """Faces [6, size, size, 3] (+X, -X, +Y, -Y, +Z, -Z), sampled from a 2*size-high env map (one map pixel per texel at the face centres)."""
+def cube_faces(hdr: np.ndarray, size: int) -> np.ndarray:
+    """Faces [6, size, size, 3] (+X, -X, +Y, -Y, +Z, -Z) sampled from an env map of 2*size rows
+    (one map pixel per texel at the face centres)."""
     import torch
 
     from core.cubemap import equirect_to_cubemap
 
-    hdr, flags = envmap(cf, x, t, max(2 * size, 8))
-    faces = equirect_to_cubemap(torch.from_numpy(hdr), size)
-    return _numpy(faces), flags
+    return _numpy(equirect_to_cubemap(torch.from_numpy(hdr), size))
+
+
+def cubemap_height(size: int) -> int:
+    return max(2 * size, 8)

@@ -8,6 +8,8 @@ core.insertion. Included by service.app.create_app.
 """
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 from fastapi import APIRouter, Depends, Query, Response
 from fastapi.concurrency import run_in_threadpool
@@ -15,16 +17,18 @@ from pydantic import BaseModel, Field
 
 from core.conventions import CONVENTIONS_SUMMARY
 from jobs.storage import JobPaths
-from service.context import AppContext, Tenant, get_ctx, get_tenant, owned_job
-from service.errors import Conflict, ErrorBody, InvalidInput, NotFound
+from service.context import AppContext, Tenant, get_ctx, get_tenant
+from service.errors import ErrorBody, Gone, InvalidInput, NotFound
 from service.fieldcache import CachedField
+from service.lightfields import load_field, succeeded_job
 from service.models import Flags
-from service.queries import check_t, parse_x
-from service.stored_preview import PreviewError, StoredPreview, load_preview
+from service.queries import MAX_ABS_T_S, X_PATTERN, check_t, parse_x
+from service.stored_preview import PreviewCorrupt, PreviewError, StoredPreview, load_preview
 from service.ui_probes import ProbeError, locate, place
 
+log = logging.getLogger("lightfield.service")
 router = APIRouter(tags=["ui"])
-_ERRORS = {s: {"model": ErrorBody} for s in (401, 404, 409, 413, 422)}
+_ERRORS = {s: {"model": ErrorBody} for s in (401, 404, 409, 410, 413, 422, 503)}
 CONVENTIONS_HEADER = "X-Lightfield-Conventions"
 MAX_INSERTED_PROBES = 16
 MAX_INSERTION_ENV_HEIGHT = 128
@@ -33,7 +37,8 @@ MAX_INSERTION_ENV_HEIGHT = 128
 # picture to the card anyway (see bench/ui_latency.py).
 INSERTION_MAX_HEIGHT = 240
 T_HELP = "seconds from the first frame; the stored frame nearest in time is used"
-X_HELP = "world position 'X,Y,Z' in metres"
+X_HELP = "world position 'X,Y,Z' in metres (each within +-1e6)"
+TQuery = Query(0.0, description=T_HELP, ge=-MAX_ABS_T_S, le=MAX_ABS_T_S)
 
 
 class CaptureView(BaseModel):
@@ -66,11 +71,7 @@ class ProbeView(BaseModel):
 
 
 def _succeeded(job_id: str, tenant: Tenant, ctx: AppContext):
-    record = owned_job(job_id, tenant, ctx)
-    if record.state != "succeeded":
-        raise Conflict(f"job {job_id} is {record.state}; its frames and light field exist once it has succeeded",
-                       code="not_ready")
-    return record
+    return succeeded_job(job_id, tenant, ctx, what="its frames and light field")
 
 
 def _stored_preview(record, ctx: AppContext) -> StoredPreview:
@@ -80,6 +81,10 @@ def _stored_preview(record, ctx: AppContext) -> StoredPreview:
     except FileNotFoundError:
         raise NotFound(f"job {record.id} has no stored frames (it finished before the page's previews existed)",
                        code="frames_unavailable") from None
+    except PreviewCorrupt as exc:  # never served; the light field itself is unaffected
+        log.error("job %s: stored preview failed verification: %s", record.id, exc)
+        raise Gone(f"job {record.id}: the stored frames failed verification and will not be served ({exc})",
+                   code="preview_corrupt") from None
     except PreviewError as exc:
         raise NotFound(f"job {record.id}: stored frames are unreadable ({exc})", code="frames_unavailable") from None
 
@@ -91,7 +96,7 @@ def _preview(job_id: str, tenant: Tenant, ctx: AppContext) -> StoredPreview:
 def _load(job_id: str, tenant: Tenant, ctx: AppContext) -> tuple[StoredPreview, CachedField]:
     """The preview and the (cached) light field of a succeeded job."""
     record = _succeeded(job_id, tenant, ctx)
-    return _stored_preview(record, ctx), ctx.fields.get(record.id, ctx.settings.data_dir / record.artefact)
+    return _stored_preview(record, ctx), load_field(record, ctx)
 
 
 def _field_time(cf: CachedField, preview: StoredPreview, index: int) -> float | None:
@@ -120,7 +125,7 @@ def get_capture(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppConte
 @router.get("/lightfield/{job_id}/frame", response_class=Response, responses={
     200: {"content": {"image/png": {}}, "description": "the stored frame nearest in time to t"}, **_ERRORS},
     summary="A frame of the capture as PNG (preview resolution)")
-def get_frame(job_id: str, t: float = Query(0.0, description=T_HELP),
+def get_frame(job_id: str, t: float = TQuery,
               tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     from core.io.images import encode_png
 
@@ -137,9 +142,10 @@ def get_frame(job_id: str, t: float = Query(0.0, description=T_HELP),
 def get_probe(job_id: str,
               u: float | None = Query(None, description="fraction of the frame width, 0 = left edge"),
               v: float | None = Query(None, description="fraction of the frame height, 0 = top edge"),
-              t: float = Query(0.0, description=T_HELP),
+              t: float = TQuery,
               depth: float | None = Query(None, description="planar depth in metres along the pixel's ray"),
-              x: str | None = Query(None, description="instead of u, v, depth: " + X_HELP),
+              x: str | None = Query(None, description="instead of u, v, depth: " + X_HELP, pattern=X_PATTERN,
+                                    max_length=200),
               tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     if (x is None) == (u is None or v is None):
         raise InvalidInput("give either u and v (a pixel, with an optional depth) or x (a world point)",
@@ -203,7 +209,7 @@ def _render_insertion(preview: StoredPreview, cf: CachedField, index: int, point
 @router.get("/lightfield/{job_id}/insertion", response_class=Response, responses={
     200: {"content": {"image/png": {}}, "description": "the frame with the balls composited"}, **_ERRORS},
     summary="A chrome ball and a diffuse sphere at each point, lit by the field and composited into the frame")
-async def get_insertion(job_id: str, t: float = Query(0.0, description=T_HELP),
+async def get_insertion(job_id: str, t: float = TQuery,
                         points: str = Query(..., description="'u,v,depth;...': u, v fractions of width/height, "
                                                              "depth planar metres (as `lightfield preview --points`)"),
                         env_height: int = Query(32, ge=4, le=MAX_INSERTION_ENV_HEIGHT,

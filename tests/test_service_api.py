@@ -51,7 +51,7 @@ def alice(stack):
 
 
 def test_health_ready_metrics_and_schema(stack, alice):
-    assert alice.get("/healthz").json() == {"status": "ok"}
+    assert alice.get("/healthz").json() == {"status": "ok", "dependencies": {}}  # distributed: none supervised
     ready = alice.get("/readyz")
     assert ready.status_code == 200 and ready.json()["workers"] >= 1
     metrics = alice.get("/metrics").text

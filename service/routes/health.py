@@ -13,9 +13,17 @@ from service.models import Health, Readiness
 router = APIRouter(tags=["health"])
 
 
-@router.get("/healthz", response_model=Health, summary="The API process is up")
-def healthz():
-    return Health(status="ok")
+@router.get("/healthz", response_model=Health, responses={503: {"model": ErrorBody}},
+            summary="The API process is up (embedded mode: and its Redis and worker processes are running)")
+async def healthz(request: Request):
+    # async and I/O-free: answered on the event loop, never queued behind the threadpool
+    states_of = getattr(request.app.state, "dependency_states", None)
+    states = states_of() if states_of is not None else {}
+    down = {name: state for name, state in states.items() if state != "running"}
+    if down:
+        raise ServiceUnavailable("embedded " + ", ".join(f"{n} is {s}" for n, s in sorted(down.items())),
+                                 code="dependency_down")
+    return Health(status="ok", dependencies=states)
 
 
 def _check_ready(ctx: AppContext) -> Readiness:

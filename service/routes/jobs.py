@@ -17,7 +17,8 @@ from jobs.queue import TASK_NAME
 from jobs.storage import JobPaths, new_job_id
 from jobs.store import JobLimitReached, JobRecord
 from service.context import AppContext, Tenant, get_ctx, get_tenant, owned_job
-from service.errors import ErrorBody, InvalidInput, ServiceUnavailable, TooManyJobs, describe_validation_errors
+from service.errors import (BROKER_DOWN, ErrorBody, InvalidInput, ServiceUnavailable, TooManyJobs, broker_errors,
+                            describe_validation_errors)
 from service.models import JobList, JobView
 from service.upload import FormReader
 from service.validation import check_capture, classify_depth, classify_input
@@ -28,7 +29,8 @@ router = APIRouter(tags=["jobs"])
 SSE_POLL_S = 0.25
 SSE_KEEPALIVE_S = 15.0
 
-_ERRORS = {s: {"model": ErrorBody} for s in (400, 401, 404, 409, 413, 415, 422, 429, 503)}
+_ERRORS = {s: {"model": ErrorBody} for s in (400, 401, 403, 404, 408, 409, 413, 415, 422, 429, 503)}
+MAX_OFFSET = 10**9  # GET /jobs offset (Redis ranges are 64-bit: offset + limit must stay far inside)
 
 _MULTIPART_SCHEMA = {
     "requestBody": {
@@ -42,8 +44,9 @@ _MULTIPART_SCHEMA = {
                 "depth": {"type": "string", "format": "binary",
                           "description": "planar depth in metres: .npz/.npy (array 'depth' [T,H,W] or [H,W]), "
                                          "OpenEXR, or 16-bit PNG in millimetres"},
-                "params": {"type": "string", "description": "JSON object following JobParams "
-                                                            "(intrinsics, poses, fps, preset, prior, temporal, seed, max_frames)"},
+                "params": {"type": "string", "contentMediaType": "application/json",
+                           "description": "JSON object following JobParams (intrinsics, poses, fps, preset, prior, "
+                                          "prior_weights, temporal, seed, max_frames, field); see docs/api.md"},
             },
         }}},
     }
@@ -62,7 +65,35 @@ def parse_params(text: str | None, ctx: AppContext):
         if not any(weights.is_relative_to(Path(d).resolve()) for d in ctx.settings.model_dirs):
             raise InvalidInput("params.prior_weights must name a directory inside LIGHTFIELD_MODEL_DIRS",
                                code="invalid_params")
+    check_prior(params)
     return params
+
+
+def check_prior(params) -> None:
+    """What the worker would refuse about the job's prior, refused now: its settings, and the
+    weights of a prior that loads weights (the engine's rule: its Config has `weights`)."""
+    from core.engine.job import job_prior_settings
+    from core.engine.presets import preset
+    from core.priors.base import PriorError
+    from core.priors.registry import prior_class
+
+    try:
+        cls = prior_class(params.prior)
+        settings = job_prior_settings(preset(params.preset), params)
+        cls.Config.model_validate(settings)
+    except PriorError as exc:
+        raise InvalidInput(f"params.prior: {exc}", code="prior_unavailable") from None
+    except ValidationError as exc:
+        raise InvalidInput(f"params.prior: settings of the {params.prior!r} prior: "
+                           + describe_validation_errors(exc.errors()), code="invalid_params") from None
+    if "weights" in cls.Config.model_fields:
+        weights = settings.get("weights")
+        if not weights:
+            raise InvalidInput(f"params.prior_weights: the {params.prior!r} prior needs model weights (a directory "
+                               "inside LIGHTFIELD_MODEL_DIRS); none was given", code="prior_unavailable")
+        if not Path(weights).is_dir():
+            raise InvalidInput(f"params.prior_weights: {params.prior_weights!r} is not a directory",
+                               code="prior_unavailable")
 
 
 def _finalise_upload(path: Path, suffix: str, stem: str) -> str:
@@ -111,12 +142,25 @@ async def create_job(request: Request, tenant: Tenant = Depends(get_tenant), ctx
         await run_in_threadpool(ctx.celery.send_task, TASK_NAME, args=[job_id])
     except Exception:
         log.exception("job %s: could not enqueue", job_id)
-        await run_in_threadpool(ctx.store.update, job_id, allowed=("queued",), state="failed",
-                                error_code="broker_unavailable", error_message="the job queue is unreachable")
+        await _fail_unqueued(ctx, job_id)
         paths.remove_uploads()
         raise ServiceUnavailable("the job queue is unreachable; try again later", code="broker_unavailable") from None
     view = JobView.of(await run_in_threadpool(ctx.store.get, job_id))
     return JSONResponse(view.model_dump(mode="json"), status_code=202, headers={"Location": f"/jobs/{job_id}"})
+
+
+async def _fail_unqueued(ctx: AppContext, job_id: str, attempts: int = 6, pause_s: float = 0.5) -> None:
+    """Mark a job whose message never reached the queue as failed, so it does not sit queued
+    (and count against the tenant's limit) forever. Redis may be restarting: retry for ~3 s."""
+    for _ in range(attempts):
+        try:
+            await run_in_threadpool(ctx.store.update, job_id, allowed=("queued",), state="failed",
+                                    error_code="broker_unavailable", error_message="the job queue was unreachable",
+                                    finished_at=time.time())
+            return
+        except broker_errors():
+            await asyncio.sleep(pause_s)
+    log.error("job %s: accepted but neither queued nor marked failed (Redis unreachable)", job_id)
 
 
 @router.get("/jobs/{job_id}", response_model=JobView, responses=_ERRORS, summary="Status of a job")
@@ -126,8 +170,9 @@ def get_job(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppContext =
 
 
 @router.get("/jobs", response_model=JobList, responses=_ERRORS, summary="The caller's jobs, newest first")
-def list_jobs(offset: int = Query(0, ge=0), limit: int = Query(20, ge=1), tenant: Tenant = Depends(get_tenant),
-              ctx: AppContext = Depends(get_ctx)):
+def list_jobs(offset: int = Query(0, ge=0, le=MAX_OFFSET, description="jobs to skip (newest first)"),
+              limit: int = Query(20, ge=1, description="page size (at most LIGHTFIELD_MAX_PAGE_SIZE)"),
+              tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     if limit > ctx.settings.limits.max_page_size:
         raise InvalidInput(f"limit must be <= {ctx.settings.limits.max_page_size}", code="invalid_limit")
     records, total = ctx.store.list(tenant.hash, offset, limit)
@@ -166,7 +211,11 @@ async def job_events(job_id: str, request: Request, tenant: Tenant = Depends(get
     async def stream():
         version, idle = -1, 0.0
         while True:
-            record = await run_in_threadpool(ctx.store.get, job_id)
+            try:
+                record = await run_in_threadpool(ctx.store.get, job_id)
+            except broker_errors():  # the stream has started: say so in-band, and end it
+                yield f"event: error\ndata: {json.dumps({'code': 'broker_unavailable', 'message': BROKER_DOWN})}\n\n"
+                return
             if record is None:
                 yield "event: deleted\ndata: {}\n\n"
                 return

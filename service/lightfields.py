@@ -1,0 +1,52 @@
+"""A succeeded job's light field for the query routes, or the error that says why not.
+
+Loading verifies every file of the artefact (core.fields.artefact: the checksums recorded
+when it was written). A file that fails is never served and never retried: the job is
+marked `failed` with error `artefact_corrupt` (the one transition out of `succeeded`), its
+files are left for an operator to inspect, and every later query answers 410 at once from
+the record. An I/O error while reading (a storage hiccup) is a 503 and marks nothing.
+"""
+from __future__ import annotations
+
+import logging
+
+from jobs.store import JobRecord
+from service.context import AppContext, Tenant, owned_job
+from service.errors import Conflict, Gone, ServiceUnavailable
+from service.fieldcache import CachedField
+
+log = logging.getLogger("lightfield.service")
+ARTEFACT_CORRUPT = "artefact_corrupt"
+
+
+def succeeded_job(job_id: str, tenant: Tenant, ctx: AppContext, what: str = "its light field") -> JobRecord:
+    record = owned_job(job_id, tenant, ctx)
+    if record.state == "failed" and record.error_code == ARTEFACT_CORRUPT:
+        raise Gone(f"job {job_id}: {record.error_message}", code=ARTEFACT_CORRUPT)
+    if record.state != "succeeded":
+        raise Conflict(f"job {job_id} is {record.state}; {what} exists once it has succeeded", code="not_ready")
+    return record
+
+
+def load_field(record: JobRecord, ctx: AppContext) -> CachedField:
+    from core.fields.artefact import ArtefactError
+
+    directory = ctx.settings.data_dir / record.artefact
+    try:
+        return ctx.fields.get(record.id, directory)
+    except ArtefactError as exc:
+        detail = str(exc).replace(str(directory), "lightfield")  # no server paths in client messages
+        message = f"the stored light field failed verification and will not be served: {detail}"
+        log.error("job %s: %s", record.id, message)
+        ctx.store.update(record.id, allowed=("succeeded",), state="failed", error_code=ARTEFACT_CORRUPT,
+                         error_message=message[:2000])
+        raise Gone(f"job {record.id}: {message}", code=ARTEFACT_CORRUPT) from None
+    except OSError:
+        log.exception("job %s: reading the artefact failed", record.id)
+        raise ServiceUnavailable("the light field could not be read from storage; try again shortly",
+                                 code="storage_unavailable") from None
+
+
+def job_field(job_id: str, tenant: Tenant, ctx: AppContext) -> CachedField:
+    """The caller's succeeded job's light field (blocking: run in the threadpool)."""
+    return load_field(succeeded_job(job_id, tenant, ctx), ctx)
