@@ -23,3 +23,11 @@ def error_code_of(exc: BaseException) -> str:
         return f"invalid_{field}"
     return {"CaptureError": "invalid_capture", "CameraError": "invalid_intrinsics",
             "PriorError": "prior_unavailable"}.get(type(exc).__name__, "invalid_input")
+
+
+def broker_errors() -> tuple[type[BaseException], ...]:
+    """Redis (broker and job store) unreachable: an outage to wait out, never the job's fault."""
+    import redis
+    from kombu.exceptions import OperationalError
+
+    return (redis.exceptions.ConnectionError, redis.exceptions.TimeoutError, OperationalError)

@@ -17,6 +17,8 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from jobs.errors import broker_errors
+
 log = logging.getLogger("lightfield.service")
 
 
@@ -104,14 +106,6 @@ class ServiceUnavailable(ApiError):
 
     def __init__(self, message: str, code: str | None = None, retry_after_s: int = RETRY_AFTER_BROKER_S):
         super().__init__(message, code, headers={"Retry-After": str(retry_after_s)})
-
-
-def broker_errors() -> tuple[type[BaseException], ...]:
-    """Exceptions that mean Redis (broker and job store) is unreachable right now."""
-    import redis
-    from kombu.exceptions import OperationalError
-
-    return (redis.exceptions.ConnectionError, redis.exceptions.TimeoutError, OperationalError)
 
 
 BROKER_DOWN = "the job store and queue (Redis) are unreachable; try again shortly"

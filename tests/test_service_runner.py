@@ -104,11 +104,54 @@ def test_success_records_a_relative_artefact_and_removes_uploads(runner, monkeyp
 
 
 def test_a_saved_artefact_is_not_recomputed_on_redelivery(runner):
-    r = runner(engine_crash)  # would fail if called
+    r = runner(engine_ok)
+    job, paths = _job(r)
+    engine_ok(None, None, None, paths.artefact_dir, on_capture=lambda c: None)  # a run died after saving
+    CALLS.clear()
+    r.engine = engine_crash  # would fail if called
+    assert r.run(job) is Outcome.SUCCEEDED
+    assert (paths.artefact_dir / "baked.safetensors").is_file()
+
+
+def test_a_saved_artefact_that_fails_verification_is_estimated_again(runner):
+    """Never served, never retried forever: removed, and the engine runs once more."""
+    from core.fields.artefact import LightFieldArtefact
+
+    r = runner(engine_ok)
     job, paths = _job(r)
     paths.artefact_dir.mkdir(parents=True)
-    (paths.artefact_dir / "lightfield.json").write_text("{}")
-    assert r.run(job) is Outcome.SUCCEEDED
+    (paths.artefact_dir / "lightfield.json").write_text('{"truncated": ')
+    assert r.run(job) is Outcome.SUCCEEDED and CALLS == ["ok"]
+    LightFieldArtefact.load(paths.artefact_dir)  # the new one verifies
+
+
+def test_losing_redis_mid_run_is_retried_not_failed(runner, monkeypatch):
+    """A progress write or cancel check that meets a Redis outage does not fail the job; an
+    error the runner cannot record propagates, so the Celery task retries the delivery."""
+    import redis as redis_lib
+
+    r = runner(engine_ok)
+    job, _ = _job(r)
+    real_update = r.store.update
+
+    def flaky_update(job_id, **kw):
+        if kw.get("stage") == "baking":
+            raise redis_lib.exceptions.ConnectionError("Redis went away")
+        return real_update(job_id, **kw)
+
+    monkeypatch.setattr(r.store, "update", flaky_update)
+    assert r.run(job) is Outcome.SUCCEEDED  # the bake's stage update is best effort
+
+    def engine_progress_during_outage(input_path, depth_path, params, out_dir, progress=None, should_cancel=None, **kw):
+        monkeypatch.setattr(r.store, "cancel_requested", lambda _: (_ for _ in ()).throw(
+            redis_lib.exceptions.ConnectionError("Redis went away")))
+        assert should_cancel() is False
+        return engine_ok(input_path, depth_path, params, out_dir, **kw)
+
+    job2, _ = _job(r)
+    r.engine = engine_progress_during_outage
+    monkeypatch.setattr(r.store, "update", real_update)
+    assert r.run(job2) is Outcome.SUCCEEDED
 
 
 def test_a_held_lease_requeues_instead_of_running(runner):

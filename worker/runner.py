@@ -15,7 +15,7 @@ from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
-from jobs.errors import error_code_of, user_error_types
+from jobs.errors import broker_errors, error_code_of, user_error_types
 from jobs.lease import RunLease
 from jobs.settings import JobSettings
 from jobs.storage import JobPaths
@@ -82,7 +82,8 @@ class JobRunner:
 
         user_errors = user_error_types()
         try:
-            result = None if self._artefact_saved(paths) else self._call_engine(record, paths, lease)
+            saved = self._saved_artefact(job_id, paths)
+            result = None if saved is not None else self._call_engine(record, paths, lease)
             relative = self._relative_artefact(result.path if result else paths.artefact_dir, paths)
         except Cancelled:
             if lease.lost.is_set():
@@ -95,13 +96,15 @@ class JobRunner:
             self._fail(record, paths, error_code_of(exc), str(exc))
             return Outcome.FAILED
         except Exception as exc:  # the engine broke: log it, tell the user without internals
+            if isinstance(exc, broker_errors()):  # Redis went away mid-run: not the job's fault, retry it
+                raise
             log.exception("job %s: engine error", job_id)
             self._fail(record, paths, "engine_error", f"the estimation failed ({type(exc).__name__}); see worker logs")
             return Outcome.FAILED
 
         if lease.lost.is_set():
             return Outcome.ABANDONED
-        self._prebake(job_id, result.artefact if result else paths.artefact_dir)
+        self._prebake(job_id, result.artefact if result else saved)
         self.store.update(job_id, allowed=("running",), state="succeeded", progress=1.0, stage="done",
                           eta_s=0.0, artefact=relative, finished_at=time.time())
         paths.remove_uploads()
@@ -116,7 +119,7 @@ class JobRunner:
         paths.job_dir.mkdir(parents=True, exist_ok=True)
         kwargs = dict(
             progress=self._progress_writer(record.id),
-            should_cancel=lambda: lease.lost.is_set() or self.store.cancel_requested(record.id),
+            should_cancel=lambda: lease.lost.is_set() or self._cancel_requested(record.id),
             checkpoint_dir=paths.checkpoint_dir,
             limits=MediaLimits.from_env(),
             on_capture=lambda capture: self._save_ui_preview(record.id, capture, paths),
@@ -131,23 +134,36 @@ class JobRunner:
         return self.engine(paths.upload_dir / record.input_file, depth, params, paths.artefact_dir, **kwargs)
 
     @staticmethod
-    def _artefact_saved(paths: JobPaths) -> bool:
-        """Whether a previous run saved the artefact before dying (the engine renames a
-        complete directory into place, so its metadata file means it is whole): finish, don't redo."""
-        from core.fields.artefact import META_FILE
+    def _saved_artefact(job_id: str, paths: JobPaths) -> "LightFieldArtefact | None":
+        """The artefact a previous run saved before dying (the engine renames a complete
+        directory into place): finish it, don't redo it. One that fails verification is
+        removed and the engine runs again (from its checkpoint), so it is never served."""
+        from core.fields.artefact import META_FILE, ArtefactError, LightFieldArtefact
 
-        return (paths.artefact_dir / META_FILE).is_file()
+        if not (paths.artefact_dir / META_FILE).is_file():
+            return None
+        try:
+            return LightFieldArtefact.load(paths.artefact_dir)
+        except ArtefactError as exc:
+            log.error("job %s: the saved artefact failed verification (%s); estimating it again", job_id, exc)
+            shutil.rmtree(paths.artefact_dir, ignore_errors=True)
+            return None
 
-    def _prebake(self, job_id: str, artefact: "LightFieldArtefact | Path") -> None:
+    def _cancel_requested(self, job_id: str) -> bool:
+        try:
+            return self.store.cancel_requested(job_id)
+        except broker_errors():  # Redis restarting: keep going, the next step asks again
+            return False
+
+    def _prebake(self, job_id: str, artefact: "LightFieldArtefact") -> None:
         """Precompute the quality=fast lattice now, from the field in memory (or the directory
         a previous run saved), so no API request pays for it. Optional: a failure here only
         means the API bakes on the first fast query."""
         try:
-            from core.fields.artefact import LightFieldArtefact
             from core.fields.bake import load_or_bake
 
             self.store.update(job_id, allowed=("running",), stage="baking", message="precomputing quality=fast")
-            load_or_bake(LightFieldArtefact.load(artefact) if isinstance(artefact, Path) else artefact, save=True)
+            load_or_bake(artefact, save=True)
         except Exception:
             log.warning("job %s: baking the fast path failed", job_id, exc_info=True)
 
@@ -171,11 +187,14 @@ class JobRunner:
             if p.stage == last["stage"] and now - last["t"] < PROGRESS_MIN_INTERVAL_S:
                 return
             last["t"], last["stage"] = now, p.stage
-            self.store.update(
-                job_id, allowed=("running",), progress=min(max(float(p.fraction), 0.0), 1.0), stage=p.stage,
-                iteration=int(p.iteration), total=int(p.total), loss=p.loss, eta_s=p.eta_s,
-                message=getattr(p, "message", "") or "",
-            )
+            try:
+                self.store.update(
+                    job_id, allowed=("running",), progress=min(max(float(p.fraction), 0.0), 1.0), stage=p.stage,
+                    iteration=int(p.iteration), total=int(p.total), loss=p.loss, eta_s=p.eta_s,
+                    message=getattr(p, "message", "") or "",
+                )
+            except broker_errors():  # progress is best effort: a Redis restart must not fail the job
+                log.warning("job %s: progress not recorded (Redis unreachable)", job_id)
 
         return write
 

@@ -26,9 +26,10 @@ def register_distill_task(app: Celery, make_runner: Callable[[], JobRunner]):
         except Exception as exc:  # e.g. Redis unreachable: keep the job, try again later
             log.exception("job %s: delivery failed, retrying", job_id)
             raise self.retry(exc=exc, countdown=max(runner.settings.lease_ttl_s, 1.0))
-        if outcome is Outcome.REQUEUE:
-            # Another delivery holds the lease. Re-queue (not drop): if that holder dies, this
-            # copy may be the only message left for the job.
+        if outcome in (Outcome.REQUEUE, Outcome.ABANDONED):
+            # Another delivery holds the lease, or this run lost it (its renewals failed while
+            # Redis was away). Re-queue (not drop): if no other delivery runs the job, this copy
+            # is its only message; one that finds the job finished skips it.
             self.apply_async(args=[job_id], countdown=max(runner.settings.lease_ttl_s / 2, 0.5))
         log.info("job %s: %s", job_id, outcome.value)
         return outcome.value
