@@ -43,11 +43,12 @@ def create_app(settings: ServiceSettings | None = None,
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     store = JobStore(connect(settings.broker_url))
     keyring = KeyRing.parse(settings.api_keys)
-    ctx = AppContext(settings=settings, keyring=keyring, store=store,
-                     celery=make_celery(settings), fields=FieldCache(settings.field_cache_size))
+    metrics = Metrics(store)
+    ctx = AppContext(settings=settings, keyring=keyring, store=store, celery=make_celery(settings),
+                     fields=FieldCache(settings.field_cache_size), metrics=metrics)
     app = FastAPI(title="lightfield", version="0.1.0", description=DESCRIPTION)
     app.state.ctx = ctx
-    app.state.metrics = Metrics(store)
+    app.state.metrics = metrics
     app.state.dependency_states = dependency_states
     # outermost last: metrics see every answer, including the guards' refusals
     app.add_middleware(BodyLimits, max_json_bytes=settings.limits.max_json_bytes, timeouts=settings.timeouts)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import asyncio
 from dataclasses import dataclass, field
+from typing import Any
 
 from celery import Celery
 from fastapi import Depends, Request
@@ -23,6 +24,7 @@ class AppContext:
     store: JobStore
     celery: Celery
     fields: FieldCache
+    metrics: Any = None  # service.metrics.Metrics
     # upload checks hold a file (up to its byte limit) and one decoded video frame: one at a
     # time per process keeps memory bounded
     validation_slots: asyncio.Semaphore = field(default_factory=lambda: asyncio.Semaphore(1))

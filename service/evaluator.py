@@ -59,9 +59,11 @@ class FieldBatcher:
     (it runs in the threadpool) and answers a list of requests with one field call per
     (quality, height) group."""
 
-    def __init__(self, evaluate: Callable[[list[EnvmapRequest]], list[EnvmapAnswer]], max_pending_cost: float):
+    def __init__(self, evaluate: Callable[[list[EnvmapRequest]], list[EnvmapAnswer]], max_pending_cost: float,
+                 on_batch: Callable[[list[EnvmapRequest]], None] | None = None):
         self._evaluate = evaluate
         self.max_pending_cost = max_pending_cost
+        self._on_batch = on_batch
         self._queue: list[tuple[EnvmapRequest, asyncio.Future]] = []
         self._pending_cost = 0.0
         self._drain_task: asyncio.Task | None = None
@@ -106,6 +108,8 @@ class FieldBatcher:
                 try:
                     answers = await run_in_threadpool(self._evaluate, requests)
                     self.batches += 1
+                    if self._on_batch is not None:
+                        self._on_batch(requests)
                 except BaseException as exc:  # every waiter gets the error (validated inputs: a server fault)
                     for _, future in batch:
                         if not future.done():

@@ -42,7 +42,20 @@ class Metrics:
         self.latency = Histogram("lightfield_http_request_seconds", "HTTP request latency", ["method", "route"],
                                  registry=self.registry,
                                  buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30))
+        self.field_calls = Counter("lightfield_field_evaluations", "Field calls answering queued env maps (batches)",
+                                   ["quality"], registry=self.registry)
+        self.field_maps = Counter("lightfield_field_maps", "Env maps answered by field calls", ["quality"],
+                                  registry=self.registry)
         self.registry.register(JobCollector(store))
+
+    def observe_batch(self, requests) -> None:
+        """One FieldBatcher evaluation: maps per call show how much batching saves."""
+        by_quality: dict[str, int] = {}
+        for r in requests:
+            by_quality[r.quality] = by_quality.get(r.quality, 0) + 1
+        for quality, n in by_quality.items():
+            self.field_calls.labels(quality).inc()
+            self.field_maps.labels(quality).inc(n)
 
 
 class MetricsMiddleware:

@@ -119,18 +119,20 @@ def evaluate_requests(cf: CachedField, requests: list[EnvmapRequest]) -> list[En
     return answers  # type: ignore[return-value]
 
 
-def batcher(cf: CachedField, max_pending_pixels: int) -> FieldBatcher:
+def batcher(cf: CachedField, max_pending_pixels: int, on_batch=None) -> FieldBatcher:
     """The field's batcher (created on first use, on the event loop)."""
     if cf.batcher is None:
-        cf.batcher = FieldBatcher(lambda requests: evaluate_requests(cf, requests), max_pending_pixels)
+        cf.batcher = FieldBatcher(lambda requests: evaluate_requests(cf, requests), max_pending_pixels, on_batch)
     return cf.batcher
 
 
-async def envmap_answer(cf: CachedField, x, t: float, height: int, quality: str, max_pending_pixels: int,
+async def envmap_answer(ctx, cf: CachedField, x, t: float, height: int, quality: str,
                         finish: Callable[[np.ndarray], Any] | None = None) -> EnvmapAnswer:
-    """Queue one env map on the field's batcher and await it (value = finish(hdr) or hdr)."""
+    """Queue one env map on the field's batcher and await it (value = finish(hdr) or hdr).
+    `ctx` (service.context.AppContext) gives the queue bound and the metrics."""
     request = EnvmapRequest(tuple(float(v) for v in x), float(t), int(height), quality, finish)
-    return await batcher(cf, max_pending_pixels).submit(request)
+    on_batch = ctx.metrics.observe_batch if ctx.metrics is not None else None
+    return await batcher(cf, ctx.settings.limits.max_pending_pixels, on_batch).submit(request)
 
 
 def sh_from_envmap(hdr: np.ndarray):

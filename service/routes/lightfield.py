@@ -90,8 +90,7 @@ async def get_envmap(
     limits = ctx.settings.limits
     queries.check_size(height, limits.max_envmap_height, "height")
     cf = await _field(job_id, tenant, ctx)
-    answer = await queries.envmap_answer(cf, point, t, height, quality, limits.max_pending_pixels,
-                                         finish=_encoder(format, ev))
+    answer = await queries.envmap_answer(ctx, cf, point, t, height, quality, finish=_encoder(format, ev))
     data, media_type = answer.value
     return Response(data, media_type=media_type, headers={
         **_query_headers(answer.flags, answer.quality), "Content-Disposition": f'inline; filename="envmap.{format}"'})
@@ -111,7 +110,7 @@ async def post_envmaps(job_id: str, body: EnvmapBatchRequest, response: Response
     cf = await _field(job_id, tenant, ctx)
     encode = _encoder(body.format, body.ev)
     answers = await asyncio.gather(*(
-        queries.envmap_answer(cf, q.x, q.t, body.height, body.quality, limits.max_pending_pixels, finish=encode)
+        queries.envmap_answer(ctx, cf, q.x, q.t, body.height, body.quality, finish=encode)
         for q in body.queries))
     response.headers[CONVENTIONS_HEADER] = CONVENTIONS_SUMMARY
     response.headers[QUALITY_HEADER] = body.quality
@@ -129,8 +128,8 @@ async def get_sh(job_id: str, response: Response, x: str = XQuery, t: float = TQ
                  tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     point, t = queries.parse_x(x), queries.check_t(t)
     cf = await _field(job_id, tenant, ctx)
-    answer = await queries.envmap_answer(cf, point, t, queries.SH_ENVMAP_HEIGHT, quality,
-                                         ctx.settings.limits.max_pending_pixels, finish=queries.sh_from_envmap)
+    answer = await queries.envmap_answer(ctx, cf, point, t, queries.SH_ENVMAP_HEIGHT, quality,
+                                         finish=queries.sh_from_envmap)
     coeffs, light = answer.value
     response.headers.update(_query_headers(answer.flags, answer.quality))
     flags = answer.flags
@@ -163,8 +162,7 @@ async def get_cubemap(job_id: str, x: str = XQuery, t: float = TQuery,
 
         return [base64.b64encode(encode_exr(face)).decode() for face in faces]
 
-    answer = await queries.envmap_answer(cf, point, t, queries.cubemap_height(size), quality,
-                                         limits.max_pending_pixels, finish=finish)
+    answer = await queries.envmap_answer(ctx, cf, point, t, queries.cubemap_height(size), quality, finish=finish)
     headers = _query_headers(answer.flags, answer.quality)
     if format == "npy":
         return Response(answer.value, media_type="application/x-npy", headers=headers)
