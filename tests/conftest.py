@@ -24,6 +24,9 @@ TENANTS = {"alice": "alice-key-0001", "bob": "bob-key-00002"}
 # Tiny, fast jobs: the engine's draft preset cut down to a few steps, checkpointing often so
 # a killed worker's job has something to resume from.
 FAST_DISTILL = '{"iterations": 24, "checkpoint_every": 4, "work_height": 24, "warmup_steps": 2}'
+# Client timeouts short enough that slow-client tests take seconds (defaults: 10 s headers, ...)
+SHORT_TIMEOUTS = {"LIGHTFIELD_HEADER_TIMEOUT": "2", "LIGHTFIELD_BODY_TIMEOUT": "3", "LIGHTFIELD_BODY_GRACE": "2",
+                  "LIGHTFIELD_MIN_BODY_RATE": "200", "LIGHTFIELD_KEEP_ALIVE": "2"}
 
 
 def wait_until(predicate, timeout_s: float, interval_s: float = 0.05, what: str = "condition"):
@@ -72,6 +75,7 @@ class ServiceStack:
             "LIGHTFIELD_DISTILL_OVERRIDES": FAST_DISTILL,
             "OMP_NUM_THREADS": "1",
             "PYTHONPATH": str(REPO),
+            **SHORT_TIMEOUTS,
         })
         env.update(self.extra_env)
         return env

@@ -147,12 +147,24 @@ def test_byte_and_in_flight_limits(make_stack, tiny_image):
         assert not any(p.is_file() for p in (stack.data_dir / "uploads").rglob("*"))
         first = _post(alice, {"file": ("room.png", tiny_image.read_bytes())})
         assert first.status_code == 202 and first.json()["state"] == "queued"
-        _error(_post(alice, {"file": ("room.png", tiny_image.read_bytes())}), 429, "too_many_jobs")
+        refused = _post(alice, {"file": ("room.png", tiny_image.read_bytes())})
+        _error(refused, 429, "too_many_jobs")
+        assert int(refused.headers["retry-after"]) > 0  # issue 14: a 429 says when to retry
         assert _post(bob, {"file": ("room.png", tiny_image.read_bytes())}).status_code == 202  # per tenant
         # cancelling the queued job frees the slot at once (nobody holds its lease)
         assert alice.delete(f"/jobs/{first.json()['id']}").json()["state"] == "cancelled"
         assert _post(alice, {"file": ("room.png", tiny_image.read_bytes())}).status_code == 202
         _error(stack.client("alice").get("/readyz"), 503, "not_ready")  # no worker answers
+        # issue 14: losing Redis (distributed mode: nothing restarts it) was a 500 internal_error
+        stack.redis.stop()
+        for resp in (alice.get("/jobs"), alice.get(f"/jobs/{first.json()['id']}"),
+                     alice.get(f"/lightfield/{first.json()['id']}/envmap", params={"x": "0,0,0"}),
+                     _post(bob, {"file": ("room.png", tiny_image.read_bytes())})):
+            _error(resp, 503, "broker_unavailable")
+            assert int(resp.headers["retry-after"]) > 0
+        assert alice.get("/healthz").status_code == 200  # the API process itself is alive
+        _error(alice.get("/readyz"), 503, "not_ready")
+    assert "Traceback" not in stack.log("api")
 
 
 def test_unknown_and_malformed_ids_are_404(alice):

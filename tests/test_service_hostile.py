@@ -2,8 +2,10 @@
 hostile request and damaged file of the issue's list, reproduced, now answered with its 4xx
 (or 410 for a stored file that fails verification) and never a 5xx, garbage or a hang.
 
-One stack with short client timeouts (so slow-client tests take seconds) and one finished
-job; damaged-artefact tests work on copies of that job's files registered as other jobs.
+The session's stack (its client timeouts are short: conftest.SHORT_TIMEOUTS) and one
+finished job; damaged-artefact tests work on copies of that job's files registered as other
+jobs. The keyless server's Host/Origin checks and the embedded mode's supervision are in
+test_service_faults.py (the embedded server is the keyless one).
 """
 from __future__ import annotations
 
@@ -18,18 +20,14 @@ import httpx
 import numpy as np
 import pytest
 
-from conftest import REPO, TENANTS, running_stack, wait_until
+from conftest import TENANTS, wait_until
 
 pytestmark = pytest.mark.slow
 
-SHORT_TIMEOUTS = {"LIGHTFIELD_HEADER_TIMEOUT": "2", "LIGHTFIELD_BODY_TIMEOUT": "3", "LIGHTFIELD_BODY_GRACE": "2",
-                  "LIGHTFIELD_MIN_BODY_RATE": "200", "LIGHTFIELD_KEEP_ALIVE": "2"}
-
 
 @pytest.fixture(scope="module")
-def stack(tmp_path_factory):
-    with running_stack(tmp_path_factory.mktemp("hostile"), SHORT_TIMEOUTS) as stack:
-        yield stack
+def stack(service_stack):
+    return service_stack
 
 
 @pytest.fixture(scope="module")
@@ -236,15 +234,6 @@ def test_json_bodies_are_bounded_before_parsing(stack, alice, job):
     assert alice.get("/healthz").status_code == 200
 
 
-def test_429_says_when_to_retry(make_stack, tiny_image):
-    stack = make_stack(workers=0, LIGHTFIELD_MAX_JOBS_IN_FLIGHT="1")
-    with stack.client("alice") as c:
-        assert c.post("/jobs", files={"file": ("r.png", tiny_image.read_bytes())}).status_code == 202
-        resp = c.post("/jobs", files={"file": ("r.png", tiny_image.read_bytes())})
-        _error(resp, 429, "too_many_jobs")
-        assert int(resp.headers["retry-after"]) > 0
-
-
 def test_random_methods_do_not_grow_the_metrics(alice):
     def lines():
         return len(alice.get("/metrics").text.splitlines())
@@ -326,45 +315,11 @@ def test_a_dripped_body_is_answered_408_and_closed(stack, job):
     s.close()
 
 
-# -- browser-facing: DNS rebinding and cross-site posts on a keyless server ----------------------
-@pytest.fixture(scope="module")
-def keyless_api(stack):
-    """A second API process on the same Redis and data, with no API keys (loopback only)."""
-    import sys
-
-    from service.processes import free_port, spawn, stop
-
-    port = free_port()
-    env = {**stack.env(), "LIGHTFIELD_API_KEYS": ""}
-    proc = spawn([sys.executable, "-m", "cli", "serve", "--host", "127.0.0.1", "--port", str(port),
-                  "--log-level", "warning"], env=env, log_path=stack.root / "keyless.log")
-    base = f"http://127.0.0.1:{port}"
-    try:
-        wait_until(lambda: httpx.get(base + "/healthz", timeout=1).status_code == 200, 30, what="keyless API")
-        yield base
-    finally:
-        stop(proc)
-
-
-def test_keyless_server_refuses_foreign_hosts_and_cross_site_posts(keyless_api, tiny_image):
-    files = {"file": ("room.png", tiny_image.read_bytes())}
-    with httpx.Client(base_url=keyless_api, timeout=30) as c:
-        _error(c.post("/jobs", files=files, headers={"Host": "attacker.example"}), 400, "host_not_allowed")
-        _error(c.get("/jobs", headers={"Host": "attacker.example:8000"}), 400, "host_not_allowed")
-        _error(c.post("/jobs", files=files, headers={"Origin": "http://attacker.example"}), 403, "origin_not_allowed")
-        _error(c.post("/jobs", files=files, headers={"Origin": "null"}), 403, "origin_not_allowed")
-        _error(c.delete("/jobs/6f1c7c1e-3d0b-4c55-9a2f-0d8f2b7c1a11", headers={"Sec-Fetch-Site": "cross-site"}),
-               403, "origin_not_allowed")
-        assert c.get("/healthz", headers={"Host": "localhost:1234"}).status_code == 200
-        own = c.post("/jobs", files=files, headers={"Origin": keyless_api})  # the page served by this server
-        assert own.status_code == 202, own.text
-        assert c.delete(f"/jobs/{own.json()['id']}").status_code in (202, 204)  # no Origin: curl, scripts
-
-
 # -- many clients on one field ----------------------------------------------------------------------
 def test_concurrent_queries_are_batched_and_health_is_never_blocked(stack, job):
     """Issue: 60 concurrent height-256 queries pushed /healthz to 24.9 s (one query at a time per
-    field, on the threadpool /healthz also needed). Now they are evaluated in batches and
+    field, on the threadpool /healthz also needed). Now (height 96 here, to keep the test short)
+    they are evaluated in batches and
     /healthz is answered on the event loop. The bound is generous: it checks 'not blocked
     behind the queries', not a speed (bench/service_load.py measures speed)."""
     headers = {"Authorization": f"Bearer {TENANTS['alice']}"}
@@ -377,7 +332,7 @@ def test_concurrent_queries_are_batched_and_health_is_never_blocked(stack, job):
         async with httpx.AsyncClient(base_url=stack.base_url, headers=headers, timeout=120) as ac:
             before = (await ac.get("/metrics")).text
             queries = [asyncio.create_task(ac.get(f"/lightfield/{job}/envmap", params={
-                "x": f"0,{0.01 * i},-1", "height": 256, "format": "npy", "quality": "exact"})) for i in range(60)]
+                "x": f"0,{0.01 * i},-1", "height": 96, "format": "npy", "quality": "exact"})) for i in range(60)]
             health = []
             while not all(q.done() for q in queries):
                 t0 = time.perf_counter()
@@ -391,7 +346,7 @@ def test_concurrent_queries_are_batched_and_health_is_never_blocked(stack, job):
     assert [r.status_code for r in responses] == [200] * 60
     maps = counter(after, "lightfield_field_maps_total") - counter(before, "lightfield_field_maps_total")
     calls = counter(after, "lightfield_field_evaluations_total") - counter(before, "lightfield_field_evaluations_total")
-    assert maps == 60 and calls < 30, (maps, calls)  # batched, not one call per query
+    assert maps == 60 and calls <= 10, (maps, calls)  # batched, not one call per query
     assert len(health) >= 3 and max(health) < 2.0, health
 
 
@@ -403,18 +358,3 @@ def test_default_quality_is_fast_and_exact_is_on_request(alice, job):
     a, b = npy(fast), npy(exact)
     assert a.shape == b.shape == (128, 256, 3)
     assert abs(a.mean() - b.mean()) < 0.25 * b.mean()  # an interpolation of the same field
-
-
-# -- broker loss (distributed mode: nothing restarts Redis; the embedded mode does, see test_service_faults)
-def test_losing_redis_is_503_with_retry_after_and_health_stays_up(make_stack):
-    stack = make_stack(workers=0)
-    with stack.client("alice") as c:
-        assert c.get("/jobs").status_code == 200
-        stack.redis.stop()
-        for resp in (c.get("/jobs"), c.get("/jobs/6f1c7c1e-3d0b-4c55-9a2f-0d8f2b7c1a11"),
-                     c.get("/lightfield/6f1c7c1e-3d0b-4c55-9a2f-0d8f2b7c1a11/envmap", params={"x": "0,0,0"})):
-            _error(resp, 503, "broker_unavailable")
-            assert int(resp.headers["retry-after"]) > 0
-        assert c.get("/healthz").status_code == 200  # the API process itself is alive
-        _error(c.get("/readyz"), 503, "not_ready")
-    assert "Traceback" not in stack.log("api")
