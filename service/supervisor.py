@@ -6,6 +6,11 @@ One thread polls every child each POLL_S. A child that exited is restarted after
 burn the machine), and /healthz answers 503 so a liveness probe restarts the whole service.
 Every death and restart is logged with the exit code. `states()` is what /healthz reports:
 `running`, `restarting` (dead, restart pending) or `failed` — read from memory, no I/O.
+
+The watcher thread also stops the children at shutdown: a child it restarted carries a
+parent-death signal bound to the thread that spawned it (Linux PR_SET_PDEATHSIG follows
+the thread, not the process), so that thread must outlive the orderly stop (worker first,
+then Redis) or its exit would kill Redis under a worker still finishing its job.
 """
 from __future__ import annotations
 
@@ -66,6 +71,7 @@ class Supervisor:
                     self._check(child)
                 except Exception:  # never let the watcher die
                     log.exception("supervising %s failed", child.name)
+        self._stop_children()
 
     def _check(self, child: Child) -> None:
         now = time.monotonic()
@@ -108,13 +114,17 @@ class Supervisor:
         with self._lock:
             child.state = state
 
-    def stop(self) -> None:
-        """Stop watching, then stop the children in reverse order."""
+    def stop(self, timeout_s: float = 120.0) -> None:
+        """Stop watching and stop the children in reverse order (on the watcher thread, see above)."""
         self._stopping.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5)
+        if self._thread is not None and self._thread.is_alive():
+            self._thread.join(timeout=timeout_s)
+        else:
+            self._stop_children()
+
+    def _stop_children(self) -> None:
         for child in reversed(self.children):
-            if child.proc is not None:
+            if child.proc is not None and child.state != "stopped":
                 try:
                     child.stop(child.proc)
                 except Exception:
