@@ -166,6 +166,24 @@ def service_stack(tmp_path_factory):
         yield stack
 
 
+@pytest.fixture(scope="session")
+def finished_job(service_stack, tiny_image) -> str:
+    """A job of tenant alice on the session stack that ran to the end (a real draft
+    distillation, cut short by FAST_DISTILL), with its bake and UI preview."""
+    with service_stack.client("alice") as c:
+        resp = c.post("/jobs", files={"file": ("room.png", tiny_image.read_bytes())})
+        assert resp.status_code == 202, resp.text
+        job = resp.json()["id"]
+
+        def ended():
+            body = c.get(f"/jobs/{job}").json()
+            return body if body["state"] in ("succeeded", "failed", "cancelled") else None
+
+        final = wait_until(ended, 180, interval_s=0.2, what="the job")
+    assert final["state"] == "succeeded", (final, service_stack.log("worker0"))
+    return job
+
+
 @pytest.fixture
 def make_stack(tmp_path):
     """Factory for stacks a test controls fully (kill workers, restart the API, ...)."""

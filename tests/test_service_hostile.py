@@ -37,15 +37,8 @@ def alice(stack):
 
 
 @pytest.fixture(scope="module")
-def job(stack, alice, tiny_image):
-    """A finished job (a real draft distillation, cut short) with its bake and UI preview."""
-    resp = alice.post("/jobs", files={"file": ("room.png", tiny_image.read_bytes())})
-    assert resp.status_code == 202, resp.text
-    job = resp.json()["id"]
-    final = wait_until(lambda: (b := alice.get(f"/jobs/{job}").json())["state"] in ("succeeded", "failed") and b,
-                       180, interval_s=0.2, what="the job")
-    assert final["state"] == "succeeded", (final, stack.log("worker0"))
-    return job
+def job(finished_job):
+    return finished_job
 
 
 def _error(resp, status: int, code: str) -> dict:
