@@ -79,6 +79,6 @@ class GridField(LightField):
         pix, w_pix = equirect_stencil(dirs, h)  # [N, 4]
         padded = pad_poles(blended)  # [P, texels, 3]
         out = xn.new_empty(xn.shape[0], dirs.shape[0], 3)
-        for sl in probe_chunks(xn.shape[0], dirs.shape[0], chunk_rows):
-            out[sl] = (w_pix[None, :, :, None] * padded[sl, pix]).sum(2)
+        for sl, dl in probe_chunks(xn.shape[0], dirs.shape[0], chunk_rows):
+            out[sl, dl] = (w_pix[None, dl, :, None] * padded[sl][:, pix[dl]]).sum(2)
         return out

@@ -99,6 +99,6 @@ class MLPField(LightField):
     def _envmap_logits(self, xn, tn, dirs, chunk_rows: int) -> torch.Tensor:
         terms = self._split_encoding_layers(self._probe_encoding(xn, tn), self.pe_d(dirs))
         out = xn.new_empty(xn.shape[0], dirs.shape[0], 3)
-        for sl in probe_chunks(xn.shape[0], dirs.shape[0], chunk_rows):
-            out[sl] = self._layers_from_terms(lambda i: terms[i][0][sl, None] + terms[i][1][None])
+        for sl, dl in probe_chunks(xn.shape[0], dirs.shape[0], chunk_rows):
+            out[sl, dl] = self._layers_from_terms(lambda i: terms[i][0][sl, None] + terms[i][1][None, dl])
         return out

@@ -77,8 +77,8 @@ class TrunkField(LightField):
     def _envmap_logits(self, xn, tn, dirs, chunk_rows: int) -> torch.Tensor:
         per_probe, per_dir = self._split_head_input(xn, tn, dirs)
         out = xn.new_empty(xn.shape[0], dirs.shape[0], 3)
-        for sl in probe_chunks(xn.shape[0], dirs.shape[0], chunk_rows):
-            out[sl] = self.head(per_probe[sl, None] + per_dir[None])
+        for sl, dl in probe_chunks(xn.shape[0], dirs.shape[0], chunk_rows):
+            out[sl, dl] = self.head(per_probe[sl, None] + per_dir[None, dl])
         return out
 
 
