@@ -157,18 +157,18 @@ class LightField(nn.Module):
         return out
 
 
-def probe_chunks(n_probes: int, n_dirs: int, chunk_rows: int) -> Iterator[tuple[slice, slice]]:
-    """(probe slice, direction slice) blocks of at most `chunk_rows` (probe, direction) rows:
-    whole probes when a probe's directions fit, else one probe's directions in pieces (a
-    1024-row map is 2 M directions: evaluated at once it would need gigabytes of activations)."""
-    if n_dirs <= chunk_rows:
-        step = max(1, chunk_rows // n_dirs)
-        for p0 in range(0, n_probes, step):
-            yield slice(p0, p0 + step), slice(0, n_dirs)
-        return
-    for p0 in range(n_probes):
-        for k0 in range(0, n_dirs, chunk_rows):
-            yield slice(p0, p0 + 1), slice(k0, k0 + chunk_rows)
+def probe_chunks(n_probes: int, n_dirs: int, chunk_rows: int) -> Iterator[slice]:
+    """Slices of whole probes whose (probe, direction) rows fit in `chunk_rows` (>= 1 probe each):
+    the chunking of the kinds that evaluate all directions of a probe at once."""
+    step = max(1, chunk_rows // n_dirs)
+    return (slice(p0, p0 + step) for p0 in range(0, n_probes, step))
+
+
+def direction_blocks(n_dirs: int, chunk_rows: int) -> Iterator[slice]:
+    """Slices of at most `chunk_rows` directions: a 1024-row map is 2 M directions, and its
+    per-direction terms alone would take gigabytes if computed at once."""
+    step = max(1, chunk_rows)
+    return (slice(k0, min(k0 + step, n_dirs)) for k0 in range(0, n_dirs, step))
 
 
 def unit_directions(d: torch.Tensor) -> torch.Tensor:

@@ -20,7 +20,7 @@ from torch import nn
 
 from core.conventions import equirect_directions, equirect_width
 from core.envmap import equirect_stencil, pad_poles
-from core.fields.base import INITIAL_RADIANCE, LightField, probe_chunks
+from core.fields.base import INITIAL_RADIANCE, LightField, direction_blocks, probe_chunks
 from core.fields.config import FieldConfig, FieldSettings
 from core.fields.encodings import lattice_corners
 from core.fields.normalization import SceneBounds
@@ -76,9 +76,10 @@ class GridField(LightField):
         h = self.settings.env_height
         if dirs.shape[0] == h * equirect_width(h) and torch.equal(dirs, equirect_directions(h, device=dirs.device).reshape(-1, 3)):
             return blended.reshape(xn.shape[0], -1, 3)  # same pixel centres: sampling is the identity
-        pix, w_pix = equirect_stencil(dirs, h)  # [N, 4]
         padded = pad_poles(blended)  # [P, texels, 3]
         out = xn.new_empty(xn.shape[0], dirs.shape[0], 3)
-        for sl, dl in probe_chunks(xn.shape[0], dirs.shape[0], chunk_rows):
-            out[sl, dl] = (w_pix[None, dl, :, None] * padded[sl][:, pix[dl]]).sum(2)
+        for dl in direction_blocks(dirs.shape[0], chunk_rows):
+            pix, w_pix = equirect_stencil(dirs[dl], h)  # [n, 4]
+            for sl in probe_chunks(xn.shape[0], dl.stop - dl.start, chunk_rows):
+                out[sl, dl] = (w_pix[None, :, :, None] * padded[sl][:, pix]).sum(2)
         return out

@@ -11,7 +11,7 @@ import torch
 from pydantic import Field, model_validator
 from torch import nn
 
-from core.fields.base import LightField, probe_chunks
+from core.fields.base import LightField, direction_blocks, probe_chunks
 from core.fields.config import FieldConfig
 from core.fields.encodings import EncodingSettings, nerf_encodings
 from core.fields.normalization import SceneBounds
@@ -97,8 +97,10 @@ class MLPField(LightField):
         return self._layers_from_terms(lambda i: terms[i][0][index] + terms[i][1])
 
     def _envmap_logits(self, xn, tn, dirs, chunk_rows: int) -> torch.Tensor:
-        terms = self._split_encoding_layers(self._probe_encoding(xn, tn), self.pe_d(dirs))
+        e_probe = self._probe_encoding(xn, tn)
         out = xn.new_empty(xn.shape[0], dirs.shape[0], 3)
-        for sl, dl in probe_chunks(xn.shape[0], dirs.shape[0], chunk_rows):
-            out[sl, dl] = self._layers_from_terms(lambda i: terms[i][0][sl, None] + terms[i][1][None, dl])
+        for dl in direction_blocks(dirs.shape[0], chunk_rows):
+            terms = self._split_encoding_layers(e_probe, self.pe_d(dirs[dl]))
+            for sl in probe_chunks(xn.shape[0], dl.stop - dl.start, chunk_rows):
+                out[sl, dl] = self._layers_from_terms(lambda i: terms[i][0][sl, None] + terms[i][1][None])
         return out

@@ -12,7 +12,7 @@ import torch
 from pydantic import Field, model_validator
 from torch import nn
 
-from core.fields.base import LightField, probe_chunks
+from core.fields.base import LightField, direction_blocks, probe_chunks
 from core.fields.config import FieldConfig
 from core.fields.encodings import DenseGridEncoding, EncodingSettings, nerf_encodings
 from core.fields.normalization import SceneBounds
@@ -75,10 +75,11 @@ class TrunkField(LightField):
         return self.head(per_probe[index] + per_row)
 
     def _envmap_logits(self, xn, tn, dirs, chunk_rows: int) -> torch.Tensor:
-        per_probe, per_dir = self._split_head_input(xn, tn, dirs)
         out = xn.new_empty(xn.shape[0], dirs.shape[0], 3)
-        for sl, dl in probe_chunks(xn.shape[0], dirs.shape[0], chunk_rows):
-            out[sl, dl] = self.head(per_probe[sl, None] + per_dir[None, dl])
+        for dl in direction_blocks(dirs.shape[0], chunk_rows):
+            per_probe, per_dir = self._split_head_input(xn, tn, dirs[dl])  # the probe part is cheap to redo
+            for sl in probe_chunks(xn.shape[0], dl.stop - dl.start, chunk_rows):
+                out[sl, dl] = self.head(per_probe[sl, None] + per_dir[None])
         return out
 
 
