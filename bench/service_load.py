@@ -89,47 +89,71 @@ class Connection:
         self.reader = self.writer = None
 
 
-async def load_phase(port: int, paths, clients: int, warmup_s: float, duration_s: float) -> dict:
+async def run_clients(port: int, paths, clients: int, measure_from: float, stop_at: float) -> dict:
+    """`clients` keep-alive connections asking paths(rng) back to back; latencies of the
+    answers that start after `measure_from` and end before `stop_at` (time.time())."""
     latencies: list[float] = []
     statuses: dict[int, int] = {}
-    health: list[float] = []
-    health_status: dict[int, int] = {}
-    loop = asyncio.get_running_loop()
-    start = loop.time()
-    measure_from, stop_at = start + warmup_s, start + warmup_s + duration_s
 
     async def client(k: int) -> None:
         conn = Connection(port)
         rng = random.Random(k)
-        while loop.time() < stop_at:
+        while time.time() < stop_at:
             path = paths(rng)
-            t0 = loop.time()
+            t0 = time.time()
             try:
                 status, _ = await conn.request(path)
             except (ConnectionError, asyncio.IncompleteReadError):
                 status = 0
-            t1 = loop.time()
+            t1 = time.time()
             if t0 >= measure_from and t1 <= stop_at:
                 latencies.append(t1 - t0)
                 statuses[status] = statuses.get(status, 0) + 1
         conn.close()
 
-    async def prober() -> None:
-        conn = Connection(port)
-        while loop.time() < stop_at:
-            t0 = loop.time()
-            status, _ = await conn.request("/healthz")
-            if t0 >= measure_from:
-                health.append(loop.time() - t0)
-                health_status[status] = health_status.get(status, 0) + 1
-            await asyncio.sleep(0.05)
-        conn.close()
+    await asyncio.gather(*(client(k) for k in range(clients)))
+    return {"latencies": latencies, "statuses": statuses}
 
-    await asyncio.gather(prober(), *(client(k) for k in range(clients)))
-    return {"clients": clients, "duration_s": duration_s, "answers": len(latencies),
+
+def _clients_process(port, paths, clients, measure_from, stop_at, nice, out) -> None:
+    """The load generator, in its own process at a lower priority: real clients would run on
+    other machines, here they share the server's 2 cores and should not starve it."""
+    os.nice(nice)
+    out.put(asyncio.run(run_clients(port, paths, clients, measure_from, stop_at)))
+
+
+async def probe_health(port: int, measure_from: float, stop_at: float, every_s: float = 0.05) -> dict:
+    conn, latencies, statuses = Connection(port), [], {}
+    while time.time() < stop_at:
+        t0 = time.time()
+        status, _ = await conn.request("/healthz")
+        if t0 >= measure_from:
+            latencies.append(time.time() - t0)
+            statuses[status] = statuses.get(status, 0) + 1
+        await asyncio.sleep(every_s)
+    conn.close()
+    return {"latencies": latencies, "statuses": statuses}
+
+
+def load_phase(port: int, paths, clients: int, warmup_s: float, duration_s: float, nice: int = 10) -> dict:
+    """Clients in a niced child process, /healthz probed from this one at normal priority."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    out = ctx.Queue()
+    start = time.time() + 2.0  # the child's interpreter start-up
+    measure_from, stop_at = start + warmup_s, start + warmup_s + duration_s
+    child = ctx.Process(target=_clients_process, args=(port, paths, clients, measure_from, stop_at, nice, out))
+    child.start()
+    health = asyncio.run(probe_health(port, measure_from, stop_at))
+    load = out.get(timeout=duration_s + warmup_s + 120)
+    child.join(timeout=30)
+    latencies = load["latencies"]
+    return {"clients": clients, "duration_s": duration_s, "load_generator_nice": nice, "answers": len(latencies),
             "answers_per_s": round(len(latencies) / duration_s, 1), "latency_s": summary(latencies),
-            "statuses": {str(k): v for k, v in sorted(statuses.items())},
-            "healthz_s": summary(health), "healthz_statuses": {str(k): v for k, v in health_status.items()}}
+            "statuses": {str(k): v for k, v in sorted(load["statuses"].items())},
+            "healthz_s": summary(health["latencies"]),
+            "healthz_statuses": {str(k): v for k, v in health["statuses"].items()}}
 
 
 # -- memory sampling ---------------------------------------------------------------------------------
@@ -183,6 +207,19 @@ def simulated_upload(root: Path) -> tuple[Path, Path, dict]:
               "preset": "draft"}
     media = doc["video"] if scene.frames > 1 else doc["frames"][0]
     return root / "capture" / media, root / "capture" / doc["depth"], params
+
+
+class EnvmapPaths:
+    """GET /lightfield/{job}/envmap at a random point and time inside the scene box, every
+    other parameter at its default (picklable: the load generator is another process)."""
+
+    def __init__(self, job: str, bounds: dict, height: int, extra: str = ""):
+        self.job, self.bounds, self.height, self.extra = job, bounds, height, extra
+
+    def __call__(self, rng) -> str:
+        b = self.bounds
+        x = ",".join(f"{rng.uniform(lo, hi):.4f}" for lo, hi in zip(b["lo"], b["hi"]))
+        return f"/lightfield/{self.job}/envmap?x={x}&t={rng.uniform(b['t0'], b['t1']):.4f}&height={self.height}{self.extra}"
 
 
 def timed_get(client, path: str, params: dict, reps: int) -> dict:
@@ -241,7 +278,8 @@ def markdown(r: dict) -> str:
         "# Service under load (`bench/service_load.py`)", "",
         f"Generated {r['when']} on {r['machine']} ({r['cpu_count']} CPUs), commit {r['commit']}; "
         f"load average at start {r['load_average_start']}, at end {r['load_average_end']} "
-        "(other processes share this machine; the load generator runs on it too).", "",
+        "(other processes share this machine; the load generator runs on it too, at nice +10 "
+        "so that it does not take the server's CPU as clients on other machines would not).", "",
         f"Job: the simulator's `spatial` room, draft preset ({r['job']['iterations']} iterations, "
         f"field `{r['job']['field']}`), distilled by the embedded worker in {r['job']['wall_s']} s.", "",
         "| target | measured | |", "|---|---|---|",
@@ -316,12 +354,9 @@ def main(argv=None) -> int:
                 x = ",".join(f"{rng.uniform(lo, hi):.4f}" for lo, hi in zip(b["lo"], b["hi"]))
                 return x, round(rng.uniform(b["t0"], b["t1"]), 4)
 
-            def load_path(rng) -> str:
-                x, t = random_point(rng)
-                return f"/lightfield/{job}/envmap?x={x}&t={t}&height=64"
-
             sampler.mark("load")
-            result["load"] = asyncio.run(load_phase(svc.port, load_path, args.clients, args.warmup, args.duration))
+            paths = EnvmapPaths(job, b, height=64)
+            result["load"] = load_phase(svc.port, paths, args.clients, args.warmup, args.duration)
             print(json.dumps(result["load"]), file=sys.stderr)
             sampler.mark("single")
             x, t = random_point(random.Random(0))

@@ -58,6 +58,7 @@ def embedded_children(settings: ServiceSettings) -> tuple[list[Child], str]:
 def serve(host: str, port: int, settings: ServiceSettings, log_level: str = "info") -> int:
     import uvicorn
 
+    from service.routes.health import health_probe
     from service.server import server_config
 
     require_loopback(host, KeyRing.parse(settings.api_keys))
@@ -87,8 +88,9 @@ def serve(host: str, port: int, settings: ServiceSettings, log_level: str = "inf
 
         if received:  # asked to stop while starting up
             return 0
-        app = create_app(settings, dependency_states=supervisor.states if supervisor else None)
-        uvicorn.Server(server_config(app, host, port, settings.timeouts, log_level)).run()
+        states = supervisor.states if supervisor else None
+        app = create_app(settings, dependency_states=states)
+        uvicorn.Server(server_config(app, host, port, settings.timeouts, log_level, health_probe(states))).run()
         return 0
     finally:
         if supervisor is not None:

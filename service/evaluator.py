@@ -98,6 +98,10 @@ class FieldBatcher:
         self._queue = rest
         return batch
 
+    @staticmethod
+    async def _resolve(batch, answers) -> None:
+        await _resolve_in_steps(batch, answers)
+
     async def _drain(self) -> None:
         try:
             while self._queue:
@@ -117,14 +121,26 @@ class FieldBatcher:
                     if not isinstance(exc, Exception):
                         raise
                 else:
-                    for (_, future), answer in zip(batch, answers):
-                        if not future.done():
-                            future.set_result(answer)
+                    await self._resolve(batch, answers)
                 finally:
                     self._pending_cost -= sum(r.cost for r in requests)
         finally:
             self._drain_task = None
             self._pending_cost = max(self._pending_cost, 0.0)
+
+
+RESOLVE_STEP = 8
+
+
+async def _resolve_in_steps(batch, answers) -> None:
+    """Wake the waiting requests a few at a time, yielding to the event loop in between: 100
+    handlers resumed in one loop turn would hold everything else (a /healthz probe, new
+    connections) for that whole turn."""
+    for k, ((_, future), answer) in enumerate(zip(batch, answers)):
+        if not future.done():
+            future.set_result(answer)
+        if k % RESOLVE_STEP == RESOLVE_STEP - 1:
+            await asyncio.sleep(0)
 
 
 def group_requests(requests: list[EnvmapRequest]) -> dict[tuple[str, int], list[int]]:

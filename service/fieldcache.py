@@ -49,6 +49,14 @@ class FieldCache:
                     self._items.popitem(last=False)
             return item
 
+    def peek(self, key: str) -> CachedField | None:
+        """The loaded field or None, never loading (safe on the event loop)."""
+        with self._lock:
+            item = self._items.get(key)
+            if item is not None:
+                self._items.move_to_end(key)
+            return item
+
     def evict(self, key: str) -> None:
         with self._lock:
             self._items.pop(key, None)

@@ -5,10 +5,16 @@ when it was written). A file that fails is never served and never retried: the j
 marked `failed` with error `artefact_corrupt` (the one transition out of `succeeded`), its
 files are left for an operator to inspect, and every later query answers 410 at once from
 the record. An I/O error while reading (a storage hiccup) is a 503 and marks nothing.
+
+Hot path: a job found succeeded less than RECENT_S ago whose field is loaded is answered
+without asking Redis again (`recent_field`, no I/O, on the event loop). A succeeded record
+only changes by deletion or by the corruption mark; this process applies both to its own
+cache at once, another API replica's deletion is seen within RECENT_S.
 """
 from __future__ import annotations
 
 import logging
+import time
 
 from jobs.store import JobRecord
 from service.context import AppContext, Tenant, owned_job
@@ -47,6 +53,28 @@ def load_field(record: JobRecord, ctx: AppContext) -> CachedField:
                                  code="storage_unavailable") from None
 
 
+RECENT_S = 1.0
+
+
 def job_field(job_id: str, tenant: Tenant, ctx: AppContext) -> CachedField:
     """The caller's succeeded job's light field (blocking: run in the threadpool)."""
-    return load_field(succeeded_job(job_id, tenant, ctx), ctx)
+    cf = load_field(succeeded_job(job_id, tenant, ctx), ctx)
+    now = time.monotonic()
+    if len(ctx.recent_jobs) > 4096:  # bounded: drop the expired entries
+        for key in [k for k, (_, expiry) in list(ctx.recent_jobs.items()) if expiry < now]:
+            ctx.recent_jobs.pop(key, None)
+    ctx.recent_jobs[job_id] = (tenant.name, now + RECENT_S)
+    return cf
+
+
+def recent_field(job_id: str, tenant: Tenant, ctx: AppContext) -> CachedField | None:
+    """The field of a job of this tenant found succeeded within RECENT_S, if loaded; else None."""
+    seen = ctx.recent_jobs.get(job_id)
+    if seen is None or seen[0] != tenant.name or seen[1] < time.monotonic():
+        return None
+    return ctx.fields.peek(job_id)
+
+
+def forget(job_id: str, ctx: AppContext) -> None:
+    ctx.recent_jobs.pop(job_id, None)
+    ctx.fields.evict(job_id)

@@ -36,6 +36,13 @@ def complete_schema(schema: dict, settings: ServiceSettings) -> dict:
                 _set_parameter_maximum(operation, "size", limits.max_cubemap_size)
             if path == "/jobs" and method == "get":
                 _set_parameter_maximum(operation, "limit", limits.max_page_size)
+    schema.setdefault("components", {}).setdefault("securitySchemes", {})["HTTPBearer"] = {
+        "type": "http", "scheme": "bearer", "description": "API key of a tenant (LIGHTFIELD_API_KEYS)"}
+    for path, methods in paths.items():
+        if path.startswith(("/jobs", "/lightfield")):
+            for operation in methods.values():
+                if isinstance(operation, dict):
+                    operation["security"] = [{"HTTPBearer": []}]
     batch = schema.get("components", {}).get("schemas", {}).get("EnvmapBatchRequest")
     if batch:
         batch["properties"]["queries"]["maxItems"] = limits.max_batch

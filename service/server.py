@@ -14,11 +14,13 @@ from __future__ import annotations
 import asyncio
 import logging
 
+import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from service.config import HttpTimeouts
 
 log = logging.getLogger("lightfield.service")
+HEALTH_PREFIX = b"GET /healthz HTTP/1.1\r\n"
 
 
 class GuardedH11Protocol(H11Protocol):
@@ -27,6 +29,7 @@ class GuardedH11Protocol(H11Protocol):
     def __init__(self, config, *args, **kwargs):
         super().__init__(config, *args, **kwargs)
         self.header_timeout_s = float(getattr(config, "lightfield_header_timeout_s", HttpTimeouts().header_s))
+        self.health_probe = getattr(config, "lightfield_health_probe", None)  # () -> (status, body bytes)
         self._header_timer: asyncio.TimerHandle | None = None
 
     def connection_made(self, transport) -> None:  # type: ignore[override]
@@ -34,6 +37,8 @@ class GuardedH11Protocol(H11Protocol):
         self._arm_header_timer()
 
     def data_received(self, data: bytes) -> None:
+        if self._answer_health(data):
+            return
         cycle = self.cycle
         super().data_received(data)
         if self.cycle is not cycle:  # a request's headers are complete: it is the app's now
@@ -48,6 +53,25 @@ class GuardedH11Protocol(H11Protocol):
     def connection_lost(self, exc) -> None:
         self._disarm_header_timer()
         super().connection_lost(exc)
+
+    def _answer_health(self, data: bytes) -> bool:
+        """Answer a plain `GET /healthz` on an idle connection right here, without an ASGI task:
+        a liveness probe then waits for one turn of the event loop, not for the queue of
+        requests the loop is busy with (100 clients asking for maps). The body is the route's
+        (service.routes.health.health_answer); anything unusual goes the normal way."""
+        probe = self.health_probe
+        if probe is None or not data.startswith(HEALTH_PREFIX) or not data.endswith(b"\r\n\r\n"):
+            return False
+        if data.count(b"\r\n\r\n") != 1 or (self.cycle is not None and not self.cycle.response_complete):
+            return False
+        if self.conn.their_state is not h11.IDLE or self.conn.our_state is not h11.IDLE:
+            return False
+        status, body = probe()
+        extra = b"" if status == 200 else b"retry-after: 5\r\n"
+        self.transport.write(b"HTTP/1.1 %d %s\r\ncontent-type: application/json\r\ncontent-length: %d\r\n%s\r\n%s"
+                             % (status, b"OK" if status == 200 else b"Service Unavailable", len(body), extra, body))
+        self._arm_header_timer()  # waiting for the next request again
+        return True
 
     def _arm_header_timer(self) -> None:
         self._disarm_header_timer()
@@ -66,8 +90,10 @@ class GuardedH11Protocol(H11Protocol):
             self.transport.close()
 
 
-def server_config(app, host: str, port: int, timeouts: HttpTimeouts, log_level: str = "info"):
-    """A uvicorn.Config for the API with the guarded protocol and the connection limits."""
+def server_config(app, host: str, port: int, timeouts: HttpTimeouts, log_level: str = "info",
+                  health_probe=None):
+    """A uvicorn.Config for the API with the guarded protocol and the connection limits;
+    `health_probe() -> (status, body)` answers plain GET /healthz in the protocol."""
     import uvicorn
 
     config = uvicorn.Config(app, host=host, port=port, log_level=log_level, http=GuardedH11Protocol,
@@ -75,4 +101,5 @@ def server_config(app, host: str, port: int, timeouts: HttpTimeouts, log_level: 
                             limit_concurrency=timeouts.max_connections, timeout_graceful_shutdown=5,
                             h11_max_incomplete_event_size=16 * 1024)
     config.lightfield_header_timeout_s = timeouts.header_s
+    config.lightfield_health_probe = health_probe
     return config

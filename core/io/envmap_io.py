@@ -46,11 +46,12 @@ def tonemapped_preview(hdr: np.ndarray, ev: float = 0.0) -> np.ndarray:
     return to_uint8(tonemap(torch.from_numpy(np.ascontiguousarray(hdr)), float(ev))).numpy()
 
 
-def encode_envmap(hdr: np.ndarray, fmt: EnvmapFormat, ev: float = 0.0, half: bool = False) -> tuple[bytes, str]:
-    """-> (file bytes, media type). `ev` only affects 'png'; `half` only 'exr'."""
+def encode_envmap(hdr: np.ndarray, fmt: EnvmapFormat, ev: float = 0.0, half: bool = False,
+                  compress: bool = True) -> tuple[bytes, str]:
+    """-> (file bytes, media type). `ev` only affects 'png'; `half` and `compress` only 'exr'."""
     a = _check_envmap(hdr)
     if fmt == "exr":
-        data = encode_exr(a, half=half)
+        data = encode_exr(a, half=half, compress=compress)
     elif fmt == "hdr":
         data = encode_hdr(a)
     elif fmt == "png":

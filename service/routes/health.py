@@ -1,9 +1,12 @@
 """Liveness, readiness and metrics."""
 from __future__ import annotations
 
+import json
+from typing import Callable
+
 from fastapi import APIRouter, Depends, Request
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import Response
+from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from service.context import AppContext, get_ctx
@@ -13,17 +16,30 @@ from service.models import Health, Readiness
 router = APIRouter(tags=["health"])
 
 
+def health_answer(states_of: Callable[[], dict[str, str]] | None) -> tuple[int, dict]:
+    """(status, body) of /healthz from the supervised dependencies' states (memory only)."""
+    states = states_of() if states_of is not None else {}
+    down = {name: state for name, state in states.items() if state != "running"}
+    if down:
+        message = "embedded " + ", ".join(f"{n} is {s}" for n, s in sorted(down.items()))
+        return 503, ErrorBody(error={"code": "dependency_down", "message": message}).model_dump()
+    return 200, Health(status="ok", dependencies=states).model_dump()
+
+
+def health_probe(states_of: Callable[[], dict[str, str]] | None) -> Callable[[], tuple[int, bytes]]:
+    """health_answer as (status, JSON bytes), for service.server's protocol-level answer."""
+    return lambda: (lambda status, body: (status, json.dumps(body).encode()))(*health_answer(states_of))
+
+
 @router.get("/healthz", response_model=Health, responses={503: {"model": ErrorBody}},
             summary="The API process is up (embedded mode: and its Redis and worker processes are running)")
 async def healthz(request: Request):
     # async and I/O-free: answered on the event loop, never queued behind the threadpool
-    states_of = getattr(request.app.state, "dependency_states", None)
-    states = states_of() if states_of is not None else {}
-    down = {name: state for name, state in states.items() if state != "running"}
-    if down:
-        raise ServiceUnavailable("embedded " + ", ".join(f"{n} is {s}" for n, s in sorted(down.items())),
-                                 code="dependency_down")
-    return Health(status="ok", dependencies=states)
+    # (`lightfield serve` answers it before routing, in service.server, with the same body)
+    status, body = health_answer(getattr(request.app.state, "dependency_states", None))
+    if status != 200:
+        return JSONResponse(body, status_code=status, headers={"Retry-After": "5"})
+    return body
 
 
 def _check_ready(ctx: AppContext) -> Readiness:

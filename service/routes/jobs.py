@@ -19,6 +19,7 @@ from jobs.store import JobLimitReached, JobRecord
 from service.context import AppContext, Tenant, get_ctx, get_tenant, owned_job
 from service.errors import (BROKER_DOWN, ErrorBody, InvalidInput, ServiceUnavailable, TooManyJobs, broker_errors,
                             describe_validation_errors)
+from service.lightfields import forget
 from service.models import JobList, JobView
 from service.upload import FormReader
 from service.validation import check_capture, classify_depth, classify_input
@@ -187,7 +188,7 @@ def delete_job(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppContex
     paths = JobPaths.for_job(ctx.settings.data_dir, record.tenant_hash, record.id)
     if record.is_terminal:
         ctx.store.delete(record)
-        ctx.fields.evict(record.id)
+        forget(record.id, ctx)
         paths.remove_all()
         return Response(status_code=204)
     ctx.store.request_cancel(job_id)

@@ -16,7 +16,7 @@ from service import queries
 from service.context import AppContext, Tenant, get_ctx, get_tenant
 from service.errors import ErrorBody, PayloadTooLarge
 from service.fieldcache import CachedField
-from service.lightfields import job_field
+from service.lightfields import job_field, recent_field
 from service.models import (
     CubemapFace, CubemapResponse, DominantLight, EncodedEnvmap, EnvmapBatchRequest, EnvmapBatchResponse,
     EnvmapFormat, Flags, LightfieldInfo, Quality, SphericalHarmonics,
@@ -44,7 +44,7 @@ QualityQuery = Query(DEFAULT_QUALITY, description=QUALITY_HELP)
 
 
 async def _field(job_id: str, tenant: Tenant, ctx: AppContext) -> CachedField:
-    return await run_in_threadpool(job_field, job_id, tenant, ctx)
+    return recent_field(job_id, tenant, ctx) or await run_in_threadpool(job_field, job_id, tenant, ctx)
 
 
 def _npy(array: np.ndarray) -> bytes:
@@ -56,7 +56,8 @@ def _npy(array: np.ndarray) -> bytes:
 def _encoder(fmt: str, ev: float):
     from core.io.envmap_io import encode_envmap
 
-    return lambda hdr: encode_envmap(hdr, fmt, ev)
+    # uncompressed EXR: ZIP saves 2-11 % on float32 radiance for 5-15x the encoding time
+    return lambda hdr: encode_envmap(hdr, fmt, ev, compress=False)
 
 
 def _query_headers(flags: queries.EvalFlags, quality: str) -> dict[str, str]:
@@ -160,7 +161,7 @@ async def get_cubemap(job_id: str, x: str = XQuery, t: float = TQuery,
             return _npy(faces)
         from core.io.exr import encode_exr
 
-        return [base64.b64encode(encode_exr(face)).decode() for face in faces]
+        return [base64.b64encode(encode_exr(face, compress=False)).decode() for face in faces]
 
     answer = await queries.envmap_answer(ctx, cf, point, t, queries.cubemap_height(size), quality, finish=finish)
     headers = _query_headers(answer.flags, answer.quality)
