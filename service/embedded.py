@@ -90,7 +90,7 @@ def serve(host: str, port: int, settings: ServiceSettings, log_level: str = "inf
             return 0
         states = supervisor.states if supervisor else None
         app = create_app(settings, dependency_states=states)
-        uvicorn.Server(server_config(app, host, port, settings.timeouts, log_level, health_probe(states))).run()
+        uvicorn.Server(server_config(app, host, port, settings.timeouts, log_level, health_probe(states, app.state.metrics))).run()
         return 0
     finally:
         if supervisor is not None:

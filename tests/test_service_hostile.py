@@ -351,3 +351,18 @@ def test_default_quality_is_fast_and_exact_is_on_request(alice, job):
     a, b = npy(fast), npy(exact)
     assert a.shape == b.shape == (128, 256, 3)
     assert abs(a.mean() - b.mean()) < 0.25 * b.mean()  # an interpolation of the same field
+
+
+def test_protocol_level_healthz_answers_as_the_route_does(stack):
+    """`lightfield serve` answers a plain GET /healthz in the HTTP protocol (no queueing behind
+    the request tasks); the body must be the route's, and the connection stays usable."""
+    s = _open(stack)
+    s.sendall(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+    fast = s.recv(65536)
+    s.sendall(b"GET /healthz?via=route HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")  # not the plain form: routed
+    routed = b""
+    while b"\r\n\r\n" not in routed or not routed.rstrip().endswith(b"}"):
+        routed += s.recv(65536)
+    s.close()
+    assert fast.startswith(b"HTTP/1.1 200") and routed.startswith(b"HTTP/1.1 200")
+    assert json.loads(fast.split(b"\r\n\r\n", 1)[1]) == json.loads(routed.split(b"\r\n\r\n", 1)[1])

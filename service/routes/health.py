@@ -26,9 +26,17 @@ def health_answer(states_of: Callable[[], dict[str, str]] | None) -> tuple[int, 
     return 200, Health(status="ok", dependencies=states).model_dump()
 
 
-def health_probe(states_of: Callable[[], dict[str, str]] | None) -> Callable[[], tuple[int, bytes]]:
-    """health_answer as (status, JSON bytes), for service.server's protocol-level answer."""
-    return lambda: (lambda status, body: (status, json.dumps(body).encode()))(*health_answer(states_of))
+def health_probe(states_of: Callable[[], dict[str, str]] | None, metrics=None) -> Callable[[], tuple[int, bytes]]:
+    """health_answer as (status, JSON bytes), for service.server's protocol-level answer
+    (counted in `metrics` like a routed request)."""
+
+    def probe() -> tuple[int, bytes]:
+        status, body = health_answer(states_of)
+        if metrics is not None:
+            metrics.requests.labels("GET", "/healthz", str(status)).inc()
+        return status, json.dumps(body).encode()
+
+    return probe
 
 
 @router.get("/healthz", response_model=Health, responses={503: {"model": ErrorBody}},
