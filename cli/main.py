@@ -17,6 +17,7 @@ COMMANDS = [
     "worker",
     "bench",
     "train-prior",
+    "prior",
     "render-previews",
 ]
 
