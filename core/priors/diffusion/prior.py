@@ -135,15 +135,17 @@ class DiffusionPrior:
         evs: tuple[float, ...] = DEFAULT_BRACKET_EVS,
         seed: int = 0,
         median_over: int = 1,
-        steps: int = 30,
+        steps: int | None = None,
         guidance_scale: float | None = None,
         env_height: int = 64,
+        background_depth: torch.Tensor | None = None,
     ) -> "BallSamples":
         """Direct sampling: inpaint from pure noise at each EV, unwrap, merge to HDR (see sampling.py)."""
         from core.priors.diffusion.sampling import sample_balls
 
         return sample_balls(self, image, masks, depth, probes, evs=evs, seed=seed, median_over=median_over,
-                            steps=steps, guidance_scale=guidance_scale, env_height=env_height)
+                            steps=steps, guidance_scale=guidance_scale, env_height=env_height,
+                            background_depth=background_depth)
 
     # -- helpers ----------------------------------------------------------------------------
     def canvas(self, height: int, width: int) -> Canvas:
