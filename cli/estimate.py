@@ -15,9 +15,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", required=True, help="artefact directory to write")
     p.add_argument("--depth", default=None, help="planar depth in metres: .npz ('depth' [T,H,W] or [H,W]), .exr, 16-bit PNG (mm)")
     p.add_argument("--params", default=None, help="job parameters as a JSON string or file (same schema as the service)")
-    p.add_argument("--preset", choices=["draft", "standard", "paper"], default=None)
+    p.add_argument("--preset", choices=["draft", "standard", "paper", "seed"], default=None,
+                   help="seed = the authors' released loop (pairs with --prior-profile seed)")
     p.add_argument("--prior", choices=["reprojection", "diffusion"], default=None)
     p.add_argument("--prior-weights", default=None, help="local model directory of the diffusion prior")
+    p.add_argument("--prior-profile", choices=["paper", "seed", "diffusionlight"], default=None,
+                   help="diffusion prior's inference profile (default: the model card's; seed with --preset seed)")
     p.add_argument("--temporal", choices=["auto", "on", "off"], default=None)
     p.add_argument("--field", choices=["mlp", "grid", "trunk"], default=None, help="field kind (default: the preset's)")
     p.add_argument("--seed", type=int, default=None)
@@ -81,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.output)
     try:
         params = parse_job_params(args.params, preset=args.preset, prior=args.prior, prior_weights=args.prior_weights,
-                                  temporal=args.temporal, field=args.field, seed=args.seed)
+                                  prior_profile=args.prior_profile, temporal=args.temporal, field=args.field, seed=args.seed)
     except (ValidationError, ValueError) as exc:
         print(f"error: invalid parameters: {exc}", file=sys.stderr)
         return 2

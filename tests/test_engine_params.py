@@ -2,6 +2,7 @@
 import json
 
 import pytest
+import torch
 from pydantic import ValidationError
 
 from core.engine.config import PRESETS, preset
@@ -70,7 +71,10 @@ def test_presets_schedules():
     for name, cfg in PRESETS.items():
         assert cfg.ev_at(0) == 0.0
         assert cfg.ev_at(cfg.iterations - 1) == pytest.approx(cfg.ev_min)
-        assert cfg.tau_min_at(0) == 1.0 and cfg.tau_min_at(cfg.iterations - 1) == 0.0
+        if cfg.tau_schedule == "anneal":
+            assert cfg.tau_min_at(0) == 1.0 and cfg.tau_min_at(cfg.iterations - 1) == 0.0
+        else:  # the authors' decay_t_min: from t_max down to the 0.02 floor at half the run
+            assert cfg.tau_min_at(0) == cfg.tau_max and cfg.tau_min_at(cfg.iterations // 2) == 0.02
         lrs = [cfg.lr_at(s) for s in range(cfg.iterations)]
         peak = max(lrs)
         assert peak == pytest.approx(cfg.lr, rel=1e-6)
@@ -82,3 +86,23 @@ def test_presets_schedules():
         preset("draft", iterations=0)
     with pytest.raises(ValueError, match="unknown preset"):
         preset("turbo")
+
+
+def test_seed_preset_is_the_authors_loop():
+    s = preset("seed")
+    assert [s.ev_at(i) for i in range(s.iterations)] == [0.0] * s.iterations  # EV fixed at 0
+    assert s.iterations == 20 and s.guidance_scale == 12.5 and s.field_t_freqs == 6 and s.time_normalisation_frames == 30
+    assert s.perceptual_net == "vgg" and s.perceptual_weight == 1.0 and s.l2_weight == pytest.approx(0.2)
+    assert s.lr_at(s.iterations - 1) == pytest.approx(2e-4, rel=0.2)
+
+
+def test_time_is_normalised_for_30_frames_with_the_seed_preset():
+    from core.engine.distill import build_field_config, normalised_time
+    from core.fields import SceneBounds
+
+    b = SceneBounds((0, 0, 0), (1, 1, 1), 0.0, 99 / 30.0)  # a 100-frame clip at 30 fps
+    nb = normalised_time(b, preset("seed"), 30.0)
+    assert nb.t1 == pytest.approx(29 / 30.0)
+    assert float(nb.normalize_t(torch.tensor(29 / 30.0))) == pytest.approx(1.0)  # frame 29 -> +1, as 2 f / 29 - 1
+    assert normalised_time(b, preset("paper"), 30.0) == b
+    assert build_field_config(preset("seed"), "mlp", True).mlp.t_freqs == 6

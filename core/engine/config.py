@@ -7,6 +7,14 @@ resolution (the ball is 1/4 of the frame, so this is the ball resolution), itera
 narrower MLP (same encodings, 96 x 4 for draft, 128 x 6 for standard). At equal steps a
 narrow MLP recovered a known field about as well as the 6 x 256 one and clearly better than
 the trunk+head field (see docs/engine.md). Wall times are measured by `bench/presets.py`.
+
+`seed` is the loop of the authors' released code (ORionTMT/Sig25_4DLighting run_video_demo.py
++ SDS/multiball_sds.py `sds_loop`), to pair with the diffusion prior's `seed` profile: EV
+fixed at 0 (their sweep is commented out), loss LPIPS-VGG + 0.05 MSE in [-1, 1] units
+(= 0.2 x our [0, 1] masked MSE; SSIM stands in for LPIPS unless LPIPS-VGG weights are
+configured, see losses.py), time normalised as if the clip had 30 frames (t_n = 2 f / 29 - 1),
+PE degree 6 for time, 20 steps, lr 2e-3 -> 2e-4 with 10 % warm-up, guidance 12.5, and their
+`decay_t_min` noise schedule (tau ~ U[max(0.02, (1 - i / (N // 2)) 0.98), 0.98]).
 """
 from __future__ import annotations
 
@@ -37,7 +45,9 @@ class DistillConfig(BaseModel):
     ev_schedule: Literal["sweep", "uniform"] = Field(
         "sweep", description="'sweep' (paper): linear 0 -> ev_min; 'uniform' (the paper's ablation): ev ~ U[ev_min, 0] each step")
     guidance_scale: float = 12.5
-    tau_max: float = 1.0
+    tau_max: float = Field(1.0, gt=0.0, le=1.0)
+    tau_schedule: Literal["anneal", "authors"] = Field(
+        "anneal", description="'anneal' (paper): tau_min 1 -> 0 over the run; 'authors': their decay_t_min (floor 0.02, half the run)")
     lr: float = Field(5e-3, gt=0)
     lr_min_ratio: float = Field(0.05, ge=0, le=1)
     warmup_steps: int = Field(20, ge=0)
@@ -45,6 +55,10 @@ class DistillConfig(BaseModel):
     adam_betas: tuple[float, float] = (0.9, 0.99)
     l2_weight: float = Field(1.0, ge=0)
     perceptual_weight: float = Field(0.1, ge=0)
+    perceptual_net: Literal["alex", "vgg"] = Field("alex", description="LPIPS backbone when LPIPS weights are configured")
+    time_normalisation_frames: int | None = Field(
+        None, ge=2, description="normalise time as if the clip had this many frames (the authors' release: 30); None: over the capture")
+    field_t_freqs: int | None = Field(None, ge=0, le=16, description="override the field's PE frequencies for time")
     field_kind: Literal["mlp", "grid", "trunk"] = "mlp"
     field_width: int | None = Field(None, ge=4, description="override the field's hidden width")
     field_layers: int | None = Field(None, ge=1, description="override the field's depth")
@@ -66,7 +80,10 @@ class DistillConfig(BaseModel):
         return self.ev_min * min(1.0, step / span)
 
     def tau_min_at(self, step: int) -> float:
-        """tau_min annealed linearly 1 -> 0 over training (tau ~ U[tau_min, tau_max])."""
+        """tau_min annealed linearly 1 -> 0 over training (tau ~ U[tau_min, tau_max]); 'authors':
+        their sds_t_sampling 'decay_t_min', max(0.02, (1 - step / (N // 2)) tau_max)."""
+        if self.tau_schedule == "authors":
+            return min(self.tau_max, max(0.02, (1.0 - step / max(1, self.iterations // 2)) * self.tau_max))
         return max(0.0, 1.0 - step / max(1, self.iterations - 1))
 
     @staticmethod
@@ -96,6 +113,12 @@ PRESETS: dict[str, DistillConfig] = {
     "paper": DistillConfig(name="paper", iterations=3000, n_probes=9, work_height=512, supersample=2,
                            lr=1e-3, warmup_steps=100, field_kind="mlp", checkpoint_every=250,
                            prior_env_height=64, threads=None),
+    # The authors' released loop (module docstring); pair with the diffusion prior's `seed` profile
+    "seed": DistillConfig(name="seed", iterations=20, n_probes=9, work_height=512, supersample=2,
+                          lr=2e-3, lr_min_ratio=0.1, warmup_steps=2, field_kind="mlp", checkpoint_every=250,
+                          prior_env_height=64, threads=None, ev_min=0.0, l2_weight=0.2, perceptual_weight=1.0,
+                          perceptual_net="vgg", guidance_scale=12.5, tau_max=0.98, tau_schedule="authors",
+                          time_normalisation_frames=30, field_t_freqs=6),
 }
 
 

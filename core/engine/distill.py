@@ -92,6 +92,9 @@ def sample_probes(capture: Capture, frame_index: int, cfg: DistillConfig, gen: t
 def build_field_config(cfg: DistillConfig, kind: str | None, uses_time: bool) -> FieldConfig:
     base = field_preset(kind or cfg.field_kind, uses_time=uses_time)
     upd: dict = {}
+    if cfg.field_t_freqs is not None:  # the authors' release: PE degree 6 for time
+        for section in ("mlp", "trunk"):
+            base = base.model_copy(update={section: getattr(base, section).model_copy(update={"t_freqs": cfg.field_t_freqs})})
     if base.kind == "mlp" and (cfg.field_width or cfg.field_layers):
         layers = cfg.field_layers or base.mlp.layers
         skip = base.mlp.skip_layer if base.mlp.skip_layer and base.mlp.skip_layer <= layers else None
@@ -215,7 +218,7 @@ def distill(
         if restored is not None:
             start, losses = restored
     trainer = _Trainer(capture, inverse_tonemap(capture.frames).to(device), capture.depth.to(device), prior, field, opt,
-                       cfg, gen, PerceptualLoss(), timings, device)
+                       cfg, gen, PerceptualLoss(cfg.perceptual_net), timings, device)
     reporter.begin(start)
     reporter.check_cancel()  # then once per step, in reporter.step (a store query in the worker)
     with _torch_threads(cfg.threads):
@@ -227,7 +230,7 @@ def distill(
             reporter.step(step + 1, cfg.iterations, losses[-1])
     field.eval()
     return DistillResult(field.cpu(), losses, timings, cfg.iterations, resumed_from=start,
-                         stats={"field_config": field_cfg.model_dump(), "perceptual": perceptual_description(),
+                         stats={"field_config": field_cfg.model_dump(), "perceptual": perceptual_description(cfg.perceptual_net),
                                 "device": str(device)})
 
 
@@ -296,7 +299,8 @@ class _Trainer:
                 image=image.to(pd), ball_masks=layer.coverage.detach().to(pd),
                 depth=composite_depth(self.depth[i], layer).to(pd), ev=ev, tau=tau, steps=cfg.steps_for_tau(tau),
                 guidance_scale=cfg.guidance_scale, probes=probes, generator=gen,
-                extras={"frame_linear": self.frames_lin[i].to(pd), "ball_rays": rays},
+                extras={"frame_linear": self.frames_lin[i].to(pd), "ball_rays": rays,
+                        "depth_background": self.depth[i].to(pd)},
             )
             target = self.prior(request).detach().to(device=pred.device, dtype=pred.dtype)
             target = torch.nan_to_num(target, nan=0.0).clamp(0.0, 1.0)
@@ -386,10 +390,10 @@ def run_job(
                 merge = 1 if decision.uses_time or capture.static_camera else REPROJECTION_MERGE_VIEWS
                 kw = {"env_height": cfg.prior_env_height, "merge_views": merge}
             elif params.prior == "diffusion":
-                kw = {"device": str(device)}
+                kw = {"device": str(device), "profile": prior_profile(params)}
             prior = build_prior(params.prior, weights=params.prior_weights, **kw)
         prior.bind(work)
-        bounds = scene_bounds(work)
+        bounds = normalised_time(scene_bounds(work), cfg, work.fps)
         if hasattr(prior, "points"):  # build the geometry now so its cost is reported here
             for i in _distinct_geometry(work):
                 prior.points(i)
@@ -436,6 +440,21 @@ def run_job(
 
         progress(Progress("done", result.iterations, result.iterations, meta["training"]["final_loss"], 1.0, 0.0, str(path)))
     return Path(path)
+
+
+def prior_profile(params: JobParams) -> str | None:
+    """The diffusion prior's inference profile: the job's, else `seed` with the seed preset, else the card's."""
+    return params.prior_profile or ("seed" if params.preset == "seed" else None)
+
+
+def normalised_time(bounds: SceneBounds, cfg: DistillConfig, fps: float) -> SceneBounds:
+    """The authors normalise time as if every clip had 30 frames (t_n = 2 f / 29 - 1): the time range
+    becomes [t0, t0 + (F - 1) / fps], whatever the capture's length (later frames extrapolate)."""
+    if cfg.time_normalisation_frames is None or not fps or fps <= 0:
+        return bounds
+    from dataclasses import replace
+
+    return replace(bounds, t1=bounds.t0 + (cfg.time_normalisation_frames - 1) / float(fps))
 
 
 def _clear_checkpoint(ckpt_dir: Path) -> None:

@@ -90,7 +90,8 @@ class CaptureParams(_Strict):
         return v
 
 
-PresetName = Literal["draft", "standard", "paper"]
+PresetName = Literal["draft", "standard", "paper", "seed"]
+ProfileName = Literal["paper", "seed", "diffusionlight"]
 PriorName = Literal["reprojection", "diffusion"]
 TemporalMode = Literal["auto", "on", "off"]
 FieldKind = Literal["mlp", "grid", "trunk"]
@@ -103,6 +104,7 @@ class JobParams(CaptureParams):
     preset: PresetName = "draft"
     prior: PriorName = "reprojection"
     prior_weights: str | None = None
+    prior_profile: ProfileName | None = None  # diffusion prior's inference profile (None: the card's; `seed` with preset seed)
     temporal: TemporalMode = "auto"
     seed: int = 0
     field: FieldKind | None = None  # None -> the preset's default

@@ -11,7 +11,7 @@ PRIOR_NAMES = ("reprojection", "known", "diffusion", "oracle")
 
 def build_prior(name: str, weights: str | None = None, **kw) -> Prior:
     """'reprojection' (default, weights-free), 'known' (kw: fn), 'diffusion' (weights = local
-    model dir), 'oracle' (simulator ground truth; kw passed to core.sim.oracle)."""
+    model dir; kw: device, dtype, profile), 'oracle' (simulator ground truth; kw passed to core.sim.oracle)."""
     if name == "reprojection":
         from core.priors.reprojection import ReprojectionPrior
 
