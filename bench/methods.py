@@ -12,6 +12,11 @@ Families (all read the same capture directory through the engine's `load_capture
              paper's "w/o MLP" 3x3x3 ablation, trunk = the engine's faster field), queried
              exactly (`LightFieldArtefact.envmaps`) or through the baked lattice (`core.engine.bake`).
 
+With DiffusionLight's weights (`--diffusionlight-weights`, imported by `lightfield prior
+import`): "diffusionlight" (global family: DiffusionLight's own direct sampling, one ball at
+the frame centre, EV brackets 0/-2.5/-5 merged -- the paper's "DiffusionLight" row) and
+"diffusionlight-distilled" (an MLP field distilled from it -- "DiffusionLight-Distilled").
+
 Ablations are `DistillConfig` overrides: e.g. uniform exposure sampling is the engine's
 `ev_schedule="uniform"` (ev drawn uniformly in [ev_min, 0] per step instead of the
 0 -> ev_min sweep).
@@ -40,7 +45,7 @@ class Method:
     family: Family
     group: str  # baseline | paper | budget | ablation | query | upper-bound
     description: str
-    prior: Literal["reprojection", "oracle", "diffusion"] = "reprojection"
+    prior: Literal["reprojection", "oracle", "diffusion", "diffusionlight"] = "reprojection"
     prior_weights: str | None = None  # local model directory (diffusion prior only)
     field: str | None = None
     overrides: tuple[tuple[str, Any], ...] = ()  # DistillConfig overrides
@@ -82,7 +87,7 @@ class Budget:
     probes: tuple[int, ...]
 
 
-def core_methods(diffusion_weights: str | None = None) -> list[Method]:
+def core_methods(diffusion_weights: str | None = None, diffusionlight_weights: str | None = None) -> list[Method]:
     """Run on every suite: baselines, the paper's field, its grid ablation, the trunk, the
     baked query mode and the oracle upper bounds of the key methods (plus the diffusion
     prior's distilled fields when local weights are given)."""
@@ -92,6 +97,14 @@ def core_methods(diffusion_weights: str | None = None) -> list[Method]:
         Method("grid-diffusion", "field", "paper", "grid distilled from the diffusion prior", field="grid",
                prior="diffusion", prior_weights=str(diffusion_weights)),
     ]
+    if diffusionlight_weights is not None:
+        dl = str(diffusionlight_weights)
+        extra += [
+            Method("diffusionlight", "global", "baseline", "DiffusionLight direct sampling: one centre ball, EVs 0/-2.5/-5 merged",
+                   prior="diffusionlight", prior_weights=dl),
+            Method("diffusionlight-distilled", "field", "baseline", "MLP distilled from DiffusionLight (DiffusionLight-Distilled)",
+                   field="mlp", prior="diffusionlight", prior_weights=dl),
+        ]
     return [
         Method("global", "global", "baseline", "one env map: reprojection prior at the scene centre (DiffusionLight-style)"),
         Method("global-oracle", "global", "upper-bound", "one env map: the TRUE map at the scene centre (best single map)", prior="oracle"),
@@ -178,6 +191,8 @@ def run_global(method: Method, suite: SuiteData, base: DistillConfig) -> MethodR
     with measured() as m:
         if method.prior == "oracle":
             env = render_envmap(suite.scene, suite.global_point, suite.global_time, h)
+        elif method.prior == "diffusionlight":
+            env = diffusionlight_centre_envmap(method, suite, cfg, h)
         else:
             prior, work = _bound_prior(suite, cfg)
             frame = nearest_frame(suite.global_time, work.fps, work.num_frames)
@@ -190,6 +205,31 @@ def run_global(method: Method, suite: SuiteData, base: DistillConfig) -> MethodR
     if method.prior == "oracle":
         run.extra["note"] = "prepare time is the simulator's ray tracing, not an estimator's cost"
     return run
+
+
+def diffusionlight_centre_envmap(method: Method, suite: SuiteData, cfg: DistillConfig, height: int) -> torch.Tensor:
+    """DiffusionLight's native setting: one chrome ball at the centre of the frame nearest the
+    suite's global time, placed in front of the scene like the engine's probes, inpainted at
+    each EV of the bracket and merged to HDR (DiffusionPrior.sample_balls)."""
+    from core.chrome_ball import composite_depth, place_probe, render_balls
+    from core.engine.capture import load_capture, median_valid_depth
+    from core.priors.base import ProbeGeometry
+    from core.priors.diffusion import DiffusionPrior
+
+    prior = DiffusionPrior.from_pretrained(method.prior_weights)
+    work = load_capture(suite.capture_dir).resized(cfg.work_height)
+    i = nearest_frame(suite.global_time, work.fps, work.num_frames)
+    cam = work.camera(i)
+    pixel = torch.tensor([work.width / 2.0, work.height / 2.0], dtype=torch.float64)
+    d = work.depth[i][work.height // 2, work.width // 2]
+    d = float(d) if torch.isfinite(d) and d > 0 else median_valid_depth(work.depth[i])
+    centre, radius = place_probe(cam, pixel, 0.7 * d, cfg.ball_diameter_fraction)
+    centres, radii = centre[None].float(), torch.tensor([radius], dtype=torch.float32)
+    layer = render_balls(cam, centres, radii, lambda dirs, idx: torch.zeros(dirs.shape[0], 3))
+    probes = ProbeGeometry(centres, radii, pixel[None].float(), cam, i, float(work.times[i]))
+    out = prior.sample_balls(work.frames[i].permute(2, 0, 1), layer.coverage, composite_depth(work.depth[i], layer), probes,
+                             env_height=height, background_depth=work.depth[i])
+    return out.envmaps[0]
 
 
 def run_per_probe(method: Method, suite: SuiteData, base: DistillConfig) -> MethodRun:
@@ -223,7 +263,7 @@ def distill_artefact(method: Method, suite: SuiteData, base: DistillConfig, out_
         from core.sim.oracle import OracleSimPrior
 
         prior = OracleSimPrior(suite.scene)
-    if method.prior == "diffusion":
+    if method.prior in ("diffusion", "diffusionlight"):
         params = JobParams(preset="draft", prior="diffusion", prior_weights=method.prior_weights, field=cfg.field_kind, seed=0)
     else:
         params = JobParams(preset="draft", prior="reprojection", field=cfg.field_kind, seed=0)
