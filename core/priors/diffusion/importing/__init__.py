@@ -137,16 +137,24 @@ def _layout(given: str, family: str, in_channels: int, conditioning: str) -> str
     return layout
 
 
+def _native_resolution(configs: dict) -> tuple[int, int]:
+    """The UNet's trained size: sample_size latents x the VAE's downsampling (SD-2: 64 x 8 = 512, SDXL: 1024)."""
+    sample = configs["unet"].get("sample_size") or 64
+    factor = 2 ** (len(configs["vae"].get("block_out_channels") or [0] * 4) - 1)
+    h, w = (sample, sample) if isinstance(sample, int) else tuple(sample)
+    return int(h) * factor, int(w) * factor
+
+
 def _card(layout: str, family: str, in_channels: int, conditioning: str, profile: str | None,
-          lora_scale: float | None, has_lora: bool) -> ModelCard:
+          lora_scale: float | None, has_lora: bool, resolution: tuple[int, int]) -> ModelCard:
     if layout == "authors":
-        fields = dict(multi_ball=True, resolution=(512, 512), controlnet_conditioning_scale=1.0,
+        fields = dict(multi_ball=True, resolution=resolution, controlnet_conditioning_scale=1.0,
                       default_guidance_scale=12.5, profile="seed", sampler="ddim",
                       base="ORionTMT/Sig25_4DLighting Multi_Inpaint (SD-2 inpainting, fine-tuned multi-ball) + stock SD-2.1 depth ControlNet")
     else:
         fields = dict(multi_ball=False, prompts=DL_PROMPTS, negative_prompt=DL_NEGATIVE, controlnet_conditioning_scale=0.5,
                       default_guidance_scale=5.0, profile="diffusionlight", sampler="unipc", sampling_steps=30,
-                      resolution=(1024, 1024) if family == "sdxl" else (512, 512),
+                      resolution=resolution,
                       base=("DiffusionLight: SDXL base + exposure LoRA + SDXL depth ControlNet" if family == "sdxl"
                             else "DiffusionLight: SD-2 inpainting + SD-2.1 normal-map ControlNet"))
     if has_lora:
@@ -192,7 +200,7 @@ def import_prior(
     if family == "sdxl" and "text_encoder_2" not in dirs:
         raise PriorError(f"{source}: an SDXL UNet needs text_encoder_2/ and tokenizer_2/ in the pipeline folder")
     _check_cross_attention(configs, family)
-    card = _card(chosen, family, in_channels, cond, profile, lora_scale, lora_file is not None)
+    card = _card(chosen, family, in_channels, cond, profile, lora_scale, lora_file is not None, _native_resolution(configs))
 
     out.mkdir(parents=True, exist_ok=True)
     try:
