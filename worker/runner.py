@@ -71,7 +71,7 @@ def error_code_of(exc: BaseException) -> str:
 class JobRunner:
     store: JobStore
     settings: ServiceSettings
-    prior_provider: Callable[[str, str | None], object] | None = None
+    prior_provider: Callable[[str, str | None, str | None], object] | None = None
 
     def run(self, job_id: str) -> Outcome:
         record = self.store.get(job_id)
@@ -155,7 +155,9 @@ class JobRunner:
         # Only weight-loading priors are worth keeping across jobs; the engine builds cheap
         # ones itself with its preset's settings.
         if self.prior_provider is not None and params.prior == "diffusion" and "prior" in accepted:
-            kwargs["prior"] = self.prior_provider(params.prior, params.prior_weights)
+            from core.engine.distill import prior_profile
+
+            kwargs["prior"] = self.prior_provider(params.prior, params.prior_weights, prior_profile(params))
         depth = paths.upload_dir / record.depth_file if record.depth_file else None
         return Path(run_job(paths.upload_dir / record.input_file, depth, params, paths.artefact_dir, **kwargs))
 
