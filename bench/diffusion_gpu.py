@@ -55,7 +55,7 @@ def build(tiny: bool, tmp: Path, device: str, dtype: torch.dtype):
 
 
 def main(argv=None) -> dict:
-    from core.engine.config import preset
+    from core.engine.presets import preset
     from core.priors.diffusion.prior import DiffusionPrior
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -73,7 +73,7 @@ def main(argv=None) -> dict:
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise SystemExit("no CUDA device: run with --tiny --device cpu for a smoke test")
     h, w = (int(v) for v in args.frame.lower().split("x"))
-    cfg = preset("paper")
+    cfg = preset("paper").distill
     cuda = args.device.startswith("cuda")
     with tempfile.TemporaryDirectory() as tmp:
         comps = build(args.tiny, Path(tmp), args.device, dtype)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import sys
 
+from cli import choices
+
 HELP = "manage diffusion prior weights (import released checkpoints into a local prior directory)"
 
 
@@ -16,11 +18,12 @@ def add_arguments(p) -> None:
     imp.add_argument("--vae", default=None, help="replacement VAE folder (DiffusionLight: sdxl-vae-fp16-fix)")
     imp.add_argument("--lora", default=None, help="LoRA folder or file (DiffusionLight's exposure LoRA checkpoint)")
     imp.add_argument("--lora-scale", type=float, default=None, help="LoRA fuse scale (DiffusionLight: 0.75)")
-    imp.add_argument("--layout", default="auto", choices=["auto", "authors", "diffusionlight-sdxl", "diffusionlight-sd2"])
-    imp.add_argument("--conditioning", default=None, choices=["depth", "normals"],
-                     help="what the ControlNet expects (default: from its folder name)")
-    imp.add_argument("--profile", default=None, choices=["paper", "seed", "diffusionlight"],
-                     help="inference profile recorded in the card (default: the layout's)")
+    imp.add_argument("--layout", default="auto", choices=choices.IMPORT_LAYOUTS, metavar="LAYOUT",
+                     help="one of %(choices)s (default: auto, from the UNet and ControlNet)")
+    imp.add_argument("--conditioning", default=None, choices=choices.CONTROL_CONDITIONINGS, metavar="KIND",
+                     help="what the ControlNet expects, one of %(choices)s (default: from its folder name)")
+    imp.add_argument("--profile", default=None, choices=choices.PRIOR_PROFILES, metavar="PROFILE",
+                     help="inference profile recorded in the card, one of %(choices)s (default: the layout's)")
     imp.add_argument("--variant", default=None, help="weights variant to take (e.g. fp16; default: full precision if present)")
     imp.add_argument("--max-memory-gb", type=float, default=None, help="memory limit of the .bin converter (default: 3 + 2.5 x file size)")
     imp.add_argument("--timeout-s", type=float, default=None, help="wall-clock limit of the .bin converter (default 1200)")

@@ -55,21 +55,22 @@ def imported(releases, tmp_path_factory):
 
 
 def _distil(weights, tmp_path, preset_name="draft", profile=None):
-    from core.engine.artefact import LightFieldArtefact
-    from core.engine.config import preset
-    from core.engine.distill import run_job
+    from core.engine import run_job
     from core.engine.params import JobParams
+    from core.engine.presets import preset
+    from core.fields.artefact import LightFieldArtefact
     from core.io import write_png
 
     write_png(tmp_path / "in.png", torch.rand(24, 32, 3, generator=torch.Generator().manual_seed(0)).numpy())
-    cfg = preset(preset_name, iterations=2, n_probes=2, work_height=24, warmup_steps=1, checkpoint_every=1000,
-                 supersample=1, threads=1, perceptual_weight=0.0)
+    cfg = preset(preset_name).with_overrides({"distill": {
+        "iterations": 2, "n_probes": 2, "work_height": 24, "warmup_steps": 1, "checkpoint_every": 1000,
+        "supersample": 1, "threads": 1, "perceptual_weight": 0.0}})
     params = JobParams(prior="diffusion", prior_weights=str(weights), prior_profile=profile, preset=preset_name, seed=1)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        out = run_job(tmp_path / "in.png", None, params, tmp_path / "art", config=cfg)
-    meta = json.loads((out / "lightfield.json").read_text())
-    env, _ = LightFieldArtefact.load(out).envmap(torch.tensor([0.0, 0.0, -1.0]), None, 8)
+        result = run_job(tmp_path / "in.png", None, params, tmp_path / "art", config=cfg)
+    meta = json.loads((result.path / "lightfield.json").read_text())
+    env, _ = LightFieldArtefact.load(result.path).envmap(torch.tensor([0.0, 0.0, -1.0]), None, 8)
     assert torch.isfinite(env).all() and all(v == v for v in meta["training"]["loss_curve"])
     return meta
 
@@ -88,7 +89,7 @@ def test_authors_release_imports_and_distils_with_the_seed_profile(imported, tmp
     with safe_open(str(d / "vae" / "diffusion_pytorch_model.safetensors"), "pt") as f:
         assert not any(".query." in k for k in f.keys())  # deprecated attention names renamed
     meta = _distil(d, tmp_path, "seed")
-    assert meta["prior"]["profile"]["name"] == "seed" and meta["distill_config"]["name"] == "seed"
+    assert meta["prior"]["profile"]["name"] == "seed" and meta["engine_config"]["name"] == "seed"
     assert meta["prior"]["control_encoding"] == "authors_disparity"
     assert meta["training"]["perceptual"]["wanted"] == "lpips-vgg"
 
@@ -183,8 +184,8 @@ def test_wrong_folders_are_named(releases, tmp_path, capsys):
 def test_bench_diffusionlight_methods_run_on_the_imported_weights(imported, tmp_path):
     from types import SimpleNamespace
 
-    from bench.methods import core_methods, diffusionlight_centre_envmap
-    from core.engine.config import preset
+    from bench.methods import core_methods, diffusion_centre_envmap
+    from core.engine.presets import preset
     from core.io import write_png
 
     names = {m.name: m for m in core_methods(diffusionlight_weights=str(imported["sdxl"]))}
@@ -193,7 +194,7 @@ def test_bench_diffusionlight_methods_run_on_the_imported_weights(imported, tmp_
     suite = SimpleNamespace(capture_dir=tmp_path / "in.png", global_time=0.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        env = diffusionlight_centre_envmap(names["diffusionlight"], suite, preset("draft", work_height=24), 8)
+        env = diffusion_centre_envmap(names["diffusionlight"], suite, preset("draft").with_overrides({"distill.work_height": 24}), 8)
     assert env.shape == (8, 16, 3) and torch.isfinite(env).all() and float(env.max()) > 0
 
 

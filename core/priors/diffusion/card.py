@@ -19,6 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from core.conventions import DEFAULT_EV_MIN
 from core.priors.base import PriorError
+from core.priors.diffusion.profiles import ProfileName
 
 CARD_FILENAME = "lightfield_prior.json"
 CARD_FORMAT = "lightfield-prior"
@@ -38,7 +39,6 @@ class ExposurePrompts(BaseModel):
 
 BaseFamily = Literal["sd1", "sd2", "sdxl"]
 Conditioning = Literal["depth", "normals"]
-ProfileName = Literal["paper", "seed", "diffusionlight"]
 SamplerName = Literal["ddim", "unipc"]
 
 

@@ -16,9 +16,10 @@ import os
 from typing import TYPE_CHECKING
 
 import torch
+from pydantic import Field
 
 from core.conventions import DEFAULT_BRACKET_EVS, tonemap
-from core.priors.base import PriorError, PriorRequest, ProbeGeometry
+from core.priors.base import Prior, PriorConfig, PriorError, PriorRequest, ProbeGeometry
 from core.priors.diffusion.canvas import Canvas, make_canvas
 from core.priors.diffusion.conditioning import (
     combine_per_ball,
@@ -32,15 +33,23 @@ from core.priors.diffusion.control import ControlInputs, control_image
 from core.priors.diffusion.denoise import InpaintCondition, InpaintDenoiser
 from core.priors.diffusion.exposure import ExposureConditioner
 from core.priors.diffusion.loading import PriorComponents, load_components
-from core.priors.diffusion.profiles import get_profile
+from core.priors.diffusion.profiles import ProfileName, get_profile
+from core.priors.registry import register_prior
 
 if TYPE_CHECKING:
-    from core.engine.capture import Capture
+    from core.capture.base import Capture
     from core.priors.diffusion.sampling import BallSamples
 
 
-class DiffusionPrior:
-    name = "diffusion"
+class DiffusionSettings(PriorConfig):
+    weights: str | None = Field(None, description="local model directory (docs/diffusion-prior.md); required")
+    dtype: str | None = Field(None, description="float32 / float16 / bfloat16 (default: the loader's choice for the device)")
+    profile: ProfileName | None = Field(None, description="inference profile (profiles.py); default: the model card's")
+
+
+@register_prior("diffusion", for_jobs=True)
+class DiffusionPrior(Prior):
+    Config = DiffusionSettings
 
     def __init__(self, components: PriorComponents, profile: str | None = None):
         self.components = components
@@ -78,8 +87,12 @@ class DiffusionPrior:
             self._seed = SeedDenoiser(self.components)
         return self._seed
 
+    @classmethod
+    def from_config(cls, config: DiffusionSettings, device: str | torch.device | None = None) -> "DiffusionPrior":
+        return build_diffusion_prior(config.weights, device=device, dtype=config.dtype, profile=config.profile)
+
     # -- Prior protocol -------------------------------------------------------------------
-    def bind(self, capture: "Capture") -> None:
+    def bind(self, capture: "Capture", *, lighting_changes: bool = True) -> None:
         """Nothing is per-capture: prompts are encoded at load time and frames are sized per call."""
 
     def describe(self) -> dict:
@@ -222,7 +235,7 @@ def build_diffusion_prior(
     weights: str | os.PathLike | None = None, device: str | torch.device | None = None,
     dtype: str | torch.dtype | None = None, profile: str | None = None,
 ) -> DiffusionPrior:
-    """Registry entry point (`build_prior("diffusion", weights=DIR)`)."""
+    """The prior from a local model directory (`build_prior("diffusion", {"weights": DIR})`)."""
     if weights is None:
         raise PriorError("the diffusion prior needs weights: a local model directory (--prior-weights DIR)")
     return DiffusionPrior.from_pretrained(weights, device=device, dtype=dtype, profile=profile)

@@ -29,17 +29,19 @@ from the model card, and recorded in the artefact through `DiffusionPrior.descri
 """
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from core.priors.base import PriorError
 
+ProfileName = Literal["paper", "seed", "diffusionlight"]  # the keys of PROFILES (checked below)
+
 
 class InferenceProfile(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    name: Literal["paper", "seed", "diffusionlight"]
+    name: ProfileName
     canvas: Literal["keep_aspect", "squash", "letterbox"]
     depth_encoding: Literal["robust_inverse_depth", "authors_disparity", "diffusionlight_nearest"]
     schedule: Literal["trailing", "authors"] = Field(
@@ -62,6 +64,8 @@ PROFILES: dict[str, InferenceProfile] = {
                                        schedule="trailing", masked_image="blank_balls", latent_mask="max_pool",
                                        vae_latents="mode"),
 }
+
+assert tuple(PROFILES) == get_args(ProfileName), "PROFILES and ProfileName list the same profiles"
 
 
 def get_profile(name: str) -> InferenceProfile:

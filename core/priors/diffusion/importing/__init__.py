@@ -34,6 +34,7 @@ from core.priors.base import PriorError
 from core.priors.diffusion.card import CARD_FILENAME, ExposurePrompts, LoraSpec, ModelCard
 from core.priors.diffusion.importing.safe_convert import ConvertLimits
 from core.priors.diffusion.importing.weights import convert_pickles, convert_weights, expected_shapes, find_weight_files
+from core.priors.diffusion.profiles import get_profile
 
 LAYOUTS = ("authors", "diffusionlight-sdxl", "diffusionlight-sd2")
 TOKENIZER_FILES = ("vocab.json", "merges.txt", "tokenizer.json", "tokenizer_config.json", "special_tokens_map.json",
@@ -183,8 +184,8 @@ def import_prior(
     source, out = Path(source).expanduser(), Path(out_dir).expanduser()
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise PriorError(f"{out}: already exists and is not an empty directory; choose a new output directory")
-    if profile is not None and profile not in ("paper", "seed", "diffusionlight"):
-        raise PriorError(f"--profile must be paper, seed or diffusionlight, got {profile!r}")
+    if profile is not None:
+        get_profile(profile)  # PriorError naming the profiles
     dirs = _sources(source, Path(controlnet).expanduser() if controlnet else None, Path(vae).expanduser() if vae else None)
     configs = {k: _read_json(d / ("scheduler_config.json" if k == "scheduler" else "config.json"), k)
                for k, d in dirs.items() if not k.startswith("tokenizer")}

@@ -1,0 +1,76 @@
+"""The named engine presets, each a whole EngineConfig (draft / standard / paper / seed).
+
+`paper` is the paper's §3.2 setup (GPU): MLP 6x256, N = 9 probes, ev 0 -> -5, tau_min
+annealed 1 -> 0, k = ceil(10 tau), guidance 12.5, Adam + warm-up + cosine LR, grad clipping.
+`draft` and `standard` keep the same loop but cut what CPU time pays for: the working frame
+resolution (the ball is 1/4 of the frame, so this is the ball resolution), iterations, and a
+narrower network (same encodings; the MLP 96 x 4 for draft, 128 x 4 for standard, and the
+trunk field equally narrowed when a job picks it). At equal steps a narrow MLP recovered a
+known field about as well as the 6 x 256 one and clearly better than the trunk+head field
+(see docs/engine.md). Wall times are measured by `bench/presets.py`.
+
+`seed` is the loop of the authors' released code (ORionTMT/Sig25_4DLighting run_video_demo.py
++ SDS/multiball_sds.py `sds_loop`), paired with the diffusion prior's `seed` inference profile
+(its settings default here; a job's `prior_profile` still wins): EV fixed at 0 (their sweep is
+commented out), loss LPIPS-VGG + 0.05 MSE in [-1, 1] units (= 0.2 x our [0, 1] masked MSE;
+SSIM stands in for LPIPS unless LPIPS-VGG weights are configured, see losses.py), time
+normalised as if the clip had 30 frames (t_n = 2 f / 29 - 1), PE degree 6 for time, 20 steps,
+lr 2e-3 -> 2e-4 with 10 % warm-up, guidance 12.5, and their `decay_t_min` noise schedule
+(tau ~ U[max(0.02, (1 - i / (N // 2)) 0.98), 0.98]).
+"""
+from __future__ import annotations
+
+from core.engine.config import DistillConfig, EngineConfig
+from core.fields import FieldConfig
+
+
+def _narrow(width: int, layers: int) -> FieldConfig:
+    """The MLP (default kind) and the trunk at `width` x `layers`; the grid as the paper's."""
+    return FieldConfig(kind="mlp", mlp={"width": width, "layers": layers},
+                       trunk={"trunk_width": width, "trunk_layers": layers})
+
+
+PRESETS: dict[str, EngineConfig] = {
+    # CPU: ~1 min for a 20-frame 192x144 clip on 2 cores (bench/presets.py)
+    "draft": EngineConfig(
+        name="draft",
+        distill=DistillConfig(iterations=400, n_probes=9, work_height=72, lr=5e-3, warmup_steps=15, checkpoint_every=50),
+        field=_narrow(96, 4),
+        priors={"reprojection": {"env_height": 24}},
+    ),
+    # CPU: a 100-frame 320x240 clip in a few minutes
+    "standard": EngineConfig(
+        name="standard",
+        distill=DistillConfig(iterations=1000, n_probes=9, work_height=120, lr=5e-3, warmup_steps=30, checkpoint_every=100),
+        field=_narrow(128, 4),
+        priors={"reprojection": {"env_height": 32}},
+    ),
+    # The paper's settings (GPU): full resolution ball crops, MLP 6 x 256
+    "paper": EngineConfig(
+        name="paper",
+        distill=DistillConfig(iterations=3000, n_probes=9, work_height=512, supersample=2, lr=1e-3, warmup_steps=100,
+                              checkpoint_every=250, threads=None),
+        field=FieldConfig(kind="mlp"),
+        priors={"reprojection": {"env_height": 64}},
+    ),
+    # The authors' released loop (module docstring), at the paper's resolution and field size
+    "seed": EngineConfig(
+        name="seed",
+        distill=DistillConfig(iterations=20, n_probes=9, work_height=512, supersample=2, lr=2e-3, lr_min_ratio=0.1,
+                              warmup_steps=2, checkpoint_every=250, threads=None, ev_min=0.0, l2_weight=0.2,
+                              perceptual_weight=1.0, perceptual_net="vgg", guidance_scale=12.5, tau_max=0.98,
+                              tau_schedule="authors", time_normalisation_frames=30),
+        field=FieldConfig(kind="mlp", mlp={"t_freqs": 6}, trunk={"t_freqs": 6}),
+        priors={"reprojection": {"env_height": 64}, "diffusion": {"profile": "seed"}},
+    ),
+}
+
+
+def preset_names() -> tuple[str, ...]:
+    return tuple(PRESETS)
+
+
+def preset(name: str) -> EngineConfig:
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+    return PRESETS[name]
