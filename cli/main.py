@@ -12,6 +12,11 @@ COMMANDS = [
     "simulate",
     "estimate",
     "envmap",
+    "sh",
+    "cubemap",
+    "gltf",
+    "usd",
+    "sequence",
     "preview",
     "serve",
     "worker",
@@ -19,6 +24,19 @@ COMMANDS = [
     "train-prior",
     "render-previews",
 ]
+
+
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """Appends '(default: X)' to an option's help when it has a meaningful default (not None,
+    not a store_true False, not already mentioned)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if ("%(default)" in text or "default:" in text or default is None or default is False or default == argparse.SUPPRESS
+                or not action.option_strings or isinstance(action, argparse._HelpAction)):
+            return text
+        return f"{text} (default: %(default)s)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
             if exc.name == module_name:
                 continue  # command not built yet
             raise
-        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        p = sub.add_parser(name, help=module.HELP, description=module.HELP, formatter_class=DefaultsHelpFormatter)
         module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser

@@ -86,6 +86,12 @@ def test_ktx2_cube_round_trip_and_header():
         assert (got[..., 3] == 1).all()
         off = struct.unpack_from("<Q", blob, 80)[0]
         assert off % 8 == 0
+    # beyond the half range (a bright lamp): float32 automatically, nothing clamped
+    bright = [lv * 1e4 for lv in levels]
+    blob = encode_ktx2_cubemap(bright)
+    assert struct.unpack_from("<2I", blob, 12) == (109, 4)
+    for lv, got in zip(bright, decode_ktx2_cubemap(blob)):
+        np.testing.assert_array_equal(got[..., :3], lv)
 
 
 # ------------------------------------------------------------------------------ glTF

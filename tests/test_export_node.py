@@ -69,11 +69,13 @@ def test_ktx2_cube_mips_parse_in_threes_ktx_parse(node_consumers, tmp_path):
     from core.export.ktx2 import encode_ktx2_cubemap
     from core.export.prefilter import prefiltered_cubemap
 
-    mips = [m.numpy() for m in prefiltered_cubemap(lamp_map(16), 8, levels=3)]
-    (tmp_path / "cube.ktx2").write_bytes(encode_ktx2_cubemap(mips))
-    ktx = run_consumer("ktx2", tmp_path / "cube.ktx2")
-    assert (ktx["vkFormat"], ktx["typeSize"], ktx["pixelWidth"], ktx["faceCount"], ktx["levelCount"]) == (97, 2, 8, 6, 3)
-    assert ktx["dfd"]["colorPrimaries"] == 1 and ktx["dfd"]["transferFunction"] == 1  # BT.709, linear
-    for mine, theirs in zip(mips, ktx["levels"]):
-        got = np.asarray(theirs, np.float32).reshape(*mine.shape[:3], 4)
-        np.testing.assert_allclose(got[..., :3], mine, rtol=1e-3, atol=1e-4)
+    for scale, vk, type_size in ((1.0, 97, 2), (1e4, 109, 4)):  # half, then float32 beyond the half range
+        mips = [m.numpy() * scale for m in prefiltered_cubemap(lamp_map(16), 8, levels=3)]
+        (tmp_path / "cube.ktx2").write_bytes(encode_ktx2_cubemap(mips))
+        ktx = run_consumer("ktx2", tmp_path / "cube.ktx2")
+        assert (ktx["vkFormat"], ktx["typeSize"], ktx["pixelWidth"], ktx["faceCount"], ktx["levelCount"]) == (vk, type_size, 8, 6, 3)
+        assert ktx["dfd"]["colorPrimaries"] == 1 and ktx["dfd"]["transferFunction"] == 1  # BT.709, linear
+        assert ktx["dfd"]["bytesPlane"][0] == 4 * type_size
+        for mine, theirs in zip(mips, ktx["levels"]):
+            got = np.asarray(theirs, np.float32).reshape(*mine.shape[:3], 4)
+            np.testing.assert_allclose(got[..., :3], mine, rtol=1e-3, atol=1e-4 * scale)

@@ -35,7 +35,9 @@ async function main() {
   if (command === 'ktx2') {
     const c = readKTX2(bytes());
     const levels = c.levels.map((l) => {
-      const u16 = new Uint16Array(l.levelData.buffer, l.levelData.byteOffset, l.levelData.byteLength / 2);
+      const d = l.levelData;
+      if (c.typeSize === 4) return Array.from(new Float32Array(d.buffer.slice(d.byteOffset, d.byteOffset + d.byteLength)));
+      const u16 = new Uint16Array(d.buffer, d.byteOffset, d.byteLength / 2);
       return Array.from(u16, (h) => THREE.DataUtils.fromHalfFloat(h));
     });
     return { vkFormat: c.vkFormat, typeSize: c.typeSize, pixelWidth: c.pixelWidth, pixelHeight: c.pixelHeight,
