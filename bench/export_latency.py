@@ -60,7 +60,39 @@ def main() -> int:
     }
     for name, fn in cases.items():
         print(json.dumps({"product": name, **timed(fn, args.reps), "threads": torch.get_num_threads()}), flush=True)
+    for ratio in (1, 2):  # what the prefilter's source resolution costs and buys
+        print(json.dumps({"prefilter_source_ratio": ratio, **prefilter_accuracy(env[128], env[256], ratio, args.reps)}), flush=True)
     return 0
+
+
+def prefilter_accuracy(env, reference_env, ratio: int, reps: int) -> dict:
+    """Time of a 64-texel prefiltered cube and the sum-relative error of its rough levels against
+    direct quadrature of the same GGX kernel over the 256-row map."""
+    import torch
+
+    from core.conventions import equirect_directions
+    from core.cubemap import cubemap_directions
+    from core.envmap import solid_angles
+    from core.export import prefilter
+
+    old = prefilter.QUADRATURE_SOURCE_RATIO
+    prefilter.QUADRATURE_SOURCE_RATIO = ratio
+    try:
+        cost = timed(lambda: prefilter.prefiltered_cubemap(env, 64), reps)
+        mips = prefilter.prefiltered_cubemap(env, 64)
+    finally:
+        prefilter.QUADRATURE_SOURCE_RATIO = old
+    h = reference_env.shape[0]
+    d = equirect_directions(h, dtype=torch.float64).reshape(-1, 3)
+    radiance = reference_env.double().reshape(-1, 3) * solid_angles(h, dtype=torch.float64).reshape(-1, 1)
+    errors = {}
+    for i in range(1, len(mips)):
+        n = cubemap_directions(mips[i].shape[1], dtype=torch.float64).reshape(-1, 3)
+        w = prefilter.lobe_weight(n @ d.T, prefilter.roughness_of_level(i, len(mips)))
+        ref = (w @ radiance) / (w @ solid_angles(h, dtype=torch.float64).reshape(-1, 1))
+        errors[f"roughness {prefilter.roughness_of_level(i, len(mips)):.2f}"] = round(
+            float((mips[i].reshape(-1, 3).double() - ref).abs().sum() / ref.abs().sum()), 4)
+    return {**cost, "sum_relative_error": errors}
 
 
 if __name__ == "__main__":

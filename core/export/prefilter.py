@@ -31,7 +31,7 @@ from core.envmap import check_envmap, resize_envmap, sample_envmap, solid_angles
 DEFAULT_SAMPLES = 64
 LOD_BIAS = 0.0
 QUADRATURE_MAX_FACE = 32  # levels this small (rough, wide lobes) are integrated directly, larger ones sampled
-QUADRATURE_SOURCE_RATIO = 2  # source rows per face texel: 2 -> 0.9 % error, 2.0 s for a 64 cube; 1 -> 3.4 %, 0.7 s (bench/export_latency.py, 2 CPUs)
+QUADRATURE_SOURCE_RATIO = 2  # source rows per face texel; 64 cube on 2 CPUs: 2 -> 1.1 % error, ~1 s; 1 -> 2.9 %, 0.23 s (bench/export_latency.py)
 MIN_FACE = 4  # default mip chains stop at faces of this size or above (glTF: the last mip must hold roughness 1)
 
 
