@@ -130,11 +130,11 @@ def spherical_harmonics(cf: CachedField, x, t: float):
     return light, project_sh(env.double()), flags
 
 
-def envmap_sequence(cf: CachedField, x, times, height: int):
+def envmap_sequence(cf: CachedField, x, times, height: int, quality: str = "exact"):
     """Yield (t, hdr, flags) one time at a time (the field lock is taken per frame, so other
     queries interleave with a long sequence)."""
     for t in times:
-        hdr, flags = envmap(cf, x, t, height)
+        hdr, flags, _ = envmap_with_quality(cf, x, t, height, quality)
         yield t, hdr, flags
 
 

@@ -244,6 +244,7 @@ async def get_sequence(job_id: str, x: str = Query(..., description=X_HELP),
                        frames: int = Query(..., ge=1, description="evenly spaced frames from t0 to t1"),
                        height: int = Query(64, ge=1, description="rows (width = 2 x height)"),
                        first_frame: int = Query(1, ge=0, description="number of the first file (envmap.0001.exr)"),
+                       quality: Quality = Query("exact", description="fast = the baked lattice (large maps, long shots)"),
                        tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     from core.export.sequence import sequence_members, sequence_times, zip_stream
 
@@ -256,7 +257,7 @@ async def get_sequence(job_id: str, x: str = Query(..., description=X_HELP),
     times = sequence_times(t0, t1, frames)
     for probe_t in {times[0], times[-1]}:  # refuse a bad query now, not after the 200 is sent
         await run_in_threadpool(queries.envmap, cf, point, probe_t, 1)
-    maps = ((t, hdr) for t, hdr, _ in queries.envmap_sequence(cf, point, times, height))
-    members = sequence_members(maps, point, job_id, first_frame=first_frame, extra={"height": height})
+    maps = ((t, hdr) for t, hdr, _ in queries.envmap_sequence(cf, point, times, height, quality))
+    members = sequence_members(maps, point, job_id, first_frame=first_frame, extra={"height": height, "quality": quality})
     return StreamingResponse(zip_stream(members), media_type="application/zip", headers={
         CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, "Content-Disposition": 'attachment; filename="envmaps.zip"'})
