@@ -17,6 +17,7 @@ COMMANDS = [
     "gltf",
     "usd",
     "sequence",
+    "unity",
     "preview",
     "serve",
     "worker",

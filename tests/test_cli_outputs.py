@@ -133,3 +133,17 @@ def test_sequence_command_writes_frames_over_time(artefact_dir, tmp_path):
             np.testing.assert_allclose(read_exr(data), envmap_at(artefact_dir, f["t"], 4).numpy(), rtol=1e-6)
             assert read_exr_header(data)["lightfield:time"] == f["t"]
     assert main(["sequence", str(artefact_dir), "--x", X, "--t0", "2", "--t1", "1", "--frames", "2", "-o", str(tmp_path / "d")]) == 2
+
+
+def test_unity_command_writes_a_probe_grid_in_unitys_convention(artefact_dir, tmp_path):
+    from core.export.unity import unity_sh, unity_shade_sh9
+
+    out = tmp_path / "probes.json"
+    assert main(["unity", str(artefact_dir), "--grid", "2,1,2", "--t", "1", "-o", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert len(doc["positions"]) == 4 and len(doc["sh"]) == 4 and np.shape(doc["sh"][0]) == (3, 9)
+    np.testing.assert_allclose(np.asarray(doc["positions_unity"])[:, 2], -np.asarray(doc["positions"])[:, 2])
+    x = doc["positions"][0]
+    env = LightFieldArtefact.load(artefact_dir).envmap(x, 1.0, 32)[0].numpy()
+    np.testing.assert_allclose(doc["sh"][0], unity_sh(env), rtol=1e-6)
+    assert np.isfinite(unity_shade_sh9(doc["sh"][0], np.array([0.0, 1.0, 0.0]))).all()

@@ -77,7 +77,7 @@ def cli_run(workdir):
 
 def test_readme_lists_the_commands_it_promises():
     commands = [argv[0] for argv in cli_lines()]
-    for name in ("simulate", "estimate", "envmap", "sh", "cubemap", "gltf", "usd", "sequence", "preview", "serve"):
+    for name in ("simulate", "estimate", "envmap", "sh", "cubemap", "gltf", "usd", "unity", "sequence", "preview", "serve"):
         assert name in commands
 
 
@@ -103,6 +103,7 @@ def test_readme_command_line_block_runs_and_answers_inside_the_room(cli_run, wor
     with zipfile.ZipFile(workdir / "shot.zip") as z:
         assert len(json.loads(z.read("sequence.json"))["frames"]) == 2
     assert (workdir / "insertion.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len(json.loads((workdir / "probes.json").read_text())["sh"]) == 18
     # the main light is found on the demo scene, at the README point and at the held-out probes
     doc = json.loads((workdir / "cap" / "capture.json").read_text())
     found = [extract_dominant_light(art.envmap(p, None, 128)[0]) for p in [point, *[q["x"] for q in doc["probes"]]]]
