@@ -28,14 +28,16 @@ COMMANDS = [
 
 
 class DefaultsHelpFormatter(argparse.HelpFormatter):
-    """Appends '(default: X)' to an option's help when it has a meaningful default (not None,
-    not a store_true False, not already mentioned)."""
+    """Appends '(default: X)' to an option's help when it has a value default (not None, not a
+    flag such as --fast / --no-resume, not already mentioned in the help)."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
         default = action.default
-        if ("%(default)" in text or "default:" in text or default is None or default is False or default == argparse.SUPPRESS
-                or not action.option_strings or isinstance(action, argparse._HelpAction)):
+        flag = isinstance(action, (argparse._StoreConstAction, argparse._StoreTrueAction, argparse._StoreFalseAction,
+                                   argparse._HelpAction, argparse._VersionAction))
+        if ("%(default)" in text or "(default" in text or "default:" in text or default is None or flag
+                or default == argparse.SUPPRESS or not action.option_strings):
             return text
         return f"{text} (default: %(default)s)"
 

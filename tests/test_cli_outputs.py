@@ -11,9 +11,9 @@ import pytest
 import torch
 
 from cli.main import build_parser, main
-from core.engine.artefact import LightFieldArtefact, save_artefact
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.config import MLPSettings
+from core.fields.artefact import LightFieldArtefact, save_artefact
+from core.fields.mlp import MLPSettings
 
 BOUNDS = SceneBounds((-1.0, -1.0, -3.0), (1.0, 1.0, 0.0), t0=0.0, t1=2.0)
 X = "0.1,0.2,-1"
@@ -25,7 +25,7 @@ def artefact_dir(tmp_path_factory):
     with torch.no_grad():
         for p in field.parameters():
             p.normal_(0, 0.5, generator=torch.Generator().manual_seed(3))
-    return save_artefact(tmp_path_factory.mktemp("lf") / "lf", field, {})
+    return save_artefact(tmp_path_factory.mktemp("lf") / "lf", field, {}).path
 
 
 def envmap_at(artefact_dir, t, height):

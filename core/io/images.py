@@ -53,6 +53,28 @@ def _open_checked(data: bytes, limits: MediaLimits) -> Image.Image:
     return image
 
 
+def probe_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> tuple[int, int]:
+    """(width, height) of an image `read_image` accepts, from its header under `limits`, with
+    the file's structure verified (Pillow's verify: PNG chunk CRCs, truncation) but no pixel
+    decoded. Refuses with the same MediaError codes as read_image for what that reveals."""
+    data = read_source(source, limits, "image")
+    image = _open_checked(data, limits)
+    _check_sample_format(image, data)
+    try:
+        image.verify()
+    except Image.DecompressionBombError as exc:
+        raise MediaError("too_many_pixels", str(exc)) from None
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise MediaError("truncated", f"{image.format} data is truncated or corrupt ({exc})") from None
+    return image.size
+
+
+def _check_sample_format(image: Image.Image, data: bytes) -> None:
+    if image.mode in ("I", "F") and not (image.format == "PNG" and _png_bit_depth(data) == 16):
+        # 32-bit integer / float samples: no defined white level
+        raise MediaError("unsupported_codec", f"{image.format} with 32-bit {image.mode!r} samples is not an LDR image; send HDR as EXR or .hdr")
+
+
 def _decode_png16(data: bytes) -> np.ndarray:
     """uint16 [H, W] or [H, W, 3|4] in RGB(A) order."""
     decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
@@ -76,8 +98,7 @@ def read_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> np.ndarr
     image = _open_checked(data, limits)
     if image.format == "PNG" and _png_bit_depth(data) == 16:
         return _to_rgb(_decode_png16(data)).astype(np.float32) / np.float32(65535.0)
-    if image.mode in ("I", "F"):  # 32-bit integer / float samples: no defined white level
-        raise MediaError("unsupported_codec", f"{image.format} with 32-bit {image.mode!r} samples is not an LDR image; send HDR as EXR or .hdr")
+    _check_sample_format(image, data)
     try:
         image.load()
         if image.mode.startswith("I;16"):  # 16-bit grey TIFF
