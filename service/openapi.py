@@ -34,6 +34,7 @@ def complete_schema(schema: dict, settings: ServiceSettings) -> dict:
             if path.startswith("/lightfield/"):
                 _set_parameter_maximum(operation, "height", limits.max_envmap_height)
                 _set_parameter_maximum(operation, "size", limits.max_cubemap_size)
+                _set_parameter_maximum(operation, "frames", limits.max_sequence_frames)
             if path == "/jobs" and method == "get":
                 _set_parameter_maximum(operation, "limit", limits.max_page_size)
     schema.setdefault("components", {}).setdefault("securitySchemes", {})["HTTPBearer"] = {

@@ -114,8 +114,8 @@ def evaluate_requests(cf: CachedField, requests: list[EnvmapRequest]) -> list[En
             hdrs, flags = source.envmaps(xs, ts, height)
         hdrs = _numpy(hdrs)
         for k, i in enumerate(indices):
-            finish = requests[i].finish
-            answers[i] = EnvmapAnswer(finish(hdrs[k]) if finish else hdrs[k], _flags(flags[k]), quality)
+            finish, flag = requests[i].finish, _flags(flags[k])
+            answers[i] = EnvmapAnswer(finish(hdrs[k], flag) if finish else hdrs[k], flag, quality)
     return answers  # type: ignore[return-value]
 
 
@@ -127,8 +127,8 @@ def batcher(cf: CachedField, max_pending_pixels: int, on_batch=None) -> FieldBat
 
 
 async def envmap_answer(ctx, cf: CachedField, x, t: float, height: int, quality: str,
-                        finish: Callable[[np.ndarray], Any] | None = None) -> EnvmapAnswer:
-    """Queue one env map on the field's batcher and await it (value = finish(hdr) or hdr).
+                        finish: Callable[[np.ndarray, EvalFlags], Any] | None = None) -> EnvmapAnswer:
+    """Queue one env map on the field's batcher and await it (value = finish(hdr, flags) or hdr).
     `ctx` (service.context.AppContext) gives the queue bound and the metrics."""
     request = EnvmapRequest(tuple(float(v) for v in x), float(t), int(height), quality, finish)
     on_batch = ctx.metrics.observe_batch if ctx.metrics is not None else None
@@ -136,14 +136,38 @@ async def envmap_answer(ctx, cf: CachedField, x, t: float, height: int, quality:
 
 
 def sh_from_envmap(hdr: np.ndarray):
-    """(ambient SH as ARCore 27 floats, dominant light) of an env map: ARCore Environmental HDR split."""
+    """(dominant light with ambient SH, SH of the whole map) of an env map: ARCore Environmental HDR split."""
     import torch
 
     from core.lights import extract_dominant_light
-    from core.sh import to_arcore_27
+    from core.sh import project_sh
 
-    light = extract_dominant_light(torch.from_numpy(hdr))
-    return to_arcore_27(light.ambient_sh), light
+    env = torch.from_numpy(hdr)
+    return extract_dominant_light(env), project_sh(env.double())
+
+
+# -- one map at a time, in the caller's thread (exports: ktx2, glTF, USD, EXR sequences) ----------
+def envmap(cf: CachedField, x, t: float, height: int) -> tuple[np.ndarray, EvalFlags]:
+    with _as_invalid_input(), cf.lock:
+        hdr, flags = cf.artefact.envmap(x, t, height)
+    return _numpy(hdr), _flags(flags)
+
+
+def envmap_with_quality(cf: CachedField, x, t: float, height: int, quality: str):
+    """(hdr, flags, quality used): 'fast' reads the baked lattice, anything else the field."""
+    if quality == "fast":
+        with _as_invalid_input(), cf.lock:
+            hdr, flags = _baked(cf).envmap(x, t, height)
+        return _numpy(hdr), _flags(flags), "fast"
+    return (*envmap(cf, x, t, height), "exact")
+
+
+def envmap_sequence(cf: CachedField, x, times, height: int, quality: str = "exact"):
+    """Yield (t, hdr, flags) one time at a time (the field lock is taken per frame, so other
+    queries interleave with a long sequence)."""
+    for t in times:
+        hdr, flags, _ = envmap_with_quality(cf, x, t, height, quality)
+        yield t, hdr, flags
 
 
 def cube_faces(hdr: np.ndarray, size: int) -> np.ndarray:

@@ -47,11 +47,12 @@ def tonemapped_preview(hdr: np.ndarray, ev: float = 0.0) -> np.ndarray:
 
 
 def encode_envmap(hdr: np.ndarray, fmt: EnvmapFormat, ev: float = 0.0, half: bool = False,
-                  compress: bool = True) -> tuple[bytes, str]:
-    """-> (file bytes, media type). `ev` only affects 'png'; `half` and `compress` only 'exr'."""
+                  attributes: dict | None = None, compress: bool = True) -> tuple[bytes, str]:
+    """-> (file bytes, media type). `ev` only affects 'png'; `half`, `attributes` (EXR
+    header attributes, e.g. `core.export.metadata.envmap_attributes`) and `compress` only 'exr'."""
     a = _check_envmap(hdr)
     if fmt == "exr":
-        data = encode_exr(a, half=half, compress=compress)
+        data = encode_exr(a, half=half, attributes=attributes, compress=compress)
     elif fmt == "hdr":
         data = encode_hdr(a)
     elif fmt == "png":
@@ -69,11 +70,12 @@ def encode_envmap(hdr: np.ndarray, fmt: EnvmapFormat, ev: float = 0.0, half: boo
     return data, MEDIA_TYPES[fmt]
 
 
-def save_envmap(path: str | os.PathLike, hdr: np.ndarray, fmt: EnvmapFormat | None = None, ev: float = 0.0, half: bool = False) -> Path:
+def save_envmap(path: str | os.PathLike, hdr: np.ndarray, fmt: EnvmapFormat | None = None, ev: float = 0.0, half: bool = False,
+                attributes: dict | None = None) -> Path:
     """Write an env map atomically; `fmt` defaults to the path's suffix."""
     path = Path(path)
     fmt = fmt or path.suffix.lower().lstrip(".")
-    data, _ = encode_envmap(hdr, fmt, ev=ev, half=half)  # type: ignore[arg-type]
+    data, _ = encode_envmap(hdr, fmt, ev=ev, half=half, attributes=attributes)  # type: ignore[arg-type]
     return atomic_write(path, data)
 
 
