@@ -20,10 +20,16 @@ EXAMPLES_PER_OPERATION = 15
 EXACT_MAX_HEIGHT = 64
 
 
+EXPORTS = ("/gltf", "/usdz", "/sequence")  # always exact evaluations
+
+
 def _bounded(case) -> None:
     """Cap the cost of exact evaluations (see module docstring)."""
     query = case.query or {}
-    if query.get("quality") == "exact":
+    exports = case.operation.path.endswith(EXPORTS) or query.get("format") == "ktx2"
+    if isinstance(query.get("frames"), int):
+        query["frames"] = min(query["frames"], 4)
+    if query.get("quality") == "exact" or exports:
         if isinstance(query.get("height"), int):
             query["height"] = min(query["height"], EXACT_MAX_HEIGHT)
         if isinstance(query.get("size"), int):
