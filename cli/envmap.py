@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
         save_envmap(out, hdr.cpu().numpy(), fmt, ev=args.ev, attributes=attrs)
         warn_extrapolated(flags)
         print_json({"output": str(out), "format": fmt, "height": args.height, "x": list(args.x), "t": args.t,
-                    "quality": "fast" if args.fast else "exact", **flags})
+                    "quality": "baked" if args.fast else "exact", **flags})
         return 0
 
     return run_guarded(body)

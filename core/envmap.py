@@ -7,12 +7,14 @@ and differentiable with respect to the map (and, for `sample_envmap`, the direct
 """
 from __future__ import annotations
 
+import functools
 import math
 from typing import Callable, NamedTuple
 
 import torch
 
-from core.conventions import direction_to_equirect_pixel, equirect_directions, equirect_width
+from core.conventions import (direction_to_equirect_pixel, equirect_directions, equirect_pixel_centres, equirect_width,
+                              theta_phi_to_direction)
 
 
 class EnvmapError(ValueError):
@@ -261,6 +263,31 @@ def resize_envmap(envmap: torch.Tensor, height: int) -> torch.Tensor:
         return _area_downsample(envmap, height)
     d = equirect_directions(height, device=envmap.device, dtype=torch.float64)
     return sample_envmap(envmap, d).to(envmap.dtype)
+
+
+@functools.lru_cache(maxsize=32)  # tiny (O(height) each); heights are client-chosen, so bounded
+def separable_taps(h: int, height: int) -> EquirectTaps:
+    """Taps that sample an h-row map (pole rows padded, `pad_poles`) bilinearly at the pixel
+    centres of a `height`-row map: `sample_envmap`'s rule, which on equirect grids is
+    separable (a row's taps depend only on its polar angle, a column's only on its azimuth).
+    (upper_row, row_weight) are per output row [H], (col0, col1, col_weight) per column [W]."""
+    theta, phi = equirect_pixel_centres(height, dtype=torch.float64)  # [H, 1], [1, W]
+    r = equirect_taps(theta_phi_to_direction(theta[:, 0], phi[0, :1].expand(height)), h)  # one column
+    c = equirect_taps(theta_phi_to_direction(theta[:1, 0].expand(phi.shape[1]), phi[0]), h)  # one row
+    return EquirectTaps(r.upper_row, r.row_weight.float(), c.col0, c.col1, c.col_weight.float())
+
+
+def upsample_envmaps(maps: torch.Tensor, height: int) -> torch.Tensor:
+    """[P, h, 2h, C] -> [P, height, 2 height, C] (height >= h), bilinear exactly as
+    `resize_envmap` upsamples, as two 2-tap blends (rows, then columns) instead of a 4-tap
+    gather per output pixel: ~10x faster on batches of maps."""
+    p, h = maps.shape[0], maps.shape[1]
+    if height == h:
+        return maps
+    upper, t_row, c0, c1, t_col = separable_taps(h, int(height))
+    padded = pad_poles(maps).reshape(p, h + 2, -1, maps.shape[-1]).to(torch.float32)
+    tall = torch.lerp(padded.index_select(1, upper), padded.index_select(1, upper + 1), t_row[None, :, None, None])
+    return torch.lerp(tall.index_select(2, c0), tall.index_select(2, c1), t_col[None, None, :, None])
 
 
 def rotate_envmap(envmap: torch.Tensor, R: torch.Tensor) -> torch.Tensor:

@@ -26,7 +26,7 @@ from service.errors import ServiceUnavailable
 log = logging.getLogger("lightfield.service")
 
 MAX_CALL_PIXELS = 1 << 21  # env map pixels per field call (a 1024x2048 map): bounds activations
-FAST_COST = 0.125  # a baked (interpolated) pixel costs about an eighth of an exact one
+BAKED_COST = 0.05  # a baked (interpolated) pixel costs a few percent of an evaluated one
 RETRY_AFTER_BUSY_S = 2
 
 
@@ -35,7 +35,7 @@ class EnvmapRequest:
     x: tuple[float, float, float]
     t: float
     height: int
-    quality: str  # "exact" | "fast"
+    quality: str  # "exact" | "fast" | "baked" (service.queries)
     finish: Callable[[Any], Any] | None = None  # hdr [H, 2H, 3] numpy -> what the caller wants (encoded bytes, ...)
 
     @property
@@ -44,7 +44,12 @@ class EnvmapRequest:
 
     @property
     def cost(self) -> float:
-        return self.pixels * (FAST_COST if self.quality == "fast" else 1.0)
+        """Field evaluations it needs (quality=fast evaluates 1/16 of the pixels)."""
+        if self.quality == "baked":
+            return self.pixels * BAKED_COST
+        if self.quality == "fast":
+            return self.pixels / 16
+        return self.pixels
 
 
 @dataclass

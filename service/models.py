@@ -10,7 +10,7 @@ from jobs.store import JobRecord, JobState
 from service.errors import ErrorDetail
 
 EnvmapFormat = Literal["exr", "hdr", "png", "npy"]
-Quality = Literal["exact", "fast"]
+Quality = Literal["fast", "exact", "baked"]
 
 
 def _ts(value: float | None) -> datetime | None:
@@ -77,7 +77,7 @@ class LightfieldInfo(BaseModel):
     conventions: str = Field(description="the project's conventions (same as header X-Lightfield-Conventions)")
     metadata: dict[str, Any] = Field(description="the artefact's lightfield.json: bounds, time range, "
                                      "temporal decision, prior, training statistics")
-    fast_available: bool = Field(description="whether quality=fast (a baked grid) can answer queries")
+    fast_available: bool = Field(description="whether quality=baked (the worker's lattice) can answer queries")
 
 
 class Flags(BaseModel):
@@ -103,7 +103,8 @@ class EnvmapBatchRequest(BaseModel):
                               "queries x 2 height^2 <= 8388608 pixels")
     format: EnvmapFormat = "npy"
     ev: StrictFloat = Field(0.0, ge=-64, le=64, description="exposure of PNG previews")
-    quality: Quality = Field("fast", description="fast = baked lattice, interpolated; exact = the field")
+    quality: Quality = Field("fast", description="fast = the field at 1/4 of the rows, upsampled; exact = the field "
+                             "at every pixel; baked = the worker's lattice, interpolated (docs/api.md)")
 
 
 class EncodedEnvmap(BaseModel):

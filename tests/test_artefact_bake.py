@@ -109,13 +109,16 @@ def test_flipped_bytes_in_the_maps_are_refused_and_rebaked(tmp_path):
     assert torch.equal(BakedField.load(art).maps, good.maps)  # the corrupt file was replaced
 
 
-def test_upsampling_stencils_are_a_bounded_cache(tmp_path):
-    from core.fields.bake import STENCIL_CACHE_SIZE
+def test_separable_upsampling_equals_resize_envmap_and_its_cache_is_bounded():
+    from core.envmap import separable_taps, upsample_envmaps
 
-    baked = bake(smooth_artefact(tmp_path, uses_time=False), grid=(2, 2, 2), height=4)
-    for h in range(5, 5 + 3 * STENCIL_CACHE_SIZE):
-        baked.envmap((0.0, 0.0, 0.0), None, h)
-    assert len(baked._stencils) == STENCIL_CACHE_SIZE
+    maps = torch.rand(3, 8, 16, 3) + 0.1
+    for height in (9, 16, 33):
+        ref = torch.stack([resize_envmap(m, height) for m in maps])
+        assert torch.allclose(upsample_envmaps(maps, height), ref, rtol=1e-5, atol=1e-6)
+    for height in range(9, 200):
+        upsample_envmaps(maps[:1], height)
+    assert separable_taps.cache_info().currsize <= separable_taps.cache_info().maxsize
 
 
 def test_bake_argument_errors(tmp_path):

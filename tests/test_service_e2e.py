@@ -131,8 +131,8 @@ def test_fast_quality_uses_the_worker_baked_lattice_and_stays_close_to_exact(sta
     assert list((stack.data_dir / "artefacts").glob(f"*/{image_job}/lightfield/baked.safetensors"))
     with stack.client() as c:
         x = inside_point(c, image_job)
-        fast = get_map(c, image_job, "npy", x=x, height=16, quality="fast")
-        assert fast.headers["x-lightfield-quality"] == "fast"
+        fast = get_map(c, image_job, "npy", x=x, height=16, quality="baked")
+        assert fast.headers["x-lightfield-quality"] == "baked"
         exact = get_map(c, image_job, "npy", x=x, height=16, quality="exact")
         assert exact.headers["x-lightfield-quality"] == "exact"
         a = np.load(io.BytesIO(fast.content))

@@ -26,7 +26,7 @@ def job(stack, tiny_image):
         job = submit(c, tiny_image)
         final = wait_job(c, job)
         assert final["state"] == "succeeded", (final, stack.log("worker0"))
-        assert final["message"] == "light field ready"  # not the baking step's "precomputing quality=fast"
+        assert final["message"] == "light field ready"  # not the baking step's "precomputing quality=baked"
         return job
 
 

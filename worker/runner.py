@@ -156,13 +156,13 @@ class JobRunner:
             return False
 
     def _prebake(self, job_id: str, artefact: "LightFieldArtefact") -> None:
-        """Precompute the quality=fast lattice now, from the field in memory (or the directory
+        """Precompute the quality=baked lattice now, from the field in memory (or the directory
         a previous run saved), so no API request pays for it. Optional: a failure here only
         means the API bakes on the first fast query."""
         try:
             from core.fields.bake import load_or_bake
 
-            self.store.update(job_id, allowed=("running",), stage="baking", message="precomputing quality=fast")
+            self.store.update(job_id, allowed=("running",), stage="baking", message="precomputing quality=baked")
             load_or_bake(artefact, save=True)
         except Exception:
             log.warning("job %s: baking the fast path failed", job_id, exc_info=True)

@@ -20,8 +20,7 @@ import json
 import logging
 import os
 import tempfile
-from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -29,8 +28,8 @@ from safetensors import SafetensorError
 from safetensors.torch import load as load_safetensors_bytes
 from safetensors.torch import save_file
 
-from core.conventions import equirect_pixel_centres, equirect_width, theta_phi_to_direction
-from core.envmap import EquirectTaps, equirect_taps, pad_poles, resize_envmap
+from core.conventions import equirect_width
+from core.envmap import resize_envmap, upsample_envmaps
 from core.fields.artefact import (ArtefactError, LightFieldArtefact, QueryError, check_height, extrapolation_flags,
                                   query_positions, query_times)
 from core.fields.encodings import lattice_corners
@@ -45,7 +44,6 @@ DEFAULT_GRID = (5, 5, 5)
 DEFAULT_TIMES = 4
 DEFAULT_HEIGHT = 32
 MAX_BAKED_BYTES = 1 << 30  # refuse bakes over 1 GiB of float32 maps
-STENCIL_CACHE_SIZE = 8  # upsamplers kept per bake (heights are client-chosen; 1024 rows: ~10 MB)
 
 
 @dataclass
@@ -54,7 +52,6 @@ class BakedField:
     bounds: SceneBounds
     uses_time: bool
     source_sha256: str  # weights the maps were baked from
-    _stencils: OrderedDict = field(default_factory=OrderedDict, repr=False)  # query height -> stencil (LRU)
 
     @property
     def grid(self) -> tuple[int, int, int]:
@@ -92,23 +89,10 @@ class BakedField:
         return self._resize(blended, height), extrapolation_flags(self.bounds, xs, ts_t)
 
     def _resize(self, maps: torch.Tensor, height: int) -> torch.Tensor:
-        """[P, h, 2h, 3] -> [P, height, 2 height, 3]: area-correct down (core.envmap), bilinear up
-        (the rule of core.envmap.sample_envmap) through cached separable operators."""
-        if height == self.height:
-            return maps
+        """[P, h, 2h, 3] -> [P, height, 2 height, 3]: area-correct down, bilinear up (core.envmap)."""
         if height < self.height:
             return torch.stack([resize_envmap(m, height) for m in maps])
-        if height not in self._stencils:
-            self._stencils[height] = separable_upsampler(self.height, height)
-            while len(self._stencils) > STENCIL_CACHE_SIZE:  # bounded: heights are client-chosen
-                self._stencils.popitem(last=False)
-        self._stencils.move_to_end(height)
-        upper, t_row, c0, c1, t_col = self._stencils[height]
-        p, h = maps.shape[0], self.height
-        padded = pad_poles(maps).reshape(p, h + 2, -1, 3)  # pole rows above and below
-        tall = torch.lerp(padded.index_select(1, upper), padded.index_select(1, upper + 1),
-                          t_row[None, :, None, None])  # [P, H, w, 3]
-        return torch.lerp(tall.index_select(2, c0), tall.index_select(2, c1), t_col[None, None, :, None])
+        return upsample_envmaps(maps, height)
 
     def _lattice_coords(self, xs: torch.Tensor, ts: torch.Tensor | None) -> torch.Tensor:
         """[-1, 1] lattice coordinates (t first when there is a time axis), clamped to the box."""
@@ -222,18 +206,6 @@ def load_or_bake(
     if save:
         baked.save(artefact.path)
     return baked
-
-
-def separable_upsampler(h: int, height: int) -> EquirectTaps:
-    """Taps that sample an h-row map (pole rows padded, core.envmap.pad_poles) bilinearly at
-    the pixel centres of a `height`-row map: core.envmap.sample_envmap's rule, which on
-    equirect grids is separable (a row's taps depend only on its polar angle, a column's only
-    on its azimuth). Returned as (upper_row [H], row_weight [H], col0 [W], col1 [W],
-    col_weight [W]): two 2-tap blends instead of a 4-tap gather per output pixel."""
-    theta, phi = equirect_pixel_centres(height, dtype=torch.float64)  # [H, 1], [1, W]
-    r = equirect_taps(theta_phi_to_direction(theta[:, 0], phi[0, :1].expand(height)), h)  # one column
-    c = equirect_taps(theta_phi_to_direction(theta[:1, 0].expand(phi.shape[1]), phi[0]), h)  # one row
-    return EquirectTaps(r.upper_row, r.row_weight.float(), c.col0, c.col1, c.col_weight.float())
 
 
 def _maps_sha256(maps: torch.Tensor) -> str:

@@ -35,8 +35,9 @@ SH_BAND_ORDER = ("coefficient k = 0..8 is (l, m) = (0,0), (1,-1), (1,0), (1,1), 
                  "(no phase) (docs/conventions.md, docs/integrations.md)")
 X_HELP = "world position 'X,Y,Z' in metres: three finite numbers, each within +-1e6"
 T_HELP = "seconds from the first frame"
-QUALITY_HELP = ("fast (default) = the worker's baked lattice of env maps, interpolated in x and t and upsampled "
-                "to the requested height; exact = evaluate the field at every pixel (slower: see docs/api.md)")
+QUALITY_HELP = ("fast (default) = the field evaluated at (x, t) at a quarter of the rows (at least 16) and "
+                "upsampled; exact = the field at every pixel; baked = the worker's lattice of maps interpolated "
+                "in x and t (cheapest, least accurate near lights); costs and errors in docs/api.md")
 MAX_BATCH_PIXELS = 1 << 23  # env map pixels per POST /envmaps (8 Mpx = 96 MB of float32)
 
 XQuery = Query(..., description=X_HELP, examples=["0,1.2,-2"], pattern=X_PATTERN, max_length=200)
@@ -188,7 +189,8 @@ async def get_cubemap(job_id: str, x: str = XQuery, t: float = TQuery,
     if format == "ktx2":
         from core.export.products import cube_ktx2, cube_source_height
 
-        hdr, flags = await run_in_threadpool(queries.envmap, cf, point, t, cube_source_height(size))
+        hdr, flags, used = await run_in_threadpool(queries.envmap_with_quality, cf, point, t,
+                                                   cube_source_height(size), quality)
         data = await run_in_threadpool(cube_ktx2, hdr, size, levels)
         return _download(data, "image/ktx2", "cubemap.ktx2", flags)
 
@@ -265,7 +267,8 @@ async def get_sequence(job_id: str, x: str = XQuery,
                        frames: int = Query(..., ge=1, description="evenly spaced frames from t0 to t1"),
                        height: int = Query(64, ge=1, description="rows (width = 2 x height)"),
                        first_frame: int = Query(1, ge=0, description="number of the first file (envmap.0001.exr)"),
-                       quality: Quality = Query("exact", description="fast = the baked lattice (large maps, long shots)"),
+                       quality: Quality = Query("exact", description=QUALITY_HELP.replace(" (default)", "") +
+                                                "; this route's default is exact"),
                        tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     from core.export.sequence import sequence_members, sequence_times, zip_stream
 
