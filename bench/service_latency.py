@@ -6,7 +6,7 @@ a real stack (redis-server + `lightfield serve` API subprocess; no worker needed
 sequentially from one client:
 
 * bare:  `LightFieldArtefact.envmap` in this process (the floor any server can reach);
-* http:  GET /lightfield/{id}/envmap?format=npy, exact and quality=fast (baked lattice).
+* http:  GET /lightfield/{id}/envmap?format=npy, quality=exact and quality=baked (the lattice).
 
 Prints p50 / p99 in milliseconds per (kind, height, path) as JSON.
 
@@ -131,7 +131,7 @@ def main(argv=None) -> int:
                 row = {"kind": kind, "height": h, "width": 2 * h,
                        "bare_exact": timed(bare, probes, args.reps),
                        "http_exact": timed(lambda x: http(x, "exact"), probes, args.reps),
-                       "http_fast": timed(lambda x: http(x, "fast"), probes, args.reps)}
+                       "http_baked": timed(lambda x: http(x, "baked"), probes, args.reps)}
                 row["http_overhead_p50_ms"] = round(row["http_exact"]["p50_ms"] - row["bare_exact"]["p50_ms"], 2)
                 results["rows"].append(row)
                 print(json.dumps(row), file=sys.stderr)
