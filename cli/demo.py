@@ -169,7 +169,10 @@ class _ServiceRun:
     def save_envmap(self, x, t: float, path: Path) -> str:
         from service.local import EmbeddedServiceError
 
-        query = {"x": ",".join(f"{float(v):.6g}" for v in x), "t": t, "height": ENV_HEIGHT, "format": "exr"}
+        # exact: the table compares the field itself with the ground truth (the API's default,
+        # quality=fast, trades angular detail for speed: docs/api.md "Query speed")
+        query = {"x": ",".join(f"{float(v):.6g}" for v in x), "t": t, "height": ENV_HEIGHT, "format": "exr",
+                 "quality": "exact"}
         resp = self.service.client.get(f"/lightfield/{self.job_id}/envmap", params=query)
         if resp.status_code != 200:
             raise EmbeddedServiceError(f"GET envmap: {resp.status_code} {resp.text}")

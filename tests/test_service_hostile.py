@@ -373,3 +373,40 @@ def test_protocol_level_healthz_answers_as_the_route_does(stack):
     s.close()
     assert fast.startswith(b"HTTP/1.1 200") and routed.startswith(b"HTTP/1.1 200")
     assert json.loads(fast.split(b"\r\n\r\n", 1)[1]) == json.loads(routed.split(b"\r\n\r\n", 1)[1])
+
+
+def test_a_small_mp4_declaring_3000_hd_frames_costs_the_api_no_decode(stack, alice, tmp_path):
+    """Issue: a 129 KB MP4 declaring 3000 identical 720p frames took the API process from
+    409 MB to 3.77 GB. The upload check reads headers and one frame; the bound here (300 MB)
+    is far below even one uint8 copy of the frames the worker will keep (108 x 720p = 300 MB
+    as uint8, 1.2 GB as float). The job is cancelled at once."""
+    import threading
+
+    from bench.upload_cost import write_long_video
+
+    video = write_long_video(tmp_path / "long.mp4", 3000)
+    assert video.stat().st_size < 400_000
+
+    def rss_mb() -> float:
+        for line in open(f"/proc/{stack.api.pid}/status"):
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        return 0.0
+
+    before, peak, done = rss_mb(), [0.0], threading.Event()
+
+    def sample():
+        while not done.is_set():
+            peak[0] = max(peak[0], rss_mb())
+            time.sleep(0.01)
+
+    sampler = threading.Thread(target=sample)
+    sampler.start()
+    try:
+        resp = alice.post("/jobs", files={"file": ("long.mp4", video.read_bytes())})
+    finally:
+        done.set()
+        sampler.join()
+    assert resp.status_code == 202, resp.text
+    alice.delete(f"/jobs/{resp.json()['id']}")
+    assert peak[0] - before < 300, (before, peak[0])
