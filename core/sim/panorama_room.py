@@ -62,3 +62,21 @@ def ldr_clip(hdr_frames: torch.Tensor, percentile: float = 99.0) -> torch.Tensor
     flat = hdr_frames.reshape(1, -1, 3)
     ldr = display_tonemap(flat, percentile=percentile, gamma=2.4, max_mapping=0.9).reshape(hdr_frames.shape)
     return torch.round(ldr * 255.0) / 255.0
+
+
+def render_clip(room: PanoramaRoom, cameras: list[Camera], supersample: int = 2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(LDR frames [T, H, W, 3] 8-bit-quantised at one exposure, planar depth [T, H, W], HDR frames)."""
+    out = [room.render(c, supersample) for c in cameras]
+    hdr = torch.stack([o[0] for o in out])
+    return ldr_clip(hdr), torch.stack([o[1] for o in out]), hdr
+
+
+def load_panorama(path, height: int | None = None) -> torch.Tensor:
+    """A panorama file (.hdr / .exr) as [H, 2H, 3] float32, area-downsampled to `height` rows."""
+    import numpy as np
+
+    from core.envmap import resize_envmap
+    from core.io.envmap_io import load_envmap
+
+    pano = torch.from_numpy(np.ascontiguousarray(load_envmap(path)[..., :3])).float()
+    return resize_envmap(pano, height) if height is not None and pano.shape[0] > height else pano

@@ -20,6 +20,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 import torch
 
@@ -88,6 +89,7 @@ def track_camera(frames: torch.Tensor, intrinsics: Intrinsics, depth: torch.Tens
     metres, NaN invalid) fixes the scale when given. `refine_focal` lets a pan refine fx
     (use it when the intrinsics were assumed, not given)."""
     t_cpu = time.process_time()
+    cv2.setRNGSeed(0)  # OpenCV's RANSAC: the same capture tracks the same way every time
     T = int(frames.shape[0])
     images, k = analysis_frames(frames, intrinsics)
     features = [extract(im) for im in images]
