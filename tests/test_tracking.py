@@ -22,6 +22,7 @@ from core.tracking.features import analysis_frames, extract
 from core.tracking.geometry import relative_to_first, rotation_angle_deg
 from core.tracking.motion import detect_motion
 from core.tracking.room import RoomBox, RoomFitError, assumed_room, fit_room
+from core.tracking.capture_geometry import resolve_geometry
 from core.tracking.track import track_camera
 
 PANORAMA = Path(__file__).resolve().parents[1] / "assets" / "sample_panorama.hdr"
@@ -73,14 +74,21 @@ def test_pan_from_one_spot_is_tracked_as_a_rotation_within_1_degree(pan):
     assert s["scale_source"] == "none: no translation" and s["frames_dropped"] == []
 
 
-def test_pan_refines_a_wrong_assumed_focal_length(pan):
+def test_pan_refines_a_wrong_assumed_focal_length_and_uses_a_world_fixed_room(pan):
     ldr, _, intr, poses = pan
     wrong = Intrinsics.from_hfov(intr.width, intr.height, 50.0)  # the truth is 60 deg
-    r = track_camera(ldr, wrong, refine_focal=True)
-    assert r.method == "rotation"
-    hfov = math.degrees(2 * math.atan(0.5 * intr.width / r.focal_px))
-    assert abs(hfov - 60.0) < 1.5, hfov
-    assert _errors(r, poses)[0] < 1.0
+    geo = resolve_geometry(ldr, wrong, intrinsics_assumed=True)
+    assert geo.tracking.method == "rotation"
+    assert abs(geo.intrinsics.hfov_deg - 60.0) < 1.5, geo.intrinsics.hfov_deg
+    assert "refined" in geo.intrinsics_source and "assumed 50" in geo.intrinsics_source
+    assert _errors(geo.tracking, poses)[0] < 1.0
+    # no depth given: the assumed room, fixed in the world (the camera turns inside it)
+    assert geo.depth_source.startswith("assumed:box-room") and geo.room["source"] == "assumed"
+    box = assumed_room()
+    for n in (0, 11):
+        assert torch.allclose(geo.depth[n], box.depth(Camera(geo.intrinsics, geo.poses[n])))
+    assert not torch.allclose(geo.depth[0], geo.depth[11])
+    assert "tracking" in geo.metadata() and "intrinsics_source" in geo.metadata()
 
 
 @pytest.fixture(scope="module")
@@ -100,20 +108,24 @@ def test_walk_with_depth_recovers_translation_within_5_percent(walk, walk_tracke
     assert not r.warnings
 
 
-def test_opencv_fallback_without_depth_tracks_and_says_its_scale_is_assumed(walk):
-    ldr, _, intr, poses = walk
-    r = track_camera(ldr, intr, use_pycolmap=False)
+def test_opencv_fallback_without_depth_tracks_fits_a_room_and_says_its_scale_is_assumed(walk):
+    ldr, depth, intr, poses = walk
+    geo = resolve_geometry(ldr, intr, use_pycolmap=False)
+    r = geo.tracking
     assert r.method == "sfm:opencv" and r.scale.source in ("floor", "room-assumption")
     assert any("scaled by the" in w for w in r.warnings)
     true, _ = relative_to_first(torch.stack(poses).numpy())
     est = r.poses.numpy()[:, :3, 3]
     best = float((est * true[r.kept, :3, 3]).sum() / (est * est).sum())  # the scale that fits best
     assert 0.5 < best < 2.0  # the assumption gets the order of magnitude, no more
-    est_scaled = r.poses.clone()
-    est_scaled[:, :3, 3] *= best
-    r.poses = est_scaled
+    r.poses = r.poses.clone()
+    r.poses[:, :3, 3] *= best
     rot, trans = _errors(r, poses)
     assert rot < 1.0 and trans < 0.05 * SCENE_SCALE_M, (rot, trans)
+    # the room fitted to the sparse points gives depth consistent with the truth up to that scale
+    assert geo.depth_source.startswith("room-fit:") and geo.room["source"] == "fitted"
+    ratio = geo.depth / depth[geo.keep]
+    assert float(((ratio / ratio.median()) - 1).abs().median()) < 0.05
 
 
 def test_sparse_points_fit_the_room_and_give_its_depth(walk, walk_tracked):
