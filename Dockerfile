@@ -12,6 +12,7 @@ FROM scratch AS sources
 WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY core ./core
+COPY jobs ./jobs
 COPY service ./service
 COPY worker ./worker
 COPY cli ./cli

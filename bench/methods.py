@@ -5,15 +5,16 @@ Families (all read the same capture directory through the engine's `load_capture
              (DiffusionLight-style); with the oracle prior it is the TRUE map at that point,
              i.e. the best any single env map can do.
 * per-probe  the prior's estimate at each held-out probe independently, no distillation
-             (the paper's "Ours-sampling" analogue). Only for priors that can answer at an
-             arbitrary point directly (the reprojection prior's `envmaps`); with the oracle it
-             would be the ground truth itself, so it is not run.
+             (the paper's "Ours-sampling" analogue). Only for priors that declare the envmaps
+             capability (core.priors.base.PriorCapabilities; the reprojection prior); with the
+             oracle it would be the ground truth itself, so it is not run.
 * field      a light field distilled by the engine's `run_job` (mlp = the paper's, grid = the
              paper's "w/o MLP" 3x3x3 ablation, trunk = the engine's faster field), queried
-             exactly (`LightFieldArtefact.envmaps`) or through the baked lattice (`core.engine.bake`).
+             exactly (`LightFieldArtefact.envmaps`) or through the baked lattice (`core.fields.bake`).
 
-Ablations are `DistillConfig` overrides: e.g. uniform exposure sampling is the engine's
-`ev_schedule="uniform"` (ev drawn uniformly in [ev_min, 0] per step instead of the
+Budgets and ablations are overrides of the draft preset's EngineConfig (dotted keys, e.g.
+"distill.n_probes" or "field.mlp.width"): uniform exposure sampling is the engine's
+`distill.ev_schedule="uniform"` (ev drawn uniformly in [ev_min, 0] per step instead of the
 0 -> ev_min sweep).
 """
 from __future__ import annotations
@@ -27,8 +28,8 @@ from typing import Any, Literal
 import torch
 
 from bench.suite.measure import Measurement, measured
-from bench.suite.simulated import SERIES_HEIGHT, SuiteData, nearest_frame
-from core.engine.config import DistillConfig
+from bench.suite.simulated import SERIES_HEIGHT, SuiteData
+from core.engine.config import EngineConfig
 from core.envmap import resize_envmap
 
 Family = Literal["global", "per-probe", "field"]
@@ -40,42 +41,54 @@ class Method:
     family: Family
     group: str  # baseline | paper | budget | ablation | query | upper-bound
     description: str
-    prior: Literal["reprojection", "oracle", "diffusion"] = "reprojection"
+    prior: str = "reprojection"  # a registered prior (core.priors.registry)
     prior_weights: str | None = None  # local model directory (diffusion prior only)
     field: str | None = None
-    overrides: tuple[tuple[str, Any], ...] = ()  # DistillConfig overrides
+    overrides: tuple[tuple[str, Any], ...] = ()  # EngineConfig overrides by dotted key
     exposure: Literal["sweep", "uniform"] = "sweep"
     query: Literal["exact", "baked"] = "exact"
 
-    def config(self, base: DistillConfig) -> DistillConfig:
-        data = {**base.model_dump(), **dict(self.overrides), "name": self.name}
-        if self.field is not None:
-            data["field_kind"] = self.field
-        data["ev_schedule"] = self.exposure
-        return DistillConfig.model_validate(data)
+    def config(self, base: EngineConfig) -> EngineConfig:
+        cfg = base.with_overrides({**dict(self.overrides), "name": self.name, "distill.ev_schedule": self.exposure})
+        return cfg.with_field_kind(self.field)
 
     @property
     def training_key(self) -> tuple:
         """Methods that differ only in the query mode share one distillation."""
         return (self.family, self.prior, self.prior_weights, self.field, self.overrides, self.exposure)
 
-    def describe(self, base: DistillConfig) -> dict:
-        cfg = self.config(base)
+    def describe(self, base: EngineConfig) -> dict:
+        summary = config_summary(self.config(base))
         out = {"family": self.family, "group": self.group, "prior": self.prior, "description": self.description}
         if self.family == "field":
-            out.update({"field": cfg.field_kind, "iterations": cfg.iterations, "n_probes": cfg.n_probes,
-                        "work_height": cfg.work_height, "field_width": cfg.field_width, "field_layers": cfg.field_layers,
-                        "exposure": self.exposure, "query": self.query})
+            out.update({"field": summary["field_kind"], "iterations": summary["iterations"], "n_probes": summary["n_probes"],
+                        "work_height": summary["work_height"], "field_width": summary["field_width"],
+                        "field_layers": summary["field_layers"], "exposure": self.exposure, "query": self.query})
         else:
-            out.update({"work_height": cfg.work_height, "prior_env_height": cfg.prior_env_height})
+            out.update({"work_height": summary["work_height"], "prior_env_height": summary["prior_env_height"]})
         return out
+
+
+# width / depth settings of the network field kinds, for the reports
+NETWORK_SIZE_KEYS = {"mlp": ("width", "layers"), "trunk": ("trunk_width", "trunk_layers")}
+
+
+def config_summary(cfg: EngineConfig) -> dict:
+    """The flat facts reports show about a distillation config."""
+    size = NETWORK_SIZE_KEYS.get(cfg.field.kind)
+    section = cfg.field.section()
+    return {"name": cfg.name, "field_kind": cfg.field.kind,
+            "field_width": getattr(section, size[0]) if size else None,
+            "field_layers": getattr(section, size[1]) if size else None,
+            "iterations": cfg.distill.iterations, "n_probes": cfg.distill.n_probes, "work_height": cfg.distill.work_height,
+            "prior_env_height": cfg.prior_settings("reprojection").get("env_height")}
 
 
 @dataclass(frozen=True)
 class Budget:
     """The distillation budgets of one bench mode. `base` is the reference MLP run."""
 
-    base: DistillConfig
+    base: EngineConfig
     iterations: tuple[int, ...]
     widths: tuple[tuple[int, int], ...]  # (width, layers)
     work_heights: tuple[int, ...]
@@ -109,22 +122,25 @@ def sweep_methods(budget: Budget) -> list[Method]:
     """Budgets of the MLP field and the paper's ablations (reprojection prior)."""
     b = budget.base
     out: list[Method] = []
+    mlp = b.field.section("mlp")
     for it in budget.iterations:
-        if it != b.iterations:
-            out.append(Method(f"mlp-it{it}", "field", "budget", f"MLP, {it} iterations", field="mlp", overrides=(("iterations", it),)))
+        if it != b.distill.iterations:
+            out.append(Method(f"mlp-it{it}", "field", "budget", f"MLP, {it} iterations", field="mlp",
+                              overrides=(("distill.iterations", it),)))
     for width, layers in budget.widths:
-        if (width, layers) != (b.field_width, b.field_layers):
+        if (width, layers) != (mlp.width, mlp.layers):
             out.append(Method(f"mlp-w{width}x{layers}", "field", "budget", f"MLP {width} wide x {layers} layers", field="mlp",
-                              overrides=(("field_width", width), ("field_layers", layers))))
+                              overrides=(("field.mlp.width", width), ("field.mlp.layers", layers))))
     for wh in budget.work_heights:
-        if wh != b.work_height:
+        if wh != b.distill.work_height:
             out.append(Method(f"mlp-res{wh}", "field", "budget", f"MLP, frames at {wh} rows (ball ~{wh // 4} px)", field="mlp",
-                              overrides=(("work_height", wh),)))
+                              overrides=(("distill.work_height", wh),)))
     for n in budget.probes:
-        if n != b.n_probes and n != 1:
-            out.append(Method(f"mlp-probes{n}", "field", "budget", f"MLP, {n} probes per step", field="mlp", overrides=(("n_probes", n),)))
+        if n != b.distill.n_probes and n != 1:
+            out.append(Method(f"mlp-probes{n}", "field", "budget", f"MLP, {n} probes per step", field="mlp",
+                              overrides=(("distill.n_probes", n),)))
     out.append(Method("abl-1probe", "field", "ablation", "MLP, one probe per step instead of nine (paper's ablation)", field="mlp",
-                      overrides=(("n_probes", 1),)))
+                      overrides=(("distill.n_probes", 1),)))
     out.append(Method("abl-uniform-ev", "field", "ablation", "MLP, uniform exposure sampling instead of the sweep (paper's ablation)",
                       field="mlp", exposure="uniform"))
     return out
@@ -158,18 +174,18 @@ def _timed_queries(run: "MethodRun", fn, calls) -> list:
     return out
 
 
-def _bound_prior(suite: SuiteData, cfg: DistillConfig):
+def _bound_prior(suite: SuiteData, cfg: EngineConfig):
     """The reprojection prior bound to the capture at the working resolution (as run_job does)."""
-    from core.engine.capture import load_capture
-    from core.priors.reprojection import ReprojectionPrior
+    from core.capture.load import load_capture
+    from core.priors.registry import build_prior
 
-    work = load_capture(suite.capture_dir).resized(cfg.work_height)
-    prior = ReprojectionPrior(env_height=cfg.prior_env_height)
+    work = load_capture(suite.capture_dir).resized(cfg.distill.work_height)
+    prior = build_prior("reprojection", cfg.prior_settings("reprojection"))
     prior.bind(work)
-    return prior, work
+    return prior
 
 
-def run_global(method: Method, suite: SuiteData, base: DistillConfig) -> MethodRun:
+def run_global(method: Method, suite: SuiteData, base: EngineConfig) -> MethodRun:
     from core.sim.render import render_envmap
 
     run = MethodRun(method)
@@ -179,9 +195,9 @@ def run_global(method: Method, suite: SuiteData, base: DistillConfig) -> MethodR
         if method.prior == "oracle":
             env = render_envmap(suite.scene, suite.global_point, suite.global_time, h)
         else:
-            prior, work = _bound_prior(suite, cfg)
-            frame = nearest_frame(suite.global_time, work.fps, work.num_frames)
-            env = prior.envmaps(torch.tensor([suite.global_point], dtype=torch.float32), frame)[0]
+            prior = _bound_prior(suite, cfg)
+            env = prior.envmaps(torch.tensor([suite.global_point], dtype=torch.float32), suite.global_time,
+                                prior.env_height)[0]
     run.prepare = m
     maps = _timed_queries(run, lambda: resize_envmap(env, h), [()] * len(suite.probes))
     run.envmaps = torch.stack(maps)
@@ -192,17 +208,15 @@ def run_global(method: Method, suite: SuiteData, base: DistillConfig) -> MethodR
     return run
 
 
-def run_per_probe(method: Method, suite: SuiteData, base: DistillConfig) -> MethodRun:
+def run_per_probe(method: Method, suite: SuiteData, base: EngineConfig) -> MethodRun:
     run = MethodRun(method)
     cfg = method.config(base)
     with measured() as m:
-        prior, work = _bound_prior(suite, cfg)
+        prior = _bound_prior(suite, cfg)
     run.prepare = m
 
     def estimate(x, t, height):
-        frame = nearest_frame(float(t), work.fps, work.num_frames)
-        env = prior.envmaps(torch.tensor([x], dtype=torch.float32), frame)[0]
-        return resize_envmap(env, height)
+        return prior.envmaps(torch.tensor([x], dtype=torch.float32), float(t), height)[0]
 
     maps = _timed_queries(run, estimate, [(p.x, p.t, suite.eval_height) for p in suite.probes])
     run.envmaps = torch.stack(maps)
@@ -210,11 +224,10 @@ def run_per_probe(method: Method, suite: SuiteData, base: DistillConfig) -> Meth
     return run
 
 
-def distill_artefact(method: Method, suite: SuiteData, base: DistillConfig, out_dir: Path) -> tuple[Path, Measurement, dict]:
+def distill_artefact(method: Method, suite: SuiteData, base: EngineConfig, out_dir: Path) -> tuple[Path, Measurement, dict]:
     """run_job on the suite's capture directory; returns (artefact dir, measurement, training info)."""
-    import json
 
-    from core.engine.distill import run_job
+    from core.engine import run_job
     from core.engine.params import JobParams
 
     cfg = method.config(base)
@@ -224,12 +237,12 @@ def distill_artefact(method: Method, suite: SuiteData, base: DistillConfig, out_
 
         prior = OracleSimPrior(suite.scene)
     if method.prior == "diffusion":
-        params = JobParams(preset="draft", prior="diffusion", prior_weights=method.prior_weights, field=cfg.field_kind, seed=0)
+        params = JobParams(preset="draft", prior="diffusion", prior_weights=method.prior_weights, field=cfg.field.kind, seed=0)
     else:
-        params = JobParams(preset="draft", prior="reprojection", field=cfg.field_kind, seed=0)
+        params = JobParams(preset="draft", prior="reprojection", field=cfg.field.kind, seed=0)
     with measured() as m:
-        path = run_job(suite.capture_dir, None, params, out_dir, prior=prior, config=cfg)
-    meta = json.loads((Path(path) / "lightfield.json").read_text())
+        result = run_job(suite.capture_dir, None, params, out_dir, prior=prior, config=cfg)
+    meta = result.artefact.meta
     training = meta.get("training", {})
     info = {
         "uses_time": meta.get("time", {}).get("uses_time"),
@@ -238,17 +251,17 @@ def distill_artefact(method: Method, suite: SuiteData, base: DistillConfig, out_
         "stage_timings": training.get("stage_timings"),
         "weights_bytes": meta.get("weights", {}).get("bytes"),
     }
-    return Path(path), m, info
+    return result.path, m, info
 
 
 def query_field(run: MethodRun, artefact_dir: Path, suite: SuiteData) -> None:
     """Fill run.envmaps / series / query_ms from an artefact, exactly or through a bake."""
-    from core.engine.artefact import LightFieldArtefact
+    from core.fields.artefact import LightFieldArtefact
 
     art = LightFieldArtefact.load(artefact_dir)
     source = art
     if run.method.query == "baked":
-        from core.engine.bake import bake
+        from core.fields.bake import bake
 
         with measured() as mb:
             source = bake(art)
@@ -267,7 +280,7 @@ def query_field(run: MethodRun, artefact_dir: Path, suite: SuiteData) -> None:
         run.series.append(source.envmaps(xs, ts, SERIES_HEIGHT)[0])
 
 
-def run_method(method: Method, suite: SuiteData, base: DistillConfig, workdir: Path, artefacts: dict) -> MethodRun:
+def run_method(method: Method, suite: SuiteData, base: EngineConfig, workdir: Path, artefacts: dict) -> MethodRun:
     """Run one method on one suite; exceptions become `run.error` (reported, never hidden).
 
     `artefacts` maps training keys to (artefact dir, measurement, info) so a baked query

@@ -48,7 +48,7 @@ def make_clip(out: Path, frames: int, width: int, height: int, unique: int) -> d
 
 
 def bench_preset(name: str, unique: int, workdir: Path) -> dict:
-    from core.engine.distill import run_job
+    from core.engine import run_job
     from core.engine.params import JobParams
 
     frames, w, h = SIZES[name]
@@ -57,9 +57,9 @@ def bench_preset(name: str, unique: int, workdir: Path) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        art = run_job(clip, None, JobParams(preset=name), workdir / f"{name}-out")
+        result = run_job(clip, None, JobParams(preset=name), workdir / f"{name}-out")
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    meta = json.loads((art / "lightfield.json").read_text())
+    meta = result.artefact.meta
     tr = meta["training"]
     return {
         "preset": name, "frames": frames, "width": w, "height": h, **info,

@@ -33,10 +33,10 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import torch  # noqa: E402
 
-from core.engine.artefact import LightFieldArtefact, save_artefact  # noqa: E402
-from core.engine.bake import bake  # noqa: E402
 from core.envmap import integrate  # noqa: E402
-from core.fields import SceneBounds, build_field, field_preset  # noqa: E402
+from core.fields import FieldConfig, SceneBounds, build_field  # noqa: E402
+from core.fields.artefact import LightFieldArtefact, save_artefact  # noqa: E402
+from core.fields.bake import bake  # noqa: E402
 from core.metrics import si_rmse  # noqa: E402
 
 ROOM = SceneBounds((-2.0, 0.0, -4.0), (2.0, 2.5, 0.0), t0=0.0, t1=4.0)
@@ -73,7 +73,7 @@ def fit(kind: str, steps: int, batch: int, seed: int = 0):
     """Log-space regression of a fresh field onto the analytic room; returns (field, stats)."""
     torch.manual_seed(seed)
     g = torch.Generator().manual_seed(seed)
-    field = build_field(field_preset(kind, uses_time=True), ROOM)
+    field = build_field(FieldConfig(kind=kind, uses_time=True), ROOM)
     lr = 0.05 if kind == "grid" else 2e-3
     opt = torch.optim.Adam(field.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
@@ -147,7 +147,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for kind in args.kinds.split(","):
             field, stats = fit(kind, steps, batch=2048)
-            art = LightFieldArtefact.load(save_artefact(Path(tmp) / kind, field, {}))
+            art = save_artefact(Path(tmp) / kind, field, {})
             entry = {**stats, "parameters": sum(p.numel() for p in field.parameters()), "exact": {}, "baked": {}}
             for h in HEIGHTS:
                 entry["exact"][f"{h}x{2 * h}"] = time_queries(lambda x, t, h=h: art.envmap(x, t, h), probes, reps[h])

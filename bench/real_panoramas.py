@@ -81,15 +81,13 @@ def ldr_photo(hdr: torch.Tensor) -> torch.Tensor:
 
 
 def estimate_reprojection(ldr: torch.Tensor, intr) -> torch.Tensor:
-    from core.engine.capture import capture_from_arrays
-    from core.envmap import resize_envmap
+    from core.capture.load import capture_from_arrays
     from core.priors.reprojection import ReprojectionPrior
 
     capture = capture_from_arrays(ldr, None, intrinsics=intr)  # assumed box-room depth
     prior = ReprojectionPrior(env_height=PRIOR_ENV_HEIGHT)
     prior.bind(capture)
-    env = prior.envmaps(torch.zeros(1, 3), 0)[0]  # the camera centre (world = camera frame)
-    return resize_envmap(env, GT_HEIGHT)
+    return prior.envmaps(torch.zeros(1, 3), 0.0, GT_HEIGHT)[0]  # the camera centre (world = camera frame)
 
 
 def estimate_mean_colour(ldr: torch.Tensor) -> torch.Tensor:

@@ -15,7 +15,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from bench.methods import Budget, core_methods, sweep_methods
+from bench.methods import Budget, config_summary, core_methods, sweep_methods
 from bench.suite.measure import machine_info
 
 SUITE_NAMES = ("spatial", "temporal", "moving-camera", "hard")
@@ -42,9 +42,9 @@ class Mode:
     note: str
 
     def budget(self) -> Budget:
-        from core.engine.config import preset
+        from core.engine.presets import preset
 
-        base = preset("draft", iterations=self.base_iterations)
+        base = preset("draft").with_overrides({"distill.iterations": self.base_iterations})
         return Budget(base, self.iterations, self.widths, self.work_heights, self.probes)
 
 
@@ -99,10 +99,10 @@ def resolve_mode(opts: BenchOptions) -> Mode:
         mode = replace(mode, base_iterations=n, iterations=(max(1, n // 2), n, 2 * n))
     if opts.sweep_suites is not None:
         mode = replace(mode, sweep_suites=tuple(opts.sweep_suites))
-    from core.engine.config import PRESETS
+    from core.engine.presets import preset
 
     sweep = ", ".join(mode.sweep_suites) if mode.sweep_suites else "no suite"
-    note = mode.note.format(it=mode.base_iterations, draft=PRESETS["draft"].iterations, sweep=sweep)
+    note = mode.note.format(it=mode.base_iterations, draft=preset("draft").distill.iterations, sweep=sweep)
     return replace(mode, note=note)
 
 
@@ -112,7 +112,7 @@ def run_simulated(mode: Mode, opts: BenchOptions, workdir: Path) -> dict:
 
     budget = mode.budget()
     cache = opts.cache_dir or default_cache_dir()
-    out: dict = {"budget": {"base": budget.base.model_dump(), "iterations": budget.iterations, "widths": budget.widths,
+    out: dict = {"budget": {"base": config_summary(budget.base), "iterations": budget.iterations, "widths": budget.widths,
                             "work_heights": budget.work_heights, "probes": budget.probes},
                  "sweep_suites": list(mode.sweep_suites), "suites": {}}
     for name in opts.suites:

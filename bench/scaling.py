@@ -32,7 +32,7 @@ QUERY_HEIGHTS = {"quick": [16, 32, 64, 128], "full": [16, 32, 64, 128, 256, 512]
 def synthetic_capture(frames: int, height: int):
     import torch
 
-    from core.engine.capture import capture_from_arrays
+    from core.capture.load import capture_from_arrays
 
     width = height * 4 // 3
     g = torch.Generator().manual_seed(frames * 1000 + height)
@@ -46,16 +46,18 @@ def run_point(point: dict) -> dict:
     the baseline whose peak RSS is subtracted, so memory includes the capture itself)."""
     import torch
 
-    from core.engine.config import preset
-    from core.engine.distill import distill, scene_bounds
-    from core.priors.reprojection import ReprojectionPrior
+    from core.engine.distill import distill
+    from core.engine.presets import preset
+    from core.engine.scene import scene_bounds
+    from core.priors.registry import build_prior
 
     if point["iterations"] == 0:
         return {"seconds": 0.0, "cpu_seconds": 0.0}
     capture = synthetic_capture(point["frames"], point["height"])
-    cfg = preset("draft", iterations=point["iterations"], n_probes=point["probes"], work_height=point["height"], checkpoint_every=10**6)
+    cfg = preset("draft").with_overrides({"distill": dict(iterations=point["iterations"], n_probes=point["probes"],
+                                                          work_height=point["height"], checkpoint_every=10**6)})
     t0, c0 = time.perf_counter(), time.process_time()
-    prior = ReprojectionPrior(env_height=cfg.prior_env_height)
+    prior = build_prior("reprojection", cfg.prior_settings("reprojection"))
     prior.bind(capture)
     result = distill(capture, prior, cfg, uses_time=point["frames"] > 1, bounds=scene_bounds(capture))
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -102,17 +104,15 @@ def query_latency(heights: list[int], repeats: int = 3) -> dict:
 
     import torch
 
-    from core.engine.artefact import LightFieldArtefact, save_artefact
-    from core.engine.bake import bake
-    from core.engine.config import preset
-    from core.engine.distill import build_field_config
+    from core.engine.presets import preset
     from core.fields import SceneBounds, build_field
+    from core.fields.artefact import save_artefact
+    from core.fields.bake import bake
 
-    cfg = preset("draft")
     bounds = SceneBounds(lo=(-2.5, -1.5, -4.0), hi=(2.5, 1.5, 0.0), t0=0.0, t1=2.0)
-    field = build_field(build_field_config(cfg, "mlp", True), bounds)
+    field = build_field(preset("draft").field.with_kind("mlp"), bounds)
     with tempfile.TemporaryDirectory() as tmp:
-        art = LightFieldArtefact.load(save_artefact(Path(tmp) / "a", field, {}))
+        art = save_artefact(Path(tmp) / "a", field, {})
         t0 = time.perf_counter()
         baked = bake(art)
         bake_s = time.perf_counter() - t0

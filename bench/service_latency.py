@@ -48,19 +48,19 @@ def timed(fn, probes: list[str], reps: int) -> dict:
 
 
 def make_artefact(kind: str, out: Path) -> Path:
-    from core.engine.artefact import save_artefact
-    from core.fields import SceneBounds, build_field, field_preset
+    from core.fields import FieldConfig, SceneBounds, build_field
+    from core.fields.artefact import save_artefact
 
     bounds = SceneBounds((-2.5, -1.5, -4.0), (2.5, 1.5, 0.5), 0.0, 0.0)
-    field = build_field(field_preset(kind, uses_time=False), bounds)
-    return save_artefact(out, field, {"bench": "service_latency"})
+    field = build_field(FieldConfig(kind=kind, uses_time=False), bounds)
+    return save_artefact(out, field, {"bench": "service_latency"}).path
 
 
 def register_job(store, data_dir: Path, artefact: Path) -> str:
     """A succeeded job record owning a copy of `artefact` (what a worker would leave)."""
+    from jobs.storage import JobPaths, new_job_id
+    from jobs.store import JobRecord
     from service.auth import tenant_hash
-    from service.storage import JobPaths, new_job_id
-    from service.store import JobRecord
 
     job = new_job_id()
     paths = JobPaths.for_job(data_dir, tenant_hash(TENANT), job)
@@ -83,9 +83,9 @@ def main(argv=None) -> int:
     import httpx
     import torch
 
-    from core.engine.artefact import LightFieldArtefact
+    from core.fields.artefact import LightFieldArtefact
+    from jobs.store import JobStore, connect
     from service.processes import free_port, spawn, start_redis, stop
-    from service.store import JobStore, connect
 
     torch.set_num_threads(args.threads)
     heights = [int(h) for h in args.heights.split(",")]

@@ -96,14 +96,13 @@ def _view(filename: str) -> tuple[float, float]:
 
 def _estimate(video: Path, params: dict, workdir: Path, iterations: int, work_height: int) -> torch.Tensor:
     """The product: run_job on the uploaded video, then the env map at the origin at t = 0."""
-    from core.engine.artefact import LightFieldArtefact
-    from core.engine.config import preset
-    from core.engine.distill import run_job
+    from core.engine.job import run_job
     from core.engine.params import JobParams
+    from core.engine.presets import preset
 
-    cfg = preset("draft", iterations=iterations, work_height=work_height)
-    out = run_job(video, None, JobParams.model_validate({"preset": "draft", "fps": FPS, **params}), workdir, config=cfg)
-    env, _ = LightFieldArtefact.load(out).envmap(torch.zeros(3), 0.0, GT_HEIGHT)
+    cfg = preset("draft").with_overrides({"distill.iterations": iterations, "distill.work_height": work_height})
+    result = run_job(video, None, JobParams.model_validate({"preset": "draft", "fps": FPS, **params}), workdir, config=cfg)
+    env, _ = result.artefact.envmap(torch.zeros(3), 0.0, GT_HEIGHT)
     return env
 
 

@@ -24,18 +24,16 @@ def _job(ctx, height: int) -> str:
     import torch
 
     from core.camera import Intrinsics
-    from core.engine.artefact import save_artefact
-    from core.engine.config import preset
-    from core.fields import FieldConfig, SceneBounds, build_field
-    from core.fields.config import MLPSettings
+    from core.engine.presets import preset
+    from core.fields import SceneBounds, build_field
+    from core.fields.artefact import save_artefact
+    from jobs.capture_preview import CapturePreview, save_preview
+    from jobs.storage import JobPaths, new_job_id
+    from jobs.store import JobRecord
     from service.auth import LOCAL_TENANT, tenant_hash
-    from service.capture_preview import CapturePreview, save_preview
-    from service.storage import JobPaths, new_job_id
-    from service.store import JobRecord
 
     width, frames = height * 4 // 3, 16
-    cfg = preset("draft")
-    field = build_field(FieldConfig(kind="mlp", mlp=MLPSettings(width=cfg.field_width, layers=cfg.field_layers)),
+    field = build_field(preset("draft").field.with_kind("mlp"),
                         SceneBounds((-3.0, -2.0, -5.0), (3.0, 2.0, 0.5), t0=0.0, t1=(frames - 1) / 8.0))
     torch.manual_seed(0)
     job = new_job_id()
@@ -73,8 +71,8 @@ def main(argv=None) -> int:
 
     from fastapi.testclient import TestClient
 
+    from jobs.capture_preview import PREVIEW_MAX_HEIGHT
     from service.app import create_app
-    from service.capture_preview import PREVIEW_MAX_HEIGHT
     from service.config import ServiceSettings
     from service.processes import start_redis
 

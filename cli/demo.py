@@ -12,7 +12,7 @@
    whole room: the field's own maps averaged over the probes), so the table shows what
    querying the field per point buys; stop the service.
 
-`--no-service` runs the same job in-process (`core.engine.distill.run_job`, no subprocesses)
+`--no-service` runs the same job in-process (`core.engine.run_job`, no subprocesses)
 and writes the same outputs.
 """
 from __future__ import annotations
@@ -22,6 +22,8 @@ import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+
+from cli import choices
 
 HELP = "Simulate a room, estimate its light field through the embedded service, and compare with the truth."
 SUITE = "spatial"
@@ -33,7 +35,7 @@ PREVIEW_ENV_HEIGHT = 32
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", default="demo-output", help="output directory (default ./demo-output)")
-    p.add_argument("--preset", choices=["draft", "standard", "paper"], default="draft")
+    p.add_argument("--preset", choices=choices.PRESETS, metavar="PRESET", default="draft", help="one of %(choices)s")
     p.add_argument("--iterations", type=int, default=None, help="override the preset's step count")
     p.add_argument("--no-service", action="store_true",
                    help="run the job in this process instead of through the embedded service (no subprocesses)")
@@ -211,21 +213,20 @@ class _LocalRun:
         import warnings
 
         from cli.estimate import ProgressBar
-        from core.engine.artefact import LightFieldArtefact
-        from core.engine.config import preset
-        from core.engine.distill import run_job
+        from core.engine import run_job
         from core.engine.params import JobParams
+        from core.engine.presets import preset
 
         params = JobParams.model_validate(upload.params)
         overrides = _distill_overrides(self.args)
-        config = preset(params.preset, **overrides) if overrides else None
+        config = preset(params.preset).with_overrides({"distill": overrides}) if overrides else None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the service path does not show them either
-            self.artefact_dir = run_job(upload.file, upload.depth, params, self.out / "lightfield", config=config,
-                                        progress=None if self.args.quiet else ProgressBar(),
-                                        checkpoint_dir=self.out / "lightfield.checkpoint")
+            result = run_job(upload.file, upload.depth, params, self.out / "lightfield", config=config,
+                             progress=None if self.args.quiet else ProgressBar(),
+                             checkpoint_dir=self.out / "lightfield.checkpoint")
         self.upload = upload
-        self._art = LightFieldArtefact.load(self.artefact_dir)
+        self.artefact_dir, self._art = result.path, result.artefact
 
     def save_envmap(self, x, t: float, path: Path) -> str:
         import torch

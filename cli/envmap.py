@@ -43,7 +43,7 @@ def output_format(path: Path, explicit: str | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.engine.artefact import ArtefactError, LightFieldArtefact, QueryError
+    from core.fields.artefact import ArtefactError, LightFieldArtefact, QueryError
     from core.io.envmap_io import save_envmap
     from core.io.limits import MediaError
 
@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         artefact = LightFieldArtefact.load(args.artefact)
         if args.fast:
-            from core.engine.bake import load_or_bake
+            from core.fields.bake import load_or_bake
 
             hdr, flags = load_or_bake(artefact).envmap(args.x, args.t, args.height)
         else:

@@ -7,6 +7,8 @@ import sys
 import time
 from pathlib import Path
 
+from cli import choices
+
 HELP = "Estimate a spatiotemporal HDR light field from an image, a video or a simulator capture directory."
 
 
@@ -15,11 +17,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", required=True, help="artefact directory to write")
     p.add_argument("--depth", default=None, help="planar depth in metres: .npz ('depth' [T,H,W] or [H,W]), .exr, 16-bit PNG (mm)")
     p.add_argument("--params", default=None, help="job parameters as a JSON string or file (same schema as the service)")
-    p.add_argument("--preset", choices=["draft", "standard", "paper"], default=None)
-    p.add_argument("--prior", choices=["reprojection", "diffusion"], default=None)
+    p.add_argument("--preset", choices=choices.PRESETS, metavar="PRESET", default=None, help="one of %(choices)s")
+    p.add_argument("--prior", choices=choices.PRIORS, metavar="PRIOR", default=None, help="one of %(choices)s")
     p.add_argument("--prior-weights", default=None, help="local model directory of the diffusion prior")
-    p.add_argument("--temporal", choices=["auto", "on", "off"], default=None)
-    p.add_argument("--field", choices=["mlp", "grid", "trunk"], default=None, help="field kind (default: the preset's)")
+    p.add_argument("--temporal", choices=choices.TEMPORAL_MODES, metavar="MODE", default=None, help="one of %(choices)s")
+    p.add_argument("--field", choices=choices.FIELDS, metavar="KIND", default=None,
+                   help="field kind, one of %(choices)s (default: the preset's)")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--iterations", type=int, default=None, help="override the preset's step count")
     p.add_argument("--resume", dest="resume", action="store_true", default=True,
@@ -70,10 +73,10 @@ def run(args: argparse.Namespace) -> int:
 
     from pydantic import ValidationError
 
-    from core.engine.capture import CaptureError
-    from core.engine.config import preset
-    from core.engine.distill import run_job
+    from core.capture.base import CaptureError
+    from core.engine import run_job
     from core.engine.params import parse_job_params
+    from core.engine.presets import preset
     from core.engine.progress import Cancelled
     from core.io import MediaError
     from core.priors.base import PriorError
@@ -85,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     except (ValidationError, ValueError) as exc:
         print(f"error: invalid parameters: {exc}", file=sys.stderr)
         return 2
-    config = preset(params.preset, iterations=args.iterations) if args.iterations else None
+    config = preset(params.preset).with_overrides({"distill.iterations": args.iterations}) if args.iterations else None
     ckpt = checkpoint_dir_for(out)
     if not args.resume:
         shutil.rmtree(ckpt, ignore_errors=True)
@@ -94,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         with warnings.catch_warnings():  # restores showwarning afterwards
             warnings.simplefilter("always")
             warnings.showwarning = lambda message, *_a, **_k: print(f"warning: {message}", file=sys.stderr)
-            path = run_job(args.input, args.depth, params, out, progress=bar, checkpoint_dir=ckpt, config=config)
+            result = run_job(args.input, args.depth, params, out, progress=bar, checkpoint_dir=ckpt, config=config)
     except (CaptureError, MediaError, PriorError, ValidationError) as exc:
         print(f"\nerror: {exc}", file=sys.stderr)
         return 2
@@ -102,9 +105,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"\ncancelled; resume with the same command (checkpoint in {ckpt})", file=sys.stderr)
         return 130
     shutil.rmtree(ckpt, ignore_errors=True)
-    meta = json.loads((path / "lightfield.json").read_text())
+    meta = result.artefact.meta
     tr = meta.get("training", {})
-    print(json.dumps({"artefact": str(path), "uses_time": meta.get("temporal", {}).get("uses_time"),
+    print(json.dumps({"artefact": str(result.path), "uses_time": meta.get("temporal", {}).get("uses_time"),
                       "iterations": tr.get("iterations"), "final_loss": tr.get("final_loss"),
                       "wall_time_s": tr.get("wall_time_s"), "depth_source": meta.get("capture", {}).get("depth_source")}))
     return 0

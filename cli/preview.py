@@ -21,7 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def capture_params_from_meta(meta: dict):
     """Rebuild the geometry the artefact was estimated with (intrinsics, poses, fps)."""
-    from core.engine.params import CaptureParams
+    from core.capture.params import CaptureParams
 
     cap = meta.get("capture", {})
     k = cap.get("intrinsics") or {}
@@ -37,9 +37,9 @@ def render_preview(artefact_dir, input_path, output, depth=None, points=None, fr
 
     import numpy as np
 
-    from core.engine.artefact import LightFieldArtefact
-    from core.engine.capture import load_capture
-    from core.engine.insertion import insert_objects, parse_points
+    from core.capture.load import load_capture
+    from core.fields.artefact import LightFieldArtefact
+    from core.insertion import insert_objects, parse_points
     from core.io import write_png, write_video
 
     art = LightFieldArtefact.load(artefact_dir)
@@ -68,9 +68,9 @@ def render_preview(artefact_dir, input_path, output, depth=None, points=None, fr
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.engine.artefact import ArtefactError
-    from core.engine.capture import CaptureError
-    from core.engine.insertion import InsertionError
+    from core.capture.base import CaptureError
+    from core.fields.artefact import ArtefactError
+    from core.insertion import InsertionError
     from core.io import MediaError
 
     try:

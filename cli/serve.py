@@ -14,8 +14,9 @@ def run(args) -> int:
     import logging
     import sys
 
+    from jobs.settings import SettingsError
     from service.auth import AuthConfigError
-    from service.config import ServiceSettings, SettingsError
+    from service.config import ServiceSettings
     from service.embedded import serve
     from service.processes import LaunchError
 

@@ -33,8 +33,8 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from core.priors.base import PriorError
-    from core.priors.diffusion.data import TrainingDataError
-    from core.priors.diffusion.train import TrainConfig, TrainConfigError, train_prior
+    from core.training.diffusion.data import TrainingDataError
+    from core.training.diffusion.train import TrainConfig, TrainConfigError, train_prior
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:

@@ -13,11 +13,11 @@ def run(args) -> int:
     import os
     import sys
 
-    from service.config import ServiceSettings, SettingsError
+    from jobs.settings import JobSettings, SettingsError
     from service.processes import worker_command
 
     try:
-        settings = ServiceSettings.from_env()
+        settings = JobSettings.from_env()
     except SettingsError as exc:
         print(f"lightfield worker: {exc}", file=sys.stderr)
         return 2

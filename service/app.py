@@ -9,16 +9,16 @@ from fastapi import FastAPI
 from fastapi.responses import RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
+from jobs.queue import make_celery
+from jobs.store import JobStore, connect
+from service import routes_ui
 from service.auth import KeyRing
 from service.config import ServiceSettings
 from service.context import AppContext
 from service.errors import install_error_handlers
 from service.fieldcache import FieldCache
 from service.metrics import Metrics, MetricsMiddleware
-from service import routes_ui
 from service.routes import health, jobs, lightfield
-from service.store import JobStore, connect
-from worker.celery_config import make_celery
 
 log = logging.getLogger("lightfield.service")
 UI_DIR = Path(__file__).parent / "ui"

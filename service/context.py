@@ -8,12 +8,12 @@ from celery import Celery
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from jobs.storage import is_job_id
+from jobs.store import JobRecord, JobStore
 from service.auth import KeyRing, tenant_hash
 from service.config import ServiceSettings
 from service.errors import NotFound
 from service.fieldcache import FieldCache
-from service.storage import is_job_id
-from service.store import JobRecord, JobStore
 
 
 @dataclass
@@ -23,7 +23,8 @@ class AppContext:
     store: JobStore
     celery: Celery
     fields: FieldCache
-    # upload checks decode media: one at a time per process keeps memory bounded
+    # upload checks hold a file (up to its byte limit) and one decoded video frame: one at a
+    # time per process keeps memory bounded
     validation_slots: asyncio.Semaphore = field(default_factory=lambda: asyncio.Semaphore(1))
 
 

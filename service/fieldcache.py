@@ -16,9 +16,9 @@ from typing import Any, Callable
 
 @dataclass
 class CachedField:
-    artefact: Any  # core.engine.artefact.LightFieldArtefact
+    artefact: Any  # core.fields.artefact.LightFieldArtefact
     lock: threading.Lock = field(default_factory=threading.Lock)
-    baked: Any = None  # core.engine.bake.BakedField, loaded (or baked) on the first fast query
+    baked: Any = None  # core.fields.bake.BakedField, loaded (or baked) on the first fast query
 
 
 class FieldCache:
@@ -56,6 +56,6 @@ class FieldCache:
 
 
 def _load_artefact(directory: Path):
-    from core.engine.artefact import LightFieldArtefact
+    from core.fields.artefact import LightFieldArtefact
 
     return LightFieldArtefact.load(directory)

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from service.store import TERMINAL_STATES
+from jobs.store import TERMINAL_STATES
 
 
 

@@ -9,8 +9,8 @@ from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import GaugeMetricFamily
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from service.store import JobStore
-from worker.celery_config import QUEUE
+from jobs.queue import QUEUE
+from jobs.store import JobStore
 
 log = logging.getLogger("lightfield.service")
 

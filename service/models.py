@@ -6,8 +6,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from jobs.store import JobRecord, JobState
 from service.errors import ErrorDetail
-from service.store import JobRecord, JobState
 
 EnvmapFormat = Literal["exr", "hdr", "png", "npy"]
 Quality = Literal["exact", "fast"]

@@ -128,13 +128,15 @@ def start_redis(data_dir: Path, port: int | None = None, timeout_s: float = 15.0
     raise LaunchError(f"redis-server did not answer within {timeout_s} s")
 
 
-def worker_command(name: str = "worker", concurrency: int = 1, loglevel: str = "INFO") -> list[str]:
-    """One Celery worker running one job at a time (one job per GPU).
+def worker_command(name: str = "worker", concurrency: int = 1, loglevel: str = "INFO",
+                   app: str = "worker.app") -> list[str]:
+    """One Celery worker running one job at a time (one job per GPU). `app` is the module
+    holding the Celery app (tests start workers whose runner has a scripted engine).
 
     The thread pool with one thread, not the solo pool: a solo worker runs the task on the
     thread that answers remote control, so it could not answer /readyz's ping mid-job.
     """
-    return [sys.executable, "-m", "celery", "-A", "worker.app", "worker", "--pool=threads",
+    return [sys.executable, "-m", "celery", "-A", app, "worker", "--pool=threads",
             f"--concurrency={concurrency}", f"--loglevel={loglevel}", "-n", f"{name}@%h",
             "--without-gossip", "--without-mingle"]
 

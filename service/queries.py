@@ -71,7 +71,7 @@ def _numpy(hdr) -> np.ndarray:
 @contextmanager
 def _as_invalid_input():
     """The engine's QueryError (a query it refuses) becomes the API's 422 invalid_query."""
-    from core.engine.artefact import QueryError
+    from core.fields.artefact import QueryError
 
     try:
         yield
@@ -85,16 +85,9 @@ def envmap(cf: CachedField, x, t: float, height: int) -> tuple[np.ndarray, EvalF
     return _numpy(hdr), _flags(flags)
 
 
-def fast_available() -> bool:
-    """Whether the engine offers a baked (precomputed grid) fast path."""
-    import importlib.util
-
-    return importlib.util.find_spec("core.engine.bake") is not None
-
-
 def envmap_with_quality(cf: CachedField, x, t: float, height: int, quality: str):
-    """(hdr, flags, quality actually used). 'fast' falls back to exact without a baked grid."""
-    if quality == "fast" and fast_available():
+    """(hdr, flags, quality used): 'fast' reads the baked lattice, anything else the field."""
+    if quality == "fast":
         return (*baked_envmap(cf, x, t, height), "fast")
     return (*envmap(cf, x, t, height), "exact")
 
@@ -102,7 +95,7 @@ def envmap_with_quality(cf: CachedField, x, t: float, height: int, quality: str)
 def baked_envmap(cf: CachedField, x, t: float, height: int) -> tuple[np.ndarray, EvalFlags]:
     """Interpolated from the baked lattice (the worker bakes it after distillation; an
     artefact without one is baked here once and saved beside it, atomically)."""
-    from core.engine.bake import load_or_bake
+    from core.fields.bake import load_or_bake
 
     with _as_invalid_input(), cf.lock:
         if cf.baked is None:

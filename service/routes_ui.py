@@ -2,9 +2,9 @@
 placement along a pixel's ray, and chrome/diffuse balls composited into a frame.
 
 All four read the capture preview the worker stores beside a succeeded job's artefact
-(service.capture_preview) and use the same auth, ownership and `not_ready` rules as
+(service.stored_preview) and use the same auth, ownership and `not_ready` rules as
 /lightfield/{id}. Geometry lives in service.ui_probes and core; rendering in
-core.engine.insertion. Included by service.app.create_app.
+core.insertion. Included by service.app.create_app.
 """
 from __future__ import annotations
 
@@ -14,13 +14,13 @@ from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 
 from core.conventions import CONVENTIONS_SUMMARY
-from service.capture_preview import PreviewError, StoredPreview, load_preview
+from jobs.storage import JobPaths
 from service.context import AppContext, Tenant, get_ctx, get_tenant, owned_job
 from service.errors import Conflict, ErrorBody, InvalidInput, NotFound
 from service.fieldcache import CachedField
 from service.models import Flags
 from service.queries import check_t, parse_x
-from service.storage import JobPaths
+from service.stored_preview import PreviewError, StoredPreview, load_preview
 from service.ui_probes import ProbeError, locate, place
 
 router = APIRouter(tags=["ui"])
@@ -161,7 +161,7 @@ def _insertion_frame(preview: StoredPreview, index: int):
     INSERTION_MAX_HEIGHT rows (the engine's own resize: area-averaged colour, nearest depth)."""
     import torch
 
-    from core.engine.capture import Capture
+    from core.capture.base import Capture
 
     capture = Capture(frames=torch.from_numpy(preview.frame(index).astype(np.float32) / 255.0)[None],
                       depth=torch.from_numpy(preview.depth_map(index))[None],
@@ -176,7 +176,7 @@ def _render_insertion(preview: StoredPreview, cf: CachedField, index: int, point
     import torch
 
     from core.chrome_ball import BallPlacementError
-    from core.engine.insertion import InsertionError, insert_objects, parse_points
+    from core.insertion import InsertionError, insert_objects, parse_points
     from core.io.images import encode_png
 
     try:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# The ball size core.engine.insertion draws (its place_objects default); the default
+# The ball size core.insertion draws (its place_objects default); the default
 # depth must leave room for a ball of this size.
 INSERTION_DIAMETER_FRACTION = 0.18
 FRONT_GAP = 0.25  # extra clearance in ball radii between the ball and the surface
@@ -47,7 +47,7 @@ def check_fraction(value: float, name: str) -> float:
 
 def pixel_of(u: float, v: float, width: int, height: int) -> tuple[float, float]:
     """Continuous pixel coordinates of fractions (u, v), kept inside the outermost pixel centres
-    (as core.engine.insertion does, so the page's probe and its rendered ball coincide)."""
+    (as core.insertion does, so the page's probe and its rendered ball coincide)."""
     return min(max(u * width, 0.5), width - 0.5), min(max(v * height, 0.5), height - 0.5)
 
 

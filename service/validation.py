@@ -1,14 +1,13 @@
 """Check an upload before it is queued, so bad input is a 4xx now instead of a failed job later.
 
-The input is loaded with the engine's own `load_capture` under the configured MediaLimits:
-the same code the worker runs, so what passes here loads there (sizes, decompression bombs,
-codecs, depth/pose shapes, all-invalid depth). It costs one decode of a capture whose size
-the limits bound; the API serialises these checks (one at a time per process) so memory
-stays bounded under concurrent uploads.
+The input is checked with core.capture.probe, which applies `load_capture`'s limits and rules
+to what the headers say (sizes, frame counts, decompression bombs, codecs, depth/pose shapes,
+a first depth map without valid pixels) and decodes at most one video frame, never the
+capture: a small file declaring thousands of HD frames costs the API nothing. The worker
+decodes the capture once and enforces the limits again while decoding.
 """
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 from service.errors import ApiError, InvalidInput, PayloadTooLarge, UnsupportedMedia
@@ -67,19 +66,18 @@ def media_error_to_api(exc) -> ApiError:
 
 
 def check_capture(input_path: Path, depth_path: Path | None, params) -> dict:
-    """Load the capture as the worker will; returns a short summary or raises a 4xx ApiError."""
+    """Check the capture as the worker will load it, from its headers; returns a short summary
+    or raises a 4xx ApiError."""
     from core.camera import CameraError
-    from core.engine.capture import CaptureError, load_capture
+    from core.capture.base import CaptureError
+    from core.capture.probe import probe_capture
     from core.io.limits import MediaError, MediaLimits
-    from worker.runner import error_code_of
+    from jobs.errors import error_code_of
 
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            capture = load_capture(input_path, depth_path, params, MediaLimits.from_env(),
-                                   estimate_depth=False)  # the worker runs the depth model, not the API
+        header = probe_capture(input_path, depth_path, params, MediaLimits.from_env())
     except MediaError as exc:
         raise media_error_to_api(exc) from None
     except (CaptureError, CameraError) as exc:
         raise InvalidInput(str(exc), code=error_code_of(exc)) from None
-    return {"frames": capture.num_frames, "width": capture.width, "height": capture.height}
+    return {"frames": header.frames, "width": header.width, "height": header.height}

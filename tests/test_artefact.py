@@ -5,18 +5,13 @@ import os
 import pytest
 import torch
 
-import core.engine.artefact as artefact_mod
+import core.fields.artefact as artefact_mod
 from core.conventions import CONVENTIONS_VERSION
-from core.engine.artefact import (
-    META_FILE,
-    WEIGHTS_FILE,
-    ArtefactError,
-    LightFieldArtefact,
-    QueryError,
-    save_artefact,
-)
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.config import GridSettings, MLPSettings, TrunkSettings
+from core.fields.artefact import ArtefactError, LightFieldArtefact, META_FILE, QueryError, WEIGHTS_FILE, save_artefact
+from core.fields.grid import GridSettings
+from core.fields.mlp import MLPSettings
+from core.fields.trunk import TrunkSettings
 
 BOUNDS = SceneBounds((-2.0, -1.0, -4.0), (2.0, 2.0, 0.5), t0=0.0, t1=3.0)
 
@@ -40,7 +35,7 @@ def small_field(kind="mlp", uses_time=True, seed=0):
 @pytest.fixture
 def saved(tmp_path):
     field = small_field()
-    path = save_artefact(tmp_path / "art", field, {"capture": {"fps": 10.0}, "training": {"loss_curve": [1.0, float("nan")]}})
+    path = save_artefact(tmp_path / "art", field, {"capture": {"fps": 10.0}, "training": {"loss_curve": [1.0, float("nan")]}}).path
     return field, path
 
 
@@ -48,7 +43,7 @@ def saved(tmp_path):
 @pytest.mark.parametrize("uses_time", [True, False])
 def test_round_trip_is_bit_identical(tmp_path, kind, uses_time):
     field = small_field(kind, uses_time)
-    art = LightFieldArtefact.load(save_artefact(tmp_path / "a", field, {}))
+    art = LightFieldArtefact.load(save_artefact(tmp_path / "a", field, {}).path)
     x = torch.tensor([[0.1, 0.2, -1.0], [9.0, 0.0, 0.0]])
     t = torch.tensor([0.5, 2.0]) if uses_time else None
     d = torch.nn.functional.normalize(torch.tensor([[0.0, 1.0, 0.0], [1.0, -1.0, 0.5]]), dim=-1)
@@ -101,7 +96,7 @@ def test_query_errors_name_the_offending_input(saved):
 
 
 def test_static_field_accepts_missing_time(tmp_path):
-    art = LightFieldArtefact.load(save_artefact(tmp_path / "s", small_field(uses_time=False), {}))
+    art = LightFieldArtefact.load(save_artefact(tmp_path / "s", small_field(uses_time=False), {}).path)
     a, flags = art.envmap((0, 0, -1), None, 4)
     b, _ = art.envmap((0, 0, -1), 2.0, 4)
     assert torch.equal(a, b) and flags == {"extrapolated_x": False, "extrapolated_t": False}
@@ -226,7 +221,7 @@ def test_failure_mid_write_leaves_no_partial_artefact(tmp_path, monkeypatch):
 
 def test_failed_overwrite_keeps_the_previous_artefact(tmp_path, monkeypatch):
     field = small_field(seed=1)
-    path = save_artefact(tmp_path / "a", field, {"run": 1})
+    path = save_artefact(tmp_path / "a", field, {"run": 1}).path
     before = LightFieldArtefact.load(path).radiance([[0, 0, 0]], [0.0], [[0, 1, 0]])
 
     real_replace = os.replace
@@ -272,3 +267,15 @@ def test_crafted_huge_config_is_refused_without_allocating(saved):
     _edit_json(path, lambda d: d["field"]["mlp"].update(width=1_000_000))
     with pytest.raises(ArtefactError, match="has shape"):
         LightFieldArtefact.load(path)
+
+
+def test_save_returns_the_artefact_exactly_as_loading_it_would(tmp_path):
+    field = small_field(seed=3)
+    saved = save_artefact(tmp_path / "a", field, {"note": [1.5, float("inf")]})
+    loaded = LightFieldArtefact.load(saved.path)
+    assert saved.meta == loaded.meta and saved.weights_sha256 == loaded.weights_sha256
+    a, b = saved.field.state_dict(), loaded.field.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert saved.field is not field and not any(p.requires_grad for p in saved.field.parameters())
+    x = torch.tensor([[0.1, 0.2, -0.5]])
+    torch.testing.assert_close(saved.envmaps(x, [0.5], 8)[0], loaded.envmaps(x, [0.5], 8)[0], rtol=0, atol=0)

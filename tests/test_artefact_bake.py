@@ -2,11 +2,11 @@
 import pytest
 import torch
 
-from core.engine.artefact import ArtefactError, LightFieldArtefact, QueryError, save_artefact
 from core.envmap import resize_envmap
-from core.engine.bake import BAKED_FILE, BakedField, bake, load_or_bake
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.config import TrunkSettings
+from core.fields.artefact import ArtefactError, LightFieldArtefact, QueryError, save_artefact
+from core.fields.bake import BAKED_FILE, BakedField, bake, load_or_bake
+from core.fields.trunk import TrunkSettings
 
 BOUNDS = SceneBounds((-2.0, -1.0, -4.0), (2.0, 2.0, 0.5), t0=0.0, t1=3.0)
 
@@ -25,7 +25,7 @@ def smooth_artefact(tmp_path, uses_time=True, seed=0, name="a"):
         for p in field.parameters():
             p.copy_(torch.randn(p.shape, generator=g) * 0.3)
         field.head[-1].weight.mul_(1.0 / 3.0)
-    return LightFieldArtefact.load(save_artefact(tmp_path / name, field, {}))
+    return LightFieldArtefact.load(save_artefact(tmp_path / name, field, {}).path)
 
 
 @pytest.mark.parametrize("uses_time", [True, False])

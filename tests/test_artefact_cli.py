@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from cli.main import main
-from core.engine.artefact import LightFieldArtefact, save_artefact
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.config import MLPSettings
+from core.fields.artefact import LightFieldArtefact, save_artefact
+from core.fields.mlp import MLPSettings
 from core.io.envmap_io import load_envmap
 
 BOUNDS = SceneBounds((-1.0, -1.0, -3.0), (1.0, 1.0, 0.0), t0=0.0, t1=2.0)
@@ -20,7 +20,7 @@ def artefact_dir(tmp_path):
     with torch.no_grad():
         for p in field.parameters():
             p.normal_(0, 0.5, generator=torch.Generator().manual_seed(3))
-    return save_artefact(tmp_path / "lf", field, {})
+    return save_artefact(tmp_path / "lf", field, {}).path
 
 
 def test_npy_output_equals_the_query_api(artefact_dir, tmp_path, capsys):
@@ -51,7 +51,7 @@ def test_extrapolated_query_warns(artefact_dir, tmp_path, capsys):
 
 
 def test_fast_path_answers_from_the_stored_bake(artefact_dir, tmp_path):
-    from core.engine.bake import load_or_bake
+    from core.fields.bake import load_or_bake
 
     art = LightFieldArtefact.load(artefact_dir)
     baked = load_or_bake(art, grid=(2, 2, 2), times=2, height=4)  # small, so the test stays fast

@@ -260,7 +260,7 @@ def test_pickled_weights_are_refused(tiny_dir, tmp_path, no_network):
 def test_registry_builds_the_diffusion_prior(tiny_dir):
     from core.priors.registry import build_prior
 
-    p = build_prior("diffusion", weights=str(tiny_dir))
+    p = build_prior("diffusion", {"weights": str(tiny_dir)})
     assert isinstance(p, DiffusionPrior)
     d = p.describe()
     assert d["name"] == "diffusion" and d["card"]["multi_ball"] is True and d["dtype"] == "float32"

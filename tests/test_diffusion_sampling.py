@@ -68,22 +68,22 @@ def test_sampling_rejects_bad_settings(prior, scene):
 
 
 def test_distillation_with_the_tiny_prior_completes_and_stays_finite(tiny_dir, tmp_path):
-    from core.engine.artefact import LightFieldArtefact
-    from core.engine.config import DistillConfig
-    from core.engine.distill import run_job
+    from core.engine import run_job
+    from core.engine.config import DistillConfig, EngineConfig
     from core.engine.params import JobParams
+    from core.fields.artefact import LightFieldArtefact
     from core.io import write_png
 
     write_png(tmp_path / "in.png", torch.rand(24, 32, 3, generator=torch.Generator().manual_seed(0)).numpy())
     prior = DiffusionPrior.from_pretrained(tiny_dir)
     calls = []
     handle = prior.components.unet.register_forward_pre_hook(lambda m, a: calls.append(1))
-    cfg = DistillConfig(iterations=3, n_probes=3, work_height=24, warmup_steps=1, checkpoint_every=1000,
-                        guidance_scale=3.0, perceptual_weight=0.0)
+    cfg = EngineConfig(distill=DistillConfig(iterations=3, n_probes=3, work_height=24, warmup_steps=1,
+                                             checkpoint_every=1000, guidance_scale=3.0, perceptual_weight=0.0))
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "depth assumed" for a bare image
-            out = run_job(tmp_path / "in.png", None, JobParams(seed=2), tmp_path / "art", prior=prior, config=cfg)
+            out = run_job(tmp_path / "in.png", None, JobParams(seed=2), tmp_path / "art", prior=prior, config=cfg).path
     finally:
         handle.remove()
     assert len(calls) >= 3  # the prior ran at every step (>= 1 denoising step each)

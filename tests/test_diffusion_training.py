@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from core.priors.diffusion.data import BallDataset, StepOrder, TrainingDataError, read_dataset_info
 from core.priors.diffusion.loading import load_components
-from core.priors.diffusion.train import (
+from core.training.diffusion.data import BallDataset, StepOrder, TrainingDataError, read_dataset_info
+from core.training.diffusion.train import (
     TrainConfig,
     TrainConfigError,
     masked_noise_loss,

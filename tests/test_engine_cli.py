@@ -9,7 +9,7 @@ import torch
 from cli.main import main
 from core.camera import Camera, Intrinsics
 from core.conventions import inverse_tonemap, tonemap
-from core.engine.insertion import ALBEDO, InsertionError, InsertionPoint, insert_objects, parse_points, place_objects
+from core.insertion import ALBEDO, InsertionError, InsertionPoint, insert_objects, parse_points, place_objects
 from core.io import read_image, write_png
 
 H, W = 36, 48

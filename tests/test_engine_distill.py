@@ -5,13 +5,15 @@ import json
 import pytest
 import torch
 
+from core.capture.load import capture_from_arrays
 from core.chrome_ball import place_probe
 from core.conventions import equirect_directions
-from core.engine import distill as distill_module
-from core.engine.capture import capture_from_arrays
-from core.engine.config import preset
-from core.engine.distill import distill, run_job, sample_probes
+from core.engine import run_job
+from core.engine import trainer as trainer_module
+from core.engine.distill import distill
 from core.engine.params import JobParams
+from core.engine.presets import preset
+from core.engine.probes import sample_probes
 from core.engine.progress import Cancelled, Reporter
 from core.priors.known import KnownRadiancePrior
 from core.priors.reprojection import ReprojectionPrior
@@ -36,14 +38,14 @@ def lamp_field(x, t, d, on=None):
 def tiny(**kw):
     base = dict(work_height=H, checkpoint_every=1000, warmup_steps=5)
     base.update(kw)
-    return preset("draft", **base)
+    return preset("draft").with_overrides({"distill": base})
 
 
 def held_out_probes(capture, cfg, frame=0, seed=123, rounds=3):
     g = torch.Generator().manual_seed(seed)
     xs = []
     for _ in range(rounds):
-        px, dp = sample_probes(capture, frame, cfg, g)
+        px, dp = sample_probes(capture, frame, cfg.distill, g)
         xs += [place_probe(capture.camera(frame), px[n], float(dp[n]))[0] for n in range(px.shape[0])]
     return torch.stack(xs)
 
@@ -190,7 +192,7 @@ def test_probes_at_the_image_border(monkeypatch):
     def border(capture, frame, cfg, gen):
         return corners[: cfg.n_probes], torch.full((cfg.n_probes,), 2.0, dtype=torch.float64)
 
-    monkeypatch.setattr(distill_module, "sample_probes", border)
+    monkeypatch.setattr(trainer_module, "sample_probes", border)
     prior = ReprojectionPrior(env_height=8)
     prior.bind(cap)
     res = distill(cap, prior, tiny(iterations=4, n_probes=4), uses_time=False)
@@ -201,7 +203,7 @@ def test_probes_at_the_image_border(monkeypatch):
 def test_sample_probes_are_spread_and_in_front_of_the_surface():
     cap = capture_from_arrays(torch.full((1, H, W, 3), 0.5))
     cfg = tiny()
-    px, dp = sample_probes(cap, 0, cfg, torch.Generator().manual_seed(0))
+    px, dp = sample_probes(cap, 0, cfg.distill, torch.Generator().manual_seed(0))
     assert px.shape == (9, 2)
     # stratified: one probe per cell of a 4 x 3 grid, so no two share a cell
     cells = {(int(u // (W / 4)), int(v // (H / 3))) for u, v in px.tolist()}
@@ -214,7 +216,7 @@ def test_sample_probes_are_spread_and_in_front_of_the_surface():
 
 
 def test_run_job_writes_a_loadable_artefact(tmp_path):
-    from core.engine.artefact import LightFieldArtefact
+    from core.fields.artefact import LightFieldArtefact
     from core.io import write_png
 
     img = torch.rand(H, W, 3, generator=torch.Generator().manual_seed(0)).numpy()
@@ -222,7 +224,7 @@ def test_run_job_writes_a_loadable_artefact(tmp_path):
     events = []
     with pytest.warns(UserWarning):
         out = run_job(tmp_path / "in.png", None, JobParams(seed=1), tmp_path / "art", progress=events.append,
-                      config=tiny(iterations=5))
+                      config=tiny(iterations=5)).path
     art = LightFieldArtefact.load(out)
     env, flags = art.envmap(torch.tensor([0.0, 0.0, -1.0]), None, 8)
     assert torch.isfinite(env).all()
@@ -249,7 +251,7 @@ def test_run_job_with_the_tiny_diffusion_prior(tmp_path):
     write_png(tmp_path / "in.png", torch.rand(H, W, 3, generator=torch.Generator().manual_seed(0)).numpy())
     with pytest.warns(UserWarning):
         out = run_job(tmp_path / "in.png", None, JobParams(prior="diffusion", prior_weights=str(weights)),
-                      tmp_path / "art", config=tiny(iterations=2))
+                      tmp_path / "art", config=tiny(iterations=2)).path
     meta = json.loads((out / "lightfield.json").read_text())
     assert meta["prior"]["name"] == "diffusion" and len(meta["training"]["loss_curve"]) == 2
     assert all(torch.isfinite(torch.tensor(meta["training"]["loss_curve"])))
@@ -259,7 +261,7 @@ def test_run_job_with_the_tiny_diffusion_prior(tmp_path):
 # Device
 # ---------------------------------------------------------------------------------------
 def test_explicit_cpu_device_equals_the_default_here(monkeypatch):
-    from core.engine.config import resolve_device
+    from core.device import resolve_device
 
     monkeypatch.delenv("LIGHTFIELD_DEVICE", raising=False)
     if torch.cuda.is_available():
@@ -277,7 +279,7 @@ def test_explicit_cpu_device_equals_the_default_here(monkeypatch):
 
 
 def test_cuda_without_cuda_is_a_clear_error(monkeypatch, tmp_path):
-    from core.engine.config import DeviceError, resolve_device
+    from core.device import DeviceError, resolve_device
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     monkeypatch.delenv("LIGHTFIELD_DEVICE", raising=False)

@@ -4,8 +4,9 @@ import json
 import pytest
 from pydantic import ValidationError
 
-from core.engine.config import PRESETS, preset
-from core.engine.params import CaptureParams, IntrinsicsParams, JobParams, parse_job_params
+from core.capture.params import CaptureParams, IntrinsicsParams
+from core.engine.params import JobParams, parse_job_params
+from core.engine.presets import PRESETS, preset
 
 
 def test_defaults_are_the_documented_ones():
@@ -57,7 +58,7 @@ def test_capture_params_are_a_subset_of_job_params():
 
 
 def test_uniform_exposure_ablation_covers_the_range_and_repeats_per_step():
-    sweep = preset("draft")
+    sweep = preset("draft").distill
     uniform = sweep.model_copy(update={"ev_schedule": "uniform"})
     evs = [uniform.ev_at(s) for s in range(200)]
     assert all(sweep.ev_min <= e <= 0.0 for e in evs)
@@ -67,7 +68,8 @@ def test_uniform_exposure_ablation_covers_the_range_and_repeats_per_step():
 
 
 def test_presets_schedules():
-    for name, cfg in PRESETS.items():
+    for name, engine in PRESETS.items():
+        cfg = engine.distill
         assert cfg.ev_at(0) == 0.0
         assert cfg.ev_at(cfg.iterations - 1) == pytest.approx(cfg.ev_min)
         assert cfg.tau_min_at(0) == 1.0 and cfg.tau_min_at(cfg.iterations - 1) == 0.0
@@ -75,10 +77,27 @@ def test_presets_schedules():
         peak = max(lrs)
         assert peak == pytest.approx(cfg.lr, rel=1e-6)
         assert lrs[-1] < 0.2 * peak and lrs[0] < peak  # warm-up then decay
-    assert preset("paper").field_kind == "mlp" and preset("paper").n_probes == 9
-    assert preset("paper").guidance_scale == 12.5 and preset("paper").ev_min == -5
-    assert [preset("paper").steps_for_tau(t) for t in (0.0, 0.05, 0.5, 1.0)] == [1, 1, 5, 10]
+    paper = preset("paper")
+    assert paper.field.kind == "mlp" and paper.field.section().width == 256 and paper.distill.n_probes == 9
+    assert paper.distill.guidance_scale == 12.5 and paper.distill.ev_min == -5
+    assert [paper.distill.steps_for_tau(t) for t in (0.0, 0.05, 0.5, 1.0)] == [1, 1, 5, 10]
     with pytest.raises(ValidationError):
-        preset("draft", iterations=0)
+        preset("draft").with_overrides({"distill": {"iterations": 0}})
     with pytest.raises(ValueError, match="unknown preset"):
         preset("turbo")
+
+
+def test_presets_are_whole_config_trees_and_overrides_stay_typed():
+    draft = preset("draft")
+    assert draft.field.kind == "mlp" and (draft.field.section().width, draft.field.section().layers) == (96, 4)
+    assert draft.field.section("trunk").trunk_width == 96  # a job that picks the trunk gets the draft's size
+    assert draft.prior_settings("reprojection")["env_height"] == 24 and draft.prior_settings("diffusion") == {}
+    nested = draft.with_overrides({"distill": {"iterations": 7}, "field": {"mlp": {"width": 32}}})
+    dotted = draft.with_overrides({"distill.iterations": 7, "field.mlp.width": 32})
+    assert nested == dotted and dotted.distill.iterations == 7 and dotted.field.section().width == 32
+    assert dotted.distill.work_height == draft.distill.work_height and draft.distill.iterations == 400  # a copy
+    assert draft.with_field_kind("grid").field.kind == "grid" and draft.with_field_kind(None) is draft
+    with pytest.raises(ValidationError, match="iteratons"):
+        draft.with_overrides({"distill.iteratons": 7})
+    with pytest.raises(ValidationError, match="env_hieght"):
+        draft.with_overrides({"priors.reprojection.env_hieght": 8})

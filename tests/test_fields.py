@@ -9,9 +9,11 @@ from hypothesis import strategies as st
 
 from core.conventions import equirect_directions
 from core.envmap import equirect_stencil, pad_poles, sample_envmap
-from core.fields import FieldConfig, SceneBounds, build_field, field_preset
-from core.fields.config import GridSettings, MLPSettings, TrunkSettings
+from core.fields import FieldConfig, SceneBounds, build_field
 from core.fields.encodings import PositionalEncoding, lattice_corners, multilinear_lookup
+from core.fields.grid import GridSettings
+from core.fields.mlp import MLPSettings
+from core.fields.trunk import TrunkSettings
 
 KINDS = ["mlp", "grid", "trunk", "trunk+grid"]
 BOUNDS = SceneBounds((-2.0, -1.0, -4.0), (2.0, 2.0, 0.5), t0=0.0, t1=3.0)
@@ -52,9 +54,9 @@ HARD_D = torch.tensor(
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("uses_time", [True, False])
 def test_hard_inputs_give_finite_positive_radiance(kind, uses_time):
-    cfg = field_preset(kind.split("+")[0], uses_time)  # full-size presets
+    cfg = FieldConfig(kind=kind.split("+")[0], uses_time=uses_time)  # full-size defaults
     if kind == "trunk+grid":
-        cfg = cfg.model_copy(update={"trunk": cfg.trunk.model_copy(update={"x_grid": (4, 4, 4)})})
+        cfg = cfg.with_section("trunk", x_grid=(4, 4, 4))
     field = randomise(build_field(cfg, BOUNDS), scale=0.5)
     out = field(HARD_X, HARD_T, HARD_D)
     assert out.shape == (6, 3) and out.dtype == torch.float32
@@ -132,7 +134,7 @@ def test_grid_envmap_at_native_height_returns_the_node_map():
     field = randomise(build_field(cfg, BOUNDS))
     corner = torch.tensor([list(BOUNDS.lo)])  # lattice node (0, 0, 0)
     with torch.no_grad():
-        got = field.envmaps(corner, None, cfg.grid.env_height)[0]
+        got = field.envmaps(corner, None, cfg.section("grid").env_height)[0]
     assert torch.allclose(got, field.activate(field.maps[0]), rtol=1e-6)
 
 

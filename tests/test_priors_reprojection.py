@@ -5,9 +5,9 @@ import pytest
 import torch
 
 from core.camera import Camera, Intrinsics
+from core.capture.load import capture_from_arrays
 from core.chrome_ball import ball_reflection_rays, composite, place_probe, render_balls
 from core.conventions import direction_to_theta_phi, inverse_tonemap, tonemap
-from core.engine.capture import capture_from_arrays
 from core.priors.base import PriorError, PriorRequest, ProbeGeometry
 from core.priors.known import KnownRadiancePrior
 from core.priors.registry import build_prior
@@ -74,7 +74,7 @@ def test_bright_patch_is_seen_in_its_true_direction():
     prior = ReprojectionPrior(env_height=32)
     prior.bind(cap)
     center = torch.tensor([[-0.4, -0.3, -1.5]])
-    env = prior.envmaps(center, 0)[0]
+    env = prior.envmaps(center, 0.0, 32)[0]
     lum = env.sum(-1)
     i, j = divmod(int(lum.argmax()), lum.shape[1])
     # direction of the patch centre from the probe
@@ -93,11 +93,11 @@ def test_point_cloud_is_built_once_for_a_static_camera():
     prior = ReprojectionPrior(env_height=8)
     prior.bind(cap)
     for i in range(3):
-        prior.envmaps(torch.zeros(1, 3) + torch.tensor([0, 0, -1.0]), i)
+        prior.envmaps_at_frame(torch.zeros(1, 3) + torch.tensor([0, 0, -1.0]), i)
     assert prior.point_cloud_builds == 1
     # but the colours follow the frame
-    a = prior.envmaps(torch.tensor([[0, 0, -1.0]]), 0)
-    b = prior.envmaps(torch.tensor([[0, 0, -1.0]]), 1)
+    a = prior.envmaps(torch.tensor([[0, 0, -1.0]]), 0.0, 8)
+    b = prior.envmaps(torch.tensor([[0, 0, -1.0]]), 1.0, 8)
     assert not torch.equal(a, b)
 
 
@@ -128,14 +128,18 @@ def test_hard_frames_stay_finite():
 
 
 def test_registry():
-    assert isinstance(build_prior("reprojection", env_height=8), ReprojectionPrior)
-    assert isinstance(build_prior("known", fn=lambda x, t, d: d.abs()), KnownRadiancePrior)
+    assert isinstance(build_prior("reprojection", {"env_height": 8}), ReprojectionPrior)
+    assert isinstance(build_prior("known", {"fn": lambda x, t, d: d.abs()}), KnownRadiancePrior)
     with pytest.raises(PriorError, match="unknown prior"):
         build_prior("magic")
-    with pytest.raises(PriorError, match="fn="):
+    with pytest.raises(PriorError, match="fn: Field required"):
         build_prior("known")
+    with pytest.raises(PriorError, match="env_height"):
+        build_prior("reprojection", {"env_height": 2})
+    with pytest.raises(PriorError, match="evn_height"):
+        build_prior("reprojection", {"evn_height": 8})
     with pytest.raises(PriorError):
-        ReprojectionPrior(env_height=8).envmaps(torch.zeros(1, 3), 0)  # not bound
+        ReprojectionPrior(env_height=8).envmaps(torch.zeros(1, 3), 0.0, 8)  # not bound
     with pytest.raises(PriorError, match="weights"):
         build_prior("diffusion")  # needs a local model directory
 
@@ -156,7 +160,7 @@ def test_merged_views_let_a_moving_camera_see_what_other_frames_saw():
     for merge in (1, 2):
         prior = ReprojectionPrior(env_height=h, merge_views=merge)
         prior.bind(cap)
-        env = prior.envmaps(torch.zeros(1, 3), 0)[0]
+        env = prior.envmaps(torch.zeros(1, 3), 0.0, h)[0]
         seen[merge] = float(sample_envmap(env, right)[0, 0])
         assert prior.views_for(0) == ([0] if merge == 1 else [0, 1])
     assert seen[2] > 3 * seen[1]

@@ -1,5 +1,5 @@
 """worker.runner.JobRunner's decisions against a real Redis, with scripted engines standing in
-for core.engine (selected through LIGHTFIELD_ENGINE): skip, re-queue, resume-free finish,
+for core.engine (passed to the runner as its engine): skip, re-queue, resume-free finish,
 failure codes, cancel and a lost lease."""
 from __future__ import annotations
 
@@ -8,24 +8,33 @@ import time
 
 import pytest
 
+from jobs.settings import JobSettings
+from jobs.storage import JobPaths, new_job_id
+from jobs.store import JobRecord, JobStore, connect
 from service.auth import tenant_hash
-from service.config import ServiceSettings
-from service.storage import JobPaths, new_job_id
-from service.store import JobRecord, JobStore, connect
 from worker.runner import JobRunner, Outcome
 
 CALLS: list[str] = []
 
 
-def engine_ok(input_path, depth_path, params, out_dir, progress=None, should_cancel=None, checkpoint_dir=None, **kw):
+def engine_ok(input_path, depth_path, params, out_dir, on_capture=None, **kw):
+    """A tiny real artefact, and the engine's hand-over of the decoded capture."""
+    import torch
+
+    from core.capture.load import capture_from_arrays
+    from core.engine import JobResult
+    from core.fields import FieldConfig, SceneBounds, build_field
+    from core.fields.artefact import save_artefact
+
     CALLS.append("ok")
-    out_dir.mkdir(parents=True)
-    (out_dir / "lightfield.json").write_text("{}")
-    return out_dir
+    on_capture(capture_from_arrays(torch.full((2, 12, 16, 3), 0.5)))
+    field = build_field(FieldConfig(kind="grid", uses_time=False, grid={"resolution": (2, 2, 2), "env_height": 4}),
+                        SceneBounds((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), 0.0, 0.0))
+    return JobResult(save_artefact(out_dir, field))
 
 
 def engine_bad_depth(*a, **kw):
-    from core.engine.capture import CaptureError
+    from core.capture.base import CaptureError
 
     raise CaptureError("depth", "no valid pixels")
 
@@ -57,13 +66,12 @@ def redis_url(tmp_path_factory):
 
 
 @pytest.fixture
-def runner(redis_url, tmp_path, monkeypatch):
-    settings = ServiceSettings(data_dir=tmp_path, broker_url=redis_url, lease_ttl_s=2.0)
+def runner(redis_url, tmp_path):
+    settings = JobSettings(data_dir=tmp_path, broker_url=redis_url, lease_ttl_s=2.0)
     CALLS.clear()
 
-    def make(engine: str) -> JobRunner:
-        monkeypatch.setenv("LIGHTFIELD_ENGINE", f"test_service_runner:{engine}")
-        return JobRunner(JobStore(connect(redis_url)), settings)
+    def make(engine) -> JobRunner:
+        return JobRunner(JobStore(connect(redis_url)), settings, engine=engine)
 
     return make
 
@@ -78,19 +86,25 @@ def _job(r: JobRunner) -> tuple[str, JobPaths]:
     return rec.id, paths
 
 
-def test_success_records_a_relative_artefact_and_removes_uploads(runner):
-    r = runner("engine_ok")
+def test_success_records_a_relative_artefact_and_removes_uploads(runner, monkeypatch):
+    from core.fields.artefact import LightFieldArtefact
+    from jobs.capture_preview import META_FILE, preview_dir
+
+    r = runner(engine_ok)
     job, paths = _job(r)
+    monkeypatch.setattr(LightFieldArtefact, "load", lambda *a, **k: pytest.fail("the artefact was read back"))
     assert r.run(job) is Outcome.SUCCEEDED
     rec = r.store.get(job)
     assert (rec.state, rec.attempts, rec.progress) == ("succeeded", 1, 1.0)
     assert r.settings.data_dir / rec.artefact == paths.artefact_dir
     assert not paths.upload_dir.exists()
+    assert (paths.artefact_dir / "baked.safetensors").is_file()  # baked from the field in memory
+    assert (preview_dir(paths.job_dir) / META_FILE).is_file()  # from the capture the engine decoded
     assert r.run(job) is Outcome.SKIPPED and CALLS == ["ok"]  # a late duplicate does nothing
 
 
 def test_a_saved_artefact_is_not_recomputed_on_redelivery(runner):
-    r = runner("engine_crash")  # would fail if called
+    r = runner(engine_crash)  # would fail if called
     job, paths = _job(r)
     paths.artefact_dir.mkdir(parents=True)
     (paths.artefact_dir / "lightfield.json").write_text("{}")
@@ -98,7 +112,7 @@ def test_a_saved_artefact_is_not_recomputed_on_redelivery(runner):
 
 
 def test_a_held_lease_requeues_instead_of_running(runner):
-    r = runner("engine_ok")
+    r = runner(engine_ok)
     job, _ = _job(r)
     assert r.store.acquire_lease(job, "someone-else", ttl_s=5)
     assert r.run(job) is Outcome.REQUEUE
@@ -106,7 +120,7 @@ def test_a_held_lease_requeues_instead_of_running(runner):
 
 
 def test_cancel_before_start_skips_the_engine(runner):
-    r = runner("engine_ok")
+    r = runner(engine_ok)
     job, _ = _job(r)
     r.store.request_cancel(job)
     assert r.run(job) is Outcome.SKIPPED
@@ -115,7 +129,7 @@ def test_cancel_before_start_skips_the_engine(runner):
 
 
 def test_input_errors_fail_with_the_field_named(runner):
-    r = runner("engine_bad_depth")
+    r = runner(engine_bad_depth)
     job, paths = _job(r)
     assert r.run(job) is Outcome.FAILED
     rec = r.store.get(job)
@@ -124,7 +138,7 @@ def test_input_errors_fail_with_the_field_named(runner):
 
 
 def test_engine_crashes_fail_without_leaking_internals(runner):
-    r = runner("engine_crash")
+    r = runner(engine_crash)
     job, _ = _job(r)
     assert r.run(job) is Outcome.FAILED
     rec = r.store.get(job)
@@ -132,7 +146,7 @@ def test_engine_crashes_fail_without_leaking_internals(runner):
 
 
 def test_cancel_while_running_stops_at_the_next_check(runner):
-    r = runner("engine_until_cancelled")
+    r = runner(engine_until_cancelled)
     job, paths = _job(r)
     threading.Timer(0.3, r.store.request_cancel, args=[job]).start()
     t0 = time.monotonic()
@@ -143,7 +157,7 @@ def test_cancel_while_running_stops_at_the_next_check(runner):
 
 
 def test_a_lost_lease_abandons_the_run_without_touching_the_record(runner):
-    r = runner("engine_until_cancelled")
+    r = runner(engine_until_cancelled)
     job, _ = _job(r)
     # another party takes over the lease (as if ours had expired): the heartbeat notices
     threading.Timer(0.3, lambda: (r.store.client.delete(f"lf:job:{job}:lease"),
@@ -156,9 +170,64 @@ def test_a_lost_lease_abandons_the_run_without_touching_the_record(runner):
 
 def test_input_errors_get_the_codes_the_api_documents():
     from core.camera import CameraError
-    from core.engine.capture import CaptureError
-    from worker.runner import error_code_of
+    from core.capture.base import CaptureError
+    from jobs.errors import error_code_of
 
     assert error_code_of(CaptureError("poses", "not 4x4")) == "invalid_poses"
     assert error_code_of(CameraError("fx must be positive")) == "invalid_intrinsics"  # as docs/api.md lists it
     assert error_code_of(RuntimeError("boom")) == "invalid_input"
+
+
+def test_a_real_celery_worker_runs_the_runner_with_an_injected_engine(redis_url, tmp_path):
+    """The worker process path (Celery app -> task -> JobRunner -> engine) with the engine
+    passed in by a test-only app module (tests/scripted_worker.py)."""
+    import signal
+
+    from conftest import REPO, wait_until
+    from jobs.queue import TASK_NAME, make_celery
+    from service.processes import child_env, spawn, stop, worker_command
+
+    settings = JobSettings(data_dir=tmp_path, broker_url=redis_url, lease_ttl_s=2.0)
+    store = JobStore(connect(redis_url))
+    rec = JobRecord(id=new_job_id(), tenant="t", tenant_hash=tenant_hash("t"), input_kind="image", input_file="input.png")
+    store.create(rec, max_in_flight=100)
+    paths = JobPaths.for_job(tmp_path, rec.tenant_hash, rec.id)
+    paths.upload_dir.mkdir(parents=True)
+    (paths.upload_dir / "input.png").write_bytes(b"\x89PNG")
+    env = child_env(LIGHTFIELD_DATA_DIR=str(tmp_path), LIGHTFIELD_BROKER_URL=redis_url,
+                    PYTHONPATH=f"{REPO / 'tests'}:{REPO}")
+    proc = spawn(worker_command("scripted", loglevel="WARNING", app="scripted_worker"), env=env,
+                 log_path=tmp_path / "worker.log")
+    try:
+        make_celery(settings).send_task(TASK_NAME, args=[rec.id])
+        done = wait_until(lambda: (r := store.get(rec.id)) is not None and r.is_terminal and r, 60,
+                          what=f"the job to end (worker log: {tmp_path / 'worker.log'})")
+    finally:
+        stop(proc, signal.SIGQUIT, grace_s=5)
+    assert (done.state, done.error_code) == ("failed", "invalid_depth")
+    assert not paths.upload_dir.exists()
+
+
+def test_one_job_decodes_its_upload_once(redis_url, tmp_path, tiny_video, monkeypatch):
+    """The real engine through the runner: the video is decoded once (the UI preview reuses
+    the engine's capture) and the artefact is baked from memory."""
+    import core.io
+    from core.engine import run_job
+    from core.fields.artefact import LightFieldArtefact
+
+    decodes = []
+    real_read_video = core.io.read_video
+    monkeypatch.setattr(core.io, "read_video", lambda *a, **k: decodes.append(1) or real_read_video(*a, **k))
+    monkeypatch.setattr(LightFieldArtefact, "load", lambda *a, **k: pytest.fail("the artefact was read back"))
+    settings = JobSettings(data_dir=tmp_path, broker_url=redis_url, lease_ttl_s=5.0,
+                           distill_overrides={"iterations": 2, "work_height": 24, "warmup_steps": 1})
+    r = JobRunner(JobStore(connect(redis_url)), settings, engine=run_job)
+    rec = JobRecord(id=new_job_id(), tenant="t", tenant_hash=tenant_hash("t"), input_kind="video", input_file="input.mp4")
+    r.store.create(rec, max_in_flight=100)
+    paths = JobPaths.for_job(tmp_path, rec.tenant_hash, rec.id)
+    paths.upload_dir.mkdir(parents=True)
+    (paths.upload_dir / "input.mp4").write_bytes(tiny_video.read_bytes())
+    with pytest.warns(UserWarning):  # no depth, no intrinsics given
+        assert r.run(rec.id) is Outcome.SUCCEEDED
+    assert len(decodes) == 1
+    assert (paths.artefact_dir / "baked.safetensors").is_file() and (paths.job_dir / "preview").is_dir()

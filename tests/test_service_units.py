@@ -9,12 +9,13 @@ import uuid
 import pytest
 from hypothesis import given, settings, strategies as st
 
+from jobs.settings import SettingsError
+from jobs.storage import JobPaths, is_job_id, new_job_id
+from jobs.store import JobLimitReached, JobRecord, JobStore, connect
 from service.auth import AuthConfigError, KeyRing, LOCAL_TENANT, is_loopback, require_loopback, tenant_hash
-from service.config import ServiceLimits, ServiceSettings, SettingsError
+from service.config import ServiceLimits, ServiceSettings
 from service.errors import BadRequest, InvalidInput, PayloadTooLarge, Unauthorized, UnsupportedMedia
 from service.queries import check_t, parse_x
-from service.storage import JobPaths, is_job_id, new_job_id
-from service.store import JobLimitReached, JobRecord, JobStore, connect
 from service.upload import FormReader
 
 

@@ -109,7 +109,7 @@ def test_write_capture_parses_with_consistent_shapes(tmp_path):
 
 
 def test_engine_loads_simulated_capture_unchanged(tmp_path):
-    capture_mod = pytest.importorskip("core.engine.capture")
+    capture_mod = pytest.importorskip("core.capture.load")
     s = small("moving-camera", frames=3)
     write_capture(s, tmp_path, envmap_height=4)
     cap = capture_mod.load_capture(tmp_path)
@@ -156,8 +156,8 @@ def test_training_export_balls_are_valid(tmp_path):
 
 
 def test_oracle_prior_keeps_pixels_outside_masks_and_matches_ground_truth():
-    from core.chrome_ball import ball_reflection_rays
     from core.camera import Camera
+    from core.chrome_ball import ball_reflection_rays
     from core.conventions import tonemap
     from core.priors.base import ProbeGeometry, PriorRequest
     from core.sim.oracle import OracleSimPrior
@@ -232,7 +232,7 @@ def test_hard_suite_has_what_it_promises():
 
 
 def test_diffusion_trainer_reads_the_training_export(tmp_path):
-    data = pytest.importorskip("core.priors.diffusion.data")
+    data = pytest.importorskip("core.training.diffusion.data")
     from core.sim.training import write_training_export
 
     s = small("spatial").model_copy(update={"resolution": (32, 24)}).with_effects({"emission", "direct"})

@@ -198,7 +198,7 @@ def test_tracking_failure_falls_back_to_a_labelled_static_camera(panorama):
 # Room boxes
 # ---------------------------------------------------------------------------------------
 def test_assumed_room_matches_the_documented_box_for_the_first_camera():
-    from core.engine.capture import assumed_box_depth
+    from core.capture.depth import assumed_box_depth
 
     intr = Intrinsics.from_hfov(64, 48, 60.0)
     d = assumed_room().depth(Camera(intr, torch.eye(4, dtype=torch.float64)))

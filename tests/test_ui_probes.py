@@ -11,10 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core.camera import Camera, Intrinsics
-from service.capture_preview import (
-    META_FILE, TENSORS_FILE, CapturePreview, PreviewError, load_preview, preview_dir, preview_from_capture,
-    save_preview, write_capture_preview,
+from jobs.capture_preview import (
+    META_FILE, TENSORS_FILE, CapturePreview, preview_dir, preview_from_capture, save_preview, write_capture_preview,
 )
+from service.stored_preview import PreviewError, load_preview
 from service.ui_probes import ProbeError, fallback_depth, locate, pixel_of, place, radius_ratio, surface_depth
 
 W, H = 64, 48
@@ -179,7 +179,7 @@ def test_damaged_previews_are_refused(tmp_path):
 
 
 def test_preview_from_capture_bounds_size_and_keeps_first_and_last_frames():
-    from core.engine.capture import capture_from_arrays
+    from core.capture.load import capture_from_arrays
 
     frames = torch.rand(10, 90, 120, 3)
     depth = torch.full((10, 90, 120), 2.0)
@@ -195,18 +195,20 @@ def test_preview_from_capture_bounds_size_and_keeps_first_and_last_frames():
 
 
 def test_worker_hook_stores_the_capture_as_the_engine_loads_it_once(tmp_path):
+    from core.capture.load import load_capture
     from core.engine.params import JobParams
     from core.io.images import write_png
 
     image = np.zeros((30, 40, 3), np.float32)
     image[:, 20:] = 1.0
-    first = write_png(tmp_path / "a.png", image)
-    second = write_png(tmp_path / "b.png", 1.0 - image)
     params = JobParams(intrinsics={"hfov_deg": 90.0})
-    write_capture_preview(first, None, params, tmp_path / "job")
+    with pytest.warns(UserWarning):  # the assumed depth
+        first = load_capture(write_png(tmp_path / "a.png", image), None, params)
+        second = load_capture(write_png(tmp_path / "b.png", 1.0 - image), None, params)
+    write_capture_preview(first, tmp_path / "job")
     stored = load_preview(tmp_path / "job")
     assert stored.num_frames == 1 and stored.frame(0)[0, 0].tolist() == [0, 0, 0]
     assert stored.intrinsics["fx"] == pytest.approx(20.0)  # hfov 90 deg over 40 px
     assert np.isfinite(stored.depth_map(0)).any()  # the engine's assumed depth, not nothing
-    write_capture_preview(second, None, params, tmp_path / "job")  # a re-delivered job keeps its preview
+    write_capture_preview(second, tmp_path / "job")  # a re-delivered job keeps its preview
     assert load_preview(tmp_path / "job").frame(0)[0, 0].tolist() == [0, 0, 0]

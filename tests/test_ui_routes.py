@@ -10,13 +10,13 @@ import torch
 from PIL import Image
 
 from core.camera import Intrinsics
-from core.engine.artefact import save_artefact
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.config import GridSettings
+from core.fields.artefact import save_artefact
+from core.fields.grid import GridSettings
+from jobs.capture_preview import CapturePreview, save_preview
+from jobs.storage import JobPaths, new_job_id
+from jobs.store import JobRecord
 from service.auth import tenant_hash
-from service.capture_preview import CapturePreview, save_preview
-from service.storage import JobPaths, new_job_id
-from service.store import JobRecord
 from service.routes_ui import MAX_INSERTED_PROBES
 
 KEYS = {"alice": "alice-key-0001", "bob": "bob-key-00002"}

@@ -1,1 +1,2 @@
-"""Celery side of the service: the app (worker.app) and the distillation task (worker.tasks)."""
+"""Celery side of the service: the app (worker.app), the task shim (worker.tasks) and one
+delivery of a job (worker.runner)."""

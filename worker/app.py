@@ -1,10 +1,22 @@
 """The Celery app of `celery -A worker.app worker`, built from the environment at import
-(Celery needs a module-level app). The API builds its own with `make_celery(settings)`."""
+(Celery needs a module-level app), with the distillation task running the project's engine.
+The API builds its own app with `jobs.queue.make_celery(settings)` to enqueue."""
 from __future__ import annotations
 
-from service.config import ServiceSettings
-from worker.celery_config import QUEUE, TASK_NAME, make_celery
+from core.engine import run_job
+from jobs.queue import make_celery
+from jobs.settings import JobSettings
+from jobs.store import JobStore, connect
+from worker.prior_cache import cached_prior
+from worker.runner import JobRunner
+from worker.tasks import register_distill_task
 
-__all__ = ["app", "QUEUE", "TASK_NAME"]
+settings = JobSettings.from_env()
+app = make_celery(settings)
 
-app = make_celery(ServiceSettings.from_env())
+
+def _runner() -> JobRunner:
+    return JobRunner(JobStore(connect(settings.broker_url)), settings, engine=run_job, prior_factory=cached_prior)
+
+
+distill = register_distill_task(app, _runner)

@@ -1,29 +1,32 @@
 """One delivery of a distillation job: lease, run the engine, record the outcome.
 
 Kept free of Celery so its decisions (skip, re-queue, resume, fail) are plain functions of
-the job record, the lease and the engine's behaviour. `worker.tasks` is the Celery shim.
+the job record, the lease and the engine's behaviour. The engine is a constructor argument
+(the project's `run_job` in worker.app, scripted engines in tests); `worker.tasks` is the
+Celery shim.
 """
 from __future__ import annotations
 
-import importlib
-import inspect
 import logging
-import os
 import shutil
 import time
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
-from service.config import ServiceSettings
-from service.storage import JobPaths
-from service.store import JobStore
-from worker.lease import RunLease
+from jobs.errors import error_code_of, user_error_types
+from jobs.lease import RunLease
+from jobs.settings import JobSettings
+from jobs.storage import JobPaths
+from jobs.store import JobStore
+
+if TYPE_CHECKING:
+    from core.engine import JobResult
+    from core.fields.artefact import LightFieldArtefact
 
 log = logging.getLogger("lightfield.worker")
 
-DEFAULT_ENGINE = "core.engine.distill:run_job"
 PROGRESS_MIN_INTERVAL_S = 0.2  # progress writes per job are throttled to ~5/s
 
 
@@ -36,42 +39,15 @@ class Outcome(str, Enum):
     ABANDONED = "abandoned"  # lease lost mid-run: another worker owns the job now
 
 
-def engine_entrypoint() -> Callable:
-    """The engine's run_job. LIGHTFIELD_ENGINE ("module:function") swaps it, e.g. for an
-    instrumented engine in experiments; the default is the project's engine."""
-    spec = os.environ.get("LIGHTFIELD_ENGINE", DEFAULT_ENGINE)
-    module, _, name = spec.partition(":")
-    return getattr(importlib.import_module(module), name)
-
-
-def _user_error_types() -> tuple[type[BaseException], ...]:
-    """Errors caused by the job's input: recorded with their code, never retried."""
-    from core.camera import CameraError
-    from core.engine.capture import CaptureError
-    from core.io.limits import MediaError
-    from core.priors.base import PriorError
-
-    return (MediaError, CaptureError, CameraError, PriorError)
-
-
-def error_code_of(exc: BaseException) -> str:
-    """The API error code of an input error: the same whether the upload check
-    (service.validation) or the worker meets it, as docs/api.md lists them."""
-    code = getattr(exc, "code", None)
-    if isinstance(code, str) and code:
-        return code
-    field = getattr(exc, "field", None)  # CaptureError names its input, as the API's codes do
-    if isinstance(field, str) and field.isidentifier():
-        return f"invalid_{field}"
-    return {"CaptureError": "invalid_capture", "CameraError": "invalid_intrinsics",
-            "PriorError": "prior_unavailable"}.get(type(exc).__name__, "invalid_input")
-
-
 @dataclass
 class JobRunner:
     store: JobStore
-    settings: ServiceSettings
-    prior_provider: Callable[[str, str | None], object] | None = None
+    settings: JobSettings
+    # core.engine.run_job(input, depth, params, out_dir, *, progress, should_cancel, checkpoint_dir,
+    #                    limits, on_capture, config=None, prior_factory=None) -> JobResult
+    engine: Callable[..., "JobResult"]
+    # how the engine builds the job's prior (worker.prior_cache keeps weight-loading ones); None: the engine's own
+    prior_factory: Callable[..., object] | None = None
 
     def run(self, job_id: str) -> Outcome:
         record = self.store.get(job_id)
@@ -104,10 +80,10 @@ class JobRunner:
 
         from core.engine.progress import Cancelled
 
-        user_errors = _user_error_types()
+        user_errors = user_error_types()
         try:
-            artefact = self._finished_artefact(paths) or self._call_engine(record, paths, lease)
-            relative = self._relative_artefact(artefact, paths)
+            result = None if self._artefact_saved(paths) else self._call_engine(record, paths, lease)
+            relative = self._relative_artefact(result.path if result else paths.artefact_dir, paths)
         except Cancelled:
             if lease.lost.is_set():
                 return Outcome.ABANDONED
@@ -125,74 +101,67 @@ class JobRunner:
 
         if lease.lost.is_set():
             return Outcome.ABANDONED
-        self._prebake(job_id, artefact)
-        self._save_ui_preview(record, paths)
+        self._prebake(job_id, result.artefact if result else paths.artefact_dir)
         self.store.update(job_id, allowed=("running",), state="succeeded", progress=1.0, stage="done",
                           eta_s=0.0, artefact=relative, finished_at=time.time())
         paths.remove_uploads()
         shutil.rmtree(paths.checkpoint_dir, ignore_errors=True)
         return Outcome.SUCCEEDED
 
-    def _call_engine(self, record, paths: JobPaths, lease: RunLease) -> Path:
+    def _call_engine(self, record, paths: JobPaths, lease: RunLease) -> "JobResult":
         from core.engine.params import JobParams
         from core.io.limits import MediaLimits
 
         params = JobParams.model_validate_json(record.params or "{}")
-        run_job = engine_entrypoint()
         paths.job_dir.mkdir(parents=True, exist_ok=True)
         kwargs = dict(
             progress=self._progress_writer(record.id),
             should_cancel=lambda: lease.lost.is_set() or self.store.cancel_requested(record.id),
             checkpoint_dir=paths.checkpoint_dir,
+            limits=MediaLimits.from_env(),
+            on_capture=lambda capture: self._save_ui_preview(record.id, capture, paths),
         )
-        accepted = inspect.signature(run_job).parameters
-        if "limits" in accepted:
-            kwargs["limits"] = MediaLimits.from_env()
-        if self.settings.distill_overrides and "config" in accepted:
-            from core.engine.config import preset
+        if self.settings.distill_overrides:
+            from core.engine.presets import preset
 
-            kwargs["config"] = preset(params.preset, **self.settings.distill_overrides)
-        # Only weight-loading priors are worth keeping across jobs; the engine builds cheap
-        # ones itself with its preset's settings.
-        if self.prior_provider is not None and params.prior == "diffusion" and "prior" in accepted:
-            kwargs["prior"] = self.prior_provider(params.prior, params.prior_weights)
+            kwargs["config"] = preset(params.preset).with_overrides({"distill": self.settings.distill_overrides})
+        if self.prior_factory is not None:
+            kwargs["prior_factory"] = self.prior_factory
         depth = paths.upload_dir / record.depth_file if record.depth_file else None
-        return Path(run_job(paths.upload_dir / record.input_file, depth, params, paths.artefact_dir, **kwargs))
+        return self.engine(paths.upload_dir / record.input_file, depth, params, paths.artefact_dir, **kwargs)
 
     @staticmethod
-    def _finished_artefact(paths: JobPaths) -> Path | None:
-        """An artefact a previous run saved before dying (the engine renames a complete
-        directory into place, so its metadata file means it is whole): finish, don't redo."""
-        from core.engine.artefact import META_FILE
+    def _artefact_saved(paths: JobPaths) -> bool:
+        """Whether a previous run saved the artefact before dying (the engine renames a
+        complete directory into place, so its metadata file means it is whole): finish, don't redo."""
+        from core.fields.artefact import META_FILE
 
-        return paths.artefact_dir if (paths.artefact_dir / META_FILE).is_file() else None
+        return (paths.artefact_dir / META_FILE).is_file()
 
-    def _prebake(self, job_id: str, artefact: Path) -> None:
-        """Precompute the quality=fast lattice now, so no API request pays for it. Optional:
-        a failure here only means the API bakes on the first fast query."""
+    def _prebake(self, job_id: str, artefact: "LightFieldArtefact | Path") -> None:
+        """Precompute the quality=fast lattice now, from the field in memory (or the directory
+        a previous run saved), so no API request pays for it. Optional: a failure here only
+        means the API bakes on the first fast query."""
         try:
-            from core.engine.artefact import LightFieldArtefact
-            from core.engine.bake import load_or_bake
+            from core.fields.artefact import LightFieldArtefact
+            from core.fields.bake import load_or_bake
 
             self.store.update(job_id, allowed=("running",), stage="baking", message="precomputing quality=fast")
-            load_or_bake(LightFieldArtefact.load(artefact), save=True)
+            load_or_bake(LightFieldArtefact.load(artefact) if isinstance(artefact, Path) else artefact, save=True)
         except Exception:
             log.warning("job %s: baking the fast path failed", job_id, exc_info=True)
 
-    def _save_ui_preview(self, record, paths: JobPaths) -> None:
-        """Keep small frames + depth for the web page (service.capture_preview) before the
-        uploads are deleted. Optional: without it the page cannot show frames."""
+    @staticmethod
+    def _save_ui_preview(job_id: str, capture, paths: JobPaths) -> None:
+        """Keep small frames + depth of the engine's decoded capture for the web page
+        (jobs.capture_preview), since the uploads are deleted when the job ends. Optional:
+        without it the page cannot show frames."""
         try:
-            from core.engine.params import JobParams
-            from core.io.limits import MediaLimits
-            from service.capture_preview import write_capture_preview
+            from jobs.capture_preview import write_capture_preview
 
-            depth = paths.upload_dir / record.depth_file if record.depth_file else None
-            write_capture_preview(paths.upload_dir / record.input_file, depth,
-                                  JobParams.model_validate_json(record.params or "{}"), paths.job_dir,
-                                  MediaLimits.from_env())
+            write_capture_preview(capture, paths.job_dir)
         except Exception:
-            log.warning("job %s: storing the UI preview failed", record.id, exc_info=True)
+            log.warning("job %s: storing the UI preview failed", job_id, exc_info=True)
 
     def _progress_writer(self, job_id: str):
         last = {"t": 0.0, "stage": None}

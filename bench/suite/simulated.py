@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -100,7 +99,7 @@ def switch_frames(scene: SceneSpec) -> list[int]:
 def global_probe_point(scene: SceneSpec, capture) -> tuple[float, float, float]:
     """The DiffusionLight-style single probe: the centre of the visible scene's bounding box
     (from unprojected depth), moved towards the camera until it is in free space."""
-    from core.engine.distill import scene_bounds
+    from core.engine.scene import scene_bounds
     from core.sim.render import ProbeError, check_probe
 
     b = scene_bounds(capture)
@@ -150,7 +149,7 @@ def build_series(scene: SceneSpec) -> list[Series]:
 
 def load_suite(name: str, cache_dir: Path, resolution: tuple[int, int] | None, gt_height: int) -> SuiteData:
     """Render (or reuse) a suite's capture and collect its ground truth."""
-    from core.engine.capture import load_capture
+    from core.capture.load import load_capture
     from core.io.exr import read_exr
     from core.sim.suites import suite
 
@@ -174,6 +173,3 @@ def load_suite(name: str, cache_dir: Path, resolution: tuple[int, int] | None, g
         render_seconds=render_seconds,
     )
 
-
-def nearest_frame(t: float, fps: float, frames: int) -> int:
-    return int(min(frames - 1, max(0, math.floor(t * fps + 0.5))))

@@ -131,10 +131,9 @@ def _queries(art) -> tuple[list, list]:
 def run_case(case: Case, workdir: Path, iterations: int) -> dict:
     import torch
 
-    from core.engine.artefact import LightFieldArtefact
-    from core.engine.config import preset
-    from core.engine.distill import run_job
+    from core.engine import run_job
     from core.engine.params import JobParams
+    from core.engine.presets import preset
 
     d = workdir / f"stability-{case.name}"
     d.mkdir(parents=True, exist_ok=True)
@@ -143,8 +142,8 @@ def run_case(case: Case, workdir: Path, iterations: int) -> dict:
         inp, depth = case.make(d, quick=iterations < 50)
         with measured() as m, warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            path = run_job(inp, depth, JobParams(preset="draft"), d / "artefact", config=preset("draft", iterations=iterations))
-            art = LightFieldArtefact.load(path)
+            art = run_job(inp, depth, JobParams(preset="draft"), d / "artefact",
+                          config=preset("draft").with_overrides({"distill.iterations": iterations})).artefact
             xs, ts = _queries(art)
             hdr, flags = art.envmaps(torch.tensor(xs, dtype=torch.float32), torch.tensor(ts, dtype=torch.float32), QUERY_HEIGHT)
         out.update({"seconds": round(m.seconds, 2), "cpu_seconds": round(m.cpu_seconds, 2), "peak_rss_delta_mb": round(m.peak_rss_delta_mb, 1)})

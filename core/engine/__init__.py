@@ -1,5 +1,11 @@
-"""Estimation engine: capture loading, distillation, the stored artefact and its queries.
+"""The estimation engine: the distillation loop and the job entry point `run_job`.
 
-Kept import-free on purpose: `import core.engine.artefact` must not pull in the
-distillation loop (and vice versa), and the CLI imports submodules lazily.
+    probes.py       where a step's chrome balls go          scene.py     field bounds, distinct frames
+    trainer.py      one optimisation step                   distill.py   the loop (checkpoints, progress)
+    checkpoints.py  resumable state                         job.py       run_job: capture -> artefact
+    config.py       EngineConfig / DistillConfig            presets.py   draft / standard / paper
+    params.py       JobParams (the user's job schema)       losses.py, progress.py
 """
+from core.engine.job import JobResult, run_job
+
+__all__ = ["JobResult", "run_job"]

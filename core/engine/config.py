@@ -1,36 +1,33 @@
-"""Distillation settings and the three presets (draft / standard / paper).
-
-`paper` is the paper's §3.2 setup (GPU): MLP 6x256, N = 9 probes, ev 0 -> -5, tau_min
-annealed 1 -> 0, k = ceil(10 tau), guidance 12.5, Adam + warm-up + cosine LR, grad clipping.
-`draft` and `standard` keep the same loop but cut what CPU time pays for: the working frame
-resolution (the ball is 1/4 of the frame, so this is the ball resolution), iterations, and a
-narrower MLP (same encodings, 96 x 4 for draft, 128 x 6 for standard). At equal steps a
-narrow MLP recovered a known field about as well as the 6 x 256 one and clearly better than
-the trunk+head field (see docs/engine.md). Wall times are measured by `bench/presets.py`.
+"""The engine's configuration as one typed tree (nerfstudio's method configs): an
+`EngineConfig` holds the distillation loop's settings (`DistillConfig`), the field
+(`FieldConfig`: the default kind plus every kind's settings, so a job may pick another kind)
+and the priors' settings defaults (each validated by that prior's Config). The named
+presets are in core.engine.presets; `with_overrides` derives variants (worker overrides,
+benchmarks, tests) without flat knobs.
 """
 from __future__ import annotations
 
 import math
 import random
-from typing import Literal
+from typing import Any, Literal, Mapping
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from core.conventions import DEFAULT_EV_MIN
-from core.device import DEVICE_ENV, DEVICE_PATTERN, DeviceError, resolve_device  # noqa: F401  (re-exported)
+from core.device import DEVICE_PATTERN
+from core.fields import FieldConfig
 
 
 class DistillConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    name: str = "custom"
     iterations: int = Field(300, ge=1)
     n_probes: int = Field(9, ge=1, le=64)
     work_height: int = Field(96, ge=16, description="frames are area-downsampled to this height")
     supersample: int = Field(1, ge=1, le=8, description="ball samples per pixel side (>= 8 across tiny balls anyway)")
     ball_diameter_fraction: float = Field(0.25, gt=0, le=1.0)
     # Probe depth: uniform in [lo, hi] x scene depth at the pixel, i.e. strictly in front of
-    # the surface; see distill.sample_probes for the near-plane guard.
+    # the surface; see core.engine.probes.sample_probes for the near-plane guard.
     probe_depth_fraction: tuple[float, float] = (0.5, 0.95)
     ev_min: float = Field(DEFAULT_EV_MIN, le=0.0)
     ev_sweep_fraction: float = Field(1.0, gt=0, le=1.0, description="ev reaches ev_min after this fraction of steps")
@@ -45,16 +42,12 @@ class DistillConfig(BaseModel):
     adam_betas: tuple[float, float] = (0.9, 0.99)
     l2_weight: float = Field(1.0, ge=0)
     perceptual_weight: float = Field(0.1, ge=0)
-    field_kind: Literal["mlp", "grid", "trunk"] = "mlp"
-    field_width: int | None = Field(None, ge=4, description="override the field's hidden width")
-    field_layers: int | None = Field(None, ge=1, description="override the field's depth")
     # Per-step tensors are small (a few thousand ball samples): intra-op threads cost more in
     # synchronisation than they gain, and are disastrous on a shared, oversubscribed machine.
     threads: int | None = Field(1, ge=1, description="torch intra-op threads during distillation (None: leave as is)")
     checkpoint_every: int = Field(100, ge=1)
     device: str = Field("auto", pattern=DEVICE_PATTERN,
                         description="'auto' (CUDA if available, else CPU), 'cpu', 'cuda' or 'cuda:N'; env LIGHTFIELD_DEVICE overrides")
-    prior_env_height: int = Field(32, ge=8, description="reprojection prior's splat resolution")
 
     # ------------------------------------------------------------------ schedules
     def ev_at(self, step: int) -> float:
@@ -83,24 +76,52 @@ class DistillConfig(BaseModel):
         return lo + 0.5 * (self.lr - lo) * (1.0 + math.cos(math.pi * p))
 
 
-PRESETS: dict[str, DistillConfig] = {
-    # CPU: ~1 min for a 20-frame 192x144 clip on 2 cores (bench/presets.py)
-    "draft": DistillConfig(name="draft", iterations=400, n_probes=9, work_height=72, lr=5e-3,
-                           warmup_steps=15, field_kind="mlp", field_width=96, field_layers=4, checkpoint_every=50,
-                           prior_env_height=24),
-    # CPU: a 100-frame 320x240 clip in a few minutes
-    "standard": DistillConfig(name="standard", iterations=1000, n_probes=9, work_height=120, lr=5e-3,
-                              warmup_steps=30, field_kind="mlp", field_width=128, field_layers=4, checkpoint_every=100,
-                              prior_env_height=32),
-    # The paper's settings (GPU): full resolution ball crops, MLP 6 x 256
-    "paper": DistillConfig(name="paper", iterations=3000, n_probes=9, work_height=512, supersample=2,
-                           lr=1e-3, warmup_steps=100, field_kind="mlp", checkpoint_every=250,
-                           prior_env_height=64, threads=None),
-}
+class EngineConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = "custom"
+    distill: DistillConfig = DistillConfig()
+    field: FieldConfig = FieldConfig()  # `kind` is the default a job's params.field may replace
+    priors: dict[str, dict[str, Any]] = Field(default_factory=dict, description="prior name -> settings defaults")
+
+    @field_validator("priors")
+    @classmethod
+    def _valid_prior_settings(cls, priors: dict) -> dict:
+        from core.priors.base import PriorError
+        from core.priors.registry import prior_settings
+
+        try:
+            return {name: prior_settings(name, settings).model_dump() for name, settings in priors.items()}
+        except PriorError as exc:  # a validation error of this config, naming the prior and the key
+            raise ValueError(str(exc)) from None
+
+    def with_overrides(self, overrides: Mapping[str, Any]) -> "EngineConfig":
+        """A validated copy with `overrides` merged in, as nested mappings ({"distill":
+        {"iterations": 50}}) or dotted keys ({"distill.iterations": 50, "field.mlp.width": 64})."""
+        return EngineConfig.model_validate(_merged(self.model_dump(), _nested(overrides)))
+
+    def with_field_kind(self, kind: str | None) -> "EngineConfig":
+        """The same config training a field of `kind` (None: the default kind)."""
+        return self if kind is None else self.model_copy(update={"field": self.field.with_kind(kind)})
+
+    def prior_settings(self, name: str) -> dict[str, Any]:
+        """The settings defaults of prior `name` ({} when the config has none)."""
+        return dict(self.priors.get(name, {}))
 
 
-def preset(name: str, **overrides) -> DistillConfig:
-    if name not in PRESETS:
-        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
-    cfg = PRESETS[name]
-    return DistillConfig.model_validate({**cfg.model_dump(), **overrides}) if overrides else cfg
+def _nested(overrides: Mapping[str, Any]) -> dict:
+    out: dict = {}
+    for key, value in overrides.items():
+        *path, last = str(key).split(".")
+        node = out
+        for part in path:
+            node = node.setdefault(part, {})
+        node[last] = _nested(value) if isinstance(value, Mapping) else value
+    return out
+
+
+def _merged(base: dict, changes: dict) -> dict:
+    out = dict(base)
+    for key, value in changes.items():
+        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out

@@ -1,99 +1,27 @@
-"""User-facing job parameters: ONE schema for `lightfield estimate --params` and the service.
+"""User-facing job parameters: ONE schema for `lightfield estimate --params` and the service
+(the capture's part is core.capture.params.CaptureParams).
 
-Everything here is validated with pydantic v2 (`extra="forbid"`), so a typo in a field name
-is an error naming that field rather than a silently ignored option.
+Validated with pydantic v2 (`extra="forbid"`), so a typo in a field name is an error naming
+that field rather than a silently ignored option.
 """
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import field_validator
 
-MAX_FPS = 240.0
-MAX_FRAMES_LIMIT = 10_000  # hard ceiling; MediaLimits may be stricter
+from core.capture.params import CaptureParams
+from core.capture.temporal import TemporalMode
+from core.engine.presets import preset_names
+from core.fields import field_kinds
+from core.priors.registry import job_prior_names
 
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class IntrinsicsParams(_Strict):
-    """Either the pinhole matrix entries (pixels, continuous coordinates) or a horizontal FOV."""
-
-    fx: float | None = None
-    fy: float | None = None
-    cx: float | None = None
-    cy: float | None = None
-    hfov_deg: float | None = None
-
-    @model_validator(mode="after")
-    def _one_form(self) -> "IntrinsicsParams":
-        pinhole = [self.fx, self.fy, self.cx, self.cy]
-        has_pinhole = any(v is not None for v in pinhole)
-        if has_pinhole and self.hfov_deg is not None:
-            raise ValueError("intrinsics: give either fx, fy, cx, cy or hfov_deg, not both")
-        if has_pinhole:
-            for name in ("fx", "fy", "cx", "cy"):
-                v = getattr(self, name)
-                if v is None:
-                    raise ValueError(f"intrinsics.{name} is missing (fx, fy, cx, cy go together)")
-                if not math.isfinite(v):
-                    raise ValueError(f"intrinsics.{name} must be finite, got {v}")
-            if self.fx <= 0 or self.fy <= 0:
-                raise ValueError(f"intrinsics.fx/fy must be > 0, got fx={self.fx}, fy={self.fy}")
-        elif self.hfov_deg is None:
-            raise ValueError("intrinsics: give fx, fy, cx, cy or hfov_deg")
-        else:
-            if not math.isfinite(self.hfov_deg) or not (0.0 < self.hfov_deg < 180.0):
-                raise ValueError(f"intrinsics.hfov_deg must be in (0, 180), got {self.hfov_deg}")
-        return self
-
-
-class CaptureParams(_Strict):
-    """What we know about the capture beyond its pixels (all optional; defaults are documented
-    in docs/engine.md: DEFAULT_HFOV_DEG, a static camera, the file's own fps)."""
-
-    intrinsics: IntrinsicsParams | None = None
-    poses: list[list[float]] | None = Field(default=None, description="T x 16 camera-to-world, row-major")
-    fps: float | None = None
-    max_frames: int | None = None
-
-    @field_validator("poses")
-    @classmethod
-    def _poses(cls, v):
-        if v is None:
-            return v
-        if len(v) == 0:
-            raise ValueError("poses must not be empty")
-        for i, row in enumerate(v):
-            if len(row) != 16:
-                raise ValueError(f"poses[{i}] must have 16 numbers (row-major 4x4), got {len(row)}")
-            if not all(math.isfinite(x) for x in row):
-                raise ValueError(f"poses[{i}] contains non-finite values")
-        return v
-
-    @field_validator("fps")
-    @classmethod
-    def _fps(cls, v):
-        if v is not None and (not math.isfinite(v) or not (0.0 < v <= MAX_FPS)):
-            raise ValueError(f"fps must be in (0, {MAX_FPS:g}], got {v}")
-        return v
-
-    @field_validator("max_frames")
-    @classmethod
-    def _max_frames(cls, v):
-        if v is not None and not (1 <= v <= MAX_FRAMES_LIMIT):
-            raise ValueError(f"max_frames must be in [1, {MAX_FRAMES_LIMIT}], got {v}")
-        return v
-
-
-PresetName = Literal["draft", "standard", "paper"]
-PriorName = Literal["reprojection", "diffusion"]
-TemporalMode = Literal["auto", "on", "off"]
-FieldKind = Literal["mlp", "grid", "trunk"]
+# the choices are the registries' names (a registered preset, prior or field kind is offered here)
+PresetName = Literal[preset_names()]
+PriorName = Literal[job_prior_names()]
+FieldKind = Literal[field_kinds()]
 
 
 class JobParams(CaptureParams):

@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
+from typing import ClassVar
 
 import torch
+from pydantic import BaseModel
 from torch import nn
 
 from core.conventions import equirect_directions, equirect_width
@@ -36,9 +38,15 @@ OUTPUT_WEIGHT_SCALE = 0.1
 
 
 class LightField(nn.Module):
+    kind: ClassVar[str]  # set by @register_field
+    Config: ClassVar[type[BaseModel]]  # the kind's settings section in FieldConfig
+
     def __init__(self, config: FieldConfig, bounds: SceneBounds):
         super().__init__()
+        if config.kind != self.kind:
+            raise ValueError(f"{type(self).__name__} is the {self.kind!r} field, the config asks for {config.kind!r}")
         self.config = config
+        self.settings = config.section(self.kind)
         self.bounds = bounds
         self.register_buffer("bounds_lo", torch.tensor(bounds.lo, dtype=torch.float32))
         self.register_buffer("bounds_hi", torch.tensor(bounds.hi, dtype=torch.float32))

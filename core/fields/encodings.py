@@ -6,7 +6,17 @@ import math
 import torch
 from torch import nn
 
-from core.fields.config import EncodingSettings
+from pydantic import Field
+
+from core.fields.config import FieldSettings
+
+
+class EncodingSettings(FieldSettings):
+    """Positional-encoding frequencies of the network kinds: PE(x) 6, PE(t) 4, PE(d) 4."""
+
+    x_freqs: int = Field(6, ge=0, le=16)
+    t_freqs: int = Field(4, ge=0, le=16)
+    d_freqs: int = Field(4, ge=0, le=16)
 
 
 class PositionalEncoding(nn.Module):

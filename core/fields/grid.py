@@ -15,20 +15,39 @@ from __future__ import annotations
 import math
 
 import torch
+from pydantic import Field, model_validator
 from torch import nn
 
 from core.conventions import equirect_directions, equirect_width
 from core.envmap import equirect_stencil, pad_poles
 from core.fields.base import INITIAL_RADIANCE, LightField, probe_chunks
-from core.fields.config import FieldConfig
+from core.fields.config import FieldConfig, FieldSettings
 from core.fields.encodings import lattice_corners
 from core.fields.normalization import SceneBounds
+from core.fields.registry import register_field
 
 
+class GridSettings(FieldSettings):
+    """The paper's ablation: a resolution[0] x [1] x [2] lattice of learnable equirect maps."""
+
+    resolution: tuple[int, int, int] = (3, 3, 3)
+    env_height: int = Field(16, ge=2, le=256)  # each map is env_height x 2*env_height
+    time_keyframes: int = Field(4, ge=2, le=256)  # linear interpolation between keys (uses_time only)
+
+    @model_validator(mode="after")
+    def _resolution_positive(self):
+        if min(self.resolution) < 2:
+            raise ValueError(f"grid.resolution must be >= 2 per axis, got {self.resolution}")
+        return self
+
+
+@register_field("grid")
 class GridField(LightField):
+    Config = GridSettings
+
     def __init__(self, config: FieldConfig, bounds: SceneBounds):
         super().__init__(config, bounds)
-        s = config.grid
+        s = self.settings
         n_keys = s.time_keyframes if config.uses_time else 1
         self.lattice_dims = ((n_keys,) if config.uses_time else ()) + tuple(s.resolution)
         h = s.env_height
@@ -41,7 +60,7 @@ class GridField(LightField):
 
     def logits(self, xn, tn, d):
         node, w_node = lattice_corners(self._lattice_coords(xn, tn), self.lattice_dims)  # [B, C]
-        pix, w_pix = equirect_stencil(d, self.config.grid.env_height)  # [B, 4]
+        pix, w_pix = equirect_stencil(d, self.settings.env_height)  # [B, 4]
         padded = pad_poles(self.maps)  # [M, (h+2) * w, 3]
         texels = padded.shape[1]
         flat = padded.reshape(-1, 3)
@@ -54,7 +73,7 @@ class GridField(LightField):
         this equals evaluating every (probe, direction) pair)."""
         node, w_node = lattice_corners(self._lattice_coords(xn, tn), self.lattice_dims)  # [P, C]
         blended = (w_node[..., None, None, None] * self.maps[node]).sum(1)  # [P, h, w, 3]
-        h = self.config.grid.env_height
+        h = self.settings.env_height
         if dirs.shape[0] == h * equirect_width(h) and torch.equal(dirs, equirect_directions(h, device=dirs.device).reshape(-1, 3)):
             return blended.reshape(xn.shape[0], -1, 3)  # same pixel centres: sampling is the identity
         pix, w_pix = equirect_stencil(dirs, h)  # [N, 4]

@@ -8,18 +8,37 @@ deep layers keep direct access to the high-frequency encodings; a linear head gi
 from __future__ import annotations
 
 import torch
+from pydantic import Field, model_validator
 from torch import nn
 
 from core.fields.base import LightField, probe_chunks
 from core.fields.config import FieldConfig
-from core.fields.encodings import nerf_encodings
+from core.fields.encodings import EncodingSettings, nerf_encodings
 from core.fields.normalization import SceneBounds
+from core.fields.registry import register_field
 
 
+class MLPSettings(EncodingSettings):
+    """The paper's MLP: PE(x) 6 freqs, PE(t) 4, PE(d) 4; 6 x 256 ReLU, skip into layer 3."""
+
+    width: int = Field(256, ge=1)
+    layers: int = Field(6, ge=1)
+    skip_layer: int | None = Field(3, ge=1, description="1-based hidden layer that also receives the input encoding")
+
+    @model_validator(mode="after")
+    def _skip_in_range(self):
+        if self.skip_layer is not None and self.skip_layer > self.layers:
+            raise ValueError(f"mlp.skip_layer={self.skip_layer} exceeds mlp.layers={self.layers}")
+        return self
+
+
+@register_field("mlp")
 class MLPField(LightField):
+    Config = MLPSettings
+
     def __init__(self, config: FieldConfig, bounds: SceneBounds):
         super().__init__(config, bounds)
-        s = config.mlp
+        s = self.settings
         self.pe_x, self.pe_t, self.pe_d = nerf_encodings(s, config.uses_time)
         enc_dim = self.pe_x.out_dim + (self.pe_t.out_dim if self.pe_t else 0) + self.pe_d.out_dim
         self.encoding_dim = enc_dim

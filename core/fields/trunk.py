@@ -9,18 +9,43 @@ is mostly a function of direction with a slowly varying spatial modulation.
 from __future__ import annotations
 
 import torch
+from pydantic import Field, model_validator
 from torch import nn
 
 from core.fields.base import LightField, probe_chunks
 from core.fields.config import FieldConfig
-from core.fields.encodings import DenseGridEncoding, nerf_encodings
+from core.fields.encodings import DenseGridEncoding, EncodingSettings, nerf_encodings
 from core.fields.normalization import SceneBounds
+from core.fields.registry import register_field
 
 
+class TrunkSettings(EncodingSettings):
+    """Faster field: trunk over (x, t) -> feature; head over (feature, PE(d)) -> radiance."""
+
+    trunk_width: int = Field(128, ge=1)
+    trunk_layers: int = Field(3, ge=1)
+    feature_dim: int = Field(64, ge=1)
+    head_width: int = Field(64, ge=1)
+    head_layers: int = Field(2, ge=1)
+    # Optional learnable dense feature grid over the box, concatenated to PE(x): local
+    # capacity near lights without widening the trunk. None = PE only.
+    x_grid: tuple[int, int, int] | None = None
+    x_grid_features: int = Field(8, ge=1, le=64)
+
+    @model_validator(mode="after")
+    def _grid_positive(self):
+        if self.x_grid is not None and min(self.x_grid) < 2:
+            raise ValueError(f"trunk.x_grid must be >= 2 per axis, got {self.x_grid}")
+        return self
+
+
+@register_field("trunk")
 class TrunkField(LightField):
+    Config = TrunkSettings
+
     def __init__(self, config: FieldConfig, bounds: SceneBounds):
         super().__init__(config, bounds)
-        s = config.trunk
+        s = self.settings
         self.pe_x, self.pe_t, self.pe_d = nerf_encodings(s, config.uses_time)
         self.x_grid = DenseGridEncoding(s.x_grid, s.x_grid_features) if s.x_grid is not None else None
         trunk_in = self.pe_x.out_dim + (self.pe_t.out_dim if self.pe_t else 0)
@@ -41,7 +66,7 @@ class TrunkField(LightField):
 
     def _split_head_input(self, xn, tn, d) -> tuple[torch.Tensor, torch.Tensor]:
         """head_in(f, PE(d)) = (W_f f + b) [P, head_width] + W_d PE(d) [N, head_width]."""
-        f_dim = self.config.trunk.feature_dim
+        f_dim = self.settings.feature_dim
         w, b = self.head_in.weight, self.head_in.bias
         return self.features(xn, tn) @ w[:, :f_dim].T + b, self.pe_d(d) @ w[:, f_dim:].T
 

@@ -10,6 +10,7 @@ shape is read from the array header before the data is decompressed (zip bombs).
 from __future__ import annotations
 
 import io
+import math
 import os
 import zipfile
 from pathlib import Path
@@ -42,13 +43,17 @@ def _check_array_header(shape: tuple, dtype: np.dtype, limits: MediaLimits, what
     _check_shape(tuple(shape), limits, what)
 
 
+def _check_npz_members(archive: zipfile.ZipFile) -> None:
+    names = archive.namelist()
+    if names != ["depth.npy"]:
+        keys = [n[:-4] if n.endswith(".npy") else n for n in names]
+        raise MediaError("invalid_depth", f".npz must hold exactly one array named 'depth', found {keys}")
+
+
 def _load_npz(data: bytes, limits: MediaLimits) -> np.ndarray:
     try:
         with zipfile.ZipFile(io.BytesIO(data)) as archive:
-            names = archive.namelist()
-            if names != ["depth.npy"]:
-                keys = [n[:-4] if n.endswith(".npy") else n for n in names]
-                raise MediaError("invalid_depth", f".npz must hold exactly one array named 'depth', found {keys}")
+            _check_npz_members(archive)
             with archive.open("depth.npy") as member:
                 shape, dtype = npy_header(member)
                 _check_array_header(shape, dtype, limits, "depth array")
@@ -99,6 +104,46 @@ def read_depth(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> np.ndarr
     depth = np.asarray(loaders[kind](data, limits))
     _check_shape(depth.shape, limits, "depth map")
     return sanitize_depth(depth)
+
+
+def probe_depth(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> tuple[tuple[int, ...], np.ndarray]:
+    """(shape, first map) of a depth file `read_depth` accepts: the array header checked under
+    `limits` as read_depth does, and only the first [H, W] map read (sanitised: invalid pixels
+    NaN), however many maps the file holds. EXR and PNG files hold one map."""
+    data = read_source(source, limits, "depth file")
+    kind = sniff_depth(data)
+    if kind is None:
+        raise MediaError("not_media", "depth must be .npz/.npy (array 'depth'), OpenEXR or 16-bit PNG in millimetres")
+    if kind in ("exr", "png"):
+        depth = read_depth(data, limits)
+        return depth.shape, depth
+    try:
+        if kind == "npy":
+            return _npy_first_map(io.BytesIO(data), limits)
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
+            _check_npz_members(archive)
+            with archive.open("depth.npy") as member:
+                return _npy_first_map(member, limits)
+    except MediaError:
+        raise
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as exc:
+        raise MediaError("truncated", f".{kind} depth file is truncated or corrupt ({exc})") from None
+
+
+def _npy_first_map(fp, limits: MediaLimits) -> tuple[tuple[int, ...], np.ndarray]:
+    version = np.lib.format.read_magic(fp)
+    read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+    shape, fortran_order, dtype = read_header(fp)
+    _check_array_header(shape, dtype, limits, "depth array")
+    h, w = shape[-2:]
+    # a Fortran-ordered stack's first map is not contiguous: read the whole (limit-checked) array
+    count = math.prod(shape) if fortran_order else h * w
+    raw = fp.read(count * dtype.itemsize)
+    if len(raw) < count * dtype.itemsize:
+        raise MediaError("truncated", "depth array data is truncated")
+    array = np.frombuffer(raw, dtype).reshape(shape if fortran_order else (h, w), order="F" if fortran_order else "C")
+    first = array[0] if array.ndim == 3 else array
+    return tuple(shape), sanitize_depth(np.array(first))
 
 
 def sanitize_depth(depth: np.ndarray) -> np.ndarray:

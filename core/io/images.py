@@ -22,7 +22,8 @@ from PIL import Image
 
 from core.io.exr import atomic_write
 from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source, read_source
-from core.io.metadata import ImageMetadata, describe_orientation, image_metadata, orient_array, orient_image, to_srgb
+from core.io.metadata import (ImageMetadata, describe_orientation, image_metadata, orient_array, orient_image,
+                              orientation_swaps_axes, to_srgb)
 from core.io.sniff import PNG_MAGIC, sniff_image
 
 try:
@@ -54,6 +55,31 @@ def _open_checked(data: bytes, limits: MediaLimits) -> Image.Image:
     width, height = image.size
     limits.check_pixels(width, height, f"{fmt.upper()} image")
     return image
+
+
+def probe_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> tuple[int, int]:
+    """(width, height) of an image `read_image` accepts, upright (EXIF orientation applied),
+    from its header under `limits`, with the file's structure verified (Pillow's verify: PNG
+    chunk CRCs, truncation) but no pixel decoded. Refuses with the same MediaError codes as
+    read_image for what that reveals."""
+    data = read_source(source, limits, "image")
+    image = _open_checked(data, limits)
+    _check_sample_format(image, data)
+    swap = orientation_swaps_axes(image_metadata(image).orientation)
+    try:
+        image.verify()
+    except Image.DecompressionBombError as exc:
+        raise MediaError("too_many_pixels", str(exc)) from None
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise MediaError("truncated", f"{image.format} data is truncated or corrupt ({exc})") from None
+    w, h = image.size
+    return (h, w) if swap else (w, h)
+
+
+def _check_sample_format(image: Image.Image, data: bytes) -> None:
+    if image.mode in ("I", "F") and not (image.format == "PNG" and _png_bit_depth(data) == 16):
+        # 32-bit integer / float samples: no defined white level
+        raise MediaError("unsupported_codec", f"{image.format} with 32-bit {image.mode!r} samples is not an LDR image; send HDR as EXR or .hdr")
 
 
 def _decode_png16(data: bytes) -> np.ndarray:
@@ -93,8 +119,7 @@ def decode_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> Decode
             applied.append(f"ICC profile {meta.icc_description!r} of a 16-bit PNG not converted (values used as sRGB)")
         pixels = orient_array(_to_rgb(_decode_png16(data)), meta.orientation).astype(np.float32) / np.float32(65535.0)
         return DecodedImage(pixels, meta, image.size, applied)
-    if image.mode in ("I", "F"):  # 32-bit integer / float samples: no defined white level
-        raise MediaError("unsupported_codec", f"{image.format} with 32-bit {image.mode!r} samples is not an LDR image; send HDR as EXR or .hdr")
+    _check_sample_format(image, data)
     try:
         image.load()
         if image.mode.startswith("I;16"):  # 16-bit grey TIFF

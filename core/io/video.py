@@ -6,8 +6,8 @@ the number of frames left after `frame_stride`. Too many frames are, by default,
 subsampled evenly over the whole clip (first and last kept), so a long clip still covers
 its full duration; `on_too_many='error'` refuses instead. Rotation metadata (phone
 videos: the display matrix, or a legacy `rotate` tag) is applied, so frames come upright
-as a player shows them, like images (core.io.metadata); `rotation_ccw_deg` says by how much. Containers are
-recognised by magic bytes (MP4/MOV, WebM/Matroska, AVI, MPEG-PS, Ogg, and animated GIF).
+as a player shows them, like images (core.io.metadata); `rotation_ccw_deg` says by how much.
+Containers are recognised by magic bytes (MP4/MOV, WebM/Matroska, AVI, MPEG-PS, Ogg, and animated GIF).
 """
 from __future__ import annotations
 
@@ -114,26 +114,62 @@ def _count_packets(source: Source, limits: MediaLimits) -> int:
         return sum(1 for packet in container.demux(stream) if packet.size > 0)
 
 
+@dataclass(frozen=True)
+class VideoHeader:
+    """What the container declares, checked against the limits (see `probe_video`)."""
+
+    width: int
+    height: int
+    fps: float  # the source frame rate (30 when the file declares none)
+    frame_count: int  # declared, or counted from the packets
+    selected: np.ndarray  # source frame indices read_video keeps under the limits
+    warnings: list[str] = field(default_factory=list)
+
+
+def _header(source: Source, container, stream, limits: MediaLimits, on_too_many: OnTooMany, warnings: list[str]):
+    """(fps, frame count, selected indices) from the stream header, refusing what the limits forbid."""
+    ctx = stream.codec_context
+    if ctx.width and ctx.height:
+        limits.check_pixels(ctx.width, ctx.height, "video frame")
+    rate = stream.average_rate or stream.guessed_rate or stream.base_rate
+    fps = float(rate) if rate else 0.0
+    if not (fps > 0 and np.isfinite(fps)):
+        fps = 30.0
+        warnings.append("video has no frame rate; assumed 30 fps")
+    declared = int(stream.frames or 0)
+    frame_count = declared if declared > 0 else _count_packets(source, limits)
+    if frame_count <= 0:
+        raise MediaError("truncated", "video stream has no frames (empty, truncated or corrupt file)")
+    pixels = (ctx.width * ctx.height) if ctx.width and ctx.height else 1
+    return fps, frame_count, select_frame_indices(frame_count, pixels, limits, on_too_many)
+
+
+def probe_video(source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_many: OnTooMany = "subsample") -> VideoHeader:
+    """What `read_video` would decode, from the container's metadata and the FIRST frame only
+    (which proves the stream decodes): the same size (upright, after the display rotation),
+    frame-count and pixel limits, refused with the same MediaError codes, at the cost of one
+    frame however many the file declares."""
+    container, _ = _open_container(source, limits)
+    warnings: list[str] = []
+    with container:
+        stream = _video_stream(container)
+        fps, frame_count, selected = _header(source, container, stream, limits, on_too_many, warnings)
+        first = next(_decoded_frames(container, stream, warnings), None)
+        if first is None:
+            raise MediaError("truncated", f"no frame could be decoded (the stream declares {frame_count})")
+        limits.check_pixels(first.width, first.height, "video frame")
+        turned = video_rotation_ccw(stream, first) in (90, 270)
+        w, h = (first.height, first.width) if turned else (first.width, first.height)
+        return VideoHeader(w, h, fps, frame_count, selected, warnings)
+
+
 def read_video(source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_many: OnTooMany = "subsample") -> VideoFrames:
     """Decode a video (path or bytes) into float32 frames under `limits` (see module doc)."""
     container, _ = _open_container(source, limits)
     warnings: list[str] = []
     with container:
         stream = _video_stream(container)
-        ctx = stream.codec_context
-        if ctx.width and ctx.height:
-            limits.check_pixels(ctx.width, ctx.height, "video frame")
-        rate = stream.average_rate or stream.guessed_rate or stream.base_rate
-        fps = float(rate) if rate else 0.0
-        if not (fps > 0 and np.isfinite(fps)):
-            fps = 30.0
-            warnings.append("video has no frame rate; assumed 30 fps")
-        declared = int(stream.frames or 0)
-        frame_count = declared if declared > 0 else _count_packets(source, limits)
-        if frame_count <= 0:
-            raise MediaError("truncated", "video stream has no frames (empty, truncated or corrupt file)")
-        pixels = (ctx.width * ctx.height) if ctx.width and ctx.height else 1
-        wanted = select_frame_indices(frame_count, pixels, limits, on_too_many)
+        fps, frame_count, wanted = _header(source, container, stream, limits, on_too_many, warnings)
         kept, indices, rotation = _decode_selected(container, stream, wanted, limits, warnings)
     if not kept:
         raise MediaError("truncated", f"no frame could be decoded (the stream declares {frame_count})")

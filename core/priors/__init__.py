@@ -1,5 +1,14 @@
 """Priors over chrome balls (the 'guidance' of threestudio): they see 2D images and ball
-geometry, never the light field being optimised."""
-from core.priors.base import Prior, PriorRequest, ProbeGeometry, PriorError
+geometry, never the light field being optimised. Registered by name (core.priors.registry);
+the built-in light priors register here, the diffusion prior on first use, the simulator's
+oracle when core.sim.oracle is imported."""
+from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest, ProbeGeometry
+from core.priors.registry import build_prior, job_prior_names, prior_names, register_prior
 
-__all__ = ["Prior", "PriorRequest", "ProbeGeometry", "PriorError"]
+from core.priors.reprojection import ReprojectionPrior  # registers "reprojection"
+from core.priors.known import KnownRadiancePrior  # registers "known"
+
+__all__ = [
+    "KnownRadiancePrior", "Prior", "PriorCapabilities", "PriorConfig", "PriorError", "PriorRequest", "ProbeGeometry",
+    "ReprojectionPrior", "build_prior", "job_prior_names", "prior_names", "register_prior",
+]

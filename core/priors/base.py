@@ -2,25 +2,28 @@
 
 A prior knows nothing about the light field. The engine renders balls under the current
 field, composites them into a frame, tone maps at exposure `ev` and asks the prior what
-those balls *should* look like. The returned image is a stop-gradient target.
+those balls *should* look like. The returned image is a stop-gradient target. What else a
+prior can do is declared in `PriorCapabilities`; its settings are its `Config`.
 
-Implementations:
-* core.priors.reprojection.ReprojectionPrior — embedded default, weights-free, classical.
-* core.priors.known.KnownRadiancePrior — renders balls from a known radiance function
-  (tests; the simulator's OracleSimPrior builds on it).
-* core.priors.diffusion.DiffusionPrior — the paper's SD inpainting + depth ControlNet.
+Implementations (registered by name, core.priors.registry):
+* reprojection: core.priors.reprojection.ReprojectionPrior — default, weights-free, classical.
+* known: core.priors.known.KnownRadiancePrior — renders balls from a known radiance function
+  (tests).
+* oracle: core.sim.oracle.OracleSimPrior — the simulator's ground truth (benchmarks, tests).
+* diffusion: core.priors.diffusion.prior.DiffusionPrior — the paper's SD inpainting + depth
+  ControlNet.
 """
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import ClassVar
 
 import torch
+from pydantic import BaseModel, ConfigDict
 
 from core.camera import Camera
-
-if TYPE_CHECKING:  # avoid an import cycle; the engine's Capture is only a type here
-    from core.engine.capture import Capture
+from core.capture.base import Capture
 
 
 class PriorError(RuntimeError):
@@ -57,18 +60,69 @@ class PriorRequest:
     extras: dict = field(default_factory=dict)
 
 
-@runtime_checkable
-class Prior(Protocol):
-    name: str
+class PriorConfig(BaseModel):
+    """Base of every prior's own settings (`Prior.Config`): strict, a misspelt key is an error."""
 
-    def bind(self, capture: "Capture") -> None:
-        """Called once per job before distillation (precompute per-capture state)."""
+    model_config = ConfigDict(extra="forbid", frozen=True)
 
+
+@dataclass(frozen=True)
+class PriorCapabilities:
+    """What a prior offers beyond the call, declared by its class (the engine reads these flags
+    and never probes for methods):
+
+    * frame_geometry: it builds per-frame geometry (`prepare_frame(i)`) that is worth building
+      before the loop, so its cost is reported as its own stage;
+    * envmaps: it answers linear HDR env maps at probe centres directly
+      (`envmaps(centers, time, height)`), e.g. to supervise a field in radiance, not only
+      through rendered balls.
+    """
+
+    frame_geometry: bool = False
+    envmaps: bool = False
+
+
+class Prior(ABC):
+    """The prior interface. Subclasses are registered by name (`core.priors.registry.register_prior`)
+    with their settings class `Config`; `from_config` builds one from its settings."""
+
+    name: ClassVar[str]  # the registry name, set by @register_prior
+    Config: ClassVar[type[PriorConfig]] = PriorConfig
+    capabilities: ClassVar[PriorCapabilities] = PriorCapabilities()
+
+    @classmethod
+    def from_config(cls, config: PriorConfig, device: torch.device | None = None) -> "Prior":
+        """A prior from its validated settings; `device` is where the engine trains (priors that
+        run a network place it there, the others ignore it)."""
+        return cls(**dict(config))
+
+    @property
+    def device(self) -> torch.device:
+        """Where the prior wants its request tensors (the engine moves them there)."""
+        return torch.device("cpu")
+
+    def bind(self, capture: Capture, *, lighting_changes: bool = True) -> None:
+        """Called once per job before distillation (precompute per-capture state).
+        `lighting_changes` is the engine's temporal decision: False lets a prior pool what
+        different frames saw."""
+
+    @abstractmethod
     def __call__(self, request: PriorRequest) -> torch.Tensor:
         """Return the pseudo-target LDR image [3, H, W] in [0, 1] (same size as request.image).
 
         Pixels outside the union of ball masks must equal request.image.
         """
 
+    @abstractmethod
     def describe(self) -> dict:
         """JSON-able description recorded in the artefact metadata (name, settings, weights)."""
+
+    # -- optional capabilities (see PriorCapabilities) ----------------------------------------
+    def prepare_frame(self, frame_index: int) -> None:
+        """Build frame `frame_index`'s geometry now (capabilities.frame_geometry)."""
+        raise PriorError(f"prior {self.name!r} does not declare frame_geometry")
+
+    def envmaps(self, centers: torch.Tensor, time: float, height: int) -> torch.Tensor:
+        """Linear HDR env maps [N, height, 2 height, 3] seen from `centers` [N, 3] (world metres)
+        at `time` (seconds from the first frame) (capabilities.envmaps)."""
+        raise PriorError(f"prior {self.name!r} cannot answer env maps (capabilities.envmaps is False)")

@@ -5,13 +5,15 @@ simulator's oracle prior. Never a default for real captures.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import torch
+from pydantic import ConfigDict, Field
 
 from core.chrome_ball import BallRays, ball_reflection_rays, composite, render_balls
-from core.conventions import inverse_tonemap, tonemap
-from core.priors.base import PriorRequest
+from core.conventions import equirect_directions, equirect_width, inverse_tonemap, tonemap
+from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorRequest
+from core.priors.registry import prior_settings, register_prior
 
 RadianceXTD = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 BallRadiance = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -48,19 +50,25 @@ def ball_target(request: PriorRequest, radiance: BallRadiance, supersample: int 
         return torch.where(inside[None], out.to(request.image.dtype), request.image)
 
 
-class KnownRadiancePrior:
+class KnownRadianceSettings(PriorConfig):
+    model_config = ConfigDict(arbitrary_types_allowed=True)
+
+    fn: Callable[..., Any] = Field(description="fn(x [B,3], t [B], d [B,3]) -> radiance [B,3] >= 0")
+    supersample: int = Field(1, ge=1, le=8)
+    label: str = "known radiance function"
+
+
+@register_prior("known")
+class KnownRadiancePrior(Prior):
     """Renders the balls exactly from fn(x [B,3], t [B], d [B,3]) -> radiance [B,3] >= 0,
     evaluated at each ball's centre (the probe-centre approximation the engine also uses)."""
 
-    name = "known"
+    Config = KnownRadianceSettings
+    capabilities = PriorCapabilities(envmaps=True)
 
-    def __init__(self, fn: RadianceXTD, supersample: int = 1, label: str = "known radiance function"):
-        self.fn = fn
-        self.supersample = supersample
-        self.label = label
-
-    def bind(self, capture) -> None:  # nothing to precompute
-        return None
+    def __init__(self, fn: RadianceXTD, **settings):
+        s = prior_settings(self.name, {"fn": fn, **settings})
+        self.fn, self.supersample, self.label = s.fn, s.supersample, s.label
 
     def __call__(self, request: PriorRequest) -> torch.Tensor:
         p = request.probes
@@ -72,6 +80,18 @@ class KnownRadiancePrior:
             return self.fn(x, t, directions).to(torch.float32)
 
         return ball_target(request, radiance, self.supersample)
+
+    def envmaps(self, centers: torch.Tensor, time: float, height: int) -> torch.Tensor:
+        """fn at each centre for every equirect direction (core.conventions layout)."""
+        centers = torch.as_tensor(centers, dtype=torch.float32).reshape(-1, 3)
+        dirs = equirect_directions(int(height)).reshape(-1, 3).to(torch.float32)
+        n, k = centers.shape[0], dirs.shape[0]
+        x = centers[:, None].expand(n, k, 3).reshape(-1, 3)
+        d = dirs[None].expand(n, k, 3).reshape(-1, 3)
+        t = torch.full((n * k,), float(time), dtype=torch.float32)
+        with torch.no_grad():
+            out = self.fn(x, t, d).to(torch.float32)
+        return out.reshape(n, int(height), equirect_width(int(height)), 3)
 
     def describe(self) -> dict:
         return {"name": self.name, "source": self.label, "supersample": self.supersample}

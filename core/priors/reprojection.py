@@ -10,7 +10,8 @@ It answers "what would a chrome ball at c show?" from the frame itself:
    once per distinct (pose, depth) — once in total for a static camera with static depth;
    colours come from the requested frame, so lighting changes over time are followed. When
    the engine has decided the lighting is static, a moving camera's request also splats up
-   to `merge_views - 1` other viewpoints (evenly spaced), so a probe sees what any frame saw.
+   to `merge_views - 1` other viewpoints (evenly spaced; MERGE_VIEWS_STATIC_LIGHTING unless
+   configured), so a probe sees what any frame saw.
 3. For each probe centre, splat the points into an equirect env map (ENV height from the
    config) with a depth test: per env pixel only points within Z_TOLERANCE of the nearest
    distance contribute (a z-buffer by distance from the probe), averaged.
@@ -29,13 +30,17 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
+from pydantic import Field
 
 from core.conventions import direction_to_equirect_pixel, equirect_width, inverse_tonemap
-from core.priors.base import PriorError, PriorRequest
+from core.envmap import resize_envmap
+from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
 from core.priors.known import ball_target
+from core.priors.registry import prior_settings, register_prior
 
 CLIP_LDR = 0.99
 CLIP_BOOST = 8.0
+MERGE_VIEWS_STATIC_LIGHTING = 4  # viewpoints pooled when the lighting is static and the camera moves
 Z_TOLERANCE = 0.1  # relative: points within 10 % of the nearest distance share a pixel
 MIN_PROBE_DISTANCE = 1e-3  # metres; points closer than this to a probe are skipped
 OTHER_VIEW_STRIDE = 3  # merged viewpoints contribute a third of their points (cost)
@@ -68,20 +73,26 @@ def push_pull_fill(env: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     return filled.permute(0, 2, 3, 1).contiguous()
 
 
-class ReprojectionPrior:
-    name = "reprojection"
+class ReprojectionSettings(PriorConfig):
+    env_height: int = Field(32, ge=4, description="splat resolution: env maps of env_height x 2 env_height")
+    clip_boost: float = Field(CLIP_BOOST, gt=0, description="radiance factor of clipped (>= CLIP_LDR) pixels")
+    merge_views: int | None = Field(None, ge=1, description=(
+        "viewpoints a request splats (its own + evenly spaced others); only valid when the lighting is static. "
+        "None: MERGE_VIEWS_STATIC_LIGHTING when bind() is told the lighting is static and the camera moves, else 1"))
 
-    def __init__(self, env_height: int = 32, clip_boost: float = CLIP_BOOST, merge_views: int = 1):
-        """`merge_views` > 1 (only valid when the lighting is static): splat the point clouds
-        of up to that many distinct viewpoints (the requested frame's plus evenly spaced
-        others), so a moving camera's probe sees what any frame saw."""
-        if env_height < 4:
-            raise PriorError(f"env_height must be >= 4, got {env_height}")
-        if merge_views < 1:
-            raise PriorError(f"merge_views must be >= 1, got {merge_views}")
-        self.env_height = int(env_height)
-        self.clip_boost = float(clip_boost)
-        self.merge_views = int(merge_views)
+
+@register_prior("reprojection", for_jobs=True)
+class ReprojectionPrior(Prior):
+    Config = ReprojectionSettings
+    capabilities = PriorCapabilities(frame_geometry=True, envmaps=True)
+
+    def __init__(self, **settings):
+        """Settings: see ReprojectionSettings (PriorError when one is out of range)."""
+        s = prior_settings(self.name, settings)
+        self.env_height = int(s.env_height)
+        self.clip_boost = float(s.clip_boost)
+        self.configured_merge_views = s.merge_views
+        self.merge_views = s.merge_views or 1
         self._capture = None
         self._colors: torch.Tensor | None = None
         self._points: dict[int, torch.Tensor] = {}
@@ -89,9 +100,12 @@ class ReprojectionPrior:
         self.point_cloud_builds = 0  # how many times geometry was unprojected (reported)
 
     # ------------------------------------------------------------------ per capture
-    def bind(self, capture) -> None:
+    def bind(self, capture, *, lighting_changes: bool = True) -> None:
         """Linearise all frames once and work out which frames share geometry."""
         self._capture = capture
+        static_lighting_moving_camera = not lighting_changes and not capture.static_camera
+        self.merge_views = self.configured_merge_views or (
+            MERGE_VIEWS_STATIC_LIGHTING if static_lighting_moving_camera else 1)
         self._colors = linearise(capture.frames, self.clip_boost)
         self._points = {}
         self.point_cloud_builds = 0
@@ -107,6 +121,9 @@ class ReprojectionPrior:
                     break
             key.append(owner)
         self._geometry_key = key
+
+    def prepare_frame(self, frame_index: int) -> None:
+        self.points(frame_index)
 
     def points(self, frame_index: int) -> torch.Tensor:
         """World points [H*W, 3] of a frame (NaN rows where depth is invalid), cached."""
@@ -127,8 +144,18 @@ class ReprojectionPrior:
         return [frame_index] + sorted(set(picked))
 
     # ------------------------------------------------------------------ per request
-    def envmaps(self, centers: torch.Tensor, frame_index: int) -> torch.Tensor:
-        """HDR env maps [N, h, 2h, 3] seen from `centers` [N, 3] in frame `frame_index`."""
+    def envmaps(self, centers: torch.Tensor, time: float, height: int) -> torch.Tensor:
+        """HDR env maps [N, height, 2 height, 3] seen from `centers` [N, 3] in the frame nearest
+        to `time`, splatted at env_height and resized (area-correct down, bilinear up)."""
+        if self._capture is None:
+            raise PriorError("ReprojectionPrior.bind(capture) must be called before use")
+        frame = int(torch.argmin((self._capture.times.double() - float(time)).abs()))
+        with torch.no_grad():
+            env = self.envmaps_at_frame(torch.as_tensor(centers, dtype=torch.float32), frame)
+        return env if height == self.env_height else torch.stack([resize_envmap(m, height) for m in env])
+
+    def envmaps_at_frame(self, centers: torch.Tensor, frame_index: int) -> torch.Tensor:
+        """HDR env maps [N, h, 2h, 3] (h = env_height) seen from `centers` [N, 3] in frame `frame_index`."""
         if self._capture is None:
             raise PriorError("ReprojectionPrior.bind(capture) must be called before use")
         views = self.views_for(frame_index)
@@ -160,7 +187,7 @@ class ReprojectionPrior:
     def __call__(self, request: PriorRequest) -> torch.Tensor:
         p = request.probes
         with torch.no_grad():
-            env = self.envmaps(torch.as_tensor(p.centers, dtype=torch.float32), int(p.frame_index))
+            env = self.envmaps_at_frame(torch.as_tensor(p.centers, dtype=torch.float32), int(p.frame_index))
         return ball_target(request, env)
 
     def describe(self) -> dict:

@@ -4,7 +4,9 @@ An ORACLE: it reads the simulator's ground truth, so it is an upper bound for be
 and a fixture for tests — never a default and meaningless for real captures. Balls show
 the scene's exact radiance at each ball centre (the engine's probe-centre approximation)
 for the reflected directions at the request's time, tone mapped at request.ev, composited
-over the request's background; pixels outside the ball masks equal request.image.
+over the request's background; pixels outside the ball masks equal request.image. Its env
+maps are the simulator's ground-truth maps at the probe centres (core.sim.render.render_envmap).
+Registered as `oracle` when this module is imported.
 """
 from __future__ import annotations
 
@@ -12,9 +14,13 @@ import json
 import os
 from pathlib import Path
 
-from core.priors.base import PriorError, PriorRequest
+import torch
+from pydantic import ConfigDict, Field
+
+from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
 from core.priors.known import KnownRadiancePrior
-from core.sim.render import radiance_fn
+from core.priors.registry import prior_settings, register_prior
+from core.sim.render import radiance_fn, render_envmap
 from core.sim.spec import SceneSpec
 
 
@@ -33,20 +39,32 @@ def load_scene(source: SceneSpec | str | os.PathLike) -> SceneSpec:
     return SceneSpec.model_validate_json(path.read_text())
 
 
-class OracleSimPrior:
+class OracleSettings(PriorConfig):
+    model_config = ConfigDict(arbitrary_types_allowed=True)
+
+    scene: SceneSpec | Path | str = Field(description="a SceneSpec, a scene.json, or a capture directory of the simulator")
+    supersample: int = Field(1, ge=1, le=8)
+
+
+@register_prior("oracle")
+class OracleSimPrior(Prior):
     """Ground-truth ball renders for a simulated scene (see module docstring)."""
 
-    name = "oracle"
+    Config = OracleSettings
+    capabilities = PriorCapabilities(envmaps=True)
 
-    def __init__(self, scene: SceneSpec | str | os.PathLike, supersample: int = 1):
-        self.scene = load_scene(scene)
-        self._known = KnownRadiancePrior(radiance_fn(self.scene), supersample=supersample, label=f"simulator ground truth: {self.scene.name}")
-
-    def bind(self, capture) -> None:
-        return None
+    def __init__(self, scene: SceneSpec | str | os.PathLike, **settings):
+        s = prior_settings(self.name, {"scene": scene, **settings})
+        self.scene = load_scene(s.scene)
+        self._known = KnownRadiancePrior(radiance_fn(self.scene), supersample=s.supersample,
+                                         label=f"simulator ground truth: {self.scene.name}")
 
     def __call__(self, request: PriorRequest):
         return self._known(request)
+
+    def envmaps(self, centers: torch.Tensor, time: float, height: int) -> torch.Tensor:
+        centers = torch.as_tensor(centers, dtype=torch.float32).reshape(-1, 3)
+        return torch.stack([render_envmap(self.scene, c, float(time), int(height)) for c in centers])
 
     def describe(self) -> dict:
         return {

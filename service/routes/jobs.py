@@ -13,14 +13,14 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import ValidationError
 
+from jobs.queue import TASK_NAME
+from jobs.storage import JobPaths, new_job_id
+from jobs.store import JobLimitReached, JobRecord
 from service.context import AppContext, Tenant, get_ctx, get_tenant, owned_job
 from service.errors import ErrorBody, InvalidInput, ServiceUnavailable, TooManyJobs, describe_validation_errors
 from service.models import JobList, JobView
-from service.storage import JobPaths, new_job_id
-from service.store import JobLimitReached, JobRecord
 from service.upload import FormReader
 from service.validation import check_capture, classify_depth, classify_input
-from worker.celery_config import TASK_NAME
 
 log = logging.getLogger("lightfield.service")
 router = APIRouter(tags=["jobs"])

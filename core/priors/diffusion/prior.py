@@ -12,9 +12,10 @@ import os
 from typing import TYPE_CHECKING
 
 import torch
+from pydantic import Field
 
 from core.conventions import DEFAULT_BRACKET_EVS
-from core.priors.base import PriorError, PriorRequest, ProbeGeometry
+from core.priors.base import Prior, PriorConfig, PriorError, PriorRequest, ProbeGeometry
 from core.priors.diffusion.conditioning import (
     binary_mask_at,
     combine_per_ball,
@@ -30,14 +31,21 @@ from core.priors.diffusion.conditioning import (
 from core.priors.diffusion.denoise import InpaintCondition, InpaintDenoiser
 from core.priors.diffusion.exposure import ExposureConditioner
 from core.priors.diffusion.loading import PriorComponents, load_components
+from core.priors.registry import register_prior
 
 if TYPE_CHECKING:
-    from core.engine.capture import Capture
+    from core.capture.base import Capture
     from core.priors.diffusion.sampling import BallSamples
 
 
-class DiffusionPrior:
-    name = "diffusion"
+class DiffusionSettings(PriorConfig):
+    weights: str | None = Field(None, description="local model directory (docs/diffusion-prior.md); required")
+    dtype: str | None = Field(None, description="float32 / float16 / bfloat16 (default: the loader's choice for the device)")
+
+
+@register_prior("diffusion", for_jobs=True)
+class DiffusionPrior(Prior):
+    Config = DiffusionSettings
 
     def __init__(self, components: PriorComponents):
         self.components = components
@@ -54,8 +62,12 @@ class DiffusionPrior:
         """Load from a local model directory (see loading.py); PriorError if it is not one."""
         return cls(load_components(weights_dir, device=device, dtype=dtype))
 
+    @classmethod
+    def from_config(cls, config: DiffusionSettings, device: str | torch.device | None = None) -> "DiffusionPrior":
+        return build_diffusion_prior(config.weights, device=device, dtype=config.dtype)
+
     # -- Prior protocol -------------------------------------------------------------------
-    def bind(self, capture: "Capture") -> None:
+    def bind(self, capture: "Capture", *, lighting_changes: bool = True) -> None:
         """Nothing is per-capture: prompts are encoded at load time and frames are sized per call."""
 
     def describe(self) -> dict:
@@ -148,7 +160,7 @@ def _validated(request: PriorRequest) -> tuple[torch.Tensor, torch.Tensor, torch
 def build_diffusion_prior(
     weights: str | os.PathLike | None = None, device: str | torch.device | None = None, dtype: str | torch.dtype | None = None
 ) -> DiffusionPrior:
-    """Registry entry point (`build_prior("diffusion", weights=DIR)`)."""
+    """The prior from a local model directory (`build_prior("diffusion", {"weights": DIR})`)."""
     if weights is None:
         raise PriorError("the diffusion prior needs weights: a local model directory (--prior-weights DIR)")
     return DiffusionPrior.from_pretrained(weights, device=device, dtype=dtype)

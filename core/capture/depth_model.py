@@ -25,7 +25,8 @@ from pathlib import Path
 import torch
 
 from core.camera import Intrinsics
-from core.engine.capture import CaptureError, assumed_box_depth
+from core.capture.base import CaptureError
+from core.capture.depth import assumed_box_depth
 
 # Converted depth stays within this factor of the box room's median depth.
 CLAMP_RATIO = 20.0

@@ -50,8 +50,10 @@ class QueryError(ValueError):
 # ---------------------------------------------------------------------------------------
 # Writing
 # ---------------------------------------------------------------------------------------
-def save_artefact(out_dir, field: LightField, meta: dict | None = None) -> Path:
-    """Write `field` and `meta` as an artefact directory at `out_dir` (atomically); return it.
+def save_artefact(out_dir, field: LightField, meta: dict | None = None) -> "LightFieldArtefact":
+    """Write `field` and `meta` as an artefact directory at `out_dir` (atomically) and return
+    it in memory, exactly as `LightFieldArtefact.load(out_dir)` would (the written weights in a
+    fresh field on CPU, the written lightfield.json), so nobody needs to read it back.
 
     `meta` (capture summary, prior, temporal decision, training stats, ...) is stored at the
     top level of lightfield.json next to the reserved keys, which it may not override.
@@ -76,7 +78,9 @@ def save_artefact(out_dir, field: LightField, meta: dict | None = None) -> Path:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return out_dir
+    saved = build_field(field.config, field.bounds)
+    saved.load_state_dict(state)
+    return LightFieldArtefact(out_dir, saved.eval().requires_grad_(False), document)
 
 
 def _document(field: LightField, meta: dict) -> dict:

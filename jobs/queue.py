@@ -1,25 +1,26 @@
-"""Celery configuration, shared by the API (to enqueue) and the workers (worker.app).
+"""The job queue: its name, the task's name and the Celery app configuration, shared by the
+API (to enqueue, ping) and the workers (worker.app, which registers the task).
 
 Delivery guarantees (see docs/api.md, "Queue"):
 * acks_late + reject_on_worker_lost: a message is acknowledged only after the task returns,
   so a worker that dies mid-job leaves it unacknowledged and the broker re-delivers it after
   the visibility timeout (LIGHTFIELD_VISIBILITY_TIMEOUT) to a live worker;
 * prefetch multiplier 1: a busy worker does not hoard queued jobs;
-* a run lease in Redis (worker.runner) keeps a re-delivered copy from running while the
+* a run lease in Redis (jobs.lease) keeps a re-delivered copy from running while the
   original is still alive, and checkpoints let the copy resume when it is not.
 """
 from __future__ import annotations
 
 from celery import Celery
 
-from service.config import ServiceSettings
+from jobs.settings import JobSettings
 
 TASK_NAME = "lightfield.distill"
 QUEUE = "lightfield"
 
 
-def make_celery(settings: ServiceSettings) -> Celery:
-    app = Celery("lightfield", include=["worker.tasks"])
+def make_celery(settings: JobSettings) -> Celery:
+    app = Celery("lightfield")
     vt = settings.visibility_timeout_s
     app.conf.update(
         broker_url=settings.broker_url or "redis://unconfigured.invalid:6379/0",

@@ -10,8 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core.camera import Intrinsics
-from core.engine.capture import DEPTH_MODEL_ENV, CaptureError, assumed_box_depth, load_capture
-from core.engine.depth_model import disparity_to_depth, load_depth_estimator
+from core.capture.base import CaptureError
+from core.capture.depth import assumed_box_depth
+from core.capture.depth_model import disparity_to_depth, load_depth_estimator
+from core.capture.load import DEPTH_MODEL_ENV, load_capture
 
 H, W = 24, 36
 
@@ -156,23 +158,24 @@ def test_a_bad_env_var_fails_the_load_with_a_depth_error(image_path, monkeypatch
     assert info.value.field == "depth" and DEPTH_MODEL_ENV in str(info.value)
 
 
-def test_estimate_depth_false_skips_the_model(image_path, monkeypatch, tmp_path):
-    """The service's upload check loads captures with estimate_depth=False: the model runs in
+def test_the_upload_check_never_runs_the_model(image_path, monkeypatch, tmp_path):
+    """The service's upload check (core.capture.probe) reads headers only: the model runs in
     the worker, not in the API process (a bad directory would fail if it were read)."""
+    from core.capture.probe import probe_capture
+
     monkeypatch.setenv(DEPTH_MODEL_ENV, str(tmp_path / "nope"))
-    cap = load_capture(image_path, estimate_depth=False)
-    assert cap.depth_source.startswith("assumed:")
+    assert probe_capture(image_path).frames == 1
 
 
 def test_estimated_depth_feeds_run_job(tiny_dir, image_path, monkeypatch, tmp_path):
-    from core.engine.config import preset
-    from core.engine.distill import run_job
+    from core.engine import run_job
     from core.engine.params import JobParams
+    from core.engine.presets import preset
 
     monkeypatch.setenv(DEPTH_MODEL_ENV, str(tiny_dir))
-    cfg = preset("draft", work_height=H, checkpoint_every=1000, warmup_steps=2, iterations=4)
+    cfg = preset("draft").with_overrides({"distill": dict(work_height=H, checkpoint_every=1000, warmup_steps=2, iterations=4)})
     with pytest.warns(UserWarning):
-        out = run_job(image_path, None, JobParams(seed=0), tmp_path / "art", config=cfg)
+        out = run_job(image_path, None, JobParams(seed=0), tmp_path / "art", config=cfg).path
     meta = json.loads((out / "lightfield.json").read_text())
     assert meta["capture"]["depth_source"].startswith("estimated:tiny-dpt")
     curve = meta["training"]["loss_curve"]

@@ -12,7 +12,7 @@ import logging
 import threading
 import uuid
 
-from service.store import JobStore
+from jobs.store import JobStore
 
 log = logging.getLogger("lightfield.worker")
 

@@ -27,12 +27,12 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from core.conventions import tonemap
 from core.priors.diffusion.card import ModelCard
-from core.priors.diffusion.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
 from core.priors.diffusion.conditioning import latent_mask, model_size, to_signed
-from core.priors.diffusion.data import BallDataset, StepOrder, read_dataset_info
 from core.priors.diffusion.exposure import ExposureConditioner
 from core.priors.diffusion.loading import PriorComponents, load_components
 from core.priors.diffusion.network import InpaintNetwork
+from core.training.diffusion.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
+from core.training.diffusion.data import BallDataset, StepOrder, read_dataset_info
 
 log = logging.getLogger("lightfield.train_prior")
 

@@ -1,4 +1,5 @@
-"""A small copy of a job's capture (frames, depth, cameras) kept for the web page.
+"""A small copy of a job's capture (frames, depth, cameras) kept for the web page: its
+stored format and the worker's writer (the API reads it with service.stored_preview).
 
 The worker deletes a job's uploads once the job succeeds, but the page needs the frame at
 time t to click on, and the depth at the clicked pixel to place a probe just in front of
@@ -11,15 +12,14 @@ the surface. So, before the uploads go, the worker stores a preview beside the a
     <job_dir>/preview/capture.json          format, version, intrinsics at the preview
                                             size, fps, depth source, source frame count
 
-It is loaded with the engine's own `load_capture`, so its cameras, times and fallback depth
-are exactly the ones the light field was estimated with. At most PREVIEW_MAX_HEIGHT rows
+It is made from the capture the engine decoded for the job (run_job's `on_capture`), so its
+cameras, times and fallback depth are exactly the ones the light field was estimated with. At most PREVIEW_MAX_HEIGHT rows
 and PREVIEW_MAX_FRAMES frames (evenly spaced) are kept, which bounds it to a few tens of MB.
 Written to a temporary sibling and renamed, like the artefact; never unpickled.
 """
 from __future__ import annotations
 
 import json
-import math
 import os
 import shutil
 import tempfile
@@ -37,11 +37,7 @@ PREVIEW_MAX_HEIGHT = 360
 PREVIEW_MAX_FRAMES = 120
 
 
-class PreviewError(ValueError):
-    """A stored preview is missing, corrupt or inconsistent (the message names the part)."""
-
-
-class _Cameras:
+class PreviewCameras:
     """Shared by the in-memory and the stored preview: needs times, poses, intrinsics."""
 
     def nearest_frame(self, t: float) -> int:
@@ -55,7 +51,7 @@ class _Cameras:
 
 
 @dataclass(frozen=True)
-class CapturePreview(_Cameras):
+class CapturePreview(PreviewCameras):
     frames: np.ndarray  # uint8 [T, h, w, 3]
     depth: np.ndarray  # float32 [T, h, w] planar metres, NaN where invalid
     poses: np.ndarray  # float64 [T, 4, 4] camera-to-world
@@ -95,7 +91,7 @@ def _evenly_spaced(count: int, keep: int) -> np.ndarray:
 
 
 def preview_from_capture(capture, max_height: int = PREVIEW_MAX_HEIGHT, max_frames: int = PREVIEW_MAX_FRAMES) -> CapturePreview:
-    """Downsample a core.engine.capture.Capture: pick frames first (cheap), then the engine's own
+    """Downsample a core.capture.base.Capture: pick frames first (cheap), then the engine's own
     resize (area-averaged frames, nearest-surface depth)."""
     import dataclasses
 
@@ -148,91 +144,9 @@ def save_preview(preview: CapturePreview, job_dir: Path) -> Path:
     return final
 
 
-def write_capture_preview(input_path, depth_path, params, job_dir: Path, limits=None) -> Path:
-    """Load the job's input as the engine does and store its preview (the worker's hook).
+def write_capture_preview(capture, job_dir: Path) -> Path:
+    """Store the preview of the capture the engine decoded (the worker's on_capture hook).
     Idempotent: an existing preview (a re-delivered job) is kept."""
-    import warnings
-
-    from core.engine.capture import load_capture
-
     if (preview_dir(job_dir) / META_FILE).is_file():
         return preview_dir(job_dir)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the engine already reported them for this capture
-        capture = load_capture(input_path, depth_path, params, limits)
     return save_preview(preview_from_capture(capture), job_dir)
-
-
-class StoredPreview(_Cameras):
-    """A preview on disk: cameras and times in memory, frames and depth read one at a time
-    (safetensors slices), so a request touches one frame, not the whole clip."""
-
-    def __init__(self, root: Path, meta: dict, poses: np.ndarray, times: np.ndarray, shape: tuple[int, int, int]):
-        self.root = root
-        self.intrinsics = meta["intrinsics"]
-        self.fps = float(meta["fps"])
-        self.depth_source = str(meta.get("depth_source", ""))
-        self.source_frames = int(meta.get("source_frames", shape[0]))
-        self.poses = poses
-        self.times = times
-        self.num_frames, self.height, self.width = shape
-
-    def _slice(self, name: str, index: int) -> np.ndarray:
-        from safetensors import safe_open
-
-        if not 0 <= index < self.num_frames:
-            raise IndexError(f"frame {index} out of range [0, {self.num_frames})")
-        with safe_open(str(self.root / TENSORS_FILE), framework="numpy") as f:
-            return np.asarray(f.get_slice(name)[index])
-
-    def frame(self, index: int) -> np.ndarray:
-        """uint8 [h, w, 3]."""
-        return self._slice("frames", index)
-
-    def depth_map(self, index: int) -> np.ndarray:
-        """float32 [h, w] planar metres, NaN where invalid."""
-        return self._slice("depth", index).astype(np.float32)
-
-
-_DTYPES = {"frames": "U8", "depth": "F16", "poses": "F64", "times": "F32"}
-
-
-def load_preview(job_dir: Path) -> StoredPreview:
-    """Open and validate a stored preview; raises PreviewError (FileNotFoundError if absent)."""
-    from safetensors import SafetensorError, safe_open
-
-    root = preview_dir(job_dir)
-    if not (root / META_FILE).is_file():
-        raise FileNotFoundError(f"no capture preview in {root}")
-    try:
-        meta = json.loads((root / META_FILE).read_text())
-        with safe_open(str(root / TENSORS_FILE), framework="numpy") as f:
-            if set(f.keys()) != set(_DTYPES):
-                raise PreviewError(f"{TENSORS_FILE}: expected tensors {sorted(_DTYPES)}, got {sorted(f.keys())}")
-            shapes = {k: tuple(f.get_slice(k).get_shape()) for k in _DTYPES}
-            dtypes = {k: f.get_slice(k).get_dtype() for k in _DTYPES}
-            poses, times = f.get_tensor("poses"), f.get_tensor("times")
-    except (OSError, ValueError, SafetensorError) as exc:
-        if isinstance(exc, PreviewError):
-            raise
-        raise PreviewError(f"capture preview in {root} is unreadable: {exc}") from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("version") != VERSION:
-        raise PreviewError(f"{META_FILE}: not a {FORMAT} v{VERSION} document")
-    if dtypes != _DTYPES:
-        raise PreviewError(f"{TENSORS_FILE}: dtypes must be {_DTYPES}, got {dtypes}")
-    fs = shapes["frames"]
-    if len(fs) != 4 or fs[-1] != 3 or fs[0] < 1:
-        raise PreviewError(f"{TENSORS_FILE}: frames must be [T,h,w,3], got {fs}")
-    t, h, w = fs[:3]
-    if shapes["depth"] != (t, h, w) or shapes["poses"] != (t, 4, 4) or shapes["times"] != (t,):
-        raise PreviewError(f"{TENSORS_FILE}: depth {shapes['depth']}, poses {shapes['poses']}, times {shapes['times']} "
-                           f"do not match {t} frames of {h}x{w}")
-    if not (np.isfinite(poses).all() and np.isfinite(times).all()):
-        raise PreviewError(f"{TENSORS_FILE}: poses and times must be finite")
-    intr = meta.get("intrinsics")
-    if not isinstance(intr, dict) or intr.get("width") != w or intr.get("height") != h:
-        raise PreviewError(f"{META_FILE}: intrinsics must describe the {w}x{h} preview frames")
-    fps = meta.get("fps")
-    if not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
-        raise PreviewError(f"{META_FILE}: fps must be a positive number, got {fps!r}")
-    return StoredPreview(root, meta, poses.astype(np.float64), times.astype(np.float32), (t, h, w))

@@ -7,11 +7,11 @@ import pytest
 import torch
 
 from core.camera import Intrinsics
+from core.capture.base import CaptureError
+from core.capture.depth import ASSUMED_DEPTH_SOURCE, assumed_box_depth, fill_depth_holes
+from core.capture.load import capture_from_arrays, load_capture
+from core.capture.params import CaptureParams
 from core.conventions import DEFAULT_HFOV_DEG
-from core.engine.capture import (
-    ASSUMED_DEPTH_SOURCE, CaptureError, assumed_box_depth, capture_from_arrays, fill_depth_holes, load_capture,
-)
-from core.engine.params import CaptureParams
 from core.io import write_png, write_video
 
 

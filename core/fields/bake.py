@@ -27,9 +27,9 @@ from safetensors.torch import load as load_safetensors_bytes
 from safetensors.torch import save_file
 
 from core.conventions import equirect_directions, equirect_width
-from core.engine.artefact import (ArtefactError, LightFieldArtefact, QueryError, check_height, extrapolation_flags,
-                                  query_positions, query_times)
 from core.envmap import equirect_stencil, pad_poles, resize_envmap
+from core.fields.artefact import (ArtefactError, LightFieldArtefact, QueryError, check_height, extrapolation_flags,
+                                  query_positions, query_times)
 from core.fields.encodings import lattice_corners
 from core.fields.normalization import SceneBounds
 

@@ -22,12 +22,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import Literal, get_args
 
 import torch
 import torch.nn.functional as F
 
 from core.conventions import inverse_tonemap, valid_depth_mask
 
+TemporalMode = Literal["auto", "on", "off"]  # the user's choice: detect, or force a time input on / off
+TEMPORAL_MODES: tuple[str, ...] = get_args(TemporalMode)
 BLOCKS_Y, BLOCKS_X = 6, 8
 ABS_FLOOR = math.log(1.08)  # an 8 % mean change over the image is the smallest we call "lighting"
 K_SIGMA = 4.0
@@ -137,8 +140,8 @@ def detect_temporal(capture) -> TemporalDecision:
 
 def decide_temporal(capture, mode: str = "auto") -> TemporalDecision:
     """Apply the user's override: 'on' / 'off' force the answer but still record the evidence."""
-    if mode not in ("auto", "on", "off"):
-        raise ValueError(f"temporal must be 'auto', 'on' or 'off', got {mode!r}")
+    if mode not in TEMPORAL_MODES:
+        raise ValueError(f"temporal must be one of {', '.join(TEMPORAL_MODES)}, got {mode!r}")
     auto = detect_temporal(capture)
     if mode == "auto" or capture.num_frames < 2:
         return TemporalDecision(auto.uses_time, auto.statistic, auto.threshold, auto.reason, mode)

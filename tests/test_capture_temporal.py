@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
+from core.capture.load import capture_from_arrays
+from core.capture.temporal import decide_temporal, detect_temporal
 from core.conventions import tonemap
-from core.engine.capture import capture_from_arrays
-from core.engine.temporal import decide_temporal, detect_temporal
 
 H, W = 72, 96
 
@@ -140,7 +140,7 @@ def test_simulator_suites_hard_is_static_temporal_is_not(tmp_path):
     read as temporal before linear-space resampling; the `temporal` suite switches a panel."""
     import warnings
 
-    from core.engine.capture import load_capture
+    from core.capture.load import load_capture
     from core.sim.capture import write_capture
     from core.sim.suites import hard, temporal
 

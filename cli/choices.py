@@ -1,0 +1,54 @@
+"""argparse choices that come from the project's registries (presets, priors, field kinds,
+temporal modes), read when first needed (a value to check, a subcommand's --help), so the
+names are never written out again and `lightfield --help` imports no torch. Give such an
+argument a `metavar` and "%(choices)s" in its help: argparse formats both lazily."""
+from __future__ import annotations
+
+from typing import Callable, Iterable, Iterator
+
+
+class RegistryChoices:
+    def __init__(self, names: Callable[[], Iterable[str]]):
+        self._names = names
+        self._loaded: tuple[str, ...] | None = None
+
+    def _all(self) -> tuple[str, ...]:
+        if self._loaded is None:
+            self._loaded = tuple(self._names())
+        return self._loaded
+
+    def __contains__(self, value: object) -> bool:
+        return value in self._all()
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._all())
+
+
+def _presets() -> Iterable[str]:
+    from core.engine.presets import preset_names
+
+    return preset_names()
+
+
+def _priors() -> Iterable[str]:
+    from core.priors.registry import job_prior_names
+
+    return job_prior_names()
+
+
+def _fields() -> Iterable[str]:
+    from core.fields import field_kinds
+
+    return field_kinds()
+
+
+def _temporal_modes() -> Iterable[str]:
+    from core.capture.temporal import TEMPORAL_MODES
+
+    return TEMPORAL_MODES
+
+
+PRESETS = RegistryChoices(_presets)
+PRIORS = RegistryChoices(_priors)
+FIELDS = RegistryChoices(_fields)
+TEMPORAL_MODES = RegistryChoices(_temporal_modes)

@@ -1,0 +1,92 @@
+"""The `Capture`: what every layer works on (frames, depth, cameras, times), and the error
+that names a bad capture input. Loading lives in core.capture.load."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from core.camera import Camera, Intrinsics
+from core.conventions import valid_depth_mask
+
+
+class CaptureError(ValueError):
+    """Bad or inconsistent capture input; `.field` names the offending input."""
+
+    def __init__(self, field_name: str, message: str):
+        super().__init__(f"{field_name}: {message}")
+        self.field = field_name
+
+
+@dataclass
+class Capture:
+    frames: torch.Tensor  # [T, H, W, 3] float32 LDR in [0, 1]
+    depth: torch.Tensor  # [T, H, W] float32 planar metres, NaN where invalid
+    intrinsics: Intrinsics
+    poses: torch.Tensor  # [T, 4, 4] float64 camera-to-world
+    times: torch.Tensor  # [T] float32 seconds from the first frame
+    fps: float
+    depth_source: str
+    source: str = ""
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.frames.shape[0])
+
+    @property
+    def height(self) -> int:
+        return int(self.frames.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.frames.shape[2])
+
+    @property
+    def duration(self) -> float:
+        return float(self.times[-1] - self.times[0]) if self.num_frames > 1 else 0.0
+
+    @property
+    def static_camera(self) -> bool:
+        return bool(torch.allclose(self.poses, self.poses[:1].expand_as(self.poses), atol=1e-9))
+
+    def camera(self, i: int) -> Camera:
+        return Camera(self.intrinsics, self.poses[i])
+
+    def resized(self, height: int) -> "Capture":
+        """The same capture at a working resolution (area-averaged frames, nearest-valid depth
+        by min-pooling so thin near objects are not averaged with the far wall)."""
+        if height >= self.height:
+            return self
+        width = max(1, round(self.width * height / self.height))
+        f = torch.nn.functional.interpolate(self.frames.permute(0, 3, 1, 2), size=(height, width), mode="area")
+        d = self.depth.clone()
+        d = torch.where(valid_depth_mask(d), d, torch.full_like(d, float("inf")))
+        d = -torch.nn.functional.adaptive_max_pool2d(-d[:, None], (height, width))[:, 0]
+        d = torch.where(torch.isfinite(d), d, torch.full_like(d, float("nan")))
+        return Capture(
+            frames=f.permute(0, 2, 3, 1).contiguous().clamp(0, 1),
+            depth=d.contiguous(),
+            intrinsics=self.intrinsics.scaled(width, height),
+            poses=self.poses,
+            times=self.times,
+            fps=self.fps,
+            depth_source=self.depth_source,
+            source=self.source,
+            warnings=list(self.warnings),
+        )
+
+    def summary(self) -> dict:
+        return {
+            "source": self.source,
+            "frames": self.num_frames,
+            "width": self.width,
+            "height": self.height,
+            "fps": self.fps,
+            "duration_s": self.duration,
+            "intrinsics": self.intrinsics.as_dict(),
+            "static_camera": self.static_camera,
+            "poses": self.poses.reshape(self.num_frames, 16).tolist(),
+            "depth_source": self.depth_source,
+            "warnings": list(self.warnings),
+        }

@@ -1,0 +1,147 @@
+"""The job entry point, `run_job`, used by the CLI and the Celery worker: load the capture
+(the one decode of the job; `on_capture` lets the caller reuse it), decide whether the
+lighting changes over time, build and bind the prior, distil the field (core.engine.distill)
+and save the artefact with what the job simulated and what it cost; the result carries the
+saved artefact in memory, so callers query or bake it without reading it back."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from core.capture.base import Capture
+from core.capture.load import load_capture
+from core.capture.temporal import TemporalDecision, decide_temporal
+from core.device import resolve_device
+from core.engine.checkpoints import clear_checkpoint
+from core.engine.config import EngineConfig
+from core.engine.distill import distill
+from core.engine.params import JobParams
+from core.engine.presets import preset
+from core.engine.progress import CancelCheck, Progress, ProgressCallback, Reporter, StageTimer
+from core.engine.scene import distinct_geometry, scene_bounds
+from core.fields.artefact import LightFieldArtefact, save_artefact
+from core.priors.base import Prior
+from core.priors.registry import build_prior, prior_class
+
+LOSS_CURVE_MAX_POINTS = 1000
+PriorFactory = Callable[[str, dict, torch.device], Prior]
+
+
+@dataclass(frozen=True)
+class JobResult:
+    artefact: LightFieldArtefact  # the saved artefact, in memory (field, lightfield.json, path)
+
+    @property
+    def path(self) -> Path:
+        return self.artefact.path
+
+
+def job_prior_settings(config: EngineConfig, params: JobParams) -> dict:
+    """The settings the job's prior is built with: the config's defaults for it, and the job's
+    prior_weights as the `weights` setting of the priors that load weights."""
+    settings = config.prior_settings(params.prior)
+    if params.prior_weights is not None and "weights" in prior_class(params.prior).Config.model_fields:
+        settings["weights"] = params.prior_weights
+    return settings
+
+
+def _decimate(values: list[float], n: int) -> list[float]:
+    if len(values) <= n:
+        return [round(v, 6) for v in values]
+    idx = torch.linspace(0, len(values) - 1, n).round().long().tolist()
+    return [round(values[j], 6) for j in idx]
+
+
+def run_job(
+    input_path,
+    depth_path,
+    params: JobParams,
+    out_dir,
+    progress: ProgressCallback | None = None,
+    should_cancel: CancelCheck | None = None,
+    checkpoint_dir=None,
+    prior: Prior | None = None,
+    limits=None,
+    config: EngineConfig | None = None,
+    prior_factory: PriorFactory = build_prior,
+    on_capture: Callable[[Capture], None] | None = None,
+) -> JobResult:
+    """Load the capture, decide time, distil, save the artefact to `out_dir`.
+
+    `prior` overrides params.prior (tests, the oracle); `config` overrides the preset
+    params.preset; `prior_factory(name, settings, device)` builds the job's prior (the
+    worker's keeps weight-loading priors across jobs); `on_capture(capture)` receives the
+    decoded capture at full resolution right after loading (the worker's UI preview)."""
+    t_start = time.perf_counter()
+    timings = StageTimer()
+    reporter = Reporter(progress, should_cancel)
+    config = (config or preset(params.preset)).with_field_kind(params.field)
+    cfg = config.distill
+    device = resolve_device(cfg.device)  # an unavailable device fails before any work
+
+    reporter.stage("loading", 0.0, "reading input")
+    with timings("loading"):
+        capture = load_capture(input_path, depth_path, params, limits)
+    if on_capture is not None:
+        on_capture(capture)
+    reporter.stage("temporal", 0.04, "detecting lighting changes")
+    with timings("temporal"):
+        decision: TemporalDecision = decide_temporal(capture, params.temporal)
+    with timings("loading"):
+        work = capture.resized(cfg.work_height)
+
+    reporter.stage("point_cloud", 0.07, "building the prior")
+    with timings("point_cloud"):
+        if prior is None:
+            prior = prior_factory(params.prior, job_prior_settings(config, params), device)
+        prior.bind(work, lighting_changes=decision.uses_time)
+        bounds = scene_bounds(work)
+        if prior.capabilities.frame_geometry:  # build the geometry now so its cost is reported here
+            for i in distinct_geometry(work):
+                prior.prepare_frame(i)
+
+    reporter.stage("distill", 0.1, f"{cfg.iterations} steps")
+    result = distill(work, prior, config, decision.uses_time, seed=params.seed, reporter=reporter, checkpoint_dir=Path(checkpoint_dir) if checkpoint_dir else None,
+                     timings=timings, bounds=bounds)
+
+    reporter.stage("saving", 0.98, "writing artefact")
+    wall = time.perf_counter() - t_start
+    prior_description = prior.describe()
+    meta = {
+        "time": {"t0": float(capture.times[0]), "t1": float(capture.times[-1]), "fps": capture.fps, "uses_time": decision.uses_time},
+        "capture": capture.summary(),
+        "working_resolution": {"width": work.width, "height": work.height, "intrinsics": work.intrinsics.as_dict()},
+        "prior": prior_description,
+        "temporal": decision.as_dict(),
+        "params": params.model_dump(),
+        "engine_config": config.model_dump(mode="json"),
+        "training": {
+            "iterations": result.iterations,
+            "resumed_from": result.resumed_from,
+            "loss_curve": _decimate(result.losses, LOSS_CURVE_MAX_POINTS),
+            "final_loss": result.losses[-1] if result.losses else None,
+            "wall_time_s": round(wall, 3),
+            "device": result.stats["device"],
+            "threads": cfg.threads or torch.get_num_threads(),
+            "perceptual": result.stats["perceptual"],
+            "stage_timings": timings.as_dict(),
+        },
+        "simulated": {
+            "time_input": decision.uses_time,
+            "point_cloud_builds": prior_description.get("point_cloud_builds"),
+            "camera": "static" if capture.static_camera else "moving",
+            "rendered": "ball pixels only (field evaluated at ball centres for reflected directions)",
+        },
+    }
+    with timings("saving"):
+        artefact = save_artefact(out_dir, result.field, meta)
+    if checkpoint_dir is not None:
+        clear_checkpoint(Path(checkpoint_dir))
+    if progress is not None:
+        progress(Progress("done", result.iterations, result.iterations, meta["training"]["final_loss"], 1.0, 0.0,
+                          str(artefact.path)))
+    return JobResult(artefact)

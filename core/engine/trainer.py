@@ -1,0 +1,107 @@
+"""One optimisation step of the distillation (the paper's §3.2): pick a frame; sample N
+stratified probe pixels; place balls in front of the scene depth there; render ONLY the ball
+pixels under the current field (queried at the ball centre for each reflected direction, at
+the frame's time); composite into the linear frame; tone map at ev; ask the prior for a
+stop-gradient pseudo-target; masked L2 (saturation hinge) + perceptual loss; one Adam step
+with the scheduled learning rate and gradient clipping."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from core.capture.base import Capture
+from core.chrome_ball import ball_reflection_rays, composite, composite_depth, place_probe, render_balls
+from core.conventions import tonemap, tonemap_unclipped
+from core.engine.config import DistillConfig
+from core.engine.losses import PerceptualLoss, masked_l2
+from core.engine.probes import sample_probes
+from core.engine.progress import StageTimer
+from core.fields import LightField
+from core.priors.base import Prior, PriorRequest, ProbeGeometry
+
+
+@dataclass
+class Trainer:
+    """The state one optimisation step needs; `step(k)` runs step k and returns its loss."""
+
+    capture: Capture  # on CPU: probe sampling and geometry are small, sequential work
+    frames_lin: torch.Tensor  # [T, H, W, 3] ball-free background radiance at ev 0 (no clip boost), on `device`
+    depth: torch.Tensor  # [T, H, W] capture.depth on `device`
+    prior: Prior
+    field: LightField
+    opt: torch.optim.Optimizer
+    cfg: DistillConfig
+    gen: torch.Generator
+    perceptual: PerceptualLoss
+    timings: StageTimer
+    device: torch.device
+
+    def step(self, step: int) -> float:
+        capture, cfg, gen, timings, field = self.capture, self.cfg, self.gen, self.timings, self.field
+        i = int(torch.randint(capture.num_frames, (1,), generator=gen))
+        ev = cfg.ev_at(step)
+        tau_min = cfg.tau_min_at(step)
+        tau = float(tau_min + (cfg.tau_max - tau_min) * torch.rand(1, generator=gen, dtype=torch.float64))
+        cam = capture.camera(i)
+        t = float(capture.times[i])
+
+        with timings("probe_geometry"):
+            pixels, depths = sample_probes(capture, i, cfg, gen)
+            placed = [place_probe(cam, pixels[n], float(depths[n]), cfg.ball_diameter_fraction) for n in range(cfg.n_probes)]
+            centers = torch.stack([c for c, _ in placed])
+            radii = torch.tensor([r for _, r in placed], dtype=torch.float32)
+            rays = ball_reflection_rays(cam, centers, radii, supersample=cfg.supersample)
+
+        with timings("field_render"):
+            dev = self.device
+            centers_dev = centers.to(dev)
+            t_probes = torch.full((centers.shape[0],), t, device=dev)
+
+            def radiance(directions: torch.Tensor, ball_index: torch.Tensor) -> torch.Tensor:
+                # per-probe work (trunk, encodings of x and t) once per ball, not per ball sample
+                return field.probe_radiance(centers_dev, t_probes, ball_index.to(dev), directions.to(dev))
+
+            layer = render_balls(cam, centers, radii, radiance, rays=rays)
+            comp = composite(self.frames_lin[i], layer)
+            pred = tonemap_unclipped(comp, ev).permute(2, 0, 1)
+            image = tonemap(comp.detach(), ev).permute(2, 0, 1)
+            mask = layer.total_coverage.detach()
+
+        with timings("prior"):
+            pd = self.prior.device
+            probes = ProbeGeometry(centers, radii, pixels.float(), cam, i, t)
+            request = PriorRequest(
+                image=image.to(pd), ball_masks=layer.coverage.detach().to(pd),
+                depth=composite_depth(self.depth[i], layer).to(pd), ev=ev, tau=tau, steps=cfg.steps_for_tau(tau),
+                guidance_scale=cfg.guidance_scale, probes=probes, generator=gen,
+                extras={"frame_linear": self.frames_lin[i].to(pd), "ball_rays": rays},
+            )
+            target = self.prior(request).detach().to(device=pred.device, dtype=pred.dtype)
+            target = torch.nan_to_num(target, nan=0.0).clamp(0.0, 1.0)
+
+        with timings("optimisation"):
+            pred, target, mask = crop_to_mask(pred, target, mask, pad=4)
+            loss = cfg.l2_weight * masked_l2(pred, target, mask)
+            if cfg.perceptual_weight > 0:
+                loss = loss + cfg.perceptual_weight * self.perceptual(pred.clamp(0, 1), target, mask)
+            for g in self.opt.param_groups:
+                g["lr"] = cfg.lr_at(step)
+            self.opt.zero_grad(set_to_none=True)
+            if torch.isfinite(loss):
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(field.parameters(), cfg.grad_clip)
+                self.opt.step()
+        return float(loss.detach())
+
+
+def crop_to_mask(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, pad: int):
+    """Crop [3,H,W] images and the [H,W] mask to the balls' bounding box plus `pad` pixels
+    (the SSIM window's reach), so the loss never touches pixels no ball covers."""
+    rows = torch.nonzero(mask.amax(1) > 0)
+    cols = torch.nonzero(mask.amax(0) > 0)
+    if rows.numel() == 0:
+        return pred, target, mask
+    r0, r1 = max(int(rows[0]) - pad, 0), min(int(rows[-1]) + pad + 1, mask.shape[0])
+    c0, c1 = max(int(cols[0]) - pad, 0), min(int(cols[-1]) + pad + 1, mask.shape[1])
+    return pred[:, r0:r1, c0:c1], target[:, r0:r1, c0:c1], mask[r0:r1, c0:c1]

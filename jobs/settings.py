@@ -1,0 +1,66 @@
+"""Settings both the API and the workers read, once, from the environment (docs/api.md).
+
+One frozen object is passed around instead of scattered `os.environ` reads, so the API, the
+worker and the tests agree on every path and every timeout. The API's own settings (keys,
+request limits) extend this in `service.config`.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Mapping
+
+from pydantic import BaseModel, ConfigDict, Field
+
+ENV_PREFIX = "LIGHTFIELD_"
+
+
+class SettingsError(ValueError):
+    """An environment variable has an unusable value (the message names it)."""
+
+
+class JobSettings(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+    data_dir: Path = Path("lightfield-data")
+    broker_url: str | None = None  # None = embedded mode (lightfield serve starts Redis)
+    visibility_timeout_s: float = Field(600.0, gt=0)  # broker re-delivery of unacked jobs
+    lease_ttl_s: float = Field(60.0, gt=0)  # a job's run lease; heartbeat every ttl/3
+    # operator overrides of the engine preset's loop settings (e.g. {"iterations": 50} on a slow CPU box)
+    distill_overrides: dict = Field(default_factory=dict)
+
+    @classmethod
+    def from_env(cls, environ: Mapping[str, str] | None = None):
+        env = os.environ if environ is None else environ
+        try:
+            return cls(**cls._values_from_env(env))
+        except ValueError as exc:  # pydantic: a value out of range
+            if isinstance(exc, SettingsError):
+                raise
+            raise SettingsError(f"invalid {ENV_PREFIX}* setting: {exc}") from None
+
+    @classmethod
+    def _values_from_env(cls, env: Mapping[str, str]) -> dict:
+        """Constructor arguments from the variables that are set (subclasses add theirs)."""
+        values: dict = {}
+        if env.get(ENV_PREFIX + "DATA_DIR"):
+            values["data_dir"] = Path(env[ENV_PREFIX + "DATA_DIR"])
+        if env.get(ENV_PREFIX + "BROKER_URL"):
+            values["broker_url"] = env[ENV_PREFIX + "BROKER_URL"]
+        for name, key in (("visibility_timeout_s", "VISIBILITY_TIMEOUT"), ("lease_ttl_s", "LEASE_TTL")):
+            if ENV_PREFIX + key in env:
+                values[name] = env_number(env, ENV_PREFIX + key, float)
+        if env.get(ENV_PREFIX + "DISTILL_OVERRIDES"):
+            try:
+                values["distill_overrides"] = json.loads(env[ENV_PREFIX + "DISTILL_OVERRIDES"])
+            except json.JSONDecodeError as exc:
+                raise SettingsError(f"{ENV_PREFIX}DISTILL_OVERRIDES must be a JSON object: {exc}") from None
+        return values
+
+
+def env_number(env: Mapping[str, str], key: str, kind: type):
+    try:
+        return kind(env[key])
+    except ValueError:
+        raise SettingsError(f"{key} must be a {kind.__name__}, got {env[key]!r}") from None
