@@ -16,14 +16,12 @@ import torch
 
 from core.camera import Camera, Intrinsics
 from core.io.archive import ArchiveError, ZipFiles, member_name
-from core.io.depth import encode_depth_png16
-from core.io.images import encode_png
 from core.io.nerfstudio import Z_UP_TO_Y_UP, inspect_nerfstudio, load_nerfstudio
 from core.sim.panorama_room import PanoramaRoom, load_panorama, render_clip
 from core.sim.state import pose_from_yaw_pitch
 from core.tracking.room import assumed_room
+from capture_fixtures import PANORAMA, write_nerfstudio, zip_dir
 
-PANORAMA = Path(__file__).resolve().parents[1] / "assets" / "sample_panorama.hdr"
 W, H = 96, 72
 
 
@@ -36,32 +34,8 @@ def scene():
     return ldr.numpy(), depth.numpy(), intr, np.stack([p.numpy() for p in poses])
 
 
-def write_capture(root: Path, ldr, depth, intr, poses, *, world=np.eye(4), extra=None, frame_extra=None, with_depth=True):
-    """A nerfstudio capture as the apps write it: images/, depth/ (16-bit mm PNG), transforms.json."""
-    (root / "images").mkdir(parents=True, exist_ok=True)
-    (root / "depth").mkdir(exist_ok=True)
-    frames = []
-    for i in range(len(ldr)):
-        (root / f"images/frame_{i:05d}.png").write_bytes(encode_png(ldr[i]))
-        fr = {"file_path": f"images/frame_{i:05d}.png", "transform_matrix": (world @ poses[i]).tolist()}
-        if with_depth:
-            (root / f"depth/frame_{i:05d}.png").write_bytes(encode_depth_png16(depth[i]))
-            fr["depth_file_path"] = f"depth/frame_{i:05d}.png"
-        fr.update((frame_extra or {}).get(i, {}))
-        frames.append(fr)
-    meta = {"camera_model": "PINHOLE", "fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy,
-            "w": intr.width, "h": intr.height, "frames": frames, **(extra or {})}
-    (root / "transforms.json").write_text(json.dumps(meta))
-    return root
-
-
-def zip_dir(root: Path, prefix: str = "") -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
-        for p in sorted(root.rglob("*")):
-            if p.is_file():
-                z.write(p, prefix + p.relative_to(root).as_posix())
-    return buf.getvalue()
+def write_capture(root, ldr, depth, intr, poses, **kw):
+    return write_nerfstudio(root, ldr, depth, intr, poses, **kw)
 
 
 def test_directory_capture_keeps_opengl_poses_intrinsics_and_depth(tmp_path, scene):

@@ -65,7 +65,6 @@ def probe_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> tuple[i
     data = read_source(source, limits, "image")
     image = _open_checked(data, limits)
     _check_sample_format(image, data)
-    swap = orientation_swaps_axes(image_metadata(image).orientation)
     try:
         image.verify()
     except Image.DecompressionBombError as exc:
@@ -73,6 +72,8 @@ def probe_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> tuple[i
     except (OSError, SyntaxError, ValueError) as exc:
         raise MediaError("truncated", f"{image.format} data is truncated or corrupt ({exc})") from None
     w, h = image.size
+    with Image.open(io.BytesIO(data)) as again:  # verify() spends the image: EXIF from a fresh header parse
+        swap = orientation_swaps_axes(image_metadata(again).orientation)
     return (h, w) if swap else (w, h)
 
 

@@ -101,7 +101,7 @@ def room_depth(tr: TrackingResult, k: Intrinsics, poses: torch.Tensor, warn: lis
 
 
 def resolve_geometry(frames: torch.Tensor, intrinsics: Intrinsics, depth: torch.Tensor | None = None, *,
-                     intrinsics_assumed: bool = False, use_pycolmap: bool = True) -> CaptureGeometry:
+                     intrinsics_assumed: bool = False, use_pycolmap: bool | None = None) -> CaptureGeometry:
     """See the module docstring. `depth` [T, H, W] is the user's depth (metres) if any."""
     tr = track_camera(frames, intrinsics, depth, refine_focal=intrinsics_assumed, use_pycolmap=use_pycolmap)
     warn = list(tr.warnings)

@@ -17,6 +17,7 @@ registered are listed in `dropped`; the caller removes them from the capture.
 """
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -31,6 +32,15 @@ from core.tracking.rotation import estimate_rotations
 from core.tracking.scale import ScaleEstimate, apply_scale, scale_from_depth, scale_from_room
 
 MIN_KEPT_FRACTION = 0.5  # a track that registers fewer frames than this is a failure
+SFM_ENV = "LIGHTFIELD_SFM"  # "pycolmap" (default) or "opencv": where pycolmap's wheel is unavailable or unwanted
+
+
+def sfm_backend_from_env() -> bool:
+    """True to use pycolmap (the default), False for the OpenCV tracker only (LIGHTFIELD_SFM=opencv)."""
+    value = os.environ.get(SFM_ENV, "pycolmap").strip().lower() or "pycolmap"
+    if value not in ("pycolmap", "opencv"):
+        raise ValueError(f"{SFM_ENV} must be 'pycolmap' or 'opencv', got {value!r}")
+    return value == "pycolmap"
 
 
 @dataclass
@@ -84,11 +94,12 @@ def _poses_from_rotations(rots: np.ndarray) -> torch.Tensor:
 
 
 def track_camera(frames: torch.Tensor, intrinsics: Intrinsics, depth: torch.Tensor | None = None,
-                 refine_focal: bool = False, use_pycolmap: bool = True) -> TrackingResult:
+                 refine_focal: bool = False, use_pycolmap: bool | None = None) -> TrackingResult:
     """Poses for `frames` [T, H, W, 3] LDR (see module docstring). `depth` [T, H, W] (planar
     metres, NaN invalid) fixes the scale when given. `refine_focal` lets a pan refine fx
-    (use it when the intrinsics were assumed, not given)."""
+    (use it when the intrinsics were assumed, not given). `use_pycolmap=None` reads SFM_ENV."""
     t_cpu = time.process_time()
+    use_pycolmap = sfm_backend_from_env() if use_pycolmap is None else use_pycolmap
     cv2.setRNGSeed(0)  # OpenCV's RANSAC: the same capture tracks the same way every time
     T = int(frames.shape[0])
     images, k = analysis_frames(frames, intrinsics)
@@ -107,6 +118,7 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
     pairs = [match(features[i], features[j], i, j) for i, j in pair_schedule(T)]
     rot = estimate_rotations(pairs, T, k, refine_focal=refine_focal)
     stats = {"rotation_model": {"median_px": round(rot.median_px, 4), "inlier_share": round(rot.inlier_share, 4),
+                                "parallax_px": round(rot.parallax_px, 4), "epipolar_px": round(rot.epipolar_px, 4),
                                 "fits": rot.fits, "pairs": rot.pairs}}
     size = (k.width, k.height)
     if rot.fits and len(rot.kept) >= MIN_KEPT_FRACTION * T:

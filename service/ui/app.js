@@ -404,6 +404,7 @@
         "sfm:pycolmap": `tracked: structure from motion (COLMAP)${err}${dropped}, scale: ${t.scale_source}`,
         "sfm:opencv": `tracked: structure from motion (OpenCV)${err}${dropped}, scale: ${t.scale_source}`,
         "failed:static-fallback": "tracking FAILED: treated as static (give poses for a moving camera)",
+        off: "static (tracking turned off)",
       }[t.method] || t.method;
     } else if (capture.poses_source) {
       camera = `${capture.static_camera ? "static" : "moves"} (${capture.poses_source})`;
