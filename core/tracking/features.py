@@ -18,6 +18,11 @@ from core.camera import Intrinsics
 ANALYSIS_MAX_SIDE = 480
 MAX_FEATURES = 1500
 RATIO = 0.8
+# SIFT's contrast threshold, lowered for low-texture frames (a plain wall, a dim studio) until
+# MIN_FEATURES are found: weak features are only kept when strong ones are missing, and matching
+# (mutual ratio test, then RANSAC) discards what noise they add.
+CONTRAST_THRESHOLDS = (0.02, 0.01, 0.005)
+MIN_FEATURES = 150
 
 
 @dataclass(frozen=True)
@@ -57,8 +62,10 @@ def analysis_frames(frames: torch.Tensor, intrinsics: Intrinsics, max_side: int 
 
 
 def extract(image: np.ndarray, max_features: int = MAX_FEATURES) -> FrameFeatures:
-    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=0.02)
-    kps, desc = sift.detectAndCompute(image, None)
+    for threshold in CONTRAST_THRESHOLDS:
+        kps, desc = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=threshold).detectAndCompute(image, None)
+        if len(kps) >= MIN_FEATURES:
+            break
     if desc is None or not kps:
         return FrameFeatures(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
     pts = np.array([k.pt for k in kps], np.float64) + 0.5
