@@ -12,6 +12,12 @@ Families (all read the same capture directory through the engine's `load_capture
              paper's "w/o MLP" 3x3x3 ablation, trunk = the engine's faster field), queried
              exactly (`LightFieldArtefact.envmaps`) or through the baked lattice (`core.fields.bake`).
 
+With DiffusionLight's weights (`--diffusionlight-weights`, imported by `lightfield prior
+import`; the diffusion prior with the card's `diffusionlight` profile): "diffusionlight"
+(global family: DiffusionLight's own direct sampling, one ball at the frame centre, EV
+brackets 0/-2.5/-5 merged -- the paper's "DiffusionLight" row) and
+"diffusionlight-distilled" (an MLP field distilled from it -- "DiffusionLight-Distilled").
+
 Budgets and ablations are overrides of the draft preset's EngineConfig (dotted keys, e.g.
 "distill.n_probes" or "field.mlp.width"): uniform exposure sampling is the engine's
 `distill.ev_schedule="uniform"` (ev drawn uniformly in [ev_min, 0] per step instead of the
@@ -95,16 +101,24 @@ class Budget:
     probes: tuple[int, ...]
 
 
-def core_methods(diffusion_weights: str | None = None) -> list[Method]:
+def core_methods(diffusion_weights: str | None = None, diffusionlight_weights: str | None = None) -> list[Method]:
     """Run on every suite: baselines, the paper's field, its grid ablation, the trunk, the
     baked query mode and the oracle upper bounds of the key methods (plus the diffusion
-    prior's distilled fields when local weights are given)."""
+    prior's distilled fields, and DiffusionLight's two rows, when local weights are given)."""
     extra = [] if diffusion_weights is None else [
         Method("mlp-diffusion", "field", "paper", "MLP distilled from the diffusion prior (the paper's full method)", field="mlp",
                prior="diffusion", prior_weights=str(diffusion_weights)),
         Method("grid-diffusion", "field", "paper", "grid distilled from the diffusion prior", field="grid",
                prior="diffusion", prior_weights=str(diffusion_weights)),
     ]
+    if diffusionlight_weights is not None:
+        dl = str(diffusionlight_weights)
+        extra += [
+            Method("diffusionlight", "global", "baseline", "DiffusionLight direct sampling: one centre ball, EVs 0/-2.5/-5 merged",
+                   prior="diffusion", prior_weights=dl),
+            Method("diffusionlight-distilled", "field", "baseline", "MLP distilled from DiffusionLight (DiffusionLight-Distilled)",
+                   field="mlp", prior="diffusion", prior_weights=dl),
+        ]
     return [
         Method("global", "global", "baseline", "one env map: reprojection prior at the scene centre (DiffusionLight-style)"),
         Method("global-oracle", "global", "upper-bound", "one env map: the TRUE map at the scene centre (best single map)", prior="oracle"),
@@ -194,6 +208,8 @@ def run_global(method: Method, suite: SuiteData, base: EngineConfig) -> MethodRu
     with measured() as m:
         if method.prior == "oracle":
             env = render_envmap(suite.scene, suite.global_point, suite.global_time, h)
+        elif method.prior == "diffusion":
+            env = diffusion_centre_envmap(method, suite, cfg, h)
         else:
             prior = _bound_prior(suite, cfg)
             env = prior.envmaps(torch.tensor([suite.global_point], dtype=torch.float32), suite.global_time,
@@ -206,6 +222,34 @@ def run_global(method: Method, suite: SuiteData, base: EngineConfig) -> MethodRu
     if method.prior == "oracle":
         run.extra["note"] = "prepare time is the simulator's ray tracing, not an estimator's cost"
     return run
+
+
+def diffusion_centre_envmap(method: Method, suite: SuiteData, cfg: EngineConfig, height: int) -> torch.Tensor:
+    """DiffusionLight's native setting: one chrome ball at the centre of the frame nearest the
+    suite's global time, placed in front of the scene like the engine's probes, inpainted at
+    each EV of the bracket and merged to HDR (DiffusionPrior.sample_balls)."""
+    from core.capture.depth import median_valid_depth
+    from core.capture.load import load_capture
+    from core.chrome_ball import composite_depth, place_probe, render_balls
+    from core.device import resolve_device
+    from core.priors.base import ProbeGeometry
+    from core.priors.registry import build_prior
+
+    prior = build_prior("diffusion", {**cfg.prior_settings("diffusion"), "weights": method.prior_weights},
+                        resolve_device(cfg.distill.device))
+    work = load_capture(suite.capture_dir).resized(cfg.distill.work_height)
+    i = int(torch.argmin((work.times - suite.global_time).abs()))
+    cam = work.camera(i)
+    pixel = torch.tensor([work.width / 2.0, work.height / 2.0], dtype=torch.float64)
+    d = work.depth[i][work.height // 2, work.width // 2]
+    d = float(d) if torch.isfinite(d) and d > 0 else median_valid_depth(work.depth[i])
+    centre, radius = place_probe(cam, pixel, 0.7 * d, cfg.distill.ball_diameter_fraction)
+    centres, radii = centre[None].float(), torch.tensor([radius], dtype=torch.float32)
+    layer = render_balls(cam, centres, radii, lambda dirs, idx: torch.zeros(dirs.shape[0], 3))
+    probes = ProbeGeometry(centres, radii, pixel[None].float(), cam, i, float(work.times[i]))
+    out = prior.sample_balls(work.frames[i].permute(2, 0, 1), layer.coverage, composite_depth(work.depth[i], layer), probes,
+                             env_height=height, background_depth=work.depth[i])
+    return out.envmaps[0]
 
 
 def run_per_probe(method: Method, suite: SuiteData, base: EngineConfig) -> MethodRun:

@@ -77,6 +77,7 @@ class BenchOptions:
     iterations: int | None = None  # override the reference budget (the sweep scales with it)
     sweep_suites: tuple[str, ...] | None = None  # override the mode's (empty: core methods only)
     diffusion_weights: Path | None = None  # local diffusion prior weights: adds mlp/grid-diffusion
+    diffusionlight_weights: Path | None = None  # imported DiffusionLight weights: adds diffusionlight(-distilled)
 
 
 def log(msg: str) -> None:
@@ -119,7 +120,7 @@ def run_simulated(mode: Mode, opts: BenchOptions, workdir: Path) -> dict:
     for name in opts.suites:
         log(f"suite {name}: preparing capture")
         suite = load_suite(name, cache, mode.resolution, mode.gt_height)
-        methods = core_methods(opts.diffusion_weights) + (sweep_methods(budget) if name in mode.sweep_suites else [])
+        methods = core_methods(opts.diffusion_weights, opts.diffusionlight_weights) + (sweep_methods(budget) if name in mode.sweep_suites else [])
         t0 = time.perf_counter()
         results = run_suite(suite, methods, budget, workdir, mode.sphere_size)
         out["suites"][name] = {"suite": suite.describe(), "wall_s": round(time.perf_counter() - t0, 1), "methods": results}

@@ -14,6 +14,8 @@ def add_arguments(p) -> None:
     p.add_argument("--keep-artefacts", action="store_true", help="keep the distilled artefacts (printed path)")
     p.add_argument("--iterations", type=int, default=None, help="override the reference distillation budget (steps); the iteration sweep uses half and double")
     p.add_argument("--diffusion-weights", default=None, help="local diffusion prior model directory: also distil mlp/grid from it")
+    p.add_argument("--diffusionlight-weights", default=None,
+                   help="imported DiffusionLight prior directory (lightfield prior import): adds diffusionlight and diffusionlight-distilled")
     p.add_argument("--sweep-suites", default=None, help="suites that get the budget sweep and ablations ('none' for core methods only)")
 
 
@@ -48,6 +50,7 @@ def run(args) -> int:
         keep_artefacts=args.keep_artefacts,
         iterations=_positive(args.iterations, "--iterations"),
         diffusion_weights=Path(args.diffusion_weights) if args.diffusion_weights else None,
+        diffusionlight_weights=Path(args.diffusionlight_weights) if args.diffusionlight_weights else None,
         sweep_suites=None if args.sweep_suites is None else (() if args.sweep_suites.strip() == "none" else _subset(args.sweep_suites, SUITE_NAMES, "--sweep-suites")),
     )
     results = run_bench(opts)

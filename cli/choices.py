@@ -1,5 +1,6 @@
 """argparse choices that come from the project's registries (presets, priors, field kinds,
-temporal modes), read when first needed (a value to check, a subcommand's --help), so the
+temporal modes, the diffusion prior's inference profiles, import layouts and ControlNet
+conditionings), read when first needed (a value to check, a subcommand's --help), so the
 names are never written out again and `lightfield --help` imports no torch. Give such an
 argument a `metavar` and "%(choices)s" in its help: argparse formats both lazily."""
 from __future__ import annotations
@@ -42,6 +43,26 @@ def _fields() -> Iterable[str]:
     return field_kinds()
 
 
+def _prior_profiles() -> Iterable[str]:
+    from core.priors.diffusion.profiles import PROFILES
+
+    return PROFILES
+
+
+def _import_layouts() -> Iterable[str]:
+    from core.priors.diffusion.importing import LAYOUTS
+
+    return ("auto", *LAYOUTS)
+
+
+def _control_conditionings() -> Iterable[str]:
+    from typing import get_args
+
+    from core.priors.diffusion.card import Conditioning
+
+    return get_args(Conditioning)
+
+
 def _temporal_modes() -> Iterable[str]:
     from core.capture.temporal import TEMPORAL_MODES
 
@@ -51,4 +72,7 @@ def _temporal_modes() -> Iterable[str]:
 PRESETS = RegistryChoices(_presets)
 PRIORS = RegistryChoices(_priors)
 FIELDS = RegistryChoices(_fields)
+PRIOR_PROFILES = RegistryChoices(_prior_profiles)
+IMPORT_LAYOUTS = RegistryChoices(_import_layouts)
+CONTROL_CONDITIONINGS = RegistryChoices(_control_conditionings)
 TEMPORAL_MODES = RegistryChoices(_temporal_modes)

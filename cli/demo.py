@@ -292,8 +292,21 @@ def compare_probes(capture_dir: Path, doc: dict, env_dir: Path) -> list[dict]:
             "probe": k, "x": probe["x"], "t": probe["t"],
             "field": {"si_rmse": si_rmse(se, sg, mask), "stops": _stops(se, sg, mask)},
             "constant": {"si_rmse": si_rmse(sc, sg, mask), "stops": _stops(sc, sg, mask)},
+            "main_light": _main_light(e, g),
         })
     return rows
+
+
+def _main_light(estimate, truth) -> dict:
+    """The AR main light (core.lights) of the estimated map, and its angle to the true map's."""
+    import math
+
+    from core.lights import extract_dominant_light
+
+    est, gt = extract_dominant_light(estimate), extract_dominant_light(truth)
+    cos = float((est.direction.double() @ gt.direction.double()).clamp(-1, 1))
+    return {"found": est.found, "confidence": est.confidence, "reason": est.reason,
+            "angle_to_truth_deg": math.degrees(math.acos(cos)) if est.found and gt.found else None}
 
 
 def _stops(pred, gt, mask) -> float:
@@ -304,12 +317,17 @@ def _stops(pred, gt, mask) -> float:
 
 
 def format_table(rows: list[dict]) -> str:
-    head = f"{'probe':<6}{'x (m)':<22}{'si-RMSE field':>14}{'constant':>10}{'stops field':>13}{'constant':>10}"
+    head = (f"{'probe':<6}{'x (m)':<22}{'si-RMSE field':>14}{'constant':>10}{'stops field':>13}{'constant':>10}"
+            f"{'main light':>12}{'vs truth':>10}")
     lines = ["Held-out probes vs ground truth (diffuse sphere; lower |value| is better):", head]
     for r in rows:
         x = "(" + ", ".join(f"{v:.2f}" for v in r["x"]) + ")"
         f, c = r["field"], r["constant"]
-        lines.append(f"{r['probe']:<6}{x:<22}{f['si_rmse']:>14.3f}{c['si_rmse']:>10.3f}{f['stops']:>+13.2f}{c['stops']:>+10.2f}")
+        light = r.get("main_light") or {}
+        found = f"{light['confidence']:.2f}" + ("" if light.get("found") else " (no)") if light else "-"
+        angle = light.get("angle_to_truth_deg")
+        lines.append(f"{r['probe']:<6}{x:<22}{f['si_rmse']:>14.3f}{c['si_rmse']:>10.3f}{f['stops']:>+13.2f}{c['stops']:>+10.2f}"
+                     f"{found:>12}{'-' if angle is None else f'{angle:.0f} deg':>10}")
     n = len(rows)
     if n:
         mean = lambda who, key: sum(abs(r[who][key]) for r in rows) / n  # noqa: E731
@@ -317,6 +335,9 @@ def format_table(rows: list[dict]) -> str:
                      f"{mean('field', 'stops'):>13.2f}{mean('constant', 'stops'):>10.2f}   (stops: mean |.|)")
         wins = sum(r["field"]["si_rmse"] < r["constant"]["si_rmse"] for r in rows)
         lines.append(f"The field beats one room-wide env map on si-RMSE at {wins} of {n} probes.")
+        found = sum(bool((r.get("main_light") or {}).get("found")) for r in rows)
+        lines.append(f"Main light (AR: /sh) found at {found} of {n} probes; 'main light' = its confidence, "
+                     "'vs truth' = angle to the true map's main light.")
     return "\n".join(lines)
 
 

@@ -20,9 +20,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", required=True, help="artefact directory to write")
     p.add_argument("--depth", default=None, help="planar depth in metres: .npz ('depth' [T,H,W] or [H,W]), .exr, 16-bit PNG (mm)")
     p.add_argument("--params", default=None, help="job parameters as a JSON string or file (same schema as the service)")
-    p.add_argument("--preset", choices=choices.PRESETS, metavar="PRESET", default=None, help="one of %(choices)s")
+    p.add_argument("--preset", choices=choices.PRESETS, metavar="PRESET", default=None,
+                   help="one of %(choices)s (seed = the authors' released loop, with the diffusion prior's seed profile)")
     p.add_argument("--prior", choices=choices.PRIORS, metavar="PRIOR", default=None, help="one of %(choices)s")
     p.add_argument("--prior-weights", default=None, help="local model directory of the diffusion prior")
+    p.add_argument("--prior-profile", choices=choices.PRIOR_PROFILES, metavar="PROFILE", default=None,
+                   help="diffusion prior's inference profile, one of %(choices)s (default: the preset's, else the model card's)")
     p.add_argument("--temporal", choices=choices.TEMPORAL_MODES, metavar="MODE", default=None, help="one of %(choices)s")
     p.add_argument("--field", choices=choices.FIELDS, metavar="KIND", default=None,
                    help="field kind, one of %(choices)s (default: the preset's)")
@@ -87,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.output)
     try:
         params = parse_job_params(args.params, preset=args.preset, prior=args.prior, prior_weights=args.prior_weights,
-                                  temporal=args.temporal, field=args.field, seed=args.seed)
+                                  prior_profile=args.prior_profile, temporal=args.temporal, field=args.field, seed=args.seed)
     except (ValidationError, ValueError) as exc:
         print(f"error: invalid parameters: {exc}", file=sys.stderr)
         return 2

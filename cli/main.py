@@ -12,13 +12,35 @@ COMMANDS = [
     "simulate",
     "estimate",
     "envmap",
+    "sh",
+    "cubemap",
+    "gltf",
+    "usd",
+    "sequence",
+    "unity",
     "preview",
     "serve",
     "worker",
     "bench",
     "train-prior",
+    "prior",
     "render-previews",
 ]
+
+
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """Appends '(default: X)' to an option's help when it has a value default (not None, not a
+    flag such as --fast / --no-resume, not already mentioned in the help)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        flag = isinstance(action, (argparse._StoreConstAction, argparse._StoreTrueAction, argparse._StoreFalseAction,
+                                   argparse._HelpAction, argparse._VersionAction))
+        if ("%(default)" in text or "(default" in text or "default:" in text or default is None or flag
+                or default == argparse.SUPPRESS or not action.option_strings):
+            return text
+        return f"{text} (default: %(default)s)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,7 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
             if exc.name == module_name:
                 continue  # command not built yet
             raise
-        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        p = sub.add_parser(name, help=module.HELP, description=module.HELP, formatter_class=DefaultsHelpFormatter)
         module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser

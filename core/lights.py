@@ -1,162 +1,214 @@
-"""Dominant light + ambient SH split of an env map (ARCore Environmental HDR style).
+"""Main (dominant) light + ambient SH split of an env map, as ARCore Environmental HDR reports it.
 
-ARCore reports a main directional light (direction, RGB intensity) plus ambient
-spherical harmonics. We do the same from an HDR env map:
+ARCore always gives AR clients a main directional light (direction, RGB intensity) plus
+ambient spherical harmonics. A fixed "peak / surroundings" threshold finds nothing on real or
+estimated maps (their lights are blurred: peaks ~2x their surroundings), so the light is
+FITTED, and every answer carries a `confidence` and a `reason`:
 
-1. luminance peak; region = pixels brighter than `threshold_fraction` x peak that are
-   connected to the peak (4-connected, wrapping across the phi seam and across the poles);
-2. local fill = solid-angle-weighted mean radiance of a thin ring around the region;
-3. intensity = integral over the region of (L - fill) dw, so a directional light of that
-   RGB intensity gives the same irradiance as the region's excess (for a small region);
-   direction = the (L - fill)-luminance- and solid-angle-weighted mean direction, normalised;
-4. ambient SH = SH of the map with the region replaced by the fill, so
-   light + ambient reproduces the map's low-frequency lighting without double counting.
-
-No dominant light (uniform-ish maps, all-zero maps): intensity 0, `found=False` and a
-`reason`; the ambient SH then carries the whole map.
+1. **Search** (coarse, height 24): a matched filter over the sphere. For every candidate
+   direction c and cap radius r in `cap_radii_deg`, the excess power of the cap
+   P(c, r) = integral over the cap of (L - fill) dw, with fill = the mean luminance of the
+   annulus r..2r around it. The (c, r) with the largest P is the light: a small bright lamp
+   and a broad bright window are both found, at their own scale, and a wide gentle
+   gradient gives little excess (its annulus is nearly as bright as its cap).
+2. **Fit** (full resolution): within the cap, excess_i = max(L_i - fill, 0) per channel,
+   fill = the per-channel median of the annulus (robust to a second light nearby), kept
+   only where the excess luminance is >= `CORE_FRACTION` of the cap's peak excess: a lamp is
+   the lamp, not the lamp plus the patch of wall it lights (that patch stays in the ambient
+   SH), while a uniform window or a blurred lobe is kept whole. The cap is re-centred on the excess-weighted mean direction (twice). The lobe is summarised as a
+   von Mises-Fisher lobe: `direction` = mean direction, `sharpness` kappa from the mean
+   resultant length, `solid_angle` = the excess's effective area.
+3. **Intensity**: `intensity_rgb` = integral of the excess (radiance x sr). The ambient SH is
+   the SH of the map with the excess removed (L - excess), so `ambient SH + a directional
+   light of intensity_rgb` has the map's total power and reproduces its irradiance up to the
+   lobe's spread (exact for a point light; `irradiance_error` reports the worst relative
+   difference over the sphere of normals).
+4. **Confidence**: the share of the irradiance facing the light that the light gives,
+   E_light(mu) / E_map(mu), times (1 - 1/contrast) with contrast = mean cap radiance / fill.
+   `found` = confidence >= `min_confidence`. A map with no dominant light (uniform,
+   gentle gradients, all zero) still gets the best candidate's direction with `found=False`,
+   a small confidence and a reason saying why.
 """
 from __future__ import annotations
 
+import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-import numpy as np
 import torch
 
 from core.conventions import equirect_directions
-from core.envmap import check_envmap, solid_angles
+from core.envmap import check_envmap, irradiance, resize_envmap, solid_angles
 from core.exposure import luminance
-from core.sh import project_sh, to_arcore_27
+from core.sh import project_sh, sh_irradiance, to_arcore_27
+
+SEARCH_HEIGHT = 24  # coarse search grid: 1152 candidate directions, 7.5 deg apart
+CORE_FRACTION = 0.05  # the light = cap pixels whose excess is >= this x the cap's peak excess
+ERROR_HEIGHT = 32  # irradiance_error is measured on the map area-downsampled to this height
 
 
 @dataclass(frozen=True)
 class DominantLightConfig:
-    threshold_fraction: float = 0.5  # region = connected pixels with luminance >= this x peak
-    max_solid_angle: float = 0.1 * 4.0 * math.pi  # larger bright regions are "ambient", not a light
-    min_contrast: float = 4.0  # peak luminance / fill luminance needed to call it a light
-    ring_width: int = 2  # pixels of the ring used to estimate the local fill
+    cap_radii_deg: tuple[float, ...] = (8.0, 16.0, 30.0)  # light scales searched (cap radius; annulus r..2r)
+    min_confidence: float = 0.05  # found = confidence >= this (maps without a light score < 0.005)
+    refine_steps: int = 2  # re-centrings of the cap at full resolution
+    irradiance_normals: int = 128  # normals on which irradiance_error is measured
 
     def __post_init__(self):
-        if not (0.0 < self.threshold_fraction < 1.0):
-            raise ValueError(f"threshold_fraction must be in (0, 1), got {self.threshold_fraction}")
-        if not (self.max_solid_angle > 0.0):
-            raise ValueError(f"max_solid_angle must be > 0, got {self.max_solid_angle}")
-        if not (self.min_contrast >= 1.0):
-            raise ValueError(f"min_contrast must be >= 1, got {self.min_contrast}")
-        if self.ring_width < 1:
-            raise ValueError(f"ring_width must be >= 1, got {self.ring_width}")
+        if not self.cap_radii_deg or not all(0.0 < r <= 45.0 for r in self.cap_radii_deg):
+            raise ValueError(f"cap_radii_deg must be non-empty with every radius in (0, 45], got {self.cap_radii_deg}")
+        if not (0.0 <= self.min_confidence <= 1.0):
+            raise ValueError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
+        if self.refine_steps < 0:
+            raise ValueError(f"refine_steps must be >= 0, got {self.refine_steps}")
+        if self.irradiance_normals < 1:
+            raise ValueError(f"irradiance_normals must be >= 1, got {self.irradiance_normals}")
 
 
 @dataclass
 class DominantLight:
     direction: torch.Tensor  # [3] unit, direction light arrives FROM (world frame)
-    intensity_rgb: torch.Tensor  # [3] integrated excess radiance of the region (radiance x sr)
-    solid_angle: float  # sr covered by the region (0 when not found)
+    intensity_rgb: torch.Tensor  # [3] integrated excess radiance of the lobe (radiance x sr)
+    solid_angle: float  # effective sr of the lobe's excess (0 for an all-zero map)
     ambient_sh: torch.Tensor  # [9, 3] radiance SH of the map without the light (core.sh basis)
-    found: bool
-    reason: str  # why no light was found ("" when found)
-    mask: torch.Tensor | None = None  # [H, 2H] bool, the region
+    found: bool  # confidence >= config.min_confidence
+    reason: str  # why it was or was not found, in words
+    confidence: float = 0.0  # [0, 1], see the module doc
+    sharpness: float = 0.0  # vMF kappa of the lobe (large = compact); 0 when unknown
+    contrast: float = 1.0  # mean cap radiance / fill (luminance)
+    irradiance_error: float = 0.0  # max over normals |E_split - E_map| / max E_map
+    mask: torch.Tensor | None = field(default=None, repr=False)  # [H, 2H] bool, the cap used
+
+    @property
+    def angular_radius_deg(self) -> float:
+        """Radius of the cap holding ~63 % of a vMF lobe of this sharpness (0 when unknown)."""
+        return math.degrees(math.acos(max(-1.0, 1.0 - 1.0 / self.sharpness))) if self.sharpness > 0 else 0.0
 
     def to_dict(self) -> dict:
         """JSON-able summary (ARCore-compatible ambient SH included)."""
         return {
             "found": self.found,
             "reason": self.reason,
+            "confidence": float(self.confidence),
             "direction": [float(v) for v in self.direction],
             "intensity_rgb": [float(v) for v in self.intensity_rgb],
             "solid_angle_sr": float(self.solid_angle),
+            "sharpness": float(self.sharpness),
+            "contrast": float(self.contrast),
+            "irradiance_error": float(self.irradiance_error),
             "ambient_sh": self.ambient_sh.tolist(),
             "ambient_sh_arcore27": to_arcore_27(self.ambient_sh),
         }
 
 
-def _connected_region(mask: np.ndarray, seed: tuple[int, int]) -> np.ndarray:
-    """Pixels of `mask` 4-connected to `seed`, wrapping across the seam and the poles."""
-    from scipy import ndimage
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    labels, n = ndimage.label(mask)
-    h, w = mask.shape
-    pairs = [(labels[:, 0], labels[:, -1])]  # phi seam
-    half = w // 2
-    for row in (0, h - 1):  # across a pole: column j meets column j + W/2 of the same row
-        pairs.append((labels[row, :half], labels[row, half:]))
-    a = np.concatenate([p[0] for p in pairs])
-    b = np.concatenate([p[1] for p in pairs])
-    keep = (a > 0) & (b > 0)
-    graph = coo_matrix((np.ones(keep.sum()), (a[keep], b[keep])), shape=(n + 1, n + 1))
-    _, component = connected_components(graph, directed=False)
-    seed_label = labels[seed]
-    return (labels > 0) & (component[labels] == component[seed_label])
+@functools.lru_cache(maxsize=4)
+def _search_grid(radii_deg: tuple[float, ...]):
+    """Directions, solid angles and float32 cap indicator matrices [N, N] of the coarse grid
+    (one per radius r and 2r; cached: the matched filter is then a few mat-vec products)."""
+    d = equirect_directions(SEARCH_HEIGHT, dtype=torch.float64).reshape(-1, 3)
+    omega = solid_angles(SEARCH_HEIGHT, dtype=torch.float64).reshape(-1)
+    cos = (d @ d.T).to(torch.float32)
+    angles = sorted({a for r in radii_deg for a in (r, 2 * r)})
+    caps = {a: (cos >= math.cos(math.radians(a))).to(torch.float32) for a in angles}
+    return d, omega.to(torch.float32), caps
 
 
-def _ring(region: np.ndarray, width: int) -> np.ndarray:
-    """Pixels within `width` steps of the region (seam-wrapped), excluding the region."""
-    from scipy import ndimage
+def _search(L: torch.Tensor, radii_deg: tuple[float, ...]) -> tuple[torch.Tensor, float]:
+    """Coarse matched filter: (direction [3], cap radius in degrees) with the largest excess power."""
+    d, omega, caps = _search_grid(radii_deg)
+    small = resize_envmap(L, SEARCH_HEIGHT) if L.shape[0] > SEARCH_HEIGHT else L
+    if small.shape[0] != SEARCH_HEIGHT:  # tiny maps: upsample by nearest rows/cols
+        rows = (torch.arange(SEARCH_HEIGHT) * small.shape[0]) // SEARCH_HEIGHT
+        cols = (torch.arange(2 * SEARCH_HEIGHT) * small.shape[1]) // (2 * SEARCH_HEIGHT)
+        small = small[rows][:, cols]
+    power = (luminance(small).reshape(-1) * omega.double()).to(torch.float32)
+    excess = {}
+    for r in radii_deg:
+        cap_sr, cap2_sr = caps[r] @ omega, caps[2 * r] @ omega
+        cap_p, cap2_p = caps[r] @ power, caps[2 * r] @ power
+        fill = (cap2_p - cap_p) / (cap2_sr - cap_sr).clamp_min(1e-30)  # mean of the annulus r..2r
+        excess[r] = cap_p - fill * cap_sr
+    best_r = max(radii_deg, key=lambda r: float(excess[r].max()))
+    return d[int(excess[best_r].argmax())], best_r
 
-    pad = width
-    wrapped = np.concatenate((region[:, -pad:], region, region[:, :pad]), axis=1)
-    grown = ndimage.binary_dilation(wrapped, iterations=width)[:, pad:-pad]
-    return grown & ~region
+
+def _fit(L, dirs, omega, centre, radius_deg, steps):
+    """Excess of the cap around `centre` over its annulus' median, re-centred `steps` times."""
+    cos_r, cos_2r = math.cos(math.radians(radius_deg)), math.cos(math.radians(2 * radius_deg))
+    for _ in range(steps + 1):
+        cos = dirs @ centre
+        cap = cos >= cos_r
+        ring = (cos < cos_r) & (cos >= cos_2r)
+        fill = L[ring].median(dim=0).values if bool(ring.any()) else torch.zeros(3, dtype=L.dtype)
+        excess = (L - fill).clamp_min(0.0) * cap[..., None]
+        lum = luminance(excess)
+        excess = excess * (lum >= CORE_FRACTION * lum.max())[..., None]
+        weights = luminance(excess) * omega
+        mean = (dirs * weights[..., None]).sum((0, 1))
+        if float(mean.norm()) <= 0.0:
+            break
+        centre = mean / mean.norm()
+    return centre, cap, fill, excess, weights, mean
 
 
 def extract_dominant_light(envmap: torch.Tensor, config: DominantLightConfig | None = None) -> DominantLight:
-    """Split an HDR env map [H, 2H, 3] into one dominant light and ambient SH (see module doc).
+    """Fit the main light of an HDR env map [H, 2H, 3] and split off the ambient SH (module doc).
 
     Non-finite radiance is treated as 0 and negative radiance is clamped to 0.
     """
     cfg = config or DominantLightConfig()
     h = check_envmap(envmap)
     device, dtype = envmap.device, envmap.dtype
-    L = torch.nan_to_num(envmap.detach().to(torch.float64), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
-    omega = solid_angles(h, device=device, dtype=torch.float64)
-    dirs = equirect_directions(h, device=device, dtype=torch.float64)
-    lum = luminance(L)
+    L = torch.nan_to_num(envmap.detach().cpu().to(torch.float64), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+    omega = solid_angles(h, dtype=torch.float64)
+    dirs = equirect_directions(h, dtype=torch.float64)
 
-    def none(reason: str) -> DominantLight:
-        return DominantLight(
-            direction=torch.tensor([0.0, 1.0, 0.0], dtype=dtype, device=device),
-            intensity_rgb=torch.zeros(3, dtype=dtype, device=device),
-            solid_angle=0.0,
-            ambient_sh=project_sh(L).to(dtype),
-            found=False,
-            reason=reason,
-            mask=torch.zeros(lum.shape, dtype=torch.bool, device=device),
-        )
+    def out(direction, intensity, sr, ambient, found, reason, **kw) -> DominantLight:
+        return DominantLight(direction=direction.to(device, dtype), intensity_rgb=intensity.to(device, dtype),
+                             solid_angle=float(sr), ambient_sh=ambient.to(device, dtype), found=found, reason=reason,
+                             **kw)
 
-    peak = float(lum.max())
-    if not peak > 0.0:
-        return none("map is all zero (no light)")
-    seed = tuple(int(i) for i in np.unravel_index(int(lum.argmax()), lum.shape))
-    lum_np = lum.cpu().numpy()
-    region_np = _connected_region(lum_np >= cfg.threshold_fraction * peak, seed)
-    region = torch.from_numpy(region_np).to(device)
-    region_sr = float(omega[region].sum())
-    if region_sr > cfg.max_solid_angle:
-        return none(f"brightest region covers {region_sr:.3g} sr > max_solid_angle {cfg.max_solid_angle:.3g} sr (no dominant light)")
+    total = float((luminance(L) * omega).sum())
+    if not total > 0.0:
+        return out(torch.tensor([0.0, 1.0, 0.0]), torch.zeros(3), 0.0, project_sh(L), False,
+                   "no dominant light: the map is all zero", mask=torch.zeros(h, 2 * h, dtype=torch.bool, device=device))
 
-    ring = torch.from_numpy(_ring(region_np, cfg.ring_width)).to(device)
-    ring_sr = omega[ring].sum()
-    fill = (L[ring] * omega[ring][:, None]).sum(0) / ring_sr if ring_sr > 0 else torch.zeros(3, dtype=torch.float64, device=device)
+    centre, radius = _search(L, tuple(cfg.cap_radii_deg))
+    centre, cap, fill, excess, weights, mean = _fit(L, dirs, omega, centre, radius, cfg.refine_steps)
+    intensity = (excess * omega[..., None]).sum((0, 1))
+    power = float(weights.sum())
+    ambient_sh = project_sh(L - excess)
+    mask = cap.to(device)
+    if not power > 0.0:
+        return out(centre, torch.zeros(3), 0.0, ambient_sh, False,
+                   "no dominant light: no direction is brighter than its surroundings", mask=mask)
+
+    r_bar = min(float(mean.norm()) / power, 1.0 - 1e-12)  # mean resultant length of the excess
+    kappa = r_bar * (3.0 - r_bar * r_bar) / (1.0 - r_bar * r_bar)  # Banerjee et al.'s vMF estimate
+    peak = float((luminance(excess) * omega).max())
+    solid_angle = power / max(float(luminance(excess).max()), 1e-300) if peak > 0 else 0.0
+    cap_sr = float(omega[cap].sum())
     fill_lum = float(luminance(fill))
-    if peak < cfg.min_contrast * fill_lum:
-        return none(f"peak luminance is only {peak / fill_lum:.3g}x its surroundings < min_contrast {cfg.min_contrast}")
+    cap_lum = float((luminance(L) * omega)[cap].sum()) / max(cap_sr, 1e-300)
+    contrast = cap_lum / fill_lum if fill_lum > 0 else math.inf
+    facing = float(luminance(irradiance(L, centre[None]))[0])
+    share = min(power / facing, 1.0) if facing > 0 else 0.0
+    confidence = share * (1.0 - 1.0 / contrast) if contrast > 1.0 else 0.0
+    found = confidence >= cfg.min_confidence
 
-    excess = (L[region] - fill).clamp_min(0.0) * omega[region][:, None]  # [N, 3] radiance x sr
-    intensity = excess.sum(0)
-    weights = luminance(excess)
-    mean_dir = (dirs[region] * weights[:, None]).sum(0)
-    norm = mean_dir.norm()
-    direction = mean_dir / norm if norm > 1e-12 * max(float(weights.sum()), 1e-300) else dirs[seed]
+    normals = torch.nn.functional.normalize(
+        torch.randn(cfg.irradiance_normals, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64), dim=-1)
+    split = sh_irradiance(ambient_sh, normals) + (normals @ centre).clamp_min(0.0)[:, None] * intensity
+    coarse = resize_envmap(L, ERROR_HEIGHT) if h > ERROR_HEIGHT else L
+    full = irradiance(coarse, normals)
+    err = float((split - full).abs().max() / full.abs().max().clamp_min(1e-300))
 
-    ambient = torch.where(region[..., None], fill.expand_as(L), L)
-    return DominantLight(
-        direction=direction.to(dtype),
-        intensity_rgb=intensity.to(dtype),
-        solid_angle=region_sr,
-        ambient_sh=project_sh(ambient).to(dtype),
-        found=True,
-        reason="",
-        mask=region,
-    )
+    words = (f"main light gives {share:.0%} of the irradiance facing it, {contrast:.3g}x its surroundings "
+             f"(confidence {confidence:.2f}")
+    reason = (f"found: {words} >= {cfg.min_confidence:g})" if found
+              else f"no dominant light: {words} < {cfg.min_confidence:g}); direction is the best guess")
+    return out(centre, intensity, solid_angle, ambient_sh, found, reason, confidence=confidence, sharpness=kappa,
+               contrast=contrast, irradiance_error=err, mask=mask)
+
+
+__all__ = ["DominantLight", "DominantLightConfig", "extract_dominant_light"]

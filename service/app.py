@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import functools
+import importlib.util
 import logging
 from pathlib import Path
 
@@ -22,6 +23,7 @@ from service.routes import health, jobs, lightfield
 
 log = logging.getLogger("lightfield.service")
 UI_DIR = Path(__file__).parent / "ui"
+DOCS_ASSETS = "/docs-assets"
 
 DESCRIPTION = """Spatiotemporally varying indoor HDR lighting as a service.
 
@@ -39,7 +41,8 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     store = JobStore(connect(settings.broker_url))
     ctx = AppContext(settings=settings, keyring=KeyRing.parse(settings.api_keys), store=store,
                      celery=make_celery(settings), fields=FieldCache(settings.field_cache_size))
-    app = FastAPI(title="lightfield", version="0.1.0", description=DESCRIPTION)
+    app = FastAPI(title="lightfield", version="0.1.0", description=DESCRIPTION, docs_url=None, redoc_url=None)
+    install_offline_docs(app)
     app.state.ctx = ctx
     app.state.metrics = Metrics(store)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
@@ -54,6 +57,33 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
             return RedirectResponse("/ui/")
 
     return app
+
+
+def install_offline_docs(app: FastAPI) -> None:
+    """/docs (Swagger UI) and /redoc served from the assets the `fastapi-offline` wheel ships,
+    not from a CDN, so they work on machines without internet access."""
+    from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
+
+    assets = Path(importlib.util.find_spec("fastapi_offline").origin).parent / "static"
+    app.mount(DOCS_ASSETS, StaticFiles(directory=assets), name="docs-assets")
+
+    @app.get("/docs", include_in_schema=False)
+    def swagger_ui():
+        return get_swagger_ui_html(openapi_url=app.openapi_url, title=f"{app.title} - Swagger UI",
+                                   oauth2_redirect_url=app.swagger_ui_oauth2_redirect_url,
+                                   swagger_js_url=f"{DOCS_ASSETS}/swagger-ui-bundle.js",
+                                   swagger_css_url=f"{DOCS_ASSETS}/swagger-ui.css",
+                                   swagger_favicon_url=f"{DOCS_ASSETS}/favicon.png")
+
+    @app.get(app.swagger_ui_oauth2_redirect_url, include_in_schema=False)
+    def swagger_ui_redirect():
+        return get_swagger_ui_oauth2_redirect_html()
+
+    @app.get("/redoc", include_in_schema=False)
+    def redoc():
+        return get_redoc_html(openapi_url=app.openapi_url, title=f"{app.title} - ReDoc",
+                              redoc_js_url=f"{DOCS_ASSETS}/redoc.standalone.js",
+                              redoc_favicon_url=f"{DOCS_ASSETS}/favicon.png", with_google_fonts=False)
 
 
 @functools.lru_cache(maxsize=1)

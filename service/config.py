@@ -24,6 +24,7 @@ class ServiceLimits(BaseModel):
     max_envmap_height: int = Field(1024, gt=0, description="env map height (width = 2 x height)")
     max_cubemap_size: int = Field(1024, gt=0, description="cube map face edge")
     max_batch: int = Field(64, gt=0, description="queries per POST /lightfield/{id}/envmaps")
+    max_sequence_frames: int = Field(240, gt=0, description="frames per GET /lightfield/{id}/sequence")
     max_jobs_in_flight: int = Field(4, gt=0, description="queued + running jobs per tenant")
     max_page_size: int = Field(100, gt=0, description="GET /jobs page size")
 

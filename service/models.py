@@ -115,18 +115,31 @@ class EnvmapBatchResponse(BaseModel):
     items: list[EncodedEnvmap]
 
 
+SHLayout = Literal["arcore", "threejs"]
+
+
 class DominantLight(BaseModel):
-    direction: tuple[float, float, float] = Field(description="unit vector the light arrives from (world)")
-    intensity: tuple[float, float, float] = Field(description="RGB radiance of the light")
-    solid_angle: float = Field(description="steradians covered by the light's region (0 when none found)")
-    found: bool = Field(description="false when the map has no distinct light (then intensity is 0)")
+    direction: tuple[float, float, float] = Field(description="unit vector the light arrives from (world); "
+                                                  "the best guess even when found is false")
+    intensity: tuple[float, float, float] = Field(description="RGB intensity of a directional light (radiance x sr, "
+                                                  "relative units): ambient SH + this light reproduce the map's irradiance")
+    solid_angle: float = Field(description="effective steradians of the light's lobe")
+    found: bool = Field(description="confidence >= 0.05: the light is real; when false, use the ambient SH alone "
+                        "or the light at your own risk")
+    confidence: float = Field(description="0..1: share of the irradiance facing the light that it gives x (1 - 1/contrast)")
+    reason: str = Field(description="why it was or was not found, in words")
 
 
 class SphericalHarmonics(BaseModel):
     x: tuple[float, float, float]
     t: float
     extrapolated: Flags
-    arcore_27: list[float] = Field(description="ARCore's 27-float layout (9 coefficients x RGB interleaved)")
+    layout: SHLayout = Field(description="layout of `coefficients` and `coefficients_with_light`")
+    coefficients: list[float] = Field(description="ambient SH (the map without the main light), 27 floats in `layout`")
+    coefficients_with_light: list[float] = Field(description="SH of the whole map (for clients without a "
+                                                 "directional light), 27 floats in `layout`")
+    arcore_27: list[float] = Field(description="ambient SH in ARCore's 27-float layout (9 coefficients x RGB "
+                                   "interleaved, Condon-Shortley signs), whatever the layout")
     band_order: str
     dominant_light: DominantLight
 

@@ -111,15 +111,24 @@ def envmaps(cf: CachedField, xs, ts, height: int) -> tuple[np.ndarray, list[Eval
 
 
 def spherical_harmonics(cf: CachedField, x, t: float):
-    """(ambient SH as ARCore 27 floats, dominant light, flags): ARCore Environmental HDR split."""
+    """(dominant light with ambient SH, SH of the whole map, flags): ARCore Environmental HDR split."""
     import torch
 
     from core.lights import extract_dominant_light
-    from core.sh import to_arcore_27
+    from core.sh import project_sh
 
     hdr, flags = envmap(cf, x, t, SH_ENVMAP_HEIGHT)
-    light = extract_dominant_light(torch.from_numpy(hdr))
-    return to_arcore_27(light.ambient_sh), light, flags
+    env = torch.from_numpy(hdr)
+    light = extract_dominant_light(env)
+    return light, project_sh(env.double()), flags
+
+
+def envmap_sequence(cf: CachedField, x, times, height: int, quality: str = "exact"):
+    """Yield (t, hdr, flags) one time at a time (the field lock is taken per frame, so other
+    queries interleave with a long sequence)."""
+    for t in times:
+        hdr, flags, _ = envmap_with_quality(cf, x, t, height, quality)
+        yield t, hdr, flags
 
 
 def cubemap(cf: CachedField, x, t: float, size: int) -> tuple[np.ndarray, EvalFlags]:

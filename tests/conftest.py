@@ -17,7 +17,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
-pytest_plugins = ["diffusion_fixtures"]  # lazy: builds nothing unless a test asks
+pytest_plugins = ["diffusion_fixtures", "node_consumers"]  # lazy: builds/installs nothing unless a test asks
 
 TENANTS = {"alice": "alice-key-0001", "bob": "bob-key-00002"}
 

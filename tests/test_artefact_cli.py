@@ -33,7 +33,7 @@ def test_npy_output_equals_the_query_api(artefact_dir, tmp_path, capsys):
 
 
 def test_exr_default_and_png_preview(artefact_dir, tmp_path, capsys):
-    exr = tmp_path / "env.out"
+    exr = tmp_path / "env.exr"
     assert main(["envmap", str(artefact_dir), "--x", "0,0,-1", "--t", "1", "--height", "4", "-o", str(exr)]) == 0
     expected, _ = LightFieldArtefact.load(artefact_dir).envmap((0.0, 0.0, -1.0), 1.0, 4)
     np.testing.assert_allclose(load_envmap(exr), expected.numpy(), rtol=1e-6)  # float32 EXR by default

@@ -266,3 +266,17 @@ def test_registry_builds_the_diffusion_prior(tiny_dir):
     assert d["name"] == "diffusion" and d["card"]["multi_ball"] is True and d["dtype"] == "float32"
     with pytest.raises(PriorError, match="prior-weights"):
         build_prior("diffusion")
+
+
+def test_registry_passes_the_profile_and_the_worker_keeps_one_prior_per_profile(tiny_dir):
+    from core.priors.registry import build_prior
+    from worker.prior_cache import cached_prior
+
+    assert build_prior("diffusion", {"weights": str(tiny_dir), "profile": "diffusionlight"}).profile.name == "diffusionlight"
+    assert build_prior("diffusion", {"weights": str(tiny_dir)}).profile.name == "paper"  # the card's
+    with pytest.raises(PriorError, match="profile"):
+        build_prior("diffusion", {"weights": str(tiny_dir), "profile": "authors"})
+    paper = cached_prior("diffusion", {"weights": str(tiny_dir), "profile": "paper"})
+    assert cached_prior("diffusion", {"weights": str(tiny_dir), "profile": "paper"}) is paper
+    seed = cached_prior("diffusion", {"weights": str(tiny_dir), "profile": "seed"})
+    assert seed is not paper and seed.profile.name == "seed"

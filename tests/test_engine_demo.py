@@ -44,6 +44,9 @@ def test_exact_estimate_scores_zero_and_a_global_scale_is_only_stops(tmp_path):
     assert rows[1]["field"]["stops"] == pytest.approx(1.0, abs=1e-4)
     # the constant baseline (mean of the two estimates) has the light in two places: worse
     assert all(r["constant"]["si_rmse"] > r["field"]["si_rmse"] + 1e-3 for r in rows)
+    # the AR main light of an exact estimate is found where the truth's is
+    assert rows[0]["main_light"]["found"] and rows[0]["main_light"]["angle_to_truth_deg"] == pytest.approx(0.0, abs=1e-3)
+    assert "Main light (AR: /sh) found at" in demo.format_table(rows)
 
 
 def test_constant_baseline_equals_the_field_when_the_field_is_constant(tmp_path):

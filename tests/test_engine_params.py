@@ -2,6 +2,7 @@
 import json
 
 import pytest
+import torch
 from pydantic import ValidationError
 
 from core.capture.params import CaptureParams, IntrinsicsParams
@@ -72,7 +73,10 @@ def test_presets_schedules():
         cfg = engine.distill
         assert cfg.ev_at(0) == 0.0
         assert cfg.ev_at(cfg.iterations - 1) == pytest.approx(cfg.ev_min)
-        assert cfg.tau_min_at(0) == 1.0 and cfg.tau_min_at(cfg.iterations - 1) == 0.0
+        if cfg.tau_schedule == "anneal":
+            assert cfg.tau_min_at(0) == 1.0 and cfg.tau_min_at(cfg.iterations - 1) == 0.0
+        else:  # the authors' decay_t_min: from t_max down to the 0.02 floor at half the run
+            assert cfg.tau_min_at(0) == cfg.tau_max and cfg.tau_min_at(cfg.iterations // 2) == 0.02
         lrs = [cfg.lr_at(s) for s in range(cfg.iterations)]
         peak = max(lrs)
         assert peak == pytest.approx(cfg.lr, rel=1e-6)
@@ -101,3 +105,44 @@ def test_presets_are_whole_config_trees_and_overrides_stay_typed():
         draft.with_overrides({"distill.iteratons": 7})
     with pytest.raises(ValidationError, match="env_hieght"):
         draft.with_overrides({"priors.reprojection.env_hieght": 8})
+
+
+def test_seed_preset_is_the_authors_loop():
+    seed = preset("seed")
+    s = seed.distill
+    assert [s.ev_at(i) for i in range(s.iterations)] == [0.0] * s.iterations  # EV fixed at 0
+    assert s.iterations == 20 and s.guidance_scale == 12.5 and s.time_normalisation_frames == 30
+    assert s.perceptual_net == "vgg" and s.perceptual_weight == 1.0 and s.l2_weight == pytest.approx(0.2)
+    assert s.lr_at(s.iterations - 1) == pytest.approx(2e-4, rel=0.2)
+    assert seed.field.section("mlp").t_freqs == 6 and seed.field.section("trunk").t_freqs == 6  # PE degree 6 for time
+    assert seed.prior_settings("diffusion")["profile"] == "seed"
+
+
+def test_the_diffusion_profile_is_the_jobs_else_the_presets_else_the_cards():
+    from core.engine.job import job_prior_settings
+
+    def profile(preset_name, job_profile=None):
+        params = JobParams(preset=preset_name, prior="diffusion", prior_weights="/w", prior_profile=job_profile)
+        settings = job_prior_settings(preset(preset_name), params)
+        assert settings["weights"] == "/w"
+        return settings.get("profile")
+
+    assert profile("seed") == "seed" and profile("seed", "paper") == "paper"
+    assert profile("paper") is None and profile("draft", "diffusionlight") == "diffusionlight"  # None: the card's
+    reprojection = JobParams(preset="seed", prior="reprojection", prior_profile="seed")
+    assert "profile" not in job_prior_settings(preset("seed"), reprojection)  # only priors that have the setting
+    with pytest.raises(ValidationError, match="prior_profile"):
+        JobParams(prior="diffusion", prior_profile="authors")
+
+
+def test_time_is_normalised_for_30_frames_with_the_seed_preset():
+    from core.engine.scene import normalised_time
+    from core.fields import SceneBounds
+
+    b = SceneBounds((0, 0, 0), (1, 1, 1), 0.0, 99 / 30.0)  # a 100-frame clip at 30 fps
+    frames = preset("seed").distill.time_normalisation_frames
+    nb = normalised_time(b, frames, 30.0)
+    assert nb.t1 == pytest.approx(29 / 30.0)
+    assert float(nb.normalize_t(torch.tensor(29 / 30.0))) == pytest.approx(1.0)  # frame 29 -> +1, as 2 f / 29 - 1
+    assert normalised_time(b, preset("paper").distill.time_normalisation_frames, 30.0) == b
+    assert normalised_time(b, frames, None) == b  # a single image has no frame rate

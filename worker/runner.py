@@ -103,7 +103,7 @@ class JobRunner:
             return Outcome.ABANDONED
         self._prebake(job_id, result.artefact if result else paths.artefact_dir)
         self.store.update(job_id, allowed=("running",), state="succeeded", progress=1.0, stage="done",
-                          eta_s=0.0, artefact=relative, finished_at=time.time())
+                          message="light field ready", eta_s=0.0, artefact=relative, finished_at=time.time())
         paths.remove_uploads()
         shutil.rmtree(paths.checkpoint_dir, ignore_errors=True)
         return Outcome.SUCCEEDED

@@ -34,7 +34,9 @@ class DistillConfig(BaseModel):
     ev_schedule: Literal["sweep", "uniform"] = Field(
         "sweep", description="'sweep' (paper): linear 0 -> ev_min; 'uniform' (the paper's ablation): ev ~ U[ev_min, 0] each step")
     guidance_scale: float = 12.5
-    tau_max: float = 1.0
+    tau_max: float = Field(1.0, gt=0.0, le=1.0)
+    tau_schedule: Literal["anneal", "authors"] = Field(
+        "anneal", description="'anneal' (paper): tau_min 1 -> 0 over the run; 'authors': their decay_t_min (floor 0.02, half the run)")
     lr: float = Field(5e-3, gt=0)
     lr_min_ratio: float = Field(0.05, ge=0, le=1)
     warmup_steps: int = Field(20, ge=0)
@@ -42,6 +44,9 @@ class DistillConfig(BaseModel):
     adam_betas: tuple[float, float] = (0.9, 0.99)
     l2_weight: float = Field(1.0, ge=0)
     perceptual_weight: float = Field(0.1, ge=0)
+    perceptual_net: Literal["alex", "vgg"] = Field("alex", description="LPIPS backbone when LPIPS weights are configured")
+    time_normalisation_frames: int | None = Field(
+        None, ge=2, description="normalise time as if the clip had this many frames (the authors' release: 30); None: over the capture")
     # Per-step tensors are small (a few thousand ball samples): intra-op threads cost more in
     # synchronisation than they gain, and are disastrous on a shared, oversubscribed machine.
     threads: int | None = Field(1, ge=1, description="torch intra-op threads during distillation (None: leave as is)")
@@ -59,7 +64,10 @@ class DistillConfig(BaseModel):
         return self.ev_min * min(1.0, step / span)
 
     def tau_min_at(self, step: int) -> float:
-        """tau_min annealed linearly 1 -> 0 over training (tau ~ U[tau_min, tau_max])."""
+        """tau_min annealed linearly 1 -> 0 over training (tau ~ U[tau_min, tau_max]); 'authors':
+        their sds_t_sampling 'decay_t_min', max(0.02, (1 - step / (N // 2)) tau_max)."""
+        if self.tau_schedule == "authors":
+            return min(self.tau_max, max(0.02, (1.0 - step / max(1, self.iterations // 2)) * self.tau_max))
         return max(0.0, 1.0 - step / max(1, self.iterations - 1))
 
     @staticmethod

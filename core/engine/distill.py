@@ -60,7 +60,7 @@ def distill(
     torch.manual_seed(seed)  # field initialisation (on CPU, then moved)
     gen = torch.Generator().manual_seed(seed)
     field_cfg = config.field.with_time(uses_time)
-    field = build_field(field_cfg, bounds or scene_bounds(capture)).to(device)
+    field = build_field(field_cfg, bounds or scene_bounds(capture, cfg.time_normalisation_frames)).to(device)
     opt = torch.optim.Adam(field.parameters(), lr=cfg.lr, betas=cfg.adam_betas)
     run_fingerprint = fingerprint(capture, cfg, field_cfg, seed, prior)
 
@@ -70,7 +70,7 @@ def distill(
         if restored is not None:
             start, losses = restored
     trainer = Trainer(capture, inverse_tonemap(capture.frames).to(device), capture.depth.to(device), prior, field, opt,
-                      cfg, gen, PerceptualLoss(), timings, device)
+                      cfg, gen, PerceptualLoss(cfg.perceptual_net), timings, device)
     reporter.begin(start)
     reporter.check_cancel()  # then once per step, in reporter.step (a store query in the worker)
     with _torch_threads(cfg.threads):
@@ -82,7 +82,7 @@ def distill(
             reporter.step(step + 1, cfg.iterations, losses[-1])
     field.eval()
     return DistillResult(field.cpu(), losses, timings, cfg.iterations, resumed_from=start,
-                         stats={"field_config": field_cfg.model_dump(), "perceptual": perceptual_description(),
+                         stats={"field_config": field_cfg.model_dump(), "perceptual": perceptual_description(cfg.perceptual_net),
                                 "device": str(device)})
 
 

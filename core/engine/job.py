@@ -44,11 +44,15 @@ class JobResult:
 
 
 def job_prior_settings(config: EngineConfig, params: JobParams) -> dict:
-    """The settings the job's prior is built with: the config's defaults for it, and the job's
-    prior_weights as the `weights` setting of the priors that load weights."""
+    """The settings the job's prior is built with: the config's defaults for it, then the job's
+    prior_weights and prior_profile as the `weights` and `profile` settings of the priors that
+    have them. So the diffusion prior's profile is the job's, else the preset's (`seed` for the
+    seed preset), else (None) its model card's."""
     settings = config.prior_settings(params.prior)
-    if params.prior_weights is not None and "weights" in prior_class(params.prior).Config.model_fields:
-        settings["weights"] = params.prior_weights
+    fields = prior_class(params.prior).Config.model_fields
+    for key, value in (("weights", params.prior_weights), ("profile", params.prior_profile)):
+        if value is not None and key in fields:
+            settings[key] = value
     return settings
 
 
@@ -108,7 +112,7 @@ def run_job(
         if prior is None:
             prior = prior_factory(params.prior, job_prior_settings(config, params), device)
         prior.bind(work, lighting_changes=decision.uses_time)
-        bounds = scene_bounds(work)
+        bounds = scene_bounds(work, cfg.time_normalisation_frames)
         if prior.capabilities.frame_geometry:  # build the geometry now so its cost is reported here
             for i in distinct_geometry(work):
                 prior.prepare_frame(i)

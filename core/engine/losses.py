@@ -54,9 +54,12 @@ def masked_ssim_loss(pred_ldr: torch.Tensor, target_ldr: torch.Tensor, mask: tor
     return ((1.0 - ssim) * w).sum() / (3.0 * w.sum()).clamp_min(1e-8)
 
 
-def perceptual_kind() -> str:
-    """'lpips' when local LPIPS weights and the lpips package are both available, else 'ssim'."""
-    path = os.environ.get("LIGHTFIELD_LPIPS_WEIGHTS")
+LPIPS_WEIGHTS_ENV = {"alex": "LIGHTFIELD_LPIPS_WEIGHTS", "vgg": "LIGHTFIELD_LPIPS_VGG_WEIGHTS"}
+
+
+def perceptual_kind(net: str = "alex") -> str:
+    """'lpips' when local LPIPS weights (for `net`) and the lpips package are both available, else 'ssim'."""
+    path = os.environ.get(LPIPS_WEIGHTS_ENV[net])
     if not path or not os.path.exists(path):
         return "ssim"
     try:
@@ -66,28 +69,27 @@ def perceptual_kind() -> str:
     return "lpips"
 
 
-def perceptual_description() -> dict:
-    kind = perceptual_kind()
+def perceptual_description(net: str = "alex") -> dict:
+    kind, env = perceptual_kind(net), LPIPS_WEIGHTS_ENV[net]
     if kind == "ssim":
-        why = ("LIGHTFIELD_LPIPS_WEIGHTS not set" if not os.environ.get("LIGHTFIELD_LPIPS_WEIGHTS")
-               else "LPIPS weights or the lpips package unavailable")
-        return {"kind": "ssim", "window": 7, "sigma": 1.5, "reason": f"fallback: {why}"}
-    return {"kind": "lpips", "weights": os.environ["LIGHTFIELD_LPIPS_WEIGHTS"]}
+        why = (f"{env} not set" if not os.environ.get(env) else "LPIPS weights or the lpips package unavailable")
+        return {"kind": "ssim", "window": 7, "sigma": 1.5, "wanted": f"lpips-{net}", "reason": f"fallback: {why}"}
+    return {"kind": "lpips", "net": net, "weights": os.environ[env]}
 
 
 class PerceptualLoss:
     """Callable (pred [3,H,W], target [3,H,W], mask [H,W]) -> scalar; LPIPS or SSIM fallback."""
 
-    def __init__(self) -> None:
-        self.kind = perceptual_kind()
+    def __init__(self, net: str = "alex") -> None:
+        self.kind = perceptual_kind(net)
         self._lpips = None
         if self.kind == "lpips":  # pragma: no cover - needs weights that CI never has
             import lpips
             from safetensors.torch import load_file
 
-            net = lpips.LPIPS(pretrained=False, net="alex", pnet_rand=True, verbose=False)
-            net.load_state_dict(load_file(os.environ["LIGHTFIELD_LPIPS_WEIGHTS"]))  # strict: no silently random layers
-            self._lpips = net.eval().requires_grad_(False)
+            model = lpips.LPIPS(pretrained=False, net=net, pnet_rand=True, verbose=False)
+            model.load_state_dict(load_file(os.environ[LPIPS_WEIGHTS_ENV[net]]))  # strict: no silently random layers
+            self._lpips = model.eval().requires_grad_(False)
 
     def __call__(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         if self._lpips is None:

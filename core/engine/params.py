@@ -16,6 +16,7 @@ from core.capture.params import CaptureParams
 from core.capture.temporal import TemporalMode
 from core.engine.presets import preset_names
 from core.fields import field_kinds
+from core.priors.diffusion.profiles import ProfileName
 from core.priors.registry import job_prior_names
 
 # the choices are the registries' names (a registered preset, prior or field kind is offered here)
@@ -31,6 +32,7 @@ class JobParams(CaptureParams):
     preset: PresetName = "draft"
     prior: PriorName = "reprojection"
     prior_weights: str | None = None
+    prior_profile: ProfileName | None = None  # diffusion prior's inference profile (None: the card's; `seed` with preset seed)
     temporal: TemporalMode = "auto"
     seed: int = 0
     field: FieldKind | None = None  # None -> the preset's default

@@ -1,4 +1,4 @@
-"""The named engine presets, each a whole EngineConfig (draft / standard / paper).
+"""The named engine presets, each a whole EngineConfig (draft / standard / paper / seed).
 
 `paper` is the paper's §3.2 setup (GPU): MLP 6x256, N = 9 probes, ev 0 -> -5, tau_min
 annealed 1 -> 0, k = ceil(10 tau), guidance 12.5, Adam + warm-up + cosine LR, grad clipping.
@@ -8,6 +8,15 @@ narrower network (same encodings; the MLP 96 x 4 for draft, 128 x 4 for standard
 trunk field equally narrowed when a job picks it). At equal steps a narrow MLP recovered a
 known field about as well as the 6 x 256 one and clearly better than the trunk+head field
 (see docs/engine.md). Wall times are measured by `bench/presets.py`.
+
+`seed` is the loop of the authors' released code (ORionTMT/Sig25_4DLighting run_video_demo.py
++ SDS/multiball_sds.py `sds_loop`), paired with the diffusion prior's `seed` inference profile
+(its settings default here; a job's `prior_profile` still wins): EV fixed at 0 (their sweep is
+commented out), loss LPIPS-VGG + 0.05 MSE in [-1, 1] units (= 0.2 x our [0, 1] masked MSE;
+SSIM stands in for LPIPS unless LPIPS-VGG weights are configured, see losses.py), time
+normalised as if the clip had 30 frames (t_n = 2 f / 29 - 1), PE degree 6 for time, 20 steps,
+lr 2e-3 -> 2e-4 with 10 % warm-up, guidance 12.5, and their `decay_t_min` noise schedule
+(tau ~ U[max(0.02, (1 - i / (N // 2)) 0.98), 0.98]).
 """
 from __future__ import annotations
 
@@ -43,6 +52,16 @@ PRESETS: dict[str, EngineConfig] = {
                               checkpoint_every=250, threads=None),
         field=FieldConfig(kind="mlp"),
         priors={"reprojection": {"env_height": 64}},
+    ),
+    # The authors' released loop (module docstring), at the paper's resolution and field size
+    "seed": EngineConfig(
+        name="seed",
+        distill=DistillConfig(iterations=20, n_probes=9, work_height=512, supersample=2, lr=2e-3, lr_min_ratio=0.1,
+                              warmup_steps=2, checkpoint_every=250, threads=None, ev_min=0.0, l2_weight=0.2,
+                              perceptual_weight=1.0, perceptual_net="vgg", guidance_scale=12.5, tau_max=0.98,
+                              tau_schedule="authors", time_normalisation_frames=30),
+        field=FieldConfig(kind="mlp", mlp={"t_freqs": 6}, trunk={"t_freqs": 6}),
+        priors={"reprojection": {"env_height": 64}, "diffusion": {"profile": "seed"}},
     ),
 }
 

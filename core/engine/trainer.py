@@ -75,7 +75,8 @@ class Trainer:
                 image=image.to(pd), ball_masks=layer.coverage.detach().to(pd),
                 depth=composite_depth(self.depth[i], layer).to(pd), ev=ev, tau=tau, steps=cfg.steps_for_tau(tau),
                 guidance_scale=cfg.guidance_scale, probes=probes, generator=gen,
-                extras={"frame_linear": self.frames_lin[i].to(pd), "ball_rays": rays},
+                extras={"frame_linear": self.frames_lin[i].to(pd), "ball_rays": rays,
+                        "depth_background": self.depth[i].to(pd)},
             )
             target = self.prior(request).detach().to(device=pred.device, dtype=pred.dtype)
             target = torch.nan_to_num(target, nan=0.0).clamp(0.0, 1.0)

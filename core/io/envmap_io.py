@@ -46,11 +46,13 @@ def tonemapped_preview(hdr: np.ndarray, ev: float = 0.0) -> np.ndarray:
     return to_uint8(tonemap(torch.from_numpy(np.ascontiguousarray(hdr)), float(ev))).numpy()
 
 
-def encode_envmap(hdr: np.ndarray, fmt: EnvmapFormat, ev: float = 0.0, half: bool = False) -> tuple[bytes, str]:
-    """-> (file bytes, media type). `ev` only affects 'png'; `half` only 'exr'."""
+def encode_envmap(hdr: np.ndarray, fmt: EnvmapFormat, ev: float = 0.0, half: bool = False,
+                  attributes: dict | None = None) -> tuple[bytes, str]:
+    """-> (file bytes, media type). `ev` only affects 'png'; `half` and `attributes` (EXR
+    header attributes, e.g. `core.export.metadata.envmap_attributes`) only 'exr'."""
     a = _check_envmap(hdr)
     if fmt == "exr":
-        data = encode_exr(a, half=half)
+        data = encode_exr(a, half=half, attributes=attributes)
     elif fmt == "hdr":
         data = encode_hdr(a)
     elif fmt == "png":
@@ -68,11 +70,12 @@ def encode_envmap(hdr: np.ndarray, fmt: EnvmapFormat, ev: float = 0.0, half: boo
     return data, MEDIA_TYPES[fmt]
 
 
-def save_envmap(path: str | os.PathLike, hdr: np.ndarray, fmt: EnvmapFormat | None = None, ev: float = 0.0, half: bool = False) -> Path:
+def save_envmap(path: str | os.PathLike, hdr: np.ndarray, fmt: EnvmapFormat | None = None, ev: float = 0.0, half: bool = False,
+                attributes: dict | None = None) -> Path:
     """Write an env map atomically; `fmt` defaults to the path's suffix."""
     path = Path(path)
     fmt = fmt or path.suffix.lower().lstrip(".")
-    data, _ = encode_envmap(hdr, fmt, ev=ev, half=half)  # type: ignore[arg-type]
+    data, _ = encode_envmap(hdr, fmt, ev=ev, half=half, attributes=attributes)  # type: ignore[arg-type]
     return atomic_write(path, data)
 
 

@@ -10,7 +10,7 @@ import io
 import os
 import warnings
 from pathlib import Path
-from typing import Literal, Optional, Sequence
+from typing import Literal, Mapping, Optional, Sequence
 
 import numpy as np
 import OpenEXR
@@ -100,7 +100,31 @@ def _prepare(
     return a
 
 
-def _build(array, half, on_overflow, allow_non_finite, channel_names) -> "OpenEXR.File":
+# Attribute names the OpenEXR library owns; `attributes` may not override them.
+_RESERVED = frozenset({"channels", "compression", "dataWindow", "displayWindow", "lineOrder", "pixelAspectRatio",
+                       "screenWindowCenter", "screenWindowWidth", "type", "tiles", "name", "version", "chunkCount"})
+
+
+def _check_attributes(attributes: Optional[Mapping[str, object]]) -> dict:
+    out = {}
+    for key, value in (attributes or {}).items():
+        if not isinstance(key, str) or not key or key in _RESERVED:
+            raise ValueError(f"EXR attribute name {key!r} is empty or reserved by OpenEXR")
+        if isinstance(value, bool) or not isinstance(value, (str, int, float, tuple, np.ndarray, OpenEXR.Envmap)):
+            raise ValueError(f"EXR attribute {key!r}: unsupported value type {type(value).__name__}")
+        out[key] = value
+    return out
+
+
+def read_exr_header(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> dict[str, object]:
+    """The first part's header attributes (standard and custom), without decoding pixels."""
+    data = read_source(source, limits, "EXR file")
+    if not data.startswith(EXR_MAGIC):
+        raise MediaError("not_media", "not an OpenEXR file (bad magic number)")
+    return dict(_open(data, header_only=True).header())
+
+
+def _build(array, half, on_overflow, allow_non_finite, channel_names, attributes=None) -> "OpenEXR.File":
     if on_overflow not in ("clamp", "error"):
         raise ValueError(f"on_overflow must be 'clamp' or 'error', got {on_overflow!r}")
     a = _prepare(array, half, on_overflow, allow_non_finite)
@@ -108,7 +132,7 @@ def _build(array, half, on_overflow, allow_non_finite, channel_names) -> "OpenEX
     if len(names) != a.shape[2]:
         raise MediaError("shape_mismatch", f"{len(names)} channel names given for {a.shape[2]} channels")
     channels = {n: np.ascontiguousarray(a[..., i]) for i, n in enumerate(names)}
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header = {**_check_attributes(attributes), "compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     return OpenEXR.File(header, channels)
 
 
@@ -118,14 +142,17 @@ def encode_exr(
     on_overflow: Literal["clamp", "error"] = "clamp",
     allow_non_finite: bool = False,
     channel_names: Optional[Sequence[str]] = None,
+    attributes: Optional[Mapping[str, object]] = None,
 ) -> bytes:
     """EXR file bytes (ZIP-compressed scanlines). [H, W] -> 'Y', 3 channels -> RGB,
     4 -> RGBA unless `channel_names` says otherwise. With `half`, |x| > 65504 is clamped
     with a HalfOverflowWarning or refused (`on_overflow='error'`); values below ~6e-5
     become half subnormals (absolute precision ~6e-8). NaN/inf are refused unless
-    `allow_non_finite`."""
+    `allow_non_finite`. `attributes` adds header attributes (str, int, float, a tuple of 8
+    floats for `chromaticities`, float32 numpy vectors for V2f/V3f); see
+    `core.export.metadata` for the ones our env maps carry."""
     stream = io.BytesIO()
-    _build(array, half, on_overflow, allow_non_finite, channel_names).write(stream)
+    _build(array, half, on_overflow, allow_non_finite, channel_names, attributes).write(stream)
     return stream.getvalue()
 
 
@@ -136,9 +163,10 @@ def write_exr(
     on_overflow: Literal["clamp", "error"] = "clamp",
     allow_non_finite: bool = False,
     channel_names: Optional[Sequence[str]] = None,
+    attributes: Optional[Mapping[str, object]] = None,
 ) -> Path:
     """Write `encode_exr(...)` to `path` atomically (temp sibling + rename)."""
-    data = encode_exr(array, half, on_overflow, allow_non_finite, channel_names)
+    data = encode_exr(array, half, on_overflow, allow_non_finite, channel_names, attributes)
     return atomic_write(path, data)
 
 

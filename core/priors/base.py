@@ -45,8 +45,9 @@ class ProbeGeometry:
 @dataclass
 class PriorRequest:
     """One call's input. `extras` from the engine: "frame_linear" ([H, W, 3] ball-free linear
-    frame, so geometric priors composite exactly) and "ball_rays" (core.chrome_ball.BallRays,
-    the engine's ball samples); other priors may ignore both."""
+    frame, so geometric priors composite exactly), "ball_rays" (core.chrome_ball.BallRays,
+    the engine's ball samples) and "depth_background" ([H, W] the scene's planar depth without
+    the balls, for ControlNet encodings that treat ball pixels apart); priors may ignore them."""
 
     image: torch.Tensor  # [3, H, W] LDR in [0, 1]: the frame with balls composited, tone mapped at ev
     ball_masks: torch.Tensor  # [N, H, W] anti-aliased coverage in [0, 1], mutual occlusion applied

@@ -8,7 +8,7 @@ from typing import Literal
 import numpy as np
 from fastapi import APIRouter, Depends, Query, Response
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, StreamingResponse
 
 from core.conventions import CONVENTIONS_SUMMARY
 from service import queries
@@ -17,7 +17,7 @@ from service.errors import Conflict, ErrorBody, InvalidInput
 from service.fieldcache import CachedField
 from service.models import (
     CubemapFace, CubemapResponse, DominantLight, EncodedEnvmap, EnvmapBatchRequest, EnvmapBatchResponse,
-    EnvmapFormat, Flags, LightfieldInfo, Quality, SphericalHarmonics,
+    EnvmapFormat, Flags, LightfieldInfo, Quality, SHLayout, SphericalHarmonics,
 )
 
 router = APIRouter(tags=["lightfield"])
@@ -25,9 +25,10 @@ _ERRORS = {s: {"model": ErrorBody} for s in (401, 404, 409, 413, 422)}
 CONVENTIONS_HEADER = "X-Lightfield-Conventions"
 EXTRAPOLATED_HEADER = "X-Lightfield-Extrapolated"
 CUBE_FACES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
-SH_BAND_ORDER = ("ARCore order: coefficient k = 0..8 is (l, m) = (0,0), (1,-1), (1,0), (1,1), (2,-2), (2,-1), "
-                 "(2,0), (2,1), (2,2); 27 floats = 9 coefficients x RGB interleaved; Condon-Shortley phase "
-                 "(see docs/conventions.md)")
+SH_BAND_ORDER = ("coefficient k = 0..8 is (l, m) = (0,0), (1,-1), (1,0), (1,1), (2,-2), (2,-1), (2,0), (2,1), "
+                 "(2,2), i.e. 1, y, z, x, xy, yz, 3z^2-1, xz, x^2-y^2; 27 floats = 9 coefficients x RGB interleaved; "
+                 "layout arcore: odd m negated (Condon-Shortley phase); layout threejs: SphericalHarmonics3.fromArray "
+                 "(no phase) (docs/conventions.md, docs/integrations.md)")
 X_HELP = "world position 'X,Y,Z' in metres (three finite numbers)"
 
 
@@ -49,10 +50,22 @@ def _npy(array: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def _encode(hdr: np.ndarray, fmt: str, ev: float) -> tuple[bytes, str]:
+def _encode(hdr: np.ndarray, fmt: str, ev: float, attributes: dict | None = None) -> tuple[bytes, str]:
     from core.io.envmap_io import encode_envmap
 
-    return encode_envmap(hdr, fmt, ev)
+    return encode_envmap(hdr, fmt, ev, attributes=attributes)
+
+
+def _attributes(point, t: float, job_id: str, flags: queries.EvalFlags) -> dict:
+    from core.export.products import envmap_exr_attributes
+
+    return envmap_exr_attributes(point, t, job_id, flags.header())
+
+
+def _download(data: bytes, media_type: str, filename: str, flags: queries.EvalFlags) -> Response:
+    return Response(data, media_type=media_type, headers={
+        CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, EXTRAPOLATED_HEADER: flags.header(),
+        "Content-Disposition": f'attachment; filename="{filename}"'})
 
 
 @router.get("/lightfield/{job_id}", response_model=LightfieldInfo, responses=_ERRORS,
@@ -81,7 +94,7 @@ async def get_envmap(
     queries.check_size(height, ctx.settings.limits.max_envmap_height, "height")
     cf = await _field_async(job_id, tenant, ctx)
     hdr, flags, used = await run_in_threadpool(queries.envmap_with_quality, cf, point, t, height, quality)
-    data, media_type = await run_in_threadpool(_encode, hdr, format, ev)
+    data, media_type = await run_in_threadpool(_encode, hdr, format, ev, _attributes(point, t, job_id, flags))
     return Response(data, media_type=media_type, headers={
         CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, EXTRAPOLATED_HEADER: flags.header(),
         "X-Lightfield-Quality": used, "Content-Disposition": f'inline; filename="envmap.{format}"',
@@ -117,33 +130,52 @@ async def post_envmaps(job_id: str, body: EnvmapBatchRequest, response: Response
 
 
 @router.get("/lightfield/{job_id}/sh", response_model=SphericalHarmonics, responses=_ERRORS,
-            summary="ARCore-style lighting: ambient SH (27 floats) + dominant light")
+            summary="ARCore-style lighting: main light + ambient SH (ARCore or three.js layout)")
 async def get_sh(job_id: str, response: Response, x: str = Query(..., description=X_HELP), t: float = 0.0,
+                 layout: SHLayout = Query("arcore", description="arcore: ARCore's signs; threejs: "
+                                          "SphericalHarmonics3.fromArray / LightProbe"),
                  tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+    from core.export.products import sh_in_layout
+    from core.sh import to_arcore_27
+
     point, t = queries.parse_x(x), queries.check_t(t)
     cf = await _field_async(job_id, tenant, ctx)
-    coeffs, light, flags = await run_in_threadpool(queries.spherical_harmonics, cf, point, t)
+    light, full_sh, flags = await run_in_threadpool(queries.spherical_harmonics, cf, point, t)
     response.headers[CONVENTIONS_HEADER] = CONVENTIONS_SUMMARY
     response.headers[EXTRAPOLATED_HEADER] = flags.header()
     return SphericalHarmonics(
-        x=point, t=t, extrapolated=Flags(x=flags.x, t=flags.t), arcore_27=coeffs, band_order=SH_BAND_ORDER,
+        x=point, t=t, extrapolated=Flags(x=flags.x, t=flags.t), layout=layout,
+        coefficients=sh_in_layout(light.ambient_sh, layout), coefficients_with_light=sh_in_layout(full_sh, layout),
+        arcore_27=to_arcore_27(light.ambient_sh), band_order=SH_BAND_ORDER,
         dominant_light=DominantLight(
             direction=tuple(float(v) for v in light.direction), intensity=tuple(float(v) for v in light.intensity_rgb),
-            solid_angle=float(light.solid_angle), found=bool(light.found)),
+            solid_angle=float(light.solid_angle), found=bool(light.found), confidence=float(light.confidence),
+            reason=light.reason),
     )
 
 
 @router.get("/lightfield/{job_id}/cubemap", responses={
     200: {"model": CubemapResponse, "content": {"application/x-npy": {}},
-          "description": "format=json: one EXR per face, base64; format=npy: float32 array [6, size, size, 3]"},
-    **_ERRORS}, summary="Cube map faces +X, -X, +Y, -Y, +Z, -Z at (x, t)")
+          "description": "format=ktx2: one KTX2 file (RGBA16F cube, GGX roughness mips); format=npy: float32 array "
+                         "[6, size, size, 3]; format=json: one EXR per face, base64 (kept for compatibility)"},
+    **_ERRORS}, summary="Cube map faces +X, -X, +Y, -Y, +Z, -Z at (x, t); prefiltered mips as KTX2")
 async def get_cubemap(job_id: str, x: str = Query(..., description=X_HELP), t: float = 0.0,
-                      size: int = Query(64, ge=1, description="face edge in texels"),
-                      format: Literal["json", "npy"] = "json",
+                      size: int = Query(64, ge=1, description="face edge in texels (a power of two for ktx2)"),
+                      format: Literal["json", "npy", "ktx2"] = "json",
+                      levels: int | None = Query(None, ge=1, le=16, description="ktx2 only: mip levels, roughness "
+                                                 "i / (levels - 1); default: down to size/32 (6 for 128); 1 = mirror only"),
                       tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     point, t = queries.parse_x(x), queries.check_t(t)
     queries.check_size(size, ctx.settings.limits.max_cubemap_size, "size")
+    if format == "ktx2":
+        _check_cube_size(size, levels)
     cf = await _field_async(job_id, tenant, ctx)
+    if format == "ktx2":
+        from core.export.products import cube_ktx2, cube_source_height
+
+        hdr, flags = await run_in_threadpool(queries.envmap, cf, point, t, cube_source_height(size))
+        data = await run_in_threadpool(cube_ktx2, hdr, size, levels)
+        return _download(data, "image/ktx2", "cubemap.ktx2", flags)
     faces, flags = await run_in_threadpool(queries.cubemap, cf, point, t, size)
     headers = {CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, EXTRAPOLATED_HEADER: flags.header()}
     if format == "npy":
@@ -159,3 +191,73 @@ async def get_cubemap(job_id: str, x: str = Query(..., description=X_HELP), t: f
         CubemapFace(name=name, media_type="image/x-exr", data_base64=data) for name, data in zip(CUBE_FACES, encoded)
     ])
     return JSONResponse(body.model_dump(mode="json"), headers=headers)
+
+
+def _check_cube_size(size: int, levels: int | None) -> None:
+    if size & (size - 1):
+        raise InvalidInput(f"size must be a power of two for prefiltered cube maps, got {size}", code="invalid_query")
+    if levels is not None and levels > size.bit_length():
+        raise InvalidInput(f"levels={levels} exceeds the {size.bit_length()} mips of a {size}-texel face",
+                           code="invalid_query")
+
+
+@router.get("/lightfield/{job_id}/gltf", response_class=Response, responses={
+    200: {"content": {"model/gltf-binary": {}}, "description": "glTF 2.0 binary with EXT_lights_image_based"},
+    **_ERRORS}, summary="glTF (.glb) image-based light at (x, t): irradiance SH + prefiltered specular cube mips")
+async def get_gltf(job_id: str, x: str = Query(..., description=X_HELP), t: float = 0.0,
+                   size: int = Query(64, ge=1, description="specular cube face edge (a power of two)"),
+                   levels: int | None = Query(None, ge=1, le=16, description="specular mips (roughness 0..1)"),
+                   tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+    from core.export.products import cube_source_height, probe_glb
+
+    point, t = queries.parse_x(x), queries.check_t(t)
+    queries.check_size(size, ctx.settings.limits.max_cubemap_size, "size")
+    _check_cube_size(size, levels)
+    cf = await _field_async(job_id, tenant, ctx)
+    hdr, flags = await run_in_threadpool(queries.envmap, cf, point, t, cube_source_height(size))
+    data = await run_in_threadpool(probe_glb, hdr, point, t, size, levels, job_id)
+    return _download(data, "model/gltf-binary", "probe.glb", flags)
+
+
+@router.get("/lightfield/{job_id}/usdz", response_class=Response, responses={
+    200: {"content": {"model/vnd.usdz+zip": {}}, "description": "USD package: DomeLight + its EXR (OpenEXR latlong)"},
+    **_ERRORS}, summary="USD (.usdz) dome light at (x, t)")
+async def get_usdz(job_id: str, x: str = Query(..., description=X_HELP), t: float = 0.0,
+                   height: int = Query(256, ge=1, description="rows of the dome's latlong EXR (width = 2 x height)"),
+                   tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+    from core.export.products import probe_usdz
+
+    point, t = queries.parse_x(x), queries.check_t(t)
+    queries.check_size(height, ctx.settings.limits.max_envmap_height, "height")
+    cf = await _field_async(job_id, tenant, ctx)
+    hdr, flags = await run_in_threadpool(queries.envmap, cf, point, t, height)
+    data = await run_in_threadpool(probe_usdz, hdr, point, t, job_id)
+    return _download(data, "model/vnd.usdz+zip", "probe.usdz", flags)
+
+
+@router.get("/lightfield/{job_id}/sequence", response_class=StreamingResponse, responses={
+    200: {"content": {"application/zip": {}}, "description": "envmap.0001.exr ... + sequence.json, streamed"},
+    **_ERRORS}, summary="EXR sequence of env maps at one probe over a time range (a zip, streamed)")
+async def get_sequence(job_id: str, x: str = Query(..., description=X_HELP),
+                       t0: float = Query(..., description="first time, seconds"),
+                       t1: float = Query(..., description="last time, seconds (inclusive)"),
+                       frames: int = Query(..., ge=1, description="evenly spaced frames from t0 to t1"),
+                       height: int = Query(64, ge=1, description="rows (width = 2 x height)"),
+                       first_frame: int = Query(1, ge=0, description="number of the first file (envmap.0001.exr)"),
+                       quality: Quality = Query("exact", description="fast = the baked lattice (large maps, long shots)"),
+                       tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+    from core.export.sequence import sequence_members, sequence_times, zip_stream
+
+    point, t0, t1 = queries.parse_x(x), queries.check_t(t0), queries.check_t(t1)
+    queries.check_size(height, ctx.settings.limits.max_envmap_height, "height")
+    queries.check_size(frames, ctx.settings.limits.max_sequence_frames, "frames")
+    if t1 < t0:
+        raise InvalidInput(f"t1 ({t1}) must not be before t0 ({t0})", code="invalid_t")
+    cf = await _field_async(job_id, tenant, ctx)
+    times = sequence_times(t0, t1, frames)
+    for probe_t in {times[0], times[-1]}:  # refuse a bad query now, not after the 200 is sent
+        await run_in_threadpool(queries.envmap, cf, point, probe_t, 1)
+    maps = ((t, hdr) for t, hdr, _ in queries.envmap_sequence(cf, point, times, height, quality))
+    members = sequence_members(maps, point, job_id, first_frame=first_frame, extra={"height": height, "quality": quality})
+    return StreamingResponse(zip_stream(members), media_type="application/zip", headers={
+        CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, "Content-Disposition": 'attachment; filename="envmaps.zip"'})

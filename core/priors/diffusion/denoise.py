@@ -26,7 +26,7 @@ class InpaintCondition:
     """Everything the UNet and ControlNet see besides the noisy latent (batch B)."""
 
     mask: torch.Tensor  # [B, 1, h, w] latent-resolution binary ball mask
-    masked_image_latents: torch.Tensor  # [B, C, h, w] latent of the image with the balls blanked out
+    masked_image_latents: torch.Tensor | None  # [B, C, h, w] latent of the image with the balls blanked out (None: base UNet)
     control: torch.Tensor  # [B, 3, H, W] depth ControlNet image in [0, 1]
     embedding: ExposureEmbedding  # zeta(ev), batch B
     null_embedding: ExposureEmbedding  # empty prompt, batch B (used when guidance != 1)
@@ -85,6 +85,7 @@ class InpaintDenoiser:
         reps = 2 if guided else 1
         x = scheduler.scale_model_input(latents, t).repeat(reps, 1, 1, 1)
         dt = self.c.dtype
+        masked = cond.masked_image_latents
         out = inpaint_forward(
             self.c.unet,
             self.c.controlnet,
@@ -92,9 +93,10 @@ class InpaintDenoiser:
             t,
             emb.tokens.to(self.c.device, dt),
             cond.mask.repeat(reps, 1, 1, 1).to(dt),
-            cond.masked_image_latents.repeat(reps, 1, 1, 1).to(dt),
+            None if masked is None else masked.repeat(reps, 1, 1, 1).to(dt),
             cond.control.repeat(reps, 1, 1, 1).to(self.c.device, dt),
             self.c.card.controlnet_conditioning_scale,
+            sdxl_added_conditions(self.c, emb, x.shape) if self.c.is_sdxl else None,
         ).float()
         if not guided:
             return out
@@ -126,3 +128,15 @@ class InpaintDenoiser:
             background = x0 if i + 1 == len(timesteps) else scheduler.add_noise(x0, noise, timesteps[i + 1 : i + 2])
             x = keep * background + (1.0 - keep) * x
         return x
+
+
+def sdxl_time_ids(height: int, width: int) -> list[float]:
+    """SDXL micro-conditioning: original size, crop top-left, target size (no aesthetic score),
+    as diffusers' SDXL pipelines compute it for an uncropped image at the generation size."""
+    return [float(height), float(width), 0.0, 0.0, float(height), float(width)]
+
+
+def sdxl_added_conditions(c: PriorComponents, emb: ExposureEmbedding, latent_shape) -> dict:
+    h, w = latent_shape[-2] * c.vae_scale_factor, latent_shape[-1] * c.vae_scale_factor
+    ids = torch.tensor([sdxl_time_ids(h, w)], device=c.device, dtype=c.dtype).repeat(latent_shape[0], 1)
+    return {"text_embeds": emb.pooled.to(c.device, c.dtype), "time_ids": ids}

@@ -6,7 +6,13 @@ zeta_max embeds the "mirrored chrome ball" prompt (EV 0), zeta_min the "black da
 (ev_min). EVs outside [ev_min, 0] are clamped: the model never saw them in training, and
 extrapolating an embedding leaves the text manifold. Both the per-token embedding the UNet
 cross-attends to and the pooled embedding are interpolated. The classifier-free-guidance
-branch uses the embedding of the empty prompt (what exposure dropout trains towards).
+branch uses the embedding of the card's negative prompt: empty for the paper's model
+(what exposure dropout trains towards), "matte, diffuse, flat, dull" for DiffusionLight.
+
+SDXL (two text encoders, as diffusers' StableDiffusionXLPipeline.encode_prompt): the tokens
+are both encoders' penultimate hidden states side by side, the pooled embedding is the
+second encoder's projection; an empty negative prompt is all zeros
+(`force_zeros_for_empty_prompt`, SDXL's default).
 """
 from __future__ import annotations
 
@@ -47,12 +53,20 @@ def interpolate(weight: torch.Tensor, at_max: torch.Tensor, at_min: torch.Tensor
 class ExposureConditioner:
     """Encodes the two anchor prompts and the null prompt once, then answers zeta(ev) cheaply."""
 
-    def __init__(self, text_encoder, tokenizer, prompt_max: str, prompt_min: str, ev_min: float):
+    def __init__(self, text_encoder, tokenizer, prompt_max: str, prompt_min: str, ev_min: float,
+                 negative_prompt: str = "", text_encoder_2=None, tokenizer_2=None):
         self.ev_min = float(ev_min)
         device = next(text_encoder.parameters()).device
-        self.max, self.min, self.null = (
-            _encode(text_encoder, tokenizer, p, device) for p in (prompt_max, prompt_min, "")
-        )
+        if text_encoder_2 is None:
+            def encode(p):
+                return _encode(text_encoder, tokenizer, p, device)
+        else:
+            def encode(p):
+                return _encode_sdxl((text_encoder, text_encoder_2), (tokenizer, tokenizer_2), p, device)
+        self.max, self.min = encode(prompt_max), encode(prompt_min)
+        self.null = encode(negative_prompt)
+        if text_encoder_2 is not None and negative_prompt == "":
+            self.null = ExposureEmbedding(torch.zeros_like(self.null.tokens), torch.zeros_like(self.null.pooled))
 
     def __call__(self, evs: torch.Tensor | float | list[float]) -> ExposureEmbedding:
         """zeta for each EV in `evs` (a scalar gives a batch of one)."""
@@ -74,3 +88,15 @@ def _encode(text_encoder, tokenizer, prompt: str, device) -> ExposureEmbedding:
     if pooled is None:
         pooled = getattr(out, "pooler_output", None)
     return ExposureEmbedding(out.last_hidden_state.detach(), None if pooled is None else pooled.detach())
+
+
+@torch.no_grad()
+def _encode_sdxl(encoders, tokenizers, prompt: str, device) -> ExposureEmbedding:
+    tokens, pooled = [], None
+    for enc, tok in zip(encoders, tokenizers):
+        ids = tok(prompt, padding="max_length", max_length=tok.model_max_length, truncation=True,
+                  return_tensors="pt").input_ids.to(device)
+        out = enc(ids, output_hidden_states=True)
+        tokens.append(out.hidden_states[-2])
+        pooled = out[0]  # the last encoder's projection (CLIPTextModelWithProjection.text_embeds)
+    return ExposureEmbedding(torch.cat(tokens, dim=-1).detach(), pooled.detach())

@@ -10,8 +10,11 @@ Layout (see docs/diffusion-prior.md):
       text_encoder/             CLIPTextModel or CLIPTextModelWithProjection
       tokenizer/                CLIPTokenizer (vocab.json + merges.txt or tokenizer.json)
       scheduler/                scheduler_config.json (loaded as DDIMScheduler)
+      text_encoder_2/, tokenizer_2/   SDXL only (card base_family "sdxl")
+      lora/                     optional LoRA named by the card, fused into the UNet at load
 
-Weights must be safetensors: pickled .bin checkpoints are refused (they execute code).
+Weights must be safetensors: pickled .bin checkpoints are refused (they execute code);
+`lightfield prior import` converts released folders into this layout once.
 """
 from __future__ import annotations
 
@@ -38,6 +41,8 @@ SUBFOLDERS = {
     "scheduler": "scheduler_config.json",
 }
 
+SDXL_SUBFOLDERS = {"text_encoder_2": "config.json", "tokenizer_2": None}
+
 _DTYPES = {
     "float32": torch.float32, "fp32": torch.float32,
     "float16": torch.float16, "fp16": torch.float16, "half": torch.float16,
@@ -59,6 +64,18 @@ class PriorComponents:
     model_dir: Path
     device: torch.device
     dtype: torch.dtype
+    text_encoder_2: Any = None  # SDXL: CLIPTextModelWithProjection
+    tokenizer_2: Any = None
+
+    @property
+    def is_sdxl(self) -> bool:
+        return self.card.base_family == "sdxl"
+
+    @property
+    def concat_inpaint(self) -> bool:
+        """True for a 9-channel inpainting UNet (mask + masked-image latent concatenated);
+        False for a base UNet that inpaints only by masked latent blending (DiffusionLight SDXL)."""
+        return self.unet.config.in_channels != self.vae.config.latent_channels
 
     @property
     def vae_scale_factor(self) -> int:
@@ -95,7 +112,7 @@ def resolve_dtype(dtype: str | torch.dtype | None, device: torch.device) -> torc
     return dtype
 
 
-def check_model_dir(weights_dir: str | os.PathLike) -> Path:
+def check_model_dir(weights_dir: str | os.PathLike, sdxl: bool = False) -> Path:
     """Raise PriorError unless `weights_dir` is a local directory with every sub-model present."""
     path = Path(weights_dir).expanduser()
     if not path.is_dir():
@@ -109,7 +126,8 @@ def check_model_dir(weights_dir: str | os.PathLike) -> Path:
             "(nothing is ever downloaded; see docs/diffusion-prior.md)"
         )
     missing = []
-    for sub, marker in SUBFOLDERS.items():
+    subfolders = {**SUBFOLDERS, **(SDXL_SUBFOLDERS if sdxl else {})}
+    for sub, marker in subfolders.items():
         d = path / sub
         if marker is not None and not (d / marker).is_file():
             missing.append(f"{sub}/{marker}")
@@ -134,6 +152,8 @@ def load_components(
     os.environ["HF_HUB_OFFLINE"] = "1"  # belt and braces: local_files_only below already forbids downloads
     path = check_model_dir(weights_dir)
     card = ModelCard.load(path)
+    if card.base_family == "sdxl":
+        check_model_dir(path, sdxl=True)
     dev = resolve_device(device)
     dt = resolve_dtype(dtype, dev)
 
@@ -151,11 +171,24 @@ def load_components(
             )
             tokenizer = CLIPTokenizer.from_pretrained(path / "tokenizer", local_files_only=True)
             scheduler = DDIMScheduler.from_pretrained(path, subfolder="scheduler", local_files_only=True)
+            text_encoder_2 = tokenizer_2 = None
+            if card.base_family == "sdxl":
+                from transformers import CLIPTextModelWithProjection
+
+                text_encoder_2 = CLIPTextModelWithProjection.from_pretrained(
+                    path / "text_encoder_2", local_files_only=True, use_safetensors=True, dtype=dt
+                )
+                tokenizer_2 = CLIPTokenizer.from_pretrained(path / "tokenizer_2", local_files_only=True)
     except (OSError, ValueError, EnvironmentError) as exc:
         raise PriorError(f"cannot load prior weights from {str(path)!r}: {exc}") from exc
 
-    comps = PriorComponents(unet, controlnet, vae, text_encoder, tokenizer, scheduler, card, path, dev, dt)
+    comps = PriorComponents(unet, controlnet, vae, text_encoder, tokenizer, scheduler, card, path, dev, dt,
+                            text_encoder_2, tokenizer_2)
     _check_compatible(comps)
+    if card.lora is not None:
+        fuse_lora(unet, path / card.lora.file, card.lora.scale, sdxl=comps.is_sdxl)
+    if text_encoder_2 is not None:
+        text_encoder_2.to(dev).eval().requires_grad_(False)
     for m in (unet, controlnet, vae, text_encoder):
         m.to(dev).eval().requires_grad_(False)
     return comps
@@ -179,25 +212,59 @@ def quiet_loading():
             tlog.enable_progress_bar()
 
 
+def fuse_lora(unet, lora_file: Path, scale: float, sdxl: bool) -> None:
+    """Fuse a LoRA (any format diffusers reads: diffusers, peft or kohya keys) into the UNet's
+    weights, w <- w + scale * dW, then drop the adapter layers so the UNet is plain again
+    (what DiffusionLight's `pipe.fuse_lora(lora_scale=0.75)` leaves). Needs peft."""
+    from safetensors.torch import load_file
+
+    if not lora_file.is_file():
+        raise PriorError(f"model card names LoRA {str(lora_file)!r}, which does not exist")
+    try:
+        import peft  # noqa: F401
+    except ImportError as exc:
+        raise PriorError(f"this prior has a LoRA; loading it needs the peft package ({exc})") from None
+    from diffusers.loaders.lora_pipeline import StableDiffusionLoraLoaderMixin, StableDiffusionXLLoraLoaderMixin
+
+    mixin = StableDiffusionXLLoraLoaderMixin if sdxl else StableDiffusionLoraLoaderMixin
+    try:
+        state, alphas = mixin.lora_state_dict(load_file(str(lora_file)), unet_config=unet.config)
+        if any(not k.startswith("unet.") for k in state):
+            bad = sorted(k for k in state if not k.startswith("unet."))[:3]
+            raise PriorError(f"{lora_file}: only UNet LoRAs are supported, found keys such as {bad}")
+        with quiet_loading():
+            mixin.load_lora_into_unet(state, alphas, unet, adapter_name="lightfield")
+        unet.fuse_lora(lora_scale=float(scale))
+        unet.unload_lora()
+    except PriorError:
+        raise
+    except (ValueError, KeyError, RuntimeError) as exc:
+        raise PriorError(f"cannot apply LoRA {str(lora_file)!r} to the UNet: {exc}") from exc
+
+
 def _check_compatible(c: PriorComponents) -> None:
     latent = c.vae.config.latent_channels
-    if c.unet.config.in_channels != 2 * latent + 1:
+    in_ch, card = c.unet.config.in_channels, c.card
+    if in_ch != card.unet_in_channels:
+        raise PriorError(f"unet.in_channels is {in_ch} but the model card declares unet_in_channels={card.unet_in_channels}")
+    if in_ch not in (2 * latent + 1, latent):
         raise PriorError(
-            f"unet.in_channels is {c.unet.config.in_channels}, expected {2 * latent + 1} "
-            "(noisy latent + masked-image latent + mask): this is not an inpainting UNet"
+            f"unet.in_channels is {in_ch}, expected {2 * latent + 1} (inpainting UNet: noisy latent + mask + "
+            f"masked-image latent) or {latent} (base UNet inpainting by latent blending)"
         )
     if c.controlnet.config.in_channels != latent:
         raise PriorError(f"controlnet.in_channels is {c.controlnet.config.in_channels}, expected {latent}")
-    if getattr(c.unet.config, "addition_embed_type", None) is not None:
+    addition = getattr(c.unet.config, "addition_embed_type", None)
+    if c.is_sdxl != (addition == "text_time"):
         raise PriorError(
-            f"unet.addition_embed_type={c.unet.config.addition_embed_type!r} (SDXL-style) is not supported; "
-            "use an SD 1.x/2.x inpainting UNet"
+            f"unet.addition_embed_type={addition!r} does not fit the model card's base_family={card.base_family!r} "
+            "(SDXL UNets have 'text_time', SD 1.x/2.x none)"
         )
-    hidden = c.text_encoder.config.hidden_size
+    hidden = c.text_encoder.config.hidden_size + (c.text_encoder_2.config.hidden_size if c.is_sdxl else 0)
     if c.unet.config.cross_attention_dim != hidden:
         raise PriorError(
             f"unet.cross_attention_dim={c.unet.config.cross_attention_dim} does not match "
-            f"text_encoder.hidden_size={hidden}"
+            f"the text encoder width {hidden}"
         )
     m = c.size_multiple
     h, w = c.card.resolution

@@ -1,0 +1,45 @@
+"""ARKit / RealityKit / SceneKit hand-off (Apple platforms are not available here; tested
+numerically against the documented Metal cube layout).
+
+- Metal cube textures (`MTLTextureType.typeCube`) have slices +X, -X, +Y, -Y, +Z, -Z and select
+  faces with the same table as OpenGL, row 0 first in memory: our faces copy slice by slice.
+  `metal_cube_slices` gives each slice's bytes for `replace(region:mipmapLevel:slice:withBytes:
+  bytesPerRow:bytesPerImage:)`: `.rgba16Float` (HDR, for RealityKit `EnvironmentResource` /
+  SceneKit `lightingEnvironment`) or `.rgba8Unorm_srgb` (what `AREnvironmentProbeAnchor
+  .environmentTexture` holds: tone-mapped first, sRGB-encoded).
+- ARKit's world frame is ours (right-handed, +y up, camera -z): directions need no change. A
+  texture sampled in an anchor's frame needs `rotate_envmap(env, R_anchor.T)` first.
+- `ARDirectionalLightEstimate.sphericalHarmonicsCoefficients`: 27 floats in three planes of 9
+  (R, G, B), `arkit_sh_planes`. Apple does not document the basis signs; this is the layout only.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def _srgb_encode(linear: np.ndarray) -> np.ndarray:
+    a = np.clip(np.asarray(linear, np.float64), 0.0, 1.0)
+    return np.where(a <= 0.0031308, 12.92 * a, 1.055 * a ** (1 / 2.4) - 0.055)
+
+
+def metal_cube_slices(faces: np.ndarray, pixel_format: str = "rgba16Float", exposure_ev: float = 0.0) -> list[bytes]:
+    """Per-slice bytes of cube faces [6, S, S, 3] (ours) for a Metal cube texture.
+
+    `rgba16Float`: linear radiance, alpha 1 (bytesPerRow = 8 S). `rgba8Unorm_srgb`: 2^ev scaled,
+    clipped to [0, 1], sRGB-encoded, alpha 255 (bytesPerRow = 4 S)."""
+    f = np.asarray(faces, np.float32)
+    if f.ndim != 4 or f.shape[0] != 6 or f.shape[1] != f.shape[2] or f.shape[3] != 3:
+        raise ValueError(f"faces must be [6, S, S, 3], got {f.shape}")
+    alpha = np.ones(f.shape[:3] + (1,), np.float32)
+    if pixel_format == "rgba16Float":
+        return [s.tobytes() for s in np.concatenate((f, alpha), -1).astype("<f2")]
+    if pixel_format == "rgba8Unorm_srgb":
+        ldr = np.round(_srgb_encode(f * 2.0 ** exposure_ev) * 255).astype(np.uint8)
+        return [s.tobytes() for s in np.concatenate((ldr, (alpha * 255).astype(np.uint8)), -1)]
+    raise ValueError(f"pixel_format must be 'rgba16Float' or 'rgba8Unorm_srgb', got {pixel_format!r}")
+
+
+def arkit_sh_planes(radiance_sh) -> list[float]:
+    """Our [9, 3] SH -> 27 floats as three planes of 9 (all R, then G, then B)."""
+    c = np.asarray(radiance_sh, np.float64).reshape(9, 3)
+    return [float(v) for v in c.T.reshape(-1)]

@@ -1,0 +1,69 @@
+"""One env map -> each downloadable product (the service's routes and the CLI call these).
+
+Every function takes our equirect map (torch or numpy [H, 2H, 3]) and the query it answers
+(x metres, t seconds, the artefact id), and returns file bytes. Cube products need the map
+at least 2 x size rows high (`cube_source_height`).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+SH_LAYOUTS = ("arcore", "threejs")
+
+
+def cube_source_height(size: int) -> int:
+    """Env map height that gives about one map pixel per cube texel at the face centres."""
+    return max(2 * int(size), 8)
+
+
+def _tensor(env) -> torch.Tensor:
+    return env if isinstance(env, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(env, np.float32))
+
+
+def prefiltered(env, size: int, levels: int | None = None) -> list[np.ndarray]:
+    from core.export.prefilter import prefiltered_cubemap
+
+    return [m.numpy() for m in prefiltered_cubemap(_tensor(env), size, levels)]
+
+
+def cube_ktx2(env, size: int, levels: int | None = None) -> bytes:
+    """KTX2 cube map, RGBA16F, GGX roughness mips (levels=1: the mirror cube only)."""
+    from core.export.ktx2 import encode_ktx2_cubemap
+
+    return encode_ktx2_cubemap(prefiltered(env, size, levels))
+
+
+def probe_glb(env, x, t, size: int = 64, levels: int | None = None, artefact: str = "") -> bytes:
+    """glTF binary with EXT_lights_image_based (irradiance SH + prefiltered specular mips)."""
+    from core.conventions import CONVENTIONS_SUMMARY
+    from core.export.gltf import build_glb
+    from core.sh import project_sh
+
+    e = _tensor(env)
+    return build_glb(prefiltered(e, size, levels), project_sh(e.double()).numpy(), x, t,
+                     extras={"artefact": artefact, "conventions": CONVENTIONS_SUMMARY})
+
+
+def probe_usdz(env, x, t, artefact: str = "") -> bytes:
+    from core.export.usd import usdz
+
+    return usdz(np.asarray(_tensor(env).detach().cpu(), np.float32), x, t, artefact)
+
+
+def envmap_exr_attributes(x, t, artefact: str = "", extrapolated: str | None = None) -> dict:
+    from core.export.metadata import envmap_attributes
+
+    return envmap_attributes(x, t, artefact or None, extrapolated=extrapolated)
+
+
+def sh_in_layout(radiance_sh, layout: str) -> list[float]:
+    """27 floats: 'arcore' (Condon-Shortley signs, RGB interleaved) or 'threejs' (SphericalHarmonics3.fromArray)."""
+    from core.export.threejs import threejs_sh
+    from core.sh import to_arcore_27
+
+    if layout == "arcore":
+        return to_arcore_27(radiance_sh)
+    if layout == "threejs":
+        return threejs_sh(radiance_sh)
+    raise ValueError(f"SH layout must be one of {SH_LAYOUTS}, got {layout!r}")

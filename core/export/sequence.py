@@ -1,0 +1,79 @@
+"""EXR sequences of env maps over a time range at one probe, streamed as a zip (VFX shots).
+
+Files `envmap.<frame:04d>.exr` (frame numbers from `first_frame`, the usual `name.####.exr`
+pattern Nuke / Houdini / Blender read as a sequence), each with `core.export.metadata`
+attributes (probe position, time, units, colour space, artefact id), plus `sequence.json`
+listing frame -> t. The zip is produced incrementally: `zip_stream` yields its bytes as each
+member is written, so a caller can send frames while later ones are still being evaluated.
+"""
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from collections.abc import Iterable, Iterator
+
+import numpy as np
+
+
+class _Sink(io.RawIOBase):
+    """A write-only, non-seekable stream that hands out what was written since the last take()."""
+
+    def __init__(self):
+        self._chunks: list[bytes] = []
+        self._pos = 0
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, b) -> int:
+        data = bytes(b)
+        self._chunks.append(data)
+        self._pos += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self._pos
+
+    def take(self) -> bytes:
+        out, self._chunks = b"".join(self._chunks), []
+        return out
+
+
+def zip_stream(members: Iterable[tuple[str, bytes]]) -> Iterator[bytes]:
+    """Stream a zip (stored, no compression: EXR is already compressed) of (name, bytes) members."""
+    sink = _Sink()
+    with zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_STORED) as z:
+        for name, data in members:
+            info = zipfile.ZipInfo(name, date_time=(2020, 1, 1, 0, 0, 0))
+            z.writestr(info, data)
+            chunk = sink.take()
+            if chunk:
+                yield chunk
+    tail = sink.take()
+    if tail:
+        yield tail
+
+
+def sequence_times(t0: float, t1: float, frames: int) -> list[float]:
+    """`frames` evenly spaced times from t0 to t1 inclusive (one frame: t0)."""
+    if frames < 1:
+        raise ValueError(f"frames must be >= 1, got {frames}")
+    return [float(t0)] if frames == 1 else [float(v) for v in np.linspace(t0, t1, frames)]
+
+
+def sequence_members(maps: Iterable[tuple[float, np.ndarray]], x, artefact: str | None = None,
+                     first_frame: int = 1, extra: dict | None = None) -> Iterator[tuple[str, bytes]]:
+    """(name, EXR bytes) per (t, env map), then `sequence.json`."""
+    from core.export.metadata import envmap_attributes
+    from core.io.exr import encode_exr
+
+    index = []
+    for i, (t, env) in enumerate(maps):
+        frame = first_frame + i
+        name = f"envmap.{frame:04d}.exr"
+        attrs = envmap_attributes(x, t, artefact, frame=float(frame))
+        index.append({"frame": frame, "t": float(t), "file": name})
+        yield name, encode_exr(np.asarray(env, np.float32), attributes=attrs)
+    doc = {"x": [float(v) for v in x], "artefact": artefact, "frames": index, **(extra or {})}
+    yield "sequence.json", json.dumps(doc, indent=1).encode()

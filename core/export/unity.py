@@ -1,0 +1,59 @@
+"""Unity hand-off: left-handed, +y up, camera +z. (x, y, z)_ours = (x, y, -z)_unity.
+
+`SphericalHarmonicsL2` (indexed [channel, k], the same band order as ours: 1, y, z, x, xy, yz,
+3z^2-1, xz, x^2-y^2) does not store raw coefficients: Unity keeps E_k C_k / pi, the irradiance
+coefficient times the basis constant over pi, so that its shader (UnityCG.cginc `ShadeSH9`:
+unity_SHA* = (k3, k1, k2, k0 - k6), unity_SHB* = (k4, k5, 3 k6, k7), unity_SHC = k8) returns
+E(n) / pi, the outgoing radiance of a white Lambertian surface, directly. `AddAmbientLight(c)`
+adds c to k0, consistent with this. The coefficients are of the map mirrored in z (Unity axes).
+Unity is not installable here: `unity_shade_sh9` re-implements the shader formula and the test
+checks it against our irradiance.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+UNITY_FROM_OURS = np.diag([1.0, 1.0, -1.0])
+_BASIS_CONST = (0.5 * math.sqrt(1 / math.pi), math.sqrt(3 / (4 * math.pi)), math.sqrt(3 / (4 * math.pi)),
+                math.sqrt(3 / (4 * math.pi)), 0.5 * math.sqrt(15 / math.pi), 0.5 * math.sqrt(15 / math.pi),
+                0.25 * math.sqrt(5 / math.pi), 0.5 * math.sqrt(15 / math.pi), 0.25 * math.sqrt(15 / math.pi))
+
+
+def to_unity(v) -> np.ndarray:
+    """Directions or positions [..., 3], ours -> Unity's."""
+    return np.asarray(v, np.float64) @ UNITY_FROM_OURS
+
+
+def unity_sh(env) -> list[list[float]]:
+    """SphericalHarmonicsL2 values [3 channels][9] for an env map of ours [H, 2H, 3]."""
+    import torch
+
+    from core.envmap import mirror_envmap
+    from core.sh import COSINE_LOBE_BY_BAND, SH_BANDS, project_sh
+
+    e = torch.as_tensor(np.asarray(env, np.float64))
+    c = project_sh(mirror_envmap(e, "z")).numpy()  # radiance SH on Unity's axes
+    lobe = np.array([COSINE_LOBE_BY_BAND[l] for l in SH_BANDS])
+    stored = c * (lobe * np.array(_BASIS_CONST) / math.pi)[:, None]
+    return stored.T.tolist()
+
+
+def unity_shade_sh9(sh: list[list[float]], normal_unity: np.ndarray) -> np.ndarray:
+    """UnityCG.cginc's ShadeSH9 (SHEvalLinearL0L1 + L2) with unity_SH* built from `sh` -> [..., 3]."""
+    k = np.asarray(sh, np.float64)  # [3, 9]
+    n = np.asarray(normal_unity, np.float64)
+    x, y, z = n[..., 0:1], n[..., 1:2], n[..., 2:3]
+    sha = np.stack((k[:, 3], k[:, 1], k[:, 2], k[:, 0] - k[:, 6]), axis=-1)  # [3, 4]
+    shb = np.stack((k[:, 4], k[:, 5], 3 * k[:, 6], k[:, 7]), axis=-1)
+    shc = k[:, 8]
+    n4 = np.concatenate((x, y, z, np.ones_like(x)), axis=-1)
+    vb = np.concatenate((x * y, y * z, z * z, z * x), axis=-1)
+    return n4 @ sha.T + vb @ shb.T + (x * x - y * y) * shc
+
+
+def probe_grid(lo, hi, counts) -> np.ndarray:
+    """Probe positions (ours) on a regular grid inside [lo, hi], `counts` per axis -> [N, 3]."""
+    axes = [np.linspace(a, b, int(n)) if int(n) > 1 else np.array([(a + b) / 2]) for a, b, n in zip(lo, hi, counts)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)

@@ -1,0 +1,285 @@
+"""core/export: each consumer's conventions, tested numerically (real consumers: usd-core here,
+three.js and the Khronos glTF validator in tests/test_export_node.py)."""
+from __future__ import annotations
+
+import io
+import math
+import zipfile
+
+import numpy as np
+import pytest
+import torch
+
+from core.conventions import equirect_directions
+from core.cubemap import cubemap_directions, sample_cubemap
+from core.envmap import irradiance, sample_envmap, solid_angles
+from core.sh import eval_sh, project_sh, sh_irradiance
+
+H = 32
+
+
+def lamp_map(height=H, direction=(0.4, 0.5, -0.75), kappa=200.0, peak=80.0):
+    """Grey ambient + a sharp lobe: an env map with a clear main light."""
+    d = equirect_directions(height, dtype=torch.float64)
+    mu = torch.nn.functional.normalize(torch.tensor(direction, dtype=torch.float64), dim=0)
+    lobe = peak * torch.exp(kappa * (d @ mu - 1.0))
+    return (0.3 + lobe)[..., None] * torch.tensor([1.0, 0.8, 0.6], dtype=torch.float64)
+
+
+def random_dirs(n=64, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1)
+
+
+def sample_np(img: np.ndarray, u: np.ndarray, v_from_top: np.ndarray) -> np.ndarray:
+    """Nearest-pixel lookup at continuous (u, v) in [0, 1] (v from the top row)."""
+    h, w = img.shape[:2]
+    c = np.clip(np.floor(u * w).astype(int) % w, 0, w - 1)
+    r = np.clip(np.floor(v_from_top * h).astype(int), 0, h - 1)
+    return img[r, c]
+
+
+# ------------------------------------------------------------------------------ prefilter
+def test_prefiltered_levels_match_direct_quadrature_of_the_ggx_kernel():
+    from core.export.prefilter import lobe_weight, prefiltered_cubemap, roughness_of_level
+
+    env = lamp_map(64)
+    mips = prefiltered_cubemap(env, 32, levels=4)
+    assert [m.shape for m in mips] == [(6, 32, 32, 3), (6, 16, 16, 3), (6, 8, 8, 3), (6, 4, 4, 3)]
+    assert torch.allclose(mips[0], sample_cubemap(mips[0], cubemap_directions(32)), atol=1e-6)
+    d = equirect_directions(64, dtype=torch.float64).reshape(-1, 3)
+    w_pix = solid_angles(64, dtype=torch.float64).reshape(-1)
+    for i in range(1, 4):
+        n = cubemap_directions(mips[i].shape[1], dtype=torch.float64).reshape(-1, 3)
+        w = lobe_weight(n @ d.T, roughness_of_level(i, 4)) * w_pix
+        ref = (w @ env.reshape(-1, 3)) / w.sum(1, keepdim=True)
+        got = mips[i].reshape(-1, 3).double()
+        assert float((got - ref).abs().sum() / ref.abs().sum()) < 0.02, i
+    # rougher levels are blurrier: the peak falls, energy spreads
+    peaks = [float(m.max()) for m in mips]
+    assert peaks == sorted(peaks, reverse=True)
+
+
+def test_prefilter_keeps_a_constant_map_constant_and_samples_sharp_levels():
+    from core.export.prefilter import prefiltered_cubemap
+
+    mips = prefiltered_cubemap(torch.full((32, 64, 3), 0.7), 128, levels=3, samples=16)
+    for m in mips:
+        assert torch.allclose(m, torch.full_like(m, 0.7), atol=1e-5)
+    with pytest.raises(ValueError, match="power of two"):
+        prefiltered_cubemap(torch.ones(8, 16, 3), 24)
+
+
+# ------------------------------------------------------------------------------ KTX2
+def test_ktx2_cube_round_trip_and_header():
+    import struct
+
+    from core.export.ktx2 import IDENTIFIER, decode_ktx2_cubemap, encode_ktx2_cubemap
+
+    levels = [np.random.default_rng(0).random((6, s, s, 3), np.float32) * 100 for s in (8, 4, 2)]
+    blob = encode_ktx2_cubemap(levels)
+    assert blob.startswith(IDENTIFIER)
+    vk, type_size, w, h, depth, layers, faces, count, scheme = struct.unpack_from("<9I", blob, 12)
+    assert (vk, type_size, w, h, depth, layers, faces, count, scheme) == (97, 2, 8, 8, 0, 0, 6, 3, 0)
+    for lv, got in zip(levels, decode_ktx2_cubemap(blob)):
+        np.testing.assert_allclose(got[..., :3], lv, rtol=1e-3)
+        assert (got[..., 3] == 1).all()
+        off = struct.unpack_from("<Q", blob, 80)[0]
+        assert off % 8 == 0
+    # beyond the half range (a bright lamp): float32 automatically, nothing clamped
+    bright = [lv * 1e4 for lv in levels]
+    blob = encode_ktx2_cubemap(bright)
+    assert struct.unpack_from("<2I", blob, 12) == (109, 4)
+    for lv, got in zip(bright, decode_ktx2_cubemap(blob)):
+        np.testing.assert_array_equal(got[..., :3], lv)
+
+
+# ------------------------------------------------------------------------------ glTF
+def test_glb_structure_rgbd_round_trip_and_irradiance_sh():
+    from core.export.gltf import build_glb, read_glb, rgbd_decode
+    from core.io.images import read_image
+
+    env = lamp_map(32) * 10  # peak 800 > RGBD's 255: the intensity multiplier must carry it
+    from core.export.prefilter import prefiltered_cubemap
+
+    mips = [m.numpy() for m in prefiltered_cubemap(env, 16, levels=3)]
+    sh = project_sh(env)
+    doc, blob = read_glb(build_glb(mips, sh.numpy(), (1.0, 2.0, 3.0), 0.5, extras={"artefact": "abc"}))
+    light = doc["extensions"]["EXT_lights_image_based"]["lights"][0]
+    assert doc["extensionsUsed"] == ["EXT_lights_image_based"]
+    assert doc["scenes"][0]["extensions"]["EXT_lights_image_based"]["light"] == 0
+    assert light["specularImageSize"] == 16 and len(light["specularImages"]) == 3
+    assert light["intensity"] > 1.0
+    # irradiance SH: E(n) = sum E_k Y_k(n) reproduces our irradiance
+    e_k = torch.tensor(light["irradianceCoefficients"], dtype=torch.float64) * light["intensity"]
+    n = random_dirs(16)
+    assert torch.allclose(eval_sh(e_k, n), sh_irradiance(sh, n), rtol=1e-6)
+    # a face decodes back (RGBD, un-mirrored, times intensity) to the float face
+    view = doc["bufferViews"][doc["images"][light["specularImages"][1][4]]["bufferView"]]
+    png = blob[view["byteOffset"]:view["byteOffset"] + view["byteLength"]]
+    rgbd = _png_rgba(png)
+    face = rgbd_decode(rgbd)[:, ::-1] * light["intensity"]
+    np.testing.assert_allclose(face, mips[1][4], rtol=0.05, atol=0.02 * float(mips[1][4].max()))
+
+
+def _png_rgba(png: bytes) -> np.ndarray:
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGBA"))
+
+
+# ------------------------------------------------------------------------------ EXR metadata
+def test_envmap_exr_carries_colour_space_probe_time_units_and_artefact():
+    from core.export.metadata import REC709_CHROMATICITIES, envmap_attributes
+    from core.io.envmap_io import encode_envmap, load_envmap
+    from core.io.exr import read_exr_header
+
+    env = lamp_map(8).float().numpy()
+    data, _ = encode_envmap(env, "exr", attributes=envmap_attributes((1, 2, 3), 0.25, "job-1", extrapolated="x"))
+    header = read_exr_header(data)
+    np.testing.assert_allclose(header["chromaticities"], REC709_CHROMATICITIES, rtol=1e-6)
+    np.testing.assert_allclose(header["lightfield:probePosition"], [1, 2, 3])
+    assert header["lightfield:time"] == 0.25 and header["lightfield:artefactId"] == "job-1"
+    assert "relative" in header["lightfield:units"] and header["lightfield:extrapolated"] == "x"
+    np.testing.assert_array_equal(load_envmap(data), env)
+    with pytest.raises(ValueError, match="reserved"):
+        encode_envmap(env, "exr", attributes={"dataWindow": 1})
+
+
+# ------------------------------------------------------------------------------ USD (usd-core)
+def test_usdz_opens_in_usd_core_with_a_dome_light_in_openexr_latlong():
+    pxr = pytest.importorskip("pxr", reason="usd-core is a dev dependency (pip install usd-core)")
+    from pxr import Usd, UsdLux, UsdValidation
+
+    from core.export.usd import openexr_latlong_direction, usdz
+    from core.io.exr import read_exr, read_exr_header
+
+    env = lamp_map(16).float()
+    blob = usdz(env.numpy(), (0.5, 1.2, -2.0), 0.75, "job-9")
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "probe.usdz"
+        path.write_bytes(blob)
+        stage = Usd.Stage.Open(str(path))
+        assert stage is not None
+        dome = UsdLux.DomeLight(stage.GetPrimAtPath("/Probe/EnvLight"))
+        assert dome and dome.GetTextureFormatAttr().Get() == "latlong"
+        assert dome.GetTextureFileAttr().Get().path == "envmap.exr"
+        from pxr import UsdGeom
+
+        assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+        xf = UsdGeom.Xformable(stage.GetPrimAtPath("/Probe")).ComputeLocalToWorldTransform(0)
+        np.testing.assert_allclose(list(xf.ExtractTranslation()), [0.5, 1.2, -2.0])
+        # usd-core's own validators (usdz package rules: stored, 64-byte aligned; references; stage metadata)
+        validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
+        errors = UsdValidation.ValidationContext(validators).Validate(stage)
+        assert not errors, [(e.GetName(), e.GetMessage()) for e in errors]
+    with zipfile.ZipFile(io.BytesIO(blob)) as z:
+        assert z.namelist() == ["probe.usda", "envmap.exr"]
+        tex = z.read("envmap.exr")
+        for info in z.infolist():  # usdz: stored, data 64-byte aligned
+            assert info.compress_type == zipfile.ZIP_STORED
+            assert (info.header_offset + 30 + len(info.filename) + len(info.extra)) % 64 == 0
+    header = read_exr_header(tex)
+    assert str(header["envmap"]).endswith("LATLONG") and header["lightfield:artefactId"] == "job-9"
+    img = read_exr(tex)
+    rows, cols = np.meshgrid(np.arange(16), np.arange(32), indexing="ij")
+    d = torch.from_numpy(openexr_latlong_direction(rows, cols, 16))  # where OpenEXR/UsdLux says each texel looks
+    np.testing.assert_allclose(img, sample_envmap(env.double(), d).numpy(), rtol=1e-4, atol=1e-4)
+
+
+# ------------------------------------------------------------------------------ Blender / Unity / ARKit / three.js
+def test_blender_texture_read_with_cycles_mapping_gives_our_radiance():
+    from core.export.blender import blender_equirect_uv, equirect_for_blender, to_blender
+
+    env = lamp_map(64)
+    tex = equirect_for_blender(env.numpy())
+    d = random_dirs(200, seed=1)
+    uv = blender_equirect_uv(to_blender(d.numpy()))
+    got = sample_np(tex, uv[:, 0], 1.0 - uv[:, 1])
+    want = sample_np(env.numpy(), *(_our_uv(d.numpy())))
+    np.testing.assert_allclose(got, want, rtol=1e-9)
+    # the image centre is +X in Blender, which is our +x: not our forward (-z -> Blender +Y)
+    np.testing.assert_allclose(to_blender(np.array([0.0, 0.0, -1.0])), [0.0, 1.0, 0.0])
+
+
+def _our_uv(d):
+    theta = np.arccos(np.clip(d[:, 1], -1, 1))
+    phi = np.arctan2(d[:, 0], -d[:, 2])
+    return (phi + np.pi) / (2 * np.pi), theta / np.pi
+
+
+def test_threejs_equirect_layout_matches_equirect_uv():
+    from core.export.threejs import equirect_for_threejs, threejs_equirect_uv
+
+    env = lamp_map(64).numpy()
+    tex = equirect_for_threejs(env)
+    d = random_dirs(200, seed=2).numpy()
+    uv = threejs_equirect_uv(d)
+    np.testing.assert_allclose(sample_np(tex, uv[:, 0], 1.0 - uv[:, 1]), sample_np(env, *_our_uv(d)), rtol=1e-9)
+
+
+def test_unity_sh_through_unitys_shader_formula_gives_lambertian_radiance():
+    from core.export.unity import probe_grid, to_unity, unity_sh, unity_shade_sh9
+
+    env = lamp_map(32)
+    sh = unity_sh(env.numpy())
+    n = random_dirs(32, seed=3)
+    got = unity_shade_sh9(sh, to_unity(n.numpy()))  # Unity evaluates with Unity-axis normals
+    want = (sh_irradiance(project_sh(env), n) / math.pi).numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
+    # AddAmbientLight(c) adds c to k0: a uniform map of radiance c gives exactly k0 = c
+    uniform = unity_sh(np.full((16, 32, 3), 0.25))
+    np.testing.assert_allclose([ch[0] for ch in uniform], 0.25, rtol=1e-9)
+    np.testing.assert_allclose([ch[1:] for ch in uniform], 0.0, atol=1e-9)
+    assert probe_grid((0, 0, 0), (1, 2, 3), (2, 3, 1)).shape == (6, 3)
+
+
+def test_arkit_slices_follow_the_metal_cube_table():
+    from core.cubemap import equirect_to_cubemap
+    from core.export.arkit import arkit_sh_planes, metal_cube_slices
+
+    env = lamp_map(16).float()
+    faces = equirect_to_cubemap(env, 8)
+    slices = metal_cube_slices(faces.numpy())
+    assert len(slices) == 6 and all(len(s) == 8 * 8 * 8 for s in slices)
+    back = np.stack([np.frombuffer(s, "<f2").reshape(8, 8, 4) for s in slices]).astype(np.float32)
+    np.testing.assert_allclose(back[..., :3], faces.numpy(), rtol=2e-3)
+    srgb = metal_cube_slices(faces.numpy(), "rgba8Unorm_srgb", exposure_ev=-6)
+    assert len(srgb[0]) == 8 * 8 * 4
+    sh = project_sh(env.double())
+    planes = arkit_sh_planes(sh.numpy())
+    assert planes[:9] == pytest.approx(sh[:, 0].tolist()) and planes[18:] == pytest.approx(sh[:, 2].tolist())
+
+
+def test_threejs_sh_is_ours_unsigned_and_arcore_differs_by_odd_m():
+    from core.export.threejs import threejs_sh
+    from core.sh import to_arcore_27
+
+    sh = project_sh(lamp_map(16))
+    three = np.array(threejs_sh(sh)).reshape(9, 3)
+    arcore = np.array(to_arcore_27(sh)).reshape(9, 3)
+    np.testing.assert_allclose(three, sh.numpy())
+    np.testing.assert_allclose(three[[1, 3, 5, 7]], -arcore[[1, 3, 5, 7]])
+
+
+# ------------------------------------------------------------------------------ sequences
+def test_sequence_zip_streams_frames_with_metadata():
+    from core.export.sequence import sequence_members, sequence_times, zip_stream
+    from core.io.exr import read_exr, read_exr_header
+
+    times = sequence_times(0.0, 1.0, 3)
+    maps = [(t, np.full((4, 8, 3), t + 1, np.float32)) for t in times]
+    chunks = list(zip_stream(sequence_members(maps, (0, 1, 2), "job-3")))
+    assert len(chunks) >= 3  # streamed member by member, not built at the end
+    with zipfile.ZipFile(io.BytesIO(b"".join(chunks))) as z:
+        names = z.namelist()
+        assert names == ["envmap.0001.exr", "envmap.0002.exr", "envmap.0003.exr", "sequence.json"]
+        for (t, m), name in zip(maps, names):
+            data = z.read(name)
+            np.testing.assert_array_equal(read_exr(data), m)
+            assert read_exr_header(data)["lightfield:time"] == pytest.approx(t)
+    with pytest.raises(ValueError):
+        sequence_times(0, 1, 0)

@@ -1,0 +1,158 @@
+"""Every example of the README, run as written against the demo scene (the simulator's `spatial`
+room), so the README cannot drift from the product.
+
+The command-line block runs exactly as written (`estimate --preset draft` included, ~40 s of
+CPU). The service that the curl block talks to gets LIGHTFIELD_DISTILL_OVERRIDES (the operator
+override docs/api.md documents) capping its job at 120 steps, so the suite stays fast.
+`lightfield bench --quick` is not run here (minutes; `make bench` runs it) and `lightfield
+serve` is started by the API test, which executes the README's curl block with bash against it.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import REPO, wait_until
+
+pytestmark = pytest.mark.slow
+README = REPO / "README.md"
+ITERATIONS = 120
+NOT_RUN_HERE = {"serve", "bench"}
+
+
+def sh_block_after(marker: str) -> str:
+    text = README.read_text()
+    start = text.index(marker)
+    match = re.search(r"```sh\n(.*?)```", text[start:], re.S)
+    assert match, f"no ```sh block after {marker!r} in README.md"
+    return match.group(1)
+
+
+def cli_lines() -> list[list[str]]:
+    lines = []
+    for line in sh_block_after("Command line (`lightfield --help`").splitlines():
+        line = line.split("  #")[0].strip()
+        if line.startswith("lightfield "):
+            lines.append(shlex.split(line)[1:])
+    return lines
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("readme")
+
+
+@pytest.fixture(scope="module")
+def cli_run(workdir):
+    """Run the README's command-line block in order (in-process), as a user in `workdir`."""
+    from cli.main import main
+
+    results = {}
+    cwd = os.getcwd()
+    os.chdir(workdir)
+    try:
+        for argv in cli_lines():
+            if argv[0] in NOT_RUN_HERE:
+                continue
+            if argv[0] == "estimate":
+                argv = [*argv, "--quiet"]  # no progress bar in the test log; nothing else changes
+            code = main(argv)
+            assert code == 0, f"`lightfield {' '.join(argv)}` exited {code}"
+            results[argv[0]] = argv
+    finally:
+        os.chdir(cwd)
+    return results
+
+
+def test_readme_lists_the_commands_it_promises():
+    commands = [argv[0] for argv in cli_lines()]
+    for name in ("simulate", "estimate", "envmap", "sh", "cubemap", "gltf", "usd", "unity", "sequence", "preview", "serve"):
+        assert name in commands
+
+
+def test_readme_command_line_block_runs_and_answers_inside_the_room(cli_run, workdir):
+    from core.fields.artefact import LightFieldArtefact
+    from core.export.ktx2 import decode_ktx2_cubemap
+    from core.io.envmap_io import load_envmap
+    from core.lights import extract_dominant_light
+
+    env = load_envmap(workdir / "env.exr")
+    assert env.shape == (128, 256, 3) and np.isfinite(env).all()
+    art = LightFieldArtefact.load(workdir / "field")
+    point = [float(v) for v in cli_run["envmap"][cli_run["envmap"].index("--x") + 1].split(",")]
+    _, flags = art.envmap(point, None, 4)
+    assert not flags["extrapolated_x"], "the README's query point lies outside the scene it simulated"
+    # not a washed-out near-white map: the lamps stand out from the walls
+    lum = env @ np.array([0.2126, 0.7152, 0.0722])
+    assert lum.max() > 5 * np.median(lum)
+    assert len(decode_ktx2_cubemap((workdir / "cube.ktx2").read_bytes())) >= 3
+    assert (workdir / "probe.glb").read_bytes()[:4] == b"glTF"
+    with zipfile.ZipFile(workdir / "probe.usdz") as z:
+        assert z.namelist() == ["probe.usda", "envmap.exr"]
+    with zipfile.ZipFile(workdir / "shot.zip") as z:
+        assert len(json.loads(z.read("sequence.json"))["frames"]) == 2
+    assert (workdir / "insertion.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len(json.loads((workdir / "probes.json").read_text())["sh"]) == 18
+    # the main light is found on the demo scene, at the README point and at the held-out probes
+    doc = json.loads((workdir / "cap" / "capture.json").read_text())
+    found = [extract_dominant_light(art.envmap(p, None, 128)[0]) for p in [point, *[q["x"] for q in doc["probes"]]]]
+    assert found[0].found, found[0].reason
+    assert sum(light.found for light in found) >= len(found) - 1, [light.reason for light in found]
+
+
+@pytest.fixture(scope="module")
+def readme_server(workdir):
+    """`lightfield serve` exactly as the README starts it, on a free port, data in `workdir`."""
+    from service.processes import free_port
+
+    port = free_port()
+    env = dict(os.environ, LIGHTFIELD_DATA_DIR=str(workdir / "lightfield-data"), PYTHONPATH=str(REPO),
+               LIGHTFIELD_DISTILL_OVERRIDES=json.dumps({"iterations": ITERATIONS}), OMP_NUM_THREADS="1")
+    env.pop("LIGHTFIELD_BROKER_URL", None)
+    env.pop("LIGHTFIELD_API_KEYS", None)
+    log = open(workdir / "serve.log", "wb")
+    proc = subprocess.Popen([sys.executable, "-m", "cli", "serve", "--port", str(port), "--log-level", "warning"],
+                            cwd=workdir, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        import httpx
+
+        wait_until(lambda: httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200, 120,
+                   interval_s=0.5, what="`lightfield serve` ready")
+        yield port
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(10)
+        log.close()
+
+
+def test_readme_curl_block_runs_against_lightfield_serve(cli_run, workdir, readme_server):
+    if not (shutil.which("curl") and shutil.which("jq")):
+        pytest.skip("curl and jq are needed to run the README's API block (.ci/run installs them)")
+    script = sh_block_after("## API").replace("localhost:8000", f"127.0.0.1:{readme_server}")
+    proc = subprocess.run(["bash", "-euo", "pipefail", "-c", script], cwd=workdir, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, (proc.stdout[-2000:], proc.stderr[-2000:], (workdir / "serve.log").read_text()[-3000:])
+    decoder, text, sh = json.JSONDecoder(), proc.stdout.strip(), []
+    while text:  # the two /sh answers are printed back to back
+        doc, end = decoder.raw_decode(text)
+        sh.append(doc)
+        text = text[end:].strip()
+    assert [s["layout"] for s in sh] == ["arcore", "threejs"]
+    assert sh[0]["dominant_light"]["reason"] and 0 <= sh[0]["dominant_light"]["confidence"] <= 1
+    for name in ("env.exr", "cube.ktx2", "probe.glb", "probe.usdz", "shot.zip"):
+        assert (workdir / name).stat().st_size > 100, name
