@@ -137,3 +137,22 @@ def test_tracking_off_keeps_the_static_camera_and_says_so(tmp_path):
     video = write_video(tmp_path / "pan.mp4", ldr.numpy(), 5.0)
     cap = _run(video, {"tracking": "off"}, tmp_path / "field").artefact.meta["capture"]
     assert cap["static_camera"] is True and cap["metadata"]["tracking"]["method"] == "off"
+
+
+def test_given_poses_without_depth_get_the_assumed_room_fixed_in_the_world(tmp_path):
+    from core.capture.load import load_capture
+    from core.capture.params import CaptureParams
+    from core.tracking.room import assumed_room
+
+    poses = [pose_from_yaw_pitch((0.2 * i, 0, 0), 30 * i, 0) for i in range(4)]
+    ldr, _, _ = panorama_clip(poses, 48, 36, pano_height=64, supersample=1)
+    video = write_video(tmp_path / "moving.mp4", ldr.numpy(), 4.0)
+    params = CaptureParams(poses=[p.reshape(-1).tolist() for p in poses])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cap = load_capture(video, params=params)
+    assert cap.metadata["poses_source"] == "params" and "tracking" not in cap.metadata
+    assert "world-fixed" in cap.depth_source and cap.metadata["room"]["source"] == "assumed"
+    box = assumed_room(first_camera=poses[0])
+    for i in (0, 3):  # every frame sees the same room, not one that turns with it
+        assert torch.allclose(cap.depth[i], box.depth(cap.camera(i)))

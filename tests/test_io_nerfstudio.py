@@ -4,23 +4,21 @@ from __future__ import annotations
 
 import io
 import json
-import math
 import stat
 import zipfile
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import torch
 
+from capture_fixtures import PANORAMA, write_nerfstudio, zip_dir
 from core.camera import Camera, Intrinsics
 from core.io.archive import ArchiveError, ZipFiles, member_name
 from core.io.nerfstudio import Z_UP_TO_Y_UP, inspect_nerfstudio, load_nerfstudio
 from core.sim.panorama_room import PanoramaRoom, load_panorama, render_clip
 from core.sim.state import pose_from_yaw_pitch
 from core.tracking.room import assumed_room
-from capture_fixtures import PANORAMA, write_nerfstudio, zip_dir
 
 W, H = 96, 72
 

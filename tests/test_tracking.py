@@ -243,3 +243,18 @@ def test_fit_room_refuses_too_few_points_and_boxes_refuse_inverted_bounds():
         fit_room(np.zeros((5, 3)), np.zeros((1, 3)))
     with pytest.raises(RoomFitError):
         RoomBox(torch.eye(3), torch.zeros(3), torch.tensor([1.0, -1.0, 1.0]))
+
+
+def test_assumed_room_around_a_given_first_camera_stands_upright_in_front_of_it():
+    from core.sim.state import pose_from_yaw_pitch
+
+    intr = Intrinsics.from_hfov(32, 24, 60.0)
+    first = pose_from_yaw_pitch((1.0, 0.4, -2.0), 70.0, 0.0)
+    box = assumed_room(first_camera=first)
+    # seen from that camera, it is exactly the documented room seen from the origin
+    assert torch.allclose(box.depth(Camera(intr, first)), assumed_room().depth(Camera(intr, torch.eye(4, dtype=torch.float64))))
+    # a pitched first camera does not tilt the room: the floor stays 1.5 m below it
+    pitched = pose_from_yaw_pitch((1.0, 0.4, -2.0), 70.0, -20.0)
+    b2 = assumed_room(first_camera=pitched)
+    assert torch.allclose(b2.axes[:, 1], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+    assert float(b2.lo[1]) == pytest.approx(0.4 - 1.5)

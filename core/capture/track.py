@@ -5,12 +5,15 @@
 the focal length a pan refined when the intrinsics were assumed, and, when no depth was
 given, a room that stays put in the world (fitted to the sparse points, or the assumed one).
 The evidence goes to `capture.metadata["tracking"]`; a failure is a warning and a labelled
-static camera, never an error. Nothing happens for one frame, given poses, or
-`params.tracking == "off"` (recorded).
+static camera, never an error. Nothing is tracked for one frame, given poses, or
+`params.tracking == "off"` (recorded); given poses of a moving camera without depth still get
+the assumed room fixed in the world rather than one that turns with each frame.
 """
 from __future__ import annotations
 
 from dataclasses import replace
+
+import torch
 
 from core.capture.base import Capture
 from core.capture.depth import ASSUMED_DEPTH_SOURCE
@@ -20,11 +23,30 @@ _ASSUMED_DEPTH_WARNING = "no depth given: using the assumed box-room geometry"
 _ASSUMED_FOV_WARNING = "no intrinsics given: assuming"
 
 
+def _world_fixed_room(capture: Capture, meta: dict) -> Capture:
+    """Given poses of a moving camera but no depth: the assumed room stays put in the world
+    (upright, in front of the first camera) instead of turning with every frame."""
+    from core.tracking.capture_geometry import ASSUMED_ROOM_SOURCE, WORLD_FIXED_ROOM_WARNING
+    from core.tracking.room import assumed_room
+
+    box = assumed_room(first_camera=capture.poses[0])
+    depth = torch.stack([box.depth(capture.camera(i)) for i in range(capture.num_frames)])
+    if not bool(torch.isfinite(depth).all()):  # a camera outside the assumed room: its median
+        depth = torch.where(torch.isfinite(depth), depth, depth[torch.isfinite(depth)].median())
+    warnings = [w for w in capture.warnings if not w.startswith(_ASSUMED_DEPTH_WARNING)] + [WORLD_FIXED_ROOM_WARNING]
+    meta["room"] = {"source": "assumed", **box.as_dict()}
+    return replace(capture, depth=depth.float().contiguous(), depth_source=ASSUMED_ROOM_SOURCE, warnings=warnings,
+                   metadata=meta)
+
+
 def track_capture(capture: Capture, params: CaptureParams | None = None) -> Capture:
     params = params or CaptureParams()
     meta = dict(capture.metadata)
-    if capture.num_frames < 2 or meta.get("poses_source"):
+    if capture.num_frames < 2:
         return capture
+    if meta.get("poses_source"):
+        moving = not capture.static_camera
+        return _world_fixed_room(capture, meta) if moving and capture.depth_source == ASSUMED_DEPTH_SOURCE else capture
     if params.tracking == "off":
         meta["tracking"] = {"method": "off", "reason": "params.tracking = 'off': the camera is treated as static"}
         return replace(capture, metadata=meta)

@@ -30,6 +30,8 @@ SELF_CALIBRATION_HFOV_RANGE = (20.0, 130.0)
 MIN_ROOM_POINTS = 30
 ASSUMED_ROOM_SOURCE = ("assumed:box-room 5x3x4 m (+1 m behind), world-fixed around the first camera 1.5 m above "
                        "the floor, arbitrary scale")
+WORLD_FIXED_ROOM_WARNING = ("no depth given: using the assumed box room, fixed in the world around the first camera "
+                            "(arbitrary scale); probe placement and reprojection are approximate")
 
 
 @dataclass
@@ -91,8 +93,7 @@ def room_depth(tr: TrackingResult, k: Intrinsics, poses: torch.Tensor, warn: lis
         box = assumed_room()
         source = ASSUMED_ROOM_SOURCE
         info = {"source": "assumed", **box.as_dict()}
-        warn.append("no depth given: using the assumed box room, fixed in the world around the first camera "
-                    "(arbitrary scale); probe placement and reprojection are approximate")
+        warn.append(WORLD_FIXED_ROOM_WARNING)
     depth = torch.stack([box.depth(Camera(k, p)) for p in poses])
     if not bool(torch.isfinite(depth).all()):  # a camera outside the box: nearest-valid fill by the median
         med = depth[torch.isfinite(depth)].median() if torch.isfinite(depth).any() else torch.tensor(2.0)

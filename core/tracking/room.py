@@ -84,11 +84,24 @@ class RoomBox:
                 "size_m": [round(float(x), 4) for x in self.size]}
 
 
-def assumed_room(scale: float = 1.0) -> RoomBox:
-    """The documented box room around the first camera (world = its frame), `scale` x metres."""
-    lo = torch.tensor([-ASSUMED_HALF_WIDTH_M, -ASSUMED_FLOOR_BELOW_M, -ASSUMED_BACK_M], dtype=torch.float64)
-    hi = torch.tensor([ASSUMED_HALF_WIDTH_M, ASSUMED_CEILING_ABOVE_M, ASSUMED_BEHIND_M], dtype=torch.float64)
-    return RoomBox(torch.eye(3, dtype=torch.float64), lo * scale, hi * scale)
+def assumed_room(scale: float = 1.0, first_camera: torch.Tensor | None = None) -> RoomBox:
+    """The documented box room around the first camera, `scale` x metres. Without
+    `first_camera` (c2w) that camera is the world origin looking along -z (world = its frame,
+    as when poses were tracked); with it, the box stands upright in the world (+y up, as given
+    poses' worlds are) in front of that camera's heading."""
+    lo = torch.tensor([-ASSUMED_HALF_WIDTH_M, -ASSUMED_FLOOR_BELOW_M, -ASSUMED_BACK_M], dtype=torch.float64) * scale
+    hi = torch.tensor([ASSUMED_HALF_WIDTH_M, ASSUMED_CEILING_ABOVE_M, ASSUMED_BEHIND_M], dtype=torch.float64) * scale
+    if first_camera is None:
+        return RoomBox(torch.eye(3, dtype=torch.float64), lo, hi)
+    c2w = torch.as_tensor(first_camera, dtype=torch.float64)
+    up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    back = c2w[:3, 2] - (c2w[:3, 2] @ up) * up  # the camera's +z (behind it), made horizontal
+    if float(back.norm()) < 1e-6:  # looking straight up or down: its y axis sets the heading
+        back = -(c2w[:3, 1] - (c2w[:3, 1] @ up) * up) * torch.sign(c2w[1, 2])
+    back = back / back.norm()
+    axes = torch.stack((torch.linalg.cross(up, back), up, back), dim=1)
+    offset = c2w[:3, 3] @ axes
+    return RoomBox(axes, lo + offset, hi + offset)
 
 
 # ---------------------------------------------------------------------------------------
