@@ -156,3 +156,12 @@ def test_given_poses_without_depth_get_the_assumed_room_fixed_in_the_world(tmp_p
     box = assumed_room(first_camera=poses[0])
     for i in (0, 3):  # every frame sees the same room, not one that turns with it
         assert torch.allclose(cap.depth[i], box.depth(cap.camera(i)))
+
+
+def test_a_job_with_given_poses_and_no_depth_uses_the_world_fixed_room(tmp_path):
+    poses = [pose_from_yaw_pitch((0.2 * i, 0, 0), 30 * i, 0) for i in range(4)]
+    ldr, _, _ = panorama_clip(poses, 48, 36, pano_height=64, supersample=1)
+    video = write_video(tmp_path / "moving.mp4", ldr.numpy(), 4.0)
+    meta = _run(video, {"poses": [p.reshape(-1).tolist() for p in poses]}, tmp_path / "field").artefact.meta
+    assert "world-fixed" in meta["capture"]["depth_source"]
+    assert "tracking" not in meta["training"]["stage_timings"]  # nothing was tracked

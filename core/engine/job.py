@@ -93,9 +93,11 @@ def run_job(
     reporter.stage("loading", 0.0, "reading input")
     with timings("loading"):
         capture = load_capture(input_path, depth_path, params, limits, track=False)
-    if capture.num_frames > 1 and not capture.metadata.get("poses_source"):
-        reporter.stage("tracking", 0.02, "finding the camera's motion")
-        with timings("tracking"):
+    if capture.num_frames > 1:  # tracked, or given poses placed in a world-fixed room (track_capture)
+        tracks = not capture.metadata.get("poses_source")
+        if tracks:
+            reporter.stage("tracking", 0.02, "finding the camera's motion")
+        with timings("tracking" if tracks else "loading"):
             capture = track_capture(capture, params)
     for w in capture.warnings:  # after tracking, which may replace assumptions (FOV, room)
         warnings.warn(w, stacklevel=2)
