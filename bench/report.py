@@ -195,6 +195,9 @@ def markdown(results: dict) -> str:
     stab = results.get("stability")
     if stab:
         out += stability_markdown(stab)
+    tracking = results.get("tracking")
+    if tracking:
+        out += tracking_markdown(tracking)
     return "\n".join(out) + "\n"
 
 
@@ -230,6 +233,34 @@ def stability_markdown(stab: dict) -> list[str]:
     headers = ["case", "passed", "seconds", "peak RSS Δ (MB)", "output range", "detail"]
     rows = [[c["name"], "PASS" if c.get("passed") else "FAIL", c.get("seconds"), c.get("peak_rss_delta_mb"),
              c.get("output_range", "–"), c.get("detail", "")] for c in stab.get("cases", [])]
+    return out + [table(headers, rows), ""]
+
+
+def tracking_markdown(tr: dict) -> list[str]:
+    speed = tr.get("speed", {})
+    out = ["## Camera tracking (captures without poses)", "",
+           f"Speed: `track_camera` on {speed.get('frames')}-frame {'x'.join(str(v) for v in speed.get('size', []))} clips "
+           f"rendered from the bundled dev panorama (target: <= {fmt(speed.get('target_cpu_s'))} s CPU). CPU seconds count "
+           "every thread of the process.", ""]
+    headers = ["clip", "method", "CPU s", "wall s", "within target", "frames kept", "reprojection error (px)",
+               "max rotation error (°)", "scale"]
+    rows = [[name, c.get("method"), c.get("cpu_s"), c.get("wall_s"), c.get("within_target"), c.get("frames_kept"),
+             c.get("reprojection_error_px"), c.get("max_rotation_error_deg"), c.get("scale_source")]
+            for name, c in speed.get("clips", {}).items()]
+    out += [table(headers, rows), ""]
+    if tr.get("skipped"):
+        return out + [f"Accuracy: skipped ({tr['skipped']})", ""]
+    out += [f"Accuracy (the product, as a user runs it): {tr.get('protocol', '')}. Diffuse rel si-RMSE of the env map "
+            "at the first camera at t = 0; `tracked` gives no poses, `true-poses` gives the true ones, `static` turns "
+            "tracking off (the product before it tracked), `mean-colour` is a constant map.", ""]
+    headers = ["split", "panoramas", "tracked", "true-poses", "static", "mean-colour", "tracked vs true", "within 5 %",
+               "better than constant"]
+    rows = []
+    for split, s in tr.get("splits", {}).items():
+        m = s.get("methods", {})
+        rows.append([split, len(s.get("files", [])),
+                     *[_get(m, name, "diffuse", "si_rmse_rel") for name in ("tracked", "true-poses", "static", "mean-colour")],
+                     s.get("tracked_vs_true_poses"), s.get("within_5_percent"), s.get("better_than_constant")])
     return out + [table(headers, rows), ""]
 
 
@@ -357,6 +388,9 @@ def readme_section(results: dict, command: str, block: str | None = None, prefix
     if stab:
         lines += [f"Stability: {len(stab.get('cases', [])) - stab.get('failures', 0)} of {len(stab.get('cases', []))} hard cases pass "
                   "(table in results.md).", ""]
+    tracking = results.get("tracking")
+    if tracking:
+        lines += tracking_markdown(tracking)
     lines.append(end)
     return "\n".join(lines)
 

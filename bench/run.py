@@ -1,4 +1,5 @@
-"""`lightfield bench`: accuracy vs time on simulated suites, real panoramas, scaling, stability.
+"""`lightfield bench`: accuracy vs time on simulated suites, real panoramas, scaling, stability,
+camera tracking.
 
     lightfield bench [--quick] [-o DIR] [--hdri-dir DIR] [--sections ...]
 
@@ -19,7 +20,7 @@ from bench.methods import Budget, config_summary, core_methods, sweep_methods
 from bench.suite.measure import machine_info
 
 SUITE_NAMES = ("spatial", "temporal", "moving-camera", "hard")
-SECTIONS = ("simulated", "panoramas", "scaling", "stability")
+SECTIONS = ("simulated", "panoramas", "scaling", "stability", "tracking")
 DEFAULT_HDRI_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "hdri"  # ../shared/hdri from the repo
 DEFAULT_OUT_DIR = Path(__file__).resolve().parent / "results"
 
@@ -156,6 +157,11 @@ def run_bench(opts: BenchOptions) -> dict:
             from bench.suite.stability import run_stability
 
             results["stability"] = run_stability(quick=opts.quick, workdir=workdir)
+        if "tracking" in opts.sections:
+            from bench.tracking import run_tracking
+
+            log("tracking: speed clips and panorama pans")
+            results["tracking"] = run_tracking(opts.hdri_dir, mode.panorama_limit, mode.sphere_size, opts.quick, workdir)
     finally:
         torch.set_num_threads(threads)
         if opts.keep_artefacts:

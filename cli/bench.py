@@ -10,7 +10,7 @@ def add_arguments(p) -> None:
     p.add_argument("--hdri-dir", default=None, help="indoor HDR panoramas with MANIFEST.tsv (default: ../shared/hdri from the repo)")
     p.add_argument("--cache-dir", default=None, help="where rendered suite captures are cached (default: ~/.cache/lightfield/bench)")
     p.add_argument("--suites", default=None, help="comma-separated subset of spatial,temporal,moving-camera,hard")
-    p.add_argument("--sections", default=None, help="comma-separated subset of simulated,panoramas,scaling,stability")
+    p.add_argument("--sections", default=None, help="comma-separated subset of simulated,panoramas,scaling,stability,tracking")
     p.add_argument("--keep-artefacts", action="store_true", help="keep the distilled artefacts (printed path)")
     p.add_argument("--iterations", type=int, default=None, help="override the reference distillation budget (steps); the iteration sweep uses half and double")
     p.add_argument("--diffusion-weights", default=None, help="local diffusion prior model directory: also distil mlp/grid from it")

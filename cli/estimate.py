@@ -1,4 +1,5 @@
-"""`lightfield estimate INPUT -o OUT`: distil a light field from an image, video or capture dir."""
+"""`lightfield estimate INPUT -o OUT`: distil a light field from an image, video or capture
+(a nerfstudio directory or zip with transforms.json, or a simulator capture directory)."""
 from __future__ import annotations
 
 import argparse
@@ -9,11 +10,13 @@ from pathlib import Path
 
 from cli import choices
 
-HELP = "Estimate a spatiotemporal HDR light field from an image, a video or a simulator capture directory."
+HELP = ("Estimate a spatiotemporal HDR light field from an image, a video, a nerfstudio capture (directory or "
+        "zip with transforms.json) or a simulator capture directory.")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("input", help="image, video, or capture directory (capture.json)")
+    p.add_argument("input", help="image, video, nerfstudio capture (directory or zip with transforms.json), "
+                                 "or simulator capture directory (capture.json)")
     p.add_argument("-o", "--output", required=True, help="artefact directory to write")
     p.add_argument("--depth", default=None, help="planar depth in metres: .npz ('depth' [T,H,W] or [H,W]), .exr, 16-bit PNG (mm)")
     p.add_argument("--params", default=None, help="job parameters as a JSON string or file (same schema as the service)")

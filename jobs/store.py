@@ -38,7 +38,7 @@ class JobRecord:
     tenant: str
     tenant_hash: str
     state: str = "queued"
-    input_kind: str = ""  # image | video
+    input_kind: str = ""  # image | video | capture (a nerfstudio zip)
     input_file: str = ""  # file name inside the upload dir (server-chosen)
     depth_file: str = ""
     params: str = "{}"  # JobParams JSON

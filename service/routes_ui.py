@@ -53,6 +53,14 @@ class CaptureView(BaseModel):
     depth_source: str
     uses_time: bool = Field(description="whether the light field varies over time")
     bounds: dict = Field(description="scene box lo/hi (metres) and time range t0/t1 of the field")
+    static_camera: bool = Field(description="the estimate used one camera pose for every frame")
+    intrinsics_source: str | None = Field(None, description="where the intrinsics came from: params, the capture file, "
+                                                            "EXIF, refined by tracking, or assumed")
+    poses_source: str | None = Field(None, description="where given poses came from (null: none were given)")
+    tracking: dict | None = Field(None, description="camera tracking: method, reprojection error, frames dropped, "
+                                                    "scale source (null: not run)")
+    notes: list[str] = Field(default_factory=list, description="what was taken from the file's metadata and applied")
+    warnings: list[str] = Field(default_factory=list, description="the capture's warnings (assumptions, fallbacks)")
 
 
 class ProbeView(BaseModel):
@@ -116,10 +124,19 @@ def _flags(cf: CachedField, x, t: float | None) -> Flags:
             summary="The stored preview of the capture: frame size, times, intrinsics (for the web page)")
 def get_capture(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     preview, cf = _load(job_id, tenant, ctx)
+    summary = cf.artefact.meta.get("capture", {})
+    meta = summary.get("metadata", {})
+    tracking = meta.get("tracking")
+    notes = list(meta.get("applied", [])) + list((meta.get("nerfstudio") or {}).get("notes", []))
     return CaptureView(id=job_id, width=preview.width, height=preview.height, frames=preview.num_frames,
                        source_frames=preview.source_frames, times=[round(float(t), 6) for t in preview.times],
                        fps=preview.fps, intrinsics=preview.intrinsics, depth_source=preview.depth_source,
-                       uses_time=bool(cf.artefact.uses_time), bounds=cf.artefact.bounds.to_dict())
+                       uses_time=bool(cf.artefact.uses_time), bounds=cf.artefact.bounds.to_dict(),
+                       static_camera=bool(summary.get("static_camera", True)),
+                       intrinsics_source=meta.get("intrinsics_source"), poses_source=meta.get("poses_source"),
+                       tracking={k: tracking.get(k) for k in ("method", "reprojection_error_px", "frames_dropped",
+                                                              "scale_source", "camera_moves", "reason")} if tracking else None,
+                       notes=notes, warnings=list(summary.get("warnings", [])))
 
 
 @router.get("/lightfield/{job_id}/frame", response_class=Response, responses={

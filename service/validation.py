@@ -27,12 +27,15 @@ def _head(path: Path) -> bytes:
 
 
 def classify_input(path: Path) -> tuple[str, str]:
-    """(kind 'image'|'video', suffix) from the file's magic bytes; raises a 4xx ApiError."""
-    from core.io.sniff import sniff_image, sniff_video
+    """(kind 'image'|'video'|'capture', suffix) from the file's magic bytes (a zip is a
+    nerfstudio capture: transforms.json + images); raises a 4xx ApiError."""
+    from core.io.sniff import ZIP_MAGIC, sniff_image, sniff_video
 
     head = _head(path)
     if not head:
         raise InvalidInput("form field 'file' is empty (0 bytes)", code="empty")
+    if head.startswith(ZIP_MAGIC):
+        return "capture", ".zip"
     image, video = sniff_image(head), sniff_video(head)
     if image == "gif":
         return "video", GIF_SUFFIX
@@ -42,8 +45,9 @@ def classify_input(path: Path) -> tuple[str, str]:
         return "video", VIDEO_SUFFIX[video]
     if image or video:
         raise UnsupportedMedia(f"'file' is {image or video}, which is not supported; use PNG/JPEG/WebP/BMP/TIFF "
-                               "images or MP4/MOV/MKV/WebM/AVI/GIF videos", code="unsupported_format")
-    raise UnsupportedMedia("'file' is not an image or a video (unrecognised content)", code="not_media")
+                               "images, MP4/MOV/MKV/WebM/AVI/GIF videos or a nerfstudio capture zip",
+                               code="unsupported_format")
+    raise UnsupportedMedia("'file' is not an image, a video or a capture zip (unrecognised content)", code="not_media")
 
 
 def classify_depth(path: Path) -> str:

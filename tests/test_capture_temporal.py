@@ -1,5 +1,7 @@
 """Temporal detection: static clips (with noise / compression) get no time input, switching
 lights and dimming do; overrides and single frames."""
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -122,6 +124,32 @@ def test_moving_camera_static_lighting_is_static_after_reprojection():
     frames2 = torch.stack([f if i < 2 else tonemap(torch.pow(f, 2.4) * 0.5) for i, f in enumerate(frames)])
     cap2 = capture_from_arrays(frames2, torch.stack(depths), intrinsics=k, poses=torch.stack(poses))
     assert detect_temporal(cap2).uses_time
+
+
+def test_a_pan_that_leaves_its_first_view_compares_neighbours():
+    """A 60 deg pan with a 60 deg FOV: the last frame shares nothing with the first. Static
+    light is static; a lamp switching on half-way (a 1.6x step) is temporal."""
+    from pathlib import Path
+
+    from core.camera import Camera, Intrinsics
+    from core.sim.panorama_room import PanoramaRoom, load_panorama, render_clip
+    from core.sim.state import pose_from_yaw_pitch
+    from core.tracking.room import assumed_room
+
+    pano = load_panorama(Path(__file__).resolve().parents[1] / "assets" / "sample_panorama.hdr", 128)
+    k = Intrinsics.from_hfov(96, 72, 60.0)
+    poses = [pose_from_yaw_pitch((0, 0, 0), 60 * i / 19, 0) for i in range(20)]
+    room = PanoramaRoom(pano, assumed_room(), torch.zeros(3))
+    _, depth, hdr = render_clip(room, [Camera(k, p) for p in poses], supersample=1)
+    from core.sim.panorama_room import ldr_clip
+
+    for gain, temporal in ((1.0, False), (1.6, True)):
+        g = torch.tensor([1.0] * 10 + [gain] * 10)[:, None, None, None]
+        cap = capture_from_arrays(ldr_clip(hdr * g), depth, intrinsics=k, poses=torch.stack(poses), fps=10)
+        d = detect_temporal(cap)
+        assert d.uses_time == temporal, d.reason
+        assert "motion compensated" in d.reason
+    assert d.statistic == pytest.approx(math.log(1.6), rel=0.1)
 
 
 def test_dark_noisy_static_room_is_static():

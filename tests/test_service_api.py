@@ -130,6 +130,58 @@ def test_bad_input_gets_its_4xx_and_the_server_keeps_serving(stack, alice, media
     assert not any(p.is_file() for p in (stack.data_dir / "uploads").rglob("*")) or _has_live_job(alice)
 
 
+def _ns_zip(tmp, edit=None, extra_members=()) -> bytes:
+    """A small nerfstudio capture zip (3 frames 16 x 12), its transforms.json edited by `edit`."""
+    import zipfile
+
+    from capture_fixtures import write_nerfstudio
+    from core.camera import Intrinsics
+
+    rng = np.random.default_rng(0)
+    frames = rng.uniform(0, 1, (3, 12, 16, 3)).astype(np.float32)
+    root = write_nerfstudio(tmp, frames, np.ones((3, 12, 16), np.float32), Intrinsics.from_hfov(16, 12, 60.0),
+                            [np.eye(4)] * 3)
+    meta = json.loads((root / "transforms.json").read_text())
+    if edit:
+        edit(meta)
+    (root / "transforms.json").write_text(json.dumps(meta))
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        for p in sorted(root.rglob("*")):
+            if p.is_file():
+                z.write(p, p.relative_to(root).as_posix())
+        for name, data in extra_members:
+            z.writestr(name, data)
+    return buf.getvalue()
+
+
+ZIP_INPUTS = [
+    ("scaled pose", lambda m: m["frames"][1].update(transform_matrix=(2 * np.eye(4)).tolist()), (), 422,
+     "shape_mismatch", "frames[1].transform_matrix"),
+    ("path traversal", lambda m: m["frames"][2].update(file_path="../../../etc/passwd"), (), 422, "not_found",
+     "frames[2].file_path"),
+    ("missing image", lambda m: m["frames"][0].update(file_path="images/nope.png"), (), 422, "not_found",
+     "frames[0].file_path"),
+    ("360 camera", lambda m: m.update(camera_model="EQUIRECTANGULAR"), (), 415, "unsupported_codec", "camera_model"),
+    ("empty transforms.json", lambda m: m.clear(), (), 422, "shape_mismatch", "frames"),
+    ("zip bomb member", None, (("images/zeros.bin", b"\0" * (8 << 20)),), 413, "too_large", "zip bomb"),
+]
+
+
+@pytest.mark.parametrize("label,edit,extra,status,code,names", ZIP_INPUTS, ids=[z[0] for z in ZIP_INPUTS])
+def test_bad_capture_zips_get_a_4xx_naming_the_field(stack, alice, tmp_path, label, edit, extra, status, code, names):
+    err = _error(_post(alice, {"file": ("scan.zip", _ns_zip(tmp_path, edit, extra))}), status, code)
+    assert names in err["message"], err["message"]
+    assert alice.get("/healthz").status_code == 200
+
+
+def test_a_good_capture_zip_is_accepted(stack, alice, tmp_path):
+    created = _post(alice, {"file": ("scan.zip", _ns_zip(tmp_path))}, {"fps": 2})
+    assert created.status_code == 202, created.text
+    assert created.json()["input_kind"] == "capture"
+    alice.delete(f"/jobs/{created.json()['id']}")
+
+
 def _has_live_job(client) -> bool:
     return any(j["state"] in ("queued", "running") for j in client.get("/jobs").json()["jobs"])
 

@@ -184,6 +184,32 @@ def test_video_job_answers_in_time(stack, tiny_video):
         assert "t" in late.headers["x-lightfield-extrapolated"].split(",")
 
 
+def test_capture_app_zip_job_keeps_its_poses_and_probes_stay_put_in_the_room(stack, tmp_path):
+    """A nerfstudio zip (a walk with known poses and depth) through POST /jobs: the job uses the
+    app's cameras, the page's capture view says where they came from, and a probe placed in
+    the first frame is found at its world position in the last one (not at the same pixel)."""
+    from capture_fixtures import panorama_clip, walk_poses, write_nerfstudio, zip_dir
+
+    poses = walk_poses(5)
+    ldr, depth, intr = panorama_clip(poses, 64, 48, pano_height=128, supersample=1)
+    root = write_nerfstudio(tmp_path / "scan", ldr.numpy(), depth.numpy(), intr, [p.numpy() for p in poses])
+    (tmp_path / "scan.zip").write_bytes(zip_dir(root))
+    with stack.client() as c:
+        job = submit(c, tmp_path / "scan.zip", {"fps": 2})
+        final = wait_job(c, job)
+        assert final["state"] == "succeeded", (final, stack.log("worker0"))
+        assert final["input_kind"] == "capture"
+        view = c.get(f"/lightfield/{job}/capture").json()
+        assert view["poses_source"] == "nerfstudio transforms.json" and view["static_camera"] is False
+        assert view["tracking"] is None and view["depth_source"].startswith("file:nerfstudio")
+        assert abs(view["intrinsics"]["fx"] / view["width"] - intr.fx / intr.width) < 1e-6  # the app's FOV
+        first = c.get(f"/lightfield/{job}/probe", params={"u": 0.5, "v": 0.5, "t": 0.0}).json()
+        x = ",".join(f"{v:.6f}" for v in first["x"])
+        last = c.get(f"/lightfield/{job}/probe", params={"x": x, "t": view["times"][-1]}).json()
+        assert last["frame_index"] == view["frames"] - 1
+        assert last["u"] is None or abs(last["u"] - 0.5) > 0.05  # the camera moved: the point moved in the frame
+
+
 def test_fifty_concurrent_envmap_queries_all_succeed(stack, image_job):
     async def run():
         headers = {"Authorization": f"Bearer {TENANTS['alice']}"}

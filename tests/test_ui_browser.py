@@ -332,6 +332,33 @@ def test_a_bad_upload_shows_the_services_message(finished_page, browser, tmp_pat
     browser.find_element("id", "file-input").send_keys(str(bogus))
     browser.find_element("id", "upload-button").click()
     wait_for(browser, "return !document.getElementById('upload-error').hidden", 30, "the upload error")
-    assert "not an image or a video" in text(browser, "upload-error")
+    assert "not an image, a video" in text(browser, "upload-error")
     assert not browser.find_element("id", "result").get_attribute("hidden"), "the open job was closed"
     screenshot(browser, "7_bad_upload")
+
+
+def test_the_page_shows_the_fov_and_depth_it_used_and_re_estimates_with_a_corrected_fov(finished_page, browser, ui_stack):
+    """Runs last: it submits a second job. The camera panel says which FOV and depth the light
+    field was estimated with; "Re-estimate" sends the same file with the corrected FOV."""
+    import httpx
+
+    doc = finished_page["doc"]
+    wait_for(browser, "return document.getElementById('fov-value').textContent.includes('°')", 15, "the FOV")
+    assert text(browser, "fov-value") == f"{hfov_deg(doc):.1f}°"
+    assert "params" in text(browser, "fov-source")
+    assert "file:" in text(browser, "depth-source")
+    before = job_id(browser)
+    field = browser.find_element("id", "fov-correct")
+    field.clear()
+    field.send_keys("72.5")
+    browser.find_element("id", "fov-button").click()
+    wait_for(browser, "return document.querySelector('#jobs-list button.current') && "
+                      f"document.querySelector('#jobs-list button.current').dataset.jobId !== '{before}'", 30,
+             "the re-estimate job")
+    after = job_id(browser)
+    with httpx.Client(base_url=ui_stack.base_url, headers={"Authorization": f"Bearer {KEY}"}) as c:
+        params = c.get(f"/jobs/{after}").json()["params"]
+        assert params["intrinsics"] == {"fx": None, "fy": None, "cx": None, "cy": None, "hfov_deg": 72.5} \
+            or params["intrinsics"].get("hfov_deg") == 72.5
+        assert params["temporal"] == "on"  # the rest of the first job's parameters is kept
+        c.delete(f"/jobs/{after}")

@@ -64,13 +64,13 @@ def app_env(tmp_path_factory):
         redis.stop()
 
 
-def add_job(ctx, state="succeeded", with_preview=True, tenant="alice", uses_time=True) -> str:
+def add_job(ctx, state="succeeded", with_preview=True, tenant="alice", uses_time=True, capture_meta=None) -> str:
     job = new_job_id()
     record = JobRecord(id=job, tenant=tenant, tenant_hash=tenant_hash(tenant), input_kind="video")
     ctx.store.create(record, max_in_flight=100)
     paths = JobPaths.for_job(ctx.settings.data_dir, record.tenant_hash, job)
     if state == "succeeded":
-        save_artefact(paths.artefact_dir, bright_field(uses_time), {"capture": {"fps": FPS}})
+        save_artefact(paths.artefact_dir, bright_field(uses_time), {"capture": {"fps": FPS, **(capture_meta or {})}})
         if with_preview:
             save_preview(preview(), paths.job_dir)
         relative = str(paths.artefact_dir.relative_to(ctx.settings.data_dir))
@@ -102,6 +102,23 @@ def test_capture_describes_the_stored_frames(app_env, job):
     assert (body["width"], body["height"], body["frames"]) == (W, H, T)
     assert body["times"] == pytest.approx([i / FPS for i in range(T)])
     assert body["uses_time"] is True and body["bounds"]["t1"] == pytest.approx(BOUNDS.t1)
+
+
+def test_capture_says_where_the_camera_and_its_fov_came_from(app_env):
+    """What the page shows next to the frame: FOV source, tracking, notes from the file."""
+    client, ctx = app_env
+    tracking = {"method": "rotation", "camera_moves": True, "reprojection_error_px": 0.21, "frames_dropped": [3],
+                "scale_source": "none: no translation", "cpu_seconds": 1.0}
+    job = add_job(ctx, capture_meta={"static_camera": False, "warnings": ["no depth given: ..."], "metadata": {
+        "intrinsics_source": "tracking: focal length refined", "tracking": tracking,
+        "applied": ["EXIF orientation 6 (rotated 90 cw to view): turned upright"]}})
+    body = get(client, f"/lightfield/{job}/capture").json()
+    assert body["static_camera"] is False and body["intrinsics_source"] == "tracking: focal length refined"
+    assert body["tracking"]["method"] == "rotation" and body["tracking"]["frames_dropped"] == [3]
+    assert body["notes"] == ["EXIF orientation 6 (rotated 90 cw to view): turned upright"]
+    assert body["warnings"] == ["no depth given: ..."] and body["poses_source"] is None
+    plain = get(client, f"/lightfield/{add_job(ctx)}/capture").json()  # an older artefact: nothing recorded
+    assert plain["tracking"] is None and plain["notes"] == [] and plain["intrinsics_source"] is None
 
 
 def test_frame_is_the_stored_frame_nearest_in_time(app_env, job):

@@ -29,6 +29,9 @@ class Capture:
     depth_source: str
     source: str = ""
     warnings: list[str] = field(default_factory=list)
+    # what the files said and what was assumed or estimated (intrinsics_source, poses_source,
+    # depth_given, file metadata, tracking), listed in the artefact (docs/captures.md)
+    metadata: dict = field(default_factory=dict)
 
     @property
     def num_frames(self) -> int:
@@ -74,6 +77,7 @@ class Capture:
             depth_source=self.depth_source,
             source=self.source,
             warnings=list(self.warnings),
+            metadata=dict(self.metadata),
         )
 
     def summary(self) -> dict:
@@ -89,4 +93,5 @@ class Capture:
             "poses": self.poses.reshape(self.num_frames, 16).tolist(),
             "depth_source": self.depth_source,
             "warnings": list(self.warnings),
+            "metadata": dict(self.metadata),
         }

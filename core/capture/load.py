@@ -1,8 +1,14 @@
-"""Load a capture (image, video or simulator capture directory) into one validated `Capture`.
+"""Load a capture (image, video, nerfstudio capture directory or zip, simulator capture
+directory) into one validated `Capture`.
 
-Defaults when the user gives nothing (recorded in `Capture.warnings` / `depth_source`):
-* intrinsics: a centred pinhole with horizontal FOV `core.conventions.DEFAULT_HFOV_DEG`;
-* poses: a static camera at the world origin (world = first camera frame);
+Files are read as a viewer shows them (EXIF orientation, video display rotation, ICC colour
+profile -> sRGB: core.io.metadata); what they said is in `Capture.metadata`.
+Defaults when the user gives nothing (recorded in `Capture.warnings` / `depth_source` /
+`metadata`; docs/captures.md):
+* intrinsics: the capture file's, else the image's EXIF focal length, else a centred pinhole
+  with horizontal FOV `core.conventions.DEFAULT_HFOV_DEG`;
+* poses: several frames are tracked (core.capture.track; `params.tracking`), one frame is a
+  camera at the world origin (world = first camera frame);
 * fps: the video's own rate, else 1 (a single image has t = 0);
 * depth: the given file, else the geometric assumption `assumed_box_depth` (a 5 x 3 x 4 m box
   room seen from a camera 1.5 m above the floor looking at the back wall; the SCALE IS
@@ -49,14 +55,47 @@ def _read_depth(path: Path, limits: MediaLimits) -> torch.Tensor:
 
 
 def sniff_capture_file(path: Path) -> str | None:
-    """'image', 'video' or None from magic bytes. A GIF is a 'video' (possibly animated), as
-    the service's upload validation classifies it, so every frame is decoded under the limits."""
+    """'image', 'video', 'archive' (a zip: a nerfstudio capture) or None from magic bytes. A GIF
+    is a 'video' (possibly animated), as the service's upload validation classifies it, so
+    every frame is decoded under the limits."""
     from core.io import sniff_media
-    from core.io.sniff import sniff_image
+    from core.io.sniff import ZIP_MAGIC, sniff_image
 
     with open(path, "rb") as f:
         head = f.read(64)
+    if head.startswith(ZIP_MAGIC):
+        return "archive"
     return "video" if sniff_image(head) == "gif" else sniff_media(head)
+
+
+def _read_nerfstudio(source: Path, limits: MediaLimits) -> dict:
+    """A nerfstudio capture (directory or zip with transforms.json; core.io.nerfstudio)."""
+    from core.io.nerfstudio import load_nerfstudio
+
+    cap = load_nerfstudio(source, limits)
+    out = {"frames": torch.from_numpy(cap.frames), "intrinsics_dict": cap.intrinsics, "poses": cap.poses,
+           "poses_source": "nerfstudio transforms.json", "intrinsics_source": "nerfstudio transforms.json",
+           "source_indices": cap.source_indices, "original_count": cap.original_count,
+           "metadata": {"nerfstudio": cap.metadata}, "warnings": cap.warnings}
+    if cap.depth is not None:
+        out["depth"] = torch.from_numpy(cap.depth)
+        out["depth_source"] = "file:nerfstudio depth_file_path"
+    return out
+
+
+def _read_image_file(path: Path, limits: MediaLimits) -> dict:
+    """One image, upright and sRGB, with what its metadata says (EXIF focal length -> intrinsics)."""
+    from core.io.images import decode_image
+    from core.io.metadata import exif_intrinsics
+
+    img = decode_image(path, limits)
+    h, w = img.pixels.shape[:2]
+    out = {"frames": torch.from_numpy(np.ascontiguousarray(img.pixels, dtype=np.float32))[None],
+           "metadata": {"file": img.metadata.as_dict(), **({"applied": img.applied} if img.applied else {})}}
+    exif = exif_intrinsics(img.metadata, w, h, stored_width=img.stored_size[0])
+    if exif is not None:
+        out["exif_intrinsics"] = exif
+    return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -83,9 +122,11 @@ def _read_capture_dir(root: Path, limits: MediaLimits) -> dict:
     intr = index.get("intrinsics")
     if intr:
         out["intrinsics_dict"] = intr
+        out["intrinsics_source"] = "capture.json"
     poses = index.get("poses")
     if poses:
         out["poses"] = [poses[i] for i in keep] if len(poses) == len(names) else poses
+        out["poses_source"] = "capture.json"
     if index.get("depth"):
         d = _read_depth(root / index["depth"], limits)
         out["depth"] = d[keep] if d.ndim == 3 and d.shape[0] == len(names) else d
@@ -93,11 +134,19 @@ def _read_capture_dir(root: Path, limits: MediaLimits) -> dict:
     return out
 
 
+ASSUMED_INTRINSICS_SOURCE = f"assumed: centred pinhole, {DEFAULT_HFOV_DEG:g} deg horizontal FOV"
+
+
 def resolve_intrinsics(params: CaptureParams, file_intr: dict | None, width: int, height: int,
-                        warn: list[str]) -> Intrinsics:
+                       warn: list[str], exif: tuple[Intrinsics, str] | None = None,
+                       sources: dict | None = None) -> Intrinsics:
+    """params > the capture file's > the image's EXIF (`exif`: intrinsics and the rule used) >
+    the assumption; `sources["intrinsics_source"]` says which."""
+    sources = {} if sources is None else sources
     try:
         if params.intrinsics is not None:
             p = params.intrinsics
+            sources["intrinsics_source"] = "params"
             if p.hfov_deg is not None:
                 return Intrinsics.from_hfov(width, height, p.hfov_deg).check_plausible()
             return Intrinsics(p.fx, p.fy, p.cx, p.cy, width, height).check_plausible()
@@ -105,10 +154,15 @@ def resolve_intrinsics(params: CaptureParams, file_intr: dict | None, width: int
             k = Intrinsics(float(file_intr["fx"]), float(file_intr["fy"]), float(file_intr["cx"]),
                            float(file_intr["cy"]), int(file_intr.get("width", width)),
                            int(file_intr.get("height", height)))
+            sources.setdefault("intrinsics_source", "capture file")
             return (k if (k.width, k.height) == (width, height) else k.scaled(width, height)).check_plausible()
     except CameraError as exc:
         raise CaptureError("intrinsics", str(exc)) from None
+    if exif is not None:
+        sources["intrinsics_source"] = exif[1]
+        return exif[0]
     warn.append(f"no intrinsics given: assuming a centred pinhole with {DEFAULT_HFOV_DEG:g} deg horizontal FOV")
+    sources["intrinsics_source"] = ASSUMED_INTRINSICS_SOURCE
     return Intrinsics.from_hfov(width, height, DEFAULT_HFOV_DEG)
 
 
@@ -158,15 +212,17 @@ def _estimate_depth(frames: torch.Tensor, intr: Intrinsics, model_dir: str, warn
 
 
 def load_capture(input_path, depth_path=None, params: CaptureParams | None = None,
-                 limits: MediaLimits | None = None) -> Capture:
-    """Load an image, a video or a simulator capture directory (see module docstring).
+                 limits: MediaLimits | None = None, track: bool = True) -> Capture:
+    """Load an image, a video, a nerfstudio capture (directory or zip) or a simulator capture
+    directory (see module docstring).
 
     `limits=None` reads them from the environment (`MediaLimits.from_env`: LIGHTFIELD_MAX_PIXELS
     etc.), so the CLI honours the same variables as the service. `params.max_frames` lowers
     `limits.max_frames`; longer videos are subsampled evenly by core.io and each kept frame
     keeps its source time (source index / fps). Poses given for every source frame are
-    subsampled the same way. (The service's upload check reads headers only:
-    core.capture.probe.probe_capture.)
+    subsampled the same way. `track=False` stops before camera tracking (run_job tracks in a
+    stage of its own: core.capture.track.track_capture). (The service's upload check reads
+    headers only: core.capture.probe.probe_capture.)
     """
     from core.io import read_video
 
@@ -177,7 +233,7 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
         raise CaptureError("input", f"{path} does not exist")
     warn: list[str] = []
     if path.is_dir():
-        loaded = _read_capture_dir(path, limits)
+        loaded = _read_nerfstudio(path, limits) if (path / "transforms.json").is_file() else _read_capture_dir(path, limits)
     else:
         kind = sniff_capture_file(path)
         if kind == "video":
@@ -185,10 +241,17 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
             warn.extend(vf.warnings)
             loaded = {"frames": torch.from_numpy(np.ascontiguousarray(vf.frames)), "fps": vf.fps,
                       "source_indices": [int(i) for i in vf.source_frame_indices], "original_count": vf.original_frame_count}
+            if vf.rotation_ccw_deg:
+                loaded["metadata"] = {"applied": [f"video display rotation {vf.rotation_ccw_deg} deg counter-clockwise: "
+                                                  "frames turned upright"]}
         elif kind == "image":
-            loaded = {"frames": _read_image(path, limits)[None]}
+            loaded = _read_image_file(path, limits)
+        elif kind == "archive":
+            loaded = _read_nerfstudio(path, limits)
         else:
-            raise CaptureError("input", f"{path.name} is neither an image, a video nor a capture directory")
+            raise CaptureError("input", f"{path.name} is neither an image, a video nor a capture directory or zip")
+    warn.extend(loaded.get("warnings", []))
+    metadata = dict(loaded.get("metadata", {}))
 
     frames = loaded["frames"].float()
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] < 1:
@@ -201,19 +264,22 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
     fps = params.fps or loaded.get("fps") or 1.0
     if not (math.isfinite(fps) and fps > 0):
         raise CaptureError("fps", f"must be finite and > 0, got {fps}")
-    intr = resolve_intrinsics(params, loaded.get("intrinsics_dict"), W, H, warn)
+    if loaded.get("intrinsics_source"):
+        metadata["intrinsics_source"] = loaded["intrinsics_source"]
+    intr = resolve_intrinsics(params, loaded.get("intrinsics_dict"), W, H, warn, loaded.get("exif_intrinsics"), metadata)
     given_poses = loaded.get("poses") if params.poses is None else kept_poses(params.poses, T, loaded.get("original_count", T), source_idx)
     poses = resolve_poses(given_poses, T)
+    if given_poses is not None:
+        metadata["poses_source"] = "params" if params.poses is not None else loaded.get("poses_source", "capture file")
     depth_arg = _read_depth(Path(depth_path), limits) if depth_path is not None else loaded.get("depth")
     if depth_path is not None and depth_arg.ndim == 3 and depth_arg.shape[0] == loaded.get("original_count", T) != T:
         depth_arg = depth_arg[source_idx]
     depth_src = f"file:{Path(depth_path).name}" if depth_path is not None else loaded.get("depth_source")
+    metadata["depth_given"] = depth_arg is not None
     if depth_arg is None and os.environ.get(DEPTH_MODEL_ENV):
         depth_arg, depth_src = _estimate_depth(frames, intr, os.environ[DEPTH_MODEL_ENV], warn)
     depth, depth_src = resolve_depth(depth_arg, T, H, W, intr, depth_src, warn)
-    for w in warn:
-        _warnings.warn(w, stacklevel=2)
-    return Capture(
+    capture = Capture(
         frames=frames.clamp(0, 1).contiguous(),
         depth=depth.contiguous(),
         intrinsics=intr,
@@ -223,7 +289,16 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
         depth_source=depth_src,
         source=path.name,
         warnings=warn,
+        metadata=metadata,
     )
+    if not track:  # the caller tracks, and reports the warnings that are left
+        return capture
+    from core.capture.track import track_capture
+
+    capture = track_capture(capture, params)
+    for w in capture.warnings:
+        _warnings.warn(w, stacklevel=2)
+    return capture
 
 
 def capture_from_arrays(frames: torch.Tensor, depth: torch.Tensor | None = None, *, intrinsics: Intrinsics | None = None,

@@ -8,6 +8,7 @@ that field rather than a silently ignored option.
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -60,6 +61,9 @@ class CaptureParams(_Strict):
     poses: list[list[float]] | None = Field(default=None, description="T x 16 camera-to-world, row-major")
     fps: float | None = None
     max_frames: int | None = None
+    tracking: Literal["auto", "off"] = Field(
+        default="auto", description="camera tracking when several frames come without poses: 'auto' detects camera "
+                                     "motion and tracks it; 'off' treats the camera as static (docs/captures.md)")
 
     @field_validator("poses")
     @classmethod

@@ -1,4 +1,4 @@
-"""Check an uploaded image or video as `load_capture` will load it, without decoding it.
+"""Check an uploaded image, video or capture zip as `load_capture` will load it, without decoding it.
 
 The service's upload check runs this in the API process, where a full decode would cost as
 much memory as the capture (a 200 KB MP4 can declare 3000 HD frames). It reads what the
@@ -28,7 +28,7 @@ from core.io.limits import MediaLimits
 
 @dataclass(frozen=True)
 class CaptureHeader:
-    kind: str  # "image" | "video"
+    kind: str  # "image" | "video" | "archive"
     frames: int  # frames load_capture will keep (after the frame budget)
     width: int
     height: int
@@ -53,8 +53,16 @@ def probe_capture(input_path, depth_path=None, params: CaptureParams | None = No
     elif kind == "image":
         (width, height), fps = probe_image(path, limits), None
         source_count, source_indices = 1, [0]
+    elif kind == "archive":  # a nerfstudio capture: transforms.json and the files it names
+        from core.io import select_frame_indices
+        from core.io.nerfstudio import inspect_nerfstudio
+
+        info = inspect_nerfstudio(path, limits)
+        width, height, fps = info["intrinsics"]["width"], info["intrinsics"]["height"], None
+        source_count = info["frames"]
+        source_indices = [int(i) for i in select_frame_indices(source_count, width * height, limits)]
     else:
-        raise CaptureError("input", f"{path.name} is neither an image nor a video")
+        raise CaptureError("input", f"{path.name} is neither an image, a video nor a capture zip")
     frames = len(source_indices)
 
     fps = params.fps or fps or 1.0

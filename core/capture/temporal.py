@@ -3,9 +3,7 @@
 Statistic (documented in docs/engine.md):
 1. Linearise frames (inverse tone map) and take luminance, then area-downsample (linear
    values are resampled, never gamma-encoded ones, whose averaging biases linear means when
-   there is noise). With a moving camera, warp every frame into the reference frame 0 with
-   depth and poses (pixels that leave the view or fail a 5 % depth-consistency test are
-   dropped), so only co-visible surfaces are compared.
+   there is noise). (A moving camera: see below.)
 2. Drop clipped (LDR >= 0.99) and near-black (LDR < 0.02) pixels, which carry no ratio;
    a pixel is used only if it is usable in EVERY frame (same pixel set for all frames).
 3. Average linear luminance in a coarse grid of blocks (BLOCKS_Y x BLOCKS_X) per frame and take
@@ -17,6 +15,17 @@ Statistic (documented in docs/engine.md):
 5. Noise floor sigma = 1.4826 * MAD of consecutive block differences / sqrt(2) (a step change
    happens at few frame pairs, so the MAD ignores it). threshold = max(ABS_FLOOR, K_SIGMA * sigma).
 uses_time = statistic > threshold.
+
+A moving camera (poses given or tracked) soon sees nothing frame 0 saw, so frames are
+compared with their predecessor instead: frame t is warped into frame t-1's view with depth
+and poses (pixels that leave the view or fail a 5 % depth-consistency test are dropped),
+both are block-averaged over the pixels usable in both, and d[t, b] = l_t - l_{t-1} per
+block. The lighting trajectory L[t] = sum of the per-pair MEDIAN block change (a global
+change, chained over the clip) gives e_global[t] = |L[t] - median_t L|; a change confined
+to part of the view gives e_local[t] = mean_b |d[t, b]|. statistic = max of both over t;
+sigma = 1.4826 * MAD of all d / sqrt(2); the same threshold. A camera's own motion thus
+never reads as a lighting change, and a pan that ends far from where it started still
+compares every frame with one it overlaps.
 """
 from __future__ import annotations
 
@@ -55,29 +64,6 @@ def _luminance(rgb: torch.Tensor) -> torch.Tensor:
     return 0.2126 * rgb[..., 0] + 0.7152 * rgb[..., 1] + 0.0722 * rgb[..., 2]
 
 
-def _warp_to_reference(capture, planes: torch.Tensor, depth: torch.Tensor, intr) -> tuple[torch.Tensor, torch.Tensor]:
-    """Warp per-frame planes [T,h,w,C] into frame 0's view; returns (warped, covisible [T,h,w])."""
-    from core.camera import Camera
-
-    T, h, w, _ = planes.shape
-    cam0 = Camera(intr, capture.poses[0])
-    pts = cam0.unproject(depth[0].double())  # [h, w, 3], NaN where invalid
-    ok0 = torch.isfinite(pts).all(-1)
-    warped, valid = [planes[0]], [ok0]
-    for i in range(1, T):
-        cam = Camera(intr, capture.poses[i])
-        u, v, z = cam.project(torch.nan_to_num(pts))
-        gx = (u / w) * 2 - 1
-        gy = (v / h) * 2 - 1
-        grid = torch.stack((gx, gy), -1).float()[None]
-        img = F.grid_sample(planes[i].permute(2, 0, 1)[None], grid, mode="bilinear", align_corners=False)[0]
-        dz = F.grid_sample(depth[i][None, None].nan_to_num(0.0), grid, mode="nearest", align_corners=False)[0, 0]
-        ok = ok0 & (z > 0) & (gx.abs() <= 1) & (gy.abs() <= 1) & ((dz.double() - z).abs() <= 0.05 * z)
-        warped.append(img.permute(1, 2, 0))
-        valid.append(ok)
-    return torch.stack(warped), torch.stack(valid)
-
-
 def _analysis_planes(capture, h: int, w: int) -> torch.Tensor:
     """[T, h, w, 2]: linear luminance and a 0/1 'usable' plane, linearised BEFORE any
     resampling (averaging gamma-encoded noise would bias linear means downwards)."""
@@ -91,26 +77,83 @@ def _analysis_planes(capture, h: int, w: int) -> torch.Tensor:
 
 
 def block_log_luminance(capture) -> torch.Tensor:
-    """[T, B] log mean linear luminance per block (NaN where a block has too few usable pixels)."""
+    """[T, B] log mean linear luminance per block of a STATIC camera's frames (NaN where a
+    block has too few usable pixels)."""
     small = capture.resized(ANALYSIS_HEIGHT)
     T, h, w = small.depth.shape
     planes = _analysis_planes(capture, h, w)
-    if capture.static_camera:
-        covis = torch.ones(T, h, w, dtype=torch.bool)
-    else:
-        depth = torch.where(valid_depth_mask(small.depth), small.depth, torch.nan)
-        planes, covis = _warp_to_reference(capture, planes, depth, small.intrinsics)
-    lum = planes[..., 0]
-    usable = covis & (planes[..., 1] > 0.999)  # every source pixel under the footprint usable
+    usable = planes[..., 1] > 0.999  # every source pixel under the footprint usable
     # the SAME pixels in every frame: a per-frame pixel set would bias block means whenever
     # noise pushes dim pixels across DARK_LO
     usable = usable.all(dim=0, keepdim=True).expand_as(usable)
+    return _block_logs(planes[..., 0], usable)
+
+
+def _block_logs(lum: torch.Tensor, usable: torch.Tensor) -> torch.Tensor:
+    """[N, B] log mean linear luminance per block of [N, h, w] planes over `usable` pixels
+    (NaN where a block has too few)."""
     num = F.adaptive_avg_pool2d(torch.where(usable, lum, 0.0)[:, None], (BLOCKS_Y, BLOCKS_X))
     cnt = F.adaptive_avg_pool2d(usable.float()[:, None], (BLOCKS_Y, BLOCKS_X))
-    mean = num / cnt.clamp_min(1e-12)
-    out = torch.log(mean.clamp_min(1e-8))
+    out = torch.log((num / cnt.clamp_min(1e-12)).clamp_min(1e-8))
     out = torch.where(cnt >= MIN_BLOCK_FRACTION, out, torch.full_like(out, float("nan")))
-    return out.reshape(T, -1)
+    return out.reshape(lum.shape[0], -1)
+
+
+def _warp_into(planes_src: torch.Tensor, depth_ref: torch.Tensor, depth_src: torch.Tensor, intr, pose_ref, pose_src):
+    """Planes [h, w, C] of a source view warped into a reference view; (warped, valid [h, w])."""
+    from core.camera import Camera
+
+    h, w, _ = planes_src.shape
+    pts = Camera(intr, pose_ref).unproject(depth_ref.double())
+    ok = torch.isfinite(pts).all(-1)
+    u, v, z = Camera(intr, pose_src).project(torch.nan_to_num(pts))
+    gx, gy = (u / w) * 2 - 1, (v / h) * 2 - 1
+    grid = torch.stack((gx, gy), -1).float()[None]
+    img = F.grid_sample(planes_src.permute(2, 0, 1)[None], grid, mode="bilinear", align_corners=False)[0]
+    dz = F.grid_sample(depth_src[None, None].nan_to_num(0.0), grid, mode="nearest", align_corners=False)[0, 0]
+    ok = ok & (z > 0) & (gx.abs() <= 1) & (gy.abs() <= 1) & ((dz.double() - z).abs() <= 0.05 * z)
+    return img.permute(1, 2, 0), ok
+
+
+def detect_temporal_moving(capture) -> TemporalDecision:
+    """The moving-camera statistic: consecutive frames, warped, chained (module docstring)."""
+    small = capture.resized(ANALYSIS_HEIGHT)
+    T, h, w = small.depth.shape
+    planes = _analysis_planes(capture, h, w)
+    depth = torch.where(valid_depth_mask(small.depth), small.depth, torch.nan)
+    steps, local, diffs, blind = [], [], [], []
+    for t in range(1, T):
+        warped, ok = _warp_into(planes[t], depth[t - 1], depth[t], small.intrinsics, capture.poses[t - 1], capture.poses[t])
+        usable = ok & (planes[t - 1][..., 1] > 0.999) & (warped[..., 1] > 0.999)
+        logs = _block_logs(torch.stack((planes[t - 1][..., 0], warped[..., 0])), usable[None].expand(2, -1, -1))
+        keep = torch.isfinite(logs).all(0)
+        if int(keep.sum()) == 0:
+            steps.append(0.0), local.append(0.0), blind.append(t)
+            continue
+        d = (logs[1, keep] - logs[0, keep]).double()
+        steps.append(float(d.median()))
+        local.append(float(d.abs().mean()))
+        diffs.append(d)
+    if not diffs:
+        return TemporalDecision(False, float("nan"), float("nan"),
+                                "no two consecutive frames share a usable image block (saturated/dark/occluded): "
+                                "assuming static lighting")
+    L = torch.cat((torch.zeros(1, dtype=torch.float64), torch.tensor(steps, dtype=torch.float64).cumsum(0)))
+    e_global = (L - L.median()).abs()
+    e_local = torch.tensor([0.0] + local, dtype=torch.float64)
+    dev = torch.maximum(e_global, e_local)
+    stat = float(dev.max())
+    all_d = torch.cat(diffs)
+    sigma = float(1.4826 * (all_d - all_d.median()).abs().median() / math.sqrt(2.0))
+    thr = max(ABS_FLOOR, K_SIGMA * sigma)
+    worst = int(dev.argmax())
+    kind = "overall" if float(e_global[worst]) >= float(e_local[worst]) else "local"
+    uses = stat > thr
+    reason = (f"lighting {'changes' if uses else 'is stable'}: max {kind} |log-luminance change| {stat:.3f} at frame "
+              f"{worst} vs threshold {thr:.3f} (noise sigma {sigma:.4f}; camera motion compensated: each frame compared "
+              f"with the previous one, warped by depth and poses"
+              f"{f', {len(blind)} pair(s) without a shared block' if blind else ''})")
+    return TemporalDecision(uses, stat, thr, reason)
 
 
 def detect_temporal(capture) -> TemporalDecision:
@@ -118,6 +161,8 @@ def detect_temporal(capture) -> TemporalDecision:
     T = capture.num_frames
     if T < 2:
         return TemporalDecision(False, 0.0, 0.0, "single frame: no time input")
+    if not capture.static_camera:
+        return detect_temporal_moving(capture)
     l = block_log_luminance(capture)  # [T, B]
     keep = torch.isfinite(l).all(0)  # blocks usable in every frame
     if int(keep.sum()) == 0:
@@ -133,8 +178,7 @@ def detect_temporal(capture) -> TemporalDecision:
     uses = stat > thr
     verb = "changes" if uses else "is stable"
     reason = (f"lighting {verb}: max mean |log-luminance deviation| {stat:.3f} at frame {worst} vs threshold "
-              f"{thr:.3f} (noise sigma {sigma:.4f}, {int(keep.sum())} blocks"
-              f"{', camera motion compensated' if not capture.static_camera else ''})")
+              f"{thr:.3f} (noise sigma {sigma:.4f}, {int(keep.sum())} blocks)")
     return TemporalDecision(uses, stat, thr, reason)
 
 

@@ -1,11 +1,13 @@
 """The job entry point, `run_job`, used by the CLI and the Celery worker: load the capture
-(the one decode of the job; `on_capture` lets the caller reuse it), decide whether the
+(the one decode of the job; `on_capture` lets the caller reuse it), track the camera when
+several frames came without poses (its own `tracking` stage and cost), decide whether the
 lighting changes over time, build and bind the prior, distil the field (core.engine.distill)
 and save the artefact with what the job simulated and what it cost; the result carries the
 saved artefact in memory, so callers query or bake it without reading it back."""
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -14,6 +16,7 @@ import torch
 
 from core.capture.base import Capture
 from core.capture.load import load_capture
+from core.capture.track import track_capture
 from core.capture.temporal import TemporalDecision, decide_temporal
 from core.device import resolve_device
 from core.engine.checkpoints import clear_checkpoint
@@ -79,7 +82,7 @@ def run_job(
     `prior` overrides params.prior (tests, the oracle); `config` overrides the preset
     params.preset; `prior_factory(name, settings, device)` builds the job's prior (the
     worker's keeps weight-loading priors across jobs); `on_capture(capture)` receives the
-    decoded capture at full resolution right after loading (the worker's UI preview)."""
+    decoded capture at full resolution after loading and tracking (the worker's UI preview)."""
     t_start = time.perf_counter()
     timings = StageTimer()
     reporter = Reporter(progress, should_cancel)
@@ -89,7 +92,15 @@ def run_job(
 
     reporter.stage("loading", 0.0, "reading input")
     with timings("loading"):
-        capture = load_capture(input_path, depth_path, params, limits)
+        capture = load_capture(input_path, depth_path, params, limits, track=False)
+    if capture.num_frames > 1:  # tracked, or given poses placed in a world-fixed room (track_capture)
+        tracks = not capture.metadata.get("poses_source")
+        if tracks:
+            reporter.stage("tracking", 0.02, "finding the camera's motion")
+        with timings("tracking" if tracks else "loading"):
+            capture = track_capture(capture, params)
+    for w in capture.warnings:  # after tracking, which may replace assumptions (FOV, room)
+        warnings.warn(w, stacklevel=2)
     if on_capture is not None:
         on_capture(capture)
     reporter.stage("temporal", 0.04, "detecting lighting changes")

@@ -4,14 +4,16 @@ Pillow opens files lazily: `Image.open` parses only the header, so the pixel cou
 checked against `MediaLimits.max_pixels` before anything is decoded (decompression bombs).
 Pillow's own bomb guard (`Image.MAX_IMAGE_PIXELS`) is kept as a second line of defence and
 raised, never lowered, to the largest limit in use. 16-bit PNGs are decoded with OpenCV
-because Pillow truncates 16-bit colour PNGs to 8 bits. EXIF orientation is NOT applied:
-pixels are returned in stored order, consistent with video frames and depth maps (a phone
-photo stored sideways stays sideways; rotate before upload).
+because Pillow truncates 16-bit colour PNGs to 8 bits. Pixels come back UPRIGHT (the EXIF
+orientation applied, as a viewer shows them) and in sRGB (an embedded non-sRGB ICC profile
+converted); `decode_image` also returns the file's metadata and what was applied
+(core.io.metadata has the rules).
 """
 from __future__ import annotations
 
 import io
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -20,6 +22,8 @@ from PIL import Image
 
 from core.io.exr import atomic_write
 from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source, read_source
+from core.io.metadata import (ImageMetadata, describe_orientation, image_metadata, orient_array, orient_image,
+                              orientation_swaps_axes, to_srgb)
 from core.io.sniff import PNG_MAGIC, sniff_image
 
 try:
@@ -54,9 +58,10 @@ def _open_checked(data: bytes, limits: MediaLimits) -> Image.Image:
 
 
 def probe_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> tuple[int, int]:
-    """(width, height) of an image `read_image` accepts, from its header under `limits`, with
-    the file's structure verified (Pillow's verify: PNG chunk CRCs, truncation) but no pixel
-    decoded. Refuses with the same MediaError codes as read_image for what that reveals."""
+    """(width, height) of an image `read_image` accepts, upright (EXIF orientation applied),
+    from its header under `limits`, with the file's structure verified (Pillow's verify: PNG
+    chunk CRCs, truncation) but no pixel decoded. Refuses with the same MediaError codes as
+    read_image for what that reveals."""
     data = read_source(source, limits, "image")
     image = _open_checked(data, limits)
     _check_sample_format(image, data)
@@ -66,7 +71,10 @@ def probe_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> tuple[i
         raise MediaError("too_many_pixels", str(exc)) from None
     except (OSError, SyntaxError, ValueError) as exc:
         raise MediaError("truncated", f"{image.format} data is truncated or corrupt ({exc})") from None
-    return image.size
+    w, h = image.size
+    with Image.open(io.BytesIO(data)) as again:  # verify() spends the image: EXIF from a fresh header parse
+        swap = orientation_swaps_axes(image_metadata(again).orientation)
+    return (h, w) if swap else (w, h)
 
 
 def _check_sample_format(image: Image.Image, data: bytes) -> None:
@@ -91,24 +99,47 @@ def _to_rgb(array: np.ndarray) -> np.ndarray:
     return array[..., :3]
 
 
-def read_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> np.ndarray:
+@dataclass
+class DecodedImage:
+    pixels: np.ndarray  # float32 [H, W, 3] in [0, 1], upright, sRGB
+    metadata: ImageMetadata
+    stored_size: tuple[int, int]  # (width, height) as stored, before orientation
+    applied: list[str] = field(default_factory=list)  # what was done to the stored pixels
+
+
+def decode_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> DecodedImage:
     """float32 [H, W, 3] in [0, 1] from PNG (8/16 bit), JPEG, WebP, BMP, TIFF, GIF (first
-    frame). Alpha is dropped (not composited), grey is expanded to RGB."""
+    frame), upright and in sRGB, with the file's metadata. Alpha is dropped (not composited),
+    grey is expanded to RGB."""
     data = read_source(source, limits, "image")
     image = _open_checked(data, limits)
+    meta = image_metadata(image)
+    applied = [describe_orientation(meta.orientation) + ": turned upright"] if meta.orientation != 1 else []
     if image.format == "PNG" and _png_bit_depth(data) == 16:
-        return _to_rgb(_decode_png16(data)).astype(np.float32) / np.float32(65535.0)
+        if meta.icc_description is not None and not meta.icc_is_srgb:
+            applied.append(f"ICC profile {meta.icc_description!r} of a 16-bit PNG not converted (values used as sRGB)")
+        pixels = orient_array(_to_rgb(_decode_png16(data)), meta.orientation).astype(np.float32) / np.float32(65535.0)
+        return DecodedImage(pixels, meta, image.size, applied)
     _check_sample_format(image, data)
     try:
         image.load()
         if image.mode.startswith("I;16"):  # 16-bit grey TIFF
-            return _to_rgb(np.asarray(image, np.float32) / np.float32(65535.0))
-        rgb = image.convert("RGB")
+            grey = orient_array(np.asarray(image, np.float32) / np.float32(65535.0), meta.orientation)
+            return DecodedImage(_to_rgb(grey), meta, image.size, applied)
+        converted, note = to_srgb(image, meta)
+        if note:
+            applied.append(note)
+        rgb = orient_image(converted.convert("RGB"), meta.orientation)
     except Image.DecompressionBombError as exc:
         raise MediaError("too_many_pixels", str(exc)) from None
     except (OSError, SyntaxError, ValueError) as exc:
         raise MediaError("truncated", f"{image.format} data is truncated or corrupt ({exc})") from None
-    return np.asarray(rgb, np.float32) / np.float32(255.0)
+    return DecodedImage(np.asarray(rgb, np.float32) / np.float32(255.0), meta, image.size, applied)
+
+
+def read_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> np.ndarray:
+    """`decode_image(...).pixels`: upright sRGB float32 [H, W, 3] in [0, 1]."""
+    return decode_image(source, limits).pixels
 
 
 def _check_image_array(array: np.ndarray, what: str) -> np.ndarray:

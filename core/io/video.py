@@ -5,8 +5,9 @@ Limits are applied from the stream header before decoding: the frame size agains
 the number of frames left after `frame_stride`. Too many frames are, by default,
 subsampled evenly over the whole clip (first and last kept), so a long clip still covers
 its full duration; `on_too_many='error'` refuses instead. Rotation metadata (phone
-videos) is not applied: frames come in stored orientation, like images. Containers are
-recognised by magic bytes (MP4/MOV, WebM/Matroska, AVI, MPEG-PS, Ogg, and animated GIF).
+videos: the display matrix, or a legacy `rotate` tag) is applied, so frames come upright
+as a player shows them, like images (core.io.metadata); `rotation_ccw_deg` says by how much.
+Containers are recognised by magic bytes (MP4/MOV, WebM/Matroska, AVI, MPEG-PS, Ogg, and animated GIF).
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ import av
 import numpy as np
 
 from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source, existing_file
+from core.io.metadata import rotate_frames, video_rotation_ccw
 from core.io.sniff import sniff_image, sniff_media, sniff_video
 
 OnTooMany = Literal["subsample", "error"]
@@ -38,6 +40,7 @@ class VideoFrames:
     source_frame_indices: np.ndarray  # int64 [T], increasing
     original_frame_count: int  # frames in the source (declared, or counted when undeclared)
     warnings: list[str] = field(default_factory=list)
+    rotation_ccw_deg: int = 0  # display rotation applied to the stored frames
 
     @property
     def times(self) -> np.ndarray:
@@ -143,8 +146,9 @@ def _header(source: Source, container, stream, limits: MediaLimits, on_too_many:
 
 def probe_video(source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_many: OnTooMany = "subsample") -> VideoHeader:
     """What `read_video` would decode, from the container's metadata and the FIRST frame only
-    (which proves the stream decodes): the same size, frame-count and pixel limits, refused
-    with the same MediaError codes, at the cost of one frame however many the file declares."""
+    (which proves the stream decodes): the same size (upright, after the display rotation),
+    frame-count and pixel limits, refused with the same MediaError codes, at the cost of one
+    frame however many the file declares."""
     container, _ = _open_container(source, limits)
     warnings: list[str] = []
     with container:
@@ -154,7 +158,9 @@ def probe_video(source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_man
         if first is None:
             raise MediaError("truncated", f"no frame could be decoded (the stream declares {frame_count})")
         limits.check_pixels(first.width, first.height, "video frame")
-        return VideoHeader(first.width, first.height, fps, frame_count, selected, warnings)
+        turned = video_rotation_ccw(stream, first) in (90, 270)
+        w, h = (first.height, first.width) if turned else (first.width, first.height)
+        return VideoHeader(w, h, fps, frame_count, selected, warnings)
 
 
 def read_video(source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_many: OnTooMany = "subsample") -> VideoFrames:
@@ -164,14 +170,14 @@ def read_video(source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_many
     with container:
         stream = _video_stream(container)
         fps, frame_count, wanted = _header(source, container, stream, limits, on_too_many, warnings)
-        kept, indices = _decode_selected(container, stream, wanted, limits, warnings)
+        kept, indices, rotation = _decode_selected(container, stream, wanted, limits, warnings)
     if not kept:
         raise MediaError("truncated", f"no frame could be decoded (the stream declares {frame_count})")
     if len(kept) < wanted.size:
         warnings.append(f"decoded {len(kept)} of {wanted.size} selected frames; the file ends early or is corrupt")
-    frames = np.stack(kept).astype(np.float32)
+    frames = rotate_frames(np.stack(kept), rotation).astype(np.float32)
     frames /= np.float32(255.0)
-    return VideoFrames(frames, fps, np.asarray(indices, np.int64), frame_count, warnings)
+    return VideoFrames(frames, fps, np.asarray(indices, np.int64), frame_count, warnings, rotation)
 
 
 def _decoded_frames(container, stream, warnings: list[str]):
@@ -195,14 +201,17 @@ def _decoded_frames(container, stream, warnings: list[str]):
 
 
 def _decode_selected(container, stream, wanted: np.ndarray, limits: MediaLimits, warnings: list[str]):
-    """uint8 frames at the `wanted` source indices (presentation order), stopping after the last."""
+    """(uint8 frames at the `wanted` source indices (presentation order), their indices, the
+    display rotation in ccw degrees), stopping after the last wanted frame."""
     wanted_set = set(wanted.tolist())
     last = int(wanted[-1])
     kept: list[np.ndarray] = []
     indices: list[int] = []
+    rotation = 0
     for index, frame in enumerate(_decoded_frames(container, stream, warnings)):
         if index == 0:  # streams that did not declare a size are checked here
             limits.check_pixels(frame.width, frame.height, "video frame")
+            rotation = video_rotation_ccw(stream, frame)
         if index in wanted_set:
             rgb = frame.to_ndarray(format="rgb24")
             if kept and rgb.shape != kept[0].shape:
@@ -211,7 +220,7 @@ def _decode_selected(container, stream, wanted: np.ndarray, limits: MediaLimits,
             indices.append(index)
         if index >= last:
             break
-    return kept, indices
+    return kept, indices, rotation
 
 
 @functools.lru_cache(maxsize=None)
@@ -224,10 +233,12 @@ def video_codec() -> str:
         return "mpeg4"
 
 
-def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: int = 18) -> Path:
+def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: int = 18,
+                display_rotation_ccw: int = 0) -> Path:
     """Write frames [T, H, W, 3] (float in [0, 1] or uint8) as an mp4 (yuv420p, moov atom
     first so browsers can stream it). yuv420p needs even sizes: odd heights/widths are
-    padded by repeating the last row/column."""
+    padded by repeating the last row/column. `display_rotation_ccw` stores a display matrix
+    (as phones do for portrait clips) without touching the pixels."""
     a = np.asarray(frames)
     if a.ndim != 4 or a.shape[-1] != 3 or min(a.shape[:3]) < 1:
         raise MediaError("shape_mismatch", f"frames must be [T, H, W, 3], got shape {a.shape}")
@@ -248,6 +259,8 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: in
         with av.open(str(tmp), mode="w", format="mp4", options={"movflags": "faststart"}) as container:
             stream = container.add_stream(codec, rate=Fraction(fps).limit_denominator(1001))
             stream.width, stream.height, stream.pix_fmt = a.shape[2], a.shape[1], "yuv420p"
+            if display_rotation_ccw:
+                stream.set_display_rotation(int(display_rotation_ccw))
             if codec == "libx264":
                 stream.options = {"crf": str(int(crf)), "preset": "medium"}
             else:

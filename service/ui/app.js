@@ -303,6 +303,10 @@
     box.append(media);
   }
 
+  // Files uploaded from this tab, by job id: "Re-estimate" with a corrected FOV sends them again
+  // (the service deletes a job's uploads once it has succeeded).
+  const uploads = new Map();
+
   function jobParams() {
     const params = { preset: $("preset-input").value, temporal: $("temporal-input").value };
     const fps = parseFloat($("fps-input").value);
@@ -319,19 +323,11 @@
     const error = $("upload-error");
     const button = $("upload-button");
     error.hidden = true;
-    if (!file) { error.textContent = "Choose an image or a video first."; error.hidden = false; return; }
-    const form = new FormData();
-    form.append("file", file, file.name);
-    if (depth) form.append("depth", depth, depth.name);
-    form.append("params", JSON.stringify(jobParams()));
+    if (!file) { error.textContent = "Choose an image, a video or a capture zip first."; error.hidden = false; return; }
     button.disabled = true;
     button.textContent = "Uploading…";
     try {
-      const created = await apiJson("/jobs", { method: "POST", body: form });
-      closeResult();
-      showPending(file);
-      refreshJobs();
-      watchJob(created.id).catch(reportError);
+      await submitJob(file, depth, jobParams());
     } catch (e) {
       error.textContent = e instanceof ApiError ? e.message : `Upload failed: ${e.message}`;
       error.hidden = false;
@@ -339,6 +335,85 @@
       button.disabled = false;
       button.textContent = "Estimate lighting";
     }
+  }
+
+  async function submitJob(file, depth, params) {
+    const form = new FormData();
+    form.append("file", file, file.name);
+    if (depth) form.append("depth", depth, depth.name);
+    form.append("params", JSON.stringify(params));
+    const created = await apiJson("/jobs", { method: "POST", body: form });
+    uploads.set(created.id, { file, depth });
+    closeResult();
+    showPending(file);
+    refreshJobs();
+    watchJob(created.id).catch(reportError);
+    return created;
+  }
+
+  /** Re-estimate the open job with a corrected horizontal FOV: the same file and params, new
+   * intrinsics. Without the file in this tab, the upload form is filled in instead. */
+  async function correctFov(event) {
+    event.preventDefault();
+    const hfov = parseFloat($("fov-correct").value);
+    const status = $("fov-status");
+    if (!(hfov > 0 && hfov < 180) || !view.id) { status.textContent = "Give a FOV between 0 and 180°."; return; }
+    let params = {};
+    try {
+      params = (await apiJson(`/jobs/${view.id}`)).params || {};
+    } catch (error) { reportError(error); return; }
+    const corrected = { ...params, intrinsics: { hfov_deg: hfov } };
+    const upload = uploads.get(view.id);
+    if (!upload) {
+      $("hfov-input").value = String(hfov);
+      if (corrected.preset) $("preset-input").value = corrected.preset;
+      if (corrected.temporal) $("temporal-input").value = corrected.temporal;
+      if (corrected.fps) $("fps-input").value = String(corrected.fps);
+      status.textContent = `Choose the same file under “New estimate” to re-estimate with ${hfov}°.`;
+      $("file-input").focus();
+      return;
+    }
+    $("fov-button").disabled = true;
+    status.textContent = "Uploading…";
+    try {
+      await submitJob(upload.file, upload.depth, corrected);
+    } catch (error) {
+      status.textContent = error instanceof ApiError ? error.message : `Upload failed: ${error.message}`;
+    } finally {
+      $("fov-button").disabled = false;
+    }
+  }
+
+  /** The camera the estimate used: FOV and where it came from, depth source, tracking. */
+  function showCamera(capture) {
+    const k = capture.intrinsics;
+    const hfov = (2 * Math.atan(0.5 * k.width / k.fx) * 180) / Math.PI;
+    $("fov-value").textContent = `${hfov.toFixed(1)}°`;
+    $("fov-source").textContent = capture.intrinsics_source ? `(${capture.intrinsics_source})` : "";
+    $("fov-correct").value = hfov.toFixed(1);
+    $("fov-status").textContent = "";
+    $("depth-source").textContent = capture.depth_source;
+    const t = capture.tracking || null;
+    let camera = capture.static_camera === false ? "moves (poses given)" : "static";
+    if (t && t.method) {
+      const err = t.reprojection_error_px == null ? "" : `, reprojection error ${Number(t.reprojection_error_px).toFixed(2)} px`;
+      const dropped = (t.frames_dropped || []).length ? `, ${t.frames_dropped.length} frame(s) dropped` : "";
+      camera = {
+        static: "static (no camera motion found)",
+        rotation: `tracked: turns about a fixed point${err}${dropped}`,
+        "sfm:pycolmap": `tracked: structure from motion (COLMAP)${err}${dropped}, scale: ${t.scale_source}`,
+        "sfm:opencv": `tracked: structure from motion (OpenCV)${err}${dropped}, scale: ${t.scale_source}`,
+        "failed:static-fallback": "tracking FAILED: treated as static (give poses for a moving camera)",
+        off: "static (tracking turned off)",
+      }[t.method] || t.method;
+    } else if (capture.poses_source) {
+      camera = `${capture.static_camera ? "static" : "moves"} (${capture.poses_source})`;
+    }
+    $("camera-source").textContent = camera;
+    $("camera-source").classList.toggle("warning", Boolean(t && t.method === "failed:static-fallback"));
+    const notes = capture.notes || [];
+    $("capture-notes").hidden = !notes.length;
+    $("capture-notes").textContent = notes.length ? `From the file: ${notes.join("; ")}` : "";
   }
 
   // ------------------------------------------------------------------ jobs list
@@ -448,9 +523,9 @@
     $("capture-info").textContent = [
       `${capture.width}×${capture.height} preview`,
       `${capture.frames} frame${capture.frames === 1 ? "" : "s"}${capture.frames > 1 ? ` at ${capture.fps.toPrecision(3)} fps` : ""}`,
-      `depth: ${capture.depth_source}`,
       capture.uses_time ? "lighting varies over time" : "lighting constant over time",
     ].join(" · ");
+    showCamera(capture);
     $("empty-state").hidden = true;
     $("result").hidden = false;
     renderProbes();
@@ -751,6 +826,7 @@
     $("api-key").value = auth.key;
     $("key-form").addEventListener("submit", useKey);
     $("upload-form").addEventListener("submit", submitUpload);
+    $("fov-form").addEventListener("submit", (e) => correctFov(e).catch(reportError));
     $("cancel-button").addEventListener("click", cancelJob);
     $("jobs-refresh").addEventListener("click", refreshJobs);
     $("viewer").addEventListener("click", onFrameClick);

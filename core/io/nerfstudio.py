@@ -1,0 +1,383 @@
+"""Captures in the nerfstudio `transforms.json` layout (Polycam, Record3D, KIRI Engine,
+`ns-process-data`): a directory or a zip holding `transforms.json`, the images and, optionally,
+depth maps.
+
+Conversion to our conventions (docs/capture-formats.md):
+* `transform_matrix` (4x4, or 3x4 + the implied last row) is camera-to-world with an OpenGL
+  camera (x right, y up, looking along -z): exactly our camera frame, so poses are taken as
+  they are. The world is the app's: ARKit-based apps are +y up like ours; COLMAP-based
+  exports (`ns-process-data`) are +z up. When the cameras' up vectors say the world is +z
+  up, it is turned to +y up by R = Rx(-90°), i.e. (x, y, z)_ours = (x, z, -y)_file; the
+  rotation is recorded so positions can be mapped back. Nothing else is changed (no
+  recentring, no rescaling: nerfstudio's `applied_scale` is informational here).
+* Intrinsics `fl_x, fl_y, cx, cy, w, h` (top level or per frame, one camera: per-frame
+  values must agree within 0.5 %) are pixels in the same continuous convention as ours
+  (COLMAP's, pixel centres at + 0.5); `camera_angle_x` (NeRF-synthetic) stands in for
+  `fl_x`. When the images are not w x h (a downscaled folder), intrinsics are rescaled.
+* `camera_model`: PINHOLE / SIMPLE_PINHOLE used as is; OPENCV (k1, k2, p1, p2, k3) and
+  OPENCV_FISHEYE (k1-k4) are undistorted to a pinhole with the same fx, fy, cx, cy (OpenCV
+  remap; depth maps with nearest-neighbour); anything else (EQUIRECTANGULAR, ...) is refused
+  by name.
+* `depth_file_path`: planar depth per frame. A 16-bit PNG is millimetres, as nerfstudio's
+  default `depth_unit_scale_factor` = 1e-3 (a top-level `depth_unit_scale_factor` overrides
+  it for PNGs); .npy/.npz/.exr are metres (core.io.depth). Depth of another size is resized
+  (nearest). Depth is used only when every kept frame has one.
+* Frames keep the file's order. Too many frames are subsampled evenly (core.io.video
+  .select_frame_indices) with their poses.
+Every problem is an `ArchiveError` whose `.field` names the offending key, e.g.
+`transforms.json: frames[3].transform_matrix`.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from core.io.archive import ArchiveError, CaptureFiles, ZipFiles, member_name, open_capture_files
+from core.io.depth import read_depth
+from core.io.images import decode_image
+from core.io.limits import DEFAULT_LIMITS, MediaLimits, Source
+from core.io.video import select_frame_indices
+
+INDEX = "transforms.json"
+MAX_INDEX_BYTES = 64 * 1024 * 1024
+PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+DISTORTED_MODELS = ("OPENCV", "OPENCV_FISHEYE")
+INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+CAMERA_KEYS = INTRINSIC_KEYS + ("camera_angle_x", "camera_model", "k1", "k2", "k3", "k4", "p1", "p2")
+RIGID_TOLERANCE = 1e-3
+SAME_CAMERA_TOLERANCE = 0.005
+Z_UP_TO_Y_UP = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], np.float64)  # Rx(-90 deg)
+
+
+def _err(key: str, message: str, code: str = "shape_mismatch") -> ArchiveError:
+    f = f"{INDEX}: {key}" if key else INDEX
+    return ArchiveError(code, f"{f}: {message}", f)
+
+
+def _num(obj: dict, key: str, where: str, required: bool = True, positive: bool = False) -> float | None:
+    v = obj.get(key)
+    if v is None:
+        if required:
+            raise _err(f"{where}{key}", "is missing")
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise _err(f"{where}{key}", f"must be a finite number, got {v!r}")
+    if positive and v <= 0:
+        raise _err(f"{where}{key}", f"must be > 0, got {v!r}")
+    return float(v)
+
+
+@dataclass(frozen=True)
+class NerfstudioCamera:
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    model: str
+    distortion: tuple[float, ...]  # OPENCV: (k1, k2, p1, p2, k3); OPENCV_FISHEYE: (k1, k2, k3, k4)
+
+    @property
+    def distorted(self) -> bool:
+        return self.model in DISTORTED_MODELS and any(abs(x) > 0 for x in self.distortion)
+
+    def scaled(self, width: int, height: int) -> "NerfstudioCamera":
+        sx, sy = width / self.width, height / self.height
+        return NerfstudioCamera(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height, self.model, self.distortion)
+
+    def as_dict(self) -> dict:
+        return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "width": self.width, "height": self.height}
+
+
+@dataclass
+class NerfstudioIndex:
+    """transforms.json parsed and checked against the files, nothing decoded."""
+
+    camera: NerfstudioCamera
+    files: list[str]
+    poses: np.ndarray  # [N, 4, 4] c2w, our convention and +y-up world
+    depth_files: list[str] | None
+    depth_unit_scale: float | None
+    world_rotation: np.ndarray | None  # the rotation applied to the file's world (None: none)
+    notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+    def describe(self) -> dict:
+        return {
+            "format": "nerfstudio transforms.json",
+            "frames": len(self.files),
+            "camera_model": self.camera.model,
+            "distortion": list(self.camera.distortion),
+            "intrinsics": self.camera.as_dict(),
+            "depth": "per frame" if self.depth_files else "none",
+            "world_rotation_applied": None if self.world_rotation is None else self.world_rotation.tolist(),
+            "notes": list(self.notes),
+        }
+
+
+@dataclass
+class NerfstudioCapture:
+    frames: np.ndarray  # [T, H, W, 3] float32 in [0, 1], undistorted
+    intrinsics: dict  # fx, fy, cx, cy, width, height (pinhole)
+    poses: np.ndarray  # [T, 4, 4]
+    depth: np.ndarray | None  # [T, H, W] float32 metres, NaN invalid
+    source_indices: list[int]
+    original_count: int
+    names: list[str]
+    metadata: dict
+    warnings: list[str]
+
+
+def _camera(meta: dict, where: str, image_size: tuple[int, int] | None) -> NerfstudioCamera:
+    """One camera from the intrinsic keys of `meta` (top level merged with a frame's own)."""
+    model = meta.get("camera_model", "OPENCV")
+    if not isinstance(model, str):
+        raise _err(f"{where}camera_model", f"must be a string, got {model!r}")
+    model = model.upper()
+    if model not in PINHOLE_MODELS + DISTORTED_MODELS:
+        raise _err(f"{where}camera_model", f"{model!r} is not supported (use PINHOLE, SIMPLE_PINHOLE, OPENCV or "
+                                           "OPENCV_FISHEYE; 360-degree EQUIRECTANGULAR captures need a perspective export)",
+                   "unsupported_codec")
+    if "w" in meta or "h" in meta or image_size is None:
+        w, h = _num(meta, "w", where, positive=True), _num(meta, "h", where, positive=True)
+        if w != int(w) or h != int(h):
+            raise _err(f"{where}w", f"w and h must be whole pixels, got {w} x {h}")
+    else:
+        w, h = image_size
+    if "fl_x" in meta:
+        fx = _num(meta, "fl_x", where, positive=True)
+    elif "camera_angle_x" in meta:
+        angle = _num(meta, "camera_angle_x", where, positive=True)
+        if not angle < math.pi:
+            raise _err(f"{where}camera_angle_x", f"must be < pi, got {angle}")
+        fx = 0.5 * w / math.tan(angle / 2)
+    else:
+        raise _err(f"{where}fl_x", "is missing (give fl_x, fl_y, cx, cy, w, h)")
+    fy = _num(meta, "fl_y", where, positive=True) if "fl_y" in meta else fx
+    cx = _num(meta, "cx", where) if "cx" in meta else w / 2
+    cy = _num(meta, "cy", where) if "cy" in meta else h / 2
+    keys = {"OPENCV": ("k1", "k2", "p1", "p2", "k3"), "OPENCV_FISHEYE": ("k1", "k2", "k3", "k4")}.get(model, ())
+    dist = tuple(_num(meta, k, where, required=False) or 0.0 for k in keys)
+    return NerfstudioCamera(float(fx), float(fy), float(cx), float(cy), int(w), int(h), model, dist)
+
+
+def _same_camera(a: NerfstudioCamera, b: NerfstudioCamera) -> bool:
+    if a.model != b.model or (a.width, a.height) != (b.width, b.height):
+        return False
+    close = all(abs(x - y) <= SAME_CAMERA_TOLERANCE * max(abs(x), 1.0) for x, y in
+                ((a.fx, b.fx), (a.fy, b.fy), (a.cx, b.cx), (a.cy, b.cy)))
+    return close and all(abs(x - y) < 1e-6 for x, y in zip(a.distortion, b.distortion))
+
+
+def _pose(v: Any, key: str) -> np.ndarray:
+    try:
+        m = np.asarray(v, np.float64)
+    except (TypeError, ValueError):
+        raise _err(key, "must be a 4x4 (or 3x4) list of numbers") from None
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0, 0, 0, 1]])
+    if m.shape != (4, 4):
+        raise _err(key, f"must be 4x4 (or 3x4), got shape {m.shape}")
+    if not np.isfinite(m).all():
+        raise _err(key, "contains non-finite values")
+    if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-6):
+        raise _err(key, f"last row must be [0, 0, 0, 1], got {m[3].tolist()}")
+    R = m[:3, :3]
+    dev = float(np.abs(R.T @ R - np.eye(3)).max())
+    if dev > RIGID_TOLERANCE or np.linalg.det(R) < 0:
+        raise _err(key, f"is not a rigid camera-to-world transform (rotation part off orthonormal by {dev:.3g}, "
+                        f"det {np.linalg.det(R):.3g}); scaled or mirrored poses are not accepted")
+    return m
+
+
+def _world_rotation(poses: np.ndarray) -> np.ndarray | None:
+    """Rx(-90 deg) when the cameras' mean up vector says the file's world is +z up, else None."""
+    up = poses[:, :3, 1].mean(0)
+    n = np.linalg.norm(up)
+    if n < 0.3:  # cameras point every which way: no evidence, keep the file's frame
+        return None
+    up = up / n
+    return Z_UP_TO_Y_UP if up[2] > 0.7 and up[2] > abs(up[1]) else None
+
+
+def _image_size(files: CaptureFiles, name: str, key: str) -> tuple[int, int]:
+    """(width, height) from an image's header (Pillow parses headers lazily)."""
+    import io
+
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(files.read(name, f"{INDEX}: {key}"))) as im:
+            return im.size
+    except ArchiveError:
+        raise
+    except Exception as exc:  # not an image Pillow knows
+        raise _err(key, f"{name!r} is not a readable image ({type(exc).__name__})", "not_media") from None
+
+
+def _find_index(files: CaptureFiles) -> None:
+    if files.exists(INDEX):
+        return
+    if isinstance(files, ZipFiles):
+        found = files.find(INDEX)
+        if len(found) == 1:
+            files.prefix = found[0][: -len(INDEX)].rstrip("/")
+            return
+        if len(found) > 1:
+            raise _err("", f"the archive holds {len(found)} {INDEX} files ({found[:3]}...); send one capture per archive", "not_media")
+    raise _err("", f"no {INDEX} in the capture", "not_found")
+
+
+def read_index(files: CaptureFiles) -> NerfstudioIndex:
+    """Parse and check transforms.json against the files present (headers only, no decoding)."""
+    _find_index(files)
+    raw = files.read(INDEX, INDEX)
+    if len(raw) > MAX_INDEX_BYTES:
+        raise _err("", f"is {len(raw)} bytes, more than {MAX_INDEX_BYTES}", "too_large")
+    try:
+        meta = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise _err("", f"is not valid UTF-8 JSON ({exc})", "truncated") from None
+    if not isinstance(meta, dict):
+        raise _err("", "must be a JSON object")
+    frames = meta.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise _err("frames", "must be a non-empty list")
+    top = {k: meta[k] for k in CAMERA_KEYS if k in meta}
+    notes: list[str] = []
+    cams, names, poses, depth_files = [], [], [], []
+    cache: dict[str, NerfstudioCamera] = {}
+    image_size = None
+    for i, fr in enumerate(frames):
+        where = f"frames[{i}]."
+        if not isinstance(fr, dict):
+            raise _err(f"frames[{i}]", "must be an object")
+        path = fr.get("file_path")
+        if not isinstance(path, str):
+            raise _err(f"{where}file_path", "is missing or not a string", "not_found")
+        name = member_name(path, f"{INDEX}: {where}file_path")
+        if not files.exists(name):
+            raise _err(f"{where}file_path", f"{path!r} is not in the capture", "not_found")
+        if "transform_matrix" not in fr:
+            raise _err(f"{where}transform_matrix", "is missing")
+        own = {k: fr[k] for k in CAMERA_KEYS if k in fr}
+        merged = {**top, **own}
+        if "w" not in merged and image_size is None:
+            image_size = _image_size(files, name, f"{where}file_path")
+        key = json.dumps(merged, sort_keys=True, default=str)
+        if key not in cache:
+            cache[key] = _camera(merged, where if own else "", image_size)
+        cam = cache[key]
+        if cams and not _same_camera(cams[0], cam):
+            raise _err(f"{where}fl_x", "intrinsics differ from frames[0]: captures from several cameras are not supported")
+        cams.append(cam)
+        names.append(name)
+        poses.append(_pose(fr["transform_matrix"], f"{where}transform_matrix"))
+        d = fr.get("depth_file_path")
+        if d is not None:
+            dname = member_name(d, f"{INDEX}: {where}depth_file_path")
+            if not files.exists(dname):
+                raise _err(f"{where}depth_file_path", f"{d!r} is not in the capture", "not_found")
+            depth_files.append(dname)
+    if "mask_path" in frames[0]:
+        notes.append("mask_path ignored (masks are not used)")
+    warnings = []
+    if depth_files and len(depth_files) != len(frames):
+        warnings.append(f"only {len(depth_files)} of {len(frames)} frames have a depth_file_path: depth ignored")
+        depth_files = []
+    scale = _num(meta, "depth_unit_scale_factor", "", required=False, positive=True) if "depth_unit_scale_factor" in meta else None
+    P = np.stack(poses)
+    R = _world_rotation(P)
+    if R is not None:
+        P = R[None] @ P
+        notes.append("the file's world is +z up (cameras' mean up vector): turned to +y up by Rx(-90 deg), "
+                     "(x, y, z)_ours = (x, z, -y)_file")
+    if cams[0].distorted:
+        notes.append(f"{cams[0].model} distortion {list(cams[0].distortion)} removed (undistorted to a pinhole, same fx, fy, cx, cy)")
+    return NerfstudioIndex(cams[0], names, P, depth_files or None, scale, R, notes, warnings)
+
+
+def _undistort_maps(cam: NerfstudioCamera):
+    K = np.array([[cam.fx, 0, cam.cx - 0.5], [0, cam.fy, cam.cy - 0.5], [0, 0, 1]], np.float64)  # OpenCV pixel centres
+    size = (cam.width, cam.height)
+    if cam.model == "OPENCV_FISHEYE":
+        return cv2.fisheye.initUndistortRectifyMap(K, np.array(cam.distortion[:4]), np.eye(3), K, size, cv2.CV_32FC1)
+    return cv2.initUndistortRectifyMap(K, np.array(cam.distortion), np.eye(3), K, size, cv2.CV_32FC1)
+
+
+def _depth_frame(files: CaptureFiles, name: str, key: str, shape: tuple[int, int], scale: float | None,
+                 limits: MediaLimits) -> np.ndarray:
+    data = files.read(name, key)
+    try:
+        d = read_depth(data, limits)
+    except ArchiveError:
+        raise
+    except ValueError as exc:  # MediaError: name the field that pointed at the file
+        raise _err(key, f"{name!r}: {exc}", getattr(exc, "code", "invalid_depth")) from None
+    if d.ndim == 3 and d.shape[0] == 1:
+        d = d[0]
+    if d.ndim != 2:
+        raise _err(key, f"{name!r} must hold one [H, W] depth map, got shape {d.shape}", "invalid_depth")
+    if scale is not None and data[:4] == b"\x89PNG":
+        d = d * (scale * 1000.0)  # read_depth gave mm / 1000; the file says mm * 1000 * scale metres
+    if d.shape != shape:
+        d = cv2.resize(d, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
+    return d
+
+
+def load_nerfstudio(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> NerfstudioCapture:
+    """Read a nerfstudio capture (directory or zip) under `limits` (see module docstring)."""
+    with open_capture_files(source, limits) as files:
+        index = read_index(files)
+        cam = index.camera
+        keep = [int(i) for i in select_frame_indices(len(index.files), cam.width * cam.height, limits)]
+        frames, applied = [], []
+        for i in keep:
+            key = f"frames[{i}].file_path"
+            try:
+                decoded = decode_image(files.read(index.files[i], f"{INDEX}: {key}"), limits)
+            except ArchiveError:
+                raise
+            except ValueError as exc:
+                raise _err(key, f"{index.files[i]!r}: {exc}", getattr(exc, "code", "not_media")) from None
+            frames.append(decoded.pixels)
+            applied.extend(a for a in decoded.applied if a not in applied)
+        h, w = frames[0].shape[:2]
+        for n, f in enumerate(frames):
+            if f.shape[:2] != (h, w):
+                raise _err(f"frames[{keep[n]}].file_path", f"image is {f.shape[1]}x{f.shape[0]}, frames[{keep[0]}] is {w}x{h}")
+        notes = list(index.notes) + applied
+        if (w, h) != (cam.width, cam.height):
+            notes.append(f"images are {w}x{h}, transforms.json says {cam.width}x{cam.height}: intrinsics rescaled")
+            cam = cam.scaled(w, h)
+        stack = np.stack(frames)
+        depth = None
+        if index.depth_files:
+            depth = np.stack([_depth_frame(files, index.depth_files[i], f"frames[{i}].depth_file_path", (h, w),
+                                           index.depth_unit_scale, limits) for i in keep])
+        if cam.distorted:
+            mx, my = _undistort_maps(cam)
+            stack = np.stack([cv2.remap(f, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for f in stack])
+            if depth is not None:
+                depth = np.stack([cv2.remap(d, mx, my, cv2.INTER_NEAREST, borderValue=float("nan")) for d in depth])
+    return NerfstudioCapture(
+        frames=np.clip(stack, 0.0, 1.0).astype(np.float32), intrinsics=cam.as_dict(), poses=index.poses[keep],
+        depth=depth, source_indices=keep, original_count=len(index.files), names=[index.files[i] for i in keep],
+        metadata={**index.describe(), "notes": notes}, warnings=list(index.warnings),
+    )
+
+
+def inspect_nerfstudio(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> dict:
+    """Submission-time check without decoding pixels: the index, the files it names, and the
+    first image's header against the limits. Returns `NerfstudioIndex.describe()`."""
+    with open_capture_files(source, limits) as files:
+        index = read_index(files)
+        limits.check_pixels(index.camera.width, index.camera.height, f"{INDEX}: w x h")
+        limits.check_pixels(*_image_size(files, index.files[0], "frames[0].file_path"), "frames[0] image")
+        return index.describe()

@@ -1,0 +1,92 @@
+"""Does the camera move? A documented statistic, recorded with its evidence.
+
+Statistic (docs/engine.md, "Camera tracking"):
+1. SIFT features per frame at the analysis resolution (core.tracking.features).
+2. For every frame t > 0, the MEDIAN displacement of the features matched between frame 0
+   and frame t (mutual ratio-test matches, at least MIN_MATCHES). The median ignores a
+   minority of moving objects and mismatches; a lighting change moves no feature.
+   When frame t no longer overlaps frame 0 enough, its displacement is chained through
+   frame t - 1 (displacement(t - 1) + median displacement between t - 1 and t).
+   Frames with too few matches either way (dark, blurred, a cut) are left out and listed.
+3. statistic = max over frames of that displacement / image width (resolution-free).
+4. threshold = max(MIN_MOTION_FRACTION, K_SIGMA x the keypoint noise), the noise being the
+   smallest over frames of the robust spread (1.4826 MAD) of the features' residuals after a
+   RANSAC homography between the two frames (localisation noise; the smallest because
+   parallax adds to the residual of later frames of a moving camera).
+moving = statistic > threshold.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import cv2
+import numpy as np
+
+from core.tracking.features import FrameFeatures, match
+
+MIN_MATCHES = 12
+MIN_MOTION_FRACTION = 0.004  # 0.4 % of the width: ~1.3 px at 320 px, ~0.25 deg at 60 deg FOV
+K_SIGMA = 4.0
+
+
+@dataclass(frozen=True)
+class MotionDecision:
+    moving: bool
+    statistic: float
+    threshold: float
+    reason: str
+    evidence: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def _median_displacement(xi: np.ndarray, xj: np.ndarray) -> tuple[float, float]:
+    """(median displacement, robust spread of the residuals after a homography) in pixels."""
+    disp = float(np.median(np.linalg.norm(xj - xi, axis=1)))
+    H, _ = cv2.findHomography(xi, xj, cv2.RANSAC, 3.0)
+    if H is None:
+        return disp, float("nan")
+    pred = cv2.perspectiveTransform(xi[None].astype(np.float64), H)[0]
+    return disp, 1.4826 * float(np.median(np.linalg.norm(xj - pred, axis=1)))
+
+
+def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
+    """Decide from per-frame features (analysis resolution, `width` pixels wide)."""
+    T = len(features)
+    if T < 2:
+        return MotionDecision(False, 0.0, 0.0, "single frame: camera treated as static", {"frames": T})
+    disp = np.full(T, np.nan)
+    disp[0] = 0.0
+    noise, matches, chained, lost = [], [0] * T, [], []
+    for t in range(1, T):
+        m = match(features[0], features[t], 0, t)
+        matches[t] = len(m)
+        if len(m) >= MIN_MATCHES:
+            disp[t], s = _median_displacement(m.xi, m.xj)
+            noise.append(s)
+            continue
+        prev = match(features[t - 1], features[t], t - 1, t)
+        if len(prev) >= MIN_MATCHES and np.isfinite(disp[t - 1]):
+            step, s = _median_displacement(prev.xi, prev.xj)
+            disp[t] = disp[t - 1] + step
+            noise.append(s)
+            chained.append(t)
+        else:
+            lost.append(t)
+    finite = disp[np.isfinite(disp)]
+    evidence = {"analysis_width": int(width), "frames": T, "displacement_px": [round(float(d), 3) for d in disp],
+                "matches_to_first": matches, "chained_frames": chained, "frames_without_matches": lost}
+    if len(finite) < 2:
+        return MotionDecision(False, float("nan"), float("nan"),
+                              "too few matched features to judge camera motion: camera treated as static", evidence)
+    stat = float(finite.max()) / width
+    noise = [n for n in noise if np.isfinite(n)]
+    sigma = float(min(noise)) / width if noise else 0.0
+    thr = max(MIN_MOTION_FRACTION, K_SIGMA * sigma)
+    moving = stat > thr
+    worst = int(np.nanargmax(disp))
+    reason = (f"camera {'moves' if moving else 'is static'}: max median feature displacement {stat * width:.2f} px "
+              f"({stat:.4f} of the width) at frame {worst} vs threshold {thr:.4f} (keypoint noise {sigma * width:.2f} px"
+              f"{f', {len(lost)} frame(s) without matches' if lost else ''})")
+    return MotionDecision(moving, stat, thr, reason, evidence)

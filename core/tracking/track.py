@@ -1,0 +1,170 @@
+"""Camera tracking for captures without poses: decide, estimate, scale, and say how.
+
+`track_camera(frames, intrinsics, depth=None)`:
+1. SIFT features at the analysis resolution; `detect_motion` decides whether the camera
+   moves (statistic and evidence recorded). Static -> identity poses, method "static".
+2. Moving: rotation about a fixed centre first (core.tracking.rotation). When the rotation
+   model explains the matches (`RotationTrack.fits`), the poses are those rotations with
+   zero translation: method "rotation", no scale needed.
+3. Otherwise general structure from motion with pycolmap (method "sfm:pycolmap"), falling
+   back to OpenCV two-view geometry chained by PnP (method "sfm:opencv") if COLMAP finds no
+   model; then scale (core.tracking.scale): from given depth, else the floor, else the room
+   assumption.
+4. If every method fails: identity poses, method "failed:static-fallback", and a warning.
+   The caller still succeeds (a capture is never refused for being hard to track).
+World = the first kept frame's camera frame (core.conventions). Frames that could not be
+registered are listed in `dropped`; the caller removes them from the capture.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import torch
+
+from core.camera import Intrinsics
+from core.tracking.features import analysis_frames, extract, match, pair_schedule
+from core.tracking.motion import MotionDecision, detect_motion
+from core.tracking.rotation import estimate_rotations
+from core.tracking.scale import ScaleEstimate, apply_scale, scale_from_depth, scale_from_room
+
+MIN_KEPT_FRACTION = 0.5  # a track that registers fewer frames than this is a failure
+SFM_ENV = "LIGHTFIELD_SFM"  # "pycolmap" (default) or "opencv": where pycolmap's wheel is unavailable or unwanted
+
+
+def sfm_backend_from_env() -> bool:
+    """True to use pycolmap (the default), False for the OpenCV tracker only (LIGHTFIELD_SFM=opencv)."""
+    value = os.environ.get(SFM_ENV, "pycolmap").strip().lower() or "pycolmap"
+    if value not in ("pycolmap", "opencv"):
+        raise ValueError(f"{SFM_ENV} must be 'pycolmap' or 'opencv', got {value!r}")
+    return value == "pycolmap"
+
+
+@dataclass
+class TrackingResult:
+    poses: torch.Tensor  # [K, 4, 4] float64 c2w of the kept frames (world = kept[0]'s camera)
+    kept: list[int]
+    dropped: list[int]
+    method: str  # "static" | "rotation" | "sfm:pycolmap" | "sfm:opencv" | "failed:static-fallback"
+    motion: MotionDecision
+    reprojection_error_px: float | None = None  # at the analysis resolution
+    analysis_size: tuple[int, int] = (0, 0)  # (width, height) the error is measured at
+    scale: ScaleEstimate | None = None
+    points: torch.Tensor | None = None  # [N, 3] float64 sparse points, metres, world frame
+    focal_px: float | None = None  # refined fx at the INPUT resolution (None when not refined)
+    warnings: list[str] = field(default_factory=list)
+    cpu_seconds: float = 0.0
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not self.method.startswith("failed")
+
+    def summary(self) -> dict:
+        """What the artefact records (poses are recorded by the capture summary)."""
+        return {
+            "method": self.method,
+            "camera_moves": self.motion.moving,
+            "motion": self.motion.as_dict(),
+            "reprojection_error_px": None if self.reprojection_error_px is None else round(self.reprojection_error_px, 4),
+            "analysis_size": list(self.analysis_size),
+            "frames_kept": list(self.kept),
+            "frames_dropped": list(self.dropped),
+            "scale_source": self.scale.source if self.scale else ("none: no translation" if self.method == "rotation" else None),
+            "scale": None if self.scale is None else {"metres_per_unit": self.scale.scale, **self.scale.evidence},
+            "sparse_points": 0 if self.points is None else int(self.points.shape[0]),
+            "refined_focal_px": self.focal_px,
+            "cpu_seconds": round(self.cpu_seconds, 3),
+            "warnings": list(self.warnings),
+            **({"stats": self.stats} if self.stats else {}),
+        }
+
+
+def _identity(n: int) -> torch.Tensor:
+    return torch.eye(4, dtype=torch.float64).expand(n, 4, 4).clone()
+
+
+def _poses_from_rotations(rots: np.ndarray) -> torch.Tensor:
+    p = _identity(len(rots))
+    p[:, :3, :3] = torch.from_numpy(rots)
+    return p
+
+
+def track_camera(frames: torch.Tensor, intrinsics: Intrinsics, depth: torch.Tensor | None = None,
+                 refine_focal: bool = False, use_pycolmap: bool | None = None) -> TrackingResult:
+    """Poses for `frames` [T, H, W, 3] LDR (see module docstring). `depth` [T, H, W] (planar
+    metres, NaN invalid) fixes the scale when given. `refine_focal` lets a pan refine fx
+    (use it when the intrinsics were assumed, not given). `use_pycolmap=None` reads SFM_ENV."""
+    t_cpu = time.process_time()
+    use_pycolmap = sfm_backend_from_env() if use_pycolmap is None else use_pycolmap
+    cv2.setRNGSeed(0)  # OpenCV's RANSAC: the same capture tracks the same way every time
+    T = int(frames.shape[0])
+    images, k = analysis_frames(frames, intrinsics)
+    features = [extract(im) for im in images]
+    motion = detect_motion(features, k.width)
+    result = TrackingResult(_identity(T), list(range(T)), [], "static", motion, analysis_size=(k.width, k.height))
+    if motion.moving:
+        result = _track_moving(images, features, k, intrinsics, depth, refine_focal, use_pycolmap, motion)
+    result.cpu_seconds = time.process_time() - t_cpu
+    return result
+
+
+def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refine_focal, use_pycolmap,
+                  motion: MotionDecision) -> TrackingResult:
+    T = len(images)
+    pairs = [match(features[i], features[j], i, j) for i, j in pair_schedule(T)]
+    rot = estimate_rotations(pairs, T, k, refine_focal=refine_focal)
+    stats = {"rotation_model": {"median_px": round(rot.median_px, 4), "inlier_share": round(rot.inlier_share, 4),
+                                "parallax_px": round(rot.parallax_px, 4), "epipolar_px": round(rot.epipolar_px, 4),
+                                "fits": rot.fits, "pairs": rot.pairs}}
+    size = (k.width, k.height)
+    if rot.fits and len(rot.kept) >= MIN_KEPT_FRACTION * T:
+        focal = rot.focal * full.width / k.width if refine_focal else None
+        return TrackingResult(_poses_from_rotations(rot.rotations), rot.kept, rot.dropped, "rotation", motion,
+                              rot.rms_px, size, None, None, focal, _dropped_warning(rot.dropped), stats=stats)
+    failures = []
+    for name, runner in (("sfm:pycolmap", _pycolmap_track if use_pycolmap else None), ("sfm:opencv", _opencv_track)):
+        if runner is None:
+            continue
+        try:
+            track = runner(images, features, k)
+        except Exception as exc:  # a library failure is a tracking failure, never a job failure
+            failures.append(f"{name}: {type(exc).__name__}: {exc}")
+            continue
+        if track is None or len(track.kept) < max(2, MIN_KEPT_FRACTION * T):
+            failures.append(f"{name}: registered {0 if track is None else len(track.kept)} of {T} frames")
+            continue
+        scale = None
+        if depth is not None:
+            scale = scale_from_depth(track.poses, k, track.points, track.observations, depth, track.kept)
+        scale = scale or scale_from_room(track.poses, k, track.points, track.observations)
+        poses, points = apply_scale(track.poses, track.points, scale.scale)
+        warn = _dropped_warning(track.dropped)
+        if scale.source != "depth":
+            warn.append(f"camera translation scaled by the {scale.source} rule (no depth given): distances are approximate")
+        return TrackingResult(torch.from_numpy(poses), track.kept, track.dropped, name, motion,
+                              track.reprojection_error_px, size, scale, torch.from_numpy(points), None, warn,
+                              stats={**stats, **track.stats, "failures": failures} if failures else {**stats, **track.stats})
+    warning = ("camera tracking failed (" + "; ".join(failures) + "): treating the camera as static; "
+               "give poses (params.poses) or a capture-app export for a moving camera")
+    return TrackingResult(_identity(T), list(range(T)), [], "failed:static-fallback", motion, None, size,
+                          warnings=[warning], stats={**stats, "failures": failures})
+
+
+def _dropped_warning(dropped: list[int]) -> list[str]:
+    return [f"camera tracking could not register {len(dropped)} frame(s) {dropped[:20]}: they are left out"] if dropped else []
+
+
+def _pycolmap_track(images, features, k):
+    from core.tracking.sfm import run_sfm
+
+    return run_sfm(images, k)
+
+
+def _opencv_track(images, features, k):
+    from core.tracking.twoview import run_two_view
+
+    return run_two_view(features, k)
