@@ -55,6 +55,7 @@ class DistillConfig(BaseModel):
     envmap_room_probes: int = Field(4, ge=0, le=64, description="probes anywhere along camera rays (0.05-0.95 of the depth)")
     envmap_camera_probe: bool = Field(True, description="also a probe at the camera centre (where users query)")
     envmap_directions: int = Field(640, ge=1, description="random directions per probe and step")
+    envmap_bright_fraction: float = Field(0.25, ge=0, le=1, description="share of the directions drawn ~ the target's luminance")
     envmap_height: int = Field(24, ge=4, description="height of the env maps asked from the prior")
     log_floor_fraction: float = Field(1e-3, gt=0, description="log(L + floor), floor = this x the frame's mean radiance")
     linear_weight: float = Field(0.1, ge=0, description="weight of the relative linear (energy) term")

@@ -24,18 +24,19 @@ from core.engine.config import DistillConfig, EngineConfig
 from core.fields import FieldConfig
 
 
-def _narrow(width: int, layers: int) -> FieldConfig:
-    """The MLP (default kind) and the trunk at `width` x `layers`; the grid as the paper's."""
-    return FieldConfig(kind="mlp", mlp={"width": width, "layers": layers},
-                       trunk={"trunk_width": width, "trunk_layers": layers})
+def _narrow(width: int, layers: int, **encoding) -> FieldConfig:
+    """The MLP (default kind) and the trunk at `width` x `layers` (and `encoding` settings); the grid as the paper's."""
+    return FieldConfig(kind="mlp", mlp={"width": width, "layers": layers, **encoding},
+                       trunk={"trunk_width": width, "trunk_layers": layers, **encoding})
 
 
 PRESETS: dict[str, EngineConfig] = {
     # CPU: ~1 min for a 20-frame 192x144 clip on 2 cores (bench/presets.py)
     "draft": EngineConfig(
         name="draft",
-        distill=DistillConfig(iterations=400, n_probes=9, work_height=72, lr=5e-3, warmup_steps=15, checkpoint_every=50),
-        field=_narrow(96, 4),
+        distill=DistillConfig(iterations=400, n_probes=9, work_height=72, lr=5e-3, warmup_steps=15, checkpoint_every=50,
+                              supervision="auto"),
+        field=_narrow(96, 4, time_encoding="codes"),
         priors={"reprojection": {"env_height": 24}},
     ),
     # CPU: a 100-frame 320x240 clip in a few minutes

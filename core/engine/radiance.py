@@ -24,7 +24,9 @@ from core.capture.base import Capture
 from core.chrome_ball import place_probe
 from core.engine.config import DistillConfig
 from core.engine.probes import sample_probes
+from core.conventions import equirect_pixel_centres, theta_phi_to_direction
 from core.envmap import sample_envmap
+from core.exposure import luminance
 
 ROOM_DEPTH_FRACTION = (0.05, 0.95)
 
@@ -47,6 +49,21 @@ def random_directions(n: int, gen: torch.Generator) -> torch.Tensor:
     """n directions uniform on the sphere [n, 3]."""
     d = torch.randn(n, 3, generator=gen)
     return d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def bright_directions(maps: torch.Tensor, k: int, gen: torch.Generator) -> torch.Tensor:
+    """k directions per map [P, k, 3] drawn with probability ~ luminance x solid angle of the
+    maps [P, h, 2h, 3] (uniform within the drawn pixel): the few directions of a small bright
+    source, which uniform sampling rarely hits, are fitted every step."""
+    p, h, w = maps.shape[:3]
+    lum = luminance(maps.to(torch.float64)).clamp_min(0.0)
+    theta_c, _ = equirect_pixel_centres(h, dtype=torch.float64)
+    weight = (lum * torch.sin(theta_c)).reshape(p, -1) + 1e-12
+    index = torch.multinomial(weight, k, replacement=True, generator=gen)
+    jitter = torch.rand(p, k, 2, generator=gen, dtype=torch.float64)
+    theta = math.pi * ((index // w).double() + jitter[..., 0]) / h
+    phi = 2.0 * math.pi * ((index % w).double() + jitter[..., 1]) / w - math.pi
+    return theta_phi_to_direction(theta, phi).float()
 
 
 def radiance_loss(pred: torch.Tensor, target: torch.Tensor, floor: float, linear_weight: float) -> torch.Tensor:

@@ -21,7 +21,7 @@ from core.engine.config import DistillConfig
 from core.engine.losses import PerceptualLoss, masked_l2
 from core.engine.probes import sample_probes
 from core.engine.progress import StageTimer
-from core.engine.radiance import radiance_loss, random_directions, supervision_probes, targets_at
+from core.engine.radiance import bright_directions, radiance_loss, random_directions, supervision_probes, targets_at
 from core.fields import LightField
 from core.priors.base import Prior, PriorRequest, ProbeGeometry
 
@@ -105,10 +105,14 @@ class Trainer:
         t = float(capture.times[i])
         with timings("probe_geometry"):
             centers = supervision_probes(capture, i, cfg, gen)
-            n, k = centers.shape[0], cfg.envmap_directions
-            dirs = random_directions(n * k, gen).reshape(n, k, 3)
         with timings("prior"):
             maps = self.prior.envmaps(centers.to(self.prior.device), t, cfg.envmap_height).detach().float().cpu()
+            maps = torch.nan_to_num(maps, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+            n, k = centers.shape[0], cfg.envmap_directions
+            k_bright = round(k * cfg.envmap_bright_fraction)
+            dirs = random_directions(n * (k - k_bright), gen).reshape(n, k - k_bright, 3)
+            if k_bright:
+                dirs = torch.cat((dirs, bright_directions(maps, k_bright, gen)), dim=1)
             target = targets_at(maps, dirs).reshape(-1, 3).to(self.device)
         with timings("field_render"):
             dev = self.device
