@@ -51,6 +51,7 @@ class DistillConfig(BaseModel):
     supervision: Literal["balls", "envmaps", "auto"] = Field(
         "balls", description="'balls' (paper): the ball-render loop; 'envmaps': fit the prior's HDR env maps "
                              "(needs capabilities.envmaps); 'auto': envmaps when the prior answers them, else balls")
+    envmap_frames_per_step: int = Field(1, ge=1, le=16, description="frames (each with its probes) per radiance step")
     envmap_surface_probes: int = Field(4, ge=0, le=64, description="probes in front of the scene depth (probe_depth_fraction)")
     envmap_room_probes: int = Field(4, ge=0, le=64, description="probes anywhere along camera rays (0.05-0.95 of the depth)")
     envmap_camera_probe: bool = Field(True, description="also a probe at the camera centre (where users query)")
@@ -91,6 +92,7 @@ class DistillConfig(BaseModel):
 
     @property
     def envmap_probe_count(self) -> int:
+        """Probes per frame of a radiance step."""
         return self.envmap_surface_probes + self.envmap_room_probes + int(self.envmap_camera_probe)
 
     def uses_envmaps(self, prior_answers_envmaps: bool) -> bool:

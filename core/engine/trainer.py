@@ -98,28 +98,36 @@ class Trainer:
             return self._optimise(step, loss)
 
     def radiance_step(self, step: int) -> float:
-        """One step of radiance supervision: env maps of the prior at this frame's probes,
-        log-radiance fit at `envmap_directions` random directions per probe."""
+        """One step of radiance supervision: `envmap_frames_per_step` frames, each with its
+        probes; the prior's env maps there; a log-radiance fit at `envmap_directions` directions
+        per probe (uniform, plus a share drawn by the target's luminance)."""
         capture, cfg, gen, timings, field = self.capture, self.cfg, self.gen, self.timings, self.field
-        i = int(torch.randint(capture.num_frames, (1,), generator=gen))
-        t = float(capture.times[i])
-        with timings("probe_geometry"):
-            centers = supervision_probes(capture, i, cfg, gen)
-        with timings("prior"):
-            maps = self.prior.envmaps(centers.to(self.prior.device), t, cfg.envmap_height).detach().float().cpu()
-            maps = torch.nan_to_num(maps, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
-            n, k = centers.shape[0], cfg.envmap_directions
-            k_bright = round(k * cfg.envmap_bright_fraction)
-            dirs = random_directions(n * (k - k_bright), gen).reshape(n, k - k_bright, 3)
-            if k_bright:
-                dirs = torch.cat((dirs, bright_directions(maps, k_bright, gen)), dim=1)
-            target = targets_at(maps, dirs).reshape(-1, 3).to(self.device)
+        frames = torch.randint(capture.num_frames, (cfg.envmap_frames_per_step,), generator=gen).tolist()
+        centers, times, targets, dirs, floors = [], [], [], [], []
+        for i in frames:
+            t = float(capture.times[i])
+            with timings("probe_geometry"):
+                c = supervision_probes(capture, i, cfg, gen)
+            with timings("prior"):
+                maps = self.prior.envmaps(c.to(self.prior.device), t, cfg.envmap_height).detach().float().cpu()
+                maps = torch.nan_to_num(maps, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+                n, k = c.shape[0], cfg.envmap_directions
+                k_bright = round(k * cfg.envmap_bright_fraction)
+                d = random_directions(n * (k - k_bright), gen).reshape(n, k - k_bright, 3)
+                if k_bright:
+                    d = torch.cat((d, bright_directions(maps, k_bright, gen)), dim=1)
+                targets.append(targets_at(maps, d).reshape(-1, 3))
+            centers.append(c)
+            times.append(torch.full((n,), t))
+            dirs.append(d.reshape(-1, 3))
+            floors.append(torch.full((n * k, 1), self.floors[i]))
         with timings("field_render"):
             dev = self.device
-            index = torch.arange(n).repeat_interleave(k).to(dev)
-            pred = field.probe_radiance(centers.to(dev), torch.full((n,), t, device=dev), index, dirs.reshape(-1, 3).to(dev))
+            c, k = torch.cat(centers), cfg.envmap_directions
+            index = torch.arange(c.shape[0]).repeat_interleave(k).to(dev)
+            pred = field.probe_radiance(c.to(dev), torch.cat(times).to(dev), index, torch.cat(dirs).to(dev))
         with timings("optimisation"):
-            loss = radiance_loss(pred, target, self.floors[i], cfg.linear_weight)
+            loss = radiance_loss(pred, torch.cat(targets).to(dev), torch.cat(floors).to(dev), cfg.linear_weight)
             return self._optimise(step, loss)
 
     def _optimise(self, step: int, loss: torch.Tensor) -> float:
