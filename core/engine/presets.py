@@ -34,7 +34,7 @@ PRESETS: dict[str, EngineConfig] = {
     # CPU: ~1 min for a 20-frame 192x144 clip on 2 cores (bench/presets.py)
     "draft": EngineConfig(
         name="draft",
-        distill=DistillConfig(iterations=400, n_probes=9, work_height=72, lr=5e-3, warmup_steps=15, checkpoint_every=50,
+        distill=DistillConfig(iterations=600, n_probes=9, work_height=72, lr=5e-3, warmup_steps=15, checkpoint_every=50,
                               supervision="auto", envmap_frames_per_step=3, envmap_surface_probes=2, envmap_room_probes=1,
                               envmap_directions=256),
         field=_narrow(96, 4, time_encoding="codes"),
