@@ -60,7 +60,7 @@ def test_field_keeps_what_the_prior_knows_on_a_simulated_room(spatial_scene):
         return sum(s[material]["si_rmse"] for s in scores) / len(scores)
 
     for material in ("diffuse", "matte", "mirror"):
-        # measured 0.92 / 0.96 / 0.98 of the prior (bench/accuracy_probe.py for the suites)
+        # measured 0.86 / 0.95 / 0.98 of the prior (bench/accuracy_probe.py for the suites)
         assert mean(field_scores, material) <= 1.05 * mean(prior_scores, material), material
 
 
@@ -78,8 +78,8 @@ def test_no_rings_where_a_single_photo_saw_nothing(spatial_scene):
         env = field.envmaps(cam.position[None].float(), None, 32)[0]
     ours = ring_ratio(env, observed)
     reference = ring_ratio(prior.envmaps(cam.position[None].float(), 0.0, 32)[0], observed)
-    assert ours["tv_unobserved"] <= 1.5 * reference["tv_unobserved"], (ours, reference)  # measured 1.28x
-    assert ours["ratio"] <= 0.25, ours  # measured 0.16
+    assert ours["tv_unobserved"] <= 1.5 * reference["tv_unobserved"], (ours, reference)  # measured 1.19x
+    assert ours["ratio"] <= 0.25, ours  # measured 0.14
 
 
 def test_tv_statistic_sees_rings_and_ignores_smooth_gradients():
@@ -121,10 +121,10 @@ def test_out_of_view_switch_is_followed_and_static_stretches_stay_flat():
     before, after = ours[:SWITCH_FRAME], ours[SWITCH_FRAME:]
     ratio = (sum(after) / len(after)) / (sum(before) / len(before))
     true_ratio = (sum(truth[SWITCH_FRAME:]) / len(after)) / (sum(truth[:SWITCH_FRAME]) / len(before))
-    assert abs(ratio - true_ratio) <= 0.1, (ratio, true_ratio)
+    assert abs(ratio - true_ratio) <= 0.1, (ratio, true_ratio)  # measured 0.670 vs 0.667 (TV weight 0.1: 0.97)
     for stretch in (before, after):
         mean = sum(stretch) / len(stretch)
-        assert max(abs(b / mean - 1) for b in stretch) <= 0.03, stretch
+        assert max(abs(b / mean - 1) for b in stretch) <= 0.03, stretch  # measured 0.2 % and 0.1 %
 
 
 def test_supervision_probes_are_in_front_of_the_scene_and_include_the_camera():
