@@ -9,6 +9,13 @@ trunk field equally narrowed when a job picks it). At equal steps a narrow MLP r
 known field about as well as the 6 x 256 one and clearly better than the trunk+head field
 (see docs/engine.md). Wall times are measured by `bench/presets.py`.
 
+`draft` also supervises in radiance when its prior answers env maps (`supervision="auto"`:
+the reprojection, known and oracle priors; the diffusion prior keeps the ball loop): 3 frames
+per step, each with 2 probes in front of the depth, 1 along a camera ray and the camera
+centre, 256 directions per probe, log-radiance loss, 600 steps; and its fields encode time
+with learned per-frame codes. Why and the measurements: docs/engine.md, "Radiance supervision"
+(`python -m bench.accuracy_probe`).
+
 `seed` is the loop of the authors' released code (ORionTMT/Sig25_4DLighting run_video_demo.py
 + SDS/multiball_sds.py `sds_loop`), paired with the diffusion prior's `seed` inference profile
 (its settings default here; a job's `prior_profile` still wins): EV fixed at 0 (their sweep is
