@@ -1,7 +1,7 @@
 """Accuracy probe of the distilled field against its prior and a constant map (issue 12).
 
     python -m bench.accuracy_probe [--suites spatial,temporal,moving-camera,hard]
-        [--methods field,field-balls] [--set distill.iterations=400 ...] [-o probe.json]
+        [--methods field,field-balls] [--set distill.iterations=400 ...] [--seed 0] [-o probe.json]
 
 For each simulator suite (bench/suite: held-out probes and times, ground truth) it scores, on
 the three-sphere metrics (diffuse, matte, mirror):
@@ -67,6 +67,21 @@ def series_checks(suite, series_preds: list[torch.Tensor]) -> dict:
     return {"switches": switches, "stretches": stretches}
 
 
+def distill_with_seed(method, suite, base, out_dir: Path, seed: int) -> Path:
+    """run_job on the suite's capture (as bench.methods.distill_artefact, with a chosen seed)."""
+    from core.engine import run_job
+    from core.engine.params import JobParams
+
+    prior = None
+    if method.prior == "oracle":
+        from core.sim.oracle import OracleSimPrior
+
+        prior = OracleSimPrior(suite.scene)
+    cfg = method.config(base)
+    params = JobParams(preset="draft", prior="reprojection", field=cfg.field.kind, seed=seed)
+    return run_job(suite.capture_dir, None, params, out_dir, prior=prior, config=cfg).path
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--suites", default="spatial,temporal,moving-camera,hard")
@@ -74,11 +89,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", action="append", default=[], help="draft preset override key=value (JSON value)")
     p.add_argument("--gt-height", type=int, default=64)
     p.add_argument("--sphere-size", type=int, default=64)
+    p.add_argument("--seed", type=int, default=0, help="distillation seed (run a few to see run-to-run noise)")
     p.add_argument("--cache-dir", default=None)
     p.add_argument("-o", "--output", default=None)
     args = p.parse_args(argv)
 
-    from bench.methods import Method, distill_artefact, query_field, run_per_probe, MethodRun
+    from bench.methods import Method, query_field, run_per_probe, MethodRun
     from bench.run import default_cache_dir
     from bench.suite.evaluation import mean_scores, score_probe
     from bench.suite.simulated import load_suite
@@ -93,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
             overrides[key] = value
     base = preset("draft").with_overrides(overrides) if overrides else preset("draft")
     cache = Path(args.cache_dir) if args.cache_dir else default_cache_dir()
-    report: dict = {"overrides": overrides, "suites": {}}
+    report: dict = {"overrides": overrides, "seed": args.seed, "suites": {}}
     for name in args.suites.split(","):
         suite = load_suite(name, cache, None, args.gt_height)
         preds: dict[str, torch.Tensor] = {}
@@ -109,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
                 m = Method(method, "field", "paper", method, field="mlp", overrides=sup,
                            prior="oracle" if method == "field-oracle" else "reprojection")
                 t0 = time.process_time()
-                path, _, info = distill_artefact(m, suite, base, Path(tmp) / method)
+                path = distill_with_seed(m, suite, base, Path(tmp) / method, args.seed)
                 seconds[method] = round(time.process_time() - t0, 1)
                 run = MethodRun(m)
                 query_field(run, path, suite)

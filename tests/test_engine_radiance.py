@@ -159,6 +159,19 @@ def test_radiance_loss_is_finite_on_black_and_huge_targets_and_keeps_energy():
     assert float(pred.grad[1].sum()) < 0  # the too-dim source is pushed up
 
 
+def test_chroma_weight_penalises_colour_errors_only():
+    target = torch.tensor([[1.0, 0.5, 0.25], [10.0, 10.0, 10.0]])
+    grey = target * 2.0  # right colour, wrong brightness
+    tinted = target * torch.tensor([2.0, 1.0, 1.0])  # wrong colour
+    for pred in (grey, tinted):
+        base = radiance_loss(pred, target, floor=1e-6, linear_weight=0.0)
+        extra = radiance_loss(pred, target, floor=1e-6, linear_weight=0.0, chroma_weight=4.0) - base
+        if pred is grey:
+            assert abs(float(extra)) < 1e-6
+        else:
+            assert float(extra) > 0.5 * float(base)
+
+
 def test_envmaps_supervision_needs_a_prior_that_answers_envmaps():
     from core.priors.base import Prior
 

@@ -60,6 +60,7 @@ class DistillConfig(BaseModel):
     envmap_height: int = Field(24, ge=4, description="height of the env maps asked from the prior")
     log_floor_fraction: float = Field(1e-3, gt=0, description="log(L + floor), floor = this x the frame's mean radiance")
     linear_weight: float = Field(0.1, ge=0, description="weight of the relative linear (energy) term")
+    chroma_weight: float = Field(0.0, ge=0, description="extra weight of the log error's colour part (radiance loss)")
     time_tv_weight: float = Field(0.01, ge=0, description="L1 total variation of the field's time codes (if any)")
     time_normalisation_frames: int | None = Field(
         None, ge=2, description="normalise time as if the clip had this many frames (the authors' release: 30); None: over the capture")

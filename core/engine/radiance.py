@@ -66,13 +66,17 @@ def bright_directions(maps: torch.Tensor, k: int, gen: torch.Generator) -> torch
     return theta_phi_to_direction(theta, phi).float()
 
 
-def radiance_loss(pred: torch.Tensor, target: torch.Tensor, floor: float | torch.Tensor, linear_weight: float) -> torch.Tensor:
+def radiance_loss(pred: torch.Tensor, target: torch.Tensor, floor: float | torch.Tensor, linear_weight: float,
+                  chroma_weight: float = 0.0) -> torch.Tensor:
     """Mean squared log-radiance error with a floor (a scalar or per row [B, 1]: near-black
     pixels do not dominate),
     plus `linear_weight` x the mean absolute linear error relative to the target's mean (so
     a small bright source keeps its energy, which the log term alone underweights)."""
     log_err = torch.log(pred + floor) - torch.log(target + floor)
     loss = log_err.pow(2).mean()
+    if chroma_weight > 0:
+        # the log error's colour part (each channel's deviation from the row's mean error)
+        loss = loss + chroma_weight * (log_err - log_err.mean(-1, keepdim=True)).pow(2).mean()
     if linear_weight > 0:
         floor_min = float(torch.as_tensor(floor).min())
         loss = loss + linear_weight * (pred - target).abs().mean() / target.mean().clamp_min(floor_min)

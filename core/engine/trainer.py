@@ -127,7 +127,7 @@ class Trainer:
             index = torch.arange(c.shape[0]).repeat_interleave(k).to(dev)
             pred = field.probe_radiance(c.to(dev), torch.cat(times).to(dev), index, torch.cat(dirs).to(dev))
         with timings("optimisation"):
-            loss = radiance_loss(pred, torch.cat(targets).to(dev), torch.cat(floors).to(dev), cfg.linear_weight)
+            loss = radiance_loss(pred, torch.cat(targets).to(dev), torch.cat(floors).to(dev), cfg.linear_weight, cfg.chroma_weight)
             return self._optimise(step, loss)
 
     def _optimise(self, step: int, loss: torch.Tensor) -> float:
