@@ -110,6 +110,53 @@ def test_push_pull_keeps_observed_and_fills_within_range():
     assert (out >= 0.5 - 1e-6).all() and (out <= 1.5 + 1e-6).all()
 
 
+@pytest.mark.parametrize("h", [8, 24, 32])  # 24: odd sizes down the pyramid (3 -> 2 -> 1)
+def test_push_pull_fills_far_holes_with_the_observed_value_not_black(h):
+    """A constant patch seen in one quarter of the sphere: every hole gets that constant (the
+    old pyramid stopped at 1 x 2 pixels and faded the unseen half towards 0)."""
+    env = torch.zeros(1, h, 2 * h, 3)
+    seen = torch.zeros(1, h, 2 * h, dtype=torch.bool)
+    seen[0, h // 3 : 2 * h // 3, h // 2 : h] = True
+    env[seen] = 2.0
+    out = push_pull_fill(env, seen)
+    assert torch.allclose(out, torch.full_like(out, 2.0), atol=1e-5)
+
+
+def test_push_pull_wraps_around_the_seam():
+    """Observations on both sides of phi = +-pi: the hole between them (across the seam) is
+    filled symmetrically, as if there were no seam."""
+    h = 16
+    env = torch.zeros(1, h, 2 * h, 3)
+    seen = torch.zeros(1, h, 2 * h, dtype=torch.bool)
+    seen[0, :, 2] = True  # just right of the seam
+    seen[0, :, 2 * h - 3] = True  # just left of it
+    env[0, :, 2] = 1.0
+    env[0, :, 2 * h - 3] = 3.0
+    out = push_pull_fill(env, seen)[0, h // 2, :, 0]
+    across = torch.cat([out[2 * h - 3 :], out[:3]])  # 3, ?, ?, ?, ?, 1 going across the seam
+    assert float(across[1:-1].min()) >= 1.0 - 1e-6 and float(across[1:-1].max()) <= 3.0 + 1e-6
+    # the seam pixels lie between the two observations, closer values nearer each side
+    assert float(out[2 * h - 2]) > float(out[1])
+
+
+def test_push_pull_hole_takes_the_weighted_mean_of_its_neighbourhood():
+    """Pull is a weighted average: a hole surrounded by 3 pixels of 1 and 1 pixel of 5 gets
+    a value between them, not the value of any single level's first pixel."""
+    env = torch.zeros(1, 2, 4, 3)
+    seen = torch.ones(1, 2, 4, dtype=torch.bool)
+    seen[0, 0, 0] = False
+    env[0] = 1.0
+    env[0, 1, 1] = 5.0
+    out = push_pull_fill(env, seen)
+    assert 1.0 < float(out[0, 0, 0, 0]) < 5.0
+    assert torch.equal(out[seen], env[seen])
+
+
+def test_push_pull_with_nothing_observed_is_zero():
+    out = push_pull_fill(torch.rand(1, 8, 16, 3), torch.zeros(1, 8, 16, dtype=torch.bool))
+    assert torch.equal(out, torch.zeros_like(out))
+
+
 def test_linearise_boosts_only_clipped_pixels():
     x = torch.tensor([[0.5, 0.5, 0.5], [1.0, 0.2, 0.2]])
     lin = linearise(x)

@@ -15,8 +15,9 @@ It answers "what would a chrome ball at c show?" from the frame itself:
 3. For each probe centre, splat the points into an equirect env map (ENV height from the
    config) with a depth test: per env pixel only points within Z_TOLERANCE of the nearest
    distance contribute (a z-buffer by distance from the probe), averaged.
-4. Fill directions the frame never observed by push-pull: average-pool the observed pixels
-   down a pyramid, then fill each hole from the next coarser level. This is a smooth
+4. Fill directions the frame never observed by pull-push (push_pull_fill): weight-average the
+   observed pixels down a pyramid to one pixel, then blend each level with the upsampled
+   coarser one by its weight (columns wrap at the seam). This is a smooth
    extrapolation of what was seen (e.g. the room behind the camera gets the average colour
    of the nearby walls, floor and ceiling). No light is invented.
 5. Render the balls under those env maps (core.chrome_ball, probe-centre lookup) and tone
@@ -27,6 +28,8 @@ clipped sources, or view-dependent effects; it is the CPU-fast default and a bas
 the diffusion prior, not a replacement for it.
 """
 from __future__ import annotations
+
+import functools
 
 import torch
 import torch.nn.functional as F
@@ -53,24 +56,65 @@ def linearise(frames: torch.Tensor, clip_boost: float = CLIP_BOOST) -> torch.Ten
     return torch.where(clipped, lin * clip_boost, lin)
 
 
-def push_pull_fill(env: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """Fill pixels with weight 0 in env [N, h, w, 3] from coarser averages (push-pull).
+@functools.lru_cache(maxsize=64)
+def _upsample_matrix(n_fine: int, n_coarse: int, wrap: bool) -> torch.Tensor:
+    """[n_fine, n_coarse] linear interpolation from coarse to fine pixel centres, where coarse
+    pixel j is the average of fine pixels 2j and 2j+1 (its centre: their mean index; the last
+    one of an odd size has one child). `wrap`: the axis is periodic (equirect columns)."""
+    centres = torch.tensor([(2 * j + min(2 * j + 1, n_fine - 1)) / 2 for j in range(n_coarse)], dtype=torch.float64)
+    A = torch.zeros(n_fine, n_coarse, dtype=torch.float64)
+    if n_coarse == 1:
+        return A + 1.0
+    for i in range(n_fine):
+        if wrap:  # nearest centres below and above i on the circle of length n_fine
+            below = max(range(n_coarse), key=lambda j: -((i - centres[j]) % n_fine))
+            above = (below + 1) % n_coarse
+            gap = float((centres[above] - centres[below]) % n_fine) or float(n_fine)
+            t = float((i - centres[below]) % n_fine) / gap
+        else:
+            above = int(torch.searchsorted(centres, torch.tensor(float(i), dtype=torch.float64)).clamp(1, n_coarse - 1))
+            below = above - 1
+            t = float(((i - centres[below]) / (centres[above] - centres[below])).clamp(0.0, 1.0))
+        A[i, below] += 1.0 - t
+        A[i, above] += t
+    return A
 
-    Observed pixels keep their values. With no observed pixel at all the result is 0."""
-    x = env.permute(0, 3, 1, 2)  # [N, 3, h, w]
-    w = weight[:, None].to(x.dtype)
+
+def push_pull_fill(env: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Fill pixels with weight 0 in equirect env maps [N, h, w, 3] by pull-push (Gortler et al.
+    1996, the Lumigraph's hole filling).
+
+    Pull: each coarser level is the weight-averaged 2x2 downsample (value = sum w x / sum w,
+    weight = min(1, sum w)), down to ONE pixel, so every hole has an observed ancestor.
+    Push: from the top, fine = w x + (1 - w) upsample(coarse), the upsample linear between
+    pixel centres, columns wrapping around the phi = +-pi seam. Observed pixels (weight 1)
+    keep their values; holes get a smooth extrapolation of what was seen. With no observed
+    pixel at all the result is 0. `weight` may be fractional (in [0, 1])."""
+    x = env.permute(0, 3, 1, 2).to(torch.float64)  # [N, 3, h, w]
+    w = weight[:, None].to(torch.float64).clamp(0.0, 1.0)
     levels = [(x, w)]
-    while min(x.shape[-2:]) > 1:
-        num = F.avg_pool2d(x * w, 2, ceil_mode=True)
-        den = F.avg_pool2d(w, 2, ceil_mode=True)
+    while x.shape[-2] > 1 or x.shape[-1] > 1:
+        kh = 2 if x.shape[-2] > 1 else 1
+        kw = 2 if x.shape[-1] > 1 else 1
+        num, den = _sum_pool(x * w, kh, kw), _sum_pool(w, kh, kw)
         x = num / den.clamp_min(1e-12)
-        w = (den > 0).to(x.dtype)
+        w = den.clamp(max=1.0)
         levels.append((x, w))
     filled = levels[-1][0]
-    for x, w in reversed(levels[:-1]):
-        up = F.interpolate(filled, size=x.shape[-2:], mode="bilinear", align_corners=False)
-        filled = torch.where(w > 0, x, up)
-    return filled.permute(0, 2, 3, 1).contiguous()
+    for (x, w), (coarse, _) in zip(reversed(levels[:-1]), reversed(levels[1:])):
+        rows = _upsample_matrix(x.shape[-2], coarse.shape[-2], wrap=False)
+        cols = _upsample_matrix(x.shape[-1], coarse.shape[-1], wrap=True)
+        up = torch.einsum("ij,ncjk,lk->ncil", rows, filled, cols)
+        filled = w * x + (1.0 - w) * up
+    return filled.permute(0, 2, 3, 1).to(env.dtype).contiguous()
+
+
+def _sum_pool(x: torch.Tensor, kh: int, kw: int) -> torch.Tensor:
+    """Sum over (kh, kw) blocks; an odd edge's last block has fewer pixels (zero padding)."""
+    H, W = x.shape[-2:]
+    x = F.pad(x, (0, (-W) % kw, 0, (-H) % kh))
+    n, c, H2, W2 = x.shape
+    return x.reshape(n, c, H2 // kh, kh, W2 // kw, kw).sum((3, 5))
 
 
 class ReprojectionSettings(PriorConfig):
