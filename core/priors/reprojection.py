@@ -2,10 +2,14 @@
 
 It answers "what would a chrome ball at c show?" from the frame itself:
 
-1. Linearise the frame with the inverse tone map (at ev 0, the capture's exposure). A
-   clipped pixel (any channel >= CLIP_LDR) only says "at least white"; light sources are
-   what clips, so its radiance is multiplied by CLIP_BOOST (a documented, conservative
-   guess: real sources are often 10-1000x brighter, which no LDR frame can tell us).
+1. Linearise the frame with the inverse tone map (at ev 0, the capture's exposure), at the
+   capture's FULL resolution (Capture.full_resolution: area-averaging LDR values first would
+   hide which pixels clipped and average in gamma space), then area-resize the radiance to
+   the working resolution. A clipped pixel (any channel >= CLIP_LDR) only says "at least
+   white"; light sources are what clips, so clip_rule "estimate" (default) estimates each
+   clipped blob's radiance from exposure changes across frames and from its size and halo
+   (core.capture.highlights; rule and measured error in docs/highlights.md); "fixed"
+   multiplies by clip_boost (the old behaviour, CLIP_BOOST = 8).
 2. Unproject the frame with its depth into a coloured point cloud. The geometry is computed
    once per distinct (pose, depth) — once in total for a static camera with static depth;
    colours come from the requested frame, so lighting changes over time are followed. When
@@ -30,23 +34,37 @@ the diffusion prior, not a replacement for it.
 from __future__ import annotations
 
 import functools
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
 from pydantic import Field
 
 from core.conventions import direction_to_equirect_pixel, equirect_width, inverse_tonemap
+from core.capture.highlights import CLIP_LDR, linearise_highlights
 from core.envmap import resize_envmap
 from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
 from core.priors.known import ball_target
 from core.priors.registry import prior_settings, register_prior
 
-CLIP_LDR = 0.99
-CLIP_BOOST = 8.0
+CLIP_BOOST = 8.0  # clip_rule "fixed" only
 MERGE_VIEWS_STATIC_LIGHTING = 4  # viewpoints pooled when the lighting is static and the camera moves
 Z_TOLERANCE = 0.1  # relative: points within 10 % of the nearest distance share a pixel
 MIN_PROBE_DISTANCE = 1e-3  # metres; points closer than this to a probe are skipped
 OTHER_VIEW_STRIDE = 3  # merged viewpoints contribute a third of their points (cost)
+
+
+def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP_BOOST) -> torch.Tensor:
+    """Linear radiance [T, H, W, 3] (ev 0) of a capture at its own resolution, linearised at
+    the resolution it was resized from (see the module docstring, step 1)."""
+    src = capture.full_resolution or capture
+    if clip_rule == "fixed":
+        lin = linearise(src.frames, clip_boost)
+    else:
+        lin = linearise_highlights(src.frames, src.intrinsics, src.static_camera)
+    if src is not capture and (src.height, src.width) != (capture.height, capture.width):
+        lin = F.interpolate(lin.permute(0, 3, 1, 2), size=(capture.height, capture.width), mode="area").permute(0, 2, 3, 1)
+    return lin.contiguous()
 
 
 def linearise(frames: torch.Tensor, clip_boost: float = CLIP_BOOST) -> torch.Tensor:
@@ -119,7 +137,9 @@ def _sum_pool(x: torch.Tensor, kh: int, kw: int) -> torch.Tensor:
 
 class ReprojectionSettings(PriorConfig):
     env_height: int = Field(32, ge=4, description="splat resolution: env maps of env_height x 2 env_height")
-    clip_boost: float = Field(CLIP_BOOST, gt=0, description="radiance factor of clipped (>= CLIP_LDR) pixels")
+    clip_rule: Literal["estimate", "fixed"] = Field("estimate", description=(
+        "clipped pixels: 'estimate' their radiance per blob (core.capture.highlights) or multiply by clip_boost ('fixed')"))
+    clip_boost: float = Field(CLIP_BOOST, gt=0, description="radiance factor of clipped (>= CLIP_LDR) pixels with clip_rule 'fixed'")
     merge_views: int | None = Field(None, ge=1, description=(
         "viewpoints a request splats (its own + evenly spaced others); only valid when the lighting is static. "
         "None: MERGE_VIEWS_STATIC_LIGHTING when bind() is told the lighting is static and the camera moves, else 1"))
@@ -135,6 +155,7 @@ class ReprojectionPrior(Prior):
         s = prior_settings(self.name, settings)
         self.env_height = int(s.env_height)
         self.clip_boost = float(s.clip_boost)
+        self.clip_rule = s.clip_rule
         self.configured_merge_views = s.merge_views
         self.merge_views = s.merge_views or 1
         self._capture = None
@@ -150,7 +171,7 @@ class ReprojectionPrior(Prior):
         static_lighting_moving_camera = not lighting_changes and not capture.static_camera
         self.merge_views = self.configured_merge_views or (
             MERGE_VIEWS_STATIC_LIGHTING if static_lighting_moving_camera else 1)
-        self._colors = linearise(capture.frames, self.clip_boost)
+        self._colors = linear_frames(capture, self.clip_rule, self.clip_boost)
         self._points = {}
         self.point_cloud_builds = 0
         # frames with the same pose and the same depth share one point cloud
@@ -240,7 +261,8 @@ class ReprojectionPrior(Prior):
             "kind": "classical reprojection baseline (no weights; cannot invent out-of-view lights)",
             "env_height": self.env_height,
             "clip_ldr": CLIP_LDR,
-            "clip_boost": self.clip_boost,
+            "clip_rule": self.clip_rule,
+            "clip_boost": self.clip_boost if self.clip_rule == "fixed" else None,
             "z_tolerance": Z_TOLERANCE,
             "hole_fill": "push-pull pyramid in the equirect domain",
             "merge_views": self.merge_views,
