@@ -5,7 +5,8 @@
 For every panorama of the split, VIEWS_PER_PANORAMA photos are made exactly as in the
 real-panorama protocol (bench.real_panoramas: CROP_SIZE, 60° FOV, TonemapHDR to 8 bits),
 with views seeded by the file name and the view index (pitch up to +-VIEW_PITCH_DEG so
-ceiling lamps are in some). Each photo's clipped blobs (core.capture.highlights.find_blobs)
+ceiling lamps are in some); every other view is over-exposed by up to MAX_EXTRA_EV stops, so
+the rule is not fitted to one tone map's exposure only. Each photo's clipped blobs (core.capture.highlights.find_blobs)
 get a true factor: the blob's mean true luminance, in the photo's linear units (the tone
 map's exposure is known), over its mean linearised luminance. Error of a rule = |log2
 (estimated factor / true factor)| in stops, per blob (mean, and weighted by the blob's true
@@ -30,12 +31,16 @@ import torch
 
 VIEWS_PER_PANORAMA = 16
 VIEW_PITCH_DEG = 40.0
+MAX_EXTRA_EV = 3.0
 FIXED_BOOST = 8.0  # the old reprojection prior's CLIP_BOOST
 
 
-def photo_views(filename: str) -> list[tuple[float, float]]:
+def photo_views(filename: str) -> list[tuple[float, float, float]]:
+    """(yaw, pitch, extra exposure in stops): even views use the protocol's exposure, odd ones
+    are over-exposed by U(0, MAX_EXTRA_EV) (a camera metering a dark room clips more)."""
     rng = random.Random(f"clip-rule:{filename}")
-    return [(rng.uniform(-180.0, 180.0), rng.uniform(-VIEW_PITCH_DEG, VIEW_PITCH_DEG)) for _ in range(VIEWS_PER_PANORAMA)]
+    return [(rng.uniform(-180.0, 180.0), rng.uniform(-VIEW_PITCH_DEG, VIEW_PITCH_DEG), rng.uniform(0.0, MAX_EXTRA_EV) * (i % 2))
+            for i in range(VIEWS_PER_PANORAMA)]
 
 
 def exposure_scale(hdr: torch.Tensor) -> float:
@@ -48,19 +53,20 @@ def exposure_scale(hdr: torch.Tensor) -> float:
 
 def blob_samples(path: Path) -> list[dict]:
     """Every clipped blob of every view of one panorama: features and true factor."""
-    from bench.real_panoramas import camera_rotation, ldr_photo, load_panorama, perspective_crop
+    from bench.real_panoramas import camera_rotation, load_panorama, perspective_crop
     from core.capture.highlights import clipped_mask, find_blobs, pixel_solid_angle
     from core.conventions import inverse_tonemap
 
     pano = load_panorama(path)
     out = []
-    for yaw, pitch in photo_views(path.name):
+    for yaw, pitch, ev in photo_views(path.name):
         hdr, intr = perspective_crop(pano, camera_rotation(yaw, pitch))
-        ldr = ldr_photo(hdr)
+        scale = exposure_scale(hdr) * 2.0 ** ev
+        ldr = torch.round((hdr.clamp_min(0.0) * scale).pow(1.0 / 2.4).clamp(0.0, 1.0) * 255.0) / 255.0
         lin = inverse_tonemap(ldr).numpy()
         clipped = clipped_mask(ldr).numpy()
         labels, blobs = find_blobs(lin, clipped, pixel_solid_angle(intr))
-        y_true = (hdr.numpy() * exposure_scale(hdr)) @ np.array([0.2126, 0.7152, 0.0722])
+        y_true = (hdr.numpy() * scale) @ np.array([0.2126, 0.7152, 0.0722])
         y_lin = lin @ np.array([0.2126, 0.7152, 0.0722])
         for k, blob in enumerate(blobs, start=1):
             sel = labels == k
