@@ -21,9 +21,11 @@ It answers "what would a chrome ball at c show?" from the frame itself:
    distance contribute (a z-buffer by distance from the probe), averaged.
 4. Fill directions the frame never observed by pull-push (push_pull_fill): weight-average the
    observed pixels down a pyramid to one pixel, then blend each level with the upsampled
-   coarser one by its weight (columns wrap at the seam). This is a smooth
+   coarser one by its weight (columns wrap at the seam). With unseen_fill "indoor" (default)
+   the unseen directions then get an elevation gain and a whiter colour, both fitted on dev
+   panoramas (core.priors.indoor_fill). This is a smooth
    extrapolation of what was seen (e.g. the room behind the camera gets the average colour
-   of the nearby walls, floor and ceiling). No light is invented.
+   of the nearby walls, floor and ceiling). No light source is invented.
 5. Render the balls under those env maps (core.chrome_ball, probe-centre lookup) and tone
    map at request.ev; pixels outside the balls are request.image.
 
@@ -43,6 +45,7 @@ from pydantic import Field
 from core.conventions import direction_to_equirect_pixel, equirect_width, inverse_tonemap
 from core.capture.highlights import CLIP_LDR, linearise_highlights
 from core.envmap import resize_envmap
+from core.priors.indoor_fill import fill_unseen
 from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
 from core.priors.known import ball_target
 from core.priors.registry import prior_settings, register_prior
@@ -140,6 +143,9 @@ class ReprojectionSettings(PriorConfig):
     clip_rule: Literal["estimate", "fixed"] = Field("estimate", description=(
         "clipped pixels: 'estimate' their radiance per blob (core.capture.highlights) or multiply by clip_boost ('fixed')"))
     clip_boost: float = Field(CLIP_BOOST, gt=0, description="radiance factor of clipped (>= CLIP_LDR) pixels with clip_rule 'fixed'")
+    unseen_fill: Literal["indoor", "push-pull"] = Field("indoor", description=(
+        "unobserved directions: pull-push with the indoor elevation gain and whitened colour (core.priors.indoor_fill), "
+        "or plain pull-push"))
     merge_views: int | None = Field(None, ge=1, description=(
         "viewpoints a request splats (its own + evenly spaced others); only valid when the lighting is static. "
         "None: MERGE_VIEWS_STATIC_LIGHTING when bind() is told the lighting is static and the camera moves, else 1"))
@@ -156,6 +162,7 @@ class ReprojectionPrior(Prior):
         self.env_height = int(s.env_height)
         self.clip_boost = float(s.clip_boost)
         self.clip_rule = s.clip_rule
+        self.unseen_fill = s.unseen_fill
         self.configured_merge_views = s.merge_views
         self.merge_views = s.merge_views or 1
         self._capture = None
@@ -247,7 +254,9 @@ class ReprojectionPrior(Prior):
         acc = torch.zeros(n * h * w, 3, dtype=col.dtype).index_add(0, key, col_k)
         cnt = torch.zeros(n * h * w, dtype=col.dtype).index_add(0, key, torch.ones_like(key, dtype=col.dtype))
         env = (acc / cnt.clamp_min(1.0)[:, None]).reshape(n, h, w, 3)
-        return push_pull_fill(env, (cnt > 0).reshape(n, h, w))
+        seen = (cnt > 0).reshape(n, h, w)
+        filled = push_pull_fill(env, seen)
+        return fill_unseen(filled, env, seen) if self.unseen_fill == "indoor" else filled
 
     def __call__(self, request: PriorRequest) -> torch.Tensor:
         p = request.probes
@@ -264,7 +273,8 @@ class ReprojectionPrior(Prior):
             "clip_rule": self.clip_rule,
             "clip_boost": self.clip_boost if self.clip_rule == "fixed" else None,
             "z_tolerance": Z_TOLERANCE,
-            "hole_fill": "push-pull pyramid in the equirect domain",
+            "hole_fill": "pull-push pyramid in the equirect domain" + (
+                " + indoor elevation gain and whitened colour" if self.unseen_fill == "indoor" else ""),
             "merge_views": self.merge_views,
             "point_cloud_builds": self.point_cloud_builds,
         }
