@@ -33,7 +33,8 @@ from core.conventions import inverse_tonemap
 from core.exposure import luminance
 
 CLIP_LDR = 0.99  # a pixel with any channel at or above this is clipped
-HALO_RINGS = 4  # rings 1..HALO_RINGS pixels outside a blob sample its halo
+HALO_RINGS = 8  # rings 1..HALO_RINGS pixels outside a blob sample its halo
+BACKGROUND_RINGS = 2  # the outermost rings stand for the background the halo sits on
 REF_AREA_SR = 1e-3  # steradians: the area term is relative to a ~1.8 deg wide source
 MAX_BOOST_STOPS = 12.0
 HALO_FLOOR = 1e-4  # darker halo rings count as this (linear, white = 1)
@@ -50,6 +51,7 @@ class Blob:
     area_px: int
     area_sr: float
     halo: tuple[float | None, ...]  # mean linear luminance of rings 1..HALO_RINGS px outside (None: no pixels)
+    ring_pixels: tuple[int, ...] = ()  # unclipped pixels in each ring
     white_fraction: float = 1.0  # of its pixels, the share with ALL channels clipped (white-hot, not a coloured surface)
 
     def halo_stops(self) -> float:
@@ -70,10 +72,22 @@ class Blob:
         near = next((v for v in self.halo if v is not None), 1.0)
         return math.log2(max(near, HALO_FLOOR))
 
+    def spill_stops(self) -> float:
+        """log2 of the light the halo holds above its background, per blob pixel (white = 1):
+        a blurred source spills a share of its energy past its edge, in proportion to its
+        radiance. Background: the mean of the outer BACKGROUND_RINGS rings."""
+        rings = [(v, n) for v, n in zip(self.halo, self.ring_pixels) if v is not None and n > 0]
+        if len(rings) <= BACKGROUND_RINGS:
+            return math.log2(HALO_FLOOR)
+        outer = rings[-BACKGROUND_RINGS:]
+        background = sum(v * n for v, n in outer) / sum(n for _, n in outer)
+        excess = sum(max(v - background, 0.0) * n for v, n in rings[:-BACKGROUND_RINGS])
+        return math.log2(max(excess / self.area_px, HALO_FLOOR))
+
     def features(self) -> tuple[float, ...]:
-        """(1, log2 area / REF_AREA_SR, edge_stops, white_fraction, halo_stops): the rule's inputs."""
+        """(1, log2 area / REF_AREA_SR, edge_stops, white_fraction, spill_stops): the rule's inputs."""
         return (1.0, math.log2(max(self.area_sr, 1e-12) / REF_AREA_SR), self.edge_stops(), self.white_fraction,
-                self.halo_stops())
+                self.spill_stops())
 
 
 def clipped_mask(ldr: torch.Tensor) -> torch.Tensor:
@@ -107,13 +121,14 @@ def find_blobs(linear: np.ndarray, clipped: np.ndarray, pixel_sr: float) -> tupl
         dist = ndimage.distance_transform_edt(~own)
         usable = ~clipped[r0:r1, c0:c1]  # other blobs are no halo
         yy = y[r0:r1, c0:c1]
-        halo = []
+        halo, counts = [], []
         for ring in range(1, HALO_RINGS + 1):
             sel = usable & (dist > ring - 0.5) & (dist <= ring + 0.5)
             halo.append(float(yy[sel].mean()) if sel.any() else None)
+            counts.append(int(sel.sum()))
         area = int(own.sum())
         white = float(all_clipped[r0:r1, c0:c1][own].mean())
-        blobs.append(Blob(area, area * pixel_sr, tuple(halo), white))
+        blobs.append(Blob(area, area * pixel_sr, tuple(halo), ring_pixels=tuple(counts), white_fraction=white))
     return labels, blobs
 
 
