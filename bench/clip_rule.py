@@ -18,8 +18,8 @@ added through a lens PSF (synthetic_lamp_samples; up to 8 stops, with glare).
 
 Rules compared: the old fixed boost (8x), the best single boost fitted on dev (same weights), and the blob
 rule (core.capture.highlights.RULE_COEFFICIENTS). `--fit` refits the rule's coefficients on
-dev blobs + dev synthetic lamps (weighted least squares in stops) and reports leave-one-
-panorama-out error on dev too. Tune on
+the real dev blobs (weighted least squares in stops) and reports leave-one-panorama-out
+error on dev too; the synthetic lamps are reported as a stress test, not fitted. Tune on
 `dev` only; `--splits test` is run once at the end and reported whatever it says.
 """
 from __future__ import annotations
@@ -78,6 +78,7 @@ def blob_samples(path: Path) -> list[dict]:
             sel = labels == k
             true = float(y_true[sel].mean()) / max(float(y_lin[sel].mean()), 1e-9)
             out.append({"file": path.name, "features": list(blob.features()), "area_px": blob.area_px,
+                        "halo": list(blob.halo), "ring_pixels": list(blob.ring_pixels), "white_fraction": blob.white_fraction,
                         "true_stops": math.log2(max(true, 1e-9)), "energy": float(y_true[sel].sum())})
     return out
 
@@ -125,7 +126,9 @@ def synthetic_lamp_samples(path: Path) -> list[dict]:
         y_true = true.numpy() @ np.array([0.2126, 0.7152, 0.0722])
         y_lin = lin @ np.array([0.2126, 0.7152, 0.0722])
         t = float(y_true[sel].mean()) / max(float(y_lin[sel].mean()), 1e-9)
-        out.append({"file": path.name, "features": list(blobs[k - 1].features()), "area_px": blobs[k - 1].area_px,
+        b = blobs[k - 1]
+        out.append({"file": path.name, "features": list(b.features()), "area_px": b.area_px,
+                    "halo": list(b.halo), "ring_pixels": list(b.ring_pixels), "white_fraction": b.white_fraction,
                     "true_stops": math.log2(max(t, 1e-9)), "energy": float(y_true[sel].sum()), "synthetic": True})
     return out
 
@@ -187,6 +190,7 @@ def main(argv=None) -> int:
     p.add_argument("--splits", default="dev", help="comma-separated: dev (tuning) and/or test (report once)")
     p.add_argument("--fit", action="store_true", help="refit the coefficients on dev and print them")
     p.add_argument("-o", "--out", default=None)
+    p.add_argument("--samples-out", default=None, help="also write every blob's features and truth (JSON)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     hdri = Path(args.hdri_dir)
@@ -200,15 +204,19 @@ def main(argv=None) -> int:
              for s in synthetic_lamp_samples(hdri / f)]
     print(f"[clip_rule] dev: {len(lamps)} synthetic lamps", file=sys.stderr)
     dev = by_split["dev"]
-    coefficients = fit(dev + lamps) if args.fit else list(highlights.RULE_COEFFICIENTS)
+    # fitted on the real dev blobs only: fitted to the synthetic lamps too, the linear rule got
+    # worse on real blobs (0.29 -> 0.86 stops) without getting good on lamps (1.45 stops)
+    coefficients = fit(dev) if args.fit else list(highlights.RULE_COEFFICIENTS)
     constant = fit(dev, constant_only=True)[0]
     report = {"coefficients": coefficients, "fitted_now": bool(args.fit), "best_constant_stops_dev": constant,
               "views_per_panorama": VIEWS_PER_PANORAMA, "splits": {}}
     if args.fit:
-        report["dev_leave_one_panorama_out"] = leave_one_panorama_out(dev + lamps)
+        report["dev_leave_one_panorama_out"] = leave_one_panorama_out(dev)
     report["dev_synthetic_lamps"] = evaluate(lamps, coefficients, constant)
     for split in args.splits.split(","):
         report["splits"][split] = evaluate(by_split[split], coefficients, constant)
+    if args.samples_out:
+        Path(args.samples_out).write_text(json.dumps({"dev": dev, "lamps": lamps, **{k: v for k, v in by_split.items() if k != "dev"}}))
     text = json.dumps(report, indent=1)
     if args.out:
         Path(args.out).write_text(text)

@@ -40,7 +40,7 @@ MAX_BOOST_STOPS = 12.0
 HALO_FLOOR = 1e-4  # darker halo rings count as this (linear, white = 1)
 MAX_EXTRAPOLATION_PX = 8.0  # the halo is extrapolated at most this far inside the edge
 # Fitted by `python -m bench.clip_rule --fit` on the dev panoramas (see docs/highlights.md).
-RULE_COEFFICIENTS = (-0.419, 0.009, -0.944, 1.338, -0.073)
+RULE_COEFFICIENTS = (-0.452, -0.042, -0.808, 1.247, -0.075)
 MIN_EXPOSURE_RATIO_PIXELS = 64  # unclipped mid-tone pixels needed to trust a frame's exposure ratio
 
 
