@@ -50,3 +50,18 @@ def test_mean_colour_baseline_is_the_linearised_mean():
     ldr[:2] = 1.0
     env = estimate_mean_colour(ldr)
     assert torch.allclose(env, torch.full_like(env, float(inverse_tonemap(torch.tensor(1.0))) / 2))
+
+
+def test_photo_round_trips_through_the_png_the_job_reads(tmp_path):
+    """The product path reads the photo from a PNG file: the capture the job sees is the
+    8-bit photo exactly, with the stated FOV."""
+    from bench.real_panoramas import CROP_HFOV_DEG, job_params, ldr_photo, write_photo
+    from core.capture.load import load_capture
+
+    pano = _direction_coded_pano()
+    crop, intr = perspective_crop(pano, camera_rotation(10.0, 0.0))
+    ldr = ldr_photo(crop)
+    cap = load_capture(write_photo(ldr, tmp_path / "p.png"), None, job_params(), track=False)
+    assert torch.allclose(cap.frames[0], ldr, atol=1e-6)
+    assert abs(cap.intrinsics.fx - intr.fx) < 1e-6 * intr.fx
+    assert job_params().intrinsics.hfov_deg == CROP_HFOV_DEG and job_params().preset == "draft"
