@@ -105,7 +105,16 @@ def job_params():
     return JobParams.model_validate({"preset": PRESET, "intrinsics": {"hfov_deg": CROP_HFOV_DEG}})
 
 
-def estimate_field(photo_path: Path, workdir: Path) -> torch.Tensor:
+def engine_config(overrides: dict | None):
+    """The preset (None: run_job's own default), or a labelled variant of it for exploration."""
+    if not overrides:
+        return None
+    from core.engine.presets import preset
+
+    return preset(PRESET).with_overrides(overrides)
+
+
+def estimate_field(photo_path: Path, workdir: Path, overrides: dict | None = None) -> torch.Tensor:
     """The product: run_job (as `lightfield estimate`) then the exact env map at the camera."""
     import warnings
 
@@ -115,21 +124,23 @@ def estimate_field(photo_path: Path, workdir: Path) -> torch.Tensor:
     out = workdir / (photo_path.stem + ".lightfield")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # e.g. "no depth: assuming a box room" (expected here)
-        run_job(photo_path, None, job_params(), out)
+        run_job(photo_path, None, job_params(), out, config=engine_config(overrides))
     art = LightFieldArtefact.load(out)  # what `lightfield envmap OUT --x 0,0,0` loads
     env, _ = art.envmap(torch.zeros(3), None, GT_HEIGHT)
     return env
 
 
-def estimate_prior(photo_path: Path) -> torch.Tensor:
-    """Shortcut: the job's prior (preset settings) on the same decoded capture, queried directly."""
+def estimate_prior(photo_path: Path, overrides: dict | None = None) -> torch.Tensor:
+    """Shortcut: the job's prior (preset settings) on the same capture at the job's working
+    resolution (as run_job binds it), queried directly."""
     from core.capture.load import load_capture
     from core.engine.presets import preset
     from core.priors.registry import build_prior
 
     params = job_params()
-    capture = load_capture(photo_path, None, params, track=False)
-    prior = build_prior(params.prior, preset(PRESET).priors.get(params.prior, {}))
+    config = engine_config(overrides) or preset(PRESET)
+    capture = load_capture(photo_path, None, params, track=False).resized(config.distill.work_height)
+    prior = build_prior(params.prior, config.prior_settings(params.prior))
     prior.bind(capture)
     return prior.envmaps(torch.zeros(1, 3), 0.0, GT_HEIGHT)[0]
 
@@ -157,7 +168,7 @@ def write_photo(ldr: torch.Tensor, path: Path) -> Path:
     return write_png(path, (ldr.clamp(0, 1) * 255.0).round().to(torch.uint8).numpy())
 
 
-def evaluate_panorama(path: Path, sphere_size: int, workdir: Path, methods=METHODS) -> dict:
+def evaluate_panorama(path: Path, sphere_size: int, workdir: Path, methods=METHODS, overrides: dict | None = None) -> dict:
     from bench.suite.evaluation import score_probe
     from core.camera import Camera
     from core.conventions import inverse_tonemap
@@ -171,7 +182,7 @@ def evaluate_panorama(path: Path, sphere_size: int, workdir: Path, methods=METHO
     ldr = ldr_photo(hdr)
     photo = write_photo(ldr, workdir / (path.stem + ".png"))
     gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), R.T)  # camera frame: gt(d) = pano(R d)
-    run = {FIELD: lambda: estimate_field(photo, workdir), PRIOR: lambda: estimate_prior(photo),
+    run = {FIELD: lambda: estimate_field(photo, workdir, overrides), PRIOR: lambda: estimate_prior(photo, overrides),
            CONSTANT: lambda: estimate_mean_colour(ldr)}
     preds, seconds = {}, {}
     for name in methods:
@@ -214,13 +225,16 @@ def summarise(images: list[dict], methods=METHODS) -> dict:
 
 
 def run_panoramas(hdri_dir: Path, limit: int | None, sphere_size: int, quick: bool = False,
-                  workdir: Path | None = None, splits=SPLITS, log=None) -> dict:
+                  workdir: Path | None = None, splits=SPLITS, log=None, overrides: dict | None = None) -> dict:
     """Per split: every method's mean scores, ratios and per-image results (`skipped` if no data)."""
     hdri_dir = Path(hdri_dir)
     if not (hdri_dir / "MANIFEST.tsv").is_file():
         return {"skipped": f"no MANIFEST.tsv in {hdri_dir} (pass --hdri-dir); the real-panorama section was not run"}
     rows = read_manifest(hdri_dir)
     out: dict = {"protocol": PROTOCOL, "hdri_dir": str(hdri_dir), "limit_per_split": limit, "preset": PRESET, "splits": {}}
+    if overrides:
+        out["protocol"] += f" VARIANT, not the shipped preset: {PRESET} with {json.dumps(overrides)}."
+        out["overrides"] = overrides
     own_tmp = workdir is None
     workdir = Path(tempfile.mkdtemp(prefix="lightfield-panoramas-")) if own_tmp else Path(workdir)
     for split in splits:
@@ -233,7 +247,7 @@ def run_panoramas(hdri_dir: Path, limit: int | None, sphere_size: int, quick: bo
         images = []
         for f in files:
             t0 = time.perf_counter()
-            images.append(evaluate_panorama(hdri_dir / f, sphere_size, workdir))
+            images.append(evaluate_panorama(hdri_dir / f, sphere_size, workdir, overrides=overrides))
             if log:
                 im = images[-1]
                 log(f"panorama {split}/{f}: {time.perf_counter() - t0:.0f}s, observed corr "
@@ -260,10 +274,13 @@ def main(argv=None) -> int:
     p.add_argument("--limit", type=int, default=3, help="panoramas per split (0: all)")
     p.add_argument("--sphere-size", type=int, default=64)
     p.add_argument("-o", "--out", default=None, help="JSON file to write")
+    p.add_argument("--overrides", default=None, help='explore a variant of the preset (labelled in the output), e.g. '
+                   '\'{"priors.reprojection.env_height": 64}\'')
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     res = run_panoramas(Path(args.hdri_dir), args.limit or None, args.sphere_size, splits=tuple(args.splits.split(",")),
-                        log=lambda m: print(m, file=sys.stderr, flush=True))
+                        log=lambda m: print(m, file=sys.stderr, flush=True),
+                        overrides=json.loads(args.overrides) if args.overrides else None)
     if args.out:
         Path(args.out).write_text(json.dumps(sanitize(res), indent=1))
     print("\n".join(panorama_markdown(res)))
