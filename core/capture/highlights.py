@@ -9,15 +9,16 @@ clipped pixels, any channel >= CLIP_LDR), a radiance factor from what the captur
    same pixel is unclipped in a darker frame, its value scaled by the frames' exposure
    ratio IS the radiance (`recover_from_exposures`). Used only where the recovered value
    is above white (otherwise the light changed, not the exposure).
-2. Otherwise the blob rule (`blob_boost`): the blob's size and the halo around it. Optics
-   (lens glare, bloom, resampling blur) spread a source's light into the pixels next to it
-   in proportion to its radiance; the halo's log-falloff, fitted over rings 1..HALO_RINGS
-   pixels outside the blob and extrapolated to the blob's centre (its equivalent radius
-   inside the edge), estimates the peak. Small blobs are point-like sources (bulbs), which
-   are much brighter than white; big blobs are mostly windows and lit walls, which are not.
-   log2(boost) = c0 + c1 log2(area / REF_AREA_SR) + c2 halo_stops, clamped to
-   [0, MAX_BOOST_STOPS]; the coefficients are fitted by bench/clip_rule.py on the `dev`
-   panoramas only (docs/highlights.md has the fit and its measured error in stops).
+2. Otherwise the blob rule (`blob_boost`): log2(boost) = c . (1, log2(area / REF_AREA_SR),
+   edge_stops, white_fraction, spill_stops), clamped to [0, MAX_BOOST_STOPS]: the blob's
+   solid angle; how dark its surround is (a blob on a dark surround is a source, one fading
+   into bright neighbours a bright surface); the share of its pixels with all channels
+   clipped (white-hot vs a saturated colour); and the light its halo holds above the
+   background (blur and glare spill a share of a source's energy past its edge). The
+   coefficients are fitted by bench/clip_rule.py on the `dev` panoramas only; the fit, its
+   measured error in stops and its known limit (very bright point sources are
+   underestimated) are in docs/highlights.md. A log-linear extrapolation of the halo into
+   the core was tried and got no weight on dev.
 
 Everything is in the linear units of core.conventions.inverse_tonemap (white = 1 at ev 0).
 """
@@ -38,7 +39,6 @@ BACKGROUND_RINGS = 2  # the outermost rings stand for the background the halo si
 REF_AREA_SR = 1e-3  # steradians: the area term is relative to a ~1.8 deg wide source
 MAX_BOOST_STOPS = 12.0
 HALO_FLOOR = 1e-4  # darker halo rings count as this (linear, white = 1)
-MAX_EXTRAPOLATION_PX = 8.0  # the halo is extrapolated at most this far inside the edge
 # Fitted by `python -m bench.clip_rule --fit` on the dev panoramas (see docs/highlights.md).
 RULE_COEFFICIENTS = (-0.452, -0.042, -0.808, 1.247, -0.075)
 MIN_EXPOSURE_RATIO_PIXELS = 64  # unclipped mid-tone pixels needed to trust a frame's exposure ratio
@@ -53,19 +53,6 @@ class Blob:
     halo: tuple[float | None, ...]  # mean linear luminance of rings 1..HALO_RINGS px outside (None: no pixels)
     ring_pixels: tuple[int, ...] = ()  # unclipped pixels in each ring
     white_fraction: float = 1.0  # of its pixels, the share with ALL channels clipped (white-hot, not a coloured surface)
-
-    def halo_stops(self) -> float:
-        """Stops above white of the halo's log-falloff extrapolated to the blob's centre
-        (0 when there is no halo to fit)."""
-        pts = [(d + 1.0, math.log2(v)) for d, v in enumerate(self.halo) if v is not None and v > 0]
-        if len(pts) < 2:
-            return 0.0
-        d = np.array([p[0] for p in pts])
-        y = np.array([p[1] for p in pts])
-        slope, intercept = np.polyfit(d, y, 1)
-        slope = min(float(slope), 0.0)  # a halo falls off away from the source
-        radius = min(math.sqrt(self.area_px / math.pi), MAX_EXTRAPOLATION_PX)
-        return max(0.0, float(intercept - slope * radius))  # at d = -radius
 
     def edge_stops(self) -> float:
         """log2 of the nearest measured halo ring's luminance (0 = white; no ring: 0)."""
