@@ -150,25 +150,27 @@ def exposure_ratios(linear: torch.Tensor, clipped: torch.Tensor) -> torch.Tensor
 def recover_from_exposures(linear: torch.Tensor, clipped: torch.Tensor) -> torch.Tensor:
     """[T, H, W, 3]: clipped pixels replaced by the same pixel of a darker frame, rescaled to
     this frame's exposure, where that is unclipped and above white (the brightest such
-    reading wins); other pixels unchanged. Needs a static camera (the caller checks)."""
+    reading wins); other pixels unchanged. Needs a static camera (the caller checks). Works
+    on the clipped pixels only (a video's frames are not copied)."""
     ratios = exposure_ratios(linear, clipped)
     if ratios is None or linear.shape[0] < 2 or bool((ratios - 1.0).abs().max() < 0.05):
         return linear
     out = linear.clone()
     for t in range(linear.shape[0]):
-        if not bool(clipped[t].any()):
+        idx = clipped[t].reshape(-1).nonzero()[:, 0]
+        if idx.numel() == 0:
             continue
-        best = torch.zeros(linear.shape[1:3], dtype=linear.dtype)
-        value = linear[t].clone()
+        value = linear[t].reshape(-1, 3)[idx].clone()
+        best = torch.zeros(idx.numel(), dtype=linear.dtype)
         for s in range(linear.shape[0]):
             if s == t:
                 continue
-            scaled = linear[s] * (ratios[t] / ratios[s])  # frame s's reading at frame t's exposure
+            scaled = linear[s].reshape(-1, 3)[idx] * (ratios[t] / ratios[s])  # frame s's reading at frame t's exposure
             y = luminance(scaled)
-            use = clipped[t] & ~clipped[s] & (y > 1.0) & (y > best)
+            use = ~clipped[s].reshape(-1)[idx] & (y > 1.0) & (y > best)
             value[use] = scaled[use]
             best = torch.where(use, y, best)
-        out[t] = value
+        out[t].view(-1, 3)[idx] = value
     return out
 
 
@@ -187,11 +189,10 @@ def linearise_highlights(frames: torch.Tensor, intrinsics, static_camera: bool,
         recovered = clipped & (lin2 != lin).any(-1)
         lin = lin2
     pixel_sr = pixel_solid_angle(intrinsics)
-    out = lin.clone()
-    for t in range(frames.shape[0]):
+    for t in range(frames.shape[0]):  # in place: lin is this function's own tensor
         still = (clipped[t] & ~recovered[t]).numpy()
         if not still.any():
             continue
         factor = boost_map(lin[t].numpy(), still, pixel_sr, coefficients)
-        out[t] = lin[t] * torch.from_numpy(factor).to(lin.dtype)[..., None]
-    return out
+        lin[t] *= torch.from_numpy(factor).to(lin.dtype)[..., None]
+    return lin
