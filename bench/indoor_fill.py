@@ -26,12 +26,24 @@ def row_profile(pano: torch.Tensor, rows: int, band_deg: float) -> torch.Tensor:
     return torch.log(y.clamp_min(1e-12) / y[band].mean())
 
 
-def fit_gain(paths: list[Path]) -> list[float]:
+def smooth(log_gain: torch.Tensor, sigma_rows: float) -> torch.Tensor:
+    """Gaussian smoothing over rows (reflected at the poles): a gradient, not 24 free steps
+    (steps would read as structure the photo never showed, and overfit 13 panoramas)."""
+    if sigma_rows <= 0:
+        return log_gain
+    r = int(math.ceil(3 * sigma_rows))
+    k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float64) / sigma_rows) ** 2)
+    padded = torch.nn.functional.pad(log_gain[None, None], (r, r), mode="reflect")[0, 0]
+    return torch.nn.functional.conv1d(padded[None, None], (k / k.sum())[None, None])[0, 0]
+
+
+def fit_gain(paths: list[Path], sigma_rows: float | None = None) -> list[float]:
     from bench.real_panoramas import load_panorama
-    from core.priors.indoor_fill import GAIN_ROWS, HORIZON_BAND_DEG
+    from core.priors.indoor_fill import GAIN_ROWS, GAIN_SMOOTHING_ROWS, HORIZON_BAND_DEG
 
     logs = torch.stack([row_profile(load_panorama(p), GAIN_ROWS, HORIZON_BAND_DEG) for p in paths])
-    return [round(math.exp(v), 3) for v in logs.mean(0).tolist()]
+    mean = smooth(logs.mean(0), GAIN_SMOOTHING_ROWS if sigma_rows is None else sigma_rows)
+    return [round(math.exp(v), 3) for v in mean.tolist()]
 
 
 ABLATION = {

@@ -27,10 +27,11 @@ from core.exposure import luminance
 
 HORIZON_BAND_DEG = 25.0
 GAIN_ROWS = 24
+GAIN_SMOOTHING_ROWS = 2.0  # Gaussian sigma (rows of 7.5 deg) of the fitted log-gain profile
 # Fitted by `python -m bench.indoor_fill` on the 13 dev panoramas (row 0 = up).
 ELEVATION_GAIN = (
-    0.381, 0.308, 0.304, 0.669, 0.652, 0.673, 0.646, 1.266, 1.797, 1.442, 1.195, 0.876,
-    0.602, 0.467, 0.437, 0.489, 0.495, 0.421, 0.334, 0.316, 0.309, 0.315, 0.303, 0.3,
+    0.375, 0.39, 0.435, 0.508, 0.604, 0.724, 0.869, 1.02, 1.125, 1.121, 1.006, 0.841,
+    0.689, 0.58, 0.512, 0.468, 0.434, 0.4, 0.368, 0.342, 0.325, 0.314, 0.309, 0.308,
 )
 UNSEEN_WHITENING = 0.5  # 0: the seen mean colour; 1: grey (chosen on dev: bench/indoor_fill.py)
 
