@@ -237,6 +237,7 @@ def run_panoramas(hdri_dir: Path, limit: int | None, sphere_size: int, quick: bo
         out["overrides"] = overrides
     own_tmp = workdir is None
     workdir = Path(tempfile.mkdtemp(prefix="lightfield-panoramas-")) if own_tmp else Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
     for split in splits:
         files = sorted(r["filename"] for r in rows if r.get("split") == split)
         files = [f for f in files if (hdri_dir / f).is_file()]
