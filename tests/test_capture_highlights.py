@@ -48,7 +48,7 @@ def test_synthetic_lamp_with_halo_is_estimated_within_stated_error(radiance, rad
     ldr = to_ldr(true)
     clip = clipped_mask(ldr)
     assert clip.any()
-    est = linearise_highlights(ldr[None], INTR, static_camera=True)[0].double()
+    est = linearise_highlights(ldr[None], INTR, compare_frames=True)[0].double()
     true_mean = float(true[clip].mean())
     est_mean = float(est[clip][:, 1].mean())
     err = abs(math.log2(est_mean / true_mean))
@@ -94,7 +94,7 @@ def test_exposure_bracket_recovers_the_clipped_lamp():
     assert clip[0][centre] and not clip[1][centre]
     assert float(rec[0][centre][1]) == pytest.approx(6.0, rel=0.1)
     # through the full rule too (static camera): exposure evidence wins over the blob rule
-    full = linearise_highlights(frames, INTR, static_camera=True)
+    full = linearise_highlights(frames, INTR, compare_frames=True)
     assert float(full[0][centre][1]) == pytest.approx(6.0, rel=0.1)
 
 
@@ -103,7 +103,7 @@ def test_a_light_switching_off_is_not_mistaken_for_an_exposure_change():
     on = lamp_scene(8.0, 4.0, wall=0.2, glare=0.0)
     off = lamp_scene(0.2, 4.0, wall=0.2, glare=0.0)
     frames = torch.stack([to_ldr(on), to_ldr(off)])
-    out = linearise_highlights(frames, INTR, static_camera=True)
+    out = linearise_highlights(frames, INTR, compare_frames=True)
     assert float(out[0][40, 60][1]) > 1.0
 
 
@@ -122,3 +122,18 @@ def test_blobs_are_eight_connected_and_counted():
     clip[7, 7] = True
     labels, blobs = find_blobs(lin, clip.numpy(), 1e-4)
     assert len(blobs) == 2 and sorted(b.area_px for b in blobs) == [1, 2]
+
+
+def test_prior_compares_frames_only_for_a_static_camera_under_static_lighting():
+    """Through the reprojection prior: with the engine's 'lighting changes' decision the
+    darker frame is not used as an exposure bracket (its lamp may simply be dimmer)."""
+    from core.capture.load import capture_from_arrays
+    from core.priors.reprojection import linear_frames
+
+    true = lamp_scene(6.0, 4.0, wall=0.4, glare=0.0)
+    frames = torch.stack([to_ldr(true), to_ldr(true / 8.0)])
+    cap = capture_from_arrays(frames, None)
+    static = linear_frames(cap, lighting_changes=False)
+    changing = linear_frames(cap, lighting_changes=True)
+    assert float(static[0, 40, 60, 1]) == pytest.approx(6.0, rel=0.1)
+    assert float(changing[0, 40, 60, 1]) != pytest.approx(6.0, rel=0.1)

@@ -174,17 +174,19 @@ def recover_from_exposures(linear: torch.Tensor, clipped: torch.Tensor) -> torch
     return out
 
 
-def linearise_highlights(frames: torch.Tensor, intrinsics, static_camera: bool,
+def linearise_highlights(frames: torch.Tensor, intrinsics, compare_frames: bool,
                          coefficients=RULE_COEFFICIENTS) -> torch.Tensor:
     """LDR frames [T, H, W, 3] -> linear radiance (ev 0) with clipped sources estimated:
-    exposure changes first (static camera only), then the blob rule for what stays clipped."""
+    exposure changes first, then the blob rule for what stays clipped. `compare_frames`: the
+    frames see the same radiance up to exposure (a static camera and static lighting), so
+    one frame's unclipped reading may stand in for another's clipped one."""
     ldr = frames.clamp(0, 1)
     lin = inverse_tonemap(ldr)
     clipped = clipped_mask(ldr)
     if not bool(clipped.any()):
         return lin
     recovered = torch.zeros_like(clipped)
-    if static_camera and frames.shape[0] > 1:
+    if compare_frames and frames.shape[0] > 1:
         lin2 = recover_from_exposures(lin, clipped)
         recovered = clipped & (lin2 != lin).any(-1)
         lin = lin2

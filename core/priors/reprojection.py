@@ -57,14 +57,17 @@ MIN_PROBE_DISTANCE = 1e-3  # metres; points closer than this to a probe are skip
 OTHER_VIEW_STRIDE = 3  # merged viewpoints contribute a third of their points (cost)
 
 
-def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP_BOOST) -> torch.Tensor:
+def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP_BOOST,
+                  lighting_changes: bool = True) -> torch.Tensor:
     """Linear radiance [T, H, W, 3] (ev 0) of a capture at its own resolution, linearised at
-    the resolution it was resized from (see the module docstring, step 1)."""
+    the resolution it was resized from (see the module docstring, step 1). Exposure changes
+    between frames are used only for a static camera under static lighting (a lamp switching
+    off must not read as an exposure change)."""
     src = capture.full_resolution or capture
     if clip_rule == "fixed":
         lin = linearise(src.frames, clip_boost)
     else:
-        lin = linearise_highlights(src.frames, src.intrinsics, src.static_camera)
+        lin = linearise_highlights(src.frames, src.intrinsics, src.static_camera and not lighting_changes)
     if src is not capture and (src.height, src.width) != (capture.height, capture.width):
         lin = F.interpolate(lin.permute(0, 3, 1, 2), size=(capture.height, capture.width), mode="area").permute(0, 2, 3, 1)
     return lin.contiguous()
@@ -178,7 +181,7 @@ class ReprojectionPrior(Prior):
         static_lighting_moving_camera = not lighting_changes and not capture.static_camera
         self.merge_views = self.configured_merge_views or (
             MERGE_VIEWS_STATIC_LIGHTING if static_lighting_moving_camera else 1)
-        self._colors = linear_frames(capture, self.clip_rule, self.clip_boost)
+        self._colors = linear_frames(capture, self.clip_rule, self.clip_boost, lighting_changes)
         self._points = {}
         self.point_cloud_builds = 0
         # frames with the same pose and the same depth share one point cloud
