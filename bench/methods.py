@@ -101,6 +101,10 @@ class Budget:
     probes: tuple[int, ...]
 
 
+# The paper's ball-render loop, whatever the prior can answer (core.engine.config `supervision`)
+_BALLS = (("distill.supervision", "balls"),)
+
+
 def core_methods(diffusion_weights: str | None = None, diffusionlight_weights: str | None = None) -> list[Method]:
     """Run on every suite: baselines, the paper's field, its grid ablation, the trunk, the
     baked query mode and the oracle upper bounds of the key methods (plus the diffusion
@@ -124,7 +128,9 @@ def core_methods(diffusion_weights: str | None = None, diffusionlight_weights: s
         Method("global-oracle", "global", "upper-bound", "one env map: the TRUE map at the scene centre (best single map)", prior="oracle"),
         Method("per-probe", "per-probe", "baseline", "reprojection prior at each held-out probe, no distillation (Ours-sampling analogue)"),
         Method("grid", "field", "paper", "3x3x3 grid of env maps distilled (paper's w/o-MLP ablation)", field="grid"),
-        Method("mlp", "field", "paper", "MLP field distilled (the paper's method, CPU budget)", field="mlp"),
+        Method("mlp", "field", "paper", "MLP field distilled (draft preset: radiance supervision from the prior's env maps)", field="mlp"),
+        Method("mlp-balls", "field", "paper", "MLP distilled through the paper's ball loop (the path of priors that only paint balls)",
+               field="mlp", overrides=_BALLS),
         Method("mlp-baked", "field", "query", "same MLP, queried through the baked 5x5x5(x4) lattice", field="mlp", query="baked"),
         Method("trunk", "field", "paper", "trunk+head field distilled (engine's faster field)", field="trunk"),
         Method("mlp-oracle", "field", "upper-bound", "MLP distilled from the oracle prior (upper bound of distillation)", field="mlp", prior="oracle"),
@@ -151,12 +157,14 @@ def sweep_methods(budget: Budget) -> list[Method]:
                               overrides=(("distill.work_height", wh),)))
     for n in budget.probes:
         if n != b.distill.n_probes and n != 1:
-            out.append(Method(f"mlp-probes{n}", "field", "budget", f"MLP, {n} probes per step", field="mlp",
-                              overrides=(("distill.n_probes", n),)))
-    out.append(Method("abl-1probe", "field", "ablation", "MLP, one probe per step instead of nine (paper's ablation)", field="mlp",
-                      overrides=(("distill.n_probes", 1),)))
-    out.append(Method("abl-uniform-ev", "field", "ablation", "MLP, uniform exposure sampling instead of the sweep (paper's ablation)",
-                      field="mlp", exposure="uniform"))
+            out.append(Method(f"mlp-probes{n}", "field", "budget", f"MLP, ball loop, {n} probes per step", field="mlp",
+                              overrides=(("distill.n_probes", n),) + _BALLS))
+    # The paper's ablations change the ball loop only, so they (and the probe budget) run it
+    out.append(Method("abl-1probe", "field", "ablation", "MLP, ball loop, one probe per step instead of nine (paper's ablation)",
+                      field="mlp", overrides=(("distill.n_probes", 1),) + _BALLS))
+    out.append(Method("abl-uniform-ev", "field", "ablation",
+                      "MLP, ball loop, uniform exposure sampling instead of the sweep (paper's ablation)",
+                      field="mlp", exposure="uniform", overrides=_BALLS))
     return out
 
 

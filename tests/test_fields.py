@@ -258,3 +258,47 @@ def test_envmaps_of_maps_larger_than_a_chunk_are_chunked_by_direction(kind):
     whole = field.envmaps(xs, ts, 8, chunk_rows=1 << 16)
     pieces = field.envmaps(xs, ts, 8, chunk_rows=37)  # 128 directions per map: 4 uneven pieces
     torch.testing.assert_close(pieces, whole, rtol=1e-5, atol=1e-6)
+
+
+# ------------------------------------------------------------------ learned time codes
+def codes_config(kind: str = "mlp", knots: int = 5) -> FieldConfig:
+    cfg = tiny_config(kind)
+    return cfg.with_section(time_encoding="codes", time_knots=knots)
+
+
+@pytest.mark.parametrize("kind", ["mlp", "trunk"])
+def test_time_codes_start_constant_in_time_and_interpolate_linearly(kind):
+    field = build_field(codes_config(kind), BOUNDS)
+    x, d = torch.zeros(3, 3), torch.tensor([[0.0, 1.0, 0.0]] * 3)
+    with torch.no_grad():
+        out = field(x, torch.tensor([0.0, 1.1, 3.0]), d)
+    assert torch.allclose(out, out[:1].expand_as(out))  # every knot starts equal: no time structure
+    assert float(field.time_variation().detach()) == 0.0
+    randomise(field, 0.3)
+    codes = field.pe_t
+    tn = torch.tensor([[-1.0], [-0.75], [-0.5], [1.0]])  # knots of 5 at -1, -0.5, 0, 0.5, 1
+    got = codes(tn)
+    c = codes.codes
+    assert torch.allclose(got[0], c[0]) and torch.allclose(got[2], c[1]) and torch.allclose(got[3], c[4])
+    assert torch.allclose(got[1], 0.5 * (c[0] + c[1]))
+    assert float(field.time_variation().detach()) > 0
+
+
+@pytest.mark.parametrize("kind", ["mlp", "trunk"])
+def test_time_code_fields_agree_on_every_evaluation_path_and_reload(kind, tmp_path):
+    from core.fields.artefact import LightFieldArtefact, save_artefact
+
+    field = randomise(build_field(codes_config(kind), BOUNDS), 0.3)
+    xs = torch.tensor([[0.1, 0.2, -1.0], [1.0, 0.5, -3.0]])
+    ts = torch.tensor([0.4, 2.9])
+    h = 4
+    dirs = equirect_directions(h).reshape(-1, 3)
+    with torch.no_grad():
+        maps = field.envmaps(xs, ts, h).reshape(2, -1, 3)
+        rays = torch.stack([field(x.expand(len(dirs), 3), t.expand(len(dirs)), dirs) for x, t in zip(xs, ts)])
+        idx = torch.arange(2).repeat_interleave(len(dirs))
+        probe = field.probe_radiance(xs, ts, idx, dirs.repeat(2, 1)).reshape(2, -1, 3)
+    assert torch.allclose(maps, rays, rtol=1e-4, atol=1e-6) and torch.allclose(probe, rays, rtol=1e-4, atol=1e-6)
+    art = save_artefact(tmp_path / "a", field.eval(), {})
+    again = LightFieldArtefact.load(art.path)
+    assert torch.allclose(again.envmaps(xs, ts, h)[0].reshape(2, -1, 3), maps, rtol=1e-5, atol=1e-7)

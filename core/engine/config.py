@@ -45,6 +45,22 @@ class DistillConfig(BaseModel):
     l2_weight: float = Field(1.0, ge=0)
     perceptual_weight: float = Field(0.1, ge=0)
     perceptual_net: Literal["alex", "vgg"] = Field("alex", description="LPIPS backbone when LPIPS weights are configured")
+    # Radiance supervision (docs/engine.md "Radiance supervision"): priors that declare
+    # PriorCapabilities.envmaps answer HDR env maps; the field is then fitted to them directly
+    # in log radiance at many random directions per probe instead of through LDR balls.
+    supervision: Literal["balls", "envmaps", "auto"] = Field(
+        "balls", description="'balls' (paper): the ball-render loop; 'envmaps': fit the prior's HDR env maps "
+                             "(needs capabilities.envmaps); 'auto': envmaps when the prior answers them, else balls")
+    envmap_frames_per_step: int = Field(1, ge=1, le=16, description="frames (each with its probes) per radiance step")
+    envmap_surface_probes: int = Field(4, ge=0, le=64, description="probes in front of the scene depth (probe_depth_fraction)")
+    envmap_room_probes: int = Field(4, ge=0, le=64, description="probes anywhere along camera rays (0.05-0.95 of the depth)")
+    envmap_camera_probe: bool = Field(True, description="also a probe at the camera centre (where users query)")
+    envmap_directions: int = Field(640, ge=1, description="random directions per probe and step")
+    envmap_bright_fraction: float = Field(0.25, ge=0, le=1, description="share of the directions drawn ~ the target's luminance")
+    envmap_height: int = Field(24, ge=4, description="height of the env maps asked from the prior")
+    log_floor_fraction: float = Field(1e-3, gt=0, description="log(L + floor), floor = this x the frame's mean radiance")
+    linear_weight: float = Field(0.1, ge=0, description="weight of the relative linear (energy) term")
+    time_tv_weight: float = Field(0.01, ge=0, description="L1 total variation of the field's time codes (if any)")
     time_normalisation_frames: int | None = Field(
         None, ge=2, description="normalise time as if the clip had this many frames (the authors' release: 30); None: over the capture")
     # Per-step tensors are small (a few thousand ball samples): intra-op threads cost more in
@@ -73,6 +89,17 @@ class DistillConfig(BaseModel):
     @staticmethod
     def steps_for_tau(tau: float) -> int:
         return max(1, math.ceil(10.0 * tau))
+
+    @property
+    def envmap_probe_count(self) -> int:
+        """Probes per frame of a radiance step."""
+        return self.envmap_surface_probes + self.envmap_room_probes + int(self.envmap_camera_probe)
+
+    def uses_envmaps(self, prior_answers_envmaps: bool) -> bool:
+        """Whether the loop supervises in radiance (see `supervision`)."""
+        if self.supervision == "envmaps" and not prior_answers_envmaps:
+            raise ValueError("distill.supervision='envmaps' needs a prior that answers env maps (capabilities.envmaps)")
+        return self.supervision == "envmaps" or (self.supervision == "auto" and prior_answers_envmaps)
 
     def lr_at(self, step: int) -> float:
         """Linear warm-up then cosine decay to lr * lr_min_ratio."""

@@ -21,8 +21,12 @@ from core.engine.losses import PerceptualLoss, perceptual_description
 from core.engine.progress import Reporter, StageTimer
 from core.engine.scene import scene_bounds
 from core.engine.trainer import Trainer
-from core.fields import LightField, SceneBounds, build_field
+from core.engine.radiance import frame_floors
+from core.fields import FieldConfig, LightField, SceneBounds, build_field
 from core.priors.base import Prior
+
+
+MAX_TIME_KNOTS = 256
 
 
 @dataclass
@@ -59,7 +63,7 @@ def distill(
     device = resolve_device(cfg.device)
     torch.manual_seed(seed)  # field initialisation (on CPU, then moved)
     gen = torch.Generator().manual_seed(seed)
-    field_cfg = config.field.with_time(uses_time)
+    field_cfg = with_time_knots(config.field.with_time(uses_time), capture.num_frames)
     field = build_field(field_cfg, bounds or scene_bounds(capture, cfg.time_normalisation_frames)).to(device)
     opt = torch.optim.Adam(field.parameters(), lr=cfg.lr, betas=cfg.adam_betas)
     run_fingerprint = fingerprint(capture, cfg, field_cfg, seed, prior)
@@ -69,8 +73,11 @@ def distill(
         restored = load_checkpoint(Path(checkpoint_dir), field, opt, gen, run_fingerprint)
         if restored is not None:
             start, losses = restored
-    trainer = Trainer(capture, inverse_tonemap(capture.frames).to(device), capture.depth.to(device), prior, field, opt,
-                      cfg, gen, PerceptualLoss(cfg.perceptual_net), timings, device)
+    frames_lin = inverse_tonemap(capture.frames)
+    use_envmaps = cfg.uses_envmaps(prior.capabilities.envmaps)
+    trainer = Trainer(capture, frames_lin.to(device), capture.depth.to(device), prior, field, opt,
+                      cfg, gen, PerceptualLoss(cfg.perceptual_net), timings, device,
+                      use_envmaps=use_envmaps, floors=frame_floors(frames_lin, cfg.log_floor_fraction))
     reporter.begin(start)
     reporter.check_cancel()  # then once per step, in reporter.step (a store query in the worker)
     with _torch_threads(cfg.threads):
@@ -83,7 +90,16 @@ def distill(
     field.eval()
     return DistillResult(field.cpu(), losses, timings, cfg.iterations, resumed_from=start,
                          stats={"field_config": field_cfg.model_dump(), "perceptual": perceptual_description(cfg.perceptual_net),
-                                "device": str(device)})
+                                "device": str(device), "supervision": "envmaps" if use_envmaps else "balls"})
+
+
+def with_time_knots(field_cfg: FieldConfig, num_frames: int) -> FieldConfig:
+    """One time-code knot per frame (MAX_TIME_KNOTS at most) when the field's kind encodes time
+    with learned codes; the config unchanged otherwise."""
+    section = field_cfg.section()
+    if not field_cfg.uses_time or getattr(section, "time_encoding", None) != "codes":
+        return field_cfg
+    return field_cfg.with_section(time_knots=max(2, min(int(num_frames), MAX_TIME_KNOTS)))
 
 
 @contextmanager

@@ -143,13 +143,16 @@ def run_job(
             "device": result.stats["device"],
             "threads": cfg.threads or torch.get_num_threads(),
             "perceptual": result.stats["perceptual"],
+            "supervision": result.stats["supervision"],
             "stage_timings": timings.as_dict(),
         },
         "simulated": {
             "time_input": decision.uses_time,
             "point_cloud_builds": prior_description.get("point_cloud_builds"),
             "camera": "static" if capture.static_camera else "moving",
-            "rendered": "ball pixels only (field evaluated at ball centres for reflected directions)",
+            "rendered": ("ball pixels only (field evaluated at ball centres for reflected directions)"
+                         if result.stats["supervision"] == "balls"
+                         else "no balls: the prior's HDR env maps at probe centres, random directions (radiance supervision)"),
         },
     }
     with timings("saving"):

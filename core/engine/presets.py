@@ -9,6 +9,13 @@ trunk field equally narrowed when a job picks it). At equal steps a narrow MLP r
 known field about as well as the 6 x 256 one and clearly better than the trunk+head field
 (see docs/engine.md). Wall times are measured by `bench/presets.py`.
 
+`draft` also supervises in radiance when its prior answers env maps (`supervision="auto"`:
+the reprojection, known and oracle priors; the diffusion prior keeps the ball loop): 3 frames
+per step, each with 2 probes in front of the depth, 1 along a camera ray and the camera
+centre, 256 directions per probe, log-radiance loss, 600 steps; and its fields encode time
+with learned per-frame codes. Why and the measurements: docs/engine.md, "Radiance supervision"
+(`python -m bench.accuracy_probe`).
+
 `seed` is the loop of the authors' released code (ORionTMT/Sig25_4DLighting run_video_demo.py
 + SDS/multiball_sds.py `sds_loop`), paired with the diffusion prior's `seed` inference profile
 (its settings default here; a job's `prior_profile` still wins): EV fixed at 0 (their sweep is
@@ -24,18 +31,20 @@ from core.engine.config import DistillConfig, EngineConfig
 from core.fields import FieldConfig
 
 
-def _narrow(width: int, layers: int) -> FieldConfig:
-    """The MLP (default kind) and the trunk at `width` x `layers`; the grid as the paper's."""
-    return FieldConfig(kind="mlp", mlp={"width": width, "layers": layers},
-                       trunk={"trunk_width": width, "trunk_layers": layers})
+def _narrow(width: int, layers: int, **encoding) -> FieldConfig:
+    """The MLP (default kind) and the trunk at `width` x `layers` (and `encoding` settings); the grid as the paper's."""
+    return FieldConfig(kind="mlp", mlp={"width": width, "layers": layers, **encoding},
+                       trunk={"trunk_width": width, "trunk_layers": layers, **encoding})
 
 
 PRESETS: dict[str, EngineConfig] = {
     # CPU: ~1 min for a 20-frame 192x144 clip on 2 cores (bench/presets.py)
     "draft": EngineConfig(
         name="draft",
-        distill=DistillConfig(iterations=400, n_probes=9, work_height=72, lr=5e-3, warmup_steps=15, checkpoint_every=50),
-        field=_narrow(96, 4),
+        distill=DistillConfig(iterations=600, n_probes=9, work_height=72, lr=5e-3, warmup_steps=15, checkpoint_every=50,
+                              supervision="auto", envmap_frames_per_step=3, envmap_surface_probes=2, envmap_room_probes=1,
+                              envmap_directions=256),
+        field=_narrow(96, 4, time_encoding="codes"),
         priors={"reprojection": {"env_height": 24}},
     ),
     # CPU: a 100-frame 320x240 clip in a few minutes

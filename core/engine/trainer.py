@@ -3,7 +3,11 @@ stratified probe pixels; place balls in front of the scene depth there; render O
 pixels under the current field (queried at the ball centre for each reflected direction, at
 the frame's time); composite into the linear frame; tone map at ev; ask the prior for a
 stop-gradient pseudo-target; masked L2 (saturation hinge) + perceptual loss; one Adam step
-with the scheduled learning rate and gradient clipping."""
+with the scheduled learning rate and gradient clipping.
+
+With radiance supervision (`use_envmaps`, core.engine.radiance) a step instead asks the prior
+for HDR env maps at a few probes of the frame and fits the field's log radiance at many
+random directions; the paper's ball loop stays the path of priors that only paint balls."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -17,6 +21,7 @@ from core.engine.config import DistillConfig
 from core.engine.losses import PerceptualLoss, masked_l2
 from core.engine.probes import sample_probes
 from core.engine.progress import StageTimer
+from core.engine.radiance import bright_directions, radiance_loss, random_directions, supervision_probes, targets_at
 from core.fields import LightField
 from core.priors.base import Prior, PriorRequest, ProbeGeometry
 
@@ -36,8 +41,12 @@ class Trainer:
     perceptual: PerceptualLoss
     timings: StageTimer
     device: torch.device
+    use_envmaps: bool = False  # radiance supervision (the prior answers env maps)
+    floors: list[float] | None = None  # per-frame log floors of the radiance loss
 
     def step(self, step: int) -> float:
+        if self.use_envmaps:
+            return self.radiance_step(step)
         capture, cfg, gen, timings, field = self.capture, self.cfg, self.gen, self.timings, self.field
         i = int(torch.randint(capture.num_frames, (1,), generator=gen))
         ev = cfg.ev_at(step)
@@ -86,13 +95,54 @@ class Trainer:
             loss = cfg.l2_weight * masked_l2(pred, target, mask)
             if cfg.perceptual_weight > 0:
                 loss = loss + cfg.perceptual_weight * self.perceptual(pred.clamp(0, 1), target, mask)
-            for g in self.opt.param_groups:
-                g["lr"] = cfg.lr_at(step)
-            self.opt.zero_grad(set_to_none=True)
-            if torch.isfinite(loss):
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(field.parameters(), cfg.grad_clip)
-                self.opt.step()
+            return self._optimise(step, loss)
+
+    def radiance_step(self, step: int) -> float:
+        """One step of radiance supervision: `envmap_frames_per_step` frames, each with its
+        probes; the prior's env maps there; a log-radiance fit at `envmap_directions` directions
+        per probe (uniform, plus a share drawn by the target's luminance)."""
+        capture, cfg, gen, timings, field = self.capture, self.cfg, self.gen, self.timings, self.field
+        frames = torch.randint(capture.num_frames, (cfg.envmap_frames_per_step,), generator=gen).tolist()
+        centers, times, targets, dirs, floors = [], [], [], [], []
+        for i in frames:
+            t = float(capture.times[i])
+            with timings("probe_geometry"):
+                c = supervision_probes(capture, i, cfg, gen)
+            with timings("prior"):
+                maps = self.prior.envmaps(c.to(self.prior.device), t, cfg.envmap_height).detach().float().cpu()
+                maps = torch.nan_to_num(maps, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+                n, k = c.shape[0], cfg.envmap_directions
+                k_bright = round(k * cfg.envmap_bright_fraction)
+                d = random_directions(n * (k - k_bright), gen).reshape(n, k - k_bright, 3)
+                if k_bright:
+                    d = torch.cat((d, bright_directions(maps, k_bright, gen)), dim=1)
+                targets.append(targets_at(maps, d).reshape(-1, 3))
+            centers.append(c)
+            times.append(torch.full((n,), t))
+            dirs.append(d.reshape(-1, 3))
+            floors.append(torch.full((n * k, 1), self.floors[i]))
+        with timings("field_render"):
+            dev = self.device
+            c, k = torch.cat(centers), cfg.envmap_directions
+            index = torch.arange(c.shape[0]).repeat_interleave(k).to(dev)
+            pred = field.probe_radiance(c.to(dev), torch.cat(times).to(dev), index, torch.cat(dirs).to(dev))
+        with timings("optimisation"):
+            loss = radiance_loss(pred, torch.cat(targets).to(dev), torch.cat(floors).to(dev), cfg.linear_weight)
+            return self._optimise(step, loss)
+
+    def _optimise(self, step: int, loss: torch.Tensor) -> float:
+        """Add the time-code TV penalty, then one clipped Adam step at the scheduled rate."""
+        cfg, field = self.cfg, self.field
+        tv = field.time_variation()
+        if tv is not None and cfg.time_tv_weight > 0:
+            loss = loss + cfg.time_tv_weight * tv
+        for g in self.opt.param_groups:
+            g["lr"] = cfg.lr_at(step)
+        self.opt.zero_grad(set_to_none=True)
+        if torch.isfinite(loss):
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(field.parameters(), cfg.grad_clip)
+            self.opt.step()
         return float(loss.detach())
 
 

@@ -100,6 +100,12 @@ class LightField(nn.Module):
             output.weight.mul_(OUTPUT_WEIGHT_SCALE)
             output.bias.fill_(self.logit_for_radiance(INITIAL_RADIANCE))
 
+    def time_variation(self) -> torch.Tensor | None:
+        """The L1 total variation of the field's learned time codes (None when it has none):
+        the distillation penalises it so lighting changes only where the frames say so."""
+        codes = getattr(self, "pe_t", None)
+        return codes.total_variation() if hasattr(codes, "total_variation") else None
+
     # ------------------------------------------------------------------ evaluation
     def logits(self, xn: torch.Tensor, tn: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError

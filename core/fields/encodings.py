@@ -6,17 +6,28 @@ import math
 import torch
 from torch import nn
 
+from typing import Literal
+
 from pydantic import Field
 
 from core.fields.config import FieldSettings
 
 
 class EncodingSettings(FieldSettings):
-    """Positional-encoding frequencies of the network kinds: PE(x) 6, PE(t) 4, PE(d) 4."""
+    """Input encodings of the network kinds: PE(x) 6, PE(d) 4 frequencies, and time as PE(t)
+    (4 frequencies, the paper's) or as learned time codes (`time_encoding="codes"`).
+
+    Time codes: `time_knots` learned vectors of `time_code_dim` at evenly spaced normalised
+    times (the engine sets one knot per frame), linearly interpolated. Unlike PE(t), a code
+    changes only where the data asks (the engine adds an L1 total-variation penalty across
+    knots), so a static stretch stays flat and a switch stays sharp (docs/engine.md)."""
 
     x_freqs: int = Field(6, ge=0, le=16)
     t_freqs: int = Field(4, ge=0, le=16)
     d_freqs: int = Field(4, ge=0, le=16)
+    time_encoding: Literal["pe", "codes"] = "pe"
+    time_knots: int = Field(2, ge=2, le=4096, description="knots of the time codes (the engine sets one per frame)")
+    time_code_dim: int = Field(8, ge=1, le=64)
 
 
 class PositionalEncoding(nn.Module):
@@ -52,11 +63,44 @@ class PositionalEncoding(nn.Module):
         return torch.cat(parts, dim=-1)
 
 
+class TimeCodes(nn.Module):
+    """Learned codes at `knots` evenly spaced normalised times in [-1, 1], linearly
+    interpolated: tn [B, 1] -> [B, dim]. Every knot starts at the same vector, so an untrained
+    field is constant in time and only the data (against the TV penalty) makes it change."""
+
+    def __init__(self, knots: int, dim: int):
+        super().__init__()
+        if knots < 2 or dim < 1:
+            raise ValueError(f"TimeCodes needs knots >= 2 and dim >= 1, got {knots}, {dim}")
+        start = torch.randn(1, dim) * 0.5
+        self.codes = nn.Parameter(start.expand(knots, dim).clone())
+
+    @property
+    def out_dim(self) -> int:
+        return self.codes.shape[1]
+
+    def forward(self, tn: torch.Tensor) -> torch.Tensor:
+        k = self.codes.shape[0]
+        pos = (tn.reshape(-1).clamp(-1.0, 1.0) + 1.0) * 0.5 * (k - 1)
+        i0 = pos.floor().clamp(max=k - 2)
+        frac = (pos - i0)[:, None].to(self.codes.dtype)
+        i0 = i0.long()
+        return self.codes[i0] * (1.0 - frac) + self.codes[i0 + 1] * frac
+
+    def total_variation(self) -> torch.Tensor:
+        """Mean L1 change between neighbouring knots (per knot step and code channel)."""
+        return (self.codes[1:] - self.codes[:-1]).abs().mean()
+
+
 def nerf_encodings(
     settings: EncodingSettings, uses_time: bool
-) -> tuple[PositionalEncoding, PositionalEncoding | None, PositionalEncoding]:
-    """PE(x), PE(t) (None for a field without a time input) and PE(d) at the settings' frequencies."""
-    pe_t = PositionalEncoding(1, settings.t_freqs) if uses_time else None
+) -> tuple[PositionalEncoding, nn.Module | None, PositionalEncoding]:
+    """PE(x), the time encoding (PE(t) or TimeCodes; None for a field without a time input)
+    and PE(d) at the settings' frequencies."""
+    pe_t: nn.Module | None = None
+    if uses_time:
+        pe_t = (TimeCodes(settings.time_knots, settings.time_code_dim) if settings.time_encoding == "codes"
+                else PositionalEncoding(1, settings.t_freqs))
     return PositionalEncoding(3, settings.x_freqs), pe_t, PositionalEncoding(3, settings.d_freqs)
 
 

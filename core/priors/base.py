@@ -75,8 +75,10 @@ class PriorCapabilities:
     * frame_geometry: it builds per-frame geometry (`prepare_frame(i)`) that is worth building
       before the loop, so its cost is reported as its own stage;
     * envmaps: it answers linear HDR env maps at probe centres directly
-      (`envmaps(centers, time, height)`), e.g. to supervise a field in radiance, not only
-      through rendered balls.
+      (`envmaps(centers, time, height)`). With `distill.supervision="auto"` (the draft preset)
+      the engine then fits the field to these maps in log radiance instead of rendering balls
+      (core.engine.radiance), calling `envmaps` for ~12 probes every step: declare it only
+      when an answer costs milliseconds, not a diffusion sampling.
     """
 
     frame_geometry: bool = False

@@ -1,0 +1,140 @@
+"""Accuracy probe of the distilled field against its prior and a constant map (issue 12).
+
+    python -m bench.accuracy_probe [--suites spatial,temporal,moving-camera,hard]
+        [--methods field,field-balls] [--set distill.iterations=400 ...] [-o probe.json]
+
+For each simulator suite (bench/suite: held-out probes and times, ground truth) it scores, on
+the three-sphere metrics (diffuse, matte, mirror):
+* prior     the reprojection prior queried directly at each held-out probe (a SHORTCUT: what
+            the field is distilled from, not what users get);
+* constant  one constant map of the mean linearised colour of the frame nearest the probe time;
+* field     the draft preset end to end (`run_job`, then the artefact's exact env map);
+* field-balls  the same with the paper's ball-render loop (`distill.supervision=balls`);
+* field-oracle the draft preset distilled from the simulator's oracle prior (upper bound).
+Ratios field/prior (target <= 1.05 on every metric) and field/constant (target <= 0.85 on
+diffuse and matte si-RMSE) are printed; on suites with a time series, the brightness
+after/before each switch (pred vs truth, target |diff| <= 0.1) and, per stretch between
+switches, the largest deviation of pred/truth brightness from its mean (on a static stretch the
+field's own flatness; target <= 3 %). `--set` overrides the draft preset (dotted keys).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import torch
+
+METRICS = ("si_rmse", "angular_deg", "nrmse")
+MATERIALS = ("diffuse", "matte", "mirror")
+
+
+def constant_maps(suite, height: int) -> torch.Tensor:
+    from core.capture.load import load_capture
+    from core.conventions import equirect_width, inverse_tonemap
+
+    cap = load_capture(suite.capture_dir)
+    out = []
+    for p in suite.probes:
+        i = int(torch.argmin((cap.times.double() - float(p.t)).abs()))
+        mean = inverse_tonemap(cap.frames[i].clamp(0, 1)).reshape(-1, 3).mean(0)
+        out.append(mean.expand(height, equirect_width(height), 3).clone())
+    return torch.stack(out)
+
+
+def series_checks(suite, series_preds: list[torch.Tensor]) -> dict:
+    """After/before brightness at each switch and the flatness of static stretches."""
+    from bench.suite.evaluation import envmap_brightness
+
+    switches, stretches = [], []
+    for s, pred in zip(suite.series, series_preds):
+        bp, bg = envmap_brightness(pred), envmap_brightness(s.gt)
+        if s.kind == "switch":
+            rp, rg = float(bp[-1] / bp[0]), float(bg[-1] / bg[0])
+            switches.append({"x": list(s.x), "frame": s.switch_frame, "after_before": round(rp, 3), "truth": round(rg, 3),
+                             "abs_diff": round(abs(rp - rg), 3)})
+        else:
+            # the deviation of pred/truth from its mean: on a static stretch the pred's own flatness
+            r = bp / bg
+            dev = float(((r - r.mean()) / r.mean()).abs().max())
+            dev_gt = float(((bg - bg.mean()) / bg.mean()).abs().max())
+            stretches.append({"x": list(s.x), "frames": len(s.times), "max_dev_vs_truth": round(dev, 4),
+                              "truth_max_dev": round(dev_gt, 4)})
+    return {"switches": switches, "stretches": stretches}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--suites", default="spatial,temporal,moving-camera,hard")
+    p.add_argument("--methods", default="field", help="comma list of field, field-balls")
+    p.add_argument("--set", action="append", default=[], help="draft preset override key=value (JSON value)")
+    p.add_argument("--gt-height", type=int, default=64)
+    p.add_argument("--sphere-size", type=int, default=64)
+    p.add_argument("--cache-dir", default=None)
+    p.add_argument("-o", "--output", default=None)
+    args = p.parse_args(argv)
+
+    from bench.methods import Method, distill_artefact, query_field, run_per_probe, MethodRun
+    from bench.run import default_cache_dir
+    from bench.suite.evaluation import mean_scores, score_probe
+    from bench.suite.simulated import load_suite
+    from core.engine.presets import preset
+
+    overrides = {}
+    for item in args.set:
+        key, value = item.split("=", 1)
+        try:
+            overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            overrides[key] = value
+    base = preset("draft").with_overrides(overrides) if overrides else preset("draft")
+    cache = Path(args.cache_dir) if args.cache_dir else default_cache_dir()
+    report: dict = {"overrides": overrides, "suites": {}}
+    for name in args.suites.split(","):
+        suite = load_suite(name, cache, None, args.gt_height)
+        preds: dict[str, torch.Tensor] = {}
+        series: dict[str, list] = {}
+        seconds: dict[str, float] = {}
+        prior_run = run_per_probe(Method("prior", "per-probe", "baseline", "prior"), suite, base)
+        preds["prior"], series["prior"] = prior_run.envmaps, prior_run.series
+        preds["constant"] = constant_maps(suite, suite.eval_height)
+        with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            for method in args.methods.split(","):
+                sup = {"field": (), "field-balls": (("distill.supervision", "balls"),), "field-oracle": ()}[method]
+                m = Method(method, "field", "paper", method, field="mlp", overrides=sup,
+                           prior="oracle" if method == "field-oracle" else "reprojection")
+                t0 = time.process_time()
+                path, _, info = distill_artefact(m, suite, base, Path(tmp) / method)
+                seconds[method] = round(time.process_time() - t0, 1)
+                run = MethodRun(m)
+                query_field(run, path, suite)
+                preds[method], series[method] = run.envmaps, run.series
+        per_probe = [score_probe({k: v[i] for k, v in preds.items()}, suite.gt[i], args.sphere_size) for i in range(len(suite.probes))]
+        scores = {k: mean_scores([pp[k] for pp in per_probe]) for k in preds}
+        entry: dict = {"scores": scores, "cpu_s": seconds, "ratios": {}}
+        for method in args.methods.split(","):
+            entry["ratios"][method] = {
+                "vs_prior": {f"{mat}.{m}": round(scores[method][mat][m] / scores["prior"][mat][m], 3) for mat in MATERIALS for m in METRICS},
+                "vs_constant": {f"{mat}.si_rmse": round(scores[method][mat]["si_rmse"] / scores["constant"][mat]["si_rmse"], 3)
+                                for mat in ("diffuse", "matte")},
+            }
+            if suite.series:
+                entry.setdefault("series", {})[method] = series_checks(suite, series[method])
+        entry["ratios"]["prior"] = {"vs_constant": {f"{mat}.si_rmse": round(scores["prior"][mat]["si_rmse"] / scores["constant"][mat]["si_rmse"], 3)
+                                                    for mat in ("diffuse", "matte")}}
+        if suite.series:
+            entry.setdefault("series", {})["prior"] = series_checks(suite, series["prior"])
+        report["suites"][name] = entry
+        print(json.dumps({name: {"ratios": entry["ratios"], "cpu_s": seconds, "series": entry.get("series")}}, indent=1), flush=True)
+    if args.output:
+        Path(args.output).write_text(json.dumps(report, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

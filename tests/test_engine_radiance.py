@@ -1,0 +1,181 @@
+"""Radiance supervision (core.engine.radiance): a field distilled from a prior that answers HDR
+env maps keeps what the prior knows, extrapolates smoothly where nothing was observed, and
+follows a light switching off out of view while static stretches stay flat.
+
+Small scenes and budgets (seconds each); the suite-scale numbers are bench/accuracy_probe.py's."""
+import json
+
+import pytest
+import torch
+
+from core.capture.load import capture_from_arrays, load_capture
+from core.engine.distill import distill
+from core.engine.extrapolation import log_total_variation, observed_directions, ring_ratio
+from core.engine.presets import preset
+from core.engine.radiance import bright_directions, radiance_loss, supervision_probes
+from core.envmap import integrate
+from core.exposure import luminance
+from core.metrics import three_sphere_metrics
+from core.priors.known import KnownRadiancePrior
+from core.priors.reprojection import ReprojectionPrior
+from core.sim.capture import write_capture
+from core.sim.render import render_envmap
+from core.sim.suites import spatial
+
+
+def small(supervision="envmaps", iterations=300, work_height=48, **distill_overrides):
+    d = {"iterations": iterations, "work_height": work_height, "supervision": supervision, "envmap_height": 16,
+         "checkpoint_every": 1000, **distill_overrides}
+    return preset("draft").with_overrides({"distill": d})
+
+
+@pytest.fixture(scope="module")
+def spatial_scene(tmp_path_factory):
+    """The simulator's `spatial` suite (two near lamps, shadows) as a 64x48 photo with depth."""
+    spec = spatial().model_copy(update={"resolution": (64, 48)})
+    out = tmp_path_factory.mktemp("spatial")
+    write_capture(spec, out, envmap_height=16, video=False)
+    return spec, load_capture(out)
+
+
+def _bound_prior(capture):
+    prior = ReprojectionPrior(env_height=16)
+    prior.bind(capture, lighting_changes=False)
+    return prior
+
+
+def test_field_keeps_what_the_prior_knows_on_a_simulated_room(spatial_scene):
+    spec, capture = spatial_scene
+    prior = _bound_prior(capture)
+    field = distill(capture, prior, small(), uses_time=False, seed=0).field
+    field_scores, prior_scores = [], []
+    for probe in spec.probes:  # held out: the loop never placed a probe there
+        x = torch.tensor([probe.x])
+        truth = render_envmap(spec, probe.x, 0.0, 16)
+        with torch.no_grad():
+            field_scores.append(three_sphere_metrics(field.envmaps(x, None, 16)[0], truth, 32))
+        prior_scores.append(three_sphere_metrics(prior.envmaps(x, 0.0, 16)[0], truth, 32))
+
+    def mean(scores, material):
+        return sum(s[material]["si_rmse"] for s in scores) / len(scores)
+
+    for material in ("diffuse", "matte", "mirror"):
+        # measured 0.86 / 0.95 / 0.98 of the prior (bench/accuracy_probe.py for the suites)
+        assert mean(field_scores, material) <= 1.05 * mean(prior_scores, material), material
+
+
+def test_no_rings_where_a_single_photo_saw_nothing(spatial_scene):
+    """A photo without depth (the assumed room): the field's map at the camera has no more
+    structure in the ~95 % of directions the photo never saw than the prior's push-pull fill
+    (the ball loop, measured: 2.3x the prior's unobserved TV, ratio 0.38)."""
+    _, with_depth = spatial_scene
+    capture = capture_from_arrays(with_depth.frames)
+    prior = _bound_prior(capture)
+    field = distill(capture, prior, small(), uses_time=False, seed=0).field
+    cam = capture.camera(0)
+    observed = observed_directions(cam, 32)
+    with torch.no_grad():
+        env = field.envmaps(cam.position[None].float(), None, 32)[0]
+    ours = ring_ratio(env, observed)
+    reference = ring_ratio(prior.envmaps(cam.position[None].float(), 0.0, 32)[0], observed)
+    assert ours["tv_unobserved"] <= 1.5 * reference["tv_unobserved"], (ours, reference)  # measured 1.19x
+    assert ours["ratio"] <= 0.25, ours  # measured 0.14
+
+
+def test_tv_statistic_sees_rings_and_ignores_smooth_gradients():
+    h = 32
+    theta = (torch.arange(h) + 0.5) / h * torch.pi
+    smooth = torch.exp(torch.cos(theta))[:, None, None].expand(h, 2 * h, 3)
+    rings = smooth * (1.0 + 0.5 * torch.sin(12 * theta))[:, None, None]
+    top = torch.zeros(h, 2 * h, dtype=torch.bool)
+    top[: h // 2] = True
+    assert log_total_variation(smooth, ~top) < 0.2 * log_total_variation(rings, ~top)
+    assert ring_ratio(rings, top)["tv_unobserved"] > ring_ratio(smooth, top)["tv_unobserved"]
+    assert torch.isnan(torch.tensor(log_total_variation(smooth, torch.zeros_like(top))))
+
+
+LAMP = torch.tensor([0.0, 1.0, 2.0])  # behind the camera (it looks along -z): never in view
+SWITCH_FRAME, FRAMES, FPS = 4, 8, 8.0
+
+
+def _lamp_switching_off(x, t, d):
+    v = LAMP - x
+    dist = v.norm(dim=-1, keepdim=True)
+    lobe = torch.exp(((d * (v / dist)).sum(-1, keepdim=True) - 1) / 0.05)
+    on = (t < (SWITCH_FRAME - 0.5) / FPS).float()[:, None]
+    return (0.2 + 0.1 * (d[:, 1:2] + 1) + 30 * lobe / dist**2 * on) * torch.tensor([1.0, 0.9, 0.7])
+
+
+def test_out_of_view_switch_is_followed_and_static_stretches_stay_flat():
+    cap = capture_from_arrays(torch.full((FRAMES, 36, 48, 3), 0.4), fps=FPS)  # the frames never show the lamp
+    prior = KnownRadiancePrior(_lamp_switching_off)
+    field = distill(cap, prior, small(work_height=36), uses_time=True, seed=0).field
+    x = torch.zeros(1, 3)
+
+    def brightness(env):
+        return float(luminance(integrate(env.double())))
+
+    with torch.no_grad():
+        ours = [brightness(field.envmaps(x, torch.tensor([float(t)]), 16)[0]) for t in cap.times]
+    truth = [brightness(prior.envmaps(x, float(t), 16)[0]) for t in cap.times]
+    before, after = ours[:SWITCH_FRAME], ours[SWITCH_FRAME:]
+    ratio = (sum(after) / len(after)) / (sum(before) / len(before))
+    true_ratio = (sum(truth[SWITCH_FRAME:]) / len(after)) / (sum(truth[:SWITCH_FRAME]) / len(before))
+    assert abs(ratio - true_ratio) <= 0.1, (ratio, true_ratio)  # measured 0.670 vs 0.667 (TV weight 0.1: 0.97)
+    for stretch in (before, after):
+        mean = sum(stretch) / len(stretch)
+        assert max(abs(b / mean - 1) for b in stretch) <= 0.03, stretch  # measured 0.2 % and 0.1 %
+
+
+def test_supervision_probes_are_in_front_of_the_scene_and_include_the_camera():
+    cap = capture_from_arrays(torch.full((1, 36, 48, 3), 0.5))
+    cfg = small().distill
+    centers = supervision_probes(cap, 0, cfg, torch.Generator().manual_seed(0))
+    assert centers.shape == (cfg.envmap_probe_count, 3)
+    cam = cap.camera(0)
+    assert torch.allclose(centers[-1], cam.position.float())
+    u, v, z = cam.project(centers[:-1].double())
+    depth = cap.depth[0][v.long().clamp(0, 35), u.long().clamp(0, 47)]
+    assert bool((z > 0).all()) and bool((z < depth).all())
+
+
+def test_bright_directions_find_a_one_pixel_source():
+    maps = torch.full((2, 8, 16, 3), 0.1)
+    maps[:, 3, 5] = 1e4  # one pixel holds ~99 % of the energy
+    d = bright_directions(maps, 200, torch.Generator().manual_seed(0))
+    from core.conventions import direction_to_equirect_pixel
+
+    row, col = direction_to_equirect_pixel(d, 8)
+    hit = (row.round() == 3) & (col.round() == 5)
+    assert float(hit.float().mean()) > 0.9
+
+
+def test_radiance_loss_is_finite_on_black_and_huge_targets_and_keeps_energy():
+    pred = torch.tensor([[1e-6, 1e-6, 1e-6], [1e5, 1e5, 1e5]], requires_grad=True)
+    target = torch.tensor([[0.0, 0.0, 0.0], [1e6, 1e6, 1e6]])
+    loss = radiance_loss(pred, target, floor=1e-3, linear_weight=0.1)
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(pred.grad).all()
+    assert float(pred.grad[1].sum()) < 0  # the too-dim source is pushed up
+
+
+def test_envmaps_supervision_needs_a_prior_that_answers_envmaps():
+    from core.priors.base import Prior
+
+    class BallsOnly(Prior):
+        name = "balls-only"
+
+        def __call__(self, request):
+            return request.image
+
+        def describe(self):
+            return {"name": self.name}
+
+    cap = capture_from_arrays(torch.full((1, 36, 48, 3), 0.5))
+    with pytest.raises(ValueError, match="answers env maps"):
+        distill(cap, BallsOnly(), small(iterations=1), uses_time=False)
+    res = distill(cap, BallsOnly(), small(supervision="auto", iterations=2), uses_time=False)
+    assert res.stats["supervision"] == "balls"
+    res = distill(cap, KnownRadiancePrior(lambda x, t, d: torch.ones_like(d)), small(supervision="auto", iterations=2), uses_time=False)
+    assert res.stats["supervision"] == "envmaps"
+    assert json.dumps(res.stats["field_config"])  # recorded in the artefact
