@@ -202,19 +202,24 @@ def markdown(results: dict) -> str:
 
 
 def panorama_markdown(pano: dict) -> list[str]:
-    out = ["## Real panoramas (perspective crop -> env map at the camera)", ""]
+    out = ["## Real panoramas, end to end (LDR photo -> `estimate` -> env map at the camera)", ""]
     if pano.get("skipped"):
         return out + [f"Skipped: {pano['skipped']}", ""]
     out += [pano.get("protocol", ""), ""]
-    headers = ["split", "method", "images", "time (s)", "diffuse rel si-RMSE", "matte rel si-RMSE", "mirror rel si-RMSE",
-               "diffuse ang (°)", "mirror ang (°)", "diffuse nRMSE", "mirror nRMSE"]
+    headers = ["split", "method", "images", "time (s)", "diffuse si-RMSE vs const", "diffuse ang vs const",
+               "matte si-RMSE vs const", "observed corr.", "diffuse rel si-RMSE", "diffuse ang (°)", "mirror ang (°)"]
     rows = []
     for split, s in pano.get("splits", {}).items():
         for method, m in s.get("methods", {}).items():
+            if method == "truth":
+                rows.append([split, "truth (protocol ceiling)", m.get("images"), "–", "–", "–", "–", m.get("observed_corr"),
+                             "–", "–", "–"])
+                continue
             rows.append([split, method, m.get("images"), m.get("seconds_per_image"),
-                         *[_get(m, "metrics", mat, "si_rmse_rel") for mat in MATERIALS],
-                         _get(m, "metrics", "diffuse", "angular_deg"), _get(m, "metrics", "mirror", "angular_deg"),
-                         _get(m, "metrics", "diffuse", "nrmse"), _get(m, "metrics", "mirror", "nrmse")])
+                         _get(m, "vs_constant", "diffuse_si_rmse_rel"), _get(m, "vs_constant", "diffuse_angular_deg"),
+                         _get(m, "vs_constant", "matte_si_rmse_rel"), m.get("observed_corr"),
+                         _get(m, "metrics", "diffuse", "si_rmse_rel"), _get(m, "metrics", "diffuse", "angular_deg"),
+                         _get(m, "metrics", "mirror", "angular_deg")])
     return out + [table(headers, rows), ""]
 
 

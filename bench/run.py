@@ -148,7 +148,8 @@ def run_bench(opts: BenchOptions) -> dict:
         if "panoramas" in opts.sections:
             from bench.real_panoramas import run_panoramas
 
-            results["real_panoramas"] = run_panoramas(opts.hdri_dir, mode.panorama_limit, mode.sphere_size, quick=opts.quick)
+            results["real_panoramas"] = run_panoramas(opts.hdri_dir, mode.panorama_limit, mode.sphere_size, quick=opts.quick,
+                                                      workdir=workdir, log=log)
         if "scaling" in opts.sections:
             from bench.scaling import run_scaling
 

@@ -202,6 +202,45 @@ def three_sphere_metrics(pred_envmap: torch.Tensor, gt_envmap: torch.Tensor, siz
 
 
 # ---------------------------------------------------------------------------------------
+# Observed-region correlation
+# ---------------------------------------------------------------------------------------
+OBSERVED_LOG_FLOOR = 1e-3  # relative to each image's mean luminance
+
+
+def observed_region_correlation(envmap: torch.Tensor, photo_linear: torch.Tensor, rays: torch.Tensor,
+                                mask: torch.Tensor | None = None) -> float:
+    """Does an env map reproduce what the camera saw? Pearson correlation of log-luminance
+    between the env map re-projected into the capturing camera and the linearised photo.
+
+    envmap [h, 2h, 3] in the frame of `rays`; photo_linear [H, W, 3] (linear radiance at any
+    exposure); rays [H, W, 3] each pixel's viewing direction from the env map's centre (the
+    camera at the probe position: world-frame pixel rays). The map is sampled bilinearly
+    along every ray (core.envmap.sample_envmap: wraps the seam, continuous at the poles).
+    log(Y + eps), eps = OBSERVED_LOG_FLOOR x the image's mean luminance, so neither the
+    photo's exposure nor the map's scale matters and near-black noise does not dominate.
+    Correlation is undefined when either side is constant: scored 0 (nothing reproduced).
+    `mask` [H, W] restricts the pixels (e.g. to exclude a region).
+    """
+    check_envmap(envmap, "envmap")
+    if photo_linear.ndim != 3 or photo_linear.shape[-1] != 3 or tuple(rays.shape) != tuple(photo_linear.shape):
+        raise MetricsError(f"photo_linear and rays must both be [H, W, 3], got {tuple(photo_linear.shape)} and {tuple(rays.shape)}")
+    pred = sample_envmap(envmap.to(torch.float64), rays.to(torch.float64))
+    p, g = _masked(pred, photo_linear.to(torch.float64), mask)
+    logs = []
+    for x in (p, g):
+        y = luminance(x).clamp_min(0.0)
+        mean = float(y.mean())
+        if mean <= 0.0:
+            return 0.0
+        logs.append(torch.log(y + OBSERVED_LOG_FLOOR * mean))
+    a, b = (v - v.mean() for v in logs)
+    sa, sb = float(a.norm()), float(b.norm())
+    if sa <= 1e-9 * math.sqrt(a.numel()) or sb <= 1e-9 * math.sqrt(b.numel()):
+        return 0.0
+    return float((a * b).sum()) / (sa * sb)
+
+
+# ---------------------------------------------------------------------------------------
 # Temporal flicker
 # ---------------------------------------------------------------------------------------
 FLICKER_FLOOR = 1e-3  # relative to the sequence's mean luminance

@@ -175,3 +175,26 @@ def test_update_readme_replaces_only_the_named_block(tmp_path):
     assert "old main" in text and "old b" not in text and "--iterations 300" in text
     assert text.startswith("intro\n") and text.endswith("tail\n") and "middle" in text
     assert not update_readme(tmp_path / "missing.md", results, "x")
+
+
+def test_panorama_table_shows_ratios_correlation_and_the_truth_row():
+    from bench.real_panoramas import CONSTANT, FIELD, PRIOR, summarise
+    from bench.report import panorama_markdown
+
+    def image(field_si, corr):
+        scores = {}
+        for name, si in ((FIELD, field_si), (PRIOR, 0.5), (CONSTANT, 0.4)):
+            scores[name] = {m: {"si_rmse": si, "si_rmse_rel": si, "angular_deg": 10 * si, "nrmse": 0.1} for m in ("diffuse", "matte", "mirror")}
+        return {"seconds": {FIELD: 20.0, PRIOR: 0.1, CONSTANT: 0.0}, "scores": scores,
+                "observed_corr": {FIELD: corr, PRIOR: 0.8, CONSTANT: 0.0, "truth": 0.95}}
+
+    methods = summarise([image(0.2, 0.9), image(0.4, 0.7)])
+    assert methods[FIELD]["vs_constant"]["diffuse_si_rmse_rel"] == pytest.approx(0.3 / 0.4)
+    assert methods[FIELD]["vs_constant"]["diffuse_angular_deg"] == pytest.approx(3.0 / 4.0)
+    assert methods[FIELD]["observed_corr"] == pytest.approx(0.8)
+    assert methods[CONSTANT]["vs_constant"]["diffuse_si_rmse_rel"] == pytest.approx(1.0)
+    md = "\n".join(panorama_markdown({"protocol": "p", "splits": {"dev": {"methods": methods}}}))
+    rows = [line for line in md.splitlines() if line.startswith("| dev")]
+    header = next(line for line in md.splitlines() if line.startswith("| split"))
+    assert len(rows) == 4 and all(r.count("|") == header.count("|") for r in rows)
+    assert "| dev | field | 2 | 20 | 0.750 | 0.750 |" in md and "truth (protocol ceiling)" in md

@@ -183,3 +183,60 @@ def test_flicker_rejects_non_finite():
     seq[1, 0, 0, 0] = float("inf")
     with pytest.raises(MetricsError, match="non-finite"):
         temporal_flicker(seq)
+
+
+# ---------------------------------------------------------------------------------------
+# Observed-region correlation
+# ---------------------------------------------------------------------------------------
+def _camera_rays(yaw_deg: float, pitch_deg: float, hfov: float = 60.0, size=(48, 36)) -> torch.Tensor:
+    from core.camera import Camera, Intrinsics
+    from core.sim.state import pose_from_yaw_pitch
+
+    c2w = pose_from_yaw_pitch((0.0, 0.0, 0.0), yaw_deg, pitch_deg)
+    return Camera(Intrinsics.from_hfov(size[0], size[1], hfov), c2w).pixel_rays(dtype=torch.float64)[1]
+
+
+def _textured_map(h: int = 64, seed: int = 0) -> torch.Tensor:
+    """Smooth random HDR texture over 4 stops plus a bright 'lamp'."""
+    g = torch.Generator().manual_seed(seed)
+    coarse = torch.randn(1, 3, h // 8, h // 4, generator=g, dtype=torch.float64)
+    log_y = torch.nn.functional.interpolate(coarse, size=(h, 2 * h), mode="bicubic", align_corners=False)[0].permute(1, 2, 0)
+    env = torch.exp(1.4 * log_y)
+    env[h // 3 : h // 3 + 3, 10:13] = 500.0
+    return env
+
+
+@pytest.mark.parametrize("yaw,pitch", [(0.0, 0.0), (180.0, 5.0), (-179.0, -10.0), (30.0, 88.0), (0.0, -89.0)])
+def test_observed_correlation_of_the_true_map_is_one_across_seam_and_poles(yaw, pitch):
+    from core.envmap import sample_envmap
+    from core.metrics import observed_region_correlation
+
+    env = _textured_map()
+    rays = _camera_rays(yaw, pitch)
+    photo = sample_envmap(env, rays) * 0.01  # the photo's exposure does not matter
+    assert observed_region_correlation(env, photo, rays) > 0.999
+
+
+def test_observed_correlation_constant_map_is_zero_and_wrong_view_is_low():
+    from core.envmap import sample_envmap
+    from core.metrics import observed_region_correlation
+
+    env = _textured_map()
+    rays = _camera_rays(20.0, 0.0)
+    photo = sample_envmap(env, rays)
+    assert observed_region_correlation(torch.ones_like(env), photo, rays) == 0.0
+    assert observed_region_correlation(torch.zeros_like(env), photo, rays) == 0.0
+    # the same map looked up behind the camera does not reproduce the photo
+    assert observed_region_correlation(env, photo, _camera_rays(200.0, 0.0)) < 0.5
+    # a blurred map (lower resolution) still correlates, less than perfectly
+    from core.envmap import resize_envmap
+
+    blurred = resize_envmap(resize_envmap(env, 8), 64)
+    assert 0.3 < observed_region_correlation(blurred, photo, rays) < 0.999
+
+
+def test_observed_correlation_rejects_mismatched_shapes():
+    from core.metrics import MetricsError, observed_region_correlation
+
+    with pytest.raises(MetricsError):
+        observed_region_correlation(torch.ones(8, 16, 3), torch.ones(4, 5, 3), torch.ones(4, 6, 3))

@@ -66,7 +66,7 @@ def test_oracle_env_maps_are_the_simulators_truth_and_match_its_ball_radiance():
 def test_reprojection_env_maps_follow_time_and_height():
     frames = torch.stack([torch.full((24, 32, 3), 0.2), torch.full((24, 32, 3), 0.7)])
     cap = capture_from_arrays(frames, torch.full((2, 24, 32), 3.0), fps=1.0)  # t = 0 s, 1 s
-    prior = build_prior("reprojection", {"env_height": 8})
+    prior = build_prior("reprojection", {"env_height": 8, "unseen_fill": "push-pull"})  # smooth maps: resizing is the subject
     prior.bind(cap)
     c = torch.tensor([[0.0, 0.0, -1.0]])
     torch.testing.assert_close(prior.envmaps(c, 0.2, 8), prior.envmaps_at_frame(c, 0))

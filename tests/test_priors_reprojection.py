@@ -54,9 +54,10 @@ def test_known_prior_renders_the_function_and_keeps_background():
 
 
 def test_uniform_scene_gives_uniform_ball():
-    """A room of one colour looks the same from every probe: the ball is that colour."""
+    """A room of one colour looks the same from every probe: the ball is that colour (plain
+    pull-push fill; the indoor fill's elevation gain is tested in test_indoor_fill_*)."""
     cap = _capture(torch.full((1, H, W, 3), 0.4))
-    prior = ReprojectionPrior(env_height=16)
+    prior = ReprojectionPrior(env_height=16, unseen_fill="push-pull")
     prior.bind(cap)
     req, layer = _request(cap, ev=-2.0)
     target = prior(req)
@@ -84,8 +85,8 @@ def test_bright_patch_is_seen_in_its_true_direction():
     h = 32
     assert abs((i + 0.5) * math.pi / h - float(theta)) < 2.5 * math.pi / h
     assert abs((j + 0.5) * 2 * math.pi / (2 * h) - math.pi - float(phi)) < 2.5 * math.pi / h
-    # the clipped patch is boosted far above linearised white (1.0)
-    assert float(env.max()) > 0.5 * CLIP_BOOST
+    # the clipped patch (a lamp on a dim wall) is estimated well above linearised white (1.0)
+    assert float(env.max()) > 2.0
 
 
 def test_point_cloud_is_built_once_for_a_static_camera():
@@ -108,6 +109,53 @@ def test_push_pull_keeps_observed_and_fills_within_range():
     out = push_pull_fill(torch.where(mask[..., None], env, 0.0), mask)
     assert torch.equal(out[mask], env[mask])
     assert (out >= 0.5 - 1e-6).all() and (out <= 1.5 + 1e-6).all()
+
+
+@pytest.mark.parametrize("h", [8, 24, 32])  # 24: odd sizes down the pyramid (3 -> 2 -> 1)
+def test_push_pull_fills_far_holes_with_the_observed_value_not_black(h):
+    """A constant patch seen in one quarter of the sphere: every hole gets that constant (the
+    old pyramid stopped at 1 x 2 pixels and faded the unseen half towards 0)."""
+    env = torch.zeros(1, h, 2 * h, 3)
+    seen = torch.zeros(1, h, 2 * h, dtype=torch.bool)
+    seen[0, h // 3 : 2 * h // 3, h // 2 : h] = True
+    env[seen] = 2.0
+    out = push_pull_fill(env, seen)
+    assert torch.allclose(out, torch.full_like(out, 2.0), atol=1e-5)
+
+
+def test_push_pull_wraps_around_the_seam():
+    """Observations on both sides of phi = +-pi: the hole between them (across the seam) is
+    filled symmetrically, as if there were no seam."""
+    h = 16
+    env = torch.zeros(1, h, 2 * h, 3)
+    seen = torch.zeros(1, h, 2 * h, dtype=torch.bool)
+    seen[0, :, 2] = True  # just right of the seam
+    seen[0, :, 2 * h - 3] = True  # just left of it
+    env[0, :, 2] = 1.0
+    env[0, :, 2 * h - 3] = 3.0
+    out = push_pull_fill(env, seen)[0, h // 2, :, 0]
+    across = torch.cat([out[2 * h - 3 :], out[:3]])  # 3, ?, ?, ?, ?, 1 going across the seam
+    assert float(across[1:-1].min()) >= 1.0 - 1e-6 and float(across[1:-1].max()) <= 3.0 + 1e-6
+    # the seam pixels lie between the two observations, closer values nearer each side
+    assert float(out[2 * h - 2]) > float(out[1])
+
+
+def test_push_pull_hole_takes_the_weighted_mean_of_its_neighbourhood():
+    """Pull is a weighted average: a hole surrounded by 3 pixels of 1 and 1 pixel of 5 gets
+    a value between them, not the value of any single level's first pixel."""
+    env = torch.zeros(1, 2, 4, 3)
+    seen = torch.ones(1, 2, 4, dtype=torch.bool)
+    seen[0, 0, 0] = False
+    env[0] = 1.0
+    env[0, 1, 1] = 5.0
+    out = push_pull_fill(env, seen)
+    assert 1.0 < float(out[0, 0, 0, 0]) < 5.0
+    assert torch.equal(out[seen], env[seen])
+
+
+def test_push_pull_with_nothing_observed_is_zero():
+    out = push_pull_fill(torch.rand(1, 8, 16, 3), torch.zeros(1, 8, 16, dtype=torch.bool))
+    assert torch.equal(out, torch.zeros_like(out))
 
 
 def test_linearise_boosts_only_clipped_pixels():
@@ -165,3 +213,47 @@ def test_merged_views_let_a_moving_camera_see_what_other_frames_saw():
         assert prior.views_for(0) == ([0] if merge == 1 else [0, 1])
     assert seen[2] > 3 * seen[1]
     assert seen[2] == pytest.approx(float(inverse_tonemap(torch.tensor(0.95))), rel=0.05)
+
+
+def test_indoor_fill_keeps_seen_pixels_and_shapes_unseen_by_elevation_and_colour():
+    from core.exposure import luminance
+    from core.priors.indoor_fill import UNSEEN_WHITENING, elevation_gain, fill_unseen
+
+    h = 24
+    env = torch.zeros(1, h, 2 * h, 3)
+    seen = torch.zeros(1, h, 2 * h, dtype=torch.bool)
+    seen[0, 10:14, 20:28] = True  # a horizon band patch, reddish
+    env[seen] = torch.tensor([0.6, 0.3, 0.3])
+    filled = push_pull_fill(env, seen)
+    out = fill_unseen(filled, env, seen)
+    assert torch.equal(out[seen], env[seen])
+    gain = elevation_gain(h)
+    y = luminance(out[0])  # [h, w]
+    # unseen luminance follows the gain profile relative to the seen rows
+    seen_gain = gain[10:14].mean()
+    expect = luminance(env[0, 12, 24]) * gain / seen_gain
+    assert torch.allclose(y[:, 0].double(), expect.to(torch.float64), rtol=1e-4)
+    # unseen colour: the seen chromaticity moved towards grey
+    c = out[0, 0, 0] / luminance(out[0, 0, 0])
+    c_seen = env[0, 12, 24] / luminance(env[0, 12, 24])
+    assert torch.allclose(c, (1 - UNSEEN_WHITENING) * c_seen + UNSEEN_WHITENING, atol=1e-5)
+    # nothing seen: unchanged (zeros); everything finite
+    none = torch.zeros_like(seen)
+    assert torch.equal(fill_unseen(filled, env, none), filled)
+    assert torch.isfinite(out).all()
+
+
+def test_linear_frames_see_clipping_at_full_resolution():
+    """A 1-pixel clipped lamp disappears from a 4x downsampled LDR frame (area averaging), but
+    the prior linearises at the full resolution first, so its light survives the resize."""
+    from core.priors.reprojection import linear_frames
+
+    frames = torch.full((1, 96, 128, 3), 0.2)
+    frames[0, 40, 60] = 1.0
+    cap = capture_from_arrays(frames, None)
+    work = cap.resized(24)
+    lin = linear_frames(work)
+    naive = inverse_tonemap(work.frames)
+    assert float(lin.sum()) > float(naive.sum()) + 0.5 / 16  # the lamp's boosted energy (>= 1 px of white / 16)
+    fixed = linear_frames(work, "fixed", 8.0)
+    assert float(fixed[0].sum() - naive[0].sum()) > 0.0

@@ -32,6 +32,9 @@ class Capture:
     # what the files said and what was assumed or estimated (intrinsics_source, poses_source,
     # depth_given, file metadata, tracking), listed in the artefact (docs/captures.md)
     metadata: dict = field(default_factory=dict)
+    # the capture this one was resized from (Capture.resized): its LDR frames still hold what
+    # area-averaging loses, which pixels clipped (core.capture.highlights linearises there)
+    full_resolution: "Capture | None" = field(default=None, repr=False, compare=False)
 
     @property
     def num_frames(self) -> int:
@@ -78,6 +81,7 @@ class Capture:
             source=self.source,
             warnings=list(self.warnings),
             metadata=dict(self.metadata),
+            full_resolution=self.full_resolution or self,
         )
 
     def summary(self) -> dict:

@@ -2,10 +2,14 @@
 
 It answers "what would a chrome ball at c show?" from the frame itself:
 
-1. Linearise the frame with the inverse tone map (at ev 0, the capture's exposure). A
-   clipped pixel (any channel >= CLIP_LDR) only says "at least white"; light sources are
-   what clips, so its radiance is multiplied by CLIP_BOOST (a documented, conservative
-   guess: real sources are often 10-1000x brighter, which no LDR frame can tell us).
+1. Linearise the frame with the inverse tone map (at ev 0, the capture's exposure), at the
+   capture's FULL resolution (Capture.full_resolution: area-averaging LDR values first would
+   hide which pixels clipped and average in gamma space), then area-resize the radiance to
+   the working resolution. A clipped pixel (any channel >= CLIP_LDR) only says "at least
+   white"; light sources are what clips, so clip_rule "estimate" (default) estimates each
+   clipped blob's radiance from exposure changes across frames and from its size and halo
+   (core.capture.highlights; rule and measured error in docs/highlights.md); "fixed"
+   multiplies by clip_boost (the old behaviour, CLIP_BOOST = 8).
 2. Unproject the frame with its depth into a coloured point cloud. The geometry is computed
    once per distinct (pose, depth) — once in total for a static camera with static depth;
    colours come from the requested frame, so lighting changes over time are followed. When
@@ -15,10 +19,13 @@ It answers "what would a chrome ball at c show?" from the frame itself:
 3. For each probe centre, splat the points into an equirect env map (ENV height from the
    config) with a depth test: per env pixel only points within Z_TOLERANCE of the nearest
    distance contribute (a z-buffer by distance from the probe), averaged.
-4. Fill directions the frame never observed by push-pull: average-pool the observed pixels
-   down a pyramid, then fill each hole from the next coarser level. This is a smooth
+4. Fill directions the frame never observed by pull-push (push_pull_fill): weight-average the
+   observed pixels down a pyramid to one pixel, then blend each level with the upsampled
+   coarser one by its weight (columns wrap at the seam). With unseen_fill "indoor" (default)
+   the unseen directions then get an elevation gain and a whiter colour, both fitted on dev
+   panoramas (core.priors.indoor_fill). This is a smooth
    extrapolation of what was seen (e.g. the room behind the camera gets the average colour
-   of the nearby walls, floor and ceiling). No light is invented.
+   of the nearby walls, floor and ceiling). No light source is invented.
 5. Render the balls under those env maps (core.chrome_ball, probe-centre lookup) and tone
    map at request.ev; pixels outside the balls are request.image.
 
@@ -28,22 +35,42 @@ the diffusion prior, not a replacement for it.
 """
 from __future__ import annotations
 
+import functools
+from typing import Literal
+
 import torch
 import torch.nn.functional as F
 from pydantic import Field
 
 from core.conventions import direction_to_equirect_pixel, equirect_width, inverse_tonemap
+from core.capture.highlights import CLIP_LDR, linearise_highlights
 from core.envmap import resize_envmap
+from core.priors.indoor_fill import fill_unseen
 from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
 from core.priors.known import ball_target
 from core.priors.registry import prior_settings, register_prior
 
-CLIP_LDR = 0.99
-CLIP_BOOST = 8.0
+CLIP_BOOST = 8.0  # clip_rule "fixed" only
 MERGE_VIEWS_STATIC_LIGHTING = 4  # viewpoints pooled when the lighting is static and the camera moves
 Z_TOLERANCE = 0.1  # relative: points within 10 % of the nearest distance share a pixel
 MIN_PROBE_DISTANCE = 1e-3  # metres; points closer than this to a probe are skipped
 OTHER_VIEW_STRIDE = 3  # merged viewpoints contribute a third of their points (cost)
+
+
+def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP_BOOST,
+                  lighting_changes: bool = True) -> torch.Tensor:
+    """Linear radiance [T, H, W, 3] (ev 0) of a capture at its own resolution, linearised at
+    the resolution it was resized from (see the module docstring, step 1). Exposure changes
+    between frames are used only for a static camera under static lighting (a lamp switching
+    off must not read as an exposure change)."""
+    src = capture.full_resolution or capture
+    if clip_rule == "fixed":
+        lin = linearise(src.frames, clip_boost)
+    else:
+        lin = linearise_highlights(src.frames, src.intrinsics, src.static_camera and not lighting_changes)
+    if src is not capture and (src.height, src.width) != (capture.height, capture.width):
+        lin = F.interpolate(lin.permute(0, 3, 1, 2), size=(capture.height, capture.width), mode="area").permute(0, 2, 3, 1)
+    return lin.contiguous()
 
 
 def linearise(frames: torch.Tensor, clip_boost: float = CLIP_BOOST) -> torch.Tensor:
@@ -53,29 +80,75 @@ def linearise(frames: torch.Tensor, clip_boost: float = CLIP_BOOST) -> torch.Ten
     return torch.where(clipped, lin * clip_boost, lin)
 
 
-def push_pull_fill(env: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """Fill pixels with weight 0 in env [N, h, w, 3] from coarser averages (push-pull).
+@functools.lru_cache(maxsize=64)
+def _upsample_matrix(n_fine: int, n_coarse: int, wrap: bool) -> torch.Tensor:
+    """[n_fine, n_coarse] linear interpolation from coarse to fine pixel centres, where coarse
+    pixel j is the average of fine pixels 2j and 2j+1 (its centre: their mean index; the last
+    one of an odd size has one child). `wrap`: the axis is periodic (equirect columns)."""
+    centres = torch.tensor([(2 * j + min(2 * j + 1, n_fine - 1)) / 2 for j in range(n_coarse)], dtype=torch.float64)
+    A = torch.zeros(n_fine, n_coarse, dtype=torch.float64)
+    if n_coarse == 1:
+        return A + 1.0
+    for i in range(n_fine):
+        if wrap:  # nearest centres below and above i on the circle of length n_fine
+            below = max(range(n_coarse), key=lambda j: -((i - centres[j]) % n_fine))
+            above = (below + 1) % n_coarse
+            gap = float((centres[above] - centres[below]) % n_fine) or float(n_fine)
+            t = float((i - centres[below]) % n_fine) / gap
+        else:
+            above = int(torch.searchsorted(centres, torch.tensor(float(i), dtype=torch.float64)).clamp(1, n_coarse - 1))
+            below = above - 1
+            t = float(((i - centres[below]) / (centres[above] - centres[below])).clamp(0.0, 1.0))
+        A[i, below] += 1.0 - t
+        A[i, above] += t
+    return A
 
-    Observed pixels keep their values. With no observed pixel at all the result is 0."""
-    x = env.permute(0, 3, 1, 2)  # [N, 3, h, w]
-    w = weight[:, None].to(x.dtype)
+
+def push_pull_fill(env: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Fill pixels with weight 0 in equirect env maps [N, h, w, 3] by pull-push (Gortler et al.
+    1996, the Lumigraph's hole filling).
+
+    Pull: each coarser level is the weight-averaged 2x2 downsample (value = sum w x / sum w,
+    weight = min(1, sum w)), down to ONE pixel, so every hole has an observed ancestor.
+    Push: from the top, fine = w x + (1 - w) upsample(coarse), the upsample linear between
+    pixel centres, columns wrapping around the phi = +-pi seam. Observed pixels (weight 1)
+    keep their values; holes get a smooth extrapolation of what was seen. With no observed
+    pixel at all the result is 0. `weight` may be fractional (in [0, 1])."""
+    x = env.permute(0, 3, 1, 2).to(torch.float64)  # [N, 3, h, w]
+    w = weight[:, None].to(torch.float64).clamp(0.0, 1.0)
     levels = [(x, w)]
-    while min(x.shape[-2:]) > 1:
-        num = F.avg_pool2d(x * w, 2, ceil_mode=True)
-        den = F.avg_pool2d(w, 2, ceil_mode=True)
+    while x.shape[-2] > 1 or x.shape[-1] > 1:
+        kh = 2 if x.shape[-2] > 1 else 1
+        kw = 2 if x.shape[-1] > 1 else 1
+        num, den = _sum_pool(x * w, kh, kw), _sum_pool(w, kh, kw)
         x = num / den.clamp_min(1e-12)
-        w = (den > 0).to(x.dtype)
+        w = den.clamp(max=1.0)
         levels.append((x, w))
     filled = levels[-1][0]
-    for x, w in reversed(levels[:-1]):
-        up = F.interpolate(filled, size=x.shape[-2:], mode="bilinear", align_corners=False)
-        filled = torch.where(w > 0, x, up)
-    return filled.permute(0, 2, 3, 1).contiguous()
+    for (x, w), (coarse, _) in zip(reversed(levels[:-1]), reversed(levels[1:])):
+        rows = _upsample_matrix(x.shape[-2], coarse.shape[-2], wrap=False)
+        cols = _upsample_matrix(x.shape[-1], coarse.shape[-1], wrap=True)
+        up = torch.einsum("ij,ncjk,lk->ncil", rows, filled, cols)
+        filled = w * x + (1.0 - w) * up
+    return filled.permute(0, 2, 3, 1).to(env.dtype).contiguous()
+
+
+def _sum_pool(x: torch.Tensor, kh: int, kw: int) -> torch.Tensor:
+    """Sum over (kh, kw) blocks; an odd edge's last block has fewer pixels (zero padding)."""
+    H, W = x.shape[-2:]
+    x = F.pad(x, (0, (-W) % kw, 0, (-H) % kh))
+    n, c, H2, W2 = x.shape
+    return x.reshape(n, c, H2 // kh, kh, W2 // kw, kw).sum((3, 5))
 
 
 class ReprojectionSettings(PriorConfig):
     env_height: int = Field(32, ge=4, description="splat resolution: env maps of env_height x 2 env_height")
-    clip_boost: float = Field(CLIP_BOOST, gt=0, description="radiance factor of clipped (>= CLIP_LDR) pixels")
+    clip_rule: Literal["estimate", "fixed"] = Field("estimate", description=(
+        "clipped pixels: 'estimate' their radiance per blob (core.capture.highlights) or multiply by clip_boost ('fixed')"))
+    clip_boost: float = Field(CLIP_BOOST, gt=0, description="radiance factor of clipped (>= CLIP_LDR) pixels with clip_rule 'fixed'")
+    unseen_fill: Literal["indoor", "push-pull"] = Field("indoor", description=(
+        "unobserved directions: pull-push with the indoor elevation gain and whitened colour (core.priors.indoor_fill), "
+        "or plain pull-push"))
     merge_views: int | None = Field(None, ge=1, description=(
         "viewpoints a request splats (its own + evenly spaced others); only valid when the lighting is static. "
         "None: MERGE_VIEWS_STATIC_LIGHTING when bind() is told the lighting is static and the camera moves, else 1"))
@@ -91,6 +164,8 @@ class ReprojectionPrior(Prior):
         s = prior_settings(self.name, settings)
         self.env_height = int(s.env_height)
         self.clip_boost = float(s.clip_boost)
+        self.clip_rule = s.clip_rule
+        self.unseen_fill = s.unseen_fill
         self.configured_merge_views = s.merge_views
         self.merge_views = s.merge_views or 1
         self._capture = None
@@ -106,7 +181,7 @@ class ReprojectionPrior(Prior):
         static_lighting_moving_camera = not lighting_changes and not capture.static_camera
         self.merge_views = self.configured_merge_views or (
             MERGE_VIEWS_STATIC_LIGHTING if static_lighting_moving_camera else 1)
-        self._colors = linearise(capture.frames, self.clip_boost)
+        self._colors = linear_frames(capture, self.clip_rule, self.clip_boost, lighting_changes)
         self._points = {}
         self.point_cloud_builds = 0
         # frames with the same pose and the same depth share one point cloud
@@ -182,7 +257,9 @@ class ReprojectionPrior(Prior):
         acc = torch.zeros(n * h * w, 3, dtype=col.dtype).index_add(0, key, col_k)
         cnt = torch.zeros(n * h * w, dtype=col.dtype).index_add(0, key, torch.ones_like(key, dtype=col.dtype))
         env = (acc / cnt.clamp_min(1.0)[:, None]).reshape(n, h, w, 3)
-        return push_pull_fill(env, (cnt > 0).reshape(n, h, w))
+        seen = (cnt > 0).reshape(n, h, w)
+        filled = push_pull_fill(env, seen)
+        return fill_unseen(filled, env, seen) if self.unseen_fill == "indoor" else filled
 
     def __call__(self, request: PriorRequest) -> torch.Tensor:
         p = request.probes
@@ -196,9 +273,11 @@ class ReprojectionPrior(Prior):
             "kind": "classical reprojection baseline (no weights; cannot invent out-of-view lights)",
             "env_height": self.env_height,
             "clip_ldr": CLIP_LDR,
-            "clip_boost": self.clip_boost,
+            "clip_rule": self.clip_rule,
+            "clip_boost": self.clip_boost if self.clip_rule == "fixed" else None,
             "z_tolerance": Z_TOLERANCE,
-            "hole_fill": "push-pull pyramid in the equirect domain",
+            "hole_fill": "pull-push pyramid in the equirect domain" + (
+                " + indoor elevation gain and whitened colour" if self.unseen_fill == "indoor" else ""),
             "merge_views": self.merge_views,
             "point_cloud_builds": self.point_cloud_builds,
         }

@@ -1,0 +1,64 @@
+"""What an indoor room looks like where the camera did not look: the reprojection prior's
+fill for unobserved directions (a small statistical prior, not a light source finder).
+
+Pull-push (core.priors.reprojection.push_pull_fill) extrapolates the seen pixels smoothly,
+which gives every unseen direction roughly the brightness and the colour of the walls the
+photo happened to show. Two regularities of indoor light that a constant extrapolation
+misses, both measured on the `dev` panoramas only (`python -m bench.indoor_fill`):
+
+1. Brightness depends on elevation: ELEVATION_GAIN[k] is the mean over dev panoramas of
+   log(row-mean luminance / the panorama's mean luminance within +-HORIZON_BAND_DEG of the
+   horizon), exponentiated, for GAIN_ROWS bands of 180/GAIN_ROWS degrees from up (+y,
+   docs/conventions.md) to down. Unseen pixels get the pull-push value x gain(row) / the
+   mean gain over the seen pixels, so the seen rows set the level and the profile its shape.
+2. Light is whiter than the surfaces it lights: walls are tinted by their albedo, the
+   sources that dominate the unseen irradiance much less. Unseen pixels keep the pull-push
+   luminance, with the seen region's mean chromaticity moved towards grey by
+   UNSEEN_WHITENING.
+Elevation is measured from the world's +y: right for single images and tracked videos (the
+first camera is upright by assumption) and the simulator; a capture whose world up is not
++y (some nerfstudio exports) gets the profile tilted. Seen pixels are never changed.
+"""
+from __future__ import annotations
+
+import torch
+
+from core.exposure import luminance
+
+HORIZON_BAND_DEG = 25.0
+GAIN_ROWS = 24
+GAIN_SMOOTHING_ROWS = 2.0  # Gaussian sigma (rows of 7.5 deg) of the fitted log-gain profile
+# Fitted by `python -m bench.indoor_fill` on the 13 dev panoramas (row 0 = up).
+ELEVATION_GAIN = (
+    0.375, 0.39, 0.435, 0.508, 0.604, 0.724, 0.869, 1.02, 1.125, 1.121, 1.006, 0.841,
+    0.689, 0.58, 0.512, 0.468, 0.434, 0.4, 0.368, 0.342, 0.325, 0.314, 0.309, 0.308,
+)
+UNSEEN_WHITENING = 0.5  # 0: the seen mean colour; 1: grey (chosen on dev: bench/indoor_fill.py)
+
+
+def elevation_gain(height: int, dtype=torch.float64) -> torch.Tensor:
+    """ELEVATION_GAIN resampled to `height` rows (linear in log-gain over the polar angle)."""
+    g = torch.log(torch.tensor(ELEVATION_GAIN, dtype=torch.float64))[None, None]
+    if height != GAIN_ROWS:
+        g = torch.nn.functional.interpolate(g, size=height, mode="linear", align_corners=False)
+    return g[0, 0].exp().to(dtype)
+
+
+def fill_unseen(filled: torch.Tensor, env: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """filled: pull-push result [N, h, w, 3]; env, weight: its inputs (weight > 0 = seen).
+    Unseen pixels get the elevation gain and the whitened seen colour; seen ones are kept."""
+    n, h = filled.shape[:2]
+    seen = weight.to(filled.dtype)  # [N, h, w]
+    count = seen.sum((1, 2))
+    if not bool((count > 0).any()):
+        return filled
+    gain = elevation_gain(h, filled.dtype)[None, :, None]  # [1, h, 1]
+    seen_gain = (seen * gain).sum((1, 2)) / count.clamp_min(1e-12)  # [N]
+    scaled = filled * (gain / seen_gain.clamp_min(1e-12)[:, None, None])[..., None]
+    mean = (env * seen[..., None]).sum((1, 2)) / count.clamp_min(1e-12)[:, None]  # [N, 3]
+    chroma = mean / luminance(mean).clamp_min(1e-12)[:, None]
+    chroma = (1.0 - UNSEEN_WHITENING) * chroma + UNSEEN_WHITENING
+    recoloured = luminance(scaled).clamp_min(0.0)[..., None] * chroma[:, None, None, :]
+    ok = (count > 0)[:, None, None, None] & (luminance(mean) > 0)[:, None, None, None]
+    out = torch.where(ok, recoloured, filled)
+    return torch.where(weight[..., None] > 0, filled, out)

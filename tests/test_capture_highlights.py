@@ -1,0 +1,139 @@
+"""The clip rule (core.capture.highlights): synthetic lamps with known radiance, exposure
+brackets across frames, and degenerate frames."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from core.camera import Intrinsics
+from core.capture.highlights import (
+    MAX_BOOST_STOPS,
+    clipped_mask,
+    find_blobs,
+    linearise_highlights,
+    recover_from_exposures,
+)
+from core.conventions import inverse_tonemap
+
+INTR = Intrinsics.from_hfov(128, 96, 60.0)
+SYNTHETIC_LAMP_MAX_ERROR_STOPS = 1.25  # stated in docs/highlights.md (lamps up to 64x white, <= 3 px)
+
+
+def lamp_scene(radiance: float, radius: float, wall: float = 0.05, glare: float = 0.02, sigma: float = 1.0) -> torch.Tensor:
+    """Linear [96, 128] image: a disc lamp on a wall, through a lens PSF (Gaussian core of
+    `sigma` px plus a `glare` share of energy in an exponential tail of 4 px)."""
+    H, W = 96, 128
+    yy, xx = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    img = torch.full((H, W), wall, dtype=torch.float64)
+    img[((yy - 40) ** 2 + (xx - 60) ** 2).sqrt() <= radius] = radiance
+    k = torch.arange(-15, 16, dtype=torch.float64)
+    ky, kx = torch.meshgrid(k, k, indexing="ij")
+    kr = (ky**2 + kx**2).sqrt()
+    psf = (1 - glare) * torch.exp(-(kr**2) / (2 * sigma**2)) / (2 * math.pi * sigma**2) + glare * torch.exp(-kr / 4.0) / (2 * math.pi * 16)
+    psf = psf / psf.sum()
+    padded = torch.nn.functional.pad(img[None, None], (15,) * 4, mode="replicate")
+    return torch.nn.functional.conv2d(padded, psf[None, None])[0, 0]
+
+
+def to_ldr(linear: torch.Tensor) -> torch.Tensor:
+    rgb = linear[..., None].expand(*linear.shape, 3)
+    return (torch.round(rgb.clamp(0, 1) ** (1 / 2.4) * 255) / 255).float()
+
+
+@pytest.mark.parametrize("radiance,radius", [(4.0, 1.5), (4.0, 3.0), (16.0, 1.5), (16.0, 3.0), (64.0, 1.5)])
+def test_synthetic_lamp_with_halo_is_estimated_within_stated_error(radiance, radius):
+    true = lamp_scene(radiance, radius)
+    ldr = to_ldr(true)
+    clip = clipped_mask(ldr)
+    assert clip.any()
+    est = linearise_highlights(ldr[None], INTR, compare_frames=True)[0].double()
+    true_mean = float(true[clip].mean())
+    est_mean = float(est[clip][:, 1].mean())
+    err = abs(math.log2(est_mean / true_mean))
+    assert err <= SYNTHETIC_LAMP_MAX_ERROR_STOPS, (true_mean, est_mean)
+    assert est_mean > 1.5  # a lamp is never taken for white paper
+
+
+def test_very_bright_extended_lamp_is_underestimated_known_limit():
+    """The rule is fitted on real dev panoramas, whose clipped blobs are at most ~5 stops over
+    white: a 64x lamp of radius 6 px (~5 stops over white on average over its blob) is
+    underestimated by more than 2 stops (docs/highlights.md). If this starts failing the rule
+    got better here: update the docs."""
+    true = lamp_scene(64.0, 6.0)
+    ldr = to_ldr(true)
+    clip = clipped_mask(ldr)
+    est = float(linearise_highlights(ldr[None], INTR, True)[0].double()[clip][:, 1].mean())
+    assert 1.5 < est < float(true[clip].mean()) / 4.0
+
+
+def test_brighter_lamp_is_estimated_brighter():
+    ests = []
+    for radiance in (4.0, 64.0):
+        ldr = to_ldr(lamp_scene(radiance, 3.0))
+        clip = clipped_mask(ldr)
+        ests.append(float(linearise_highlights(ldr[None], INTR, True)[0][clip].mean()))
+    assert ests[1] > 1.5 * ests[0]
+
+
+def test_unclipped_frames_are_just_linearised():
+    ldr = torch.rand(2, 16, 20, 3) * 0.9
+    assert torch.equal(linearise_highlights(ldr, INTR, True), inverse_tonemap(ldr))
+
+
+def test_exposure_bracket_recovers_the_clipped_lamp():
+    """Frame 0 clips the lamp; frame 1 is 3 stops darker and sees it unclipped: the recovered
+    radiance of frame 0's lamp is the true one (8-bit quantisation aside)."""
+    true = lamp_scene(6.0, 4.0, wall=0.4, glare=0.0)
+    frames = torch.stack([to_ldr(true), to_ldr(true / 8.0)])
+    lin = inverse_tonemap(frames)
+    clip = clipped_mask(frames)
+    rec = recover_from_exposures(lin, clip)
+    centre = (40, 60)
+    assert clip[0][centre] and not clip[1][centre]
+    assert float(rec[0][centre][1]) == pytest.approx(6.0, rel=0.1)
+    # through the full rule too (static camera): exposure evidence wins over the blob rule
+    full = linearise_highlights(frames, INTR, compare_frames=True)
+    assert float(full[0][centre][1]) == pytest.approx(6.0, rel=0.1)
+
+
+def test_a_light_switching_off_is_not_mistaken_for_an_exposure_change():
+    """Frame 1 has the lamp off (darker than white there): it must not pull frame 0's lamp down."""
+    on = lamp_scene(8.0, 4.0, wall=0.2, glare=0.0)
+    off = lamp_scene(0.2, 4.0, wall=0.2, glare=0.0)
+    frames = torch.stack([to_ldr(on), to_ldr(off)])
+    out = linearise_highlights(frames, INTR, compare_frames=True)
+    assert float(out[0][40, 60][1]) > 1.0
+
+
+@pytest.mark.parametrize("value", [0.0, 1.0])
+def test_degenerate_frames_stay_finite_and_bounded(value):
+    ldr = torch.full((1, 24, 32, 3), value)
+    out = linearise_highlights(ldr, INTR, True)
+    assert torch.isfinite(out).all()
+    assert float(out.max()) <= 2.0**MAX_BOOST_STOPS + 1e-3
+
+
+def test_blobs_are_eight_connected_and_counted():
+    lin = torch.full((10, 10, 3), 0.1).numpy()
+    clip = torch.zeros(10, 10, dtype=torch.bool)
+    clip[2, 2] = clip[3, 3] = True  # diagonal neighbours: one blob
+    clip[7, 7] = True
+    labels, blobs = find_blobs(lin, clip.numpy(), 1e-4)
+    assert len(blobs) == 2 and sorted(b.area_px for b in blobs) == [1, 2]
+
+
+def test_prior_compares_frames_only_for_a_static_camera_under_static_lighting():
+    """Through the reprojection prior: with the engine's 'lighting changes' decision the
+    darker frame is not used as an exposure bracket (its lamp may simply be dimmer)."""
+    from core.capture.load import capture_from_arrays
+    from core.priors.reprojection import linear_frames
+
+    true = lamp_scene(6.0, 4.0, wall=0.4, glare=0.0)
+    frames = torch.stack([to_ldr(true), to_ldr(true / 8.0)])
+    cap = capture_from_arrays(frames, None)
+    static = linear_frames(cap, lighting_changes=False)
+    changing = linear_frames(cap, lighting_changes=True)
+    assert float(static[0, 40, 60, 1]) == pytest.approx(6.0, rel=0.1)
+    assert float(changing[0, 40, 60, 1]) != pytest.approx(6.0, rel=0.1)
