@@ -12,7 +12,7 @@ known field about as well as the 6 x 256 one and clearly better than the trunk+h
 `draft` also supervises in radiance when its prior answers env maps (`supervision="auto"`:
 the reprojection, known and oracle priors; the diffusion prior keeps the ball loop): 3 frames
 per step, each with 2 probes in front of the depth, 1 along a camera ray and the camera
-centre, 256 directions per probe, log-radiance loss (its colour part weighted 4x extra), 600 steps; and its fields encode time
+centre, 256 directions per probe, log-radiance loss, 600 steps; and its fields encode time
 with learned per-frame codes. Why and the measurements: docs/engine.md, "Radiance supervision"
 (`python -m bench.accuracy_probe`).
 
@@ -43,7 +43,7 @@ PRESETS: dict[str, EngineConfig] = {
         name="draft",
         distill=DistillConfig(iterations=600, n_probes=9, work_height=72, lr=5e-3, warmup_steps=15, checkpoint_every=50,
                               supervision="auto", envmap_frames_per_step=3, envmap_surface_probes=2, envmap_room_probes=1,
-                              envmap_directions=256, chroma_weight=4.0),
+                              envmap_directions=256),
         field=_narrow(96, 4, time_encoding="codes"),
         priors={"reprojection": {"env_height": 24}},
     ),
