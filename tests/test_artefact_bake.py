@@ -138,3 +138,23 @@ def test_bake_argument_errors(tmp_path):
         baked.envmap((0, float("inf"), 0), 1.0)
     with pytest.raises(QueryError, match="height"):
         baked.envmap((0, 0, 0), 1.0, height=-1)
+
+
+@pytest.mark.parametrize("kind", ["mlp", "trunk", "grid", "baked"])
+def test_a_query_answers_the_same_bits_whatever_is_batched_with_it(tmp_path, kind):
+    """The service batches unrelated clients' queries into one call: each answer must not
+    depend on the others (CPU matrix products round differently with their row count)."""
+    if kind == "baked":
+        source = bake(smooth_artefact(tmp_path), grid=(3, 3, 3), times=2, height=8)
+        maps = lambda xs, ts: source.envmaps(xs, ts, 8)[0]  # noqa: E731
+    else:
+        field = build_field(FieldConfig(kind=kind), BOUNDS)
+        maps = lambda xs, ts: field.envmaps(xs, ts, 8)  # noqa: E731
+    g = torch.Generator().manual_seed(3)
+    xs = torch.rand(13, 3, generator=g) * 2.0 - 1.0
+    ts = torch.rand(13, generator=g) * 3.0
+    with torch.no_grad():
+        alone = [maps(xs[i:i + 1], ts[i:i + 1])[0] for i in range(13)]
+        for n in (2, 5, 13):
+            batch = maps(xs[:n], ts[:n])
+            assert all(torch.equal(batch[i], alone[i]) for i in range(n))

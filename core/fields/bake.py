@@ -82,10 +82,15 @@ class BakedField:
         dims = tuple(self.maps.shape[:4]) if has_time_axis else self.grid
         node, weight = lattice_corners(self._lattice_coords(xs, ts_t if has_time_axis else None), dims)
         flat = self.maps.reshape(-1, *self.maps.shape[4:])
-        # the blend as one product with a [P, nodes] matrix holding each query's 8 (16) weights:
-        # a BLAS call instead of gathering 8 (16) maps per query
-        blend = torch.zeros(xs.shape[0], flat.shape[0], dtype=flat.dtype).scatter_add_(1, node, weight.to(flat.dtype))
-        blended = (blend @ flat.reshape(flat.shape[0], -1)).reshape(xs.shape[0], *flat.shape[1:])  # [P, h, 2h, 3]
+        # each query's 8 (16) corner maps summed in a fixed order, one corner at a time over the
+        # whole batch: elementwise work, so a query's answer is bit-identical whatever else is
+        # batched with it (a [P, nodes] matrix product rounds differently with P)
+        rows = flat.reshape(flat.shape[0], -1)
+        weight = weight.to(flat.dtype)
+        blended = weight[:, 0, None] * rows.index_select(0, node[:, 0])
+        for k in range(1, node.shape[1]):
+            blended.addcmul_(weight[:, k, None], rows.index_select(0, node[:, k]))
+        blended = blended.reshape(xs.shape[0], *flat.shape[1:])  # [P, h, 2h, 3]
         return self._resize(blended, height), extrapolation_flags(self.bounds, xs, ts_t)
 
     def _resize(self, maps: torch.Tensor, height: int) -> torch.Tensor:

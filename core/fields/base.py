@@ -122,12 +122,17 @@ class LightField(nn.Module):
 
         Generic path: evaluates every (probe, direction) pair in chunks of `chunk_rows`.
         Kinds with shared per-probe work override `_envmap_logits`.
+
+        Probes are evaluated one at a time, so a probe's map is bit-identical whatever else is
+        in the batch: CPU matrix products round differently with the number of rows (a 1-row
+        product takes another kernel), and the service batches unrelated clients' queries.
         """
         xn = self._normalize_x(xs)
         tn = self._normalize_t(ts, xn.shape[0])
         height = int(height)
         dirs = equirect_directions(height, device=xn.device).reshape(-1, 3)
-        z = self._envmap_logits(xn, tn, dirs, chunk_rows)  # [P, N, 3]
+        z = torch.cat([self._envmap_logits(xn[p:p + 1], None if tn is None else tn[p:p + 1], dirs, chunk_rows)
+                       for p in range(xn.shape[0])]) if xn.shape[0] else xn.new_empty(0, dirs.shape[0], 3)  # [P, N, 3]
         return self.activate(z).reshape(xn.shape[0], height, equirect_width(height), 3)
 
     def probe_radiance(self, xs: torch.Tensor, ts, probe_index: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
