@@ -34,6 +34,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from core.exposure import LUMINANCE_WEIGHTS
+
 VIEWS_PER_PANORAMA = 16
 VIEW_PITCH_DEG = 40.0
 MAX_EXTRA_EV = 3.0
@@ -72,8 +74,8 @@ def blob_samples(path: Path) -> list[dict]:
         lin = inverse_tonemap(ldr).numpy()
         clipped = clipped_mask(ldr).numpy()
         labels, blobs = find_blobs(lin, clipped, pixel_solid_angle(intr))
-        y_true = (hdr.numpy() * scale) @ np.array([0.2126, 0.7152, 0.0722])
-        y_lin = lin @ np.array([0.2126, 0.7152, 0.0722])
+        y_true = (hdr.numpy() * scale) @ np.asarray(LUMINANCE_WEIGHTS)
+        y_lin = lin @ np.asarray(LUMINANCE_WEIGHTS)
         for k, blob in enumerate(blobs, start=1):
             sel = labels == k
             true = float(y_true[sel].mean()) / max(float(y_lin[sel].mean()), 1e-9)
@@ -123,8 +125,8 @@ def synthetic_lamp_samples(path: Path) -> list[dict]:
         if k == 0:
             continue
         sel = labels == k
-        y_true = true.numpy() @ np.array([0.2126, 0.7152, 0.0722])
-        y_lin = lin @ np.array([0.2126, 0.7152, 0.0722])
+        y_true = true.numpy() @ np.asarray(LUMINANCE_WEIGHTS)
+        y_lin = lin @ np.asarray(LUMINANCE_WEIGHTS)
         t = float(y_true[sel].mean()) / max(float(y_lin[sel].mean()), 1e-9)
         b = blobs[k - 1]
         out.append({"file": path.name, "features": list(b.features()), "area_px": b.area_px,

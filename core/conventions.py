@@ -76,12 +76,16 @@ def direction_to_theta_phi(d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]
 
 def equirect_pixel_centres(height: int, device=None, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
     """theta [H, 1] and phi [1, W] of the pixel centres of an H x 2H equirect map."""
-    w = equirect_width(height)
     i = torch.arange(height, device=device, dtype=torch.float64)
-    j = torch.arange(w, device=device, dtype=torch.float64)
-    theta = math.pi * (i + 0.5) / height
-    phi = 2.0 * math.pi * (j + 0.5) / w - math.pi
+    j = torch.arange(equirect_width(height), device=device, dtype=torch.float64)
+    theta, phi = equirect_pixel_to_theta_phi(i + 0.5, j + 0.5, height)
     return theta[:, None].to(dtype), phi[None, :].to(dtype)
+
+
+def equirect_pixel_to_theta_phi(row_f: torch.Tensor, col_f: torch.Tensor, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Continuous pixel coordinates (row_f, col_f; pixel k spans [k, k + 1)) of an H x 2H map
+    -> (theta, phi): the inverse of `direction_to_equirect_pixel`'s layout."""
+    return math.pi * row_f / height, 2.0 * math.pi * col_f / equirect_width(height) - math.pi
 
 
 def equirect_directions(height: int, device=None, dtype=torch.float32) -> torch.Tensor:

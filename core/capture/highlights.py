@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from core.conventions import inverse_tonemap
-from core.exposure import luminance
+from core.exposure import LUMINANCE_WEIGHTS, luminance
 
 CLIP_LDR = 0.99  # a pixel with any channel at or above this is clipped
 HALO_RINGS = 8  # rings 1..HALO_RINGS pixels outside a blob sample its halo
@@ -96,7 +96,7 @@ def find_blobs(linear: np.ndarray, clipped: np.ndarray, pixel_sr: float) -> tupl
     labels, n = ndimage.label(clipped, structure=np.ones((3, 3), dtype=bool))
     if n == 0:
         return labels, []
-    y = (0.2126 * linear[..., 0] + 0.7152 * linear[..., 1] + 0.0722 * linear[..., 2]).astype(np.float64)
+    y = linear.astype(np.float64) @ np.asarray(LUMINANCE_WEIGHTS)
     H, W = clipped.shape
     all_clipped = linear.min(axis=-1) >= inverse_tonemap(torch.tensor(CLIP_LDR)).item()
     blobs = []

@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 
 from core.camera import Camera
-from core.conventions import equirect_directions
+from core.conventions import equirect_directions, equirect_pixel_centres
 from core.exposure import luminance
 
 
@@ -30,8 +30,8 @@ def log_total_variation(env: torch.Tensor, region: torch.Tensor, floor: float = 
     both pixels lie in `region` [h, 2h] (see module docstring); NaN when there is no pair."""
     h = env.shape[0]
     lum = torch.log(luminance(env.to(torch.float64)).clamp_min(0) + floor)
-    theta = (torch.arange(h, dtype=torch.float64) + 0.5) * torch.pi / h
-    weight_row = torch.sin(theta)[:, None]
+    theta, _ = equirect_pixel_centres(h, dtype=torch.float64)
+    weight_row = torch.sin(theta)  # [h, 1]
     dx = (lum - torch.roll(lum, -1, dims=1)).abs() * weight_row
     in_x = region & torch.roll(region, -1, dims=1)
     dy = (lum[1:] - lum[:-1]).abs()

@@ -24,7 +24,7 @@ from core.capture.base import Capture
 from core.chrome_ball import place_probe
 from core.engine.config import DistillConfig
 from core.engine.probes import sample_probes
-from core.conventions import equirect_pixel_centres, theta_phi_to_direction
+from core.conventions import equirect_pixel_centres, equirect_pixel_to_theta_phi, theta_phi_to_direction
 from core.envmap import sample_envmap
 from core.exposure import luminance
 
@@ -61,8 +61,7 @@ def bright_directions(maps: torch.Tensor, k: int, gen: torch.Generator) -> torch
     weight = (lum * torch.sin(theta_c)).reshape(p, -1) + 1e-12
     index = torch.multinomial(weight, k, replacement=True, generator=gen)
     jitter = torch.rand(p, k, 2, generator=gen, dtype=torch.float64)
-    theta = math.pi * ((index // w).double() + jitter[..., 0]) / h
-    phi = 2.0 * math.pi * ((index % w).double() + jitter[..., 1]) / w - math.pi
+    theta, phi = equirect_pixel_to_theta_phi((index // w).double() + jitter[..., 0], (index % w).double() + jitter[..., 1], h)
     return theta_phi_to_direction(theta, phi).float()
 
 
