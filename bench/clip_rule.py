@@ -35,12 +35,13 @@ import numpy as np
 import torch
 
 from core.exposure import LUMINANCE_WEIGHTS
+from core.priors.reprojection import CLIP_BOOST
 
 VIEWS_PER_PANORAMA = 16
 VIEW_PITCH_DEG = 40.0
 MAX_EXTRA_EV = 3.0
 SYNTHETIC_LAMPS_PER_PANORAMA = 12
-FIXED_BOOST = 8.0  # the old reprojection prior's CLIP_BOOST
+FIXED_BOOST = CLIP_BOOST  # the reprojection prior's old fixed boost (clip_rule "fixed")
 
 
 def photo_views(filename: str) -> list[tuple[float, float, float]]:
