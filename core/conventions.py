@@ -101,10 +101,14 @@ def direction_to_equirect_pixel(d: torch.Tensor, height: int) -> tuple[torch.Ten
     Pixel centre (i, j) maps back to (i, j) exactly: row_f = H theta / pi - 1/2,
     col_f = W (phi + pi) / (2 pi) - 1/2. col_f is in [-1/2, W - 1/2); callers wrap it.
     """
-    theta, phi = direction_to_theta_phi(d)
-    w = equirect_width(height)
+    return theta_phi_to_equirect_pixel(*direction_to_theta_phi(d), height)
+
+
+def theta_phi_to_equirect_pixel(theta: torch.Tensor, phi: torch.Tensor, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(theta, phi) -> continuous pixel coordinates (row_f, col_f) of an H x 2H map (see
+    `direction_to_equirect_pixel`); lets a caller reading several resolutions take the angles once."""
     row = height * theta / math.pi - 0.5
-    col = w * (phi + math.pi) / (2.0 * math.pi) - 0.5
+    col = equirect_width(height) * (phi + math.pi) / (2.0 * math.pi) - 0.5
     return row, col
 
 

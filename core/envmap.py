@@ -146,8 +146,12 @@ class EquirectTaps(NamedTuple):
 
 def equirect_taps(d: torch.Tensor, height: int) -> EquirectTaps:
     """The taps of directions d [..., 3] (finite; need not be unit) on an h x 2h map."""
+    return pixel_taps(*direction_to_equirect_pixel(d, int(height)), height)
+
+
+def pixel_taps(row: torch.Tensor, col: torch.Tensor, height: int) -> EquirectTaps:
+    """The taps of continuous pixel coordinates (conventions.direction_to_equirect_pixel) on an h x 2h map."""
     h, w = int(height), equirect_width(height)
-    row, col = direction_to_equirect_pixel(d, h)
     row = row.clamp(-0.5, h - 0.5)
     in_top, in_bottom = row < 0.0, row > h - 1
     r0 = torch.floor(row).clamp(0, max(h - 2, 0))
@@ -174,13 +178,18 @@ def pad_poles(maps: torch.Tensor) -> torch.Tensor:
 def equirect_stencil(d: torch.Tensor, height: int) -> tuple[torch.Tensor, torch.Tensor]:
     """`sample_envmap` as a gather: (texel index into the padded layout [N, 4] long, weight
     [N, 4]) for unit directions d [N, 3], so one call can read a different map per row."""
+    return taps_stencil(equirect_taps(d, height), height, d.dtype)
+
+
+def taps_stencil(taps: EquirectTaps, height: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """`equirect_stencil` of taps already found (`pixel_taps`)."""
     w = equirect_width(height)
-    upper, t_row, c0, c1, t_col = equirect_taps(d, height)
+    upper, t_row, c0, c1, t_col = taps
     index = torch.stack((upper * w + c0, upper * w + c1, (upper + 1) * w + c0, (upper + 1) * w + c1), dim=-1)
     weight = torch.stack(
         ((1 - t_row) * (1 - t_col), (1 - t_row) * t_col, t_row * (1 - t_col), t_row * t_col), dim=-1
     )
-    return index, weight.to(d.dtype)
+    return index, weight.to(dtype)
 
 
 def sample_envmap(envmap: torch.Tensor, d: torch.Tensor) -> torch.Tensor:

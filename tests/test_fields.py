@@ -302,3 +302,73 @@ def test_time_code_fields_agree_on_every_evaluation_path_and_reload(kind, tmp_pa
     art = save_artefact(tmp_path / "a", field.eval(), {})
     again = LightFieldArtefact.load(art.path)
     assert torch.allclose(again.envmaps(xs, ts, h)[0].reshape(2, -1, 3), maps, rtol=1e-5, atol=1e-7)
+
+
+def test_direction_grid_starts_at_zero_and_changes_only_near_what_the_loss_reaches():
+    from core.fields.encodings import EquirectGridEncoding
+
+    grid = EquirectGridEncoding((8, 16), 2)
+    d = equirect_directions(16).reshape(-1, 3)
+    assert grid.out_dim == 4 and torch.equal(grid(d), torch.zeros(len(d), 4))
+    target = torch.tensor([[0.0, 0.0, -1.0]])  # one direction, on the equator at phi = 0
+    grid(target).sum().backward()
+    for h, g in zip(grid.heights, grid.grids):
+        touched = g.grad.abs().sum(-1) > 0
+        assert 1 <= int(touched.sum()) <= 4  # its bilinear taps, nothing else
+        rows, cols = torch.nonzero(touched, as_tuple=True)
+        assert set(rows.tolist()) <= {h // 2 - 1, h // 2} and set(cols.tolist()) <= {h - 1, h}
+
+
+def test_direction_grid_is_continuous_across_the_seam_and_at_the_poles():
+    from core.fields.encodings import EquirectGridEncoding
+
+    grid = EquirectGridEncoding((6,), 3)
+    with torch.no_grad():
+        grid.grids[0].copy_(torch.randn(6, 12, 3, generator=torch.Generator().manual_seed(1)))
+    eps = 1e-4
+    seam = torch.tensor([[math.sin(eps), 0.3, math.cos(eps)], [-math.sin(eps), 0.3, math.cos(eps)]])  # phi = +-pi
+    a, b = grid(seam / seam.norm(dim=-1, keepdim=True))
+    assert torch.allclose(a, b, atol=1e-3)
+    pole = torch.tensor([[0.0, 1.0, 0.0], [eps, 1.0, 0.0], [0.0, 1.0, eps], [-eps, 1.0, -eps]])
+    out = grid(pole / pole.norm(dim=-1, keepdim=True))
+    assert torch.isfinite(out).all() and (out - out[0]).abs().max() < 5e-3  # O(eps x slope): no jump with phi at the pole
+
+
+def view_detail_config(kind: str, anchors=((0.0, 0.5, -1.0),)) -> FieldConfig:
+    return tiny_config(kind).model_copy(update={"view_detail_heights": (4, 8), "view_detail_radius": 0.5,
+                                                "view_anchors": anchors})
+
+
+@pytest.mark.parametrize("kind", ["mlp", "trunk", "grid"])
+def test_view_detail_is_full_at_an_anchor_fades_with_distance_and_agrees_on_every_path(kind, tmp_path):
+    from core.fields.artefact import LightFieldArtefact, save_artefact
+
+    field = randomise(build_field(view_detail_config(kind), BOUNDS), 0.3)
+    plain = build_field(tiny_config(kind), BOUNDS)
+    plain.load_state_dict({k: v for k, v in field.state_dict().items() if not k.startswith("view_detail")})
+    xs = torch.tensor([[0.0, 0.5, -1.0], [0.3, 0.5, -1.0], [1.9, 1.9, -3.9]])  # the anchor, 0.3 m off, far away
+    w = field.detail_weight(field._normalize_x(xs))
+    assert torch.allclose(w, torch.tensor([1.0, math.exp(-0.09 / 0.5), 0.0]), atol=1e-5)
+    ts = torch.tensor([0.4, 2.9, 1.0])
+    h = 6
+    dirs = equirect_directions(h).reshape(-1, 3)
+    with torch.no_grad():
+        maps = field.envmaps(xs, ts, h).reshape(3, -1, 3)
+        rays = torch.stack([field(x.expand(len(dirs), 3), t.expand(len(dirs)), dirs) for x, t in zip(xs, ts)])
+        idx = torch.arange(3).repeat_interleave(len(dirs))
+        probe = field.probe_radiance(xs, ts, idx, dirs.repeat(3, 1)).reshape(3, -1, 3)
+        base = plain.envmaps(xs, ts, h).reshape(3, -1, 3)
+    assert torch.allclose(maps, rays, rtol=1e-4, atol=1e-6) and torch.allclose(probe, rays, rtol=1e-4, atol=1e-6)
+    assert not torch.allclose(maps[0], base[0], rtol=1e-3) and torch.allclose(maps[2], base[2])  # detail only near the anchor
+    art = save_artefact(tmp_path / "a", field.eval(), {})
+    again = LightFieldArtefact.load(art.path)
+    assert torch.allclose(again.envmaps(xs, ts, h)[0].reshape(3, -1, 3), maps, rtol=1e-5, atol=1e-7)
+
+
+def test_view_detail_without_anchors_is_inert_and_settings_are_validated():
+    field = randomise(build_field(view_detail_config("mlp", anchors=()), BOUNDS), 0.3)
+    assert field.detail_weight(torch.zeros(2, 3)) is None
+    with pytest.raises(ValueError, match="view_detail_heights"):
+        tiny_config("mlp").model_validate({**tiny_config("mlp").model_dump(), "view_detail_heights": [1]})
+    with pytest.raises(ValueError, match="finite"):
+        tiny_config("mlp").model_validate({**tiny_config("mlp").model_dump(), "view_anchors": [[0, float("nan"), 0]]})

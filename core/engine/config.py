@@ -58,6 +58,9 @@ class DistillConfig(BaseModel):
     envmap_directions: int = Field(640, ge=1, description="random directions per probe and step")
     envmap_bright_fraction: float = Field(0.25, ge=0, le=1, description="share of the directions drawn ~ the target's luminance")
     envmap_height: int = Field(24, ge=4, description="height of the env maps asked from the prior")
+    envmap_view_directions: int = Field(0, ge=0, description=(
+        "per frame and step: pixel rays of the frame fitted at the camera-centre probe to the prior's view radiance "
+        "(the photo at its own resolution; priors with capabilities.view_radiance, needs envmap_camera_probe)"))
     log_floor_fraction: float = Field(1e-3, gt=0, description="log(L + floor), floor = this x the frame's mean radiance")
     linear_weight: float = Field(0.1, ge=0, description="weight of the relative linear (energy) term")
     chroma_weight: float = Field(0.0, ge=0, description="extra weight of the log error's colour part (radiance loss)")

@@ -27,6 +27,7 @@ from core.priors.base import Prior
 
 
 MAX_TIME_KNOTS = 256
+MAX_VIEW_ANCHORS = 64  # camera centres kept as view-detail anchors (evenly over the frames)
 
 
 @dataclass
@@ -63,7 +64,7 @@ def distill(
     device = resolve_device(cfg.device)
     torch.manual_seed(seed)  # field initialisation (on CPU, then moved)
     gen = torch.Generator().manual_seed(seed)
-    field_cfg = with_time_knots(config.field.with_time(uses_time), capture.num_frames)
+    field_cfg = with_view_anchors(with_time_knots(config.field.with_time(uses_time), capture.num_frames), capture)
     field = build_field(field_cfg, bounds or scene_bounds(capture, cfg.time_normalisation_frames)).to(device)
     opt = torch.optim.Adam(field.parameters(), lr=cfg.lr, betas=cfg.adam_betas)
     run_fingerprint = fingerprint(capture, cfg, field_cfg, seed, prior)
@@ -77,7 +78,8 @@ def distill(
     use_envmaps = cfg.uses_envmaps(prior.capabilities.envmaps)
     trainer = Trainer(capture, frames_lin.to(device), capture.depth.to(device), prior, field, opt,
                       cfg, gen, PerceptualLoss(cfg.perceptual_net), timings, device,
-                      use_envmaps=use_envmaps, floors=frame_floors(frames_lin, cfg.log_floor_fraction))
+                      use_envmaps=use_envmaps, floors=frame_floors(frames_lin, cfg.log_floor_fraction),
+                      view_rays=view_rays(capture, cfg, prior) if use_envmaps else None)
     reporter.begin(start)
     reporter.check_cancel()  # then once per step, in reporter.step (a store query in the worker)
     with _torch_threads(cfg.threads):
@@ -91,6 +93,24 @@ def distill(
     return DistillResult(field.cpu(), losses, timings, cfg.iterations, resumed_from=start,
                          stats={"field_config": field_cfg.model_dump(), "perceptual": perceptual_description(cfg.perceptual_net),
                                 "device": str(device), "supervision": "envmaps" if use_envmaps else "balls"})
+
+
+def view_rays(capture: Capture, cfg, prior: Prior) -> torch.Tensor | None:
+    """World pixel rays [T, H*W, 3] of every frame when the camera-centre probe is fitted to
+    the prior's view radiance (distill.envmap_view_directions), else None."""
+    if not (cfg.envmap_view_directions and cfg.envmap_camera_probe and prior.capabilities.view_radiance):
+        return None
+    return torch.stack([capture.camera(i).pixel_rays()[1].reshape(-1, 3).float() for i in range(capture.num_frames)])
+
+
+def with_view_anchors(field_cfg: FieldConfig, capture: Capture) -> FieldConfig:
+    """The capture's distinct camera centres (MAX_VIEW_ANCHORS at most, evenly spaced) as the
+    view-detail anchors when the field has view detail; the config unchanged otherwise."""
+    if not field_cfg.view_detail_heights:
+        return field_cfg
+    frames = torch.linspace(0, capture.num_frames - 1, min(capture.num_frames, MAX_VIEW_ANCHORS)).round().long()
+    centres = torch.unique(capture.poses[frames, :3, 3].double(), dim=0)  # a static camera: one anchor
+    return field_cfg.with_view_anchors(centres.tolist())
 
 
 def with_time_knots(field_cfg: FieldConfig, num_frames: int) -> FieldConfig:

@@ -31,10 +31,11 @@ from core.engine.config import DistillConfig, EngineConfig
 from core.fields import FieldConfig
 
 
-def _narrow(width: int, layers: int, **encoding) -> FieldConfig:
+def _narrow(width: int, layers: int, view_detail_heights: tuple[int, ...] = (), **encoding) -> FieldConfig:
     """The MLP (default kind) and the trunk at `width` x `layers` (and `encoding` settings); the grid as the paper's."""
     return FieldConfig(kind="mlp", mlp={"width": width, "layers": layers, **encoding},
-                       trunk={"trunk_width": width, "trunk_layers": layers, **encoding})
+                       trunk={"trunk_width": width, "trunk_layers": layers, **encoding},
+                       view_detail_heights=view_detail_heights)
 
 
 PRESETS: dict[str, EngineConfig] = {
@@ -43,8 +44,8 @@ PRESETS: dict[str, EngineConfig] = {
         name="draft",
         distill=DistillConfig(iterations=600, n_probes=9, work_height=72, lr=5e-3, warmup_steps=15, checkpoint_every=50,
                               supervision="auto", envmap_frames_per_step=3, envmap_surface_probes=2, envmap_room_probes=1,
-                              envmap_directions=256),
-        field=_narrow(96, 4, time_encoding="codes"),
+                              envmap_directions=256, envmap_view_directions=256),
+        field=_narrow(96, 4, view_detail_heights=(32, 128), time_encoding="codes"),
         priors={"reprojection": {"env_height": 24}},
     ),
     # CPU: a 100-frame 320x240 clip in a few minutes

@@ -25,7 +25,7 @@ from core.chrome_ball import place_probe
 from core.engine.config import DistillConfig
 from core.engine.probes import sample_probes
 from core.conventions import equirect_pixel_centres, equirect_pixel_to_theta_phi, theta_phi_to_direction
-from core.envmap import sample_envmap
+from core.envmap import equirect_stencil, pad_poles
 from core.exposure import luminance
 
 ROOM_DEPTH_FRACTION = (0.05, 0.95)
@@ -89,6 +89,11 @@ def frame_floors(frames_lin: torch.Tensor, fraction: float) -> list[float]:
 
 
 def targets_at(maps: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
-    """Bilinear lookups of maps [P, h, 2h, 3] at directions [P, K, 3] -> [P, K, 3], non-finite -> 0."""
-    out = torch.stack([sample_envmap(maps[p], directions[p]) for p in range(maps.shape[0])])
+    """Bilinear lookups (core.envmap.sample_envmap's) of maps [P, h, 2h, 3] at directions
+    [P, K, 3] -> [P, K, 3] in one gather, non-finite -> 0."""
+    p, h = maps.shape[0], maps.shape[1]
+    padded = pad_poles(maps)  # [P, (h + 2) * 2h, 3]
+    index, weight = equirect_stencil(directions.reshape(-1, 3), h)
+    index = index.reshape(p, -1, 4) + (torch.arange(p) * padded.shape[1])[:, None, None]
+    out = (weight.reshape(p, -1, 4, 1).to(maps.dtype) * padded.reshape(-1, 3)[index]).sum(-2)
     return torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)

@@ -10,7 +10,7 @@ for HDR env maps at a few probes of the frame and fits the field's log radiance 
 random directions; the paper's ball loop stays the path of priors that only paint balls."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field as dc_field
 
 import torch
 
@@ -43,6 +43,8 @@ class Trainer:
     device: torch.device
     use_envmaps: bool = False  # radiance supervision (the prior answers env maps)
     floors: list[float] | None = None  # per-frame log floors of the radiance loss
+    view_rays: torch.Tensor | None = None  # [T, H*W, 3] world pixel rays when the camera probe is fitted to view radiance
+    _view_cache: dict = dc_field(default_factory=dict)
 
     def step(self, step: int) -> float:
         if self.use_envmaps:
@@ -100,10 +102,13 @@ class Trainer:
     def radiance_step(self, step: int) -> float:
         """One step of radiance supervision: `envmap_frames_per_step` frames, each with its
         probes; the prior's env maps there; a log-radiance fit at `envmap_directions` directions
-        per probe (uniform, plus a share drawn by the target's luminance)."""
+        per probe (uniform, plus a share drawn by the target's luminance), and, when the prior
+        gives view radiance, `envmap_view_directions` of the frame's pixel rays at the camera
+        centre (the last probe) fitted to those pixels."""
         capture, cfg, gen, timings, field = self.capture, self.cfg, self.gen, self.timings, self.field
         frames = torch.randint(capture.num_frames, (cfg.envmap_frames_per_step,), generator=gen).tolist()
-        centers, times, targets, dirs, floors = [], [], [], [], []
+        centers, times, targets, dirs, floors, index = [], [], [], [], [], []
+        n_seen = 0
         for i in frames:
             t = float(capture.times[i])
             with timings("probe_geometry"):
@@ -117,18 +122,33 @@ class Trainer:
                 if k_bright:
                     d = torch.cat((d, bright_directions(maps, k_bright, gen)), dim=1)
                 targets.append(targets_at(maps, d).reshape(-1, 3))
+                dirs.append(d.reshape(-1, 3))
+                index.append(torch.arange(n_seen, n_seen + n).repeat_interleave(k))
+                rows = n * k
+                if self.view_rays is not None:
+                    pick = torch.randint(self.view_rays.shape[1], (cfg.envmap_view_directions,), generator=gen)
+                    dirs.append(self.view_rays[i, pick])
+                    targets.append(self.view_targets(i)[pick])
+                    index.append(torch.full((pick.shape[0],), n_seen + n - 1))  # the camera centre: the last probe
+                    rows += pick.shape[0]
             centers.append(c)
             times.append(torch.full((n,), t))
-            dirs.append(d.reshape(-1, 3))
-            floors.append(torch.full((n * k, 1), self.floors[i]))
+            floors.append(torch.full((rows, 1), self.floors[i]))
+            n_seen += n
         with timings("field_render"):
             dev = self.device
-            c, k = torch.cat(centers), cfg.envmap_directions
-            index = torch.arange(c.shape[0]).repeat_interleave(k).to(dev)
-            pred = field.probe_radiance(c.to(dev), torch.cat(times).to(dev), index, torch.cat(dirs).to(dev))
+            pred = field.probe_radiance(torch.cat(centers).to(dev), torch.cat(times).to(dev), torch.cat(index).to(dev),
+                                        torch.cat(dirs).to(dev))
         with timings("optimisation"):
             loss = radiance_loss(pred, torch.cat(targets).to(dev), torch.cat(floors).to(dev), cfg.linear_weight, cfg.chroma_weight)
             return self._optimise(step, loss)
+
+    def view_targets(self, frame_index: int) -> torch.Tensor:
+        """The prior's view radiance of a frame, flattened [H*W, 3] (finite, >= 0), cached."""
+        if frame_index not in self._view_cache:
+            v = self.prior.view_radiance(frame_index).detach().float().cpu().reshape(-1, 3)
+            self._view_cache[frame_index] = torch.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+        return self._view_cache[frame_index]
 
     def _optimise(self, step: int, loss: torch.Tensor) -> float:
         """Add the time-code TV penalty, then one clipped Adam step at the scheduled rate."""

@@ -25,6 +25,7 @@ from torch import nn
 
 from core.conventions import equirect_directions, equirect_width
 from core.fields.config import FieldConfig
+from core.fields.encodings import EquirectGridEncoding
 from core.fields.normalization import SceneBounds
 
 # Rows per forward call in `envmaps`: bounds peak memory (the paper MLP keeps ~7 activations
@@ -51,6 +52,11 @@ class LightField(nn.Module):
         self.register_buffer("bounds_lo", torch.tensor(bounds.lo, dtype=torch.float32))
         self.register_buffer("bounds_hi", torch.tensor(bounds.hi, dtype=torch.float32))
         self.register_buffer("time_range", torch.tensor([bounds.t0, bounds.t1], dtype=torch.float32))
+        self.view_detail = None
+        if config.view_detail_heights:
+            self.view_detail = EquirectGridEncoding(config.view_detail_heights, 3)
+            anchors = torch.tensor(config.view_anchors, dtype=torch.float32).reshape(-1, 3)
+            self.register_buffer("view_anchors", anchors, persistent=False)  # in the config, not the weights
 
     @property
     def uses_time(self) -> bool:
@@ -110,10 +116,25 @@ class LightField(nn.Module):
     def logits(self, xn: torch.Tensor, tn: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
+    # ------------------------------------------------------------------ view detail
+    def detail_weight(self, xn: torch.Tensor) -> torch.Tensor | None:
+        """[B] weight of the view-detail residual at normalised positions (None: no detail)."""
+        if self.view_detail is None or self.view_anchors.shape[0] == 0:
+            return None
+        x = self.bounds_lo + 0.5 * (xn + 1.0) * (self.bounds_hi - self.bounds_lo)
+        r2 = torch.cdist(x.double(), self.view_anchors.double()).pow(2).amin(-1)
+        return torch.exp(-r2 / (2.0 * self.config.view_detail_radius ** 2)).to(xn.dtype)
+
+    def detail_logits(self, d: torch.Tensor) -> torch.Tensor:
+        """[N, 3] view-detail residual along unit directions d (the levels summed)."""
+        return self.view_detail(d).reshape(d.shape[0], -1, 3).sum(1)
+
     def forward(self, x: torch.Tensor, t: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
         """x [B,3] world metres, t [B] seconds (ignored when uses_time=False), d [B,3] -> [B,3] > 0."""
         xn, tn, d = self.normalize_inputs(x, t, d)
-        return self.activate(self.logits(xn, tn, d))
+        z = self.logits(xn, tn, d)
+        w = self.detail_weight(xn)
+        return self.activate(z if w is None else z + w[:, None] * self.detail_logits(d))
 
     def envmaps(
         self, xs: torch.Tensor, ts: torch.Tensor | None, height: int, chunk_rows: int = DEFAULT_CHUNK_ROWS
@@ -133,6 +154,10 @@ class LightField(nn.Module):
         dirs = equirect_directions(height, device=xn.device).reshape(-1, 3)
         z = torch.cat([self._envmap_logits(xn[p:p + 1], None if tn is None else tn[p:p + 1], dirs, chunk_rows)
                        for p in range(xn.shape[0])]) if xn.shape[0] else xn.new_empty(0, dirs.shape[0], 3)  # [P, N, 3]
+        w = self.detail_weight(xn)
+        if w is not None and bool((w > 0).any()):
+            detail = torch.cat([self.detail_logits(dirs[dl]) for dl in direction_blocks(dirs.shape[0], chunk_rows)])
+            z = z + w[:, None, None] * detail[None]
         return self.activate(z).reshape(xn.shape[0], height, equirect_width(height), 3)
 
     def probe_radiance(self, xs: torch.Tensor, ts, probe_index: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
@@ -146,7 +171,10 @@ class LightField(nn.Module):
         xn = self._normalize_x(xs)
         tn = self._normalize_t(ts, xn.shape[0])
         index = torch.as_tensor(probe_index, dtype=torch.long, device=xn.device).reshape(-1)
-        return self.activate(self._probe_logits(xn, tn, index, unit_directions(d.to(xn.dtype))))
+        d = unit_directions(d.to(xn.dtype))
+        z = self._probe_logits(xn, tn, index, d)
+        w = self.detail_weight(xn)
+        return self.activate(z if w is None else z + w[index][:, None] * self.detail_logits(d))
 
     def _probe_logits(self, xn, tn, index, d) -> torch.Tensor:
         return self.logits(xn[index], None if tn is None else tn[index], d)

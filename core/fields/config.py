@@ -35,6 +35,12 @@ class FieldConfig(FieldSettings):
     uses_time: bool = True  # False: single image, or lighting the engine decided is static
     log_radiance_min: float = DEFAULT_LOG_RADIANCE_MIN
     log_radiance_max: float = DEFAULT_LOG_RADIANCE_MAX
+    # View detail (core.fields.base, docs/engine.md): learnable equirect log-radiance residuals,
+    # one per height, added to every kind's output with a weight exp(-r^2 / 2 radius^2), r the
+    # distance to the nearest anchor (the engine sets the capture's camera centres). () = off.
+    view_detail_heights: tuple[int, ...] = Field((), max_length=6)
+    view_detail_radius: float = Field(0.3, gt=0, le=100, description="metres over which the detail fades away from an anchor")
+    view_anchors: tuple[tuple[float, float, float], ...] = Field((), max_length=256)
     # kind -> its settings; given (and serialised) as one top-level key per kind
     sections: Mapping[str, SerializeAsAny[BaseModel]] = Field(default_factory=dict, repr=False)
 
@@ -67,6 +73,20 @@ class FieldConfig(FieldSettings):
         field_class(kind)  # raises, naming the registered kinds
         return kind
 
+    @field_validator("view_detail_heights")
+    @classmethod
+    def _detail_heights(cls, heights: tuple[int, ...]) -> tuple[int, ...]:
+        if any(h < 2 or h > 512 for h in heights):
+            raise ValueError(f"view_detail_heights must each be in [2, 512], got {heights}")
+        return heights
+
+    @field_validator("view_anchors")
+    @classmethod
+    def _finite_anchors(cls, anchors):
+        if not all(math.isfinite(v) for a in anchors for v in a):
+            raise ValueError("view_anchors must be finite")
+        return anchors
+
     @model_validator(mode="after")
     def _range_ordered(self):
         lo, hi = self.log_radiance_min, self.log_radiance_max
@@ -94,6 +114,9 @@ class FieldConfig(FieldSettings):
 
     def with_kind(self, kind: str) -> "FieldConfig":
         return FieldConfig.model_validate({**self.model_dump(), "kind": kind})
+
+    def with_view_anchors(self, anchors) -> "FieldConfig":
+        return self.model_copy(update={"view_anchors": tuple(tuple(float(v) for v in a) for a in anchors)})
 
     def with_time(self, uses_time: bool) -> "FieldConfig":
         return self.model_copy(update={"uses_time": bool(uses_time)})

@@ -10,6 +10,8 @@ from typing import Literal
 
 from pydantic import Field
 
+from core.conventions import direction_to_theta_phi, theta_phi_to_equirect_pixel
+from core.envmap import pad_poles, pixel_taps, taps_stencil
 from core.fields.config import FieldSettings
 
 
@@ -90,6 +92,34 @@ class TimeCodes(nn.Module):
     def total_variation(self) -> torch.Tensor:
         """Mean L1 change between neighbouring knots (per knot step and code channel)."""
         return (self.codes[1:] - self.codes[:-1]).abs().mean()
+
+
+class EquirectGridEncoding(nn.Module):
+    """Learnable feature maps over the sphere, one equirect [h, 2h, F] per height, read
+    bilinearly with the env maps' own taps (seam wrapped, poles continuous: core.envmap); the
+    fields' view detail (core.fields.base). They start at zero, so an untrained grid adds
+    nothing, and a cell changes only where the loss reaches its taps: unlike more PE(d)
+    frequencies, nothing of it extends (rings) into directions no loss reached."""
+
+    def __init__(self, heights: tuple[int, ...], features: int):
+        super().__init__()
+        if not heights or min(heights) < 2 or features < 1:
+            raise ValueError(f"EquirectGridEncoding needs heights >= 2 and features >= 1, got {heights}, {features}")
+        self.heights = tuple(int(h) for h in heights)
+        self.grids = nn.ParameterList([nn.Parameter(torch.zeros(h, 2 * h, features)) for h in self.heights])
+
+    @property
+    def out_dim(self) -> int:
+        return len(self.heights) * self.grids[0].shape[-1]
+
+    def forward(self, d: torch.Tensor) -> torch.Tensor:
+        theta, phi = direction_to_theta_phi(d.reshape(-1, 3).detach())  # the grids learn, directions do not
+        out = []
+        for h, grid in zip(self.heights, self.grids):
+            index, weight = taps_stencil(pixel_taps(*theta_phi_to_equirect_pixel(theta, phi, h), h), h, grid.dtype)
+            padded = pad_poles(grid[None])[0]  # [(h + 2) * 2h, F]
+            out.append((weight[..., None] * padded[index]).sum(-2))
+        return torch.cat(out, dim=-1).reshape(*d.shape[:-1], self.out_dim)
 
 
 def nerf_encodings(

@@ -79,10 +79,15 @@ class PriorCapabilities:
       the engine then fits the field to these maps in log radiance instead of rendering balls
       (core.engine.radiance), calling `envmaps` for ~12 probes every step: declare it only
       when an answer costs milliseconds, not a diffusion sampling.
+    * view_radiance: it says what linear radiance it assigns to each frame's own pixels
+      (`view_radiance(i)`, [H, W, 3] in the units of its env maps). Radiance supervision then
+      also fits the camera-centre probe along the frame's pixel rays at the photo's own
+      resolution, which a prior's coarse env maps blur (core.engine.radiance).
     """
 
     frame_geometry: bool = False
     envmaps: bool = False
+    view_radiance: bool = False
 
 
 class Prior(ABC):
@@ -129,3 +134,8 @@ class Prior(ABC):
         """Linear HDR env maps [N, height, 2 height, 3] seen from `centers` [N, 3] (world metres)
         at `time` (seconds from the first frame) (capabilities.envmaps)."""
         raise PriorError(f"prior {self.name!r} cannot answer env maps (capabilities.envmaps is False)")
+
+    def view_radiance(self, frame_index: int) -> torch.Tensor:
+        """Linear HDR radiance [H, W, 3] arriving at frame `frame_index`'s camera along its pixel
+        rays, at the bound capture's resolution (capabilities.view_radiance)."""
+        raise PriorError(f"prior {self.name!r} does not declare view_radiance")

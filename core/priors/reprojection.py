@@ -157,7 +157,7 @@ class ReprojectionSettings(PriorConfig):
 @register_prior("reprojection", for_jobs=True)
 class ReprojectionPrior(Prior):
     Config = ReprojectionSettings
-    capabilities = PriorCapabilities(frame_geometry=True, envmaps=True)
+    capabilities = PriorCapabilities(frame_geometry=True, envmaps=True, view_radiance=True)
 
     def __init__(self, **settings):
         """Settings: see ReprojectionSettings (PriorError when one is out of range)."""
@@ -260,6 +260,12 @@ class ReprojectionPrior(Prior):
         seen = (cnt > 0).reshape(n, h, w)
         filled = push_pull_fill(env, seen)
         return fill_unseen(filled, env, seen) if self.unseen_fill == "indoor" else filled
+
+    def view_radiance(self, frame_index: int) -> torch.Tensor:
+        """The frame's linearised pixels (clip rule applied): what its env maps splat."""
+        if self._colors is None:
+            raise PriorError("ReprojectionPrior.bind(capture) must be called before use")
+        return self._colors[frame_index]
 
     def __call__(self, request: PriorRequest) -> torch.Tensor:
         p = request.probes
