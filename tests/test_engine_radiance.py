@@ -61,7 +61,7 @@ def test_field_keeps_what_the_prior_knows_on_a_simulated_room(spatial_scene):
         return sum(s[material]["si_rmse"] for s in scores) / len(scores)
 
     for material in ("diffuse", "matte", "mirror"):
-        # measured 0.86 / 0.95 / 0.98 of the prior (bench/accuracy_probe.py for the suites)
+        # measured 1.02 / 1.02 / 1.01 of the prior (bench/accuracy_probe.py for the suites)
         assert mean(field_scores, material) <= 1.05 * mean(prior_scores, material), material
 
 
@@ -83,12 +83,12 @@ def test_single_photo_is_reproduced_where_seen_without_rings_where_not(spatial_s
         fine = field.envmaps(at_camera, None, 64)[0]
     ours = ring_ratio(env, observed)
     reference = ring_ratio(prior.envmaps(at_camera, 0.0, 32)[0], observed)
-    assert ours["tv_unobserved"] <= 1.5 * reference["tv_unobserved"], (ours, reference)  # measured 1.12x
-    assert ours["ratio"] <= 0.25, ours  # measured 0.09
+    assert ours["tv_unobserved"] <= 1.5 * reference["tv_unobserved"], (ours, reference)  # measured 1.25x
+    assert ours["ratio"] <= 0.25, ours  # measured 0.10
     rays, photo = cam.pixel_rays(dtype=torch.float64)[1], inverse_tonemap(capture.frames[0])
     corr = observed_region_correlation(fine, photo, rays)
     prior_corr = observed_region_correlation(prior.envmaps(at_camera, 0.0, 64)[0], photo, rays)
-    assert corr >= 0.85 and corr >= prior_corr + 0.1, (corr, prior_corr)  # measured 0.90 vs 0.70
+    assert corr >= 0.85 and corr >= prior_corr + 0.1, (corr, prior_corr)  # measured 0.91 vs 0.70 (0.69 without view supervision)
 
 
 def test_view_supervision_only_with_a_prior_that_gives_view_radiance(spatial_scene):

@@ -12,8 +12,10 @@ known field about as well as the 6 x 256 one and clearly better than the trunk+h
 `draft` also supervises in radiance when its prior answers env maps (`supervision="auto"`:
 the reprojection, known and oracle priors; the diffusion prior keeps the ball loop): 3 frames
 per step, each with 2 probes in front of the depth, 1 along a camera ray and the camera
-centre, 256 directions per probe, log-radiance loss, 600 steps; and its fields encode time
-with learned per-frame codes. Why and the measurements: docs/engine.md, "Radiance supervision"
+centre, 256 directions per probe, log-radiance loss, 600 steps; the camera centre is also
+fitted along 256 of the frame's pixel rays to the prior's view radiance, through the field's
+view detail (32- and 128-row residual maps anchored at the camera centres); and its fields
+encode time with learned per-frame codes. Why and the measurements: docs/engine.md, "Radiance supervision"
 (`python -m bench.accuracy_probe`).
 
 `seed` is the loop of the authors' released code (ORionTMT/Sig25_4DLighting run_video_demo.py

@@ -21,10 +21,9 @@ import math
 import torch
 
 from core.capture.base import Capture
-from core.chrome_ball import place_probe
 from core.engine.config import DistillConfig
 from core.engine.probes import sample_probes
-from core.conventions import equirect_pixel_centres, equirect_pixel_to_theta_phi, theta_phi_to_direction
+from core.conventions import equirect_pixel_centres, equirect_pixel_to_theta_phi, pixel_to_camera_ray, theta_phi_to_direction
 from core.envmap import equirect_stencil, pad_poles
 from core.exposure import luminance
 
@@ -34,15 +33,18 @@ ROOM_DEPTH_FRACTION = (0.05, 0.95)
 def supervision_probes(capture: Capture, frame_index: int, cfg: DistillConfig, gen: torch.Generator) -> torch.Tensor:
     """World probe centres [N, 3] (float32) for one radiance step on frame `frame_index`."""
     cam = capture.camera(frame_index)
+    k = cam.intrinsics
     centers: list[torch.Tensor] = []
     for n, depth_fraction in ((cfg.envmap_surface_probes, cfg.probe_depth_fraction), (cfg.envmap_room_probes, ROOM_DEPTH_FRACTION)):
         if n == 0:
             continue
         pixels, depths = sample_probes(capture, frame_index, cfg.model_copy(update={"n_probes": n, "probe_depth_fraction": depth_fraction}), gen)
-        centers += [place_probe(cam, pixels[k], float(depths[k]), cfg.ball_diameter_fraction)[0].float() for k in range(n)]
+        # on the ray through each pixel at its planar depth (core.chrome_ball.place_probe, all at once)
+        rays = pixel_to_camera_ray(pixels[:, 0], pixels[:, 1], k.fx, k.fy, k.cx, k.cy) * depths[:, None]
+        centers.append((rays @ cam.c2w[:3, :3].T.double() + cam.c2w[:3, 3].double()).float())
     if cfg.envmap_camera_probe:
-        centers.append(capture.poses[frame_index, :3, 3].float())
-    return torch.stack(centers)
+        centers.append(capture.poses[frame_index, :3, 3].float()[None])
+    return torch.cat(centers)
 
 
 def random_directions(n: int, gen: torch.Generator) -> torch.Tensor:

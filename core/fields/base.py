@@ -37,6 +37,10 @@ DEFAULT_CHUNK_ROWS = 1 << 16
 INITIAL_RADIANCE = 1.0
 OUTPUT_WEIGHT_SCALE = 0.1
 
+# View-detail weights below this are 0 (beyond ~4.3 radii of every anchor), so probes away from
+# the cameras skip the detail lookups, and every evaluation path agrees on which rows have it.
+DETAIL_CUTOFF = 1e-4
+
 
 class LightField(nn.Module):
     kind: ClassVar[str]  # set by @register_field
@@ -123,18 +127,26 @@ class LightField(nn.Module):
             return None
         x = self.bounds_lo + 0.5 * (xn + 1.0) * (self.bounds_hi - self.bounds_lo)
         r2 = torch.cdist(x.double(), self.view_anchors.double()).pow(2).amin(-1)
-        return torch.exp(-r2 / (2.0 * self.config.view_detail_radius ** 2)).to(xn.dtype)
+        w = torch.exp(-r2 / (2.0 * self.config.view_detail_radius ** 2)).to(xn.dtype)
+        return torch.where(w >= DETAIL_CUTOFF, w, torch.zeros_like(w))
 
     def detail_logits(self, d: torch.Tensor) -> torch.Tensor:
         """[N, 3] view-detail residual along unit directions d (the levels summed)."""
         return self.view_detail(d).reshape(d.shape[0], -1, 3).sum(1)
 
+    def _with_detail(self, z: torch.Tensor, w: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
+        """z [B, 3] + w [B] x detail(d [B, 3]), the detail looked up only where w > 0."""
+        if w is None:
+            return z
+        rows = torch.nonzero(w > 0).reshape(-1)
+        if rows.numel() == 0:
+            return z
+        return z.index_add(0, rows, w[rows, None] * self.detail_logits(d[rows]))
+
     def forward(self, x: torch.Tensor, t: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
         """x [B,3] world metres, t [B] seconds (ignored when uses_time=False), d [B,3] -> [B,3] > 0."""
         xn, tn, d = self.normalize_inputs(x, t, d)
-        z = self.logits(xn, tn, d)
-        w = self.detail_weight(xn)
-        return self.activate(z if w is None else z + w[:, None] * self.detail_logits(d))
+        return self.activate(self._with_detail(self.logits(xn, tn, d), self.detail_weight(xn), d))
 
     def envmaps(
         self, xs: torch.Tensor, ts: torch.Tensor | None, height: int, chunk_rows: int = DEFAULT_CHUNK_ROWS
@@ -172,9 +184,8 @@ class LightField(nn.Module):
         tn = self._normalize_t(ts, xn.shape[0])
         index = torch.as_tensor(probe_index, dtype=torch.long, device=xn.device).reshape(-1)
         d = unit_directions(d.to(xn.dtype))
-        z = self._probe_logits(xn, tn, index, d)
         w = self.detail_weight(xn)
-        return self.activate(z if w is None else z + w[index][:, None] * self.detail_logits(d))
+        return self.activate(self._with_detail(self._probe_logits(xn, tn, index, d), None if w is None else w[index], d))
 
     def _probe_logits(self, xn, tn, index, d) -> torch.Tensor:
         return self.logits(xn[index], None if tn is None else tn[index], d)

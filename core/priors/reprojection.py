@@ -38,6 +38,8 @@ from __future__ import annotations
 import functools
 from typing import Literal
 
+import functools
+
 import torch
 import torch.nn.functional as F
 from pydantic import Field
@@ -81,10 +83,12 @@ def linearise(frames: torch.Tensor, clip_boost: float = CLIP_BOOST) -> torch.Ten
 
 
 @functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=128)
 def _upsample_matrix(n_fine: int, n_coarse: int, wrap: bool) -> torch.Tensor:
     """[n_fine, n_coarse] linear interpolation from coarse to fine pixel centres, where coarse
     pixel j is the average of fine pixels 2j and 2j+1 (its centre: their mean index; the last
-    one of an odd size has one child). `wrap`: the axis is periodic (equirect columns)."""
+    one of an odd size has one child). `wrap`: the axis is periodic (equirect columns).
+    Cached (the same few sizes every call; read-only)."""
     centres = torch.tensor([(2 * j + min(2 * j + 1, n_fine - 1)) / 2 for j in range(n_coarse)], dtype=torch.float64)
     A = torch.zeros(n_fine, n_coarse, dtype=torch.float64)
     if n_coarse == 1:
@@ -171,6 +175,7 @@ class ReprojectionPrior(Prior):
         self._capture = None
         self._colors: torch.Tensor | None = None
         self._points: dict[int, torch.Tensor] = {}
+        self._camera_maps: dict[int, torch.Tensor] = {}  # frame -> its map at its own camera centre
         self._geometry_key: list[int] = []
         self.point_cloud_builds = 0  # how many times geometry was unprojected (reported)
 
@@ -183,6 +188,7 @@ class ReprojectionPrior(Prior):
             MERGE_VIEWS_STATIC_LIGHTING if static_lighting_moving_camera else 1)
         self._colors = linear_frames(capture, self.clip_rule, self.clip_boost, lighting_changes)
         self._points = {}
+        self._camera_maps: dict[int, torch.Tensor] = {}
         self.point_cloud_builds = 0
         # frames with the same pose and the same depth share one point cloud
         key: list[int] = []
@@ -230,9 +236,21 @@ class ReprojectionPrior(Prior):
         return env if height == self.env_height else torch.stack([resize_envmap(m, height) for m in env])
 
     def envmaps_at_frame(self, centers: torch.Tensor, frame_index: int) -> torch.Tensor:
-        """HDR env maps [N, h, 2h, 3] (h = env_height) seen from `centers` [N, 3] in frame `frame_index`."""
+        """HDR env maps [N, h, 2h, 3] (h = env_height) seen from `centers` [N, 3] in frame `frame_index`.
+        The map at the frame's own camera centre (asked every radiance step) is splatted once."""
         if self._capture is None:
             raise PriorError("ReprojectionPrior.bind(capture) must be called before use")
+        at_camera = (centers == self._capture.poses[frame_index, :3, 3].to(centers.dtype)).all(-1)
+        if not bool(at_camera.any()):
+            return self._splat(centers, frame_index)
+        if frame_index not in self._camera_maps:
+            self._camera_maps[frame_index] = self._splat(centers[at_camera][:1], frame_index)[0]
+        out = self._camera_maps[frame_index].expand(centers.shape[0], -1, -1, -1).clone()
+        if bool((~at_camera).any()):
+            out[~at_camera] = self._splat(centers[~at_camera], frame_index)
+        return out
+
+    def _splat(self, centers: torch.Tensor, frame_index: int) -> torch.Tensor:
         views = self.views_for(frame_index)
         # the other views only fill in what this one misses: every OTHER_VIEW_STRIDE-th point
         stride = [1] + [OTHER_VIEW_STRIDE] * (len(views) - 1)
