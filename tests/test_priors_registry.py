@@ -27,7 +27,8 @@ def test_names_come_from_the_registry():
 def test_capabilities_are_declared_by_each_prior():
     from core.sim.oracle import OracleSimPrior
 
-    assert ReprojectionPrior.capabilities == PriorCapabilities(frame_geometry=True, envmaps=True)
+    assert ReprojectionPrior.capabilities == PriorCapabilities(frame_geometry=True, envmaps=True, view_radiance=True)
+    assert not KnownRadiancePrior.capabilities.view_radiance
     assert KnownRadiancePrior.capabilities.envmaps and not KnownRadiancePrior.capabilities.frame_geometry
     assert OracleSimPrior.capabilities.envmaps and prior_class("oracle") is OracleSimPrior
     assert prior_class("diffusion").capabilities == PriorCapabilities()
@@ -135,3 +136,17 @@ def test_a_new_prior_is_one_class_and_its_registration():
             register_prior("reprojection")(GreyPrior)
     finally:
         PRIORS.pop("grey-test", None)
+
+
+def test_reprojection_view_radiance_is_what_it_splats_and_its_camera_map_is_cached_exactly():
+    from core.capture.load import capture_from_arrays
+
+    frames = torch.rand(2, 12, 16, 3, generator=torch.Generator().manual_seed(0))
+    capture = capture_from_arrays(frames)
+    prior = ReprojectionPrior(env_height=8)
+    prior.bind(capture)
+    assert prior.view_radiance(1).shape == (12, 16, 3) and torch.equal(prior.view_radiance(1), prior._colors[1])
+    cam = capture.poses[1, :3, 3].float()
+    centers = torch.stack((cam + torch.tensor([0.1, 0.0, -0.2]), cam))
+    first, again = prior.envmaps_at_frame(centers, 1), prior.envmaps_at_frame(centers.flip(0), 1)
+    assert torch.equal(first, prior._splat(centers, 1)) and torch.equal(again, first.flip(0))
