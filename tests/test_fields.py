@@ -286,22 +286,27 @@ def test_time_codes_start_constant_in_time_and_interpolate_linearly(kind):
 
 @pytest.mark.parametrize("kind", ["mlp", "trunk"])
 def test_time_code_fields_agree_on_every_evaluation_path_and_reload(kind, tmp_path):
+    field = randomise(build_field(codes_config(kind), BOUNDS), 0.3)
+    assert_paths_agree_and_reload(field, torch.tensor([[0.1, 0.2, -1.0], [1.0, 0.5, -3.0]]), torch.tensor([0.4, 2.9]), 4, tmp_path)
+
+
+def assert_paths_agree_and_reload(field, xs, ts, h: int, tmp_path) -> torch.Tensor:
+    """envmaps == per-ray forward == probe_radiance, and the saved artefact answers the same;
+    returns the maps [P, h * 2h, 3]."""
     from core.fields.artefact import LightFieldArtefact, save_artefact
 
-    field = randomise(build_field(codes_config(kind), BOUNDS), 0.3)
-    xs = torch.tensor([[0.1, 0.2, -1.0], [1.0, 0.5, -3.0]])
-    ts = torch.tensor([0.4, 2.9])
-    h = 4
+    n = xs.shape[0]
     dirs = equirect_directions(h).reshape(-1, 3)
     with torch.no_grad():
-        maps = field.envmaps(xs, ts, h).reshape(2, -1, 3)
+        maps = field.envmaps(xs, ts, h).reshape(n, -1, 3)
         rays = torch.stack([field(x.expand(len(dirs), 3), t.expand(len(dirs)), dirs) for x, t in zip(xs, ts)])
-        idx = torch.arange(2).repeat_interleave(len(dirs))
-        probe = field.probe_radiance(xs, ts, idx, dirs.repeat(2, 1)).reshape(2, -1, 3)
+        idx = torch.arange(n).repeat_interleave(len(dirs))
+        probe = field.probe_radiance(xs, ts, idx, dirs.repeat(n, 1)).reshape(n, -1, 3)
     assert torch.allclose(maps, rays, rtol=1e-4, atol=1e-6) and torch.allclose(probe, rays, rtol=1e-4, atol=1e-6)
     art = save_artefact(tmp_path / "a", field.eval(), {})
     again = LightFieldArtefact.load(art.path)
-    assert torch.allclose(again.envmaps(xs, ts, h)[0].reshape(2, -1, 3), maps, rtol=1e-5, atol=1e-7)
+    assert torch.allclose(again.envmaps(xs, ts, h)[0].reshape(n, -1, 3), maps, rtol=1e-5, atol=1e-7)
+    return maps
 
 
 def test_direction_grid_starts_at_zero_and_changes_only_near_what_the_loss_reaches():
@@ -341,8 +346,6 @@ def view_detail_config(kind: str, anchors=((0.0, 0.5, -1.0),)) -> FieldConfig:
 
 @pytest.mark.parametrize("kind", ["mlp", "trunk", "grid"])
 def test_view_detail_is_full_at_an_anchor_fades_with_distance_and_agrees_on_every_path(kind, tmp_path):
-    from core.fields.artefact import LightFieldArtefact, save_artefact
-
     field = randomise(build_field(view_detail_config(kind), BOUNDS), 0.3)
     plain = build_field(tiny_config(kind), BOUNDS)
     plain.load_state_dict({k: v for k, v in field.state_dict().items() if not k.startswith("view_detail")})
@@ -350,19 +353,10 @@ def test_view_detail_is_full_at_an_anchor_fades_with_distance_and_agrees_on_ever
     w = field.detail_weight(field._normalize_x(xs))
     assert torch.allclose(w, torch.tensor([1.0, math.exp(-0.09 / 0.5), 0.0]), atol=1e-5)
     ts = torch.tensor([0.4, 2.9, 1.0])
-    h = 6
-    dirs = equirect_directions(h).reshape(-1, 3)
+    maps = assert_paths_agree_and_reload(field, xs, ts, 6, tmp_path)
     with torch.no_grad():
-        maps = field.envmaps(xs, ts, h).reshape(3, -1, 3)
-        rays = torch.stack([field(x.expand(len(dirs), 3), t.expand(len(dirs)), dirs) for x, t in zip(xs, ts)])
-        idx = torch.arange(3).repeat_interleave(len(dirs))
-        probe = field.probe_radiance(xs, ts, idx, dirs.repeat(3, 1)).reshape(3, -1, 3)
-        base = plain.envmaps(xs, ts, h).reshape(3, -1, 3)
-    assert torch.allclose(maps, rays, rtol=1e-4, atol=1e-6) and torch.allclose(probe, rays, rtol=1e-4, atol=1e-6)
+        base = plain.envmaps(xs, ts, 6).reshape(3, -1, 3)
     assert not torch.allclose(maps[0], base[0], rtol=1e-3) and torch.allclose(maps[2], base[2])  # detail only near the anchor
-    art = save_artefact(tmp_path / "a", field.eval(), {})
-    again = LightFieldArtefact.load(art.path)
-    assert torch.allclose(again.envmaps(xs, ts, h)[0].reshape(3, -1, 3), maps, rtol=1e-5, atol=1e-7)
 
 
 def test_view_detail_without_anchors_is_inert_and_settings_are_validated():
