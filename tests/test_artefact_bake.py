@@ -140,13 +140,21 @@ def test_bake_argument_errors(tmp_path):
         baked.envmap((0, 0, 0), 1.0, height=-1)
 
 
-@pytest.mark.parametrize("kind", ["mlp", "trunk", "grid", "baked"])
+@pytest.mark.parametrize("kind", ["mlp", "trunk", "grid", "baked", "mlp+view-detail"])
 def test_a_query_answers_the_same_bits_whatever_is_batched_with_it(tmp_path, kind):
     """The service batches unrelated clients' queries into one call: each answer must not
     depend on the others (CPU matrix products round differently with their row count)."""
     if kind == "baked":
         source = bake(smooth_artefact(tmp_path), grid=(3, 3, 3), times=2, height=8)
         maps = lambda xs, ts: source.envmaps(xs, ts, 8)[0]  # noqa: E731
+    elif kind == "mlp+view-detail":  # 40 anchors: more than cdist's matmul threshold
+        anchors = (torch.rand(40, 3, generator=torch.Generator().manual_seed(1)) * 2.0 - 1.0).tolist()
+        field = build_field(FieldConfig(kind="mlp", view_detail_heights=(4, 8), view_detail_radius=1.0,
+                                        view_anchors=anchors), BOUNDS)
+        with torch.no_grad():
+            for grid in field.view_detail.grids:
+                grid.normal_(generator=torch.Generator().manual_seed(2))
+        maps = lambda xs, ts: field.envmaps(xs, ts, 8)  # noqa: E731
     else:
         field = build_field(FieldConfig(kind=kind), BOUNDS)
         maps = lambda xs, ts: field.envmaps(xs, ts, 8)  # noqa: E731

@@ -126,7 +126,9 @@ class LightField(nn.Module):
         if self.view_detail is None or self.view_anchors.shape[0] == 0:
             return None
         x = self.bounds_lo + 0.5 * (xn + 1.0) * (self.bounds_hi - self.bounds_lo)
-        r2 = torch.cdist(x.double(), self.view_anchors.double()).pow(2).amin(-1)
+        # elementwise, not cdist (whose matmul path rounds with the batch size): a probe's answer
+        # must not depend on what else is in the batch (see `envmaps`)
+        r2 = (x.double()[:, None, :] - self.view_anchors.double()[None]).pow(2).sum(-1).amin(-1)
         w = torch.exp(-r2 / (2.0 * self.config.view_detail_radius ** 2)).to(xn.dtype)
         return torch.where(w >= DETAIL_CUTOFF, w, torch.zeros_like(w))
 
