@@ -5,7 +5,7 @@ One `FieldConfig` names the field kind and carries a settings section per regist
 Keeping every section (with defaults) makes configs trivially editable (`with_kind("grid")`),
 lets a preset carry settings for every kind a job may pick, and keeps the artefact JSON
 self-describing. JSON layout: {"kind", "uses_time", "log_radiance_min", "log_radiance_max",
-"<kind>": {section}, ...}.
+"view_detail_heights", "view_detail_radius", "view_anchors", "<kind>": {section}, ...}.
 """
 from __future__ import annotations
 
