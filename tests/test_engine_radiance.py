@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from core.capture.load import capture_from_arrays, load_capture
-from core.engine.distill import distill, view_rays
+from core.engine.distill import distill, view_rays, with_view_detail
 from core.engine.extrapolation import log_total_variation, observed_directions, ring_ratio
 from core.engine.presets import preset
 from core.engine.radiance import bright_directions, radiance_loss, supervision_probes
@@ -212,3 +212,17 @@ def test_envmaps_supervision_needs_a_prior_that_answers_envmaps():
     res = distill(cap, KnownRadiancePrior(lambda x, t, d: torch.ones_like(d)), small(supervision="auto", iterations=2), uses_time=False)
     assert res.stats["supervision"] == "envmaps"
     assert json.dumps(res.stats["field_config"])  # recorded in the artefact
+
+
+def test_view_detail_is_bound_to_the_cameras_and_only_for_static_lighting(spatial_scene):
+    """The detail has no time input, so a field whose lighting changes gets none: measured on a
+    photo whose bright patch switches off mid-clip, the detail kept it 8x too bright at the
+    camera after the switch (3x without it)."""
+    _, capture = spatial_scene
+    field = preset("draft").field
+    assert field.view_detail_heights
+    static = with_view_detail(field.with_time(False), capture)
+    assert static.view_detail_heights == field.view_detail_heights
+    assert static.view_anchors == (tuple(capture.poses[0, :3, 3].double().tolist()),)
+    changing = with_view_detail(field.with_time(True), capture)
+    assert changing.view_detail_heights == () and changing.view_anchors == ()

@@ -64,7 +64,7 @@ def distill(
     device = resolve_device(cfg.device)
     torch.manual_seed(seed)  # field initialisation (on CPU, then moved)
     gen = torch.Generator().manual_seed(seed)
-    field_cfg = with_view_anchors(with_time_knots(config.field.with_time(uses_time), capture.num_frames), capture)
+    field_cfg = with_view_detail(with_time_knots(config.field.with_time(uses_time), capture.num_frames), capture)
     field = build_field(field_cfg, bounds or scene_bounds(capture, cfg.time_normalisation_frames)).to(device)
     opt = torch.optim.Adam(field.parameters(), lr=cfg.lr, betas=cfg.adam_betas)
     run_fingerprint = fingerprint(capture, cfg, field_cfg, seed, prior)
@@ -103,11 +103,17 @@ def view_rays(capture: Capture, cfg, prior: Prior) -> torch.Tensor | None:
     return torch.stack([capture.camera(i).pixel_rays()[1].reshape(-1, 3).float() for i in range(capture.num_frames)])
 
 
-def with_view_anchors(field_cfg: FieldConfig, capture: Capture) -> FieldConfig:
-    """The capture's distinct camera centres (MAX_VIEW_ANCHORS at most, evenly spaced) as the
-    view-detail anchors when the field has view detail; the config unchanged otherwise."""
+def with_view_detail(field_cfg: FieldConfig, capture: Capture) -> FieldConfig:
+    """The field's view detail bound to the capture: its distinct camera centres
+    (MAX_VIEW_ANCHORS at most, evenly over the frames) as anchors. A field with a time input
+    gets none: the detail has no time input, so where the lighting changes it would hold the
+    frames' average fine structure (measured: a bright patch in the photo that switched off
+    stayed 8x too bright at the camera, 3x without the detail), and the MLP carries the
+    photo's structure alone (docs/engine.md)."""
     if not field_cfg.view_detail_heights:
         return field_cfg
+    if field_cfg.uses_time:
+        return field_cfg.model_copy(update={"view_detail_heights": (), "view_anchors": ()})
     frames = torch.linspace(0, capture.num_frames - 1, min(capture.num_frames, MAX_VIEW_ANCHORS)).round().long()
     centres = torch.unique(capture.poses[frames, :3, 3].double(), dim=0)  # a static camera: one anchor
     return field_cfg.with_view_anchors(centres.tolist())
