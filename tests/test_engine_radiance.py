@@ -95,8 +95,10 @@ def test_view_supervision_only_with_a_prior_that_gives_view_radiance(spatial_sce
     _, capture = spatial_scene
     cfg = small().distill
     rays = view_rays(capture, cfg, _bound_prior(capture))
-    assert rays.shape == (capture.num_frames, capture.height * capture.width, 3)
+    assert rays.shape == (capture.height * capture.width, 3)
     assert torch.allclose(rays.norm(dim=-1), torch.ones(1), atol=1e-5)
+    world = capture.camera(0).pixel_rays()[1].reshape(-1, 3)  # what the trainer makes of them
+    assert torch.allclose(rays @ capture.poses[0, :3, :3].T.float(), world, atol=1e-6)
     assert view_rays(capture, cfg, KnownRadiancePrior(lambda x, t, d: torch.ones_like(d))) is None
     assert view_rays(capture, cfg.model_copy(update={"envmap_view_directions": 0}), _bound_prior(capture)) is None
     assert view_rays(capture, cfg.model_copy(update={"envmap_camera_probe": False}), _bound_prior(capture)) is None

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import torch
 
+from core.camera import Camera
 from core.capture.base import Capture
 from core.conventions import inverse_tonemap
 from core.device import resolve_device
@@ -96,11 +97,13 @@ def distill(
 
 
 def view_rays(capture: Capture, cfg, prior: Prior) -> torch.Tensor | None:
-    """World pixel rays [T, H*W, 3] of every frame when the camera-centre probe is fitted to
-    the prior's view radiance (distill.envmap_view_directions), else None."""
+    """Camera-frame unit rays [H*W, 3] through every pixel centre (one set: all frames share
+    the intrinsics; the trainer rotates the rows it draws by the frame's pose) when the
+    camera-centre probe is fitted to the prior's view radiance (distill.envmap_view_directions),
+    else None."""
     if not (cfg.envmap_view_directions and cfg.envmap_camera_probe and prior.capabilities.view_radiance):
         return None
-    return torch.stack([capture.camera(i).pixel_rays()[1].reshape(-1, 3).float() for i in range(capture.num_frames)])
+    return Camera(capture.intrinsics, torch.eye(4, dtype=torch.float64)).pixel_rays()[1].reshape(-1, 3)
 
 
 def with_view_detail(field_cfg: FieldConfig, capture: Capture) -> FieldConfig:

@@ -10,7 +10,7 @@ for HDR env maps at a few probes of the frame and fits the field's log radiance 
 random directions; the paper's ball loop stays the path of priors that only paint balls."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field as dc_field
+from dataclasses import dataclass
 
 import torch
 
@@ -43,8 +43,7 @@ class Trainer:
     device: torch.device
     use_envmaps: bool = False  # radiance supervision (the prior answers env maps)
     floors: list[float] | None = None  # per-frame log floors of the radiance loss
-    view_rays: torch.Tensor | None = None  # [T, H*W, 3] world pixel rays when the camera probe is fitted to view radiance
-    _view_cache: dict = dc_field(default_factory=dict)
+    view_rays: torch.Tensor | None = None  # [H*W, 3] camera-frame pixel rays when the camera probe is fitted to view radiance
 
     def step(self, step: int) -> float:
         if self.use_envmaps:
@@ -126,9 +125,10 @@ class Trainer:
                 index.append(torch.arange(n_seen, n_seen + n).repeat_interleave(k))
                 rows = n * k
                 if self.view_rays is not None:
-                    pick = torch.randint(self.view_rays.shape[1], (cfg.envmap_view_directions,), generator=gen)
-                    dirs.append(self.view_rays[i, pick])
-                    targets.append(self.view_targets(i)[pick])
+                    pick = torch.randint(self.view_rays.shape[0], (cfg.envmap_view_directions,), generator=gen)
+                    dirs.append(self.view_rays[pick] @ capture.poses[i, :3, :3].T.float())  # to world
+                    seen = self.prior.view_radiance(i).detach().reshape(-1, 3)[pick.to(self.prior.device)].float().cpu()
+                    targets.append(torch.nan_to_num(seen, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0))
                     index.append(torch.full((pick.shape[0],), n_seen + n - 1))  # the camera centre: the last probe
                     rows += pick.shape[0]
             centers.append(c)
@@ -142,13 +142,6 @@ class Trainer:
         with timings("optimisation"):
             loss = radiance_loss(pred, torch.cat(targets).to(dev), torch.cat(floors).to(dev), cfg.linear_weight, cfg.chroma_weight)
             return self._optimise(step, loss)
-
-    def view_targets(self, frame_index: int) -> torch.Tensor:
-        """The prior's view radiance of a frame, flattened [H*W, 3] (finite, >= 0), cached."""
-        if frame_index not in self._view_cache:
-            v = self.prior.view_radiance(frame_index).detach().float().cpu().reshape(-1, 3)
-            self._view_cache[frame_index] = torch.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
-        return self._view_cache[frame_index]
 
     def _optimise(self, step: int, loss: torch.Tensor) -> float:
         """Add the time-code TV penalty, then one clipped Adam step at the scheduled rate."""

@@ -38,8 +38,6 @@ from __future__ import annotations
 import functools
 from typing import Literal
 
-import functools
-
 import torch
 import torch.nn.functional as F
 from pydantic import Field
@@ -83,12 +81,11 @@ def linearise(frames: torch.Tensor, clip_boost: float = CLIP_BOOST) -> torch.Ten
 
 
 @functools.lru_cache(maxsize=64)
-@functools.lru_cache(maxsize=128)
 def _upsample_matrix(n_fine: int, n_coarse: int, wrap: bool) -> torch.Tensor:
     """[n_fine, n_coarse] linear interpolation from coarse to fine pixel centres, where coarse
     pixel j is the average of fine pixels 2j and 2j+1 (its centre: their mean index; the last
     one of an odd size has one child). `wrap`: the axis is periodic (equirect columns).
-    Cached (the same few sizes every call; read-only)."""
+    Cached (the same few sizes every call): callers must not modify the result."""
     centres = torch.tensor([(2 * j + min(2 * j + 1, n_fine - 1)) / 2 for j in range(n_coarse)], dtype=torch.float64)
     A = torch.zeros(n_fine, n_coarse, dtype=torch.float64)
     if n_coarse == 1:
@@ -188,7 +185,7 @@ class ReprojectionPrior(Prior):
             MERGE_VIEWS_STATIC_LIGHTING if static_lighting_moving_camera else 1)
         self._colors = linear_frames(capture, self.clip_rule, self.clip_boost, lighting_changes)
         self._points = {}
-        self._camera_maps: dict[int, torch.Tensor] = {}
+        self._camera_maps = {}
         self.point_cloud_builds = 0
         # frames with the same pose and the same depth share one point cloud
         key: list[int] = []
