@@ -147,6 +147,46 @@ def build_series(scene: SceneSpec) -> list[Series]:
     return out
 
 
+EXTRA_PROBE_MARGIN_M = 0.3  # extra held-out probes keep this far from walls, floor and ceiling
+EXTRA_PROBE_TRIES = 200  # draws per wanted probe before giving up (furniture rejects some)
+
+
+def with_extra_probes(suite: SuiteData, n: int, seed: int = 0) -> SuiteData:
+    """The suite with `n` more held-out probes: positions uniform in the room's free space
+    (EXTRA_PROBE_MARGIN_M inside its bounding box; outside the room or in furniture redrawn), times uniform over the capture, drawn from
+    `seed` (not from the scene's probes, so nothing was chosen where the field does well);
+    ground truth rendered by the simulator at the suite's eval height. The time series are
+    unchanged. More probes shrink the run-to-run noise of per-suite mean ratios."""
+    from core.sim.render import ProbeError, check_probe, render_envmap
+    from core.sim.spec import ProbePoint
+
+    if n <= 0:
+        return suite
+    scene = suite.scene
+    lo = torch.tensor([min(b.lo[k] for b in scene.room.boxes) for k in range(3)], dtype=torch.float64) + EXTRA_PROBE_MARGIN_M
+    hi = torch.tensor([max(b.hi[k] for b in scene.room.boxes) for k in range(3)], dtype=torch.float64) - EXTRA_PROBE_MARGIN_M
+    t_end = (scene.frames - 1) / scene.fps
+    gen = torch.Generator().manual_seed(seed)
+    probes, gts = [], []
+    for _ in range(n * EXTRA_PROBE_TRIES):
+        if len(probes) == n:
+            break
+        x = lo + (hi - lo) * torch.rand(3, generator=gen, dtype=torch.float64)
+        t = float(torch.rand((), generator=gen, dtype=torch.float64)) * t_end
+        try:
+            check_probe(scene, x.tolist())
+        except ProbeError:
+            continue
+        p = ProbePoint(x=tuple(round(float(v), 3) for v in x), t=round(t, 4))
+        probes.append(p)
+        gts.append(render_envmap(scene, p.x, p.t, suite.eval_height).float())
+    if len(probes) < n:
+        raise RuntimeError(f"only {len(probes)} of {n} extra probes fit in {scene.name}'s free space")
+    return SuiteData(name=suite.name, scene=scene, capture_dir=suite.capture_dir, probes=[*suite.probes, *probes],
+                     gt=torch.cat([suite.gt, torch.stack(gts)]), global_point=suite.global_point,
+                     global_time=suite.global_time, series=suite.series, render_seconds=suite.render_seconds)
+
+
 def load_suite(name: str, cache_dir: Path, resolution: tuple[int, int] | None, gt_height: int) -> SuiteData:
     """Render (or reuse) a suite's capture and collect its ground truth."""
     from core.capture.load import load_capture

@@ -248,6 +248,12 @@ class ReprojectionPrior(Prior):
         return out
 
     def _splat(self, centers: torch.Tensor, frame_index: int) -> torch.Tensor:
+        env, seen = self._splat_seen(centers, frame_index)
+        filled = push_pull_fill(env, seen)
+        return fill_unseen(filled, env, seen) if self.unseen_fill == "indoor" else filled
+
+    def _splat_seen(self, centers: torch.Tensor, frame_index: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Splatted radiance [N, h, w, 3] and its seen mask [N, h, w] (no fill)."""
         views = self.views_for(frame_index)
         # the other views only fill in what this one misses: every OTHER_VIEW_STRIDE-th point
         stride = [1] + [OTHER_VIEW_STRIDE] * (len(views) - 1)
@@ -272,9 +278,7 @@ class ReprojectionPrior(Prior):
         acc = torch.zeros(n * h * w, 3, dtype=col.dtype).index_add(0, key, col_k)
         cnt = torch.zeros(n * h * w, dtype=col.dtype).index_add(0, key, torch.ones_like(key, dtype=col.dtype))
         env = (acc / cnt.clamp_min(1.0)[:, None]).reshape(n, h, w, 3)
-        seen = (cnt > 0).reshape(n, h, w)
-        filled = push_pull_fill(env, seen)
-        return fill_unseen(filled, env, seen) if self.unseen_fill == "indoor" else filled
+        return env, (cnt > 0).reshape(n, h, w)
 
     def view_radiance(self, frame_index: int) -> torch.Tensor:
         """The frame's linearised pixels (clip rule applied): what its env maps splat."""
