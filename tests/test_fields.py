@@ -366,3 +366,22 @@ def test_view_detail_without_anchors_is_inert_and_settings_are_validated():
         tiny_config("mlp").model_validate({**tiny_config("mlp").model_dump(), "view_detail_heights": [1]})
     with pytest.raises(ValueError, match="finite"):
         tiny_config("mlp").model_validate({**tiny_config("mlp").model_dump(), "view_anchors": [[0, float("nan"), 0]]})
+
+
+def test_view_detail_varies_with_time_only_through_its_time_part():
+    """With a time input the detail is static maps + rank maps weighted by per-knot coefficients
+    (penalised by time_variation); without one it keeps the static-only layout (3 features), so
+    artefacts saved before the time part existed load unchanged."""
+    cfg = view_detail_config("mlp").model_copy(update={"view_detail_time_rank": 2, "view_detail_time_knots": 5})
+    field = randomise(build_field(cfg, BOUNDS), 0.3)
+    assert field.view_detail.grids[0].shape[-1] == 9 and field.view_detail_time.codes.shape == (5, 2)
+    static = build_field(cfg.with_time(False), BOUNDS)
+    assert static.view_detail_time is None and static.view_detail.grids[0].shape[-1] == 3
+    d = equirect_directions(6).reshape(-1, 3)
+    start, end = torch.full((len(d), 1), -1.0), torch.full((len(d), 1), 1.0)
+    with torch.no_grad():
+        assert not torch.allclose(field.detail_logits(d, start), field.detail_logits(d, end), rtol=1e-3)
+        assert float(field.time_variation()) > 0  # the tiny MLP encodes time by PE: only the detail's codes
+        field.view_detail_time.codes.copy_(field.view_detail_time.codes[:1].expand(5, 2))  # constant in time
+        assert torch.allclose(field.detail_logits(d, start), field.detail_logits(d, end))
+        assert float(field.time_variation()) == 0.0

@@ -30,7 +30,8 @@ def test_an_artefact_written_by_the_previous_layout_loads_and_answers_the_same()
 def test_the_field_json_keeps_one_key_per_kind():
     doc = FieldConfig(kind="grid").model_dump(mode="json")
     assert list(doc) == ["kind", "uses_time", "log_radiance_min", "log_radiance_max", "view_detail_heights",
-                         "view_detail_radius", "view_anchors", *field_kinds()]
+                         "view_detail_radius", "view_anchors", "view_detail_time_rank", "view_detail_time_knots",
+                         *field_kinds()]
     assert field_kinds()[:3] == ("mlp", "grid", "trunk")
     assert FieldConfig.model_validate(doc) == FieldConfig(kind="grid")
     assert FieldConfig(kind="mlp").with_section("mlp", width=7).section().width == 7

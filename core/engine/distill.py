@@ -108,18 +108,19 @@ def view_rays(capture: Capture, cfg, prior: Prior) -> torch.Tensor | None:
 
 def with_view_detail(field_cfg: FieldConfig, capture: Capture) -> FieldConfig:
     """The field's view detail bound to the capture: its distinct camera centres
-    (MAX_VIEW_ANCHORS at most, evenly over the frames) as anchors. A field with a time input
-    gets none: the detail has no time input, so where the lighting changes it would hold the
-    frames' average fine structure (measured: a bright patch in the photo that switched off
-    stayed 8x too bright at the camera, 3x without the detail), and the MLP carries the
-    photo's structure alone (docs/engine.md)."""
+    (MAX_VIEW_ANCHORS at most, evenly over the frames) as anchors and, for a field with a time
+    input, one time knot per frame (MAX_TIME_KNOTS at most) for the detail's time-varying part.
+    A field with a time input and `view_detail_time_rank` 0 gets none: a static detail would
+    hold the frames' average fine structure where the lighting changes (measured: a bright
+    patch in the photo that switched off stayed 8x too bright at the camera; docs/engine.md)."""
     if not field_cfg.view_detail_heights:
         return field_cfg
-    if field_cfg.uses_time:
+    if field_cfg.uses_time and field_cfg.view_detail_time_rank == 0:
         return field_cfg.model_copy(update={"view_detail_heights": (), "view_anchors": ()})
     frames = torch.linspace(0, capture.num_frames - 1, min(capture.num_frames, MAX_VIEW_ANCHORS)).round().long()
     centres = torch.unique(capture.poses[frames, :3, 3].double(), dim=0)  # a static camera: one anchor
-    return field_cfg.with_view_anchors(centres.tolist())
+    knots = max(2, min(int(capture.num_frames), MAX_TIME_KNOTS))
+    return field_cfg.with_view_anchors(centres.tolist()).model_copy(update={"view_detail_time_knots": knots})
 
 
 def with_time_knots(field_cfg: FieldConfig, num_frames: int) -> FieldConfig:

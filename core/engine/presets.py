@@ -14,8 +14,8 @@ the reprojection, known and oracle priors; the diffusion prior keeps the ball lo
 per step, each with 2 probes in front of the depth, 1 along a camera ray and the camera
 centre, 256 directions per probe, log-radiance loss, 600 steps; the camera centre is also
 fitted along 256 of the frame's pixel rays to the prior's view radiance, through the field's
-view detail under static lighting (32- and 128-row residual maps anchored at the camera
-centres); and its fields
+view detail (32- and 128-row residual maps anchored at the camera centres, with a rank-4
+time part when the lighting changes); and its fields
 encode time with learned per-frame codes. Why and the measurements: docs/engine.md, "Radiance supervision"
 (`python -m bench.accuracy_probe`).
 

@@ -25,7 +25,7 @@ from torch import nn
 
 from core.conventions import equirect_directions, equirect_width
 from core.fields.config import FieldConfig
-from core.fields.encodings import EquirectGridEncoding
+from core.fields.encodings import EquirectGridEncoding, TimeCodes
 from core.fields.normalization import SceneBounds
 
 # Rows per forward call in `envmaps`: bounds peak memory (the paper MLP keeps ~7 activations
@@ -57,8 +57,14 @@ class LightField(nn.Module):
         self.register_buffer("bounds_hi", torch.tensor(bounds.hi, dtype=torch.float32))
         self.register_buffer("time_range", torch.tensor([bounds.t0, bounds.t1], dtype=torch.float32))
         self.view_detail = None
+        self.view_detail_time = None
+        self.detail_time_rank = config.view_detail_time_rank if config.uses_time else 0
         if config.view_detail_heights:
-            self.view_detail = EquirectGridEncoding(config.view_detail_heights, 3)
+            # static part first, then the time-varying maps (features 3 x (1 + rank)); a static
+            # field's keys and shapes are those of the detail before it had a time part
+            self.view_detail = EquirectGridEncoding(config.view_detail_heights, 3 * (1 + self.detail_time_rank))
+            if self.detail_time_rank:
+                self.view_detail_time = TimeCodes(config.view_detail_time_knots, self.detail_time_rank)
             anchors = torch.tensor(config.view_anchors, dtype=torch.float32).reshape(-1, 3)
             self.register_buffer("view_anchors", anchors, persistent=False)  # in the config, not the weights
 
@@ -111,10 +117,12 @@ class LightField(nn.Module):
             output.bias.fill_(self.logit_for_radiance(INITIAL_RADIANCE))
 
     def time_variation(self) -> torch.Tensor | None:
-        """The L1 total variation of the field's learned time codes (None when it has none):
-        the distillation penalises it so lighting changes only where the frames say so."""
-        codes = getattr(self, "pe_t", None)
-        return codes.total_variation() if hasattr(codes, "total_variation") else None
+        """The L1 total variation of the field's learned time codes and of its view detail's
+        time coefficients (None when it has neither): the distillation penalises it so lighting
+        changes only where the frames say so."""
+        terms = [m.total_variation() for m in (getattr(self, "pe_t", None), self.view_detail_time)
+                 if hasattr(m, "total_variation")]
+        return sum(terms) if terms else None
 
     # ------------------------------------------------------------------ evaluation
     def logits(self, xn: torch.Tensor, tn: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
@@ -132,23 +140,35 @@ class LightField(nn.Module):
         w = torch.exp(-r2 / (2.0 * self.config.view_detail_radius ** 2)).to(xn.dtype)
         return torch.where(w >= DETAIL_CUTOFF, w, torch.zeros_like(w))
 
-    def detail_logits(self, d: torch.Tensor) -> torch.Tensor:
-        """[N, 3] view-detail residual along unit directions d (the levels summed)."""
-        return self.view_detail(d).reshape(d.shape[0], -1, 3).sum(1)
+    def detail_parts(self, d: torch.Tensor) -> torch.Tensor:
+        """[N, 1 + rank, 3] view-detail maps along unit directions d (the levels summed): the
+        static part, then the time-varying ones (rank 0 without a time input)."""
+        return self.view_detail(d).reshape(d.shape[0], -1, 1 + self.detail_time_rank, 3).sum(1)
 
-    def _with_detail(self, z: torch.Tensor, w: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
-        """z [B, 3] + w [B] x detail(d [B, 3]), the detail looked up only where w > 0."""
+    def combine_detail(self, parts: torch.Tensor, tn: torch.Tensor | None) -> torch.Tensor:
+        """parts [N, 1 + rank, 3] at normalised times tn [N, 1] (or one [1, 1]) -> [N, 3]."""
+        if self.view_detail_time is None:
+            return parts[:, 0]
+        coefficients = self.view_detail_time(tn)  # [N or 1, rank]
+        return parts[:, 0] + (coefficients[..., None] * parts[:, 1:]).sum(1)
+
+    def detail_logits(self, d: torch.Tensor, tn: torch.Tensor | None = None) -> torch.Tensor:
+        """[N, 3] view-detail residual along unit directions d at normalised times tn [N, 1]."""
+        return self.combine_detail(self.detail_parts(d), tn)
+
+    def _with_detail(self, z: torch.Tensor, w: torch.Tensor | None, d: torch.Tensor, tn: torch.Tensor | None) -> torch.Tensor:
+        """z [B, 3] + w [B] x detail(d [B, 3], tn [B, 1]), the detail looked up only where w > 0."""
         if w is None:
             return z
         rows = torch.nonzero(w > 0).reshape(-1)
         if rows.numel() == 0:
             return z
-        return z.index_add(0, rows, w[rows, None] * self.detail_logits(d[rows]))
+        return z.index_add(0, rows, w[rows, None] * self.detail_logits(d[rows], None if tn is None else tn[rows]))
 
     def forward(self, x: torch.Tensor, t: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
         """x [B,3] world metres, t [B] seconds (ignored when uses_time=False), d [B,3] -> [B,3] > 0."""
         xn, tn, d = self.normalize_inputs(x, t, d)
-        return self.activate(self._with_detail(self.logits(xn, tn, d), self.detail_weight(xn), d))
+        return self.activate(self._with_detail(self.logits(xn, tn, d), self.detail_weight(xn), d, tn))
 
     def envmaps(
         self, xs: torch.Tensor, ts: torch.Tensor | None, height: int, chunk_rows: int = DEFAULT_CHUNK_ROWS
@@ -170,8 +190,12 @@ class LightField(nn.Module):
                        for p in range(xn.shape[0])]) if xn.shape[0] else xn.new_empty(0, dirs.shape[0], 3)  # [P, N, 3]
         w = self.detail_weight(xn)
         if w is not None and bool((w > 0).any()):
-            detail = torch.cat([self.detail_logits(dirs[dl]) for dl in direction_blocks(dirs.shape[0], chunk_rows)])
-            z = z + w[:, None, None] * detail[None]
+            parts = torch.cat([self.detail_parts(dirs[dl]) for dl in direction_blocks(dirs.shape[0], chunk_rows)])
+            if self.view_detail_time is None:
+                z = z + w[:, None, None] * parts[None, :, 0]
+            else:  # the maps are looked up once; each probe weighs them at its own time
+                for p in torch.nonzero(w > 0).reshape(-1).tolist():
+                    z[p] = z[p] + w[p] * self.combine_detail(parts, tn[p:p + 1])
         return self.activate(z).reshape(xn.shape[0], height, equirect_width(height), 3)
 
     def probe_radiance(self, xs: torch.Tensor, ts, probe_index: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
@@ -187,7 +211,8 @@ class LightField(nn.Module):
         index = torch.as_tensor(probe_index, dtype=torch.long, device=xn.device).reshape(-1)
         d = unit_directions(d.to(xn.dtype))
         w = self.detail_weight(xn)
-        return self.activate(self._with_detail(self._probe_logits(xn, tn, index, d), None if w is None else w[index], d))
+        return self.activate(self._with_detail(self._probe_logits(xn, tn, index, d), None if w is None else w[index], d,
+                                               None if tn is None else tn[index]))
 
     def _probe_logits(self, xn, tn, index, d) -> torch.Tensor:
         return self.logits(xn[index], None if tn is None else tn[index], d)

@@ -5,7 +5,8 @@ One `FieldConfig` names the field kind and carries a settings section per regist
 Keeping every section (with defaults) makes configs trivially editable (`with_kind("grid")`),
 lets a preset carry settings for every kind a job may pick, and keeps the artefact JSON
 self-describing. JSON layout: {"kind", "uses_time", "log_radiance_min", "log_radiance_max",
-"view_detail_heights", "view_detail_radius", "view_anchors", "<kind>": {section}, ...}.
+"view_detail_heights", "view_detail_radius", "view_anchors", "view_detail_time_rank",
+"view_detail_time_knots", "<kind>": {section}, ...}.
 """
 from __future__ import annotations
 
@@ -41,6 +42,12 @@ class FieldConfig(FieldSettings):
     view_detail_heights: tuple[int, ...] = Field((), max_length=6)
     view_detail_radius: float = Field(0.3, gt=0, le=100, description="metres over which the detail fades away from an anchor")
     view_anchors: tuple[tuple[float, float, float], ...] = Field((), max_length=256)
+    # With a time input the detail also has `view_detail_time_rank` maps whose weights follow
+    # learned per-knot coefficients (`view_detail_time_knots`, the engine sets one per frame):
+    # a rank-R factorisation of how the photographed region changes over time. 0: no detail
+    # for a field with a time input.
+    view_detail_time_rank: int = Field(4, ge=0, le=16)
+    view_detail_time_knots: int = Field(2, ge=2, le=4096)
     # kind -> its settings; given (and serialised) as one top-level key per kind
     sections: Mapping[str, SerializeAsAny[BaseModel]] = Field(default_factory=dict, repr=False)
 
