@@ -62,6 +62,31 @@ def ratio_interval(num: list[float], den: list[float], seed: int = 0) -> list[fl
     return [round(float(v), 3) for v in torch.quantile(r, torch.tensor([0.05, 0.95], dtype=torch.float64))]
 
 
+METHOD_LABELS = {"field": "radiance + view (draft)", "field-balls": "ball loop", "field-oracle": "from the oracle (bound)"}
+
+
+def markdown_table(report: dict) -> str:
+    """The docs' table of a saved report (`--table report.json`): per suite and method the worst
+    field/prior ratio with its 90 % interval, si-RMSE / prior per material and / constant."""
+    rows = ["| suite | method | probes | worst metric / prior [90 % interval] | diffuse si / prior | matte si / prior "
+            "| mirror si / prior | diffuse si / const | matte si / const | CPU s |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, entry in report["suites"].items():
+        n = len(entry.get("probes", [])) or "?"
+        for method, r in entry["ratios"].items():
+            if method == "prior":
+                c = r["vs_constant"]
+                rows.append(f"| {name} | prior (shortcut) | {n} | 1 | 1 | 1 | 1 | {c['diffuse.si_rmse']:.2f} | {c['matte.si_rmse']:.2f} | |")
+                continue
+            vp, vc = r["vs_prior"], r["vs_constant"]
+            worst = max(vp, key=vp.get)
+            interval = entry.get("interval_90", {}).get(method, {}).get("vs_prior", {}).get(worst)
+            span = f" [{interval[0]:.2f}, {interval[1]:.2f}]" if interval else ""
+            rows.append(f"| {name} | {METHOD_LABELS.get(method, method)} | {n} | {vp[worst]:.2f} ({worst}){span} "
+                        f"| {vp['diffuse.si_rmse']:.2f} | {vp['matte.si_rmse']:.2f} | {vp['mirror.si_rmse']:.2f} "
+                        f"| {vc['diffuse.si_rmse']:.2f} | {vc['matte.si_rmse']:.2f} | {entry['cpu_s'].get(method, '')} |")
+    return "\n".join(rows)
+
+
 def series_checks(suite, series_preds: list[torch.Tensor]) -> dict:
     """After/before brightness at each switch and the flatness of static stretches."""
     from bench.suite.evaluation import envmap_brightness
@@ -110,7 +135,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--probe-seed", type=int, default=0, help="seed of the extra probes' draw")
     p.add_argument("--cache-dir", default=None)
     p.add_argument("-o", "--output", default=None)
+    p.add_argument("--table", default=None, metavar="REPORT_JSON", help="print the markdown table of a saved report and exit")
     args = p.parse_args(argv)
+    if args.table:
+        print(markdown_table(json.loads(Path(args.table).read_text())))
+        return 0
 
     from bench.methods import Method, query_field, run_per_probe, MethodRun
     from bench.run import default_cache_dir
