@@ -1,13 +1,17 @@
 """Wall time of the CPU presets on simulator captures of the sizes the presets promise.
 
-    python -m bench.presets [--presets draft,standard] [--unique-frames 5] [-o results.json]
+    python -m bench.presets [--presets draft,standard] [--unique-frames 5] [--temporal auto|on|off]
+        [--set field.view_detail_time_rank=0 ...] [-o results.json]
 
 draft: a 20-frame 192x144 clip; standard: a 100-frame 320x240 clip (the `temporal` suite,
 so the time input is on). Rendering 100 distinct simulator frames costs more than the
 estimate itself, so the clip holds `--unique-frames` rendered frames, each repeated
 (a held shot): distillation cost depends on the frame SIZE and the step count, not on how
 many distinct frames exist (each step uses one frame), while loading and temporal detection
-still see the full T frames. The JSON records this. No timing assertions live in tests.
+still see the full T frames. The JSON records this. `--temporal on` forces the time input (the
+cost of a job whose lighting changes; the draft clip's dimming lamp is read as static under
+`auto`) and `--set` overrides the preset (dotted keys, JSON values). No timing assertions live
+in tests.
 """
 from __future__ import annotations
 
@@ -47,9 +51,10 @@ def make_clip(out: Path, frames: int, width: int, height: int, unique: int) -> d
     return {"simulate_s": round(sim_s, 2), "unique_frames": unique}
 
 
-def bench_preset(name: str, unique: int, workdir: Path) -> dict:
+def bench_preset(name: str, unique: int, workdir: Path, temporal: str = "auto", overrides: dict | None = None) -> dict:
     from core.engine import run_job
     from core.engine.params import JobParams
+    from core.engine.presets import preset
 
     frames, w, h = SIZES[name]
     clip = workdir / f"{name}-clip"
@@ -57,12 +62,13 @@ def bench_preset(name: str, unique: int, workdir: Path) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        result = run_job(clip, None, JobParams(preset=name), workdir / f"{name}-out")
+        config = preset(name).with_overrides(overrides) if overrides else None
+        result = run_job(clip, None, JobParams(preset=name, temporal=temporal), workdir / f"{name}-out", config=config)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     meta = result.artefact.meta
     tr = meta["training"]
     return {
-        "preset": name, "frames": frames, "width": w, "height": h, **info,
+        "preset": name, "frames": frames, "width": w, "height": h, **info, "temporal": temporal, "overrides": overrides or {},
         # cpu_s ~ wall time on an idle machine: distillation runs one intra-op thread
         "wall_s": round(wall, 2), "cpu_s": round(cpu, 2), "iterations": tr["iterations"],
         "ms_per_step": round(1000 * tr["stage_timings"]["optimisation"]["seconds"] / tr["iterations"]
@@ -77,15 +83,24 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--presets", default="draft,standard")
     p.add_argument("--unique-frames", type=int, default=5)
+    p.add_argument("--temporal", choices=("auto", "on", "off"), default="auto", help="the job's temporal parameter")
+    p.add_argument("--set", action="append", default=[], help="preset override key=value (JSON value)")
     p.add_argument("-o", "--output", default=None, help="also write the JSON here")
     args = p.parse_args(argv)
+    overrides = {}
+    for item in args.set:
+        key, value = item.split("=", 1)
+        try:
+            overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            overrides[key] = value
     results = []
     with tempfile.TemporaryDirectory(prefix="lf-bench-") as tmp:
         for name in [s.strip() for s in args.presets.split(",") if s.strip()]:
             if name not in SIZES:
                 print(f"error: no benchmark size for preset {name!r} (have {sorted(SIZES)})", file=sys.stderr)
                 return 2
-            results.append(bench_preset(name, args.unique_frames, Path(tmp)))
+            results.append(bench_preset(name, args.unique_frames, Path(tmp), args.temporal, overrides))
             print(json.dumps(results[-1]), file=sys.stderr)
     text = json.dumps({"presets": results}, indent=2)
     if args.output:
