@@ -190,12 +190,11 @@ class LightField(nn.Module):
                        for p in range(xn.shape[0])]) if xn.shape[0] else xn.new_empty(0, dirs.shape[0], 3)  # [P, N, 3]
         w = self.detail_weight(xn)
         if w is not None and bool((w > 0).any()):
-            parts = torch.cat([self.detail_parts(dirs[dl]) for dl in direction_blocks(dirs.shape[0], chunk_rows)])
-            if self.view_detail_time is None:
-                z = z + w[:, None, None] * parts[None, :, 0]
-            else:  # the maps are looked up once; each probe weighs them at its own time
-                for p in torch.nonzero(w > 0).reshape(-1).tolist():
-                    z[p] = z[p] + w[p] * self.combine_detail(parts, tn[p:p + 1])
+            near = torch.nonzero(w > 0).reshape(-1).tolist()
+            for dl in direction_blocks(dirs.shape[0], chunk_rows):  # a block at a time: a 2K map has 2 M directions
+                parts = self.detail_parts(dirs[dl])  # looked up once; each probe weighs them at its own time
+                for p in near:
+                    z[p, dl] = z[p, dl] + w[p] * self.combine_detail(parts, None if tn is None else tn[p:p + 1])
         return self.activate(z).reshape(xn.shape[0], height, equirect_width(height), 3)
 
     def probe_radiance(self, xs: torch.Tensor, ts, probe_index: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
