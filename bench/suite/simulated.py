@@ -153,10 +153,10 @@ EXTRA_PROBE_TRIES = 200  # draws per wanted probe before giving up (furniture re
 
 def with_extra_probes(suite: SuiteData, n: int, seed: int = 0) -> SuiteData:
     """The suite with `n` more held-out probes: positions uniform in the room's free space
-    (EXTRA_PROBE_MARGIN_M inside its bounding box; outside the room or in furniture redrawn), times uniform over the capture, drawn from
-    `seed` (not from the scene's probes, so nothing was chosen where the field does well);
-    ground truth rendered by the simulator at the suite's eval height. The time series are
-    unchanged. More probes shrink the run-to-run noise of per-suite mean ratios."""
+    (EXTRA_PROBE_MARGIN_M inside its bounding box; a draw outside the room or in furniture is
+    redrawn), times uniform over the capture, drawn from `seed` (not near the scene's probes or
+    anywhere the field does well); ground truth rendered by the simulator at the suite's eval
+    height. The time series are unchanged. More probes shrink the noise of per-suite ratios."""
     from core.sim.render import ProbeError, check_probe, render_envmap
     from core.sim.spec import ProbePoint
 
@@ -171,13 +171,13 @@ def with_extra_probes(suite: SuiteData, n: int, seed: int = 0) -> SuiteData:
     for _ in range(n * EXTRA_PROBE_TRIES):
         if len(probes) == n:
             break
-        x = lo + (hi - lo) * torch.rand(3, generator=gen, dtype=torch.float64)
-        t = float(torch.rand((), generator=gen, dtype=torch.float64)) * t_end
+        x = tuple(round(float(v), 3) for v in lo + (hi - lo) * torch.rand(3, generator=gen, dtype=torch.float64))
+        t = round(float(torch.rand((), generator=gen, dtype=torch.float64)) * t_end, 4)
         try:
-            check_probe(scene, x.tolist())
+            check_probe(scene, x)  # the rounded point is the one rendered
         except ProbeError:
             continue
-        p = ProbePoint(x=tuple(round(float(v), 3) for v in x), t=round(t, 4))
+        p = ProbePoint(x=x, t=t)
         probes.append(p)
         gts.append(render_envmap(scene, p.x, p.t, suite.eval_height).float())
     if len(probes) < n:

@@ -1,0 +1,51 @@
+"""bench/accuracy_probe.py's helpers: extra held-out probes, bootstrap intervals, the docs' table."""
+import pytest
+import torch
+
+from bench.accuracy_probe import markdown_table, ratio_interval
+from bench.suite.simulated import SuiteData, with_extra_probes
+from core.sim.render import check_probe
+from core.sim.suites import spatial, temporal
+
+
+def _suite(scene, height=4):
+    return SuiteData(name=scene.name, scene=scene, capture_dir=None, probes=list(scene.probes),
+                     gt=torch.ones(len(scene.probes), height, 2 * height, 3), global_point=(0.0, 0.0, 0.0), global_time=0.0)
+
+
+@pytest.mark.parametrize("make_scene", [spatial, temporal])
+def test_extra_probes_are_in_free_space_and_time_and_reproducible(make_scene):
+    scene = make_scene()
+    suite = _suite(scene)
+    more = with_extra_probes(suite, 5, seed=3)
+    extra = more.probes[len(scene.probes):]
+    assert len(extra) == 5 and more.gt.shape == (len(scene.probes) + 5, 4, 8, 3)
+    assert torch.equal(more.gt[: len(scene.probes)], suite.gt) and torch.isfinite(more.gt).all()
+    t_end = (scene.frames - 1) / scene.fps
+    for p in extra:
+        check_probe(scene, p.x)  # raises outside the room or inside furniture (an L-shaped room's gap too)
+        assert 0.0 <= p.t <= t_end
+    assert with_extra_probes(suite, 5, seed=3).probes == more.probes
+    assert with_extra_probes(suite, 5, seed=4).probes != more.probes
+    assert with_extra_probes(suite, 0).probes == suite.probes
+
+
+def test_ratio_interval_brackets_the_ratio_of_means():
+    den = [1.0, 2.0, 3.0, 4.0, 5.0]
+    assert ratio_interval([2 * v for v in den], den) == [2.0, 2.0]  # every resample gives 2
+    num = [1.5, 1.0, 4.0, 3.0, 6.5]
+    lo, hi = ratio_interval(num, den)
+    assert lo < sum(num) / sum(den) < hi
+    assert ratio_interval(num, den) == [lo, hi]  # seeded
+
+
+def test_markdown_table_names_the_worst_metric_with_its_interval():
+    ratios = {"field": {"vs_prior": {"diffuse.si_rmse": 1.01, "matte.si_rmse": 0.98, "mirror.si_rmse": 1.0, "matte.nrmse": 1.2},
+                        "vs_constant": {"diffuse.si_rmse": 0.7, "matte.si_rmse": 0.9}},
+              "prior": {"vs_constant": {"diffuse.si_rmse": 0.75, "matte.si_rmse": 0.88}}}
+    report = {"suites": {"temporal": {"probes": [{}] * 12, "ratios": ratios, "cpu_s": {"field": 30.0},
+                                      "interval_90": {"field": {"vs_prior": {"matte.nrmse": [1.05, 1.4]}}}}}}
+    lines = markdown_table(report).splitlines()
+    assert len(lines) == 4
+    assert "| temporal | radiance + view (draft) | 12 | 1.20 (matte.nrmse) [1.05, 1.40] | 1.01 | 0.98 | 1.00 | 0.70 | 0.90 | 30.0 |" == lines[2]
+    assert lines[3].startswith("| temporal | prior (shortcut) | 12 |")
