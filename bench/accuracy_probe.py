@@ -34,6 +34,8 @@ from pathlib import Path
 
 import torch
 
+from bench.overrides import parse_set
+
 METRICS = ("si_rmse", "angular_deg", "nrmse")
 MATERIALS = ("diffuse", "matte", "mirror")
 
@@ -147,13 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     from bench.suite.simulated import load_suite, with_extra_probes
     from core.engine.presets import preset
 
-    overrides = {}
-    for item in args.set:
-        key, value = item.split("=", 1)
-        try:
-            overrides[key] = json.loads(value)
-        except json.JSONDecodeError:
-            overrides[key] = value
+    overrides = parse_set(args.set)
     base = preset("draft").with_overrides(overrides) if overrides else preset("draft")
     cache = Path(args.cache_dir) if args.cache_dir else default_cache_dir()
     report: dict = {"overrides": overrides, "seed": args.seed, "extra_probes": args.extra_probes,

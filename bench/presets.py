@@ -24,6 +24,8 @@ import time
 import warnings
 from pathlib import Path
 
+from bench.overrides import parse_set
+
 SIZES = {"draft": (20, 192, 144), "standard": (100, 320, 240)}
 
 
@@ -87,13 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", action="append", default=[], help="preset override key=value (JSON value)")
     p.add_argument("-o", "--output", default=None, help="also write the JSON here")
     args = p.parse_args(argv)
-    overrides = {}
-    for item in args.set:
-        key, value = item.split("=", 1)
-        try:
-            overrides[key] = json.loads(value)
-        except json.JSONDecodeError:
-            overrides[key] = value
+    overrides = parse_set(args.set)
     results = []
     with tempfile.TemporaryDirectory(prefix="lf-bench-") as tmp:
         for name in [s.strip() for s in args.presets.split(",") if s.strip()]:
