@@ -7,7 +7,8 @@ the camera (128 rows) is read along the patch's pixel rays at frame 1 and frame 
 with the linearised frames (before the switch the prior's clip rule boosts the clipped patch,
 so the field is expected above the frame there).
 
-    python -m bench.in_view_switch   # prints the patch's mean radiance: field vs frame
+    python -m bench.in_view_switch [--set field.view_detail_time_rank=0 ...]
+    # prints field / frame over the patch's rays: the ratio of means and the median ray
 """
 from __future__ import annotations
 
@@ -17,7 +18,14 @@ import tempfile
 import torch
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    from bench.overrides import parse_set
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--set", action="append", default=[], help="draft preset override key=value (JSON value)")
+    overrides = parse_set(p.parse_args(argv).set)
     from core.capture.load import capture_from_arrays, load_capture
     from core.conventions import inverse_tonemap
     from core.engine.distill import distill
@@ -42,16 +50,18 @@ def main() -> int:
                               poses=base.poses[:1].expand(8, -1, -1), fps=2.0)
     prior = ReprojectionPrior(env_height=24)
     prior.bind(cap, lighting_changes=True)
-    field = distill(cap, prior, preset("draft").with_overrides({"distill": {"checkpoint_every": 1000}}),
+    field = distill(cap, prior, preset("draft").with_overrides({"distill.checkpoint_every": 1000, **overrides}),
                     uses_time=True, seed=0).field
     cam = cap.camera(0)
     rays = cam.pixel_rays()[1][patch]
     for i in (1, 6):
         with torch.no_grad():
             env = field.envmaps(cam.position[None].float(), torch.tensor([float(cap.times[i])]), 128)[0]
-        pred = float(sample_envmap(env, rays).mean())
-        frame = float(inverse_tonemap(cap.frames[i])[patch].mean())
-        print(f"frame {i} ({'before' if i < 4 else 'after'} the switch): field {pred:.3f}, frame {frame:.3f}, ratio {pred / frame:.2f}")
+        along, seen = sample_envmap(env, rays), inverse_tonemap(cap.frames[i])[patch]
+        pred, frame = float(along.mean()), float(seen.mean())
+        median = float((along.mean(-1) / seen.mean(-1).clamp_min(1e-12)).median())
+        print(f"frame {i} ({'before' if i < 4 else 'after'} the switch): field {pred:.3f}, frame {frame:.3f}, "
+              f"ratio {pred / frame:.2f}, median ray {median:.2f}")
     return 0
 
 

@@ -234,7 +234,6 @@ def test_view_detail_is_bound_to_the_cameras_and_to_the_frames(spatial_scene):
     assert no_time_part.view_detail_heights == () and no_time_part.view_anchors == ()
 
 
-
 def _patch_switching_off():
     """8 frames of a static camera: a 6x8-pixel patch clipped white in frames 0-3, dark after."""
     frames = torch.full((FRAMES, 36, 48, 3), 0.4)
