@@ -31,6 +31,7 @@ def test_the_field_json_keeps_one_key_per_kind():
     doc = FieldConfig(kind="grid").model_dump(mode="json")
     assert list(doc) == ["kind", "uses_time", "log_radiance_min", "log_radiance_max", "view_detail_heights",
                          "view_detail_radius", "view_anchors", "view_detail_time_rank", "view_detail_time_knots",
+                         "emitter_count", "emitter_knots", "emitter_gate_resolution", "emitter_sigma_floor",
                          *field_kinds()]
     assert field_kinds()[:3] == ("mlp", "grid", "trunk")
     assert FieldConfig.model_validate(doc) == FieldConfig(kind="grid")

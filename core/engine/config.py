@@ -61,6 +61,11 @@ class DistillConfig(BaseModel):
     envmap_view_directions: int = Field(0, ge=0, description=(
         "per frame and step: pixel rays of the frame fitted at the camera-centre probe to the prior's view radiance "
         "(the photo at its own resolution; priors with capabilities.view_radiance, needs envmap_camera_probe)"))
+    emitters: int = Field(0, ge=0, le=16, description=(
+        "small bright sources the radiance loop models as explicit spheres (core.engine.emitters; priors with "
+        "view_radiance); 0: none"))
+    emitter_contrast: float = Field(50.0, gt=1, description="an emitter's pixels are this many times the frame's median luminance")
+    emitter_max_radius: float = Field(0.3, gt=0, description="metres: brighter blobs wider than this are left to the network")
     log_floor_fraction: float = Field(1e-3, gt=0, description="log(L + floor), floor = this x the frame's mean radiance")
     linear_weight: float = Field(0.1, ge=0, description="weight of the relative linear (energy) term")
     chroma_weight: float = Field(0.0, ge=0, description="extra weight of the log error's colour part (radiance loss)")

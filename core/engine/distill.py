@@ -6,6 +6,7 @@ seed reproduces a run and a checkpoint (which stores the generator state) resume
 """
 from __future__ import annotations
 
+import math
 from contextlib import contextmanager
 from dataclasses import dataclass, field as dc_field
 from pathlib import Path
@@ -18,12 +19,14 @@ from core.conventions import inverse_tonemap
 from core.device import resolve_device
 from core.engine.checkpoints import fingerprint, load_checkpoint, save_checkpoint
 from core.engine.config import EngineConfig
+from core.engine.emitters import EmitterSources, find_emitters
 from core.engine.losses import PerceptualLoss, perceptual_description
 from core.engine.progress import Reporter, StageTimer
 from core.engine.scene import scene_bounds
 from core.engine.trainer import Trainer
 from core.engine.radiance import frame_floors
 from core.fields import FieldConfig, LightField, SceneBounds, build_field
+from core.fields.base import EMITTER_PIXEL_SIGMA
 from core.priors.base import Prior
 
 
@@ -66,8 +69,18 @@ def distill(
     torch.manual_seed(seed)  # field initialisation (on CPU, then moved)
     gen = torch.Generator().manual_seed(seed)
     field_cfg = with_view_detail(with_time_knots(config.field.with_time(uses_time), capture.num_frames), capture)
-    field = build_field(field_cfg, bounds or scene_bounds(capture, cfg.time_normalisation_frames)).to(device)
-    opt = torch.optim.Adam(field.parameters(), lr=cfg.lr, betas=cfg.adam_betas)
+    bounds = bounds or scene_bounds(capture, cfg.time_normalisation_frames)
+    use_envmaps = cfg.uses_envmaps(prior.capabilities.envmaps)
+    sources = emitter_sources(capture, prior, cfg, bounds, uses_time) if use_envmaps else None
+    if sources is not None:
+        field_cfg = field_cfg.model_copy(update={
+            "emitter_count": sources.count, "emitter_knots": sources.intensity.shape[1],
+            "emitter_sigma_floor": EMITTER_PIXEL_SIGMA * math.pi / cfg.envmap_height})
+    field = build_field(field_cfg, bounds)
+    if sources is not None:
+        field.emitters.set_sources(sources.centres, sources.radii, sources.intensity)
+    field = field.to(device)
+    opt = torch.optim.Adam(parameter_groups(field), lr=cfg.lr, betas=cfg.adam_betas)
     run_fingerprint = fingerprint(capture, cfg, field_cfg, seed, prior)
 
     start, losses = 0, []
@@ -76,7 +89,6 @@ def distill(
         if restored is not None:
             start, losses = restored
     frames_lin = inverse_tonemap(capture.frames)
-    use_envmaps = cfg.uses_envmaps(prior.capabilities.envmaps)
     trainer = Trainer(capture, frames_lin.to(device), capture.depth.to(device), prior, field, opt,
                       cfg, gen, PerceptualLoss(cfg.perceptual_net), timings, device,
                       use_envmaps=use_envmaps, floors=frame_floors(frames_lin, cfg.log_floor_fraction),
@@ -93,7 +105,32 @@ def distill(
     field.eval()
     return DistillResult(field.cpu(), losses, timings, cfg.iterations, resumed_from=start,
                          stats={"field_config": field_cfg.model_dump(), "perceptual": perceptual_description(cfg.perceptual_net),
-                                "device": str(device), "supervision": "envmaps" if use_envmaps else "balls"})
+                                "device": str(device), "supervision": "envmaps" if use_envmaps else "balls",
+                                "emitters": sources.describe() if sources is not None else []})
+
+
+def emitter_sources(capture: Capture, prior: Prior, cfg, bounds: SceneBounds, uses_time: bool) -> EmitterSources | None:
+    """The capture's small bright sources (core.engine.emitters) when the config asks for
+    emitters and the prior gives its linear view radiance (clip rule applied), else None; one
+    intensity knot per frame (MAX_TIME_KNOTS at most) for a field with a time input."""
+    if cfg.emitters == 0 or not prior.capabilities.view_radiance:
+        return None
+    knots = max(2, min(int(capture.num_frames), MAX_TIME_KNOTS)) if uses_time else 1
+    return find_emitters(capture, prior.view_radiance, count=cfg.emitters, contrast=cfg.emitter_contrast,
+                         max_radius=cfg.emitter_max_radius, bounds=bounds, knots=knots)
+
+
+# The emitters' few parameters (log intensities, visibility gates) are each fitted by a fraction
+# of the steps (one knot per frame): a larger step lets them move the decade or so the prior asks.
+EMITTER_LR_SCALE = 10.0
+
+
+def parameter_groups(field: LightField) -> list[dict]:
+    """Adam groups: the emitters' parameters at EMITTER_LR_SCALE x the rate, the rest at 1x
+    (`lr_scale`, applied by Trainer._optimise)."""
+    emitter = [p for n, p in field.named_parameters() if n.startswith("emitters.")]
+    rest = [p for n, p in field.named_parameters() if not n.startswith("emitters.")]
+    return [{"params": rest, "lr_scale": 1.0}] + ([{"params": emitter, "lr_scale": EMITTER_LR_SCALE}] if emitter else [])
 
 
 def view_rays(capture: Capture, cfg, prior: Prior) -> torch.Tensor | None:

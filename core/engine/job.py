@@ -144,6 +144,7 @@ def run_job(
             "threads": cfg.threads or torch.get_num_threads(),
             "perceptual": result.stats["perceptual"],
             "supervision": result.stats["supervision"],
+            "emitters": result.stats.get("emitters", []),
             "stage_timings": timings.as_dict(),
         },
         "simulated": {

@@ -15,8 +15,9 @@ per step, each with 2 probes in front of the depth, 1 along a camera ray and the
 centre, 256 directions per probe, log-radiance loss, 600 steps; the camera centre is also
 fitted along 256 of the frame's pixel rays to the prior's view radiance, through the field's
 view detail (32- and 128-row residual maps anchored at the camera centres, with a rank-4
-time part when the lighting changes); and its fields
-encode time with learned per-frame codes. Why and the measurements: docs/engine.md, "Radiance supervision"
+time part when the lighting changes); small bright sources in view (up to 4 lamps) are explicit
+spheres with per-frame intensities (core.engine.emitters); and its fields encode time with
+learned per-frame codes. Why and the measurements: docs/engine.md, "Radiance supervision"
 (`python -m bench.accuracy_probe`).
 
 `seed` is the loop of the authors' released code (ORionTMT/Sig25_4DLighting run_video_demo.py
@@ -47,7 +48,7 @@ PRESETS: dict[str, EngineConfig] = {
         name="draft",
         distill=DistillConfig(iterations=600, n_probes=9, work_height=72, lr=5e-3, warmup_steps=15, checkpoint_every=50,
                               supervision="auto", envmap_frames_per_step=3, envmap_surface_probes=2, envmap_room_probes=1,
-                              envmap_directions=256, envmap_view_directions=256),
+                              envmap_directions=256, envmap_view_directions=256, emitters=4),
         field=_narrow(96, 4, view_detail_heights=(32, 128), time_encoding="codes"),
         priors={"reprojection": {"env_height": 24}},
     ),

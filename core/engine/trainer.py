@@ -150,7 +150,7 @@ class Trainer:
         if tv is not None and cfg.time_tv_weight > 0:
             loss = loss + cfg.time_tv_weight * tv
         for g in self.opt.param_groups:
-            g["lr"] = cfg.lr_at(step)
+            g["lr"] = cfg.lr_at(step) * g.get("lr_scale", 1.0)
         self.opt.zero_grad(set_to_none=True)
         if torch.isfinite(loss):
             loss.backward()

@@ -25,6 +25,7 @@ from torch import nn
 
 from core.conventions import equirect_directions, equirect_width
 from core.fields.config import FieldConfig
+from core.fields.emitters import Emitters
 from core.fields.encodings import EquirectGridEncoding, TimeCodes
 from core.fields.normalization import SceneBounds
 
@@ -40,6 +41,10 @@ OUTPUT_WEIGHT_SCALE = 0.1
 # View-detail weights below this are 0 (beyond ~4.3 radii of every anchor), so probes away from
 # the cameras skip the detail lookups, and every evaluation path agrees on which rows have it.
 DETAIL_CUTOFF = 1e-4
+
+# Emitter lobes in `envmaps` are at least this many pixels wide (sigma), so a lamp narrower than
+# a pixel is area-averaged into the map rather than hit or missed by the pixel centres.
+EMITTER_PIXEL_SIGMA = 0.6
 
 
 class LightField(nn.Module):
@@ -67,6 +72,8 @@ class LightField(nn.Module):
                 self.view_detail_time = TimeCodes(config.view_detail_time_knots, self.detail_time_rank)
             anchors = torch.tensor(config.view_anchors, dtype=torch.float32).reshape(-1, 3)
             self.register_buffer("view_anchors", anchors, persistent=False)  # in the config, not the weights
+        self.emitters = (Emitters(config.emitter_count, config.emitter_knots, config.emitter_gate_resolution)
+                         if config.emitter_count else None)
 
     @property
     def uses_time(self) -> bool:
@@ -120,7 +127,7 @@ class LightField(nn.Module):
         """The L1 total variation of the field's learned time codes and of its view detail's
         time coefficients (None when it has neither): the distillation penalises it so lighting
         changes only where the frames say so."""
-        terms = [m.total_variation() for m in (getattr(self, "pe_t", None), self.view_detail_time)
+        terms = [m.total_variation() for m in (getattr(self, "pe_t", None), self.view_detail_time, self.emitters)
                  if hasattr(m, "total_variation")]
         return sum(terms) if terms else None
 
@@ -165,10 +172,22 @@ class LightField(nn.Module):
             return z
         return z.index_add(0, rows, w[rows, None] * self.detail_logits(d[rows], None if tn is None else tn[rows]))
 
+    # ------------------------------------------------------------------ emitters
+    def _with_emitters(self, radiance: torch.Tensor, xn: torch.Tensor, tn: torch.Tensor | None, d: torch.Tensor,
+                       sigma_floor: float) -> torch.Tensor:
+        """radiance [B, 3] + the emitters' lobes at normalised xn [B, 3], tn [B, 1], unit d [B, 3],
+        capped at the field's largest radiance (so the output stays finite)."""
+        if self.emitters is None:
+            return radiance
+        x = self.bounds_lo + 0.5 * (xn + 1.0) * (self.bounds_hi - self.bounds_lo)
+        added = self.emitters.radiance(x, xn, tn, d, sigma_floor)
+        return (radiance + added).clamp(max=math.exp(self.config.log_radiance_max))
+
     def forward(self, x: torch.Tensor, t: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
         """x [B,3] world metres, t [B] seconds (ignored when uses_time=False), d [B,3] -> [B,3] > 0."""
         xn, tn, d = self.normalize_inputs(x, t, d)
-        return self.activate(self._with_detail(self.logits(xn, tn, d), self.detail_weight(xn), d, tn))
+        out = self.activate(self._with_detail(self.logits(xn, tn, d), self.detail_weight(xn), d, tn))
+        return self._with_emitters(out, xn, tn, d, self.config.emitter_sigma_floor)
 
     def envmaps(
         self, xs: torch.Tensor, ts: torch.Tensor | None, height: int, chunk_rows: int = DEFAULT_CHUNK_ROWS
@@ -195,7 +214,15 @@ class LightField(nn.Module):
                 parts = self.detail_parts(dirs[dl])  # looked up once; each probe weighs them at its own time
                 for p in near:
                     z[p, dl] = z[p, dl] + w[p] * self.combine_detail(parts, None if tn is None else tn[p:p + 1])
-        return self.activate(z).reshape(xn.shape[0], height, equirect_width(height), 3)
+        out = self.activate(z)
+        if self.emitters is not None:
+            floor = EMITTER_PIXEL_SIGMA * math.pi / height
+            for p in range(xn.shape[0]):
+                for dl in direction_blocks(dirs.shape[0], chunk_rows):
+                    n = dl.stop - dl.start
+                    out[p, dl] = self._with_emitters(out[p, dl], xn[p:p + 1].expand(n, 3),
+                                                     None if tn is None else tn[p:p + 1].expand(n, 1), dirs[dl], floor)
+        return out.reshape(xn.shape[0], height, equirect_width(height), 3)
 
     def probe_radiance(self, xs: torch.Tensor, ts, probe_index: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         """Radiance [B,3] of rows that share a few probe positions (differentiable).
@@ -210,8 +237,9 @@ class LightField(nn.Module):
         index = torch.as_tensor(probe_index, dtype=torch.long, device=xn.device).reshape(-1)
         d = unit_directions(d.to(xn.dtype))
         w = self.detail_weight(xn)
-        return self.activate(self._with_detail(self._probe_logits(xn, tn, index, d), None if w is None else w[index], d,
-                                               None if tn is None else tn[index]))
+        tn_rows = None if tn is None else tn[index]
+        out = self.activate(self._with_detail(self._probe_logits(xn, tn, index, d), None if w is None else w[index], d, tn_rows))
+        return self._with_emitters(out, xn[index], tn_rows, d, self.config.emitter_sigma_floor)
 
     def _probe_logits(self, xn, tn, index, d) -> torch.Tensor:
         return self.logits(xn[index], None if tn is None else tn[index], d)

@@ -6,7 +6,8 @@ Keeping every section (with defaults) makes configs trivially editable (`with_ki
 lets a preset carry settings for every kind a job may pick, and keeps the artefact JSON
 self-describing. JSON layout: {"kind", "uses_time", "log_radiance_min", "log_radiance_max",
 "view_detail_heights", "view_detail_radius", "view_anchors", "view_detail_time_rank",
-"view_detail_time_knots", "<kind>": {section}, ...}.
+"view_detail_time_knots", "emitter_count", "emitter_knots", "emitter_gate_resolution",
+"emitter_sigma_floor", "<kind>": {section}, ...}.
 """
 from __future__ import annotations
 
@@ -48,6 +49,15 @@ class FieldConfig(FieldSettings):
     # for a field with a time input.
     view_detail_time_rank: int = Field(4, ge=0, le=16)
     view_detail_time_knots: int = Field(2, ge=2, le=4096)
+    # Emitters (core.fields.emitters, docs/engine.md): small bright sources as explicit spheres
+    # whose positions and per-knot intensities the engine measures in the frames (buffers of the
+    # saved weights). 0: none, the field as before.
+    emitter_count: int = Field(0, ge=0, le=16)
+    emitter_knots: int = Field(1, ge=1, le=4096)
+    emitter_gate_resolution: int = Field(8, ge=1, le=32, description="cells per side of each emitter's visibility grid")
+    emitter_sigma_floor: float = Field(0.05, gt=0, le=1.0, description=(
+        "radians: narrowest lobe of `forward` / `probe_radiance` (the engine sets half a pixel of the prior's maps); "
+        "`envmaps` uses half a pixel of the map asked for"))
     # kind -> its settings; given (and serialised) as one top-level key per kind
     sections: Mapping[str, SerializeAsAny[BaseModel]] = Field(default_factory=dict, repr=False)
 
