@@ -108,3 +108,20 @@ def test_no_bright_blob_no_emitters():
     bounds = SceneBounds((-3.0, -3.0, -3.0), (3.0, 3.0, 3.0), 0.0, 1.0)
     assert find_emitters(cap, lambda i: torch.full((24, 32, 3), 0.3), count=4, contrast=50.0, max_radius=0.3,
                          bounds=bounds, knots=2) is None
+
+
+def test_one_lamp_split_into_two_sources_by_depth_noise_does_not_count_twice():
+    """The same 3x3 blob at 2.0 m in frame 0 and 2.6 m in frame 1 (noisy depth): two sources,
+    but each frame's light is taken once."""
+    T, H, W = 2, 48, 64
+    linear = torch.full((T, H, W, 3), 0.05)
+    linear[:, 10:13, 40:43] = 100.0
+    depth = torch.full((T, H, W), 2.0)
+    depth[1, 10:13, 40:43] = 2.6
+    cap = capture_from_arrays(torch.full((T, H, W, 3), 0.2), depth, fps=2.0)
+    bounds = SceneBounds((-3.0, -3.0, -3.0), (3.0, 3.0, 3.0), float(cap.times[0]), float(cap.times[-1]))
+    found = find_emitters(cap, lambda i: linear[i], count=4, contrast=50.0, max_radius=0.3, bounds=bounds, knots=T)
+    assert found is not None and found.count == 2
+    for frame in range(T):
+        shares = sorted(float(found.intensity[k, frame, 0]) for k in range(2))
+        assert shares[0] < 0.05 * shares[1], (frame, shares)

@@ -9,8 +9,9 @@ lamp smaller than a pixel still has the right energy. Blobs wider than `emitter_
 all frames within MERGE_DISTANCE of each other are one source; the `emitters` brightest are kept.
 
 Intensity over time, per frame: the blob's where the frame has one; else, where the source is in
-view and not occluded, what the frame's pixels show in its footprint (a lamp switched off in
-view becomes dark); else (out of view) the nearest frame in time that has a value. A field
+view and not occluded, what the frame's pixels show in its footprint outside pixels another
+source took (a lamp switched off in view becomes dark; a lamp split in two by depth noise is
+counted once); else (out of view) the nearest frame in time that has a value. A field
 without a time input gets the median over the frames.
 """
 from __future__ import annotations
@@ -59,7 +60,7 @@ def _frame_geometry(capture: Capture, i: int):
 
 
 def _blobs(capture: Capture, i: int, linear: torch.Tensor, contrast: float, max_radius: float) -> list[tuple]:
-    """(centre [3], radius, intensity [3]) of the bright blobs of frame i."""
+    """(centre [3], radius, intensity [3], pixels [H, W] bool) of the bright blobs of frame i."""
     lum = luminance(linear.double())
     ok = torch.isfinite(lum) & torch.isfinite(capture.depth[i]) & (capture.depth[i] > 0)
     if not bool(ok.any()):
@@ -83,19 +84,23 @@ def _blobs(capture: Capture, i: int, linear: torch.Tensor, contrast: float, max_
         col = linear.double()[sel]
         w = luminance(col) * a
         centre = (pts[sel] * w[:, None]).sum(0) / w.sum().clamp_min(1e-30)
-        out.append((centre, radius, (col * a[:, None]).sum(0)))
+        out.append((centre, radius, (col * a[:, None]).sum(0), sel))
     return out
 
 
-def _footprint_intensity(capture: Capture, i: int, linear: torch.Tensor, centre: torch.Tensor, radius: float):
-    """Intensity [3] the frame shows within the source's projected disk (+ 1 pixel), or None when
-    the source is out of view or occluded in frame i."""
+def _footprint_intensity(capture: Capture, i: int, linear: torch.Tensor, centre: torch.Tensor, radius: float,
+                         claimed: torch.Tensor):
+    """Intensity [3] the frame shows within the source's projected disk (+ 1 pixel) outside the
+    pixels another source `claimed` (then claimed too; 0 when its centre's pixel is claimed), or
+    None when the source is out of view or occluded in frame i."""
     cam = capture.camera(i)
     k = cam.intrinsics
     u, v, z = cam.project(centre[None].double())
     u, v, z = float(u[0]), float(v[0]), float(z[0])
     if not (z > 0 and 0 <= u < k.width and 0 <= v < k.height):
         return None
+    if bool(claimed[int(v), int(u)]):  # another source has these pixels: the same lamp, placed apart by depth noise
+        return torch.zeros(3, dtype=torch.float64)
     pts, dist, area = _frame_geometry(capture, i)
     seen = float(capture.depth[i][int(v), int(u)])
     if not math.isfinite(seen) or seen < z - max(OCCLUSION_MARGIN, 3 * radius):
@@ -103,9 +108,10 @@ def _footprint_intensity(capture: Capture, i: int, linear: torch.Tensor, centre:
     r_px = radius * k.fx / z + 1.0
     vv, uu = torch.meshgrid(torch.arange(k.height, dtype=torch.float64) + 0.5, torch.arange(k.width, dtype=torch.float64) + 0.5,
                             indexing="ij")
-    sel = ((uu - u).pow(2) + (vv - v).pow(2) <= r_px ** 2) & torch.isfinite(area)
+    sel = ((uu - u).pow(2) + (vv - v).pow(2) <= r_px ** 2) & torch.isfinite(area) & ~claimed
     if not bool(sel.any()):
         return None
+    claimed |= sel
     return (linear.double()[sel] * area[sel][:, None]).sum(0)
 
 
@@ -133,6 +139,12 @@ def find_emitters(capture: Capture, linear_frame, *, count: int, contrast: float
     clusters.sort(key=lambda cl: -max(float(luminance(d[3])) for d in cl))
     clusters = clusters[:count]
     T = capture.num_frames
+    # a frame's pixels count for one source only: its blobs first, then footprints in turn (two
+    # clusters of one lamp, split by pose noise, must not both take its light)
+    claimed = [torch.zeros(capture.height, capture.width, dtype=torch.bool) for _ in range(T)]
+    for cl in clusters:
+        for d in cl:
+            claimed[d[0]] |= d[4]
     centres, radii, intensity = [], [], []
     for cl in clusters:
         w = torch.tensor([float(luminance(d[3])) for d in cl], dtype=torch.float64)
@@ -143,7 +155,7 @@ def find_emitters(capture: Capture, linear_frame, *, count: int, contrast: float
             per_frame[d[0]] = d[3] if per_frame[d[0]] is None else per_frame[d[0]] + d[3]
         for i in range(T):
             if per_frame[i] is None:
-                per_frame[i] = _footprint_intensity(capture, i, frames[i], centre, radius)
+                per_frame[i] = _footprint_intensity(capture, i, frames[i], centre, radius, claimed[i])
         have = [i for i in range(T) if per_frame[i] is not None]
         for i in range(T):  # out of view: the nearest frame in time that has a value
             if per_frame[i] is None:
