@@ -1,8 +1,9 @@
 """Find the small bright sources of a capture: the field's emitters (core.fields.emitters).
 
 Per frame, pixels brighter than `emitter_contrast` x the frame's median luminance (the prior's
-linear radiance, clip rule applied) with valid depth form connected blobs; each blob gives a
-3D centre (luminance-weighted mean of its points), a radius (of the disk of its projected
+linear radiance, clip rule applied) with valid depth form connected blobs, each cut to its core
+(pixels at least CORE_FRACTION of its peak: not the wall a lamp lights); each core gives a
+3D centre (along its luminance-weighted ray, at its nearest point), a radius (of the disk of its projected
 area) and an intensity sum(L_p x area_p), area_p the pixel's footprint at its distance, so a
 lamp smaller than a pixel still has the right energy. Blobs wider than `emitter_max_radius`
 (windows, ceiling panels) are left to the network, which holds broad sources well. Blobs of
@@ -29,6 +30,7 @@ from core.fields import SceneBounds
 
 MERGE_DISTANCE = 0.25  # metres: blobs of different frames closer than this are one source
 MIN_PIXELS = 1
+CORE_FRACTION = 0.5  # a blob's pixels at least this fraction of its peak luminance make the source
 OCCLUSION_MARGIN = 0.1  # metres: the depth in front of a source that still counts as the source
 
 
@@ -66,11 +68,17 @@ def _blobs(capture: Capture, i: int, linear: torch.Tensor, contrast: float, max_
     if not bool(ok.any()):
         return []
     threshold = contrast * float(lum[ok].median().clamp_min(1e-12))
-    mask = (ok & (lum > threshold)).numpy().astype(np.uint8)
-    n, labels = cv2.connectedComponents(mask, connectivity=8)
+    n, labels = cv2.connectedComponents((ok & (lum > threshold)).numpy().astype(np.uint8), connectivity=8)
     if n <= 1:
         return []
-    pts, _, area = _frame_geometry(capture, i)
+    # each blob's core: its pixels within CORE_FRACTION of its peak, so the light a lamp throws on
+    # the wall behind it (bright, but dimmer than the lamp) is not averaged into its position
+    labels_t = torch.from_numpy(labels.astype(np.int64))
+    peak = torch.zeros(n, dtype=lum.dtype).scatter_reduce(0, labels_t.reshape(-1), lum.reshape(-1), reduce="amax")
+    core = (labels_t > 0) & (lum >= CORE_FRACTION * peak[labels_t])
+    n, labels = cv2.connectedComponents(core.numpy().astype(np.uint8), connectivity=8)
+    pts, dist, area = _frame_geometry(capture, i)
+    origin = capture.camera(i).position.to(pts.dtype)
     labels_t = torch.from_numpy(labels.astype(np.int64))
     out = []
     for lab in range(1, n):
@@ -83,7 +91,11 @@ def _blobs(capture: Capture, i: int, linear: torch.Tensor, contrast: float, max_
             continue
         col = linear.double()[sel]
         w = luminance(col) * a
-        centre = (pts[sel] * w[:, None]).sum(0) / w.sum().clamp_min(1e-30)
+        # along the blob's luminance-weighted ray, at its nearest point: a downsampled depth map
+        # blends a small lamp's depth with the wall behind it, and the lamp is the near surface
+        rays = (pts[sel] - origin) / dist[sel][:, None].clamp_min(1e-9)
+        ray = (rays * w[:, None]).sum(0)
+        centre = origin + ray / ray.norm().clamp_min(1e-12) * float(dist[sel].min())
         out.append((centre, radius, (col * a[:, None]).sum(0), sel))
     return out
 

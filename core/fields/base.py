@@ -124,9 +124,9 @@ class LightField(nn.Module):
             output.bias.fill_(self.logit_for_radiance(INITIAL_RADIANCE))
 
     def time_variation(self) -> torch.Tensor | None:
-        """The L1 total variation of the field's learned time codes and of its view detail's
-        time coefficients (None when it has neither): the distillation penalises it so lighting
-        changes only where the frames say so."""
+        """The L1 total variation of the field's learned time codes, of its view detail's time
+        coefficients and of its emitters' log intensities (None when it has none of them): the
+        distillation penalises it so lighting changes only where the frames say so."""
         terms = [m.total_variation() for m in (getattr(self, "pe_t", None), self.view_detail_time, self.emitters)
                  if hasattr(m, "total_variation")]
         return sum(terms) if terms else None
