@@ -83,11 +83,13 @@ def test_a_saved_field_with_emitters_loads_with_the_same_answer(tmp_path):
 
 def test_a_small_lamp_is_found_placed_and_measured_and_a_window_is_left_to_the_network():
     """Linear frames (static camera, depth 2 m): a 3x3-pixel lamp of radiance 100 on in frames
-    0-1 and off in 2-3, and a 20x20-pixel bright window (too wide for an emitter)."""
+    0-1 and off in 2-3, and a 20x20-pixel bright window (too wide for an emitter) with a brighter
+    spot (not cut out of it as a lamp)."""
     T, H, W = 4, 48, 64
     linear = torch.full((T, H, W, 3), 0.05)
     linear[:2, 10:13, 40:43] = 100.0
     linear[:, 25:45, 5:25] = 50.0
+    linear[:, 30:32, 10:12] = 120.0  # a brighter spot in the window is not a lamp either
     cap = capture_from_arrays(torch.full((T, H, W, 3), 0.2), torch.full((T, H, W), 2.0), fps=2.0)
     bounds = SceneBounds((-3.0, -3.0, -3.0), (3.0, 3.0, 3.0), float(cap.times[0]), float(cap.times[-1]))
     found = find_emitters(cap, lambda i: linear[i], count=4, contrast=50.0, max_radius=0.3, bounds=bounds, knots=T)

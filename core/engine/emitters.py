@@ -71,13 +71,16 @@ def _blobs(capture: Capture, i: int, linear: torch.Tensor, contrast: float, max_
     n, labels = cv2.connectedComponents((ok & (lum > threshold)).numpy().astype(np.uint8), connectivity=8)
     if n <= 1:
         return []
-    # each blob's core: its pixels within CORE_FRACTION of its peak, so the light a lamp throws on
-    # the wall behind it (bright, but dimmer than the lamp) is not averaged into its position
-    labels_t = torch.from_numpy(labels.astype(np.int64))
-    peak = torch.zeros(n, dtype=lum.dtype).scatter_reduce(0, labels_t.reshape(-1), lum.reshape(-1), reduce="amax")
-    core = (labels_t > 0) & (lum >= CORE_FRACTION * peak[labels_t])
-    n, labels = cv2.connectedComponents(core.numpy().astype(np.uint8), connectivity=8)
     pts, dist, area = _frame_geometry(capture, i)
+    # a blob wider than max_radius is a broad source (window, panel): left to the network whole,
+    # not cut into cores. The others are cut to their core: pixels within CORE_FRACTION of the
+    # blob's peak, so the wall a lamp lights (bright, but dimmer than the lamp) is not averaged in
+    labels_t = torch.from_numpy(labels.astype(np.int64)).reshape(-1)
+    blob_area = torch.zeros(n, dtype=area.dtype).index_add(0, labels_t, torch.nan_to_num(area, nan=0.0).reshape(-1))
+    peak = torch.zeros(n, dtype=lum.dtype).scatter_reduce(0, labels_t, lum.reshape(-1), reduce="amax")
+    small = torch.sqrt(blob_area / math.pi) <= max_radius
+    core = ((labels_t > 0) & small[labels_t] & (lum.reshape(-1) >= CORE_FRACTION * peak[labels_t])).reshape(lum.shape)
+    n, labels = cv2.connectedComponents(core.numpy().astype(np.uint8), connectivity=8)
     origin = capture.camera(i).position.to(pts.dtype)
     labels_t = torch.from_numpy(labels.astype(np.int64))
     out = []
