@@ -30,13 +30,17 @@ def small(supervision="envmaps", iterations=300, work_height=48, **distill_overr
     return preset("draft").with_overrides({"distill": d})
 
 
+def simulated_scene(spec, resolution, tmp_dir):
+    """(spec at `resolution`, its capture written to tmp_dir and loaded)."""
+    spec = spec.model_copy(update={"resolution": resolution})
+    write_capture(spec, tmp_dir, envmap_height=16, video=False)
+    return spec, load_capture(tmp_dir)
+
+
 @pytest.fixture(scope="module")
 def spatial_scene(tmp_path_factory):
     """The simulator's `spatial` suite (two near lamps, shadows) as a 64x48 photo with depth."""
-    spec = spatial().model_copy(update={"resolution": (64, 48)})
-    out = tmp_path_factory.mktemp("spatial")
-    write_capture(spec, out, envmap_height=16, video=False)
-    return spec, load_capture(out)
+    return simulated_scene(spatial(), (64, 48), tmp_path_factory.mktemp("spatial"))
 
 
 def _bound_prior(capture):
@@ -284,10 +288,7 @@ def temporal_scene(tmp_path_factory):
     """The simulator's `temporal` suite (a lamp in view dims; the ceiling panel switches off) at 128x96."""
     from core.sim.suites import temporal
 
-    spec = temporal().model_copy(update={"resolution": (128, 96)})
-    out = tmp_path_factory.mktemp("temporal")
-    write_capture(spec, out, envmap_height=16, video=False)
-    return spec, load_capture(out)
+    return simulated_scene(temporal(), (128, 96), tmp_path_factory.mktemp("temporal"))
 
 
 def test_a_lamp_in_view_stays_a_lamp_at_held_out_probes(temporal_scene):
