@@ -145,3 +145,21 @@ def test_a_lamp_whose_depth_blends_with_the_wall_behind_is_placed_at_its_near_su
     assert found is not None and found.count == 1
     distance = float((found.centres[0].double() - cap.camera(0).position).norm())
     assert distance == pytest.approx(1.5, abs=0.05)
+
+
+def test_a_sparkly_frame_keeps_its_brightest_lamps():
+    """40 one-pixel sparkles of rising radiance (a bounded number of blobs is looked at per
+    frame): the 4 sources kept are the 4 brightest."""
+    H, W = 48, 64
+    linear = torch.full((H, W, 3), 0.05)
+    spots = [(4 + 5 * (k // 10), 4 + 6 * (k % 10)) for k in range(40)]
+    for k, (r, c) in enumerate(spots):
+        linear[r, c] = 10.0 * 1.3 ** k  # far apart in energy, whatever each pixel's footprint
+    cap = capture_from_arrays(torch.full((1, H, W, 3), 0.2), torch.full((1, H, W), 2.0))
+    bounds = SceneBounds((-3.0, -3.0, -3.0), (3.0, 3.0, 3.0), 0.0, 0.0)
+    found = find_emitters(cap, lambda i: linear, count=4, contrast=50.0, max_radius=0.3, bounds=bounds, knots=1)
+    assert found is not None and found.count == 4
+    points = cap.camera(0).unproject(torch.full((H, W), 2.0, dtype=torch.float64))
+    expected = torch.stack([points[r, c] for r, c in spots[-4:]])
+    for centre in found.centres.double():
+        assert float((expected - centre).norm(dim=-1).min()) < 0.05

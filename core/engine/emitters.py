@@ -7,7 +7,7 @@ linear radiance, clip rule applied) with valid depth form connected blobs, each 
 area) and an intensity sum(L_p x area_p), area_p the pixel's footprint at its distance, so a
 lamp smaller than a pixel still has the right energy. Blobs wider than `emitter_max_radius`
 (windows, ceiling panels) are left to the network, which holds broad sources well. Blobs of
-all frames within MERGE_DISTANCE of each other are one source; the `emitters` brightest are kept.
+different frames within MERGE_DISTANCE of each other are one source; the `emitters` brightest are kept.
 
 Intensity over time, per frame: the blob's where the frame has one; else, where the source is in
 view and not occluded, what the frame's pixels show in its footprint outside pixels another
@@ -30,6 +30,7 @@ from core.fields import SceneBounds
 
 MERGE_DISTANCE = 0.25  # metres: blobs of different frames closer than this are one source
 MIN_PIXELS = 1
+MAX_BLOBS_PER_FRAME = 16  # the brightest blobs of a frame (bounds the work on a noisy or sparkly frame)
 CORE_FRACTION = 0.5  # a blob's pixels at least this fraction of its peak luminance make the source
 OCCLUSION_MARGIN = 0.1  # metres: the depth in front of a source that still counts as the source
 
@@ -62,7 +63,7 @@ def _frame_geometry(capture: Capture, i: int):
 
 
 def _blobs(capture: Capture, i: int, linear: torch.Tensor, contrast: float, max_radius: float) -> list[tuple]:
-    """(centre [3], radius, intensity [3], pixels [H, W] bool) of the bright blobs of frame i."""
+    """(centre [3], radius, intensity [3], flat pixel indices) of the brightest bright blobs of frame i."""
     lum = luminance(linear.double())
     ok = torch.isfinite(lum) & torch.isfinite(capture.depth[i]) & (capture.depth[i] > 0)
     if not bool(ok.any()):
@@ -81,10 +82,13 @@ def _blobs(capture: Capture, i: int, linear: torch.Tensor, contrast: float, max_
     small = torch.sqrt(blob_area / math.pi) <= max_radius
     core = ((labels_t > 0) & small[labels_t] & (lum.reshape(-1) >= CORE_FRACTION * peak[labels_t])).reshape(lum.shape)
     n, labels = cv2.connectedComponents(core.numpy().astype(np.uint8), connectivity=8)
+    labels_t = torch.from_numpy(labels.astype(np.int64)).reshape(-1)
+    core_peak = torch.zeros(n, dtype=lum.dtype).scatter_reduce(0, labels_t, lum.reshape(-1), reduce="amax")
+    brightest = [int(k) for k in torch.argsort(core_peak[1:], descending=True)[:MAX_BLOBS_PER_FRAME] + 1]
     origin = capture.camera(i).position.to(pts.dtype)
-    labels_t = torch.from_numpy(labels.astype(np.int64))
+    labels_t = labels_t.reshape(lum.shape)
     out = []
-    for lab in range(1, n):
+    for lab in brightest:
         sel = labels_t == lab
         if int(sel.sum()) < MIN_PIXELS:
             continue
@@ -99,7 +103,7 @@ def _blobs(capture: Capture, i: int, linear: torch.Tensor, contrast: float, max_
         rays = (pts[sel] - origin) / dist[sel][:, None].clamp_min(1e-9)
         ray = (rays * w[:, None]).sum(0)
         centre = origin + ray / ray.norm().clamp_min(1e-12) * float(dist[sel].min())
-        out.append((centre, radius, (col * a[:, None]).sum(0), sel))
+        out.append((centre, radius, (col * a[:, None]).sum(0), torch.nonzero(sel.reshape(-1)).reshape(-1)))
     return out
 
 
@@ -134,19 +138,20 @@ def find_emitters(capture: Capture, linear_frame, *, count: int, contrast: float
                   bounds: SceneBounds, knots: int) -> EmitterSources | None:
     """Up to `count` sources (None when there are none). `linear_frame(i)` -> [H, W, 3] linear
     radiance of frame i; `knots` evenly spaced over the bounds' time range (1: static)."""
-    detections = []  # (frame, centre, radius, intensity)
-    frames = [torch.nan_to_num(linear_frame(i).detach().cpu().double(), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
-              for i in range(capture.num_frames)]
-    for i, lin in enumerate(frames):
-        detections += [(i, *b) for b in _blobs(capture, i, lin, contrast, max_radius)]
+    def frame(i: int) -> torch.Tensor:  # on demand: a long clip's frames are not copied at once
+        return torch.nan_to_num(linear_frame(i).detach().cpu().float(), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+
+    detections = []  # (frame, centre, radius, intensity, flat pixel indices)
+    for i in range(capture.num_frames):
+        detections += [(i, *b) for b in _blobs(capture, i, frame(i), contrast, max_radius)]
     if not detections:
         return None
-    # greedy clustering, brightest first
+    # greedy clustering, brightest first; two blobs of one frame are two sources however close
     detections.sort(key=lambda d: -float(luminance(d[3])))
     clusters: list[list] = []
     for det in detections:
         for cl in clusters:
-            if float((cl[0][1] - det[1]).norm()) < max(MERGE_DISTANCE, 2 * (cl[0][2] + det[2])):
+            if all(d[0] != det[0] for d in cl) and float((cl[0][1] - det[1]).norm()) < max(MERGE_DISTANCE, 2 * (cl[0][2] + det[2])):
                 cl.append(det)
                 break
         else:
@@ -159,7 +164,7 @@ def find_emitters(capture: Capture, linear_frame, *, count: int, contrast: float
     claimed = [torch.zeros(capture.height, capture.width, dtype=torch.bool) for _ in range(T)]
     for cl in clusters:
         for d in cl:
-            claimed[d[0]] |= d[4]
+            claimed[d[0]].view(-1)[d[4]] = True
     centres, radii, intensity = [], [], []
     for cl in clusters:
         w = torch.tensor([float(luminance(d[3])) for d in cl], dtype=torch.float64)
@@ -170,7 +175,7 @@ def find_emitters(capture: Capture, linear_frame, *, count: int, contrast: float
             per_frame[d[0]] = d[3] if per_frame[d[0]] is None else per_frame[d[0]] + d[3]
         for i in range(T):
             if per_frame[i] is None:
-                per_frame[i] = _footprint_intensity(capture, i, frames[i], centre, radius, claimed[i])
+                per_frame[i] = _footprint_intensity(capture, i, frame(i), centre, radius, claimed[i])
         have = [i for i in range(T) if per_frame[i] is not None]
         for i in range(T):  # out of view: the nearest frame in time that has a value
             if per_frame[i] is None:
