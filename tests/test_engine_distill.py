@@ -299,3 +299,27 @@ def test_cuda_without_cuda_is_a_clear_error(monkeypatch, tmp_path):
         run_job(tmp_path / "missing.png", None, JobParams(), tmp_path / "art", config=tiny(iterations=2, device="cuda"))
     with pytest.raises(ValueError, match="device"):  # malformed values are refused by the schema too
         tiny(device="gpu")
+
+
+def test_run_job_records_a_lamp_in_the_photo_as_an_emitter(tmp_path):
+    """A dim photo with a small clipped spot: the job finds one emitter, records it in the
+    artefact's metadata, and the saved field's map at the camera is brightest towards it."""
+    from core.capture.load import load_capture
+    from core.conventions import equirect_directions
+    from core.exposure import luminance
+    from core.fields.artefact import LightFieldArtefact
+    from core.io import write_png
+
+    img = torch.full((H, W, 3), 0.15)
+    img[10:12, 30:32] = 1.0
+    write_png(tmp_path / "lamp.png", img.numpy())
+    with pytest.warns(UserWarning):
+        out = run_job(tmp_path / "lamp.png", None, JobParams(seed=0), tmp_path / "art", config=tiny(iterations=5)).path
+    meta = json.loads((out / "lightfield.json").read_text())
+    assert len(meta["training"]["emitters"]) == 1, meta["training"]["emitters"]
+    art = LightFieldArtefact.load(out)
+    env, _ = art.envmap(torch.zeros(3), None, 32)
+    peak = equirect_directions(32).reshape(-1, 3)[luminance(env).flatten().argmax()]
+    cap = load_capture(tmp_path / "lamp.png", None, JobParams(seed=0), track=False)
+    spot = cap.camera(0).pixel_rays()[1][10:12, 30:32].reshape(-1, 3).mean(0)
+    assert float(peak @ (spot / spot.norm())) > 0.95
