@@ -56,6 +56,10 @@ def test_inside_a_lamp_and_at_extreme_intensity_the_answer_stays_finite():
         inside = field.envmaps(torch.tensor([[1.5, 0.0, 0.0]]), None, 16)[0]
         rows = field(torch.tensor([[1.5, 0.0, 0.0], [0.0, 0.0, 0.0]]), None, torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
     assert torch.isfinite(inside).all() and (inside > 0).all()
+    with torch.no_grad():
+        field.emitters.log_intensity.fill_(1e4)  # a corrupt or runaway intensity stays finite too
+        far = field.envmaps(torch.tensor([[0.0, 0.0, 0.0]]), None, 16)[0]
+    assert torch.isfinite(far).all()
     assert torch.isfinite(rows).all() and float(rows.max()) <= math.exp(field.config.log_radiance_max) * 1.0001
 
 

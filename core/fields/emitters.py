@@ -24,10 +24,12 @@ from torch import nn
 # the gate's logit at start: sigmoid(4.6) = 0.99, i.e. every emitter visible from everywhere
 GATE_START = 4.6
 MIN_LOG_INTENSITY = math.log(1e-12)
+MAX_LOG_INTENSITY = 80.0  # exp(88) overflows float32, and inf x a zero lobe is NaN
 
 
 class Emitters(nn.Module):
-    """K spheres with per-knot intensities; buffers set by `set_sources` (saved with the field)."""
+    """K spheres: centres and radii (buffers), per-knot log intensities and visibility gates
+    (parameters the distillation refines), all saved with the field; `set_sources` sets them."""
 
     def __init__(self, count: int, knots: int, gate_resolution: int):
         super().__init__()
@@ -60,7 +62,7 @@ class Emitters(nn.Module):
     def intensity(self, tn: torch.Tensor | None, n: int) -> torch.Tensor:
         """[n or 1, K, 3] intensity at normalised times tn [n, 1] (linear between knots)."""
         knots = self.log_intensity.shape[1]
-        li = self.log_intensity.exp()  # [K, knots, 3]
+        li = self.log_intensity.clamp(max=MAX_LOG_INTENSITY).exp()  # [K, knots, 3], finite in float32
         if knots == 1 or tn is None:
             return li[:, 0][None]
         pos = ((tn.reshape(-1).clamp(-1.0, 1.0) + 1.0) * 0.5 * (knots - 1)).to(li.dtype)
