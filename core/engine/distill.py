@@ -115,7 +115,7 @@ def emitter_sources(capture: Capture, prior: Prior, cfg, bounds: SceneBounds, us
     intensity knot per frame (MAX_TIME_KNOTS at most) for a field with a time input."""
     if cfg.emitters == 0 or not prior.capabilities.view_radiance:
         return None
-    knots = max(2, min(int(capture.num_frames), MAX_TIME_KNOTS)) if uses_time else 1
+    knots = time_knots(capture.num_frames) if uses_time else 1
     return find_emitters(capture, prior.view_radiance, count=cfg.emitters, contrast=cfg.emitter_contrast,
                          max_radius=cfg.emitter_max_radius, bounds=bounds, knots=knots)
 
@@ -156,7 +156,7 @@ def with_view_detail(field_cfg: FieldConfig, capture: Capture) -> FieldConfig:
         return field_cfg.model_copy(update={"view_detail_heights": (), "view_anchors": ()})
     frames = torch.linspace(0, capture.num_frames - 1, min(capture.num_frames, MAX_VIEW_ANCHORS)).round().long()
     centres = torch.unique(capture.poses[frames, :3, 3].double(), dim=0)  # a static camera: one anchor
-    knots = max(2, min(int(capture.num_frames), MAX_TIME_KNOTS))
+    knots = time_knots(capture.num_frames)
     return field_cfg.with_view_anchors(centres.tolist()).model_copy(update={"view_detail_time_knots": knots})
 
 
@@ -166,7 +166,13 @@ def with_time_knots(field_cfg: FieldConfig, num_frames: int) -> FieldConfig:
     section = field_cfg.section()
     if not field_cfg.uses_time or getattr(section, "time_encoding", None) != "codes":
         return field_cfg
-    return field_cfg.with_section(time_knots=max(2, min(int(num_frames), MAX_TIME_KNOTS)))
+    return field_cfg.with_section(time_knots=time_knots(num_frames))
+
+
+def time_knots(num_frames: int) -> int:
+    """Knots of every learned time curve (codes, view detail, emitters): one per frame, between 2
+    and MAX_TIME_KNOTS."""
+    return max(2, min(int(num_frames), MAX_TIME_KNOTS))
 
 
 @contextmanager

@@ -20,16 +20,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import torch
+from scipy import ndimage
 
 from core.capture.base import Capture
+from core.conventions import pixel_to_camera_ray, valid_depth_mask
 from core.exposure import luminance
 from core.fields import SceneBounds
 
 MERGE_DISTANCE = 0.25  # metres: blobs of different frames closer than this are one source
-MIN_PIXELS = 1
 MAX_BLOBS_PER_FRAME = 16  # the brightest blobs of a frame (bounds the work on a noisy or sparkly frame)
 CORE_FRACTION = 0.5  # a blob's pixels at least this fraction of its peak luminance make the source
 OCCLUSION_MARGIN = 0.1  # metres: the depth in front of a source that still counts as the source
@@ -51,59 +51,66 @@ class EmitterSources:
                 for c, r, i in zip(self.centres, self.radii, self.intensity)]
 
 
-def _frame_geometry(capture: Capture, i: int):
-    """World points [H, W, 3], distances [H, W] and pixel footprints area_p [H, W] (m^2) of frame i."""
-    cam = capture.camera(i)
-    k = cam.intrinsics
-    z = capture.depth[i].double()
-    pts = cam.unproject(capture.depth[i].double())
-    dist = (pts - cam.position[None, None]).norm(dim=-1)
-    area = z.pow(3) / (dist * k.fx * k.fy)  # d^2 x pixel solid angle (cos^3 / (fx fy)), cos = z / d
-    return pts, dist, area
+EIGHT_NEIGHBOURS = np.ones((3, 3), dtype=bool)  # blob connectivity, as core.capture.highlights.find_blobs
+
+
+def _footprints(k, depth: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+    """area_p (m^2) of pixels (rows, cols) with planar depths `depth`: d^2 x the pixel's solid
+    angle cos^3 / (fx fy), d = z / cos, i.e. z^2 cos / (fx fy) (NaN where depth is invalid)."""
+    ray = pixel_to_camera_ray(cols.double() + 0.5, rows.double() + 0.5, k.fx, k.fy, k.cx, k.cy)
+    z = torch.where(valid_depth_mask(depth), depth.double(), torch.full_like(depth, float("nan"), dtype=torch.float64))
+    return z.pow(2) / (ray.norm(dim=-1) * k.fx * k.fy)
 
 
 def _blobs(capture: Capture, i: int, linear: torch.Tensor, contrast: float, max_radius: float) -> list[tuple]:
     """(centre [3], radius, intensity [3], flat pixel indices) of the brightest bright blobs of frame i."""
     lum = luminance(linear.double())
-    ok = torch.isfinite(lum) & torch.isfinite(capture.depth[i]) & (capture.depth[i] > 0)
+    depth = capture.depth[i]
+    ok = torch.isfinite(lum) & valid_depth_mask(depth)
     if not bool(ok.any()):
         return []
     threshold = contrast * float(lum[ok].median().clamp_min(1e-12))
-    n, labels = cv2.connectedComponents((ok & (lum > threshold)).numpy().astype(np.uint8), connectivity=8)
-    if n <= 1:
+    lum_np = lum.numpy()
+    labels, n = ndimage.label((ok & (lum > threshold)).numpy(), structure=EIGHT_NEIGHBOURS)
+    if n == 0:
         return []
-    pts, dist, area = _frame_geometry(capture, i)
+    H, W = depth.shape
+    rows, cols = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    area = _footprints(capture.intrinsics, depth, rows, cols)
     # a blob wider than max_radius is a broad source (window, panel): left to the network whole,
     # not cut into cores. The others are cut to their core: pixels within CORE_FRACTION of the
     # blob's peak, so the wall a lamp lights (bright, but dimmer than the lamp) is not averaged in
-    labels_t = torch.from_numpy(labels.astype(np.int64)).reshape(-1)
-    blob_area = torch.zeros(n, dtype=area.dtype).index_add(0, labels_t, torch.nan_to_num(area, nan=0.0).reshape(-1))
-    peak = torch.zeros(n, dtype=lum.dtype).scatter_reduce(0, labels_t, lum.reshape(-1), reduce="amax")
-    small = torch.sqrt(blob_area / math.pi) <= max_radius
-    core = ((labels_t > 0) & small[labels_t] & (lum.reshape(-1) >= CORE_FRACTION * peak[labels_t])).reshape(lum.shape)
-    n, labels = cv2.connectedComponents(core.numpy().astype(np.uint8), connectivity=8)
-    labels_t = torch.from_numpy(labels.astype(np.int64)).reshape(-1)
-    core_peak = torch.zeros(n, dtype=lum.dtype).scatter_reduce(0, labels_t, lum.reshape(-1), reduce="amax")
-    brightest = [int(k) for k in torch.argsort(core_peak[1:], descending=True)[:MAX_BLOBS_PER_FRAME] + 1]
-    origin = capture.camera(i).position.to(pts.dtype)
-    labels_t = labels_t.reshape(lum.shape)
+    index = np.arange(1, n + 1)
+    blob_area = np.asarray(ndimage.sum(np.nan_to_num(area.numpy()), labels, index))
+    peak = np.concatenate([[np.inf], ndimage.maximum(lum_np, labels, index)])
+    small = np.concatenate([[False], np.sqrt(blob_area / math.pi) <= max_radius])
+    labels, n = ndimage.label(small[labels] & (lum_np >= CORE_FRACTION * peak[labels]), structure=EIGHT_NEIGHBOURS)
+    if n == 0:
+        return []
+    core_peak = np.asarray(ndimage.maximum(lum_np, labels, np.arange(1, n + 1)))
+    brightest = set((np.argsort(-core_peak, kind="stable")[:MAX_BLOBS_PER_FRAME] + 1).tolist())
+    cam = capture.camera(i)
+    pts = cam.unproject(depth.double())
     out = []
-    for lab in brightest:
-        sel = labels_t == lab
-        if int(sel.sum()) < MIN_PIXELS:
+    for lab, window in enumerate(ndimage.find_objects(labels), start=1):
+        if lab not in brightest:
             continue
-        a = area[sel]
+        r, c = np.nonzero(labels[window] == lab)
+        r = torch.from_numpy(r + window[0].start)
+        c = torch.from_numpy(c + window[1].start)
+        a = area[r, c]
         radius = math.sqrt(float(a.sum()) / math.pi)
         if radius > max_radius:
             continue
-        col = linear.double()[sel]
+        col = linear.double()[r, c]
         w = luminance(col) * a
         # along the blob's luminance-weighted ray, at its nearest point: a downsampled depth map
         # blends a small lamp's depth with the wall behind it, and the lamp is the near surface
-        rays = (pts[sel] - origin) / dist[sel][:, None].clamp_min(1e-9)
-        ray = (rays * w[:, None]).sum(0)
-        centre = origin + ray / ray.norm().clamp_min(1e-12) * float(dist[sel].min())
-        out.append((centre, radius, (col * a[:, None]).sum(0), torch.nonzero(sel.reshape(-1)).reshape(-1)))
+        p = pts[r, c]
+        dist = (p - cam.position).norm(dim=-1)
+        ray = ((p - cam.position) / dist[:, None].clamp_min(1e-9) * w[:, None]).sum(0)
+        centre = cam.position + ray / ray.norm().clamp_min(1e-12) * float(dist.min())
+        out.append((centre, radius, (col * a[:, None]).sum(0), r * W + c))
     return out
 
 
@@ -114,24 +121,25 @@ def _footprint_intensity(capture: Capture, i: int, linear: torch.Tensor, centre:
     None when the source is out of view or occluded in frame i."""
     cam = capture.camera(i)
     k = cam.intrinsics
-    u, v, z = cam.project(centre[None].double())
-    u, v, z = float(u[0]), float(v[0]), float(z[0])
+    u, v, z = (float(a[0]) for a in cam.project(centre[None].double()))
     if not (z > 0 and 0 <= u < k.width and 0 <= v < k.height):
         return None
     if bool(claimed[int(v), int(u)]):  # another source has these pixels: the same lamp, placed apart by depth noise
         return torch.zeros(3, dtype=torch.float64)
-    pts, dist, area = _frame_geometry(capture, i)
-    seen = float(capture.depth[i][int(v), int(u)])
+    depth = capture.depth[i]
+    seen = float(depth[int(v), int(u)])
     if not math.isfinite(seen) or seen < z - max(OCCLUSION_MARGIN, 3 * radius):
         return None
-    r_px = radius * k.fx / z + 1.0
-    vv, uu = torch.meshgrid(torch.arange(k.height, dtype=torch.float64) + 0.5, torch.arange(k.width, dtype=torch.float64) + 0.5,
-                            indexing="ij")
-    sel = ((uu - u).pow(2) + (vv - v).pow(2) <= r_px ** 2) & torch.isfinite(area) & ~claimed
+    r_px = radius * k.fx / z + 1.0  # only the disk's bounding window is looked at
+    rows = torch.arange(max(int(v - r_px), 0), min(int(v + r_px) + 1, k.height))
+    cols = torch.arange(max(int(u - r_px), 0), min(int(u + r_px) + 1, k.width))
+    rr, cc = torch.meshgrid(rows, cols, indexing="ij")
+    area = _footprints(k, depth[rr, cc], rr, cc)
+    sel = ((cc + 0.5 - u).pow(2) + (rr + 0.5 - v).pow(2) <= r_px ** 2) & torch.isfinite(area) & ~claimed[rr, cc]
     if not bool(sel.any()):
         return None
-    claimed |= sel
-    return (linear.double()[sel] * area[sel][:, None]).sum(0)
+    claimed[rr[sel], cc[sel]] = True
+    return (linear.double()[rr[sel], cc[sel]] * area[sel][:, None]).sum(0)
 
 
 def find_emitters(capture: Capture, linear_frame, *, count: int, contrast: float, max_radius: float,

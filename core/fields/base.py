@@ -175,8 +175,8 @@ class LightField(nn.Module):
     # ------------------------------------------------------------------ emitters
     def _with_emitters(self, radiance: torch.Tensor, xn: torch.Tensor, tn: torch.Tensor | None, d: torch.Tensor,
                        sigma_floor: float) -> torch.Tensor:
-        """radiance [B, 3] + the emitters' lobes at normalised xn [B, 3], tn [B, 1], unit d [B, 3],
-        capped at the field's largest radiance (so the output stays finite)."""
+        """radiance [B, 3] + the emitters' lobes at normalised xn [B or 1, 3], tn [B or 1, 1], unit
+        d [B, 3], capped at the field's largest radiance (so the output stays finite)."""
         if self.emitters is None:
             return radiance
         x = self.bounds_lo + 0.5 * (xn + 1.0) * (self.bounds_hi - self.bounds_lo)
@@ -218,10 +218,9 @@ class LightField(nn.Module):
         if self.emitters is not None:
             floor = EMITTER_PIXEL_SIGMA * math.pi / height
             for p in range(xn.shape[0]):
-                for dl in direction_blocks(dirs.shape[0], chunk_rows):
-                    n = dl.stop - dl.start
-                    out[p, dl] = self._with_emitters(out[p, dl], xn[p:p + 1].expand(n, 3),
-                                                     None if tn is None else tn[p:p + 1].expand(n, 1), dirs[dl], floor)
+                for dl in direction_blocks(dirs.shape[0], chunk_rows):  # the probe's row broadcasts over the block
+                    out[p, dl] = self._with_emitters(out[p, dl], xn[p:p + 1], None if tn is None else tn[p:p + 1],
+                                                     dirs[dl], floor)
         return out.reshape(xn.shape[0], height, equirect_width(height), 3)
 
     def probe_radiance(self, xs: torch.Tensor, ts, probe_index: torch.Tensor, d: torch.Tensor) -> torch.Tensor:

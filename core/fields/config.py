@@ -50,14 +50,15 @@ class FieldConfig(FieldSettings):
     view_detail_time_rank: int = Field(4, ge=0, le=16)
     view_detail_time_knots: int = Field(2, ge=2, le=4096)
     # Emitters (core.fields.emitters, docs/engine.md): small bright sources as explicit spheres
-    # whose positions and per-knot intensities the engine measures in the frames (buffers of the
-    # saved weights). 0: none, the field as before.
+    # whose positions and per-knot intensities the engine measures in the frames (in the saved
+    # weights: positions and radii as buffers, intensities and visibility gates as parameters the
+    # distillation refines). 0: none, the field as before.
     emitter_count: int = Field(0, ge=0, le=16)
     emitter_knots: int = Field(1, ge=1, le=4096)
     emitter_gate_resolution: int = Field(8, ge=1, le=32, description="cells per side of each emitter's visibility grid")
     emitter_sigma_floor: float = Field(0.05, gt=0, le=1.0, description=(
-        "radians: narrowest lobe of `forward` / `probe_radiance` (the engine sets half a pixel of the prior's maps); "
-        "`envmaps` uses half a pixel of the map asked for"))
+        "radians: narrowest lobe of `forward` / `probe_radiance` (the engine sets 0.6 pixel of the prior's maps); "
+        "`envmaps` uses 0.6 pixel of the map asked for"))
     # kind -> its settings; given (and serialised) as one top-level key per kind
     sections: Mapping[str, SerializeAsAny[BaseModel]] = Field(default_factory=dict, repr=False)
 

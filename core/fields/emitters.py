@@ -59,8 +59,8 @@ class Emitters(nn.Module):
         li = self.log_intensity
         return (li[:, 1:] - li[:, :-1]).abs().mean() if li.shape[1] > 1 else li.sum() * 0.0
 
-    def intensity(self, tn: torch.Tensor | None, n: int) -> torch.Tensor:
-        """[n or 1, K, 3] intensity at normalised times tn [n, 1] (linear between knots)."""
+    def intensity(self, tn: torch.Tensor | None) -> torch.Tensor:
+        """[n or 1, K, 3] intensity at normalised times tn [n, 1] (None: one row; linear between knots)."""
         knots = self.log_intensity.shape[1]
         li = self.log_intensity.clamp(max=MAX_LOG_INTENSITY).exp()  # [K, knots, 3], finite in float32
         if knots == 1 or tn is None:
@@ -78,17 +78,19 @@ class Emitters(nn.Module):
 
     def radiance(self, x: torch.Tensor, xn: torch.Tensor, tn: torch.Tensor | None, d: torch.Tensor,
                  sigma_floor: float) -> torch.Tensor:
-        """[B, 3] added radiance at world positions x [B, 3] (normalised xn) along unit d [B, 3]."""
+        """[B, 3] added radiance at world positions x [B, 3] (normalised xn, times tn [B, 1]) along
+        unit d [B, 3]; x, xn and tn may have one row for all of d (an env map's probe: its
+        distances, lobe widths and gates are then worked out once)."""
         rel = self.centres[None].to(x.dtype) - x[:, None, :]  # [B, K, 3]
         dist = rel.norm(dim=-1).clamp_min(1e-6)
         dist_eff = torch.maximum(dist, self.radii[None].to(x.dtype))  # inside a source: as at its surface
         mu = rel / dist[..., None]
-        cos = (mu * d[:, None, :]).sum(-1).clamp(-1.0, 1.0)
+        cos = (mu * d[:, None, :]).sum(-1).clamp(-1.0, 1.0)  # [B, K]
         alpha = torch.asin((self.radii[None].to(x.dtype) / dist_eff).clamp(max=1.0))
         sigma = alpha.clamp_min(max(float(sigma_floor), 1e-4))
         lam = 1.0 / sigma.pow(2)
         # the lobe a exp(lam (cos - 1)) integrates to 2 pi a (1 - exp(-2 lam)) / lam
         norm = lam / (2.0 * math.pi * (-torch.expm1(-2.0 * lam)))
-        energy = self.intensity(tn, x.shape[0]).to(x.dtype) / dist_eff.pow(2)[..., None]  # [B, K, 3]
+        energy = self.intensity(tn).to(x.dtype) / dist_eff.pow(2)[..., None]  # [B or 1, K, 3]
         lobe = norm * torch.exp(lam * (cos - 1.0)) * self.visibility(xn)
         return (energy * lobe[..., None]).sum(1)
