@@ -385,3 +385,43 @@ def test_view_detail_varies_with_time_only_through_its_time_part():
         field.view_detail_time.codes.copy_(field.view_detail_time.codes[:1].expand(5, 2))  # constant in time
         assert torch.allclose(field.detail_logits(d, start), field.detail_logits(d, end))
         assert float(field.time_variation()) == 0.0
+
+
+def lattice_config(kind: str) -> FieldConfig:
+    return tiny_config(kind).model_copy(update={"room_lattice": (3, 2, 3), "room_lattice_height": 4})
+
+
+@pytest.mark.parametrize("kind", ["mlp", "trunk", "grid"])
+def test_room_lattice_starts_at_zero_and_agrees_on_every_path(kind, tmp_path):
+    """An untrained lattice changes nothing (the field answers as without it); once set, every
+    evaluation path and the saved artefact agree."""
+    torch.manual_seed(0)
+    field = build_field(lattice_config(kind), BOUNDS)
+    torch.manual_seed(0)
+    plain = build_field(tiny_config(kind), BOUNDS)
+    xs, ts = torch.tensor([[0.0, 0.5, -1.0], [1.9, 1.9, -3.9]]), torch.tensor([0.4, 2.9])
+    with torch.no_grad():
+        assert torch.equal(field.envmaps(xs, ts, 6), plain.envmaps(xs, ts, 6))
+        field.room_lattice.maps.normal_(generator=torch.Generator().manual_seed(1))
+    maps = assert_paths_agree_and_reload(field, xs, ts, 6, tmp_path)
+    with torch.no_grad():
+        assert not torch.allclose(maps, plain.envmaps(xs, ts, 6).reshape(2, -1, 3), rtol=1e-3)
+
+
+def test_room_lattice_is_local_in_position_and_direction_and_validated():
+    """One texel of one node moves the field only near that node and near that direction: the
+    lattice cannot ring or reach across the room."""
+    field = build_field(lattice_config("mlp").with_time(False), BOUNDS)
+    dirs = equirect_directions(4).reshape(-1, 3)
+    at_node = torch.tensor([[-2.0, -1.0, -4.0]])  # the lattice's first node (the box corner)
+    far = torch.tensor([[2.0, 2.0, 0.5]])  # the opposite corner
+    with torch.no_grad():
+        before = field.envmaps(torch.cat((at_node, far)), None, 4).reshape(2, -1, 3)
+        field.room_lattice.maps[0, 1, 3] = 2.0  # one texel of the first node's map
+        after = field.envmaps(torch.cat((at_node, far)), None, 4).reshape(2, -1, 3)
+    changed = (after[0] - before[0]).abs().amax(-1) > 0
+    assert 0 < int(changed.sum()) <= 4  # the texel and its bilinear neighbours at the node
+    assert torch.equal(after[1], before[1])  # nothing at the far corner
+    for bad in ([2, 2], [1, 2, 2], [2, 2, 64]):
+        with pytest.raises(ValueError, match="room_lattice"):
+            FieldConfig.model_validate({**tiny_config("mlp").model_dump(), "room_lattice": bad})

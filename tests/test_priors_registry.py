@@ -27,7 +27,7 @@ def test_names_come_from_the_registry():
 def test_capabilities_are_declared_by_each_prior():
     from core.sim.oracle import OracleSimPrior
 
-    assert ReprojectionPrior.capabilities == PriorCapabilities(frame_geometry=True, envmaps=True, view_radiance=True)
+    assert ReprojectionPrior.capabilities == PriorCapabilities(frame_geometry=True, envmaps=True, envmaps_anywhere=True, view_radiance=True)
     assert not KnownRadiancePrior.capabilities.view_radiance
     assert KnownRadiancePrior.capabilities.envmaps and not KnownRadiancePrior.capabilities.frame_geometry
     assert OracleSimPrior.capabilities.envmaps and prior_class("oracle") is OracleSimPrior

@@ -54,6 +54,9 @@ class DistillConfig(BaseModel):
     envmap_frames_per_step: int = Field(1, ge=1, le=16, description="frames (each with its probes) per radiance step")
     envmap_surface_probes: int = Field(4, ge=0, le=64, description="probes in front of the scene depth (probe_depth_fraction)")
     envmap_room_probes: int = Field(4, ge=0, le=64, description="probes anywhere along camera rays (0.05-0.95 of the depth)")
+    envmap_free_probes: int = Field(0, ge=0, le=64, description=(
+        "probes anywhere in the scene box that no frame shows inside a surface (core.engine.free_space; priors with "
+        "capabilities.envmaps_anywhere): off the camera rays, beside and behind the camera"))
     envmap_camera_probe: bool = Field(True, description="also a probe at the camera centre (where users query)")
     envmap_directions: int = Field(640, ge=1, description="random directions per probe and step")
     envmap_bright_fraction: float = Field(0.25, ge=0, le=1, description="share of the directions drawn ~ the target's luminance")
@@ -101,8 +104,8 @@ class DistillConfig(BaseModel):
 
     @property
     def envmap_probe_count(self) -> int:
-        """Probes per frame of a radiance step."""
-        return self.envmap_surface_probes + self.envmap_room_probes + int(self.envmap_camera_probe)
+        """Probes per frame of a radiance step (at most: free-space draws can come back fewer)."""
+        return self.envmap_surface_probes + self.envmap_room_probes + self.envmap_free_probes + int(self.envmap_camera_probe)
 
     def uses_envmaps(self, prior_answers_envmaps: bool) -> bool:
         """Whether the loop supervises in radiance (see `supervision`)."""

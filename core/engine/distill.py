@@ -22,6 +22,7 @@ from core.engine.config import EngineConfig
 from core.engine.emitters import EmitterSources, find_emitters
 from core.engine.losses import PerceptualLoss, perceptual_description
 from core.engine.progress import Reporter, StageTimer
+from core.engine.free_space import FreeSpaceSampler
 from core.engine.scene import scene_bounds
 from core.engine.trainer import Trainer
 from core.engine.radiance import frame_floors
@@ -92,7 +93,9 @@ def distill(
     trainer = Trainer(capture, frames_lin.to(device), capture.depth.to(device), prior, field, opt,
                       cfg, gen, PerceptualLoss(cfg.perceptual_net), timings, device,
                       use_envmaps=use_envmaps, floors=frame_floors(frames_lin, cfg.log_floor_fraction),
-                      view_rays=view_rays(capture, cfg, prior) if use_envmaps else None)
+                      view_rays=view_rays(capture, cfg, prior) if use_envmaps else None,
+                      free_space=(FreeSpaceSampler.for_capture(capture, bounds) if use_envmaps and cfg.envmap_free_probes
+                                  and prior.capabilities.envmaps_anywhere else None))
     reporter.begin(start)
     reporter.check_cancel()  # then once per step, in reporter.step (a store query in the worker)
     with _torch_threads(cfg.threads):

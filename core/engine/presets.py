@@ -11,13 +11,15 @@ known field about as well as the 6 x 256 one and clearly better than the trunk+h
 
 `draft` also supervises in radiance when its prior answers env maps (`supervision="auto"`:
 the reprojection, known and oracle priors; the diffusion prior keeps the ball loop): 3 frames
-per step, each with 2 probes in front of the depth, 1 along a camera ray and the camera
-centre, 256 directions per probe, log-radiance loss, 600 steps; the camera centre is also
+per step, each with 2 probes in front of the depth, 1 along a camera ray, 1 anywhere in the
+scene box no frame shows inside a surface (core.engine.free_space) and the camera centre,
+256 directions per probe, log-radiance loss, 600 steps; the camera centre is also
 fitted along 256 of the frame's pixel rays to the prior's view radiance, through the field's
 view detail (32- and 128-row residual maps anchored at the camera centres, with a rank-4
 time part when the lighting changes); small bright sources in view (up to 4 lamps) are explicit
-spheres with per-frame intensities (core.engine.emitters); and its fields encode time with
-learned per-frame codes. Why and the measurements: docs/engine.md, "Radiance supervision"
+spheres with per-frame intensities (core.engine.emitters); its fields encode time with
+learned per-frame codes; and an 8 x 4 x 8 room lattice of 16-row maps (core.fields.lattice) fits
+the slowly varying colour across the room, which the network alone fits slowly. Why and the measurements: docs/engine.md, "Radiance supervision"
 (`python -m bench.accuracy_probe`).
 
 `seed` is the loop of the authors' released code (ORionTMT/Sig25_4DLighting run_video_demo.py
@@ -35,11 +37,13 @@ from core.engine.config import DistillConfig, EngineConfig
 from core.fields import FieldConfig
 
 
-def _narrow(width: int, layers: int, view_detail_heights: tuple[int, ...] = (), **encoding) -> FieldConfig:
+def _narrow(width: int, layers: int, view_detail_heights: tuple[int, ...] = (), room_lattice: tuple[int, ...] = (),
+            room_lattice_height: int = 8, **encoding) -> FieldConfig:
     """The MLP (default kind) and the trunk at `width` x `layers` (and `encoding` settings); the grid as the paper's."""
     return FieldConfig(kind="mlp", mlp={"width": width, "layers": layers, **encoding},
                        trunk={"trunk_width": width, "trunk_layers": layers, **encoding},
-                       view_detail_heights=view_detail_heights)
+                       view_detail_heights=view_detail_heights, room_lattice=room_lattice,
+                       room_lattice_height=room_lattice_height)
 
 
 PRESETS: dict[str, EngineConfig] = {
@@ -48,8 +52,9 @@ PRESETS: dict[str, EngineConfig] = {
         name="draft",
         distill=DistillConfig(iterations=600, n_probes=9, work_height=72, lr=5e-3, warmup_steps=15, checkpoint_every=50,
                               supervision="auto", envmap_frames_per_step=3, envmap_surface_probes=2, envmap_room_probes=1,
-                              envmap_directions=256, envmap_view_directions=256, emitters=4),
-        field=_narrow(96, 4, view_detail_heights=(32, 128), time_encoding="codes"),
+                              envmap_free_probes=1, envmap_directions=256, envmap_view_directions=256, emitters=4),
+        field=_narrow(96, 4, view_detail_heights=(32, 128), room_lattice=(8, 4, 8), room_lattice_height=16,
+                      time_encoding="codes"),
         priors={"reprojection": {"env_height": 24}},
     ),
     # CPU: a 100-frame 320x240 clip in a few minutes

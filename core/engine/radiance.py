@@ -10,9 +10,10 @@ filled, is supervised alike.
 
 Probes per step: `envmap_surface_probes` in front of the scene depth (as the ball loop's),
 `envmap_room_probes` anywhere along camera rays (the free space the camera saw, so the field
-is supervised through the room, not only near surfaces), and the camera centre (where users
-and the bench query). All are in free space as seen from the camera, so a simulator oracle
-can answer them.
+is supervised through the room, not only near surfaces), free-space probes off the camera rays
+(core.engine.free_space, only for priors that answer anywhere) and the camera centre (where
+users and the bench query). All but the free-space probes are in free space as seen from the
+camera, so a simulator oracle can answer them.
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ import torch
 
 from core.capture.base import Capture
 from core.engine.config import DistillConfig
+from core.engine.free_space import FreeSpaceSampler
 from core.engine.probes import sample_probes
 from core.conventions import equirect_pixel_centres, equirect_pixel_to_theta_phi, pixel_to_camera_ray, theta_phi_to_direction
 from core.envmap import equirect_stencil, pad_poles
@@ -30,8 +32,10 @@ from core.exposure import luminance
 ROOM_DEPTH_FRACTION = (0.05, 0.95)
 
 
-def supervision_probes(capture: Capture, frame_index: int, cfg: DistillConfig, gen: torch.Generator) -> torch.Tensor:
-    """World probe centres [N, 3] (float32) for one radiance step on frame `frame_index`."""
+def supervision_probes(capture: Capture, frame_index: int, cfg: DistillConfig, gen: torch.Generator,
+                       free_space: FreeSpaceSampler | None = None) -> torch.Tensor:
+    """World probe centres [N, 3] (float32) for one radiance step on frame `frame_index`:
+    surface, room, free-space (with a sampler) and last the camera centre."""
     cam = capture.camera(frame_index)
     k = cam.intrinsics
     centers: list[torch.Tensor] = []
@@ -42,6 +46,8 @@ def supervision_probes(capture: Capture, frame_index: int, cfg: DistillConfig, g
         # on the ray through each pixel at its planar depth (core.chrome_ball.place_probe, all at once)
         rays = pixel_to_camera_ray(pixels[:, 0], pixels[:, 1], k.fx, k.fy, k.cx, k.cy) * depths[:, None]
         centers.append((rays @ cam.c2w[:3, :3].T.double() + cam.c2w[:3, 3].double()).float())
+    if free_space is not None and cfg.envmap_free_probes:
+        centers.append(free_space.sample(cfg.envmap_free_probes, gen))
     if cfg.envmap_camera_probe:
         centers.append(capture.poses[frame_index, :3, 3].float()[None])
     return torch.cat(centers)

@@ -18,6 +18,7 @@ from core.capture.base import Capture
 from core.chrome_ball import ball_reflection_rays, composite, composite_depth, place_probe, render_balls
 from core.conventions import tonemap, tonemap_unclipped
 from core.engine.config import DistillConfig
+from core.engine.free_space import FreeSpaceSampler
 from core.engine.losses import PerceptualLoss, masked_l2
 from core.engine.probes import sample_probes
 from core.engine.progress import StageTimer
@@ -44,6 +45,7 @@ class Trainer:
     use_envmaps: bool = False  # radiance supervision (the prior answers env maps)
     floors: list[float] | None = None  # per-frame log floors of the radiance loss
     view_rays: torch.Tensor | None = None  # [H*W, 3] camera-frame pixel rays when the camera probe is fitted to view radiance
+    free_space: FreeSpaceSampler | None = None  # draws the probes off the camera rays (priors that answer anywhere)
 
     def step(self, step: int) -> float:
         if self.use_envmaps:
@@ -111,7 +113,7 @@ class Trainer:
         for i in frames:
             t = float(capture.times[i])
             with timings("probe_geometry"):
-                c = supervision_probes(capture, i, cfg, gen)
+                c = supervision_probes(capture, i, cfg, gen, self.free_space)
             with timings("prior"):
                 maps = self.prior.envmaps(c.to(self.prior.device), t, cfg.envmap_height).detach().float().cpu()
                 maps = torch.nan_to_num(maps, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)

@@ -26,6 +26,7 @@ from torch import nn
 from core.conventions import equirect_directions, equirect_width
 from core.fields.config import FieldConfig
 from core.fields.emitters import Emitters
+from core.fields.lattice import RoomLattice
 from core.fields.encodings import EquirectGridEncoding, TimeCodes
 from core.fields.normalization import SceneBounds
 
@@ -72,6 +73,7 @@ class LightField(nn.Module):
                 self.view_detail_time = TimeCodes(config.view_detail_time_knots, self.detail_time_rank)
             anchors = torch.tensor(config.view_anchors, dtype=torch.float32).reshape(-1, 3)
             self.register_buffer("view_anchors", anchors, persistent=False)  # in the config, not the weights
+        self.room_lattice = RoomLattice(config.room_lattice, config.room_lattice_height) if config.room_lattice else None
         self.emitters = (Emitters(config.emitter_count, config.emitter_knots, config.emitter_gate_resolution)
                          if config.emitter_count else None)
 
@@ -172,6 +174,10 @@ class LightField(nn.Module):
             return z
         return z.index_add(0, rows, w[rows, None] * self.detail_logits(d[rows], None if tn is None else tn[rows]))
 
+    def _with_lattice(self, z: torch.Tensor, xn: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """z [B, 3] + the room lattice's residual at xn [B, 3] along d [B, 3] (no lattice: z)."""
+        return z if self.room_lattice is None else z + self.room_lattice(xn, d)
+
     # ------------------------------------------------------------------ emitters
     def _with_emitters(self, radiance: torch.Tensor, xn: torch.Tensor, tn: torch.Tensor | None, d: torch.Tensor,
                        sigma_floor: float) -> torch.Tensor:
@@ -186,7 +192,7 @@ class LightField(nn.Module):
     def forward(self, x: torch.Tensor, t: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
         """x [B,3] world metres, t [B] seconds (ignored when uses_time=False), d [B,3] -> [B,3] > 0."""
         xn, tn, d = self.normalize_inputs(x, t, d)
-        out = self.activate(self._with_detail(self.logits(xn, tn, d), self.detail_weight(xn), d, tn))
+        out = self.activate(self._with_detail(self._with_lattice(self.logits(xn, tn, d), xn, d), self.detail_weight(xn), d, tn))
         return self._with_emitters(out, xn, tn, d, self.config.emitter_sigma_floor)
 
     def envmaps(
@@ -207,6 +213,10 @@ class LightField(nn.Module):
         dirs = equirect_directions(height, device=xn.device).reshape(-1, 3)
         z = torch.cat([self._envmap_logits(xn[p:p + 1], None if tn is None else tn[p:p + 1], dirs, chunk_rows)
                        for p in range(xn.shape[0])]) if xn.shape[0] else xn.new_empty(0, dirs.shape[0], 3)  # [P, N, 3]
+        if self.room_lattice is not None and xn.shape[0]:
+            blended = self.room_lattice.blended(xn)  # per probe, elementwise: batch-independent
+            for dl in direction_blocks(dirs.shape[0], chunk_rows):
+                z[:, dl] = z[:, dl] + self.room_lattice.sample(blended, dirs[dl])
         w = self.detail_weight(xn)
         if w is not None and bool((w > 0).any()):
             near = torch.nonzero(w > 0).reshape(-1).tolist()
@@ -237,7 +247,8 @@ class LightField(nn.Module):
         d = unit_directions(d.to(xn.dtype))
         w = self.detail_weight(xn)
         tn_rows = None if tn is None else tn[index]
-        out = self.activate(self._with_detail(self._probe_logits(xn, tn, index, d), None if w is None else w[index], d, tn_rows))
+        z = self._with_lattice(self._probe_logits(xn, tn, index, d), xn[index], d)
+        out = self.activate(self._with_detail(z, None if w is None else w[index], d, tn_rows))
         return self._with_emitters(out, xn[index], tn_rows, d, self.config.emitter_sigma_floor)
 
     def _probe_logits(self, xn, tn, index, d) -> torch.Tensor:

@@ -7,7 +7,7 @@ lets a preset carry settings for every kind a job may pick, and keeps the artefa
 self-describing. JSON layout: {"kind", "uses_time", "log_radiance_min", "log_radiance_max",
 "view_detail_heights", "view_detail_radius", "view_anchors", "view_detail_time_rank",
 "view_detail_time_knots", "emitter_count", "emitter_knots", "emitter_gate_resolution",
-"emitter_sigma_floor", "<kind>": {section}, ...}.
+"emitter_sigma_floor", "room_lattice", "room_lattice_height", "<kind>": {section}, ...}.
 """
 from __future__ import annotations
 
@@ -59,6 +59,11 @@ class FieldConfig(FieldSettings):
     emitter_sigma_floor: float = Field(0.05, gt=0, le=1.0, description=(
         "radians: narrowest lobe of `forward` / `probe_radiance` (the engine sets 0.6 pixel of the prior's maps); "
         "`envmaps` uses 0.6 pixel of the map asked for"))
+    # Room lattice (core.fields.lattice, docs/engine.md): a (nx, ny, nz) lattice of learnable
+    # `room_lattice_height`-row log-radiance maps over the box, added to every kind's output; it
+    # fits the slowly varying colour and brightness across the room fast. () = off.
+    room_lattice: tuple[int, ...] = Field((), max_length=3)
+    room_lattice_height: int = Field(8, ge=2, le=64)
     # kind -> its settings; given (and serialised) as one top-level key per kind
     sections: Mapping[str, SerializeAsAny[BaseModel]] = Field(default_factory=dict, repr=False)
 
@@ -97,6 +102,13 @@ class FieldConfig(FieldSettings):
         if any(h < 2 or h > 512 for h in heights):
             raise ValueError(f"view_detail_heights must each be in [2, 512], got {heights}")
         return heights
+
+    @field_validator("room_lattice")
+    @classmethod
+    def _lattice_shape(cls, resolution: tuple[int, ...]) -> tuple[int, ...]:
+        if resolution and (len(resolution) != 3 or any(r < 2 or r > 32 for r in resolution)):
+            raise ValueError(f"room_lattice must be () or three node counts in [2, 32], got {resolution}")
+        return resolution
 
     @field_validator("view_anchors")
     @classmethod

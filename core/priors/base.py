@@ -79,6 +79,10 @@ class PriorCapabilities:
       the engine then fits the field to these maps in log radiance instead of rendering balls
       (core.engine.radiance), calling `envmaps` for ~12 probes every step: declare it only
       when an answer costs milliseconds, not a diffusion sampling.
+    * envmaps_anywhere: its `envmaps` answers at any point of the scene box, not only in the free
+      space a camera saw (the reprojection prior splats whatever the frames saw from anywhere;
+      the simulator's oracle refuses points inside furniture). Radiance supervision then also
+      fits probes off the camera rays (`distill.envmap_free_probes`, core.engine.free_space).
     * view_radiance: it says what linear radiance it assigns to each frame's own pixels
       (`view_radiance(i)`, [H, W, 3] in the units of its env maps). Radiance supervision then
       also fits the camera-centre probe along the frame's pixel rays at the photo's own
@@ -87,6 +91,7 @@ class PriorCapabilities:
 
     frame_geometry: bool = False
     envmaps: bool = False
+    envmaps_anywhere: bool = False
     view_radiance: bool = False
 
 

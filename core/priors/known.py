@@ -64,7 +64,7 @@ class KnownRadiancePrior(Prior):
     evaluated at each ball's centre (the probe-centre approximation the engine also uses)."""
 
     Config = KnownRadianceSettings
-    capabilities = PriorCapabilities(envmaps=True)
+    capabilities = PriorCapabilities(envmaps=True, envmaps_anywhere=True)
 
     def __init__(self, fn: RadianceXTD, **settings):
         s = prior_settings(self.name, {"fn": fn, **settings})

@@ -158,7 +158,7 @@ class ReprojectionSettings(PriorConfig):
 @register_prior("reprojection", for_jobs=True)
 class ReprojectionPrior(Prior):
     Config = ReprojectionSettings
-    capabilities = PriorCapabilities(frame_geometry=True, envmaps=True, view_radiance=True)
+    capabilities = PriorCapabilities(frame_geometry=True, envmaps=True, envmaps_anywhere=True, view_radiance=True)
 
     def __init__(self, **settings):
         """Settings: see ReprojectionSettings (PriorError when one is out of range)."""

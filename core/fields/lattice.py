@@ -1,0 +1,49 @@
+"""Room lattice: a coarse lattice of learnable low-resolution log-radiance maps added to every
+field kind's output, so the slowly varying part of the lighting (which wall is warm, which side
+is bright) is fitted directly instead of through the network's slow convergence.
+
+`resolution` = (nx, ny, nz) maps of `height` x 2 `height` texels at the nodes of a regular
+lattice over the normalised box [-1, 1]^3; the residual at (xn, d) is trilinear over the nodes
+and bilinear over d (core.envmap's stencil: seam wrap, pole rows), like the grid field's maps.
+Every map starts at zero, so an untrained lattice changes nothing, and a texel moves only where
+the loss reaches its taps: the lattice cannot ring. It has no time input: the network's time
+codes carry what changes.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from core.conventions import equirect_width
+from core.envmap import equirect_stencil, pad_poles
+from core.fields.encodings import lattice_corners
+
+
+class RoomLattice(nn.Module):
+    def __init__(self, resolution: tuple[int, int, int], height: int):
+        super().__init__()
+        self.dims = tuple(int(r) for r in resolution)
+        self.height = int(height)
+        self.maps = nn.Parameter(torch.zeros(math.prod(self.dims), self.height, equirect_width(self.height), 3))
+
+    def forward(self, xn: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """Residual logits [B, 3] at normalised positions xn [B, 3] along unit directions d [B, 3]."""
+        node, w_node = lattice_corners(xn, self.dims)  # [B, 8]
+        pix, w_pix = equirect_stencil(d, self.height)  # [B, 4]
+        padded = pad_poles(self.maps)  # [M, texels, 3]
+        flat = padded.reshape(-1, 3)
+        index = node[:, :, None] * padded.shape[1] + pix[:, None, :]  # [B, 8, 4]
+        weight = (w_node[:, :, None] * w_pix[:, None, :]).to(flat.dtype)
+        return (weight[..., None] * flat[index]).sum(dim=(1, 2))
+
+    def blended(self, xn: torch.Tensor) -> torch.Tensor:
+        """The lattice's map at each normalised position [P, 3], padded for `sample`: [P, texels, 3]."""
+        node, w_node = lattice_corners(xn, self.dims)
+        return pad_poles((w_node[..., None, None, None].to(self.maps.dtype) * self.maps[node]).sum(1))
+
+    def sample(self, blended: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """blended [P, texels, 3] (from `blended`) along unit directions d [N, 3] -> [P, N, 3]."""
+        pix, w_pix = equirect_stencil(d, self.height)
+        return (w_pix[None, :, :, None].to(blended.dtype) * blended[:, pix]).sum(2)
