@@ -247,7 +247,9 @@ class LightField(nn.Module):
         d = unit_directions(d.to(xn.dtype))
         w = self.detail_weight(xn)
         tn_rows = None if tn is None else tn[index]
-        z = self._with_lattice(self._probe_logits(xn, tn, index, d), xn[index], d)
+        z = self._probe_logits(xn, tn, index, d)
+        if self.room_lattice is not None:  # blended once per probe, then looked up per row
+            z = z + self.room_lattice.rows(self.room_lattice.blended(xn), index, d)
         out = self.activate(self._with_detail(z, None if w is None else w[index], d, tn_rows))
         return self._with_emitters(out, xn[index], tn_rows, d, self.config.emitter_sigma_floor)
 
