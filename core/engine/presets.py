@@ -11,7 +11,7 @@ known field about as well as the 6 x 256 one and clearly better than the trunk+h
 
 `draft` also supervises in radiance when its prior answers env maps (`supervision="auto"`:
 the reprojection, known and oracle priors; the diffusion prior keeps the ball loop): 3 frames
-per step, each with 2 probes in front of the depth, 1 along a camera ray, 1 anywhere in the
+per step, each with 1 probe in front of the depth, 1 along a camera ray, 1 anywhere in the
 scene box no frame shows inside a surface (core.engine.free_space) and the camera centre,
 256 directions per probe, log-radiance loss, 600 steps; the camera centre is also
 fitted along 256 of the frame's pixel rays to the prior's view radiance, through the field's
@@ -51,7 +51,7 @@ PRESETS: dict[str, EngineConfig] = {
     "draft": EngineConfig(
         name="draft",
         distill=DistillConfig(iterations=600, n_probes=9, work_height=72, lr=5e-3, warmup_steps=15, checkpoint_every=50,
-                              supervision="auto", envmap_frames_per_step=3, envmap_surface_probes=2, envmap_room_probes=1,
+                              supervision="auto", envmap_frames_per_step=3, envmap_surface_probes=1, envmap_room_probes=1,
                               envmap_free_probes=1, envmap_directions=256, envmap_view_directions=256, emitters=4),
         field=_narrow(96, 4, view_detail_heights=(32, 128), room_lattice=(8, 4, 8), room_lattice_height=16,
                       time_encoding="codes"),
