@@ -1,15 +1,16 @@
 """Free-space probes (core.engine.free_space): points off the camera rays that no frame shows
 inside a surface, so the field is supervised beside and behind the camera too."""
-import math
+from dataclasses import replace
 
 import torch
 
 from core.capture.load import capture_from_arrays
-from core.engine.distill import distill
+from core.engine.distill import distill, free_space_sampler
 from core.engine.free_space import FreeSpaceSampler
 from core.engine.radiance import supervision_probes
 from core.engine.scene import scene_bounds
 from core.engine.presets import preset
+from core.priors.base import PriorCapabilities
 from core.priors.known import KnownRadiancePrior
 from core.priors.reprojection import ReprojectionPrior
 from core.sim.oracle import OracleSimPrior
@@ -53,15 +54,16 @@ def test_samples_lie_in_the_unpadded_box_and_in_front_of_every_frame():
     assert sampler.sample(0, torch.Generator()).shape == (0, 3)
 
 
-def test_a_box_with_no_free_space_gives_no_probes_and_the_step_still_runs():
-    cap = wall_capture(distance=0.01)  # a wall against the lens: everything in view is behind it
+def test_a_box_with_no_free_space_gives_no_probes_and_the_camera_stays_last():
+    cap = wall_capture()
     sampler = FreeSpaceSampler.for_capture(cap, scene_bounds(cap))
+    behind_the_wall = replace(sampler, lo=torch.tensor([-0.2, -0.2, -3.0], dtype=torch.float64),
+                              hi=torch.tensor([0.2, 0.2, -2.5], dtype=torch.float64))
+    assert behind_the_wall.sample(4, torch.Generator().manual_seed(0)).shape == (0, 3)
     cfg = preset("draft").distill.model_copy(update={"envmap_free_probes": 2})
-    got = sampler.sample(2, torch.Generator().manual_seed(0))
-    assert got.shape[0] <= 2 and bool(torch.isfinite(got).all())
-    centers = supervision_probes(cap, 0, cfg, torch.Generator().manual_seed(0), sampler)
-    assert torch.allclose(centers[-1], cap.camera(0).position.float())  # the camera centre stays last
-    assert centers.shape[0] <= cfg.envmap_probe_count
+    centers = supervision_probes(cap, 0, cfg, torch.Generator().manual_seed(0), behind_the_wall)
+    assert centers.shape == (cfg.envmap_probe_count - 2, 3)  # fewer probes, none invented
+    assert torch.allclose(centers[-1], cap.camera(0).position.float())
 
 
 def out_of_view(cap, points):
@@ -117,4 +119,14 @@ def test_free_probes_keep_what_the_prior_knows_off_the_camera_rays():
 def test_only_priors_that_answer_anywhere_get_free_space_probes():
     assert ReprojectionPrior.capabilities.envmaps_anywhere and KnownRadiancePrior.capabilities.envmaps_anywhere
     assert not OracleSimPrior.capabilities.envmaps_anywhere  # it refuses points inside unseen furniture
-    assert math.isclose(preset("draft").distill.envmap_free_probes, 1)
+    cap = wall_capture()
+    cfg = preset("draft").distill
+    assert cfg.envmap_free_probes == 1
+    known = KnownRadiancePrior(lambda x, t, d: torch.ones_like(d))
+
+    class Nearby(KnownRadiancePrior):  # answers env maps, but only where a camera saw free space
+        capabilities = PriorCapabilities(envmaps=True)
+
+    assert isinstance(free_space_sampler(cap, scene_bounds(cap), cfg, known), FreeSpaceSampler)
+    assert free_space_sampler(cap, scene_bounds(cap), cfg, Nearby(known.fn)) is None
+    assert free_space_sampler(cap, scene_bounds(cap), cfg.model_copy(update={"envmap_free_probes": 0}), known) is None

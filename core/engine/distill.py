@@ -94,8 +94,7 @@ def distill(
                       cfg, gen, PerceptualLoss(cfg.perceptual_net), timings, device,
                       use_envmaps=use_envmaps, floors=frame_floors(frames_lin, cfg.log_floor_fraction),
                       view_rays=view_rays(capture, cfg, prior) if use_envmaps else None,
-                      free_space=(FreeSpaceSampler.for_capture(capture, bounds) if use_envmaps and cfg.envmap_free_probes
-                                  and prior.capabilities.envmaps_anywhere else None))
+                      free_space=free_space_sampler(capture, bounds, cfg, prior) if use_envmaps else None)
     reporter.begin(start)
     reporter.check_cancel()  # then once per step, in reporter.step (a store query in the worker)
     with _torch_threads(cfg.threads):
@@ -172,10 +171,18 @@ def with_time_knots(field_cfg: FieldConfig, num_frames: int) -> FieldConfig:
     return field_cfg.with_section(time_knots=time_knots(num_frames))
 
 
+def free_space_sampler(capture: Capture, bounds: SceneBounds, cfg, prior: Prior) -> FreeSpaceSampler | None:
+    """The sampler of the probes off the camera rays, when the loop asks for them and the prior
+    answers anywhere (`PriorCapabilities.envmaps_anywhere`); else None."""
+    if not cfg.envmap_free_probes or not prior.capabilities.envmaps_anywhere:
+        return None
+    return FreeSpaceSampler.for_capture(capture, bounds)
+
+
 def static_lattice_only(field_cfg: FieldConfig) -> FieldConfig:
     """No room lattice for a field with a time input: the lattice has none, so it holds the
     average of a light that switches and the time codes must undo it (measured: a switch's
-    on/off contrast at 200 steps 3.5 with it vs 8.9 without, tests/test_engine_distill.py; a static
+    on/off contrast at 200 steps 3.5 with it vs 8.9 without, one-off runs, tests/test_engine_distill.py; a static
     stretch at the camera drifted 5 %). A time-aware lattice is not built (docs/engine.md)."""
     return field_cfg.model_copy(update={"room_lattice": ()}) if field_cfg.uses_time and field_cfg.room_lattice else field_cfg
 
