@@ -168,13 +168,13 @@ def sweep_methods(budget: Budget) -> list[Method]:
     # The draft's own choices on the radiance path (issue 12), each turned off: what each costs
     # and buys at the draft's budget
     out.append(Method("abl-no-lattice", "field", "ablation", "MLP, draft without its room lattice (core.fields.lattice)",
-                      field="mlp", overrides=(("field.room_lattice", []),)))
+                      field="mlp", overrides=(("field.room_lattice", ()),)))
     out.append(Method("abl-no-free-probes", "field", "ablation",
                       "MLP, draft without free-space probes (a second surface probe per frame instead)",
                       field="mlp", overrides=(("distill.envmap_free_probes", 0), ("distill.envmap_surface_probes", 2))))
     out.append(Method("abl-no-view-fit", "field", "ablation",
                       "MLP, draft without the fit to the photo's pixels at the camera (no view directions, no view detail)",
-                      field="mlp", overrides=(("distill.envmap_view_directions", 0), ("field.view_detail_heights", []))))
+                      field="mlp", overrides=(("distill.envmap_view_directions", 0), ("field.view_detail_heights", ()))))
     return out
 
 

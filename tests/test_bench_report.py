@@ -198,3 +198,20 @@ def test_panorama_table_shows_ratios_correlation_and_the_truth_row():
     header = next(line for line in md.splitlines() if line.startswith("| split"))
     assert len(rows) == 4 and all(r.count("|") == header.count("|") for r in rows)
     assert "| dev | field | 2 | 20 | 0.750 | 0.750 |" in md and "truth (protocol ceiling)" in md
+
+
+@pytest.mark.parametrize("mode", ["quick", "full"])
+def test_every_bench_method_builds_its_config(mode):
+    """Each core and sweep method's overrides apply to the draft preset (a malformed override
+    surfaced only after a long bench run, as a per-method ERROR row)."""
+    from bench.methods import core_methods, sweep_methods
+    from bench.run import BenchOptions, resolve_mode
+
+    budget = resolve_mode(BenchOptions(quick=mode == "quick", iterations=600)).budget()
+    methods = core_methods() + sweep_methods(budget)
+    assert len({m.name for m in methods}) == len(methods)
+    configs = {m.name: m.config(budget.base) for m in methods if m.family == "field"}
+    assert configs["abl-no-lattice"].field.room_lattice == () and configs["mlp"].field.room_lattice
+    assert configs["abl-no-free-probes"].distill.envmap_probe_count == configs["mlp"].distill.envmap_probe_count
+    assert configs["abl-no-view-fit"].field.view_detail_heights == ()
+    assert hash(tuple(methods))  # frozen, hashable methods (the runner keys on them)

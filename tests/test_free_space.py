@@ -130,3 +130,9 @@ def test_only_priors_that_answer_anywhere_get_free_space_probes():
     assert isinstance(free_space_sampler(cap, scene_bounds(cap), cfg, known), FreeSpaceSampler)
     assert free_space_sampler(cap, scene_bounds(cap), cfg, Nearby(known.fn)) is None
     assert free_space_sampler(cap, scene_bounds(cap), cfg.model_copy(update={"envmap_free_probes": 0}), known) is None
+    # such a prior is not asked fewer questions: the free probes' places go to surface probes,
+    # on the camera rays in front of the scene
+    centers = supervision_probes(cap, 0, cfg, torch.Generator().manual_seed(0), None)
+    assert centers.shape == (cfg.envmap_probe_count, 3)
+    assert torch.allclose(centers[-1], cap.camera(0).position.float())
+    assert not bool(out_of_view(cap, centers[:-1]).any())

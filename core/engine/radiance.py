@@ -35,11 +35,14 @@ ROOM_DEPTH_FRACTION = (0.05, 0.95)
 def supervision_probes(capture: Capture, frame_index: int, cfg: DistillConfig, gen: torch.Generator,
                        free_space: FreeSpaceSampler | None = None) -> torch.Tensor:
     """World probe centres [N, 3] (float32) for one radiance step on frame `frame_index`:
-    surface, room, free-space (with a sampler) and last the camera centre."""
+    surface, room, free-space (with a sampler) and last the camera centre. Without a sampler
+    (a prior that answers only where the camera saw) the free-space probes' places go to
+    surface probes, so such a prior is not asked fewer questions per step."""
     cam = capture.camera(frame_index)
     k = cam.intrinsics
     centers: list[torch.Tensor] = []
-    for n, depth_fraction in ((cfg.envmap_surface_probes, cfg.probe_depth_fraction), (cfg.envmap_room_probes, ROOM_DEPTH_FRACTION)):
+    surface = cfg.envmap_surface_probes + (cfg.envmap_free_probes if free_space is None else 0)
+    for n, depth_fraction in ((surface, cfg.probe_depth_fraction), (cfg.envmap_room_probes, ROOM_DEPTH_FRACTION)):
         if n == 0:
             continue
         pixels, depths = sample_probes(capture, frame_index, cfg.model_copy(update={"n_probes": n, "probe_depth_fraction": depth_fraction}), gen)
