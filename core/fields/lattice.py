@@ -9,8 +9,9 @@ Every map starts at zero, so an untrained lattice changes nothing, and a texel m
 the loss reaches its taps: the lattice cannot ring. It has no time input: the network's time
 codes carry what changes. With `chroma_only` its residual has zero mean over the colour channels
 (each texel's mean is removed before use), so it moves a direction's colour and leaves its
-brightness (the geometric mean of the channels) alone up to the output sigmoid's curvature: the setting for a field with a time input, where a static brightness term would hold
-the average of a light that switches.
+brightness (the geometric mean of the channels) alone up to the output sigmoid's curvature: the
+setting for a field with a time input, where a static brightness term would hold the average of
+a light that switches.
 """
 from __future__ import annotations
 
