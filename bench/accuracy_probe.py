@@ -40,6 +40,16 @@ METRICS = ("si_rmse", "angular_deg", "nrmse")
 MATERIALS = ("diffuse", "matte", "mirror")
 
 
+def probe_method(name: str, base) -> "Method":
+    """The bench Method of one `--methods` entry, training the field kind of `base` (the draft's
+    unless `--set field.kind=...` changed it)."""
+    from bench.methods import Method
+
+    supervision = {"field": (), "field-balls": (("distill.supervision", "balls"),), "field-oracle": ()}[name]
+    return Method(name, "field", "paper", name, field=base.field.kind, overrides=supervision,
+                  prior="oracle" if name == "field-oracle" else "reprojection")
+
+
 def constant_maps(suite, height: int) -> torch.Tensor:
     from core.capture.load import load_capture
     from core.conventions import equirect_width, inverse_tonemap
@@ -165,9 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
             warnings.simplefilter("ignore")
             for method in args.methods.split(","):
-                sup = {"field": (), "field-balls": (("distill.supervision", "balls"),), "field-oracle": ()}[method]
-                m = Method(method, "field", "paper", method, field="mlp", overrides=sup,
-                           prior="oracle" if method == "field-oracle" else "reprojection")
+                m = probe_method(method, base)
                 t0 = time.process_time()
                 path = distill_with_seed(m, suite, base, Path(tmp) / method, args.seed)
                 seconds[method] = round(time.process_time() - t0, 1)

@@ -49,3 +49,15 @@ def test_markdown_table_names_the_worst_metric_with_its_interval():
     assert len(lines) == 4
     assert "| temporal | radiance + view (draft) | 12 | 1.20 (matte.nrmse) [1.05, 1.40] | 1.01 | 0.98 | 1.00 | 0.70 | 0.90 | 30.0 |" == lines[2]
     assert lines[3].startswith("| temporal | prior (shortcut) | 12 |")
+
+
+def test_a_field_kind_set_on_the_command_line_is_the_one_trained():
+    """`--set field.kind=trunk` must reach the distillation (it was silently replaced by the MLP)."""
+    from bench.accuracy_probe import probe_method
+    from core.engine.presets import preset
+
+    base = preset("draft").with_overrides({"field.kind": "trunk"})
+    assert probe_method("field", base).config(base).field.kind == "trunk"
+    assert probe_method("field-balls", base).config(base).distill.supervision == "balls"
+    assert probe_method("field-oracle", preset("draft")).prior == "oracle"
+    assert probe_method("field", preset("draft")).config(preset("draft")).field.kind == "mlp"
