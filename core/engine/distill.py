@@ -69,7 +69,7 @@ def distill(
     device = resolve_device(cfg.device)
     torch.manual_seed(seed)  # field initialisation (on CPU, then moved)
     gen = torch.Generator().manual_seed(seed)
-    field_cfg = with_view_detail(with_time_knots(lattice_for_time(config.field.with_time(uses_time)), capture.num_frames), capture)
+    field_cfg = with_view_detail(with_time_knots(static_lattice_only(config.field.with_time(uses_time)), capture.num_frames), capture)
     bounds = bounds or scene_bounds(capture, cfg.time_normalisation_frames)
     use_envmaps = cfg.uses_envmaps(prior.capabilities.envmaps)
     sources = emitter_sources(capture, prior, cfg, bounds, uses_time) if use_envmaps else None
@@ -179,16 +179,13 @@ def free_space_sampler(capture: Capture, bounds: SceneBounds, cfg, prior: Prior)
     return FreeSpaceSampler.for_capture(capture, bounds)
 
 
-def lattice_for_time(field_cfg: FieldConfig) -> FieldConfig:
-    """A field with a time input gets a colour-only room lattice. A full one has no time input:
-    it holds the average of a light that switches and the time codes must undo it (measured: a
-    switch's on/off contrast at 200 steps 3.5 with it vs 8.9 without, one-off runs,
+def static_lattice_only(field_cfg: FieldConfig) -> FieldConfig:
+    """No room lattice for a field with a time input: the lattice has none, so it holds the
+    average of a light that switches and the time codes must undo it (measured: a switch's
+    on/off contrast at 200 steps 3.5 with it vs 8.9 without, one-off runs,
     tests/test_engine_distill.py; a static stretch at the camera drifted 5 %). A colour-only
-    one leaves the brightness to the time codes (docs/engine.md: what it measured, and a lattice
-    with a time part, tried)."""
-    if field_cfg.uses_time and field_cfg.room_lattice:
-        return field_cfg.model_copy(update={"room_lattice_chroma_only": True})
-    return field_cfg
+    lattice was tried and not kept (docs/engine.md, "The lattice and time")."""
+    return field_cfg.model_copy(update={"room_lattice": ()}) if field_cfg.uses_time and field_cfg.room_lattice else field_cfg
 
 
 def time_knots(num_frames: int) -> int:

@@ -20,7 +20,7 @@ time part when the lighting changes); small bright sources in view (up to 4 lamp
 spheres with per-frame intensities (core.engine.emitters); its fields encode time with
 learned per-frame codes; and, when the lighting is static, an 8 x 4 x 8 room lattice of 16-row
 maps (core.fields.lattice) fits the slowly varying colour across the room, which the network
-alone fits slowly. Why and the measurements: docs/engine.md, "Radiance supervision"
+alone fits slowly (core.engine.distill.static_lattice_only). Why and the measurements: docs/engine.md, "Radiance supervision"
 (`python -m bench.accuracy_probe`).
 
 `seed` is the loop of the authors' released code (ORionTMT/Sig25_4DLighting run_video_demo.py

@@ -73,8 +73,7 @@ class LightField(nn.Module):
                 self.view_detail_time = TimeCodes(config.view_detail_time_knots, self.detail_time_rank)
             anchors = torch.tensor(config.view_anchors, dtype=torch.float32).reshape(-1, 3)
             self.register_buffer("view_anchors", anchors, persistent=False)  # in the config, not the weights
-        self.room_lattice = RoomLattice(config.room_lattice, config.room_lattice_height,
-                                        config.room_lattice_chroma_only) if config.room_lattice else None
+        self.room_lattice = RoomLattice(config.room_lattice, config.room_lattice_height) if config.room_lattice else None
         self.emitters = (Emitters(config.emitter_count, config.emitter_knots, config.emitter_gate_resolution)
                          if config.emitter_count else None)
 

@@ -7,7 +7,7 @@ lets a preset carry settings for every kind a job may pick, and keeps the artefa
 self-describing. JSON layout: {"kind", "uses_time", "log_radiance_min", "log_radiance_max",
 "view_detail_heights", "view_detail_radius", "view_anchors", "view_detail_time_rank",
 "view_detail_time_knots", "emitter_count", "emitter_knots", "emitter_gate_resolution",
-"emitter_sigma_floor", "room_lattice", "room_lattice_height", "room_lattice_chroma_only", "<kind>": {section}, ...}.
+"emitter_sigma_floor", "room_lattice", "room_lattice_height", "<kind>": {section}, ...}.
 """
 from __future__ import annotations
 
@@ -64,9 +64,6 @@ class FieldConfig(FieldSettings):
     # fits the slowly varying colour and brightness across the room fast. () = off.
     room_lattice: tuple[int, ...] = Field((), max_length=3)
     room_lattice_height: int = Field(8, ge=2, le=64)
-    # Only the colour: the lattice's residual has zero mean over the channels (the engine sets it
-    # for a field with a time input, whose brightness changes the time codes carry).
-    room_lattice_chroma_only: bool = False
     # kind -> its settings; given (and serialised) as one top-level key per kind
     sections: Mapping[str, SerializeAsAny[BaseModel]] = Field(default_factory=dict, repr=False)
 

@@ -11,7 +11,7 @@ from typing import Literal
 from pydantic import Field
 
 from core.conventions import direction_to_theta_phi, theta_phi_to_equirect_pixel
-from core.envmap import pad_poles, pixel_taps, taps_stencil
+from core.envmap import equirect_stencil, pad_poles, pixel_taps, taps_stencil
 from core.fields.config import FieldSettings
 
 
@@ -186,3 +186,22 @@ def multilinear_lookup(grid: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     index, weight = lattice_corners(v, tuple(grid.shape[:-1]))
     flat = grid.reshape(-1, grid.shape[-1])
     return (weight[..., None] * flat[index]).sum(1)
+
+
+def lattice_maps_lookup(maps: torch.Tensor, node: torch.Tensor, w_node: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """Equirect maps [M, h, 2h, C] at lattice nodes, read at a node stencil (node, w_node) [B, K]
+    (from `lattice_corners`) along unit directions d [B, 3]: multilinear over the nodes, bilinear
+    over d (core.envmap's stencil: seam wrap, pole rows) -> [B, C]. The grid field's and the room
+    lattice's per-ray path."""
+    pix, w_pix = equirect_stencil(d, maps.shape[1])  # [B, 4]
+    padded = pad_poles(maps)  # [M, texels, C]
+    flat = padded.reshape(-1, padded.shape[-1])
+    index = node[:, :, None] * padded.shape[1] + pix[:, None, :]  # [B, K, 4]
+    weight = (w_node[:, :, None] * w_pix[:, None, :]).to(flat.dtype)
+    return (weight[..., None] * flat[index]).sum(dim=(1, 2))
+
+
+def blend_lattice_maps(maps: torch.Tensor, node: torch.Tensor, w_node: torch.Tensor) -> torch.Tensor:
+    """The maps [M, h, 2h, C] blended at each probe's node stencil [P, K] -> [P, h, 2h, C]: the
+    per-probe path (linear, so resampling the blend equals `lattice_maps_lookup` per direction)."""
+    return (w_node[..., None, None, None].to(maps.dtype) * maps[node]).sum(1)

@@ -22,7 +22,7 @@ from core.conventions import equirect_directions, equirect_width
 from core.envmap import equirect_stencil, pad_poles
 from core.fields.base import INITIAL_RADIANCE, LightField, direction_blocks, probe_chunks
 from core.fields.config import FieldConfig, FieldSettings
-from core.fields.encodings import lattice_corners
+from core.fields.encodings import blend_lattice_maps, lattice_corners, lattice_maps_lookup
 from core.fields.normalization import SceneBounds
 from core.fields.registry import register_field
 
@@ -60,19 +60,13 @@ class GridField(LightField):
 
     def logits(self, xn, tn, d):
         node, w_node = lattice_corners(self._lattice_coords(xn, tn), self.lattice_dims)  # [B, C]
-        pix, w_pix = equirect_stencil(d, self.settings.env_height)  # [B, 4]
-        padded = pad_poles(self.maps)  # [M, (h+2) * w, 3]
-        texels = padded.shape[1]
-        flat = padded.reshape(-1, 3)
-        index = node[:, :, None] * texels + pix[:, None, :]  # [B, C, 4]
-        weight = w_node[:, :, None] * w_pix[:, None, :]
-        return (weight[..., None] * flat[index]).sum(dim=(1, 2))
+        return lattice_maps_lookup(self.maps, node, w_node, d)
 
     def _envmap_logits(self, xn, tn, dirs, chunk_rows: int) -> torch.Tensor:
         """Blend the lattice maps once per probe, then resample them at `dirs` (both linear, so
         this equals evaluating every (probe, direction) pair)."""
         node, w_node = lattice_corners(self._lattice_coords(xn, tn), self.lattice_dims)  # [P, C]
-        blended = (w_node[..., None, None, None] * self.maps[node]).sum(1)  # [P, h, w, 3]
+        blended = blend_lattice_maps(self.maps, node, w_node)  # [P, h, w, 3]
         h = self.settings.env_height
         if dirs.shape[0] == h * equirect_width(h) and torch.equal(dirs, equirect_directions(h, device=dirs.device).reshape(-1, 3)):
             return blended.reshape(xn.shape[0], -1, 3)  # same pixel centres: sampling is the identity
