@@ -19,7 +19,9 @@ added through a lens PSF (synthetic_lamp_samples; up to 8 stops, with glare).
 Rules compared: the old fixed boost (8x), the best single boost fitted on dev (same weights), and the blob
 rule (core.capture.highlights.RULE_COEFFICIENTS). `--fit` refits the rule's coefficients on
 the real dev blobs (weighted least squares in stops) and reports leave-one-panorama-out
-error on dev too; the synthetic lamps are reported as a stress test, not fitted. Tune on
+error on dev too; the synthetic lamps are reported as a stress test, not fitted. Colour
+(`colour`): the white-hot pixels' estimate left white vs in the halo's spill colour
+(core.capture.highlights.Blob.spill_colour), degrees between RGB vectors. Tune on
 `dev` only; `--splits test` is run once at the end and reported whatever it says.
 """
 from __future__ import annotations
@@ -82,8 +84,71 @@ def blob_samples(path: Path) -> list[dict]:
             true = float(y_true[sel].mean()) / max(float(y_lin[sel].mean()), 1e-9)
             out.append({"file": path.name, "features": list(blob.features()), "area_px": blob.area_px,
                         "halo": list(blob.halo), "ring_pixels": list(blob.ring_pixels), "white_fraction": blob.white_fraction,
-                        "true_stops": math.log2(max(true, 1e-9)), "energy": float(y_true[sel].sum())})
+                        "true_stops": math.log2(max(true, 1e-9)), "energy": float(y_true[sel].sum()),
+                        **colour_sample(hdr.numpy(), lin, sel, blob)})
     return out
+
+
+def colour_sample(true_rgb: np.ndarray, lin: np.ndarray, sel: np.ndarray, blob) -> dict:
+    """A blob's white-hot pixels (every channel clipped: the ones the spill colour recolours):
+    their true mean RGB and the rule's colour for them (None: left white)."""
+    from core.capture.highlights import CLIP_LDR
+    from core.conventions import inverse_tonemap
+
+    hot = sel & (lin.min(axis=-1) >= float(inverse_tonemap(torch.tensor(CLIP_LDR))))
+    if not hot.any():
+        return {"hot_true_rgb": None, "spill_colour": None}
+    return {"hot_true_rgb": [float(v) for v in true_rgb[hot].mean(0)], "hot_energy": float(true_rgb[hot].sum()),
+            "spill_colour": blob.spill_colour(), "halo_rgb": [list(c) if c is not None else None for c in blob.halo_rgb]}
+
+
+COLOUR_SWEEP_EXCESS = (0.01, 0.02, 0.05, 0.1, 0.2)
+COLOUR_SWEEP_RATIO = (0.3, 0.5, 0.7)
+
+
+def colour_sweep(samples: list[dict]) -> list[dict]:
+    """`colour_errors` with the spill colour's two settings swept (tune on dev only)."""
+    from core.capture.highlights import Blob
+
+    out = []
+    for excess in COLOUR_SWEEP_EXCESS:
+        for ratio in COLOUR_SWEEP_RATIO:
+            redone = []
+            for s in samples:
+                if s.get("hot_true_rgb") is None:
+                    continue
+                blob = Blob(s["area_px"], 0.0, tuple(s["halo"]), tuple(s["ring_pixels"]), s["white_fraction"],
+                            tuple(tuple(c) if c is not None else None for c in s["halo_rgb"]))
+                redone.append({**s, "spill_colour": blob.spill_colour(excess, ratio)})
+            e = colour_errors(redone)
+            out.append({"min_excess": excess, "min_ratio": ratio, "recoloured": e["recoloured"],
+                        **{k: round(v, 3) for k, v in e["spill_colour"].items()}})
+    return out
+
+
+def colour_angle_deg(a, b) -> float:
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    cos = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-30)
+    return math.degrees(math.acos(min(max(cos, -1.0), 1.0)))
+
+
+def colour_errors(samples: list[dict]) -> dict:
+    """Colour error (degrees between RGB vectors) of the white-hot pixels' estimate: left white
+    (the boost alone) vs the spill colour where the halo gives one; mean per blob and weighted
+    by the pixels' true energy, over the blobs with white-hot pixels."""
+    hot = [s for s in samples if s.get("hot_true_rgb") is not None]
+    if not hot:
+        return {"blobs": 0}
+    w = np.array([s["hot_energy"] for s in hot])
+    white = np.array([colour_angle_deg(s["hot_true_rgb"], (1.0, 1.0, 1.0)) for s in hot])
+    spill = np.array([colour_angle_deg(s["hot_true_rgb"], s["spill_colour"] or (1.0, 1.0, 1.0)) for s in hot])
+    used = np.array([s["spill_colour"] is not None for s in hot])
+
+    def summary(e, w):
+        return {"mean_deg": float(e.mean()), "median_deg": float(np.median(e)), "energy_weighted_deg": float((e * w).sum() / w.sum())}
+
+    return {"blobs": len(hot), "recoloured": int(used.sum()), "white": summary(white, w), "spill_colour": summary(spill, w),
+            "recoloured_only": {"white": summary(white[used], w[used]), "spill_colour": summary(spill[used], w[used])} if used.any() else None}
 
 
 def lens_psf(sigma: float, glare: float, tail_px: float = 4.0, half: int = 15) -> torch.Tensor:
@@ -132,7 +197,8 @@ def synthetic_lamp_samples(path: Path) -> list[dict]:
         b = blobs[k - 1]
         out.append({"file": path.name, "features": list(b.features()), "area_px": b.area_px,
                     "halo": list(b.halo), "ring_pixels": list(b.ring_pixels), "white_fraction": b.white_fraction,
-                    "true_stops": math.log2(max(t, 1e-9)), "energy": float(y_true[sel].sum()), "synthetic": True})
+                    "true_stops": math.log2(max(t, 1e-9)), "energy": float(y_true[sel].sum()), "synthetic": True,
+                    **colour_sample(true.numpy(), lin, sel, b)})
     return out
 
 
@@ -167,7 +233,8 @@ def evaluate(samples: list[dict], coefficients, constant_stops: float) -> dict:
     X = np.array([s["features"] for s in samples])
     return {"fixed_8x": errors(samples, np.full(len(samples), math.log2(FIXED_BOOST))),
             "best_constant": errors(samples, np.full(len(samples), constant_stops)),
-            "rule": errors(samples, predict_stops(X, coefficients))}
+            "rule": errors(samples, predict_stops(X, coefficients)),
+            "colour": colour_errors(samples)}
 
 
 def leave_one_panorama_out(samples: list[dict]) -> dict:
@@ -193,6 +260,7 @@ def main(argv=None) -> int:
     p.add_argument("--splits", default="dev", help="comma-separated: dev (tuning) and/or test (report once)")
     p.add_argument("--fit", action="store_true", help="refit the coefficients on dev and print them")
     p.add_argument("-o", "--out", default=None)
+    p.add_argument("--colour-sweep", action="store_true", help="also sweep the spill colour's settings on dev")
     p.add_argument("--samples-out", default=None, help="also write every blob's features and truth (JSON)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -218,6 +286,8 @@ def main(argv=None) -> int:
     report["dev_synthetic_lamps"] = evaluate(lamps, coefficients, constant)
     for split in args.splits.split(","):
         report["splits"][split] = evaluate(by_split[split], coefficients, constant)
+    if args.colour_sweep:
+        report["dev_colour_sweep"] = {"real": colour_sweep(dev), "synthetic_lamps": colour_sweep(lamps)}
     if args.samples_out:
         Path(args.samples_out).write_text(json.dumps({"dev": dev, "lamps": lamps, **{k: v for k, v in by_split.items() if k != "dev"}}))
     text = json.dumps(report, indent=1)

@@ -137,3 +137,38 @@ def test_prior_compares_frames_only_for_a_static_camera_under_static_lighting():
     changing = linear_frames(cap, lighting_changes=True)
     assert float(static[0, 40, 60, 1]) == pytest.approx(6.0, rel=0.1)
     assert float(changing[0, 40, 60, 1]) != pytest.approx(6.0, rel=0.1)
+
+
+def colour_angle(a: torch.Tensor, b: torch.Tensor) -> float:
+    return math.degrees(math.acos(float(torch.nn.functional.cosine_similarity(a.double(), b.double(), dim=0).clamp(-1, 1))))
+
+
+def test_white_hot_lamp_takes_its_halos_colour():
+    """Every channel of a warm lamp clips, so the blob itself says "white"; its halo's excess
+    over the wall carries the lamp's colour (Blob.spill_colour). The estimate is closer to the
+    lamp's colour than white is (SPILL_COLOUR_MIN_RATIO caps the saturation, so not equal),
+    and no channel of a recoloured pixel falls below white."""
+    tint = torch.tensor([1.0, 0.75, 0.5], dtype=torch.float64)
+    lamp = lamp_scene(16.0, 2.0, wall=0.0, glare=0.05)
+    true = lamp[..., None] * tint + 0.05  # a grey wall lit by the room, plus the lamp's light
+    ldr = (torch.round(true.clamp(0, 1) ** (1 / 2.4) * 255) / 255).float()
+    hot = ldr.amin(-1) >= 0.99
+    assert hot.sum() > 4
+    est = linearise_highlights(ldr[None], INTR, compare_frames=False)[0].double()
+    colour = est[hot].mean(0)
+    assert colour_angle(colour, tint) < 0.6 * colour_angle(torch.ones(3), tint)
+    assert bool((est[hot] >= inverse_tonemap(torch.tensor(0.99)).item() - 1e-6).all())
+
+
+def test_lamp_without_halo_stays_white():
+    """A hard-edged lamp on a uniform wall: no excess in its halo, so no colour is invented."""
+    H, W = 96, 128
+    yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    true = torch.full((H, W, 3), 0.05, dtype=torch.float64)
+    true[((yy - 40) ** 2 + (xx - 60) ** 2) <= 9] = torch.tensor([16.0, 8.0, 4.0], dtype=torch.float64)
+    ldr = (torch.round(true.clamp(0, 1) ** (1 / 2.4) * 255) / 255).float()
+    labels, blobs = find_blobs(inverse_tonemap(ldr).numpy(), clipped_mask(ldr).numpy(), 1e-4)
+    assert len(blobs) == 1 and blobs[0].spill_colour() is None
+    est = linearise_highlights(ldr[None], INTR, compare_frames=False)[0]
+    hot = clipped_mask(ldr)
+    assert torch.allclose(est[hot][:, 0], est[hot][:, 2])

@@ -19,6 +19,13 @@ clipped pixels, any channel >= CLIP_LDR), a radiance factor from what the captur
    measured error in stops and its known limit (very bright point sources are
    underestimated) are in docs/highlights.md. A log-linear extrapolation of the halo into
    the core was tried and got no weight on dev.
+3. The colour of a white-hot blob (`spill_colour`): its pixels say only "every channel at
+   least white", so the rule's factor would leave a warm lamp white. The halo's excess over
+   its background is the source's own light (lens glare and blur spill it past the edge; the
+   surface around a lamp is lit by it), so its chromaticity stands for the source's, where
+   that excess is clear of the background (SPILL_COLOUR_MIN_EXCESS) and only as saturated as
+   SPILL_COLOUR_MIN_RATIO allows (a coloured wall tints the spill too). No channel of a
+   recoloured pixel drops below its linearised value: it is still at least white.
 
 Everything is in the linear units of core.conventions.inverse_tonemap (white = 1 at ev 0).
 """
@@ -41,6 +48,11 @@ MAX_BOOST_STOPS = 12.0
 HALO_FLOOR = 1e-4  # darker halo rings count as this (linear, white = 1)
 # Fitted by `python -m bench.clip_rule --fit` on the dev panoramas (see docs/highlights.md).
 RULE_COEFFICIENTS = (-0.452, -0.042, -0.808, 1.247, -0.075)
+# The spill's colour is used when its excess luminance over the background is at least this
+# share of the background (else it is noise on the background's own colour), with each
+# channel at least SPILL_COLOUR_MIN_RATIO of the largest (a tinted wall tints the spill too).
+SPILL_COLOUR_MIN_EXCESS = 0.05
+SPILL_COLOUR_MIN_RATIO = 0.7
 MIN_EXPOSURE_RATIO_PIXELS = 64  # unclipped mid-tone pixels needed to trust a frame's exposure ratio
 
 
@@ -53,6 +65,7 @@ class Blob:
     halo: tuple[float | None, ...]  # mean linear luminance of rings 1..HALO_RINGS px outside (None: no pixels)
     ring_pixels: tuple[int, ...] = ()  # unclipped pixels in each ring
     white_fraction: float = 1.0  # of its pixels, the share with ALL channels clipped (white-hot, not a coloured surface)
+    halo_rgb: tuple[tuple[float, float, float] | None, ...] = ()  # mean linear RGB of the same rings
 
     def edge_stops(self) -> float:
         """log2 of the nearest measured halo ring's luminance (0 = white; no ring: 0)."""
@@ -70,6 +83,25 @@ class Blob:
         background = sum(v * n for v, n in outer) / sum(n for _, n in outer)
         excess = sum(max(v - background, 0.0) * n for v, n in rings[:-BACKGROUND_RINGS])
         return math.log2(max(excess / self.area_px, HALO_FLOOR))
+
+    def spill_colour(self, min_excess: float = SPILL_COLOUR_MIN_EXCESS,
+                     min_ratio: float = SPILL_COLOUR_MIN_RATIO) -> tuple[float, float, float] | None:
+        """The chromaticity (luminance 1) of the halo's light above its background (rings as
+        `spill_stops`), or None where that excess is not clear of the background."""
+        rings = [(np.asarray(c), n) for c, n in zip(self.halo_rgb, self.ring_pixels) if c is not None and n > 0]
+        if len(rings) <= BACKGROUND_RINGS:
+            return None
+        outer = rings[-BACKGROUND_RINGS:]
+        background = sum(c * n for c, n in outer) / sum(n for _, n in outer)
+        inner = rings[:-BACKGROUND_RINGS]
+        excess = sum((c - background) * n for c, n in inner) / sum(n for _, n in inner)
+        weights = np.asarray(LUMINANCE_WEIGHTS)
+        y_excess, y_background = float(excess @ weights), float(background @ weights)
+        if y_excess <= min_excess * max(y_background, HALO_FLOOR):
+            return None
+        rgb = np.maximum(excess, min_ratio * excess.max())
+        rgb = rgb / float(rgb @ weights)
+        return (float(rgb[0]), float(rgb[1]), float(rgb[2]))
 
     def features(self) -> tuple[float, ...]:
         """(1, log2 area / REF_AREA_SR, edge_stops, white_fraction, spill_stops): the rule's inputs."""
@@ -108,14 +140,17 @@ def find_blobs(linear: np.ndarray, clipped: np.ndarray, pixel_sr: float) -> tupl
         dist = ndimage.distance_transform_edt(~own)
         usable = ~clipped[r0:r1, c0:c1]  # other blobs are no halo
         yy = y[r0:r1, c0:c1]
-        halo, counts = [], []
+        rgb = linear[r0:r1, c0:c1].astype(np.float64)
+        halo, halo_rgb, counts = [], [], []
         for ring in range(1, HALO_RINGS + 1):
             sel = usable & (dist > ring - 0.5) & (dist <= ring + 0.5)
             halo.append(float(yy[sel].mean()) if sel.any() else None)
+            halo_rgb.append(tuple(float(v) for v in rgb[sel].mean(0)) if sel.any() else None)
             counts.append(int(sel.sum()))
         area = int(own.sum())
         white = float(all_clipped[r0:r1, c0:c1][own].mean())
-        blobs.append(Blob(area, area * pixel_sr, tuple(halo), ring_pixels=tuple(counts), white_fraction=white))
+        blobs.append(Blob(area, area * pixel_sr, tuple(halo), ring_pixels=tuple(counts), white_fraction=white,
+                          halo_rgb=tuple(halo_rgb)))
     return labels, blobs
 
 
@@ -125,11 +160,25 @@ def blob_boost(blob: Blob, coefficients=RULE_COEFFICIENTS) -> float:
     return 2.0 ** min(max(stops, 0.0), MAX_BOOST_STOPS)
 
 
-def boost_map(linear: np.ndarray, clipped: np.ndarray, pixel_sr: float, coefficients=RULE_COEFFICIENTS) -> np.ndarray:
-    """Per-pixel factor [H, W] of one frame: 1 where unclipped, the blob's boost inside blobs."""
+def estimate_clipped(linear: np.ndarray, clipped: np.ndarray, pixel_sr: float, coefficients=RULE_COEFFICIENTS) -> np.ndarray:
+    """One frame's linear radiance [H, W, 3] with each clipped blob estimated: its pixels times
+    the blob's boost, and its white-hot pixels (every channel clipped) in the spill's colour
+    where the halo gives one (`Blob.spill_colour`), never below their linearised value."""
     labels, blobs = find_blobs(linear, clipped, pixel_sr)
-    factors = np.concatenate([[1.0], [blob_boost(b, coefficients) for b in blobs]])
-    return factors[labels]
+    out = linear.astype(np.float64, copy=True)
+    if not blobs:
+        return out
+    white_hot = linear.min(axis=-1) >= inverse_tonemap(torch.tensor(CLIP_LDR)).item()
+    for k, blob in enumerate(blobs, start=1):
+        own = labels == k
+        boost = blob_boost(blob, coefficients)
+        out[own] *= boost
+        colour = blob.spill_colour()
+        if colour is not None:
+            hot = own & white_hot
+            y = out[hot] @ np.asarray(LUMINANCE_WEIGHTS)
+            out[hot] = np.maximum(y[:, None] * np.asarray(colour)[None, :], linear[hot])
+    return out
 
 
 def exposure_ratios(linear: torch.Tensor, clipped: torch.Tensor) -> torch.Tensor | None:
@@ -195,6 +244,5 @@ def linearise_highlights(frames: torch.Tensor, intrinsics, compare_frames: bool,
         still = (clipped[t] & ~recovered[t]).numpy()
         if not still.any():
             continue
-        factor = boost_map(lin[t].numpy(), still, pixel_sr, coefficients)
-        lin[t] *= torch.from_numpy(factor).to(lin.dtype)[..., None]
+        lin[t] = torch.from_numpy(estimate_clipped(lin[t].numpy(), still, pixel_sr, coefficients)).to(lin.dtype)
     return lin
