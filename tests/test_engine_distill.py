@@ -94,6 +94,19 @@ def test_light_switch_off_is_recovered_in_time():
     assert on / off > 4, (float(on), float(off))
 
 
+def test_a_time_fields_lattice_stays_frozen_until_its_start_step():
+    """The room lattice of a field with a time input trains only from `time_lattice_start` of
+    the steps on: started after the last step it is still zero; started halfway it moved."""
+    cap = capture_from_arrays(torch.rand(2, H, W, 3, generator=torch.Generator().manual_seed(2)))
+    moved = {}
+    for start in (0.95, 0.5):
+        prior = ReprojectionPrior(env_height=8)
+        prior.bind(cap)
+        field = distill(cap, prior, tiny(iterations=10, time_lattice_start=start), uses_time=True, seed=0).field
+        moved[start] = float(field.room_lattice.maps.detach().abs().max())
+    assert moved[0.95] == 0.0 and moved[0.5] > 0.0, moved
+
+
 def _weights(field):
     return {k: v.clone() for k, v in field.state_dict().items()}
 

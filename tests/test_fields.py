@@ -428,10 +428,16 @@ def test_room_lattice_is_local_in_position_and_direction_and_validated():
 
 
 
-def test_a_time_field_gets_no_lattice_and_a_static_one_keeps_it():
-    """A static lattice would hold the average of a light that switches: the engine drops it for
-    a field with a time input (a colour-only one was tried and not kept, docs/engine.md)."""
-    from core.engine.distill import static_lattice_only
+def test_a_time_field_trains_its_lattice_late_or_drops_it():
+    """A lattice trained from the first step would hold the average of a light that switches:
+    a field with a time input trains it from `time_lattice_start` of the steps on (static
+    fields from the start), and drops it at 1 (docs/engine.md, "The lattice and time")."""
+    from core.engine.config import DistillConfig
+    from core.engine.distill import lattice_for_time, lattice_start_step
 
-    assert static_lattice_only(lattice_config("mlp")).room_lattice == ()
-    assert static_lattice_only(lattice_config("mlp").with_time(False)).room_lattice == (3, 2, 3)
+    timed, static = lattice_config("mlp"), lattice_config("mlp").with_time(False)
+    half, never = DistillConfig(iterations=600, time_lattice_start=0.5), DistillConfig(iterations=600, time_lattice_start=1.0)
+    assert lattice_for_time(timed, half).room_lattice == (3, 2, 3)
+    assert lattice_for_time(timed, never).room_lattice == ()
+    assert lattice_for_time(static, never).room_lattice == (3, 2, 3)
+    assert lattice_start_step(timed, half) == 300 and lattice_start_step(static, half) == 0

@@ -73,6 +73,9 @@ class DistillConfig(BaseModel):
     linear_weight: float = Field(0.1, ge=0, description="weight of the relative linear (energy) term")
     chroma_weight: float = Field(0.0, ge=0, description="extra weight of the log error's colour part (radiance loss)")
     time_tv_weight: float = Field(0.01, ge=0, description="L1 total variation of the field's time codes (if any)")
+    time_lattice_start: float = Field(
+        0.5, ge=0, le=1, description="a field with a time input trains its room lattice (if any) from this fraction of the "
+                                     "steps on, after its time codes have learnt the changes; 1: such a field gets no lattice")
     time_normalisation_frames: int | None = Field(
         None, ge=2, description="normalise time as if the clip had this many frames (the authors' release: 30); None: over the capture")
     # Per-step tensors are small (a few thousand ball samples): intra-op threads cost more in

@@ -69,7 +69,7 @@ def distill(
     device = resolve_device(cfg.device)
     torch.manual_seed(seed)  # field initialisation (on CPU, then moved)
     gen = torch.Generator().manual_seed(seed)
-    field_cfg = with_view_detail(with_time_knots(static_lattice_only(config.field.with_time(uses_time)), capture.num_frames), capture)
+    field_cfg = with_view_detail(with_time_knots(lattice_for_time(config.field.with_time(uses_time), cfg), capture.num_frames), capture)
     bounds = bounds or scene_bounds(capture, cfg.time_normalisation_frames)
     use_envmaps = cfg.uses_envmaps(prior.capabilities.envmaps)
     sources = emitter_sources(capture, prior, cfg, bounds, uses_time) if use_envmaps else None
@@ -95,10 +95,13 @@ def distill(
                       use_envmaps=use_envmaps, floors=frame_floors(frames_lin, cfg.log_floor_fraction),
                       view_rays=view_rays(capture, cfg, prior) if use_envmaps else None,
                       free_space=free_space_sampler(capture, bounds, cfg, prior) if use_envmaps else None)
+    lattice_from = lattice_start_step(field_cfg, cfg)
     reporter.begin(start)
     reporter.check_cancel()  # then once per step, in reporter.step (a store query in the worker)
     with _torch_threads(cfg.threads):
         for step in range(start, cfg.iterations):
+            if field.room_lattice is not None:  # from the step alone, so a resumed run repeats it
+                field.room_lattice.requires_grad_(step >= lattice_from)
             losses.append(trainer.step(step))
             if checkpoint_dir is not None and (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.iterations:
                 with timings("checkpoint"):
@@ -179,13 +182,22 @@ def free_space_sampler(capture: Capture, bounds: SceneBounds, cfg, prior: Prior)
     return FreeSpaceSampler.for_capture(capture, bounds)
 
 
-def static_lattice_only(field_cfg: FieldConfig) -> FieldConfig:
-    """No room lattice for a field with a time input: the lattice has none, so it holds the
-    average of a light that switches and the time codes must undo it (measured: a switch's
-    on/off contrast at 200 steps 3.5 with it vs 8.9 without, one-off runs,
-    tests/test_engine_distill.py; a static stretch at the camera drifted 5 %). A colour-only
-    lattice was tried and not kept (docs/engine.md, "The lattice and time")."""
-    return field_cfg.model_copy(update={"room_lattice": ()}) if field_cfg.uses_time and field_cfg.room_lattice else field_cfg
+def lattice_for_time(field_cfg: FieldConfig, cfg) -> FieldConfig:
+    """A field with a time input keeps its room lattice unless `cfg.time_lattice_start` is 1.
+    The lattice has no time input, so trained from the first step it holds the average of a
+    light that switches and the time codes must undo it (a switch's on/off contrast at 200
+    steps 3.5 with it vs 8.9 without, one-off runs of tests/test_engine_distill.py's; a static
+    stretch at the camera drifted 5 %); `lattice_start_step` trains it only once the codes
+    have learnt the changes (measured: docs/engine.md, "The lattice and time")."""
+    if field_cfg.uses_time and field_cfg.room_lattice and cfg.time_lattice_start >= 1.0:
+        return field_cfg.model_copy(update={"room_lattice": ()})
+    return field_cfg
+
+
+def lattice_start_step(field_cfg: FieldConfig, cfg) -> int:
+    """The first step at which the room lattice trains: 0 for a field without a time input,
+    else `time_lattice_start` of the steps (before it the lattice is frozen at zero)."""
+    return math.ceil(cfg.time_lattice_start * cfg.iterations) if field_cfg.uses_time else 0
 
 
 def time_knots(num_frames: int) -> int:

@@ -7,8 +7,9 @@ lattice over the normalised box [-1, 1]^3; the residual at (xn, d) is trilinear 
 and bilinear over d (core.envmap's stencil: seam wrap, pole rows), like the grid field's maps.
 Every map starts at zero, so an untrained lattice changes nothing, and a texel moves only where
 the loss reaches its taps: the lattice cannot ring. It has no time input: the network's time
-codes carry what changes, and the engine gives it only to fields without a time input
-(core.engine.distill.static_lattice_only).
+codes carry what changes, and for a field with a time input the engine trains the lattice only
+in the second half of the steps, once the codes have learnt the changes
+(core.engine.distill.lattice_start_step).
 """
 from __future__ import annotations
 
