@@ -92,10 +92,9 @@ def blob_samples(path: Path) -> list[dict]:
 def colour_sample(true_rgb: np.ndarray, lin: np.ndarray, sel: np.ndarray, blob) -> dict:
     """A blob's white-hot pixels (every channel clipped: the ones the spill colour recolours):
     their true mean RGB and the rule's colour for them (None: left white)."""
-    from core.capture.highlights import CLIP_LDR
-    from core.conventions import inverse_tonemap
+    from core.capture.highlights import white_hot_mask
 
-    hot = sel & (lin.min(axis=-1) >= float(inverse_tonemap(torch.tensor(CLIP_LDR))))
+    hot = sel & white_hot_mask(lin)
     if not hot.any():
         return {"hot_true_rgb": None, "spill_colour": None}
     return {"hot_true_rgb": [float(v) for v in true_rgb[hot].mean(0)], "hot_energy": float(true_rgb[hot].sum()),

@@ -109,6 +109,11 @@ class Blob:
                 self.spill_stops())
 
 
+def white_hot_mask(linear: np.ndarray) -> np.ndarray:
+    """[H, W, 3] linear radiance (of an LDR frame) -> [H, W] bool: every channel clipped."""
+    return linear.min(axis=-1) >= inverse_tonemap(torch.tensor(CLIP_LDR)).item()
+
+
 def clipped_mask(ldr: torch.Tensor) -> torch.Tensor:
     """[..., H, W, 3] LDR -> [..., H, W] bool: any channel at or above CLIP_LDR."""
     return ldr.amax(dim=-1) >= CLIP_LDR
@@ -130,7 +135,7 @@ def find_blobs(linear: np.ndarray, clipped: np.ndarray, pixel_sr: float) -> tupl
         return labels, []
     y = linear.astype(np.float64) @ np.asarray(LUMINANCE_WEIGHTS)
     H, W = clipped.shape
-    all_clipped = linear.min(axis=-1) >= inverse_tonemap(torch.tensor(CLIP_LDR)).item()
+    all_clipped = white_hot_mask(linear)
     blobs = []
     pad = HALO_RINGS + 1
     for k, sl in enumerate(ndimage.find_objects(labels), start=1):
@@ -168,7 +173,7 @@ def estimate_clipped(linear: np.ndarray, clipped: np.ndarray, pixel_sr: float, c
     out = linear.astype(np.float64, copy=True)
     if not blobs:
         return out
-    white_hot = linear.min(axis=-1) >= inverse_tonemap(torch.tensor(CLIP_LDR)).item()
+    white_hot = white_hot_mask(linear)
     for k, blob in enumerate(blobs, start=1):
         own = labels == k
         boost = blob_boost(blob, coefficients)
