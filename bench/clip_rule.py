@@ -126,9 +126,10 @@ def colour_sweep(samples: list[dict]) -> list[dict]:
 
 
 def colour_angle_deg(a, b) -> float:
-    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    cos = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-30)
-    return math.degrees(math.acos(min(max(cos, -1.0), 1.0)))
+    """Degrees between two RGB vectors (core.metrics.angular_error_deg on one pixel)."""
+    from core.metrics import angular_error_deg
+
+    return angular_error_deg(torch.tensor([a], dtype=torch.float64), torch.tensor([b], dtype=torch.float64))
 
 
 def colour_errors(samples: list[dict]) -> dict:

@@ -16,6 +16,7 @@ from core.capture.highlights import (
     recover_from_exposures,
 )
 from core.conventions import inverse_tonemap
+from core.metrics import angular_error_deg
 
 INTR = Intrinsics.from_hfov(128, 96, 60.0)
 SYNTHETIC_LAMP_MAX_ERROR_STOPS = 1.25  # stated in docs/highlights.md (lamps up to 64x white, <= 3 px)
@@ -140,7 +141,7 @@ def test_prior_compares_frames_only_for_a_static_camera_under_static_lighting():
 
 
 def colour_angle(a: torch.Tensor, b: torch.Tensor) -> float:
-    return math.degrees(math.acos(float(torch.nn.functional.cosine_similarity(a.double(), b.double(), dim=0).clamp(-1, 1))))
+    return angular_error_deg(a.double()[None], b.double()[None])
 
 
 def test_white_hot_lamp_takes_its_halos_colour():

@@ -427,7 +427,6 @@ def test_room_lattice_is_local_in_position_and_direction_and_validated():
             FieldConfig.model_validate({**tiny_config("mlp").model_dump(), "room_lattice": bad})
 
 
-
 def test_a_time_field_trains_its_lattice_late_or_drops_it():
     """A lattice trained from the first step would hold the average of a light that switches:
     a field with a time input trains it from `time_lattice_start` of the steps on (static

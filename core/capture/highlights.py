@@ -76,24 +76,21 @@ class Blob:
         """log2 of the light the halo holds above its background, per blob pixel (white = 1):
         a blurred source spills a share of its energy past its edge, in proportion to its
         radiance. Background: the mean of the outer BACKGROUND_RINGS rings."""
-        rings = [(v, n) for v, n in zip(self.halo, self.ring_pixels) if v is not None and n > 0]
-        if len(rings) <= BACKGROUND_RINGS:
+        split = halo_and_background(self.halo, self.ring_pixels)
+        if split is None:
             return math.log2(HALO_FLOOR)
-        outer = rings[-BACKGROUND_RINGS:]
-        background = sum(v * n for v, n in outer) / sum(n for _, n in outer)
-        excess = sum(max(v - background, 0.0) * n for v, n in rings[:-BACKGROUND_RINGS])
+        inner, background = split
+        excess = sum(max(v - background, 0.0) * n for v, n in inner)
         return math.log2(max(excess / self.area_px, HALO_FLOOR))
 
     def spill_colour(self, min_excess: float = SPILL_COLOUR_MIN_EXCESS,
                      min_ratio: float = SPILL_COLOUR_MIN_RATIO) -> tuple[float, float, float] | None:
         """The chromaticity (luminance 1) of the halo's light above its background (rings as
         `spill_stops`), or None where that excess is not clear of the background."""
-        rings = [(np.asarray(c), n) for c, n in zip(self.halo_rgb, self.ring_pixels) if c is not None and n > 0]
-        if len(rings) <= BACKGROUND_RINGS:
+        split = halo_and_background([None if c is None else np.asarray(c) for c in self.halo_rgb], self.ring_pixels)
+        if split is None:
             return None
-        outer = rings[-BACKGROUND_RINGS:]
-        background = sum(c * n for c, n in outer) / sum(n for _, n in outer)
-        inner = rings[:-BACKGROUND_RINGS]
+        inner, background = split
         excess = sum((c - background) * n for c, n in inner) / sum(n for _, n in inner)
         weights = np.asarray(LUMINANCE_WEIGHTS)
         y_excess, y_background = float(excess @ weights), float(background @ weights)
@@ -107,6 +104,17 @@ class Blob:
         """(1, log2 area / REF_AREA_SR, edge_stops, white_fraction, spill_stops): the rule's inputs."""
         return (1.0, math.log2(max(self.area_sr, 1e-12) / REF_AREA_SR), self.edge_stops(), self.white_fraction,
                 self.spill_stops())
+
+
+def halo_and_background(values, counts):
+    """The measured halo rings [(value, pixels)] inside the background, and the background (the
+    pixel-weighted mean of the outer BACKGROUND_RINGS measured rings); None with too few rings.
+    Values are luminances or RGB arrays."""
+    rings = [(v, n) for v, n in zip(values, counts) if v is not None and n > 0]
+    if len(rings) <= BACKGROUND_RINGS:
+        return None
+    outer = rings[-BACKGROUND_RINGS:]
+    return rings[:-BACKGROUND_RINGS], sum(v * n for v, n in outer) / sum(n for _, n in outer)
 
 
 def white_hot_mask(linear: np.ndarray) -> np.ndarray:
