@@ -257,3 +257,52 @@ def test_linear_frames_see_clipping_at_full_resolution():
     assert float(lin.sum()) > float(naive.sum()) + 0.5 / 16  # the lamp's boosted energy (>= 1 px of white / 16)
     fixed = linear_frames(work, "fixed", 8.0)
     assert float(fixed[0].sum() - naive[0].sum()) > 0.0
+
+
+def test_surface_normals_face_the_camera_and_ignore_depth_edges():
+    from core.capture.depth import surface_normals
+
+    cam = Camera(Intrinsics.from_hfov(W, H, 60.0), torch.eye(4, dtype=torch.float64))
+    depth = torch.full((H, W), 2.0)
+    depth[:, W // 2:] = 5.0  # a step: a near panel beside a far wall, both facing the camera
+    depth[5, 5] = float("nan")
+    n = surface_normals(cam.unproject(depth), torch.zeros(3))
+    ok = torch.isfinite(n).all(-1)
+    assert not bool(ok[5, 5]) and int((~ok).sum()) == 1  # only the invalid pixel
+    # every valid pixel, the ones on the step included, is its own plane's normal (+z: towards the camera)
+    assert torch.allclose(n[ok], torch.tensor([0.0, 0.0, 1.0]).expand(int(ok.sum()), 3), atol=1e-5)
+
+
+def test_a_probe_behind_a_seen_surface_sees_its_back_dark_not_its_front():
+    """Under a table whose top the camera sees, the top's radiance is that of its observed
+    side: a probe beneath sees the unobserved underside. 'dark' makes it an occluder of
+    radiance 0; 'front' (the old rule) paints the lit top over the probe."""
+    from core.envmap import sample_envmap
+
+    frames = torch.zeros(1, H, W, 3)
+    frames[0, :, : W // 2] = torch.tensor([0.8, 0.2, 0.2])  # a near red panel (left half, 2 m)
+    frames[0, :, W // 2:] = torch.tensor([0.2, 0.8, 0.2])  # a far green wall (right half, 6 m)
+    depth = torch.full((1, H, W), 6.0)
+    depth[0, :, : W // 2] = 2.0
+    cap = capture_from_arrays(frames, depth, fps=1)
+    panel = cap.camera(0).unproject(depth[0])[H // 2, W // 4].float()
+    wall = cap.camera(0).unproject(depth[0])[H // 2, 3 * W // 4].float()
+    behind = (panel + torch.tensor([0.0, 0.0, -1.0]))[None]  # 1 m behind the panel, in front of the wall
+    in_front = (panel + torch.tensor([0.0, 0.0, 0.5]))[None]
+    env = {}
+    for mode in ("dark", "front"):
+        prior = ReprojectionPrior(env_height=32, unseen_fill="push-pull", back_faces=mode)
+        prior.bind(cap)
+        env[mode] = {"behind": prior.envmaps(behind, 0.0, 32)[0], "in_front": prior.envmaps(in_front, 0.0, 32)[0]}
+        assert prior.describe()["back_faces"] == mode
+    to_panel = torch.nn.functional.normalize(panel[None] - behind, dim=-1)
+    to_wall = torch.nn.functional.normalize(wall[None] - behind, dim=-1)
+    red = inverse_tonemap(torch.tensor([0.8, 0.2, 0.2]))
+    green = inverse_tonemap(torch.tensor([0.2, 0.8, 0.2]))
+    # behind the panel: its back is dark with 'dark', red with 'front'; the wall ahead is green in both
+    assert float(sample_envmap(env["dark"]["behind"], to_panel).max()) < 0.05 * float(red.max())
+    assert torch.allclose(sample_envmap(env["front"]["behind"], to_panel)[0], red, rtol=0.05)
+    for mode in ("dark", "front"):
+        assert torch.allclose(sample_envmap(env[mode]["behind"], to_wall)[0], green, rtol=0.05)
+    # in front of the panel nothing changes: the frame saw the side the probe sees
+    assert torch.equal(env["dark"]["in_front"], env["front"]["in_front"])

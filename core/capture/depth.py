@@ -102,3 +102,25 @@ def resolve_depth(depth, T: int, H: int, W: int, intr: Intrinsics, source: str |
         warn.append(f"depth mostly invalid in {len(filled)} frame(s) (< {MIN_VALID_DEPTH_FRACTION:.0%} valid): holes filled by diffusion")
     d = torch.where(valid_depth_mask(d), d, torch.full_like(d, float("nan")))
     return d, source or "file"
+
+
+def surface_normals(points: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+    """Unit normals [H, W, 3] of a frame's unprojected points [H, W, 3], turned towards the
+    camera centre [3] that saw them (the side the frame observed). Along each image axis the
+    one-sided difference with the smaller step is used, so a pixel on a depth edge takes the
+    tangent of its own surface instead of the jump to the one behind it. NaN where a point or
+    both of its neighbours along an axis are invalid."""
+    def tangent(axis: int) -> torch.Tensor:
+        n = points.shape[axis]
+        fwd = torch.diff(points, dim=axis, append=points.narrow(axis, n - 1, 1))  # last row: 0
+        bwd = torch.diff(points, dim=axis, prepend=points.narrow(axis, 0, 1))  # first row: 0
+        f_len = torch.nan_to_num(fwd.norm(dim=-1, keepdim=True), nan=math.inf)
+        b_len = torch.nan_to_num(bwd.norm(dim=-1, keepdim=True), nan=math.inf)
+        f_len = torch.where(f_len == 0, math.inf, f_len)  # a border's missing side
+        b_len = torch.where(b_len == 0, math.inf, b_len)
+        return torch.where(f_len <= b_len, fwd, bwd)
+
+    n = torch.cross(tangent(1), tangent(0), dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    facing = (n * (centre.to(points.dtype) - points)).sum(-1, keepdim=True)
+    return torch.where(facing < 0, -n, n)

@@ -18,7 +18,12 @@ It answers "what would a chrome ball at c show?" from the frame itself:
    configured), so a probe sees what any frame saw.
 3. For each probe centre, splat the points into an equirect env map (ENV height from the
    config) with a depth test: per env pixel only points within Z_TOLERANCE of the nearest
-   distance contribute (a z-buffer by distance from the probe), averaged.
+   distance contribute (a z-buffer by distance from the probe), averaged. back_faces "dark"
+   gives radiance 0 (still occluding) to points whose surface faces away from the probe (the
+   probe is behind the side the frame saw: under a table whose top the camera sees), since
+   their back was never observed; "front" (default) reuses their observed side's radiance.
+   "dark" makes this prior better, but the field distilled from it is not (docs/engine.md,
+   "Back faces").
 4. Fill directions the frame never observed by pull-push (push_pull_fill): weight-average the
    observed pixels down a pyramid to one pixel, then blend each level with the upsampled
    coarser one by its weight (columns wrap at the seam). With unseen_fill "indoor" (default)
@@ -43,6 +48,7 @@ import torch.nn.functional as F
 from pydantic import Field
 
 from core.conventions import direction_to_equirect_pixel, equirect_width, inverse_tonemap
+from core.capture.depth import surface_normals
 from core.capture.highlights import CLIP_LDR, linearise_highlights
 from core.envmap import resize_envmap
 from core.priors.indoor_fill import fill_unseen
@@ -150,6 +156,9 @@ class ReprojectionSettings(PriorConfig):
     unseen_fill: Literal["indoor", "push-pull"] = Field("indoor", description=(
         "unobserved directions: pull-push with the indoor elevation gain and whitened colour (core.priors.indoor_fill), "
         "or plain pull-push"))
+    back_faces: Literal["dark", "front"] = Field("front", description=(
+        "points whose observed side faces away from the probe: occluders of radiance 0 ('dark') or with the "
+        "radiance of their observed side ('front')"))
     merge_views: int | None = Field(None, ge=1, description=(
         "viewpoints a request splats (its own + evenly spaced others); only valid when the lighting is static. "
         "None: MERGE_VIEWS_STATIC_LIGHTING when bind() is told the lighting is static and the camera moves, else 1"))
@@ -167,11 +176,13 @@ class ReprojectionPrior(Prior):
         self.clip_boost = float(s.clip_boost)
         self.clip_rule = s.clip_rule
         self.unseen_fill = s.unseen_fill
+        self.back_faces = s.back_faces
         self.configured_merge_views = s.merge_views
         self.merge_views = s.merge_views or 1
         self._capture = None
         self._colors: torch.Tensor | None = None
         self._points: dict[int, torch.Tensor] = {}
+        self._normals: dict[int, torch.Tensor] = {}
         self._camera_maps: dict[int, torch.Tensor] = {}  # frame -> its map at its own camera centre
         self._geometry_key: list[int] = []
         self.point_cloud_builds = 0  # how many times geometry was unprojected (reported)
@@ -185,6 +196,7 @@ class ReprojectionPrior(Prior):
             MERGE_VIEWS_STATIC_LIGHTING if static_lighting_moving_camera else 1)
         self._colors = linear_frames(capture, self.clip_rule, self.clip_boost, lighting_changes)
         self._points = {}
+        self._normals = {}
         self._camera_maps = {}
         self.point_cloud_builds = 0
         # frames with the same pose and the same depth share one point cloud
@@ -210,6 +222,15 @@ class ReprojectionPrior(Prior):
             self._points[owner] = self._capture.camera(owner).unproject(self._capture.depth[owner].float()).reshape(-1, 3)
             self.point_cloud_builds += 1
         return self._points[owner]
+
+    def normals(self, frame_index: int) -> torch.Tensor:
+        """Unit normals [H*W, 3] of `points(frame_index)`, facing the camera that saw them, cached."""
+        owner = self._geometry_key[frame_index]
+        if owner not in self._normals:
+            cap = self._capture
+            pts = self.points(owner).reshape(cap.height, cap.width, 3)
+            self._normals[owner] = surface_normals(pts, cap.poses[owner, :3, 3]).reshape(-1, 3)
+        return self._normals[owner]
 
     def views_for(self, frame_index: int) -> list[int]:
         """Frames whose point clouds a request for `frame_index` splats (see merge_views)."""
@@ -265,13 +286,17 @@ class ReprojectionPrior(Prior):
         n = centers.shape[0]
         rel = pts[None, :, :] - centers[:, None, :].to(pts.dtype)  # [N, P, 3]
         dist = rel.norm(dim=-1)
+        col = col[None].expand(n, -1, 3)
+        if self.back_faces == "dark":  # the probe sees the unobserved back of the surface (NaN normal: front)
+            nrm = torch.cat([self.normals(v)[::k] for v, k in zip(views, stride)])[ok]
+            col = torch.where(((rel * nrm[None]).sum(-1) > 0)[..., None], 0.0, col)
         row, colf = direction_to_equirect_pixel(rel, h)
         r = row.round().long().clamp(0, h - 1)
         c = colf.round().long().remainder(w)
         keep = dist > MIN_PROBE_DISTANCE
         key = (torch.arange(n)[:, None] * (h * w) + r * w + c)[keep]
         dist_k = dist[keep]
-        col_k = col[None].expand(n, -1, 3)[keep]
+        col_k = col[keep]
         nearest = torch.full((n * h * w,), float("inf"), dtype=dist.dtype).scatter_reduce(0, key, dist_k, reduce="amin")
         front = dist_k <= nearest[key] * (1.0 + Z_TOLERANCE)
         key, col_k = key[front], col_k[front]
@@ -303,6 +328,7 @@ class ReprojectionPrior(Prior):
             "z_tolerance": Z_TOLERANCE,
             "hole_fill": "pull-push pyramid in the equirect domain" + (
                 " + indoor elevation gain and whitened colour" if self.unseen_fill == "indoor" else ""),
+            "back_faces": self.back_faces,
             "merge_views": self.merge_views,
             "point_cloud_builds": self.point_cloud_builds,
         }
