@@ -165,14 +165,36 @@ def test_linearise_boosts_only_clipped_pixels():
     assert torch.allclose(lin[1], inverse_tonemap(x[1]) * CLIP_BOOST)
 
 
-def test_hard_frames_stay_finite():
+@pytest.mark.parametrize("back_faces", ["front", "dark"])
+def test_hard_frames_stay_finite(back_faces):
     for frame in (torch.zeros(1, H, W, 3), torch.ones(1, H, W, 3)):
         cap = _capture(frame)
-        prior = ReprojectionPrior(env_height=8)
+        prior = ReprojectionPrior(env_height=8, back_faces=back_faces)
         prior.bind(cap)
         req, _ = _request(cap, ev=-5.0)
         out = prior(req)
         assert torch.isfinite(out).all() and out.min() >= 0 and out.max() <= 1
+
+
+def test_back_faces_on_degenerate_depth_stay_finite():
+    """A single pixel of valid depth, a depth of zero, a 1-pixel-wide frame: the normals are NaN
+    or degenerate there and such points count as front faces (never darkened), the maps finite."""
+    from core.capture.depth import surface_normals
+
+    cam = Camera(Intrinsics.from_hfov(W, H, 60.0), torch.eye(4, dtype=torch.float64))
+    for depth in (torch.zeros(H, W), torch.full((H, W), float("nan")), torch.full((H, W), 1e-9)):
+        n = surface_normals(cam.unproject(depth), torch.zeros(3))
+        assert n.shape == (H, W, 3) and not torch.isinf(n).any()
+    one_column = surface_normals(torch.rand(H, 1, 3), torch.zeros(3))
+    assert one_column.shape == (H, 1, 3) and not torch.isinf(one_column).any()
+    frames = torch.rand(1, H, W, 3)
+    depth = torch.full((1, H, W), float("nan"))
+    depth[0, H // 2, W // 2] = 2.0  # one valid pixel: filled to a constant depth by the loader
+    cap = capture_from_arrays(frames, depth, fps=1)
+    prior = ReprojectionPrior(env_height=8, back_faces="dark")
+    prior.bind(cap)
+    env = prior.envmaps(torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -50.0]]), 0.0, 8)
+    assert torch.isfinite(env).all() and env.min() >= 0
 
 
 def test_registry():
