@@ -173,3 +173,49 @@ def test_lamp_without_halo_stays_white():
     est = linearise_highlights(ldr[None], INTR, compare_frames=False)[0]
     hot = clipped_mask(ldr)
     assert torch.allclose(est[hot][:, 0], est[hot][:, 2])
+
+
+def dimming_lamp_clip(scales=(1.0, 0.8, 0.6, 0.4)) -> torch.Tensor:
+    """LDR frames [T, 96, 128, 3] of a static camera: a 16x-white lamp dimming by `scales`, on a
+    wall lit by it (an inverse-square pool around it) and by a fixed dim fill."""
+    yy, xx = torch.meshgrid(torch.arange(96, dtype=torch.float64), torch.arange(128, dtype=torch.float64), indexing="ij")
+    pool = 0.6 / (1.0 + (((yy - 40) ** 2 + (xx - 60) ** 2) / 36.0))
+    return torch.stack([to_ldr(lamp_scene(16.0 * s, 3.0, wall=0.05) + s * pool) for s in scales])
+
+
+def test_a_dimming_lamp_seen_by_a_static_camera_is_estimated_dimming():
+    """The rule alone reads the lamp's own darker surround as a sign of a brighter source, so
+    frame by frame a dimming lamp came out brightening. Followed over the frames
+    (static_camera), its level is one and its changes are its surround's."""
+    scales = (1.0, 0.8, 0.6, 0.4)
+    frames = dimming_lamp_clip(scales)
+    core = clipped_mask(frames).all(0)
+    assert core[40, 60] and int(core.sum()) >= 9  # clipped in every frame
+    followed = linearise_highlights(frames, INTR, compare_frames=False, static_camera=True)
+    per_frame = linearise_highlights(frames, INTR, compare_frames=False)
+    lamp = [float(followed[t][core][:, 1].mean()) for t in range(len(scales))]
+    rule = [float(per_frame[t][core][:, 1].mean()) for t in range(len(scales))]
+    assert all(a > b for a, b in zip(lamp, lamp[1:])), lamp
+    # the last frame is 0.4x the first: estimated within half a stop of it
+    assert abs(math.log2(lamp[-1] / lamp[0]) - math.log2(scales[-1])) < 0.5, lamp
+    assert rule[-1] >= rule[0], rule  # what the rule alone does (the failure this fixes)
+    # a single frame keeps the rule's own estimate, as every frame of a moving camera does (per_frame)
+    assert torch.equal(linearise_highlights(frames[:1], INTR, False, static_camera=True), per_frame[:1])
+
+
+def test_source_tracks_follow_overlapping_blobs_and_start_new_ones():
+    import numpy as np
+
+    from core.capture.highlights import source_tracks
+
+    a = np.zeros((12, 12), dtype=np.int32)
+    a[2:5, 2:5] = 1  # a source
+    b = np.zeros_like(a)
+    b[3:5, 3:5] = 2  # the same source, shrunk (and listed second)
+    b[8:10, 8:10] = 1  # a new one
+    c = np.zeros_like(a)
+    c[8:10, 9:11] = 1  # the new one, shifted by one pixel (half overlap)
+    tracks = source_tracks([a, b, c], [1, 2, 1])
+    assert sorted(tracks) == [[(0, 0), (1, 1)], [(1, 0), (2, 0)]]
+    # below the overlap share a blob starts its own track
+    assert len(source_tracks([a, c], [1, 1])) == 2

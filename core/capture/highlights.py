@@ -26,6 +26,10 @@ clipped pixels, any channel >= CLIP_LDR), a radiance factor from what the captur
    that excess is clear of the background (SPILL_COLOUR_MIN_EXCESS) and only as saturated as
    SPILL_COLOUR_MIN_RATIO allows (a coloured wall tints the spill too). No channel of a
    recoloured pixel drops below its linearised value: it is still at least white.
+4. A static camera's frames (`stops_over_time`): one source is followed over the frames by
+   the overlap of its blobs (`source_tracks`); its level is the mean of the rule's stops and
+   its changes those of the light on a fixed ring of pixels around it. Frame by frame, the
+   rule's surround features made a dimming lamp brighten.
 
 Everything is in the linear units of core.conventions.inverse_tonemap (white = 1 at ev 0).
 """
@@ -54,6 +58,8 @@ RULE_COEFFICIENTS = (-0.452, -0.042, -0.808, 1.247, -0.075)
 SPILL_COLOUR_MIN_EXCESS = 0.05
 SPILL_COLOUR_MIN_RATIO = 0.7
 MIN_EXPOSURE_RATIO_PIXELS = 64  # unclipped mid-tone pixels needed to trust a frame's exposure ratio
+TRACK_MIN_OVERLAP = 0.5  # share of the smaller blob two frames' blobs must overlap to be one source
+TRACK_RING_PX = 2  # width of the fixed ring whose light follows a tracked source over time
 
 
 @dataclass(frozen=True)
@@ -173,18 +179,21 @@ def blob_boost(blob: Blob, coefficients=RULE_COEFFICIENTS) -> float:
     return 2.0 ** min(max(stops, 0.0), MAX_BOOST_STOPS)
 
 
-def estimate_clipped(linear: np.ndarray, clipped: np.ndarray, pixel_sr: float, coefficients=RULE_COEFFICIENTS) -> np.ndarray:
+def estimate_clipped(linear: np.ndarray, clipped: np.ndarray, pixel_sr: float, coefficients=RULE_COEFFICIENTS,
+                     found: tuple[np.ndarray, list[Blob]] | None = None, stops: list[float] | None = None) -> np.ndarray:
     """One frame's linear radiance [H, W, 3] with each clipped blob estimated: its pixels times
     the blob's boost, and its white-hot pixels (every channel clipped) in the spill's colour
-    where the halo gives one (`Blob.spill_colour`), never below their linearised value."""
-    labels, blobs = find_blobs(linear, clipped, pixel_sr)
+    where the halo gives one (`Blob.spill_colour`), never below their linearised value.
+    `found`: this frame's `find_blobs` result when the caller has it; `stops`: each blob's
+    log2 boost when the caller decided it (`stops_over_time`), else the rule's."""
+    labels, blobs = found if found is not None else find_blobs(linear, clipped, pixel_sr)
     out = linear.astype(np.float64, copy=True)
     if not blobs:
         return out
     white_hot = white_hot_mask(linear)
     for k, blob in enumerate(blobs, start=1):
         own = labels == k
-        boost = blob_boost(blob, coefficients)
+        boost = 2.0 ** stops[k - 1] if stops is not None else blob_boost(blob, coefficients)
         out[own] *= boost
         colour = blob.spill_colour()
         if colour is not None:
@@ -192,6 +201,77 @@ def estimate_clipped(linear: np.ndarray, clipped: np.ndarray, pixel_sr: float, c
             y = out[hot] @ np.asarray(LUMINANCE_WEIGHTS)
             out[hot] = np.maximum(y[:, None] * np.asarray(colour)[None, :], linear[hot])
     return out
+
+
+def source_tracks(labels: list[np.ndarray], counts: list[int], min_overlap: float = TRACK_MIN_OVERLAP) -> list[list[tuple[int, int]]]:
+    """Chains of (frame, blob index) that are one source seen by a static camera: a blob
+    continues the track of the previous frame's blob it overlaps most, when that overlap is at
+    least `min_overlap` of the smaller of the two and no other blob of its frame took that
+    track first. `labels` [T] of [H, W] (0 = none, k = blob k - 1), `counts` [T] blobs each."""
+    tracks: list[list[tuple[int, int]]] = []
+    previous: list[int] = []  # track of each blob of the previous frame
+    for t, (lab, n) in enumerate(zip(labels, counts)):
+        share = None
+        if t > 0 and n and previous:
+            m = len(previous)
+            joint = np.bincount((lab.astype(np.int64) * (m + 1) + labels[t - 1]).ravel(),
+                                minlength=(n + 1) * (m + 1)).reshape(n + 1, m + 1)
+            sizes, prev_sizes = joint.sum(1)[1:], joint.sum(0)[1:]
+            share = joint[1:, 1:] / np.maximum(np.minimum(sizes[:, None], prev_sizes[None, :]), 1)
+        current: list[int] = []
+        for k in range(n):
+            track = None
+            if share is not None:
+                for j in np.argsort(-share[k], kind="stable"):
+                    if share[k, j] < min_overlap:
+                        break
+                    if previous[j] not in current:
+                        track = previous[j]
+                        break
+            if track is None:
+                track = len(tracks)
+                tracks.append([])
+            tracks[track].append((t, k))
+            current.append(track)
+        previous = current
+    return tracks
+
+
+def stops_over_time(found: list[tuple[np.ndarray, list[Blob]]], luminance_frames: np.ndarray,
+                    coefficients=RULE_COEFFICIENTS) -> list[list[float]]:
+    """Each frame's blobs' log2 boosts [frame][blob] for a static camera's frames (`found`: each
+    frame's `find_blobs`; `luminance_frames` [T, H, W] linear): one source's level over the
+    clip, and its changes from the light around it.
+
+    The rule's inputs are the blob's surround, fitted ACROSS sources (a blob on a dark surround
+    is more likely a lamp): within one source over time they point the wrong way, as a lamp
+    that dims darkens its own halo and the rule then calls it brighter (the simulator's dimming
+    lamp was estimated 4x brighter at the end of its clip than at its start, where it was 3x
+    dimmer). So along a track (`source_tracks`) the level is the mean of the rule's stops, and
+    the frame-to-frame changes are those of the mean luminance of a fixed ring of pixels
+    (TRACK_RING_PX wide) around every frame's blob of the track, clipped in no frame: the
+    surface next to a source is lit mostly by it (and glare spills in proportion to it), so
+    it brightens and dims with it; fixed pixels, because a blob that dims also shrinks and
+    its own rings would move. A track without such pixels keeps the rule's stops."""
+    from scipy import ndimage
+
+    stops = [[math.log2(blob_boost(b, coefficients)) for b in blobs] for _, blobs in found]
+    never_clipped = np.stack([lab == 0 for lab, _ in found]).all(0)
+    for track in source_tracks([lab for lab, _ in found], [len(blobs) for _, blobs in found]):
+        if len(track) < 2:
+            continue
+        union = np.zeros_like(never_clipped)
+        for t, k in track:
+            union |= found[t][0] == k + 1
+        ring = ndimage.binary_dilation(union, iterations=TRACK_RING_PX) & never_clipped
+        if not ring.any():
+            continue
+        logs = [math.log2(max(float(luminance_frames[t][ring].mean()), HALO_FLOOR)) for t, _ in track]
+        level = sum(stops[t][k] for t, k in track) / len(track)
+        mean_log = sum(logs) / len(logs)
+        for (t, k), lg in zip(track, logs):
+            stops[t][k] = min(max(level + lg - mean_log, 0.0), MAX_BOOST_STOPS)
+    return stops
 
 
 def exposure_ratios(linear: torch.Tensor, clipped: torch.Tensor) -> torch.Tensor | None:
@@ -237,11 +317,13 @@ def recover_from_exposures(linear: torch.Tensor, clipped: torch.Tensor) -> torch
 
 
 def linearise_highlights(frames: torch.Tensor, intrinsics, compare_frames: bool,
-                         coefficients=RULE_COEFFICIENTS) -> torch.Tensor:
+                         coefficients=RULE_COEFFICIENTS, static_camera: bool = False) -> torch.Tensor:
     """LDR frames [T, H, W, 3] -> linear radiance (ev 0) with clipped sources estimated:
     exposure changes first, then the blob rule for what stays clipped. `compare_frames`: the
     frames see the same radiance up to exposure (a static camera and static lighting), so
-    one frame's unclipped reading may stand in for another's clipped one."""
+    one frame's unclipped reading may stand in for another's clipped one. `static_camera`
+    (implied by `compare_frames`): a source stays at its pixels, so its blobs are followed
+    over the frames and estimated together (`stops_over_time`)."""
     ldr = frames.clamp(0, 1)
     lin = inverse_tonemap(ldr)
     clipped = clipped_mask(ldr)
@@ -253,9 +335,13 @@ def linearise_highlights(frames: torch.Tensor, intrinsics, compare_frames: bool,
         recovered = clipped & (lin2 != lin).any(-1)
         lin = lin2
     pixel_sr = pixel_solid_angle(intrinsics)
+    still = (clipped & ~recovered).numpy()
+    found = [find_blobs(lin[t].numpy(), still[t], pixel_sr) for t in range(frames.shape[0])]
+    stops = (stops_over_time(found, luminance(lin).numpy(), coefficients)
+             if (static_camera or compare_frames) and frames.shape[0] > 1 else None)
     for t in range(frames.shape[0]):  # in place: lin is this function's own tensor
-        still = (clipped[t] & ~recovered[t]).numpy()
-        if not still.any():
+        if not still[t].any():
             continue
-        lin[t] = torch.from_numpy(estimate_clipped(lin[t].numpy(), still, pixel_sr, coefficients)).to(lin.dtype)
+        lin[t] = torch.from_numpy(estimate_clipped(lin[t].numpy(), still[t], pixel_sr, coefficients, found=found[t],
+                                                   stops=None if stops is None else stops[t])).to(lin.dtype)
     return lin

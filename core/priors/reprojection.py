@@ -73,7 +73,8 @@ def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP
     if clip_rule == "fixed":
         lin = linearise(src.frames, clip_boost)
     else:
-        lin = linearise_highlights(src.frames, src.intrinsics, src.static_camera and not lighting_changes)
+        lin = linearise_highlights(src.frames, src.intrinsics, src.static_camera and not lighting_changes,
+                                   static_camera=src.static_camera)
     if src is not capture and (src.height, src.width) != (capture.height, capture.width):
         lin = F.interpolate(lin.permute(0, 3, 1, 2), size=(capture.height, capture.width), mode="area").permute(0, 2, 3, 1)
     return lin.contiguous()
