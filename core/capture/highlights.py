@@ -257,16 +257,23 @@ def stops_over_time(found: list[tuple[np.ndarray, list[Blob]]], luminance_frames
 
     stops = [[math.log2(blob_boost(b, coefficients)) for b in blobs] for _, blobs in found]
     never_clipped = np.stack([lab == 0 for lab, _ in found]).all(0)
+    boxes = [ndimage.find_objects(lab) for lab, _ in found]  # each blob's bounding slices
+    H, W = never_clipped.shape
     for track in source_tracks([lab for lab, _ in found], [len(blobs) for _, blobs in found]):
         if len(track) < 2:
             continue
-        union = np.zeros_like(never_clipped)
+        # the track's bounding box grown by the ring: the work stays proportional to the blob
+        r0 = max(min(boxes[t][k][0].start for t, k in track) - TRACK_RING_PX, 0)
+        r1 = min(max(boxes[t][k][0].stop for t, k in track) + TRACK_RING_PX, H)
+        c0 = max(min(boxes[t][k][1].start for t, k in track) - TRACK_RING_PX, 0)
+        c1 = min(max(boxes[t][k][1].stop for t, k in track) + TRACK_RING_PX, W)
+        union = np.zeros((r1 - r0, c1 - c0), dtype=bool)
         for t, k in track:
-            union |= found[t][0] == k + 1
-        ring = ndimage.binary_dilation(union, iterations=TRACK_RING_PX) & never_clipped
+            union |= found[t][0][r0:r1, c0:c1] == k + 1
+        ring = ndimage.binary_dilation(union, iterations=TRACK_RING_PX) & never_clipped[r0:r1, c0:c1]
         if not ring.any():
             continue
-        logs = [math.log2(max(float(luminance_frames[t][ring].mean()), HALO_FLOOR)) for t, _ in track]
+        logs = [math.log2(max(float(luminance_frames[t][r0:r1, c0:c1][ring].mean()), HALO_FLOOR)) for t, _ in track]
         level = sum(stops[t][k] for t, k in track) / len(track)
         mean_log = sum(logs) / len(logs)
         for (t, k), lg in zip(track, logs):
