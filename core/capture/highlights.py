@@ -237,11 +237,11 @@ def source_tracks(labels: list[np.ndarray], counts: list[int], min_overlap: floa
     return tracks
 
 
-def stops_over_time(found: list[tuple[np.ndarray, list[Blob]]], luminance_frames: np.ndarray,
+def stops_over_time(found: list[tuple[np.ndarray, list[Blob]]], linear: torch.Tensor,
                     coefficients=RULE_COEFFICIENTS) -> list[list[float]]:
     """Each frame's blobs' log2 boosts [frame][blob] for a static camera's frames (`found`: each
-    frame's `find_blobs`; `luminance_frames` [T, H, W] linear): one source's level over the
-    clip, and its changes from the light around it.
+    frame's `find_blobs`; `linear` [T, H, W, 3] their linear radiance): one source's level over
+    the clip, and its changes from the light around it.
 
     The rule's inputs are the blob's surround, fitted ACROSS sources (a blob on a dark surround
     is more likely a lamp): within one source over time they point the wrong way, as a lamp
@@ -256,9 +256,11 @@ def stops_over_time(found: list[tuple[np.ndarray, list[Blob]]], luminance_frames
     from scipy import ndimage
 
     stops = [[math.log2(blob_boost(b, coefficients)) for b in blobs] for _, blobs in found]
-    never_clipped = np.stack([lab == 0 for lab, _ in found]).all(0)
+    H, W = found[0][0].shape
+    never_clipped = np.ones((H, W), dtype=bool)
+    for lab, _ in found:
+        never_clipped &= lab == 0
     boxes = [ndimage.find_objects(lab) for lab, _ in found]  # each blob's bounding slices
-    H, W = never_clipped.shape
     for track in source_tracks([lab for lab, _ in found], [len(blobs) for _, blobs in found]):
         if len(track) < 2:
             continue
@@ -273,7 +275,8 @@ def stops_over_time(found: list[tuple[np.ndarray, list[Blob]]], luminance_frames
         ring = ndimage.binary_dilation(union, iterations=TRACK_RING_PX) & never_clipped[r0:r1, c0:c1]
         if not ring.any():
             continue
-        logs = [math.log2(max(float(luminance_frames[t][r0:r1, c0:c1][ring].mean()), HALO_FLOOR)) for t, _ in track]
+        logs = [math.log2(max(float(luminance(linear[t, r0:r1, c0:c1]).numpy()[ring].mean()), HALO_FLOOR))
+                for t, _ in track]
         level = sum(stops[t][k] for t, k in track) / len(track)
         mean_log = sum(logs) / len(logs)
         for (t, k), lg in zip(track, logs):
@@ -323,6 +326,12 @@ def recover_from_exposures(linear: torch.Tensor, clipped: torch.Tensor) -> torch
     return out
 
 
+def _compact(found: tuple[np.ndarray, list[Blob]]) -> tuple[np.ndarray, list[Blob]]:
+    """A frame's blob labels in 16 bits where they fit: every frame's are kept for the whole clip."""
+    labels, blobs = found
+    return (labels.astype(np.uint16) if len(blobs) < 2**16 else labels), blobs
+
+
 def linearise_highlights(frames: torch.Tensor, intrinsics, compare_frames: bool,
                          coefficients=RULE_COEFFICIENTS, static_camera: bool = False) -> torch.Tensor:
     """LDR frames [T, H, W, 3] -> linear radiance (ev 0) with clipped sources estimated:
@@ -343,8 +352,8 @@ def linearise_highlights(frames: torch.Tensor, intrinsics, compare_frames: bool,
         lin = lin2
     pixel_sr = pixel_solid_angle(intrinsics)
     still = (clipped & ~recovered).numpy()
-    found = [find_blobs(lin[t].numpy(), still[t], pixel_sr) for t in range(frames.shape[0])]
-    stops = (stops_over_time(found, luminance(lin).numpy(), coefficients)
+    found = [_compact(find_blobs(lin[t].numpy(), still[t], pixel_sr)) for t in range(frames.shape[0])]
+    stops = (stops_over_time(found, lin, coefficients)
              if (static_camera or compare_frames) and frames.shape[0] > 1 else None)
     for t in range(frames.shape[0]):  # in place: lin is this function's own tensor
         if not still[t].any():
