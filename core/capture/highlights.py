@@ -246,8 +246,8 @@ def stops_over_time(found: list[tuple[np.ndarray, list[Blob]]], linear: torch.Te
     The rule's inputs are the blob's surround, fitted ACROSS sources (a blob on a dark surround
     is more likely a lamp): within one source over time they point the wrong way, as a lamp
     that dims darkens its own halo and the rule then calls it brighter (the simulator's dimming
-    lamp was estimated 4x brighter at the end of its clip than at its start, where it was 3x
-    dimmer). So along a track (`source_tracks`) the level is the mean of the rule's stops, and
+    lamp was estimated 2.1 stops brighter at the end of its clip than at its start, where its
+    luminance had fallen 2.2 stops; `python -m bench.clip_tracks`). So along a track (`source_tracks`) the level is the mean of the rule's stops, and
     the frame-to-frame changes are those of the mean luminance of a fixed ring of pixels
     (TRACK_RING_PX wide) around every frame's blob of the track, clipped in no frame: the
     surface next to a source is lit mostly by it (and glare spills in proportion to it), so
