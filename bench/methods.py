@@ -207,13 +207,21 @@ def _timed_queries(run: "MethodRun", fn, calls) -> list:
 
 
 def _bound_prior(suite: SuiteData, cfg: EngineConfig):
-    """The reprojection prior bound to the capture at the working resolution (as run_job does)."""
+    """The reprojection prior bound to the capture at the working resolution as run_job binds
+    it: with the job's temporal decision, so under static lighting a moving camera's requests
+    merge viewpoints and a static camera's frames share their exposure evidence (binding it as
+    for changing lighting scored a different prior than the one the field is distilled from:
+    on `moving-camera` a worse one, bench.prior_frames)."""
     from core.capture.load import load_capture
+    from core.capture.temporal import decide_temporal
+    from core.engine.params import JobParams
     from core.priors.registry import build_prior
 
-    work = load_capture(suite.capture_dir).resized(cfg.distill.work_height)
+    capture = load_capture(suite.capture_dir)
+    decision = decide_temporal(capture, JobParams().temporal)
+    work = capture.resized(cfg.distill.work_height)
     prior = build_prior("reprojection", cfg.prior_settings("reprojection"))
-    prior.bind(work)
+    prior.bind(work, lighting_changes=decision.uses_time)
     return prior
 
 

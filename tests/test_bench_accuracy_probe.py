@@ -61,3 +61,29 @@ def test_a_field_kind_set_on_the_command_line_is_the_one_trained():
     assert probe_method("field-balls", base).config(base).distill.supervision == "balls"
     assert probe_method("field-oracle", preset("draft")).prior == "oracle"
     assert probe_method("field", preset("draft")).config(preset("draft")).field.kind == "mlp"
+
+
+def test_the_prior_row_is_bound_as_the_job_binds_it(tmp_path):
+    """The accuracy probe's `prior` row must be the prior the field is distilled from: under
+    static lighting a moving camera's requests merge viewpoints (bound as for changing lighting
+    it scored a different, on `moving-camera` worse, prior)."""
+    import warnings
+
+    from bench.methods import _bound_prior
+    from core.engine.presets import preset
+    from core.priors.reprojection import MERGE_VIEWS_STATIC_LIGHTING
+    from core.sim.capture import write_capture
+    from core.sim.suites import hard, temporal
+
+    merged = {}
+    for name, spec in (("hard", hard()), ("temporal", temporal())):
+        frames = 4 if name == "hard" else spec.frames
+        small = spec.model_copy(update={"frames": frames, "resolution": (96, 72), "probes": []})
+        write_capture(small, tmp_path / name, envmap_height=8, video=False)
+        suite = SuiteData(name=name, scene=small, capture_dir=tmp_path / name, probes=[], gt=torch.ones(0, 4, 8, 3),
+                          global_point=(0.0, 0.0, 0.0), global_time=0.0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            merged[name] = _bound_prior(suite, preset("draft")).merge_views
+    assert merged["hard"] == MERGE_VIEWS_STATIC_LIGHTING  # static lighting, a dolly: viewpoints merged, as in run_job
+    assert merged["temporal"] == 1  # a light switches (and the camera is static): one frame per request
