@@ -51,6 +51,23 @@ def frame_scores(prior, suite, probe_index: int, sphere_size: int) -> dict:
     return out
 
 
+def field_from_report(field_report: dict | None, suite_name: str, probe_xs: list, source: str,
+                      metrics: tuple[str, ...] = METRICS) -> dict | None:
+    """The field's mean scores on `suite_name` from an accuracy probe report (None when the report
+    lacks the suite); exits when its probes are not these (other --extra-probes / --probe-seed)."""
+    fs = (field_report or {}).get("suites", {}).get(suite_name)
+    if fs is None:
+        return None
+    if [list(q["x"]) for q in fs["probes"]] != [list(x) for x in probe_xs]:
+        raise SystemExit(f"{source}: the probes of {suite_name} differ from these (same --extra-probes / --probe-seed?)")
+    return {mat: {m: fs["scores"]["field"][mat][m] for m in metrics} for mat in MATERIALS}
+
+
+def write_report(report: dict, output: str | None) -> None:
+    if output:
+        Path(output).write_text(json.dumps(report, indent=1))
+
+
 def mean_over(probes: list[dict], key: str) -> dict:
     return {mat: {m: sum(p[key][mat][m] for p in probes) / len(probes) for m in METRICS} for mat in MATERIALS}
 
@@ -89,11 +106,9 @@ def main(argv: list[str] | None = None) -> int:
                 prior.bind(prior._capture, lighting_changes=True)
             probes = [frame_scores(prior, suite, i, args.sphere_size) for i in range(len(suite.probes))]
         entry = {key: mean_over(probes, key) for key in ("own_frame", "best_frame", "worst_frame", "mean_of_frames")}
-        fs = (field_report or {}).get("suites", {}).get(name)
-        if fs is not None:
-            if [q["x"] for q in fs["probes"]] != [q["x"] for q in probes]:
-                raise SystemExit(f"{args.field_json}: the probes of {name} differ from these (same --extra-probes / --probe-seed?)")
-            entry["field"] = {mat: {m: fs["scores"]["field"][mat][m] for m in METRICS} for mat in MATERIALS}
+        field = field_from_report(field_report, name, [q["x"] for q in probes], args.field_json)
+        if field is not None:
+            entry["field"] = field
         entry["probes"] = probes
         report["suites"][name] = entry
         print(f"{name} ({len(probes)} probes): mean over probes")
@@ -101,9 +116,7 @@ def main(argv: list[str] | None = None) -> int:
             for m in METRICS:
                 row = "  ".join(f"{k} {entry[k][mat][m]:.3f}" for k in ("own_frame", "best_frame", "worst_frame", "mean_of_frames", "field") if k in entry)
                 print(f"  {mat}.{m}: {row}")
-    text = json.dumps(report, indent=1)
-    if args.output:
-        Path(args.output).write_text(text)
+    write_report(report, args.output)
     return 0
 
 
