@@ -13,7 +13,10 @@ scores, on the three-sphere metrics (diffuse, matte, mirror):
 * constant  one constant map of the mean linearised colour of the frame nearest the probe time;
 * field     the draft preset end to end (`run_job`, then the artefact's exact env map);
 * field-balls  the same with the paper's ball-render loop (`distill.supervision=balls`);
-* field-oracle the draft preset distilled from the simulator's oracle prior (upper bound).
+* field-oracle the draft preset distilled from the simulator's oracle prior (upper bound);
+* <method>+observed  with `--observed-hybrid`, each method's maps with the prior's splat where
+            the prior saw from the probe (a SHORTCUT: what a field carrying the observed surfaces'
+            radiance could at best answer with this prior; not built).
 Ratios field/prior (target <= 1.05 on every metric) and field/constant (target <= 0.85 on
 diffuse and matte si-RMSE) are printed; on suites with a time series, the brightness
 after/before each switch (pred vs truth, target |diff| <= 0.1) and, per stretch between
@@ -77,6 +80,24 @@ def ratio_interval(num: list[float], den: list[float], seed: int = 0) -> list[fl
 METHOD_LABELS = {"field": "radiance + view (draft)", "field-balls": "ball loop", "field-oracle": "from the oracle (bound)"}
 
 
+def observed_hybrid(prior, suite, field_maps: torch.Tensor) -> torch.Tensor:
+    """SHORTCUT (`--observed-hybrid`): the field's maps with every direction that the job's prior
+    saw from the probe (its splat of the frame nearest the probe's time and, under static light,
+    the merged viewpoints; no fill) replaced by that splat. What a field carrying the observed
+    surfaces' radiance, looked up along each direction (parallax exact; not built), could answer
+    at best with the same prior; the field answers the rest."""
+    from core.envmap import resize_envmap
+
+    capture, h, out = prior._capture, suite.eval_height, []
+    for probe, fmap in zip(suite.probes, field_maps):
+        frame = int(torch.argmin((capture.times.double() - float(probe.t)).abs()))
+        env, seen = prior._splat_seen(torch.tensor([probe.x], dtype=torch.float32), frame)
+        weight = resize_envmap(seen[0, ..., None].float().expand(-1, -1, 3).contiguous(), h)[..., :1]
+        colour = resize_envmap(env[0], h) / weight.clamp_min(1e-6)  # the splat is 0 where unseen
+        out.append(torch.where(weight > 0.5, colour, fmap))
+    return torch.stack(out)
+
+
 def markdown_table(report: dict) -> str:
     """The docs' table of a saved report (`--table report.json`): per suite and method the worst
     field/prior ratio with its 90 % interval, si-RMSE / prior per material and / constant."""
@@ -93,7 +114,9 @@ def markdown_table(report: dict) -> str:
             worst = max(vp, key=vp.get)
             interval = entry.get("interval_90", {}).get(method, {}).get("vs_prior", {}).get(worst)
             span = f" [{interval[0]:.2f}, {interval[1]:.2f}]" if interval else ""
-            rows.append(f"| {name} | {METHOD_LABELS.get(method, method)} | {n} | {vp[worst]:.2f} ({worst}){span} "
+            label = METHOD_LABELS.get(method.removesuffix("+observed"), method)
+            label += " + prior's splat where seen (shortcut)" if method.endswith("+observed") else ""
+            rows.append(f"| {name} | {label} | {n} | {vp[worst]:.2f} ({worst}){span} "
                         f"| {vp['diffuse.si_rmse']:.2f} | {vp['matte.si_rmse']:.2f} | {vp['mirror.si_rmse']:.2f} "
                         f"| {vc['diffuse.si_rmse']:.2f} | {vc['matte.si_rmse']:.2f} | {entry['cpu_s'].get(method, '')} |")
     return "\n".join(rows)
@@ -145,6 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="distillation seed (run a few to see run-to-run noise)")
     p.add_argument("--extra-probes", type=int, default=8, help="held-out probes drawn in free space besides the suite's own")
     p.add_argument("--probe-seed", type=int, default=0, help="seed of the extra probes' draw")
+    p.add_argument("--observed-hybrid", action="store_true",
+                   help="also score each method with the prior's splat where it saw (SHORTCUT, see observed_hybrid)")
     p.add_argument("--cache-dir", default=None)
     p.add_argument("-o", "--output", default=None)
     p.add_argument("--table", default=None, metavar="REPORT_JSON", help="print the markdown table of a saved report and exit")
@@ -182,6 +207,14 @@ def main(argv: list[str] | None = None) -> int:
                 run = MethodRun(m)
                 query_field(run, path, suite)
                 preds[method], series[method] = run.envmaps, run.series
+        scored = args.methods.split(",")
+        if args.observed_hybrid:
+            from bench.methods import _bound_prior
+
+            bound = _bound_prior(suite, base)
+            for method in list(scored):
+                preds[f"{method}+observed"] = observed_hybrid(bound, suite, preds[method])
+                scored.append(f"{method}+observed")
         per_probe = [score_probe({k: v[i] for k, v in preds.items()}, suite.gt[i], args.sphere_size) for i in range(len(suite.probes))]
         scores = {k: mean_scores([pp[k] for pp in per_probe]) for k in preds}
         entry: dict = {"probes": [{"x": list(p.x), "t": p.t} for p in suite.probes], "scores": scores, "cpu_s": seconds,
@@ -191,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
             both = [pp for pp in per_probe if "non_finite" not in pp[method] and "non_finite" not in pp[ref]]
             return [pp[method][mat][metric] for pp in both], [pp[ref][mat][metric] for pp in both]
 
-        for method in args.methods.split(","):
+        for method in scored:
             entry["ratios"][method] = {
                 "vs_prior": {f"{mat}.{m}": round(scores[method][mat][m] / scores["prior"][mat][m], 3) for mat in MATERIALS for m in METRICS},
                 "vs_constant": {f"{mat}.si_rmse": round(scores[method][mat]["si_rmse"] / scores["constant"][mat]["si_rmse"], 3)
@@ -203,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
                 "vs_constant": {f"{mat}.si_rmse": ratio_interval(*paired(method, "constant", mat, "si_rmse"))
                                 for mat in ("diffuse", "matte")},
             }
-            if suite.series:
+            if suite.series and method in series:
                 entry.setdefault("series", {})[method] = series_checks(suite, series[method])
         entry["ratios"]["prior"] = {"vs_constant": {f"{mat}.si_rmse": round(scores["prior"][mat]["si_rmse"] / scores["constant"][mat]["si_rmse"], 3)
                                                     for mat in ("diffuse", "matte")}}

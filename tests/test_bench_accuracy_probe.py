@@ -87,3 +87,34 @@ def test_the_prior_row_is_bound_as_the_job_binds_it(tmp_path):
             merged[name] = _bound_prior(suite, preset("draft")).merge_views
     assert merged["hard"] == MERGE_VIEWS_STATIC_LIGHTING  # static lighting, a dolly: viewpoints merged, as in run_job
     assert merged["temporal"] == 1  # a light switches (and the camera is static): one frame per request
+
+
+def test_observed_hybrid_takes_the_splat_where_the_prior_saw_and_the_field_elsewhere():
+    from types import SimpleNamespace
+
+    from bench.accuracy_probe import observed_hybrid
+
+    class SplatPrior:
+        """Sees the upper half of the sphere (colour 5, 3, 1) from every probe, nothing below."""
+
+        def __init__(self):
+            self._capture = SimpleNamespace(times=torch.tensor([0.0, 1.0]))
+            self.frames = []
+
+        def _splat_seen(self, centers, frame):
+            self.frames.append(frame)
+            env = torch.zeros(1, 4, 8, 3)
+            seen = torch.zeros(1, 4, 8, dtype=torch.bool)
+            env[:, :2] = torch.tensor([5.0, 3.0, 1.0])
+            seen[:, :2] = True
+            return env, seen
+
+    probes = [SimpleNamespace(x=(1.0, 1.0, 1.0), t=0.1), SimpleNamespace(x=(2.0, 1.0, 1.0), t=0.9)]
+    suite = SimpleNamespace(probes=probes, eval_height=8)
+    field = torch.full((2, 8, 16, 3), 0.5)
+    prior = SplatPrior()
+    out = observed_hybrid(prior, suite, field)
+    assert prior.frames == [0, 1]  # the frame nearest each probe's time
+    assert out.shape == field.shape
+    assert torch.allclose(out[:, :4], torch.tensor([5.0, 3.0, 1.0]).expand(2, 4, 16, 3), rtol=1e-4)  # seen: the splat, not dimmed at the edge
+    assert torch.equal(out[:, 5:], field[:, 5:])  # unseen: the field
