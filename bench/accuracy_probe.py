@@ -88,10 +88,9 @@ def observed_hybrid(prior, suite, field_maps: torch.Tensor) -> torch.Tensor:
     at best with the same prior; the field answers the rest."""
     from core.envmap import resize_envmap
 
-    capture, h, out = prior._capture, suite.eval_height, []
+    h, out = suite.eval_height, []
     for probe, fmap in zip(suite.probes, field_maps):
-        frame = int(torch.argmin((capture.times.double() - float(probe.t)).abs()))
-        env, seen = prior._splat_seen(torch.tensor([probe.x], dtype=torch.float32), frame)
+        env, seen = prior.observed_envmaps(torch.tensor([probe.x], dtype=torch.float32), float(probe.t))
         weight = resize_envmap(seen[0, ..., None].float().expand(-1, -1, 3).contiguous(), h)[..., :1]
         colour = resize_envmap(env[0], h) / weight.clamp_min(1e-6)  # the splat is 0 where unseen
         out.append(torch.where(weight > 0.5, colour, fmap))

@@ -41,7 +41,7 @@ def frame_scores(prior, suite, probe_index: int, sphere_size: int) -> dict:
     maps = torch.stack([prior.envmaps(x, float(t), suite.eval_height)[0] for t in capture.times])
     gt = suite.gt[probe_index]
     per_frame = [three_sphere_metrics(m, gt, sphere_size) for m in maps]
-    own = int(torch.argmin((capture.times.double() - float(probe.t)).abs()))
+    own = prior.frame_at(float(probe.t))
     out = {"x": list(probe.x), "t": probe.t, "own_frame": per_frame[own],
            "mean_of_frames": three_sphere_metrics(maps.mean(0), gt, sphere_size), "best_frame": {}, "worst_frame": {},
            "per_frame": {f"{mat}.{m}": [round(s[mat][m], 4) for s in per_frame] for mat in MATERIALS for m in METRICS}}

@@ -40,18 +40,15 @@ def parse_lattices(text: str) -> list[tuple[int, int, int]]:
     return out
 
 
-def blended_prior(prior, x: torch.Tensor, t: float, lo: torch.Tensor, hi: torch.Tensor,
-                  dims: tuple[int, int, int], height: int) -> torch.Tensor:
-    """The prior's maps at the 8 lattice nodes around world point x [3], blended trilinearly in
-    log radiance -> [height, 2 height, 3]."""
+def blended_prior(prior, x: torch.Tensor, t: float, bounds, dims: tuple[int, int, int], height: int) -> torch.Tensor:
+    """The prior's maps at the 8 lattice nodes around world point x [3] (lattice over the
+    SceneBounds `bounds`), blended trilinearly in log radiance -> [height, 2 height, 3]."""
     from core.fields.encodings import lattice_corners
 
-    xn = (2.0 * (x - lo) / (hi - lo) - 1.0).clamp(-1.0, 1.0)[None]
-    index, weight = lattice_corners(xn, dims)
-    size = torch.tensor(dims)
-    strides = torch.tensor([dims[1] * dims[2], dims[2], 1])
-    rc = (index[0, :, None] // strides) % size  # [8, 3] node coordinates
-    nodes = lo + (rc.float() / (size - 1).float()) * (hi - lo)
+    index, weight = lattice_corners(bounds.normalize_x(x).clamp(-1.0, 1.0)[None], dims)
+    node = torch.stack(torch.unravel_index(index[0], dims), dim=-1).float()  # [8, 3] lattice coordinates
+    lo, hi = torch.tensor(bounds.lo, dtype=x.dtype), torch.tensor(bounds.hi, dtype=x.dtype)
+    nodes = lo + node / (torch.tensor(dims, dtype=x.dtype) - 1) * (hi - lo)  # node r at -1 + 2 r / (n - 1)
     maps = prior.envmaps(nodes, t, height)  # [8, h, 2h, 3]
     log_maps = torch.log(maps.clamp_min(1e-8))
     return torch.exp((weight[0, :, None, None, None] * log_maps).sum(0))
@@ -90,14 +87,13 @@ def main(argv: list[str] | None = None) -> int:
             warnings.simplefilter("ignore")
             prior = _bound_prior(suite, cfg)
             bounds = scene_bounds(prior._capture, cfg.distill.time_normalisation_frames)
-            lo, hi = torch.tensor(bounds.lo, dtype=torch.float32), torch.tensor(bounds.hi, dtype=torch.float32)
             per_probe: dict[str, list] = {"prior": []} | {"x".join(map(str, d)): [] for d in lattices}
             for i, probe in enumerate(suite.probes):
                 x = torch.tensor(probe.x, dtype=torch.float32)
                 gt, h = suite.gt[i], suite.eval_height
                 per_probe["prior"].append(score_probe({"m": prior.envmaps(x[None], float(probe.t), h)[0]}, gt, args.sphere_size)["m"])
                 for dims in lattices:
-                    blend = blended_prior(prior, x, float(probe.t), lo, hi, dims, h)
+                    blend = blended_prior(prior, x, float(probe.t), bounds, dims, h)
                     per_probe["x".join(map(str, dims))].append(score_probe({"m": blend}, gt, args.sphere_size)["m"])
         entry = {k: mean_scores(v) for k, v in per_probe.items()}
         entry = {k: {mat: {m: v[mat][m] for m in METRICS} for mat in MATERIALS} for k, v in entry.items()}

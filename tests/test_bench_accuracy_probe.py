@@ -98,11 +98,10 @@ def test_observed_hybrid_takes_the_splat_where_the_prior_saw_and_the_field_elsew
         """Sees the upper half of the sphere (colour 5, 3, 1) from every probe, nothing below."""
 
         def __init__(self):
-            self._capture = SimpleNamespace(times=torch.tensor([0.0, 1.0]))
-            self.frames = []
+            self.times = []
 
-        def _splat_seen(self, centers, frame):
-            self.frames.append(frame)
+        def observed_envmaps(self, centers, time):
+            self.times.append(time)
             env = torch.zeros(1, 4, 8, 3)
             seen = torch.zeros(1, 4, 8, dtype=torch.bool)
             env[:, :2] = torch.tensor([5.0, 3.0, 1.0])
@@ -114,7 +113,7 @@ def test_observed_hybrid_takes_the_splat_where_the_prior_saw_and_the_field_elsew
     field = torch.full((2, 8, 16, 3), 0.5)
     prior = SplatPrior()
     out = observed_hybrid(prior, suite, field)
-    assert prior.frames == [0, 1]  # the frame nearest each probe's time
+    assert prior.times == [0.1, 0.9]  # each probe asks at its own time
     assert out.shape == field.shape
     assert torch.allclose(out[:, :4], torch.tensor([5.0, 3.0, 1.0]).expand(2, 4, 16, 3), rtol=1e-4)  # seen: the splat, not dimmed at the edge
     assert torch.equal(out[:, 5:], field[:, 5:])  # unseen: the field

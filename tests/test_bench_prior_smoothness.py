@@ -2,8 +2,10 @@
 import torch
 
 from bench.prior_smoothness import blended_prior, parse_lattices
+from core.fields.normalization import SceneBounds
 
 LO, HI = torch.tensor([0.0, 0.0, 0.0]), torch.tensor([4.0, 2.0, 3.0])
+BOX = SceneBounds((0.0, 0.0, 0.0), (4.0, 2.0, 3.0))
 
 
 class LogLinearPrior:
@@ -33,7 +35,7 @@ class BumpPrior(LogLinearPrior):
 def test_a_log_linear_prior_is_reproduced_between_the_nodes():
     prior = LogLinearPrior()
     x = torch.tensor([1.3, 0.7, 2.2])
-    blend = blended_prior(prior, x, 0.5, LO, HI, (5, 3, 4), height=4)
+    blend = blended_prior(prior, x, 0.5, BOX, (5, 3, 4), height=4)
     direct = prior.envmaps(x[None], 0.5, 4)[0]
     assert torch.allclose(blend, direct, rtol=1e-4)
     nodes = prior.asked[0]
@@ -46,13 +48,13 @@ def test_a_sharp_feature_between_the_nodes_is_lost_by_the_blend():
     prior = BumpPrior()
     x = torch.tensor([1.5, 0.75, 1.2])
     direct = prior.envmaps(x[None], 0.0, 4)[0]
-    blend = blended_prior(prior, x, 0.0, LO, HI, (5, 3, 4), height=4)
+    blend = blended_prior(prior, x, 0.0, BOX, (5, 3, 4), height=4)
     assert float(direct.mean()) == 100.0 and torch.allclose(blend, torch.ones_like(blend))
 
 
 def test_a_probe_outside_the_box_blends_the_nearest_face():
     prior = LogLinearPrior()
-    blended_prior(prior, torch.tensor([9.0, -1.0, 1.5]), 0.0, LO, HI, (3, 3, 3), height=2)
+    blended_prior(prior, torch.tensor([9.0, -1.0, 1.5]), 0.0, BOX, (3, 3, 3), height=2)
     nodes = prior.asked[0]
     assert torch.all(nodes >= LO - 1e-6) and torch.all(nodes <= HI + 1e-6)
 

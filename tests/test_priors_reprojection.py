@@ -89,6 +89,22 @@ def test_bright_patch_is_seen_in_its_true_direction():
     assert float(env.max()) > 2.0
 
 
+def test_observed_envmaps_are_the_splat_before_the_fill_in_the_nearest_frame():
+    frames = torch.rand(3, H, W, 3)
+    cap = _capture(frames)  # fps 1: frames at 0, 1, 2 s
+    prior = ReprojectionPrior(env_height=16)
+    prior.bind(cap)
+    center = torch.tensor([[0.2, -0.1, -1.0]])
+    assert [prior.frame_at(t) for t in (-5.0, 0.4, 0.6, 1.9, 9.0)] == [0, 0, 1, 2, 2]
+    env, seen = prior.observed_envmaps(center, 1.2)
+    assert env.shape == (1, 16, 32, 3) and seen.shape == (1, 16, 32)
+    assert 0 < int(seen.sum()) < seen.numel()  # the frame covers part of the sphere, not all
+    filled = prior.envmaps(center, 1.2, 16)
+    assert torch.allclose(env[seen], filled[seen], rtol=1e-5)  # the fill keeps what was seen
+    assert torch.equal(env[~seen], torch.zeros_like(env[~seen]))
+    assert not torch.equal(env, prior.observed_envmaps(center, 0.0)[0])  # another frame, other colours
+
+
 def test_point_cloud_is_built_once_for_a_static_camera():
     cap = _capture(torch.rand(3, H, W, 3))
     prior = ReprojectionPrior(env_height=8)

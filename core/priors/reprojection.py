@@ -244,15 +244,27 @@ class ReprojectionPrior(Prior):
         return [frame_index] + sorted(set(picked))
 
     # ------------------------------------------------------------------ per request
+    def frame_at(self, time: float) -> int:
+        """The index of the frame nearest to `time` (seconds): the frame a request at `time` splats."""
+        if self._capture is None:
+            raise PriorError("ReprojectionPrior.bind(capture) must be called before use")
+        return int(torch.argmin((self._capture.times.double() - float(time)).abs()))
+
     def envmaps(self, centers: torch.Tensor, time: float, height: int) -> torch.Tensor:
         """HDR env maps [N, height, 2 height, 3] seen from `centers` [N, 3] in the frame nearest
         to `time`, splatted at env_height and resized (area-correct down, bilinear up)."""
-        if self._capture is None:
-            raise PriorError("ReprojectionPrior.bind(capture) must be called before use")
-        frame = int(torch.argmin((self._capture.times.double() - float(time)).abs()))
+        frame = self.frame_at(time)
         with torch.no_grad():
             env = self.envmaps_at_frame(torch.as_tensor(centers, dtype=torch.float32), frame)
         return env if height == self.env_height else torch.stack([resize_envmap(m, height) for m in env])
+
+    def observed_envmaps(self, centers: torch.Tensor, time: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """What `envmaps` splats before any fill: radiance [N, h, 2h, 3] (0 where unseen) and the
+        seen mask [N, h, 2h] at env_height, from `centers` [N, 3] in the frame nearest to `time`
+        (with its merged viewpoints). Where seen, `envmaps` at env_height answers the same."""
+        frame = self.frame_at(time)
+        with torch.no_grad():
+            return self._splat_seen(torch.as_tensor(centers, dtype=torch.float32), frame)
 
     def envmaps_at_frame(self, centers: torch.Tensor, frame_index: int) -> torch.Tensor:
         """HDR env maps [N, h, 2h, 3] (h = env_height) seen from `centers` [N, 3] in frame `frame_index`.
