@@ -317,3 +317,40 @@ def rotate_envmap(envmap: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
     d = equirect_directions(h, device=envmap.device, dtype=torch.float64)
     src = d @ R  # row-vector form of R^T d
     return sample_envmap(envmap, src).to(envmap.dtype)
+
+
+# ---------------------------------------------------------------------------------------
+# Splatting points
+# ---------------------------------------------------------------------------------------
+SPLAT_Z_TOLERANCE = 0.1  # relative: points within 10 % of the nearest distance share a pixel
+SPLAT_MIN_DISTANCE = 1e-3  # metres; points closer than this to a centre are skipped
+
+
+def splat_points(points: torch.Tensor, colors: torch.Tensor, centers: torch.Tensor,
+                 height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Z-buffered splat of coloured points into equirect maps seen from `centers` [N, 3].
+
+    points [P, 3] (finite), colors [P, 3] or [N, P, 3] (per centre). Each point lands in the
+    pixel of its direction from the centre; per pixel, the points within SPLAT_Z_TOLERANCE of
+    the nearest one's distance are averaged (a z-buffer by distance: a wall behind a table does
+    not bleed through it). Returns radiance [N, h, 2h, C] (0 where nothing landed) and the
+    seen mask [N, h, 2h]. A centre's maps do not depend on the other centres."""
+    h, w = int(height), equirect_width(height)
+    n = centers.shape[0]
+    rel = points[None, :, :] - centers[:, None, :].to(points.dtype)  # [N, P, 3]
+    dist = rel.norm(dim=-1)
+    col = colors if colors.dim() == 3 else colors[None].expand(n, -1, -1)
+    row, colf = direction_to_equirect_pixel(rel, h)
+    r = row.round().long().clamp(0, h - 1)
+    c = colf.round().long().remainder(w)
+    keep = dist > SPLAT_MIN_DISTANCE
+    key = (torch.arange(n, device=points.device)[:, None] * (h * w) + r * w + c)[keep]
+    dist_k, col_k = dist[keep], col[keep]
+    nearest = torch.full((n * h * w,), float("inf"), dtype=dist.dtype, device=points.device).scatter_reduce(
+        0, key, dist_k, reduce="amin")
+    front = dist_k <= nearest[key] * (1.0 + SPLAT_Z_TOLERANCE)
+    key, col_k = key[front], col_k[front]
+    acc = torch.zeros(n * h * w, col.shape[-1], dtype=col.dtype, device=points.device).index_add(0, key, col_k)
+    cnt = torch.zeros(n * h * w, dtype=col.dtype, device=points.device).index_add(0, key, torch.ones_like(key, dtype=col.dtype))
+    env = (acc / cnt.clamp_min(1.0)[:, None]).reshape(n, h, w, -1)
+    return env, (cnt > 0).reshape(n, h, w)

@@ -247,6 +247,7 @@ def test_run_job_writes_a_loadable_artefact(tmp_path):
     assert meta["training"]["perceptual"]["kind"] == "ssim"
     assert meta["prior"]["name"] == "reprojection" and meta["simulated"]["point_cloud_builds"] == 1
     assert len(meta["training"]["loss_curve"]) == 5
+    assert meta["training"]["surfaces"] == {"points": H * W, "knots": 1}  # every pixel: fewer than the draft's 16384
     assert meta["training"]["device"] == ("cuda" if torch.cuda.is_available() else "cpu")
     assert {"loading", "prior", "field_render", "optimisation"} <= set(meta["training"]["stage_timings"])
     stages = [e.stage for e in events]
@@ -312,6 +313,32 @@ def test_cuda_without_cuda_is_a_clear_error(monkeypatch, tmp_path):
         run_job(tmp_path / "missing.png", None, JobParams(), tmp_path / "art", config=tiny(iterations=2, device="cuda"))
     with pytest.raises(ValueError, match="device"):  # malformed values are refused by the schema too
         tiny(device="gpu")
+
+
+def test_away_from_the_camera_the_field_shows_what_its_prior_saw_with_parallax():
+    """A photo of a red / blue wall 2 m away: after even 5 steps the field at probes 1.3 m or more
+    from the camera (beyond the view detail's reach) answers every direction its prior saw as the prior does (the observed
+    surfaces, core.fields.surfaces), and the red-blue edge moves with the probe."""
+    frame = torch.zeros(H, W, 3)
+    frame[:, : W // 2] = torch.tensor([0.8, 0.1, 0.1])
+    frame[:, W // 2:] = torch.tensor([0.1, 0.1, 0.8])
+    cap = capture_from_arrays(frame, torch.full((H, W), 2.0))
+    cfg = tiny(iterations=5)
+    prior = ReprojectionPrior(env_height=cfg.distill.envmap_height)
+    prior.bind(cap, lighting_changes=False)
+    field = distill(cap, prior, cfg, uses_time=False, seed=0).field
+    h = cfg.distill.envmap_height
+    edges = []
+    for x in ([-1.0, 0.0, -0.9], [1.0, 0.0, -0.9], [0.0, 0.8, -1.1]):
+        xs = torch.tensor([x])
+        with torch.no_grad():
+            got = field.envmaps(xs, None, h)[0]
+        want, seen = prior.observed_envmaps(xs, 0.0)
+        assert int(seen.sum()) > 50
+        # the same points, in float32 here (float64 in the prior): a point on a pixel border may swap pixels
+        assert torch.allclose(got[seen[0]], want[0][seen[0]], rtol=2e-3), x
+        edges.append(float(torch.nonzero((got[h // 2, :, 2] > got[h // 2, :, 0]) & seen[0, h // 2]).min()))
+    assert edges[0] != edges[1]  # the edge is at another column from another probe
 
 
 def test_run_job_records_a_lamp_in_the_photo_as_an_emitter(tmp_path):

@@ -67,6 +67,11 @@ class DistillConfig(BaseModel):
     emitters: int = Field(0, ge=0, le=16, description=(
         "small bright sources the radiance loop models as explicit spheres (core.engine.emitters; priors with "
         "view_radiance); 0: none"))
+    observed_surfaces: int = Field(0, ge=0, le=1 << 16, description=(
+        "points of the frames (with their radiance) the field keeps and looks up along each direction away from "
+        "the cameras (core.engine.surfaces; priors with view_radiance); 0: none"))
+    observed_surfaces_height: int = Field(0, ge=0, le=128, description=(
+        "rows of the map the observed surfaces are splatted into per probe; 0: envmap_height (the prior's maps)"))
     emitter_contrast: float = Field(50.0, gt=1, description="an emitter's pixels are this many times the frame's median luminance")
     emitter_max_radius: float = Field(0.3, gt=0, description="metres: brighter blobs wider than this are left to the network")
     log_floor_fraction: float = Field(1e-3, gt=0, description="log(L + floor), floor = this x the frame's mean radiance")

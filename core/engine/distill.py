@@ -24,6 +24,7 @@ from core.engine.losses import PerceptualLoss, perceptual_description
 from core.engine.progress import Reporter, StageTimer
 from core.engine.free_space import FreeSpaceSampler
 from core.engine.scene import scene_bounds
+from core.engine.surfaces import SurfacePoints, observed_surfaces
 from core.engine.trainer import Trainer
 from core.engine.radiance import frame_floors
 from core.fields import FieldConfig, LightField, SceneBounds, build_field
@@ -77,6 +78,10 @@ def distill(
         field_cfg = field_cfg.model_copy(update={
             "emitter_count": sources.count, "emitter_knots": sources.intensity.shape[1],
             "emitter_sigma_floor": EMITTER_PIXEL_SIGMA * math.pi / cfg.envmap_height})
+    surfaces = surface_points(capture, prior, cfg, bounds, uses_time, sources) if use_envmaps else None
+    if surfaces is not None:
+        field_cfg = field_cfg.model_copy(update={
+            "surface_points": surfaces.count, "surface_knots": surfaces.knots, "surface_height": cfg.observed_surfaces_height or cfg.envmap_height})
     field = build_field(field_cfg, bounds)
     if sources is not None:
         field.emitters.set_sources(sources.centres, sources.radii, sources.intensity)
@@ -108,10 +113,13 @@ def distill(
                     save_checkpoint(Path(checkpoint_dir), field, opt, gen, step + 1, losses, run_fingerprint)
             reporter.step(step + 1, cfg.iterations, losses[-1])
     field.eval()
+    if surfaces is not None:  # only now: during the distillation the network learns every direction
+        field.surfaces.set_surfaces(surfaces.points, surfaces.colors)
     return DistillResult(field.cpu(), losses, timings, cfg.iterations, resumed_from=start,
                          stats={"field_config": field_cfg.model_dump(), "perceptual": perceptual_description(cfg.perceptual_net),
                                 "device": str(device), "supervision": "envmaps" if use_envmaps else "balls",
-                                "emitters": sources.describe() if sources is not None else []})
+                                "emitters": sources.describe() if sources is not None else [],
+                                "surfaces": surfaces.describe() if surfaces is not None else None})
 
 
 def emitter_sources(capture: Capture, prior: Prior, cfg, bounds: SceneBounds, uses_time: bool) -> EmitterSources | None:
@@ -123,6 +131,16 @@ def emitter_sources(capture: Capture, prior: Prior, cfg, bounds: SceneBounds, us
     knots = time_knots(capture.num_frames) if uses_time else 1
     return find_emitters(capture, prior.view_radiance, count=cfg.emitters, contrast=cfg.emitter_contrast,
                          max_radius=cfg.emitter_max_radius, bounds=bounds, knots=knots)
+
+
+def surface_points(capture: Capture, prior: Prior, cfg, bounds: SceneBounds, uses_time: bool,
+                   emitters: EmitterSources | None) -> SurfacePoints | None:
+    """The observed surfaces the field keeps (core.engine.surfaces; without the emitters' lamps)
+    when the config asks for them and the prior gives its linear view radiance, else None."""
+    if cfg.observed_surfaces == 0 or not prior.capabilities.view_radiance:
+        return None
+    return observed_surfaces(capture, prior.view_radiance, bounds, max_points=cfg.observed_surfaces,
+                             uses_time=uses_time, knots=time_knots(capture.num_frames), emitters=emitters)
 
 
 # The emitters' few parameters (log intensities, visibility gates) are each fitted by a fraction

@@ -145,6 +145,7 @@ def run_job(
             "perceptual": result.stats["perceptual"],
             "supervision": result.stats["supervision"],
             "emitters": result.stats.get("emitters", []),
+            "surfaces": result.stats.get("surfaces"),
             "stage_timings": timings.as_dict(),
         },
         "simulated": {

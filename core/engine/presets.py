@@ -21,8 +21,11 @@ spheres with per-frame intensities (core.engine.emitters); its fields encode tim
 learned per-frame codes; and an 8 x 4 x 8 room lattice of 16-row maps (core.fields.lattice)
 fits the slowly varying colour across the room, which the network alone fits slowly (when the
 lighting changes, trained only in the second half of the steps:
-core.engine.distill.lattice_start_step). Why and the measurements: docs/engine.md, "Radiance supervision"
-(`python -m bench.accuracy_probe`).
+core.engine.distill.lattice_start_step). After the distillation the field keeps up to 16384
+points of the frames with their radiance (core.engine.surfaces, core.fields.surfaces) and,
+away from the cameras, answers what they cover by splatting them from the probe: parallax
+exact, which the network learns slowly. Why and the measurements: docs/engine.md, "Radiance
+supervision" (`python -m bench.accuracy_probe`).
 
 `seed` is the loop of the authors' released code (ORionTMT/Sig25_4DLighting run_video_demo.py
 + SDS/multiball_sds.py `sds_loop`), paired with the diffusion prior's `seed` inference profile
@@ -54,7 +57,8 @@ PRESETS: dict[str, EngineConfig] = {
         name="draft",
         distill=DistillConfig(iterations=600, n_probes=9, work_height=72, lr=5e-3, warmup_steps=15, checkpoint_every=50,
                               supervision="auto", envmap_frames_per_step=3, envmap_surface_probes=1, envmap_room_probes=1,
-                              envmap_free_probes=1, envmap_directions=256, envmap_view_directions=256, emitters=4),
+                              envmap_free_probes=1, envmap_directions=256, envmap_view_directions=256, emitters=4,
+                              observed_surfaces=16384),
         field=_narrow(96, 4, view_detail_heights=(32, 128), room_lattice=(8, 4, 8), room_lattice_height=16,
                       time_encoding="codes"),
         priors={"reprojection": {"env_height": 24}},

@@ -29,6 +29,7 @@ from core.fields.emitters import Emitters
 from core.fields.lattice import RoomLattice
 from core.fields.encodings import EquirectGridEncoding, TimeCodes
 from core.fields.normalization import SceneBounds
+from core.fields.surfaces import ObservedSurfaces
 
 # Rows per forward call in `envmaps`: bounds peak memory (the paper MLP keeps ~7 activations
 # of width 256 per row: 2^16 rows ~ 0.5 GB in training mode, far less under inference_mode).
@@ -76,6 +77,8 @@ class LightField(nn.Module):
         self.room_lattice = RoomLattice(config.room_lattice, config.room_lattice_height) if config.room_lattice else None
         self.emitters = (Emitters(config.emitter_count, config.emitter_knots, config.emitter_gate_resolution)
                          if config.emitter_count else None)
+        self.surfaces = (ObservedSurfaces(config.surface_points, config.surface_knots, config.surface_height)
+                         if config.surface_points else None)
 
     @property
     def uses_time(self) -> bool:
@@ -189,10 +192,45 @@ class LightField(nn.Module):
         added = self.emitters.radiance(x, xn, tn, d, sigma_floor)
         return (radiance + added).clamp(max=math.exp(self.config.log_radiance_max))
 
+    # ------------------------------------------------------------------ observed surfaces
+    def _has_surfaces(self) -> bool:
+        return self.surfaces is not None and not self.surfaces.is_empty()
+
+    def _surface_table(self, xn: torch.Tensor, tn: torch.Tensor | None) -> torch.Tensor | None:
+        """The surfaces' look-up table of one probe at normalised xn [1, 3], tn [1, 1] or None."""
+        x = self.bounds_lo + 0.5 * (xn + 1.0) * (self.bounds_hi - self.bounds_lo)
+        return self.surfaces.splat(x, tn, math.exp(self.config.log_radiance_max))
+
+    def _blend_surfaces(self, radiance: torch.Tensor, table: torch.Tensor | None, d: torch.Tensor,
+                        keep: torch.Tensor | float) -> torch.Tensor:
+        """radiance [N, 3] along unit d [N, 3] of one probe, moved towards its surfaces' table by
+        coverage x keep (keep: 1 - the view-detail weight, a float or [N])."""
+        if table is None:
+            return radiance
+        observed, coverage = self.surfaces.lookup(table, d)
+        return self.surfaces.blend(radiance, observed, coverage * keep, math.exp(self.config.log_radiance_min))
+
+    def _with_surfaces(self, radiance: torch.Tensor, xn: torch.Tensor, tn: torch.Tensor | None, index: torch.Tensor,
+                       d: torch.Tensor, w_rows: torch.Tensor | None) -> torch.Tensor:
+        """radiance [B, 3] of rows looking along d [B, 3] from probes xn[index] (tn[index]) with
+        the observed surfaces blended in, one splat per probe (w_rows: the rows' detail weights)."""
+        out = radiance.clone()
+        for p in torch.unique(index).tolist():
+            rows = torch.nonzero(index == p).reshape(-1)
+            table = self._surface_table(xn[p:p + 1], None if tn is None else tn[p:p + 1])
+            keep = 1.0 if w_rows is None else 1.0 - w_rows[rows]
+            out[rows] = self._blend_surfaces(radiance[rows], table, d[rows], keep)
+        return out
+
     def forward(self, x: torch.Tensor, t: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
         """x [B,3] world metres, t [B] seconds (ignored when uses_time=False), d [B,3] -> [B,3] > 0."""
         xn, tn, d = self.normalize_inputs(x, t, d)
-        out = self.activate(self._with_detail(self._with_lattice(self.logits(xn, tn, d), xn, d), self.detail_weight(xn), d, tn))
+        w = self.detail_weight(xn)
+        out = self.activate(self._with_detail(self._with_lattice(self.logits(xn, tn, d), xn, d), w, d, tn))
+        if self._has_surfaces():
+            keys = xn if tn is None else torch.cat((xn, tn), -1)
+            probes, index = torch.unique(keys, dim=0, return_inverse=True)  # one splat per distinct probe
+            out = self._with_surfaces(out, probes[:, :3], None if tn is None else probes[:, 3:], index, d, w)
         return self._with_emitters(out, xn, tn, d, self.config.emitter_sigma_floor)
 
     def envmaps(
@@ -225,6 +263,12 @@ class LightField(nn.Module):
                 for p in near:
                     z[p, dl] = z[p, dl] + w[p] * self.combine_detail(parts, None if tn is None else tn[p:p + 1])
         out = self.activate(z)
+        if self._has_surfaces():
+            for p in range(xn.shape[0]):
+                table = self._surface_table(xn[p:p + 1], None if tn is None else tn[p:p + 1])
+                keep = 1.0 - (0.0 if w is None else float(w[p]))
+                for dl in direction_blocks(dirs.shape[0], chunk_rows):
+                    out[p, dl] = self._blend_surfaces(out[p, dl], table, dirs[dl], keep)
         if self.emitters is not None:
             floor = EMITTER_PIXEL_SIGMA * math.pi / height
             for p in range(xn.shape[0]):
@@ -251,6 +295,8 @@ class LightField(nn.Module):
         if self.room_lattice is not None:  # blended once per probe, then looked up per row
             z = z + self.room_lattice.rows(self.room_lattice.blended(xn), index, d)
         out = self.activate(self._with_detail(z, None if w is None else w[index], d, tn_rows))
+        if self._has_surfaces():
+            out = self._with_surfaces(out, xn, tn, index, d, None if w is None else w[index])
         return self._with_emitters(out, xn[index], tn_rows, d, self.config.emitter_sigma_floor)
 
     def _probe_logits(self, xn, tn, index, d) -> torch.Tensor:

@@ -7,7 +7,8 @@ lets a preset carry settings for every kind a job may pick, and keeps the artefa
 self-describing. JSON layout: {"kind", "uses_time", "log_radiance_min", "log_radiance_max",
 "view_detail_heights", "view_detail_radius", "view_anchors", "view_detail_time_rank",
 "view_detail_time_knots", "emitter_count", "emitter_knots", "emitter_gate_resolution",
-"emitter_sigma_floor", "room_lattice", "room_lattice_height", "<kind>": {section}, ...}.
+"emitter_sigma_floor", "room_lattice", "room_lattice_height", "surface_points", "surface_knots",
+"surface_height", "<kind>": {section}, ...}.
 """
 from __future__ import annotations
 
@@ -64,6 +65,13 @@ class FieldConfig(FieldSettings):
     # fits the slowly varying colour and brightness across the room fast. () = off.
     room_lattice: tuple[int, ...] = Field((), max_length=3)
     room_lattice_height: int = Field(8, ge=2, le=64)
+    # Observed surfaces (core.fields.surfaces, docs/engine.md): up to `surface_points` points of
+    # the frames with their radiance at `surface_knots` times, splatted at `surface_height` rows
+    # and answering, away from the cameras, the directions they cover (the engine fills them
+    # after the distillation). 0: none.
+    surface_points: int = Field(0, ge=0, le=1 << 16)
+    surface_knots: int = Field(1, ge=1, le=256)
+    surface_height: int = Field(24, ge=4, le=128)
     # kind -> its settings; given (and serialised) as one top-level key per kind
     sections: Mapping[str, SerializeAsAny[BaseModel]] = Field(default_factory=dict, repr=False)
 

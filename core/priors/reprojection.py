@@ -47,10 +47,10 @@ import torch
 import torch.nn.functional as F
 from pydantic import Field
 
-from core.conventions import direction_to_equirect_pixel, equirect_width, inverse_tonemap
+from core.conventions import inverse_tonemap
 from core.capture.depth import surface_normals
 from core.capture.highlights import CLIP_LDR, linearise_highlights
-from core.envmap import resize_envmap
+from core.envmap import SPLAT_Z_TOLERANCE, resize_envmap, splat_points
 from core.priors.indoor_fill import fill_unseen
 from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
 from core.priors.known import ball_target
@@ -58,8 +58,7 @@ from core.priors.registry import prior_settings, register_prior
 
 CLIP_BOOST = 8.0  # clip_rule "fixed" only
 MERGE_VIEWS_STATIC_LIGHTING = 4  # viewpoints pooled when the lighting is static and the camera moves
-Z_TOLERANCE = 0.1  # relative: points within 10 % of the nearest distance share a pixel
-MIN_PROBE_DISTANCE = 1e-3  # metres; points closer than this to a probe are skipped
+Z_TOLERANCE = SPLAT_Z_TOLERANCE  # the z-buffer of core.envmap.splat_points
 OTHER_VIEW_STRIDE = 3  # merged viewpoints contribute a third of their points (cost)
 
 
@@ -295,28 +294,11 @@ class ReprojectionPrior(Prior):
         col = torch.cat([self._colors[v].reshape(-1, 3)[::k] for v, k in zip(views, stride)])
         ok = torch.isfinite(pts).all(-1)
         pts, col = pts[ok], col[ok]
-        h, w = self.env_height, equirect_width(self.env_height)
-        n = centers.shape[0]
-        rel = pts[None, :, :] - centers[:, None, :].to(pts.dtype)  # [N, P, 3]
-        dist = rel.norm(dim=-1)
-        col = col[None].expand(n, -1, 3)
         if self.back_faces == "dark":  # the probe sees the unobserved back of the surface (NaN normal: front)
             nrm = torch.cat([self.normals(v)[::k] for v, k in zip(views, stride)])[ok]
-            col = torch.where(((rel * nrm[None]).sum(-1) > 0)[..., None], 0.0, col)
-        row, colf = direction_to_equirect_pixel(rel, h)
-        r = row.round().long().clamp(0, h - 1)
-        c = colf.round().long().remainder(w)
-        keep = dist > MIN_PROBE_DISTANCE
-        key = (torch.arange(n)[:, None] * (h * w) + r * w + c)[keep]
-        dist_k = dist[keep]
-        col_k = col[keep]
-        nearest = torch.full((n * h * w,), float("inf"), dtype=dist.dtype).scatter_reduce(0, key, dist_k, reduce="amin")
-        front = dist_k <= nearest[key] * (1.0 + Z_TOLERANCE)
-        key, col_k = key[front], col_k[front]
-        acc = torch.zeros(n * h * w, 3, dtype=col.dtype).index_add(0, key, col_k)
-        cnt = torch.zeros(n * h * w, dtype=col.dtype).index_add(0, key, torch.ones_like(key, dtype=col.dtype))
-        env = (acc / cnt.clamp_min(1.0)[:, None]).reshape(n, h, w, 3)
-        return env, (cnt > 0).reshape(n, h, w)
+            rel = pts[None, :, :] - centers[:, None, :].to(pts.dtype)  # [N, P, 3]
+            col = torch.where(((rel * nrm[None]).sum(-1) > 0)[..., None], 0.0, col[None].expand(centers.shape[0], -1, 3))
+        return splat_points(pts, col, centers, self.env_height)
 
     def view_radiance(self, frame_index: int) -> torch.Tensor:
         """The frame's linearised pixels (clip rule applied): what its env maps splat."""

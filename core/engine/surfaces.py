@@ -1,0 +1,113 @@
+"""The observed surfaces a field carries (core.fields.surfaces): the frames' points with the
+prior's linear view radiance (its clip rule applied), merged to at most `observed_surfaces`
+points on a voxel grid.
+
+* Static lighting: every MAX_SURFACE_VIEWS-th viewpoint of a moving camera (evenly over the
+  frames; one view of a static camera), each point with its own frame's radiance, the points of
+  all views averaged per voxel; a static camera's radiance is the mean over its frames.
+* Lighting that changes, seen by a static camera: the one view's points with, per time knot
+  (one per frame, as the field's other time curves), the radiance of the frame nearest the
+  knot's time.
+* Lighting that changes, seen by a moving camera: none. A point's radiance is known only at
+  the time its frame saw it, and holding it for the whole capture would freeze a switch.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from core.capture.base import Capture
+from core.engine.emitters import EmitterSources
+from core.fields.normalization import SceneBounds
+
+MAX_SURFACE_VIEWS = 16  # viewpoints of a moving camera merged into the layer
+MAX_SURFACE_VALUES = 1 << 20  # points x knots (x 3 colours x 4 bytes: 12 MB of the artefact at most)
+EMITTER_CLEARANCE = 2.0  # radii around an emitter's centre whose points the layer leaves to it
+VOXEL_GROWTH = 1.25  # the voxel grows by this factor until the points fit
+
+
+@dataclass
+class SurfacePoints:
+    points: torch.Tensor  # [M, 3] metres
+    colors: torch.Tensor  # [M, K, 3] linear radiance per time knot
+
+    @property
+    def count(self) -> int:
+        return self.points.shape[0]
+
+    @property
+    def knots(self) -> int:
+        return self.colors.shape[1]
+
+    def describe(self) -> dict:
+        return {"points": self.count, "knots": self.knots}
+
+
+def observed_surfaces(capture: Capture, view_radiance, bounds: SceneBounds, *, max_points: int, uses_time: bool,
+                      knots: int, emitters: EmitterSources | None = None) -> SurfacePoints | None:
+    """The layer's points for a capture (see the module docstring); `view_radiance(i)` is frame
+    i's linear radiance [H, W, 3] at the capture's resolution; points within EMITTER_CLEARANCE
+    radii of an emitter are left out (the field's emitters hold those lamps, energy exact); None
+    when there is nothing to keep."""
+    if max_points < 1 or (uses_time and not capture.static_camera):
+        return None
+    knots = knots if uses_time else 1
+    max_points = min(max_points, MAX_SURFACE_VALUES // knots)
+    if capture.static_camera:
+        points = _frame_points(capture, 0)
+        if uses_time:
+            colors = torch.stack([_frame_colors(view_radiance, f) for f in knot_frames(capture, bounds, knots)], 1)
+        else:
+            colors = torch.stack([_frame_colors(view_radiance, f) for f in range(capture.num_frames)]).mean(0)[:, None]
+    else:
+        frames = torch.linspace(0, capture.num_frames - 1, min(capture.num_frames, MAX_SURFACE_VIEWS)).round().long()
+        frames = torch.unique(frames).tolist()
+        points = torch.cat([_frame_points(capture, f) for f in frames])
+        colors = torch.cat([_frame_colors(view_radiance, f) for f in frames])[:, None]
+    ok = torch.isfinite(points).all(-1) & torch.isfinite(colors).all((-1, -2))
+    if emitters is not None and emitters.count:
+        gap = torch.cdist(points.double(), emitters.centres.double()) - EMITTER_CLEARANCE * emitters.radii.double()[None]
+        ok &= ~(gap < 0).any(-1)
+    if not bool(ok.any()):
+        return None
+    points, colors = voxel_merge(points[ok].double(), colors[ok].double(), max_points)
+    return SurfacePoints(points.float(), colors.float().clamp_min(0.0))
+
+
+def knot_frames(capture: Capture, bounds: SceneBounds, knots: int) -> list[int]:
+    """The frame nearest each knot's time (knots evenly over the field's time range)."""
+    times = bounds.t0 + torch.linspace(0.0, 1.0, knots, dtype=torch.float64) * (bounds.t1 - bounds.t0)
+    return [int(torch.argmin((capture.times.double() - t).abs())) for t in times]
+
+
+def voxel_merge(points: torch.Tensor, colors: torch.Tensor, max_points: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """At most `max_points` points: the mean position and colour of the points in each cell of a
+    voxel grid, the cell the smallest (x VOXEL_GROWTH steps from 1/1024 of the extent) that
+    leaves few enough cells occupied. Points that already fit are returned as they are."""
+    if points.shape[0] <= max_points:
+        return points, colors
+    lo = points.amin(0)
+    extent = float((points.amax(0) - lo).amax().clamp_min(1e-6))
+    size = extent / 1024
+    while True:
+        cells = torch.floor((points - lo) / size).long()
+        n = int(cells.amax()) + 1
+        key = (cells[:, 0] * n + cells[:, 1]) * n + cells[:, 2]
+        _, inverse = torch.unique(key, return_inverse=True)
+        count = int(inverse.amax()) + 1
+        if count <= max_points:
+            break
+        size *= VOXEL_GROWTH
+    weight = torch.zeros(count, dtype=points.dtype).index_add(0, inverse, torch.ones_like(inverse, dtype=points.dtype))
+    merged_points = torch.zeros(count, 3, dtype=points.dtype).index_add(0, inverse, points) / weight[:, None]
+    merged_colors = torch.zeros(count, *colors.shape[1:], dtype=colors.dtype).index_add(0, inverse, colors)
+    return merged_points, merged_colors / weight.reshape(-1, *([1] * (colors.dim() - 1)))
+
+
+def _frame_points(capture: Capture, i: int) -> torch.Tensor:
+    return capture.camera(i).unproject(capture.depth[i].float()).reshape(-1, 3).float()
+
+
+def _frame_colors(view_radiance, i: int) -> torch.Tensor:
+    return torch.as_tensor(view_radiance(i), dtype=torch.float32).reshape(-1, 3)
