@@ -121,6 +121,14 @@ def test_black_blinding_and_coincident_points_stay_finite_within_the_field_range
     assert field.surfaces.is_empty()
 
 
+def test_a_config_cannot_ask_for_more_surface_values_than_the_cap():
+    from core.fields.config import MAX_SURFACE_VALUES
+
+    FieldConfig(surface_points=1 << 16, surface_knots=MAX_SURFACE_VALUES >> 16)
+    with pytest.raises(ValueError, match="surface_points x surface_knots"):
+        FieldConfig(surface_points=1 << 16, surface_knots=(MAX_SURFACE_VALUES >> 16) + 1)
+
+
 def test_voxel_merge_keeps_the_bound_and_the_mean_colour():
     g = torch.Generator().manual_seed(0)
     pts = torch.rand(5000, 3, generator=g, dtype=torch.float64) * 4.0

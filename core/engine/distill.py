@@ -78,7 +78,8 @@ def distill(
         field_cfg = field_cfg.model_copy(update={
             "emitter_count": sources.count, "emitter_knots": sources.intensity.shape[1],
             "emitter_sigma_floor": EMITTER_PIXEL_SIGMA * math.pi / cfg.envmap_height})
-    surfaces = surface_points(capture, prior, cfg, bounds, uses_time, sources) if use_envmaps else None
+    with timings("surfaces"):
+        surfaces = surface_points(capture, prior, cfg, bounds, uses_time, sources) if use_envmaps else None
     if surfaces is not None:
         field_cfg = field_cfg.model_copy(update={
             "surface_points": surfaces.count, "surface_knots": surfaces.knots, "surface_height": cfg.observed_surfaces_height or cfg.envmap_height})
@@ -114,7 +115,8 @@ def distill(
             reporter.step(step + 1, cfg.iterations, losses[-1])
     field.eval()
     if surfaces is not None:  # only now: during the distillation the network learns every direction
-        field.surfaces.set_surfaces(surfaces.points, surfaces.colors)
+        with timings("surfaces"):
+            field.surfaces.set_surfaces(surfaces.points, surfaces.colors)
     return DistillResult(field.cpu(), losses, timings, cfg.iterations, resumed_from=start,
                          stats={"field_config": field_cfg.model_dump(), "perceptual": perceptual_description(cfg.perceptual_net),
                                 "device": str(device), "supervision": "envmaps" if use_envmaps else "balls",

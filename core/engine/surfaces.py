@@ -19,10 +19,10 @@ import torch
 
 from core.capture.base import Capture
 from core.engine.emitters import EmitterSources
+from core.fields.config import MAX_SURFACE_VALUES
 from core.fields.normalization import SceneBounds
 
 MAX_SURFACE_VIEWS = 16  # viewpoints of a moving camera merged into the layer
-MAX_SURFACE_VALUES = 1 << 20  # points x knots (x 3 colours x 4 bytes: 12 MB of the artefact at most)
 EMITTER_CLEARANCE = 2.0  # radii around an emitter's centre whose points the layer leaves to it
 VOXEL_GROWTH = 1.25  # the voxel grows by this factor until the points fit
 

@@ -25,6 +25,9 @@ from core.fields.registry import FIELDS, field_class
 # be 0, negative, inf or NaN, and the gradient w.r.t. z is bounded by (hi - lo)/4 * L.
 DEFAULT_LOG_RADIANCE_MIN = math.log(1e-6)
 DEFAULT_LOG_RADIANCE_MAX = math.log(1e6)
+# Observed surfaces: points x time knots at most (x 3 colours x 4 bytes: 12 MB of an artefact),
+# so no config, the engine's or a hand-edited artefact's, asks for more memory than that.
+MAX_SURFACE_VALUES = 1 << 20
 
 
 class FieldSettings(BaseModel):
@@ -132,6 +135,13 @@ class FieldConfig(FieldSettings):
             raise ValueError(f"need finite log_radiance_min < log_radiance_max, got {lo}, {hi}")
         if max(abs(lo), abs(hi)) > 80.0:  # exp(88) overflows float32
             raise ValueError(f"log-radiance range must stay within +-80 (float32), got {lo}, {hi}")
+        return self
+
+    @model_validator(mode="after")
+    def _surfaces_bounded(self):
+        if self.surface_points * self.surface_knots > MAX_SURFACE_VALUES:
+            raise ValueError(f"surface_points x surface_knots must be at most {MAX_SURFACE_VALUES}, got "
+                             f"{self.surface_points} x {self.surface_knots}")
         return self
 
     @model_serializer(mode="wrap")
