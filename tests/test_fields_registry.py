@@ -32,7 +32,8 @@ def test_the_field_json_keeps_one_key_per_kind():
     assert list(doc) == ["kind", "uses_time", "log_radiance_min", "log_radiance_max", "view_detail_heights",
                          "view_detail_radius", "view_anchors", "view_detail_time_rank", "view_detail_time_knots",
                          "emitter_count", "emitter_knots", "emitter_gate_resolution", "emitter_sigma_floor",
-                         "room_lattice", "room_lattice_height", *field_kinds()]
+                         "room_lattice", "room_lattice_height", "surface_points", "surface_knots", "surface_height",
+                         *field_kinds()]
     assert field_kinds()[:3] == ("mlp", "grid", "trunk")
     assert FieldConfig.model_validate(doc) == FieldConfig(kind="grid")
     assert FieldConfig(kind="mlp").with_section("mlp", width=7).section().width == 7
