@@ -223,7 +223,8 @@ class LightField(nn.Module):
         return out
 
     def forward(self, x: torch.Tensor, t: torch.Tensor | None, d: torch.Tensor) -> torch.Tensor:
-        """x [B,3] world metres, t [B] seconds (ignored when uses_time=False), d [B,3] -> [B,3] > 0."""
+        """x [B,3] world metres, t [B] seconds (ignored when uses_time=False), d [B,3] -> [B,3] > 0.
+        With observed surfaces, each distinct (x, t) among the rows costs one splat of the layer."""
         xn, tn, d = self.normalize_inputs(x, t, d)
         w = self.detail_weight(xn)
         out = self.activate(self._with_detail(self._with_lattice(self.logits(xn, tn, d), xn, d), w, d, tn))
