@@ -10,7 +10,7 @@ import torch
 
 from core.capture.load import capture_from_arrays
 from core.conventions import equirect_directions
-from core.engine.surfaces import knot_frames, observed_surfaces, voxel_merge
+from core.engine.surfaces import observed_surfaces, voxel_merge
 from core.envmap import SPLAT_MIN_DISTANCE
 from core.fields import FieldConfig, SceneBounds, build_field
 from core.fields.base import EMITTER_PIXEL_SIGMA
@@ -102,6 +102,19 @@ def test_every_path_answers_the_same_and_the_artefact_reloads(tmp_path):
     assert torch.isfinite(maps).all()
 
 
+def test_the_layer_costs_16_bytes_per_point_plus_12_per_knot_in_the_artefact(tmp_path):
+    """The README's artefact-size figure: points (12) + used flag (4) + colours (12 per knot)."""
+    from core.fields.artefact import save_artefact
+
+    sizes = {}
+    for points, knots in ((0, 1), (4096, 1), (4096, 3)):
+        cfg = FieldConfig(kind="mlp", uses_time=True, surface_points=points, surface_knots=knots)
+        art = save_artefact(tmp_path / f"a{points}_{knots}", build_field(cfg, BOX), {})
+        sizes[points, knots] = (art.path / "field.safetensors").stat().st_size
+    assert abs(sizes[4096, 1] - sizes[0, 1] - 4096 * 28) < 1024
+    assert abs(sizes[4096, 3] - sizes[4096, 1] - 4096 * 24) < 1024
+
+
 def test_black_blinding_and_coincident_points_stay_finite_within_the_field_range():
     pts = torch.cat((wall_patch(), torch.zeros(1, 3), wall_patch(z=2.5)))
     colours = torch.cat((torch.zeros(wall_patch().shape[0], 1, 3), torch.full((1, 1, 3), 1e30),
@@ -156,7 +169,7 @@ def test_the_engine_keeps_one_view_with_radiance_per_knot_for_a_static_camera():
     timed = observed_surfaces(cap, radiance, bounds, max_points=4096, uses_time=True, knots=4)
     assert timed.count == 12 * 16 and timed.knots == 4
     assert timed.colors[0, :, 0].tolist() == [1.0, 2.0, 3.0, 4.0]
-    assert knot_frames(cap, bounds, 7) == [0, 0, 1, 1, 2, 2, 3]  # ties (0.5 s) go to the earlier frame
+    assert cap.nearest_frames(bounds.knot_times(7)).tolist() == [0, 0, 1, 1, 2, 2, 3]  # a tie: the earlier frame
     static = observed_surfaces(cap, radiance, bounds, max_points=4096, uses_time=False, knots=4)
     assert static.knots == 1 and float(static.colors[0, 0, 0]) == 2.5  # the frames' mean
     assert torch.allclose(static.points[:, 2], torch.tensor(-2.0))  # on the depth plane, in front of the camera

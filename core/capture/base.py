@@ -56,6 +56,11 @@ class Capture:
     def static_camera(self) -> bool:
         return bool(torch.allclose(self.poses, self.poses[:1].expand_as(self.poses), atol=1e-9))
 
+    def nearest_frames(self, t: torch.Tensor) -> torch.Tensor:
+        """Indices [N] (long) of the frames nearest to times t [N] seconds (a tie: the earlier)."""
+        t = torch.as_tensor(t, dtype=torch.float64).reshape(-1)
+        return (t[:, None] - self.times.double()[None]).abs().argmin(1)
+
     def camera(self, i: int) -> Camera:
         return Camera(self.intrinsics, self.poses[i])
 

@@ -192,16 +192,14 @@ def find_emitters(capture: Capture, linear_frame, *, count: int, contrast: float
         series = torch.stack(per_frame)  # [T, 3]
         centres.append(centre)
         radii.append(radius)
-        intensity.append(_at_knots(series, capture.times.double(), bounds, knots))
+        intensity.append(_at_knots(series, capture, bounds, knots))
     return EmitterSources(torch.stack(centres).float(), torch.tensor(radii, dtype=torch.float32),
                           torch.stack(intensity).float())
 
 
-def _at_knots(series: torch.Tensor, times: torch.Tensor, bounds: SceneBounds, knots: int) -> torch.Tensor:
+def _at_knots(series: torch.Tensor, capture: Capture, bounds: SceneBounds, knots: int) -> torch.Tensor:
     """Per-frame intensities [T, 3] -> [knots, 3]: the median for one knot, else the frame
     nearest each knot's time."""
     if knots == 1:
         return series.median(0).values[None]
-    kt = bounds.t0 + torch.linspace(0, 1, knots, dtype=torch.float64) * (bounds.t1 - bounds.t0)
-    nearest = (kt[:, None] - times[None]).abs().argmin(1)
-    return series[nearest]
+    return series[capture.nearest_frames(bounds.knot_times(knots))]

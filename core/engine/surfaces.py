@@ -57,7 +57,8 @@ def observed_surfaces(capture: Capture, view_radiance, bounds: SceneBounds, *, m
     if capture.static_camera:
         points = _frame_points(capture, 0)
         if uses_time:
-            colors = torch.stack([_frame_colors(view_radiance, f) for f in knot_frames(capture, bounds, knots)], 1)
+            frames = capture.nearest_frames(bounds.knot_times(knots)).tolist()  # one per knot
+            colors = torch.stack([_frame_colors(view_radiance, f) for f in frames], 1)
         else:
             colors = torch.stack([_frame_colors(view_radiance, f) for f in range(capture.num_frames)]).mean(0)[:, None]
     else:
@@ -73,12 +74,6 @@ def observed_surfaces(capture: Capture, view_radiance, bounds: SceneBounds, *, m
         return None
     points, colors = voxel_merge(points[ok].double(), colors[ok].double(), max_points)
     return SurfacePoints(points.float(), colors.float().clamp_min(0.0))
-
-
-def knot_frames(capture: Capture, bounds: SceneBounds, knots: int) -> list[int]:
-    """The frame nearest each knot's time (knots evenly over the field's time range)."""
-    times = bounds.t0 + torch.linspace(0.0, 1.0, knots, dtype=torch.float64) * (bounds.t1 - bounds.t0)
-    return [int(torch.argmin((capture.times.double() - t).abs())) for t in times]
 
 
 def voxel_merge(points: torch.Tensor, colors: torch.Tensor, max_points: int) -> tuple[torch.Tensor, torch.Tensor]:

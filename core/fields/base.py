@@ -217,8 +217,10 @@ class LightField(nn.Module):
         out = radiance.clone()
         for p in torch.unique(index).tolist():
             rows = torch.nonzero(index == p).reshape(-1)
-            table = self._surface_table(xn[p:p + 1], None if tn is None else tn[p:p + 1])
             keep = 1.0 if w_rows is None else 1.0 - w_rows[rows]
+            if w_rows is not None and not bool((keep > 0).any()):
+                continue  # at a camera the photo fit answers: no splat (a blend by 0 is the identity)
+            table = self._surface_table(xn[p:p + 1], None if tn is None else tn[p:p + 1])
             out[rows] = self._blend_surfaces(radiance[rows], table, d[rows], keep)
         return out
 
@@ -266,8 +268,10 @@ class LightField(nn.Module):
         out = self.activate(z)
         if self._has_surfaces():
             for p in range(xn.shape[0]):
-                table = self._surface_table(xn[p:p + 1], None if tn is None else tn[p:p + 1])
                 keep = 1.0 - (0.0 if w is None else float(w[p]))
+                if keep <= 0.0:
+                    continue  # at a camera the photo fit answers: no splat (a blend by 0 is the identity)
+                table = self._surface_table(xn[p:p + 1], None if tn is None else tn[p:p + 1])
                 for dl in direction_blocks(dirs.shape[0], chunk_rows):
                     out[p, dl] = self._blend_surfaces(out[p, dl], table, dirs[dl], keep)
         if self.emitters is not None:

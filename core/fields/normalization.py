@@ -111,6 +111,11 @@ class SceneBounds:
             return torch.zeros_like(t)
         return 2.0 * (t - self.t0) / (self.t1 - self.t0) - 1.0
 
+    def knot_times(self, knots: int) -> torch.Tensor:
+        """Seconds [knots] (float64) of `knots` time knots evenly over [t0, t1]: where the field's
+        learned time curves (codes, view detail, emitters, observed surfaces) put theirs."""
+        return self.t0 + torch.linspace(0.0, 1.0, int(knots), dtype=torch.float64) * (self.t1 - self.t0)
+
     def contains(self, x: torch.Tensor) -> torch.Tensor:
         """[...] bool: position inside the (padded) box. Non-finite positions are outside."""
         lo = torch.tensor(self.lo, dtype=x.dtype, device=x.device)

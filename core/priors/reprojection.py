@@ -247,7 +247,7 @@ class ReprojectionPrior(Prior):
         """The index of the frame nearest to `time` (seconds): the frame a request at `time` splats."""
         if self._capture is None:
             raise PriorError("ReprojectionPrior.bind(capture) must be called before use")
-        return int(torch.argmin((self._capture.times.double() - float(time)).abs()))
+        return int(self._capture.nearest_frames(torch.tensor([float(time)]))[0])
 
     def envmaps(self, centers: torch.Tensor, time: float, height: int) -> torch.Tensor:
         """HDR env maps [N, height, 2 height, 3] seen from `centers` [N, 3] in the frame nearest
