@@ -1,29 +1,47 @@
 """Fit core.priors.indoor_fill.ELEVATION_GAIN on the `dev` panoramas (never test/control).
 
-    python -m bench.indoor_fill [--hdri-dir DIR]             # fit, print the table
+    python -m bench.indoor_fill [--hdri-dir DIR] [--average arithmetic|geometric]  # fit, print the table
     python -m bench.indoor_fill --ablation [--split dev]       # the prior's fill/clip variants
+    python -m bench.indoor_fill --leave-one-out [--average ...]  # each dev panorama with the others' profile
 
-Per panorama (area-downsampled to GAIN_ROWS rows, +y up as stored): log of each row's mean
-luminance over the mean luminance within +-HORIZON_BAND_DEG of the horizon; averaged over
-the dev panoramas and exponentiated. Prints the tuple to paste into core/priors/indoor_fill.py.
+Per panorama (area-downsampled to GAIN_ROWS rows, +y up as stored): each row's mean luminance
+over the mean luminance within +-HORIZON_BAND_DEG of the horizon; averaged over the dev
+panoramas (arithmetically, the default: the expected radiance, which is what a diffuse
+render integrates; `geometric`: the mean of the logs, the first fit, which a few bright
+sources barely move) and smoothed in log over rows. Prints the tuple to paste into
+core/priors/indoor_fill.py.
 """
 from __future__ import annotations
 
 import argparse
 import math
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
 
 
+AVERAGES = ("arithmetic", "geometric")
+
+
 def row_profile(pano: torch.Tensor, rows: int, band_deg: float) -> torch.Tensor:
+    """Each row's mean luminance over the horizon band's (linear ratios)."""
     from core.envmap import resize_envmap
     from core.exposure import luminance
 
     y = luminance(resize_envmap(pano.double(), rows)).mean(1)
     elev = 90.0 - (torch.arange(rows, dtype=torch.float64) + 0.5) * 180.0 / rows
     band = elev.abs() <= band_deg
-    return torch.log(y.clamp_min(1e-12) / y[band].mean())
+    return y.clamp_min(1e-12) / y[band].mean()
+
+
+def mean_log_profile(profiles: torch.Tensor, average: str) -> torch.Tensor:
+    """The log of the panoramas' profiles [P, rows] averaged as `average` says."""
+    if average == "arithmetic":
+        return profiles.mean(0).log()
+    if average == "geometric":
+        return profiles.log().mean(0)
+    raise ValueError(f"average must be one of {AVERAGES}, got {average!r}")
 
 
 def smooth(log_gain: torch.Tensor, sigma_rows: float) -> torch.Tensor:
@@ -37,13 +55,22 @@ def smooth(log_gain: torch.Tensor, sigma_rows: float) -> torch.Tensor:
     return torch.nn.functional.conv1d(padded[None, None], (k / k.sum())[None, None])[0, 0]
 
 
-def fit_gain(paths: list[Path], sigma_rows: float | None = None) -> list[float]:
+def panorama_profiles(paths: list[Path]) -> torch.Tensor:
     from bench.real_panoramas import load_panorama
-    from core.priors.indoor_fill import GAIN_ROWS, GAIN_SMOOTHING_ROWS, HORIZON_BAND_DEG
+    from core.priors.indoor_fill import GAIN_ROWS, HORIZON_BAND_DEG
 
-    logs = torch.stack([row_profile(load_panorama(p), GAIN_ROWS, HORIZON_BAND_DEG) for p in paths])
-    mean = smooth(logs.mean(0), GAIN_SMOOTHING_ROWS if sigma_rows is None else sigma_rows)
+    return torch.stack([row_profile(load_panorama(p), GAIN_ROWS, HORIZON_BAND_DEG) for p in paths])
+
+
+def gain_from_profiles(profiles: torch.Tensor, average: str = "arithmetic", sigma_rows: float | None = None) -> list[float]:
+    from core.priors.indoor_fill import GAIN_SMOOTHING_ROWS
+
+    mean = smooth(mean_log_profile(profiles, average), GAIN_SMOOTHING_ROWS if sigma_rows is None else sigma_rows)
     return [round(math.exp(v), 3) for v in mean.tolist()]
+
+
+def fit_gain(paths: list[Path], sigma_rows: float | None = None, average: str = "arithmetic") -> list[float]:
+    return gain_from_profiles(panorama_profiles(paths), average, sigma_rows)
 
 
 ABLATION = {
@@ -54,9 +81,24 @@ ABLATION = {
 }
 
 
-def ablation(hdri: Path, split: str) -> list[str]:
+@contextmanager
+def elevation_gain_as(gain: tuple[float, ...] | None):
+    """core.priors.indoor_fill.ELEVATION_GAIN replaced while the block runs (None: as it is)."""
+    import core.priors.indoor_fill as fill
+
+    kept = fill.ELEVATION_GAIN
+    fill.ELEVATION_GAIN = kept if gain is None else tuple(gain)
+    try:
+        yield
+    finally:
+        fill.ELEVATION_GAIN = kept
+
+
+def ablation(hdri: Path, split: str, variants: dict | None = None, gains: dict | None = None) -> list[str]:
     """The reprojection prior alone at the camera centre, draft settings (24-row maps, frames
-    at 72 rows), per fill/clip variant, on the panorama protocol: mean ratios to the constant map."""
+    at 72 rows), per fill/clip variant (`variants`, default ABLATION), on the panorama protocol:
+    mean ratios to the constant map. `gains` maps a panorama's file name to the elevation gain
+    its prior uses (leave-one-out); else the module's."""
     import tempfile
 
     import bench.real_panoramas as rp
@@ -72,7 +114,8 @@ def ablation(hdri: Path, split: str) -> list[str]:
     cfg = preset(rp.PRESET)
     base = dict(cfg.priors.get("reprojection", {}))
     files = sorted(r["filename"] for r in rp.read_manifest(hdri) if r.get("split") == split and (hdri / r["filename"]).is_file())
-    acc: dict = {k: [] for k in [*ABLATION, "mean-colour"]}
+    variants = ABLATION if variants is None else variants
+    acc: dict = {k: [] for k in [*variants, "mean-colour"]}
     with tempfile.TemporaryDirectory() as tmp:
         for f in files:
             pano = rp.load_panorama(hdri / f)
@@ -81,10 +124,11 @@ def ablation(hdri: Path, split: str) -> list[str]:
             ldr = rp.ldr_photo(hdr)
             work = load_capture(rp.write_photo(ldr, Path(tmp) / f"{f}.png"), None, rp.job_params(), track=False).resized(cfg.distill.work_height)
             preds = {}
-            for name, settings in ABLATION.items():
-                prior = ReprojectionPrior(**{**base, **settings})
-                prior.bind(work)
-                preds[name] = prior.envmaps(torch.zeros(1, 3), 0.0, rp.GT_HEIGHT)[0]
+            with elevation_gain_as((gains or {}).get(f)):
+                for name, settings in variants.items():
+                    prior = ReprojectionPrior(**{**base, **settings})
+                    prior.bind(work)
+                    preds[name] = prior.envmaps(torch.zeros(1, 3), 0.0, rp.GT_HEIGHT)[0]
             preds["mean-colour"] = rp.estimate_mean_colour(ldr)
             scores = score_probe(preds, rotate_envmap(resize_envmap(pano, rp.GT_HEIGHT), R.T), 64)
             rays = Camera(intr, torch.eye(4, dtype=torch.float64)).pixel_rays(dtype=torch.float64)[1]
@@ -108,15 +152,24 @@ def main(argv=None) -> int:
     p.add_argument("--hdri-dir", default=str(DEFAULT_HDRI_DIR))
     p.add_argument("--ablation", action="store_true", help="score the prior's fill/clip variants instead of fitting")
     p.add_argument("--split", default="dev", help="split for --ablation (tune on dev only)")
+    p.add_argument("--average", choices=AVERAGES, default="arithmetic", help="how the panoramas' profiles are averaged")
+    p.add_argument("--leave-one-out", action="store_true",
+                   help="score the default fill on each dev panorama with the profile fitted on the others")
     args = p.parse_args(argv)
     hdri = Path(args.hdri_dir)
     torch.set_num_threads(1)
     if args.ablation:
         print("\n".join(ablation(hdri, args.split)))
         return 0
-    dev = [hdri / r["filename"] for r in read_manifest(hdri) if r.get("split") == "dev" and (hdri / r["filename"]).is_file()]
-    gain = fit_gain(sorted(dev))
-    print(f"# {len(dev)} dev panoramas\nELEVATION_GAIN = {tuple(gain)}")
+    dev = sorted(hdri / r["filename"] for r in read_manifest(hdri) if r.get("split") == "dev" and (hdri / r["filename"]).is_file())
+    if args.leave_one_out:
+        profiles = panorama_profiles(dev)
+        gains = {p.name: gain_from_profiles(torch.cat([profiles[:i], profiles[i + 1:]]), args.average) for i, p in enumerate(dev)}
+        lines = ablation(hdri, "dev", {f"indoor fill, {args.average} profile of the other dev panoramas": {}}, gains)
+        print("\n".join(lines))
+        return 0
+    gain = fit_gain(dev, average=args.average)
+    print(f"# {len(dev)} dev panoramas, {args.average} mean\nELEVATION_GAIN = {tuple(gain)}")
     return 0
 
 
