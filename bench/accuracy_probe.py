@@ -182,6 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     from bench.suite.evaluation import mean_scores, score_probe
     from bench.suite.simulated import load_suite, with_extra_probes
     from core.engine.presets import preset
+    from core.exposure import luminance
 
     overrides = parse_set(args.set)
     base = preset("draft").with_overrides(overrides) if overrides else preset("draft")
@@ -215,6 +216,9 @@ def main(argv: list[str] | None = None) -> int:
                 preds[f"{method}+observed"] = observed_hybrid(bound, suite, preds[method])
                 scored.append(f"{method}+observed")
         per_probe = [score_probe({k: v[i] for k, v in preds.items()}, suite.gt[i], args.sphere_size) for i in range(len(suite.probes))]
+        for i, pp in enumerate(per_probe):  # where the brightest direction stands: a lamp no frame shows reads here
+            pp["peak_luminance"] = {"truth": round(float(luminance(suite.gt[i]).max()), 3),
+                                    **{k: round(float(luminance(v[i]).max()), 3) for k, v in preds.items()}}
         scores = {k: mean_scores([pp[k] for pp in per_probe]) for k in preds}
         entry: dict = {"probes": [{"x": list(p.x), "t": p.t} for p in suite.probes], "scores": scores, "cpu_s": seconds,
                        "ratios": {}, "interval_90": {}, "per_probe": per_probe}
