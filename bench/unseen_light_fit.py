@@ -47,21 +47,23 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     warnings.simplefilter("ignore")
 
-    from bench.methods import _bound_prior
     from bench.run import default_cache_dir
     from bench.suite.evaluation import envmap_brightness
     from bench.suite.simulated import load_suite, switch_frames
     from core.capture.depth import surface_normals
+    from core.capture.load import load_capture
     from core.engine.distill import emitter_sources, time_knots
     from core.engine.presets import preset
     from core.engine.scene import scene_bounds
     from core.exposure import luminance
+    from core.priors.registry import build_prior
     from core.sim.render import render_envmap
 
     suite = load_suite(args.suite, default_cache_dir(), None, 64)
     cfg = preset("draft")
-    prior = _bound_prior(suite, cfg)
-    cap = prior._capture
+    cap = load_capture(suite.capture_dir).resized(cfg.distill.work_height)  # as run_job works on it
+    prior = build_prior("reprojection", cfg.prior_settings("reprojection"))
+    prior.bind(cap, lighting_changes=True)  # the suite's lighting changes (its panel switches off)
     bounds = scene_bounds(cap, cfg.distill.time_normalisation_frames)
     sources = emitter_sources(cap, prior, cfg.distill, bounds, True)
     K = time_knots(cap.num_frames)

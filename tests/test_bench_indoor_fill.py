@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from bench.indoor_fill import elevation_gain_as, gain_from_profiles, mean_log_profile, row_profile
+from bench.run import DEFAULT_HDRI_DIR
 
 
 def test_arithmetic_mean_keeps_the_energy_a_few_bright_panoramas_carry():
@@ -49,7 +50,7 @@ def test_elevation_gain_as_restores_the_module_constant_even_on_error():
         assert fill.ELEVATION_GAIN == kept
 
 
-DEV = Path(__file__).resolve().parents[1].parent / "shared" / "hdri"
+DEV = Path(DEFAULT_HDRI_DIR)
 
 
 @pytest.mark.skipif(not (DEV / "MANIFEST.tsv").is_file(), reason="the dev panoramas (../shared/hdri) are not on this machine")

@@ -12,7 +12,7 @@ misses, both measured on the `dev` panoramas only (`python -m bench.indoor_fill`
    to down, smoothed in log over rows. The mean is arithmetic: the expected radiance of a
    band, lamps and windows included, which is what a diffuse or matte render integrates (the
    first fit averaged the logs, which a few bright sources barely move, and left the upper
-   sphere 2x too dark: leave-one-out on dev, diffuse si-RMSE 0.851x the constant map against
+   sphere about 1.8x too dark: leave-one-out on dev, diffuse si-RMSE 0.851x the constant map against
    0.804x now, `python -m bench.indoor_fill --leave-one-out --average geometric|arithmetic`).
    Unseen pixels get the pull-push value x gain(row) / the mean gain over the seen pixels,
    so the seen rows set the level and the profile its shape.
