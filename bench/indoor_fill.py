@@ -26,12 +26,13 @@ AVERAGES = ("arithmetic", "geometric")
 
 def row_profile(pano: torch.Tensor, rows: int, band_deg: float) -> torch.Tensor:
     """Each row's mean luminance over the horizon band's (linear ratios)."""
+    from core.conventions import equirect_pixel_centres
     from core.envmap import resize_envmap
     from core.exposure import luminance
 
     y = luminance(resize_envmap(pano.double(), rows)).mean(1)
-    elev = 90.0 - (torch.arange(rows, dtype=torch.float64) + 0.5) * 180.0 / rows
-    band = elev.abs() <= band_deg
+    theta, _ = equirect_pixel_centres(rows, dtype=torch.float64)  # polar angle from up (+y)
+    band = (90.0 - torch.rad2deg(theta[:, 0])).abs() <= band_deg
     return y.clamp_min(1e-12) / y[band].mean()
 
 

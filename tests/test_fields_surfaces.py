@@ -184,3 +184,14 @@ def test_a_moving_camera_merges_its_views_but_not_when_the_lighting_changes():
     assert torch.allclose(merged.colors, torch.ones_like(merged.colors))
     assert observed_surfaces(cap, radiance, bounds, max_points=300, uses_time=True, knots=5) is None
     assert observed_surfaces(cap, radiance, bounds, max_points=0, uses_time=False, knots=5) is None
+
+
+def test_spread_frames_are_distinct_and_span_the_capture():
+    from core.capture.load import capture_from_arrays
+
+    cap = capture_from_arrays(torch.full((20, 12, 16, 3), 0.5), torch.full((20, 12, 16), 2.0), fps=1.0)
+    picked = cap.spread_frames(16).tolist()
+    assert len(picked) == 16 and len(set(picked)) == 16 and picked == sorted(picked)
+    assert picked[0] == 0 and picked[-1] == 19
+    assert cap.spread_frames(1).tolist() == [0]
+    assert cap.spread_frames(50).tolist() == list(range(20))

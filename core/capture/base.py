@@ -61,6 +61,12 @@ class Capture:
         t = torch.as_tensor(t, dtype=torch.float64).reshape(-1)
         return (t[:, None] - self.times.double()[None]).abs().argmin(1)
 
+    def spread_frames(self, n: int) -> torch.Tensor:
+        """At most `n` distinct frame indices [k] (long, ascending) spread evenly over the capture,
+        the first and the last frame included."""
+        count = max(1, min(self.num_frames, int(n)))
+        return torch.linspace(0, self.num_frames - 1, count).round().long().unique()
+
     def camera(self, i: int) -> Camera:
         return Camera(self.intrinsics, self.poses[i])
 

@@ -179,7 +179,7 @@ def with_view_detail(field_cfg: FieldConfig, capture: Capture) -> FieldConfig:
         return field_cfg
     if field_cfg.uses_time and field_cfg.view_detail_time_rank == 0:
         return field_cfg.model_copy(update={"view_detail_heights": (), "view_anchors": ()})
-    frames = torch.linspace(0, capture.num_frames - 1, min(capture.num_frames, MAX_VIEW_ANCHORS)).round().long()
+    frames = capture.spread_frames(MAX_VIEW_ANCHORS)
     centres = torch.unique(capture.poses[frames, :3, 3].double(), dim=0)  # a static camera: one anchor
     knots = time_knots(capture.num_frames)
     return field_cfg.with_view_anchors(centres.tolist()).model_copy(update={"view_detail_time_knots": knots})

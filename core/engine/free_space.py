@@ -41,7 +41,7 @@ class FreeSpaceSampler:
     def for_capture(cls, capture: Capture, bounds: SceneBounds) -> "FreeSpaceSampler":
         lo, hi = torch.tensor(bounds.lo, dtype=torch.float64), torch.tensor(bounds.hi, dtype=torch.float64)
         pad = (hi - lo) * MARGIN_FRACTION / (1.0 + 2.0 * MARGIN_FRACTION)  # undo the box's padding
-        frames = torch.linspace(0, capture.num_frames - 1, min(capture.num_frames, MAX_FRAMES_CHECKED)).round().long().unique()
+        frames = capture.spread_frames(MAX_FRAMES_CHECKED)
         k = capture.intrinsics
         return cls(lo + pad, hi - pad, torch.linalg.inv(capture.poses[frames].double()), capture.depth[frames].double(),
                    float(k.fx), float(k.fy), float(k.cx), float(k.cy))

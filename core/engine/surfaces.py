@@ -62,8 +62,7 @@ def observed_surfaces(capture: Capture, view_radiance, bounds: SceneBounds, *, m
         else:
             colors = torch.stack([_frame_colors(view_radiance, f) for f in range(capture.num_frames)]).mean(0)[:, None]
     else:
-        frames = torch.linspace(0, capture.num_frames - 1, min(capture.num_frames, MAX_SURFACE_VIEWS)).round().long()
-        frames = torch.unique(frames).tolist()
+        frames = capture.spread_frames(MAX_SURFACE_VIEWS).tolist()
         points = torch.cat([_frame_points(capture, f) for f in frames])
         colors = torch.cat([_frame_colors(view_radiance, f) for f in frames])[:, None]
     ok = torch.isfinite(points).all(-1) & torch.isfinite(colors).all((-1, -2))
