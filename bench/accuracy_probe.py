@@ -38,6 +38,7 @@ from pathlib import Path
 import torch
 
 from bench.overrides import parse_set
+from bench.suite.evaluation import ratio_interval
 
 METRICS = ("si_rmse", "angular_deg", "nrmse")
 MATERIALS = ("diffuse", "matte", "mirror")
@@ -64,17 +65,6 @@ def constant_maps(suite, height: int) -> torch.Tensor:
         mean = inverse_tonemap(cap.frames[i].clamp(0, 1)).reshape(-1, 3).mean(0)
         out.append(mean.expand(height, equirect_width(height), 3).clone())
     return torch.stack(out)
-
-
-BOOTSTRAP_DRAWS = 2000
-
-
-def ratio_interval(num: list[float], den: list[float], seed: int = 0) -> list[float]:
-    """90 % bootstrap interval (over probes) of mean(num) / mean(den)."""
-    a, b = torch.tensor(num, dtype=torch.float64), torch.tensor(den, dtype=torch.float64)
-    idx = torch.randint(0, len(a), (BOOTSTRAP_DRAWS, len(a)), generator=torch.Generator().manual_seed(seed))
-    r = a[idx].mean(1) / b[idx].mean(1).clamp_min(1e-30)
-    return [round(float(v), 3) for v in torch.quantile(r, torch.tensor([0.05, 0.95], dtype=torch.float64))]
 
 
 METHOD_LABELS = {"field": "radiance + view (draft)", "field-balls": "ball loop", "field-oracle": "from the oracle (bound)"}

@@ -75,9 +75,16 @@ def camera_rotation(yaw_deg: float, pitch_deg: float) -> torch.Tensor:
     return pose_from_yaw_pitch((0.0, 0.0, 0.0), yaw_deg, pitch_deg)[:3, :3]
 
 
-def view_for(filename: str) -> tuple[float, float]:
+def view_for(filename: str, view: int = 0, views: int = 1) -> tuple[float, float]:
+    """(yaw, pitch) in degrees of photo `view` of `views` taken from one panorama. View 0 is the
+    file's own draw (the protocol's single photo); view k turns the yaw by k 360 / views from it
+    (the photos look around the room evenly) with a pitch of its own draw."""
     rng = random.Random(f"{SEED}:{filename}")
-    return rng.uniform(-180.0, 180.0), rng.uniform(-PITCH_DEG, PITCH_DEG)
+    yaw, pitch = rng.uniform(-180.0, 180.0), rng.uniform(-PITCH_DEG, PITCH_DEG)
+    if view == 0:
+        return yaw, pitch
+    yaw = (yaw + 360.0 * view / views + 180.0) % 360.0 - 180.0
+    return yaw, random.Random(f"{SEED}:{filename}:{view}").uniform(-PITCH_DEG, PITCH_DEG)
 
 
 def perspective_crop(pano: torch.Tensor, R: torch.Tensor) -> tuple[torch.Tensor, "object"]:
@@ -168,7 +175,8 @@ def write_photo(ldr: torch.Tensor, path: Path) -> Path:
     return write_png(path, (ldr.clamp(0, 1) * 255.0).round().to(torch.uint8).numpy())
 
 
-def evaluate_panorama(path: Path, sphere_size: int, workdir: Path, methods=METHODS, overrides: dict | None = None) -> dict:
+def evaluate_panorama(path: Path, sphere_size: int, workdir: Path, methods=METHODS, overrides: dict | None = None,
+                      view: int = 0, views: int = 1) -> dict:
     from bench.suite.evaluation import score_probe
     from core.camera import Camera
     from core.conventions import inverse_tonemap
@@ -176,11 +184,11 @@ def evaluate_panorama(path: Path, sphere_size: int, workdir: Path, methods=METHO
     from core.metrics import observed_region_correlation
 
     pano = load_panorama(path)
-    yaw, pitch = view_for(path.name)
+    yaw, pitch = view_for(path.name, view, views)
     R = camera_rotation(yaw, pitch)
     hdr, intr = perspective_crop(pano, R)
     ldr = ldr_photo(hdr)
-    photo = write_photo(ldr, workdir / (path.stem + ".png"))
+    photo = write_photo(ldr, workdir / (path.stem + (f"_view{view}" if view else "") + ".png"))
     gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), R.T)  # camera frame: gt(d) = pano(R d)
     run = {FIELD: lambda: estimate_field(photo, workdir, overrides), PRIOR: lambda: estimate_prior(photo, overrides),
            CONSTANT: lambda: estimate_mean_colour(ldr)}
@@ -194,14 +202,16 @@ def evaluate_panorama(path: Path, sphere_size: int, workdir: Path, methods=METHO
     rays = Camera(intr, torch.eye(4, dtype=torch.float64)).pixel_rays(dtype=torch.float64)[1]
     linear = inverse_tonemap(ldr)
     corr = {name: observed_region_correlation(env, linear, rays) for name, env in {**preds, "truth": gt}.items()}
-    return {"file": path.name, "yaw_deg": round(yaw, 2), "pitch_deg": round(pitch, 2),
+    return {"file": path.name, "view": view, "yaw_deg": round(yaw, 2), "pitch_deg": round(pitch, 2),
             "clipped_fraction": float((ldr.amax(-1) >= 0.99).float().mean()), "seconds": seconds, "scores": scores,
             "observed_corr": corr}
 
 
 def summarise(images: list[dict], methods=METHODS) -> dict:
-    """Per method: mean scores, ratios to the mean-colour map, mean observed correlation."""
-    from bench.suite.evaluation import mean_scores
+    """Per method: mean scores, ratios to the mean-colour map with their 90 % bootstrap
+    interval over the images (`interval_90`: a split of 7 images leaves a ratio uncertain by
+    several hundredths), mean observed correlation."""
+    from bench.suite.evaluation import mean_scores, ratio_interval
 
     def mean(vals):
         vals = [v for v in vals if v is not None]
@@ -214,24 +224,60 @@ def summarise(images: list[dict], methods=METHODS) -> dict:
                      "observed_corr": mean([im["observed_corr"][name] for im in images])}
     base = out.get(CONSTANT)
     for name in methods:
-        m, ratios = out[name]["metrics"], {}
+        m, ratios, intervals = out[name]["metrics"], {}, {}
         for mat in ("diffuse", "matte"):
             for metric in ("si_rmse_rel", "angular_deg"):
                 num, den = m[mat][metric], base["metrics"][mat][metric] if base else None
                 ratios[f"{mat}_{metric}"] = num / den if num is not None and den else None
+                if base and name != CONSTANT:
+                    pairs = _panorama_pairs(images, name, mat, metric)
+                    intervals[f"{mat}_{metric}"] = ratio_interval(*zip(*pairs)) if pairs else None
         out[name]["vs_constant"] = ratios
+        if intervals:
+            out[name]["interval_90"] = intervals
     out["truth"] = {"images": len(images), "observed_corr": mean([im["observed_corr"]["truth"] for im in images])}
     return out
 
 
+def _panorama_pairs(images: list[dict], method: str, material: str, metric: str) -> list[tuple[float, float]]:
+    """Per panorama, the mean of `method`'s and of the constant map's score over its photos: the
+    bootstrap resamples panoramas, not photos, since the views of one room are not independent."""
+    rooms: dict[str, list[tuple[float, float]]] = {}
+    for im in images:
+        if _scored(im, method, material, metric) and _scored(im, CONSTANT, material, metric):
+            rooms.setdefault(im["file"], []).append((im["scores"][method][material][metric],
+                                                     im["scores"][CONSTANT][material][metric]))
+    return [(sum(a for a, _ in v) / len(v), sum(b for _, b in v) / len(v)) for v in rooms.values()]
+
+
+def _scored(image: dict, method: str, material: str, metric: str) -> bool:
+    score = image["scores"].get(method, {})
+    return "non_finite" not in score and score.get(material, {}).get(metric) is not None
+
+
+def rescore(report: dict) -> dict:
+    """Re-summarise a saved report from its per-image results (no estimate is rerun): how a
+    report written before a summary statistic existed gets it."""
+    for split in report.get("splits", {}).values():
+        split["methods"] = summarise(split["images"], tuple(k for k in split["methods"] if k != "truth"))
+    return report
+
+
 def run_panoramas(hdri_dir: Path, limit: int | None, sphere_size: int, quick: bool = False,
-                  workdir: Path | None = None, splits=SPLITS, log=None, overrides: dict | None = None) -> dict:
-    """Per split: every method's mean scores, ratios and per-image results (`skipped` if no data)."""
+                  workdir: Path | None = None, splits=SPLITS, log=None, overrides: dict | None = None,
+                  views: int = 1) -> dict:
+    """Per split: every method's mean scores over the photos (`views` per panorama, see
+    `view_for`), ratios with their interval over the panoramas, and per-photo results
+    (`skipped` if no data)."""
     hdri_dir = Path(hdri_dir)
     if not (hdri_dir / "MANIFEST.tsv").is_file():
         return {"skipped": f"no MANIFEST.tsv in {hdri_dir} (pass --hdri-dir); the real-panorama section was not run"}
     rows = read_manifest(hdri_dir)
-    out: dict = {"protocol": PROTOCOL, "hdri_dir": str(hdri_dir), "limit_per_split": limit, "preset": PRESET, "splits": {}}
+    out: dict = {"protocol": PROTOCOL, "hdri_dir": str(hdri_dir), "limit_per_split": limit, "preset": PRESET,
+                 "views_per_panorama": views, "splits": {}}
+    if views > 1:
+        out["protocol"] += (f" {views} photos per panorama: the first as above, the others at its yaw turned by multiples "
+                            f"of {360.0 / views:g}° with pitches of their own; intervals resample panoramas.")
     if overrides:
         out["protocol"] += f" VARIANT, not the shipped preset: {PRESET} with {json.dumps(overrides)}."
         out["overrides"] = overrides
@@ -247,12 +293,14 @@ def run_panoramas(hdri_dir: Path, limit: int | None, sphere_size: int, quick: bo
             continue
         images = []
         for f in files:
-            t0 = time.perf_counter()
-            images.append(evaluate_panorama(hdri_dir / f, sphere_size, workdir, overrides=overrides))
-            if log:
-                im = images[-1]
-                log(f"panorama {split}/{f}: {time.perf_counter() - t0:.0f}s, observed corr "
-                    + ", ".join(f"{k} {v:.2f}" for k, v in im["observed_corr"].items()))
+            for view in range(views):
+                t0 = time.perf_counter()
+                images.append(evaluate_panorama(hdri_dir / f, sphere_size, workdir, overrides=overrides, view=view,
+                                                views=views))
+                if log:
+                    im = images[-1]
+                    log(f"panorama {split}/{f} view {view}: {time.perf_counter() - t0:.0f}s, observed corr "
+                        + ", ".join(f"{k} {v:.2f}" for k, v in im["observed_corr"].items()))
         out["splits"][split + (" (not indoor)" if split == "control" else "")] = {
             "files": files, "methods": summarise(images), "images": images}
     if own_tmp:
@@ -274,14 +322,23 @@ def main(argv=None) -> int:
     p.add_argument("--splits", default="dev", help="comma-separated subset of dev,test,control (tune on dev only)")
     p.add_argument("--limit", type=int, default=3, help="panoramas per split (0: all)")
     p.add_argument("--sphere-size", type=int, default=64)
+    p.add_argument("--views", type=int, default=1, help="photos per panorama (view_for): more photos, tighter intervals")
     p.add_argument("-o", "--out", default=None, help="JSON file to write")
     p.add_argument("--overrides", default=None, help='explore a variant of the preset (labelled in the output), e.g. '
                    '\'{"priors.reprojection.env_height": 64}\'')
+    p.add_argument("--rescore", default=None, metavar="REPORT_JSON", help="re-summarise a saved report from its "
+                   "per-image results (nothing is estimated again); with -o, write the result")
     args = p.parse_args(argv)
+    if args.rescore:
+        res = rescore(json.loads(Path(args.rescore).read_text()))
+        if args.out:
+            Path(args.out).write_text(json.dumps(sanitize(res), indent=1))
+        print("\n".join(panorama_markdown(res)))
+        return 0
     torch.set_num_threads(1)
     res = run_panoramas(Path(args.hdri_dir), args.limit or None, args.sphere_size, splits=tuple(args.splits.split(",")),
                         log=lambda m: print(m, file=sys.stderr, flush=True),
-                        overrides=json.loads(args.overrides) if args.overrides else None)
+                        overrides=json.loads(args.overrides) if args.overrides else None, views=max(1, args.views))
     if args.out:
         Path(args.out).write_text(json.dumps(sanitize(res), indent=1))
     print("\n".join(panorama_markdown(res)))

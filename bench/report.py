@@ -201,13 +201,19 @@ def markdown(results: dict) -> str:
     return "\n".join(out) + "\n"
 
 
+def _with_interval(method: dict, ratio: str) -> str:
+    """A ratio to the constant map with its 90 % interval over the images, when the report has one."""
+    value, interval = _get(method, "vs_constant", ratio), _get(method, "interval_90", ratio)
+    return fmt(value) + (f" [{fmt(interval[0])}, {fmt(interval[1])}]" if interval else "")
+
+
 def panorama_markdown(pano: dict) -> list[str]:
     out = ["## Real panoramas, end to end (LDR photo -> `estimate` -> env map at the camera)", ""]
     if pano.get("skipped"):
         return out + [f"Skipped: {pano['skipped']}", ""]
     out += [pano.get("protocol", ""), ""]
-    headers = ["split", "method", "images", "time (s)", "diffuse si-RMSE vs const", "diffuse ang vs const",
-               "matte si-RMSE vs const", "observed corr.", "diffuse rel si-RMSE", "diffuse ang (°)", "mirror ang (°)"]
+    headers = ["split", "method", "images", "time (s)", "diffuse si-RMSE vs const [90 % interval]",
+               "diffuse ang vs const [90 %]", "matte si-RMSE vs const [90 %]", "observed corr.", "diffuse rel si-RMSE", "diffuse ang (°)", "mirror ang (°)"]
     rows = []
     for split, s in pano.get("splits", {}).items():
         for method, m in s.get("methods", {}).items():
@@ -216,8 +222,8 @@ def panorama_markdown(pano: dict) -> list[str]:
                              "–", "–", "–"])
                 continue
             rows.append([split, method, m.get("images"), m.get("seconds_per_image"),
-                         _get(m, "vs_constant", "diffuse_si_rmse_rel"), _get(m, "vs_constant", "diffuse_angular_deg"),
-                         _get(m, "vs_constant", "matte_si_rmse_rel"), m.get("observed_corr"),
+                         _with_interval(m, "diffuse_si_rmse_rel"), _with_interval(m, "diffuse_angular_deg"),
+                         _with_interval(m, "matte_si_rmse_rel"), m.get("observed_corr"),
                          _get(m, "metrics", "diffuse", "si_rmse_rel"), _get(m, "metrics", "diffuse", "angular_deg"),
                          _get(m, "metrics", "mirror", "angular_deg")])
     return out + [table(headers, rows), ""]

@@ -2,7 +2,8 @@
 import pytest
 import torch
 
-from bench.accuracy_probe import markdown_table, ratio_interval
+from bench.accuracy_probe import markdown_table
+from bench.suite.evaluation import ratio_interval
 from bench.suite.simulated import SuiteData, with_extra_probes
 from core.sim.render import check_probe
 from core.sim.suites import spatial, temporal

@@ -1,11 +1,12 @@
 """The real-panorama protocol's geometry: crops and ground truth agree on directions."""
 from __future__ import annotations
 
+import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bench.real_panoramas import camera_rotation, estimate_mean_colour, perspective_crop, view_for
+from bench.real_panoramas import PITCH_DEG, camera_rotation, estimate_mean_colour, perspective_crop, view_for
 from core.conventions import equirect_directions, inverse_tonemap
 from core.envmap import rotate_envmap, sample_envmap
 
@@ -89,3 +90,39 @@ def test_section_runs_the_product_end_to_end_on_a_tiny_manifest(tmp_path):
     assert methods[CONSTANT]["observed_corr"] == 0.0
     assert methods["truth"]["observed_corr"] > 0.9
     assert methods[PRIOR]["observed_corr"] > 0.5
+
+
+def test_views_turn_the_first_photo_evenly_around_the_room():
+    """View 0 is the protocol's single photo; the others turn its yaw by multiples of 360/views."""
+    yaw0, pitch0 = view_for("room.hdr")
+    assert view_for("room.hdr", 0, 4) == (yaw0, pitch0)
+    for k in range(1, 4):
+        yaw, pitch = view_for("room.hdr", k, 4)
+        assert -180.0 <= yaw < 180.0 and abs(pitch) <= PITCH_DEG
+        assert abs((yaw - yaw0 - 90.0 * k + 180.0) % 360.0 - 180.0) < 1e-9
+    assert view_for("room.hdr", 1, 4) == view_for("room.hdr", 1, 4)
+
+
+def test_intervals_resample_panoramas_and_rescore_reproduces_the_summary():
+    """The ratio's 90 % interval brackets the ratio of means and treats a panorama's photos as one
+    draw (two identical photos of a room do not narrow it); `rescore` rebuilds the summary from
+    the per-photo results alone."""
+    from bench.real_panoramas import CONSTANT, FIELD, rescore, summarise
+
+    def photo(file, field, const):
+        scores = {m: {mat: {"si_rmse_rel": v, "angular_deg": v, "si_rmse": v, "nrmse": v} for mat in ("diffuse", "matte", "mirror")}
+                  for m, v in ((FIELD, field), (CONSTANT, const))}
+        return {"file": file, "scores": scores, "seconds": {FIELD: 1.0, CONSTANT: 0.0},
+                "observed_corr": {FIELD: 0.9, CONSTANT: 0.0, "truth": 0.95}}
+
+    rooms = [("a", 0.5, 1.0), ("b", 0.9, 1.0), ("c", 0.7, 1.0), ("d", 1.1, 1.0)]
+    once = [photo(*r) for r in rooms]
+    twice = once + [photo(*r) for r in rooms[:1]]  # room a photographed twice, the same photo
+    s1 = summarise(once, (FIELD, CONSTANT))
+    lo, hi = s1[FIELD]["interval_90"]["diffuse_si_rmse_rel"]
+    assert s1[FIELD]["vs_constant"]["diffuse_si_rmse_rel"] == pytest.approx(0.8)
+    assert lo < 0.8 < hi
+    assert summarise(twice, (FIELD, CONSTANT))[FIELD]["interval_90"] == s1[FIELD]["interval_90"]
+    assert CONSTANT not in {k for k, v in s1.items() if "interval_90" in v}
+    report = {"splits": {"dev": {"images": once, "methods": {FIELD: {}, CONSTANT: {}, "truth": {}}}}}
+    assert rescore(report)["splits"]["dev"]["methods"] == s1
