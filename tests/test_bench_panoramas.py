@@ -124,5 +124,6 @@ def test_intervals_resample_panoramas_and_rescore_reproduces_the_summary():
     assert lo < 0.8 < hi
     assert summarise(twice, (FIELD, CONSTANT))[FIELD]["interval_90"] == s1[FIELD]["interval_90"]
     assert CONSTANT not in {k for k, v in s1.items() if "interval_90" in v}
+    assert s1[FIELD]["photos_beating_constant"]["diffuse_si_rmse_rel"] == [3, 4]  # room d loses
     report = {"splits": {"dev": {"images": once, "methods": {FIELD: {}, CONSTANT: {}, "truth": {}}}}}
     assert rescore(report)["splits"]["dev"]["methods"] == s1
