@@ -343,14 +343,16 @@ def splat_points(points: torch.Tensor, colors: torch.Tensor, centers: torch.Tens
     row, colf = direction_to_equirect_pixel(rel, h)
     r = row.round().long().clamp(0, h - 1)
     c = colf.round().long().remainder(w)
-    keep = dist > SPLAT_MIN_DISTANCE
-    key = (torch.arange(n, device=points.device)[:, None] * (h * w) + r * w + c)[keep]
-    dist_k, col_k = dist[keep], col[keep]
-    nearest = torch.full((n * h * w,), float("inf"), dtype=dist.dtype, device=points.device).scatter_reduce(
-        0, key, dist_k, reduce="amin")
-    front = dist_k <= nearest[key] * (1.0 + SPLAT_Z_TOLERANCE)
-    key, col_k = key[front], col_k[front]
-    acc = torch.zeros(n * h * w, col.shape[-1], dtype=col.dtype, device=points.device).index_add(0, key, col_k)
-    cnt = torch.zeros(n * h * w, dtype=col.dtype, device=points.device).index_add(0, key, torch.ones_like(key, dtype=col.dtype))
+    # Points a pixel does not take go to one spare bin past the maps (cut off at the end)
+    # rather than being selected out: boolean selection cost more than the whole splat.
+    bins = n * h * w
+    key = torch.arange(n, device=points.device)[:, None] * (h * w) + r * w + c
+    key = torch.where(dist > SPLAT_MIN_DISTANCE, key, bins).reshape(-1)
+    dist, col = dist.reshape(-1), col.reshape(-1, col.shape[-1])
+    nearest = torch.full((bins + 1,), float("inf"), dtype=dist.dtype, device=points.device).scatter_reduce(
+        0, key, dist, reduce="amin")
+    key = torch.where(dist <= nearest[key] * (1.0 + SPLAT_Z_TOLERANCE), key, bins)
+    acc = torch.zeros(bins + 1, col.shape[-1], dtype=col.dtype, device=points.device).index_add(0, key, col)[:bins]
+    cnt = torch.zeros(bins + 1, dtype=col.dtype, device=points.device).index_add(0, key, torch.ones_like(dist, dtype=col.dtype))[:bins]
     env = (acc / cnt.clamp_min(1.0)[:, None]).reshape(n, h, w, -1)
     return env, (cnt > 0).reshape(n, h, w)

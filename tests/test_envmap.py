@@ -210,3 +210,27 @@ def test_bad_height_raises():
         solid_angles(0)
     with pytest.raises(EnvmapError, match="height"):
         resize_envmap(torch.ones(4, 8, 3), 2.5)
+
+
+def test_splat_keeps_the_nearest_surface_skips_points_at_the_centre_and_treats_centres_apart():
+    """splat_points' rules: per pixel only points within SPLAT_Z_TOLERANCE of the nearest one are
+    averaged (a wall behind a table does not bleed through); a point at the centre itself lands
+    nowhere; a centre's maps do not depend on the other centres; unseen pixels are 0."""
+    from core.envmap import SPLAT_MIN_DISTANCE, splat_points
+
+    forward = torch.tensor([0.0, 0.0, -1.0])
+    pts = torch.stack([1.0 * forward, 1.05 * forward, 3.0 * forward, torch.zeros(3)])  # near, near, far, at the centre
+    col = torch.tensor([[1.0, 1.0, 1.0], [3.0, 3.0, 3.0], [100.0, 100.0, 100.0], [7.0, 7.0, 7.0]])
+    env, seen = splat_points(pts, col, torch.zeros(1, 3), 8)
+    assert int(seen.sum()) == 1 and torch.isfinite(env).all()
+    assert torch.allclose(env[seen], torch.full((1, 3), 2.0))  # (1 + 3) / 2: the far point and the centre's are out
+    assert float(env[~seen].abs().max()) == 0.0
+    # the centre's point is only skipped within SPLAT_MIN_DISTANCE
+    near = splat_points(torch.tensor([[0.0, 2 * SPLAT_MIN_DISTANCE, 0.0]]), col[:1], torch.zeros(1, 3), 8)[1]
+    assert int(near.sum()) == 1
+    # two centres at once answer as each alone
+    centres = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, -2.0]])
+    both, both_seen = splat_points(pts, col, centres, 8)
+    for k in range(2):
+        alone, alone_seen = splat_points(pts, col, centres[k:k + 1], 8)
+        assert torch.equal(both[k], alone[0]) and torch.equal(both_seen[k], alone_seen[0])
