@@ -248,9 +248,9 @@ def _panorama_pairs(images: list[dict], method: str, material: str, metric: str)
     """Per panorama, the mean of `method`'s and of the constant map's score over its photos: the
     bootstrap resamples panoramas, not photos, since the views of one room are not independent."""
     rooms: dict[str, list[tuple[float, float]]] = {}
-    for im in images:
+    for k, im in enumerate(images):
         if _scored(im, method, material, metric) and _scored(im, CONSTANT, material, metric):
-            rooms.setdefault(im["file"], []).append((im["scores"][method][material][metric],
+            rooms.setdefault(im.get("file", f"photo {k}"), []).append((im["scores"][method][material][metric],
                                                      im["scores"][CONSTANT][material][metric]))
     return [(sum(a for a, _ in v) / len(v), sum(b for _, b in v) / len(v)) for v in rooms.values()]
 

@@ -197,7 +197,8 @@ def test_panorama_table_shows_ratios_correlation_and_the_truth_row():
     rows = [line for line in md.splitlines() if line.startswith("| dev")]
     header = next(line for line in md.splitlines() if line.startswith("| split"))
     assert len(rows) == 4 and all(r.count("|") == header.count("|") for r in rows)
-    assert "| dev | field | 2 | 20 | 0.750 | 0.750 |" in md and "truth (protocol ceiling)" in md
+    assert "| dev | field | 2 | 20 | 0.750 [0.500, 1" in md and "truth (protocol ceiling)" in md  # with its interval
+    assert next(r for r in rows if "mean-colour" in r).count("[") == 0  # the baseline has no interval
 
 
 @pytest.mark.parametrize("mode", ["quick", "full"])
