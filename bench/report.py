@@ -202,7 +202,7 @@ def markdown(results: dict) -> str:
 
 
 def _with_interval(method: dict, ratio: str) -> str:
-    """A ratio to the constant map with its 90 % interval over the images, when the report has one."""
+    """A ratio to the constant map with its 90 % interval over the panoramas, when the report has one."""
     value, interval = _get(method, "vs_constant", ratio), _get(method, "interval_90", ratio)
     return fmt(value) + (f" [{fmt(interval[0])}, {fmt(interval[1])}]" if interval else "")
 
