@@ -113,7 +113,7 @@ def markdown_table(report: dict) -> str:
 
 def series_checks(suite, series_preds: list[torch.Tensor]) -> dict:
     """After/before brightness at each switch and the flatness of static stretches."""
-    from bench.suite.evaluation import envmap_brightness
+    from bench.suite.evaluation import envmap_brightness, relative_course
 
     switches, stretches = [], []
     for s, pred in zip(suite.series, series_preds):
@@ -124,8 +124,7 @@ def series_checks(suite, series_preds: list[torch.Tensor]) -> dict:
                              "abs_diff": round(abs(rp - rg), 3)})
         else:
             # the deviation of pred/truth from its mean: on a static stretch the pred's own flatness
-            r = bp / bg
-            dev = float(((r - r.mean()) / r.mean()).abs().max())
+            dev = float((relative_course(bp, bg) - 1.0).abs().max())
             dev_gt = float(((bg - bg.mean()) / bg.mean()).abs().max())
             stretches.append({"x": list(s.x), "frames": len(s.times), "max_dev_vs_truth": round(dev, 4),
                               "truth_max_dev": round(dev_gt, 4)})

@@ -7,8 +7,9 @@ The accuracy probe reports per stretch only the largest deviation of pred/truth 
 its mean. This prints the whole course: per stretch position and frame, the field's and the
 prior's brightness over the truth's (each divided by its mean over the stretch, so 1.0 on every
 frame is a perfect follower whatever the scale), for the shipped draft and for each `--variant`
-(draft preset overrides, dotted keys, JSON values), distilled with the same seed. A shape common
-to every variant is not made by the parts the variants turn off.
+(draft preset overrides, dotted keys, JSON values), distilled with the same seed. The variants
+share the seed's draws (frames and probes in the same order), so a shape common to all of them
+may come from those draws: compare seeds (`--seed`) before reading it as structure.
 """
 from __future__ import annotations
 
@@ -22,20 +23,15 @@ from pathlib import Path
 import torch
 
 
-def relative_course(pred: torch.Tensor, truth: torch.Tensor) -> list[float]:
-    """pred/truth per frame [K], divided by its mean: how the prediction follows the truth's course."""
-    r = pred.double() / truth.double().clamp_min(1e-30)
-    return [round(float(v), 4) for v in r / r.mean()]
-
-
 def stretch_courses(suite, series_preds: list[torch.Tensor]) -> list[dict]:
-    from bench.suite.evaluation import envmap_brightness
+    """Per stretch of the suite's series: the prediction's relative course, frame by frame."""
+    from bench.suite.evaluation import envmap_brightness, relative_course
 
     out = []
     for s, pred in zip(suite.series, series_preds):
         if s.kind != "stretch":
             continue
-        course = relative_course(envmap_brightness(pred), envmap_brightness(s.gt))
+        course = [round(float(v), 4) for v in relative_course(envmap_brightness(pred), envmap_brightness(s.gt))]
         out.append({"x": list(s.x), "frames": len(s.times), "course": course,
                     "max_dev": round(max(abs(v - 1.0) for v in course), 4)})
     return out

@@ -81,6 +81,13 @@ def envmap_brightness(envs: torch.Tensor) -> torch.Tensor:
     return torch.stack([luminance(integrate(e.to(torch.float64))) for e in envs])
 
 
+def relative_course(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    """pred / truth brightness per sample [K] (float64), divided by its mean: 1 on every sample
+    for a prediction that follows the truth's course at any scale (a stretch's flatness)."""
+    r = pred.double() / truth.double().clamp_min(1e-30)
+    return r / r.mean()
+
+
 def flicker(envs: torch.Tensor) -> float | None:
     """core.metrics.temporal_flicker of a [K, h, 2h, 3] sequence (None when non-finite)."""
     return temporal_flicker(envs) if finite(envs) else None

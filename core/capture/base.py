@@ -62,8 +62,8 @@ class Capture:
         return (t[:, None] - self.times.double()[None]).abs().argmin(1)
 
     def spread_frames(self, n: int) -> torch.Tensor:
-        """At most `n` distinct frame indices [k] (long, ascending) spread evenly over the capture,
-        the first and the last frame included."""
+        """At most `n` distinct frame indices [k] (long, ascending) spread evenly over the capture:
+        the first frame, and with n >= 2 the last."""
         count = max(1, min(self.num_frames, int(n)))
         return torch.linspace(0, self.num_frames - 1, count).round().long().unique()
 
