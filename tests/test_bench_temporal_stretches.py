@@ -18,3 +18,23 @@ def test_variants_name_their_overrides():
     name, sets = parse_variant("two:distill.emitters=0,field.view_detail_heights=[]")
     assert name == "two" and sets == {"distill.emitters": 0, "field.view_detail_heights": []}
     assert parse_variant("draft") == ("draft", {})
+
+
+def test_room_summary_compares_each_point_with_the_prior_at_that_point():
+    from bench.temporal_stretches import room_summary, stretch_changes
+
+    class Suite:  # two series over one stretch from t = 0 to t = 1 s (their own positions are not used)
+        series = [type("S", (), {"kind": "stretch", "x": (k, 0.0, 0.0), "times": torch.tensor([0.0, 0.5, 1.0])})()
+                  for k in (0.0, 2.0)]
+
+    positions = [(0.0, 0.0, 0.0), (1.0, 0.0, 0.0)]
+
+    def dimming(factor_at_x):  # a uniform map whose brightness falls to factor(x) at t = 1
+        return lambda x, t: torch.full((4, 8, 3), 1.0 - t * (1.0 - factor_at_x(x)))
+
+    prior = stretch_changes(Suite, positions, dimming(lambda x: 0.4))
+    field = stretch_changes(Suite, positions, dimming(lambda x: 0.4 if x[0] == 0.0 else 0.6))
+    assert len(prior) == 1 and prior[0]["t"] == [0.0, 1.0] and prior[0]["ratios"] == [0.4, 0.4]
+    s = room_summary(field, prior)[0]
+    assert s["mean_change"] == 0.5 and s["over_prior_mean"] == 1.25 and s["over_prior_sd"] > 0.3
+    assert room_summary(prior, prior)[0]["over_prior_sd"] == 0.0

@@ -83,11 +83,14 @@ def distill(
     if surfaces is not None:
         field_cfg = field_cfg.model_copy(update={
             "surface_points": surfaces.count, "surface_knots": surfaces.knots, "surface_height": cfg.observed_surfaces_height or cfg.envmap_height})
+    if cfg.time_gain and field_cfg.uses_time:
+        field_cfg = field_cfg.model_copy(update={"time_gain_knots": time_knots(capture.num_frames),
+                                                 "time_gain_channels": cfg.time_gain_channels})
     field = build_field(field_cfg, bounds)
     if sources is not None:
         field.emitters.set_sources(sources.centres, sources.radii, sources.intensity)
     field = field.to(device)
-    opt = torch.optim.Adam(parameter_groups(field), lr=cfg.lr, betas=cfg.adam_betas)
+    opt = torch.optim.Adam(parameter_groups(field, cfg.time_gain_lr_scale), lr=cfg.lr, betas=cfg.adam_betas)
     run_fingerprint = fingerprint(capture, cfg, field_cfg, seed, prior)
 
     start, losses = 0, []
@@ -108,6 +111,8 @@ def distill(
         for step in range(start, cfg.iterations):
             if field.room_lattice is not None:  # from the step alone, so a resumed run repeats it
                 field.room_lattice.requires_grad_(step >= lattice_from)
+            if field.time_gain is not None:
+                field.time_gain.requires_grad_(step >= math.ceil(cfg.time_gain_start * cfg.iterations))
             losses.append(trainer.step(step))
             if checkpoint_dir is not None and (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.iterations:
                 with timings("checkpoint"):
@@ -150,12 +155,14 @@ def surface_points(capture: Capture, prior: Prior, cfg, bounds: SceneBounds, use
 EMITTER_LR_SCALE = 10.0
 
 
-def parameter_groups(field: LightField) -> list[dict]:
-    """Adam groups: the emitters' parameters at EMITTER_LR_SCALE x the rate, the rest at 1x
-    (`lr_scale`, applied by Trainer._optimise)."""
+def parameter_groups(field: LightField, time_gain_lr_scale: float = 1.0) -> list[dict]:
+    """Adam groups: the emitters' parameters at EMITTER_LR_SCALE x the rate, the time gain at
+    `time_gain_lr_scale` x, the rest at 1x (`lr_scale`, applied by Trainer._optimise)."""
     emitter = [p for n, p in field.named_parameters() if n.startswith("emitters.")]
-    rest = [p for n, p in field.named_parameters() if not n.startswith("emitters.")]
-    return [{"params": rest, "lr_scale": 1.0}] + ([{"params": emitter, "lr_scale": EMITTER_LR_SCALE}] if emitter else [])
+    gain = [p for n, p in field.named_parameters() if n.startswith("time_gain.")]
+    rest = [p for n, p in field.named_parameters() if not n.startswith(("emitters.", "time_gain."))]
+    return ([{"params": rest, "lr_scale": 1.0}] + ([{"params": emitter, "lr_scale": EMITTER_LR_SCALE}] if emitter else [])
+            + ([{"params": gain, "lr_scale": time_gain_lr_scale}] if gain else []))
 
 
 def view_rays(capture: Capture, cfg, prior: Prior) -> torch.Tensor | None:

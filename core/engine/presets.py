@@ -58,7 +58,7 @@ PRESETS: dict[str, EngineConfig] = {
         distill=DistillConfig(iterations=600, n_probes=9, work_height=72, lr=5e-3, warmup_steps=15, checkpoint_every=50,
                               supervision="auto", envmap_frames_per_step=3, envmap_surface_probes=1, envmap_room_probes=1,
                               envmap_free_probes=1, envmap_directions=256, envmap_view_directions=256, emitters=4,
-                              observed_surfaces=16384),
+                              observed_surfaces=16384, time_gain=True),
         field=_narrow(96, 4, view_detail_heights=(32, 128), room_lattice=(8, 4, 8), room_lattice_height=16,
                       time_encoding="codes"),
         priors={"reprojection": {"env_height": 24}},

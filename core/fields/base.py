@@ -27,7 +27,7 @@ from core.conventions import equirect_directions, equirect_width
 from core.fields.config import FieldConfig
 from core.fields.emitters import Emitters
 from core.fields.lattice import RoomLattice
-from core.fields.encodings import EquirectGridEncoding, TimeCodes
+from core.fields.encodings import EquirectGridEncoding, TimeCodes, TimeGain
 from core.fields.normalization import SceneBounds
 from core.fields.surfaces import ObservedSurfaces
 
@@ -75,6 +75,7 @@ class LightField(nn.Module):
             anchors = torch.tensor(config.view_anchors, dtype=torch.float32).reshape(-1, 3)
             self.register_buffer("view_anchors", anchors, persistent=False)  # in the config, not the weights
         self.room_lattice = RoomLattice(config.room_lattice, config.room_lattice_height) if config.room_lattice else None
+        self.time_gain = TimeGain(config.time_gain_knots, config.time_gain_channels) if config.uses_time and config.time_gain_knots else None
         self.emitters = (Emitters(config.emitter_count, config.emitter_knots, config.emitter_gate_resolution)
                          if config.emitter_count else None)
         self.surfaces = (ObservedSurfaces(config.surface_points, config.surface_knots, config.surface_height)
@@ -112,9 +113,15 @@ class LightField(nn.Module):
         span = (t1 - t0).clamp_min(1e-12)
         return torch.where(t1 > t0, 2.0 * (t - t0) / span - 1.0, torch.zeros_like(t)).clamp(-1.0, 1.0)[:, None]
 
-    def activate(self, z: torch.Tensor) -> torch.Tensor:
+    def activate(self, z: torch.Tensor, tn: torch.Tensor | None = None) -> torch.Tensor:
+        """z [B, 3] (or [P, N, 3] with tn [P, 1]) -> radiance exp(lo + (hi - lo) sigmoid(z)),
+        times the time gain at tn where the field has one (its log kept within [lo, hi])."""
         lo, hi = self.config.log_radiance_min, self.config.log_radiance_max
-        return torch.exp(lo + (hi - lo) * torch.sigmoid(z))
+        log_radiance = lo + (hi - lo) * torch.sigmoid(z)
+        if self.time_gain is not None and tn is not None:
+            gain = self.time_gain(tn)  # [B, channels] or [P, channels]
+            log_radiance = (log_radiance + (gain if z.dim() == 2 else gain[:, None])).clamp(lo, hi)
+        return torch.exp(log_radiance)
 
     def logit_for_radiance(self, radiance: float) -> float:
         """The z whose activation is `radiance` (for initialising output biases)."""
@@ -229,7 +236,7 @@ class LightField(nn.Module):
         With observed surfaces, each distinct (x, t) among the rows costs one splat of the layer."""
         xn, tn, d = self.normalize_inputs(x, t, d)
         w = self.detail_weight(xn)
-        out = self.activate(self._with_detail(self._with_lattice(self.logits(xn, tn, d), xn, d), w, d, tn))
+        out = self.activate(self._with_detail(self._with_lattice(self.logits(xn, tn, d), xn, d), w, d, tn), tn)
         if self._has_surfaces():
             keys = xn if tn is None else torch.cat((xn, tn), -1)
             probes, index = torch.unique(keys, dim=0, return_inverse=True)  # one splat per distinct probe
@@ -265,7 +272,7 @@ class LightField(nn.Module):
                 parts = self.detail_parts(dirs[dl])  # looked up once; each probe weighs them at its own time
                 for p in near:
                     z[p, dl] = z[p, dl] + w[p] * self.combine_detail(parts, None if tn is None else tn[p:p + 1])
-        out = self.activate(z)
+        out = self.activate(z, tn)
         if self._has_surfaces():
             for p in range(xn.shape[0]):
                 keep = 1.0 - (0.0 if w is None else float(w[p]))
@@ -299,7 +306,7 @@ class LightField(nn.Module):
         z = self._probe_logits(xn, tn, index, d)
         if self.room_lattice is not None:  # blended once per probe, then looked up per row
             z = z + self.room_lattice.rows(self.room_lattice.blended(xn), index, d)
-        out = self.activate(self._with_detail(z, None if w is None else w[index], d, tn_rows))
+        out = self.activate(self._with_detail(z, None if w is None else w[index], d, tn_rows), tn_rows)
         if self._has_surfaces():
             out = self._with_surfaces(out, xn, tn, index, d, None if w is None else w[index])
         return self._with_emitters(out, xn[index], tn_rows, d, self.config.emitter_sigma_floor)

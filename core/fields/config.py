@@ -8,12 +8,12 @@ self-describing. JSON layout: {"kind", "uses_time", "log_radiance_min", "log_rad
 "view_detail_heights", "view_detail_radius", "view_anchors", "view_detail_time_rank",
 "view_detail_time_knots", "emitter_count", "emitter_knots", "emitter_gate_resolution",
 "emitter_sigma_floor", "room_lattice", "room_lattice_height", "surface_points", "surface_knots",
-"surface_height", "<kind>": {section}, ...}.
+"surface_height", "time_gain_knots", "time_gain_channels", "<kind>": {section}, ...}.
 """
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+from typing import Any, Literal, Mapping
 
 from pydantic import (BaseModel, ConfigDict, Field, SerializeAsAny, ValidationError, field_validator, model_serializer,
                       model_validator)
@@ -53,6 +53,13 @@ class FieldConfig(FieldSettings):
     # for a field with a time input.
     view_detail_time_rank: int = Field(4, ge=0, le=16)
     view_detail_time_knots: int = Field(2, ge=2, le=4096)
+    # Time gain (core.fields.encodings.TimeGain, docs/engine.md "Time gain"): a learned log gain
+    # per knot (the engine sets one knot per frame) and colour channel (or one for all three),
+    # multiplying the network's radiance (not the emitters' or the observed surfaces', which have
+    # their own time curves): a light that dims the whole room is one number per frame instead
+    # of a direction the time codes must find. 0 knots: none (a field without a time input has none).
+    time_gain_knots: int = Field(0, ge=0, le=4096)
+    time_gain_channels: Literal[1, 3] = 3
     # Emitters (core.fields.emitters, docs/engine.md): small bright sources as explicit spheres
     # whose positions and per-knot intensities the engine measures in the frames (in the saved
     # weights: positions and radii as buffers, intensities and visibility gates as parameters the

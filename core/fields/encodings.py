@@ -94,6 +94,37 @@ class TimeCodes(nn.Module):
         return (self.codes[1:] - self.codes[:-1]).abs().mean()
 
 
+class TimeGain(nn.Module):
+    """A log brightness per knot (one value, or one per colour channel) at evenly spaced
+    normalised times in [-1, 1], linearly interpolated: tn [B, 1] -> [B, channels]. Starts at 0
+    (gain 1); `set_gain` sets a measured curve."""
+
+    def __init__(self, knots: int, channels: int = 1):
+        super().__init__()
+        if knots < 2 or channels not in (1, 3):
+            raise ValueError(f"TimeGain needs knots >= 2 and 1 or 3 channels, got {knots}, {channels}")
+        self.log_gain = nn.Parameter(torch.zeros(knots, channels))
+
+    def set_gain(self, log_gain: torch.Tensor) -> None:
+        """log_gain [knots] or [knots, channels] (clamped to +-LOG_GAIN_LIMIT, non-finite -> 0)."""
+        with torch.no_grad():
+            v = torch.as_tensor(log_gain, dtype=self.log_gain.dtype)
+            v = v.reshape(-1, 1).expand_as(self.log_gain) if v.dim() == 1 else v.reshape(self.log_gain.shape)
+            self.log_gain.copy_(torch.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0).clamp(-LOG_GAIN_LIMIT, LOG_GAIN_LIMIT))
+
+    def forward(self, tn: torch.Tensor) -> torch.Tensor:
+        k = self.log_gain.shape[0]
+        pos = (tn.reshape(-1).clamp(-1.0, 1.0) + 1.0) * 0.5 * (k - 1)
+        i0 = pos.floor().clamp(max=k - 2)
+        frac = (pos - i0).to(self.log_gain.dtype)[:, None]
+        i0 = i0.long()
+        g = self.log_gain.clamp(-LOG_GAIN_LIMIT, LOG_GAIN_LIMIT)
+        return g[i0] * (1.0 - frac) + g[i0 + 1] * frac
+
+
+LOG_GAIN_LIMIT = 23.0  # 10 decades either way: beyond it a "dimming" is a camera fault, not light
+
+
 class EquirectGridEncoding(nn.Module):
     """Learnable feature maps over the sphere, one equirect [h, 2h, F] per height, read
     bilinearly with the env maps' own taps (seam wrapped, poles continuous: core.envmap); the
