@@ -388,3 +388,12 @@ def test_a_room_wide_dimming_is_followed_everywhere_with_the_time_gain():
         last = res.field.envmaps(xs, torch.full((len(xs),), 3.0), 16).mean((1, 2, 3))
     ratio = last / first
     assert float((ratio / 0.3 - 1.0).abs().max()) < 0.04, ratio.tolist()
+
+
+def test_the_ball_loop_keeps_its_field_without_a_time_gain():
+    """The time gain is the radiance loop's: the paper's ball loop is left as it was."""
+    cap = capture_from_arrays(torch.full((2, H, W, 3), 0.4), fps=1.0)
+    cfg = tiny(iterations=2, supervision="balls")
+    assert cfg.distill.time_gain
+    res = distill(cap, KnownRadiancePrior(lamp_field), cfg, uses_time=True, seed=0)
+    assert res.field.time_gain is None and res.stats["field_config"]["time_gain_knots"] == 0

@@ -79,8 +79,8 @@ class DistillConfig(BaseModel):
     chroma_weight: float = Field(0.0, ge=0, description="extra weight of the log error's colour part (radiance loss)")
     time_tv_weight: float = Field(0.01, ge=0, description="L1 total variation of the field's time codes (if any)")
     time_gain: bool = Field(False, description=(
-        "a field with a time input gets a learned log gain per knot (and colour channel) multiplying its network "
-        "(core.fields TimeGain): a light that dims the whole room is one number per frame"))
+        "with radiance supervision, a field with a time input gets a learned log gain per knot (and colour channel) "
+        "multiplying its network (core.fields TimeGain): a light that dims the whole room is one number per frame"))
     time_gain_start: float = Field(0.0, ge=0, le=1, description="the time gain trains from this fraction of the steps on")
     time_gain_lr_scale: float = Field(10.0, gt=0, description="the time gain's learning rate over the network's")
     time_gain_channels: Literal[1, 3] = Field(3, description="the time gain's values per knot: 3 (RGB) or 1 (brightness)")

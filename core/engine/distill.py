@@ -83,7 +83,7 @@ def distill(
     if surfaces is not None:
         field_cfg = field_cfg.model_copy(update={
             "surface_points": surfaces.count, "surface_knots": surfaces.knots, "surface_height": cfg.observed_surfaces_height or cfg.envmap_height})
-    if cfg.time_gain and field_cfg.uses_time:
+    if cfg.time_gain and field_cfg.uses_time and use_envmaps:  # the ball loop (the paper's path) keeps its field
         field_cfg = field_cfg.model_copy(update={"time_gain_knots": time_knots(capture.num_frames),
                                                  "time_gain_channels": cfg.time_gain_channels})
     field = build_field(field_cfg, bounds)

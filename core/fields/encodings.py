@@ -65,6 +65,17 @@ class PositionalEncoding(nn.Module):
         return torch.cat(parts, dim=-1)
 
 
+def interpolate_knots(values: torch.Tensor, tn: torch.Tensor) -> torch.Tensor:
+    """values [K, C] at K >= 2 evenly spaced normalised times in [-1, 1], read linearly at tn
+    [B, 1] (clamped to the range) -> [B, C]."""
+    k = values.shape[0]
+    pos = (tn.reshape(-1).clamp(-1.0, 1.0) + 1.0) * 0.5 * (k - 1)
+    i0 = pos.floor().clamp(max=k - 2)
+    frac = (pos - i0)[:, None].to(values.dtype)
+    i0 = i0.long()
+    return values[i0] * (1.0 - frac) + values[i0 + 1] * frac
+
+
 class TimeCodes(nn.Module):
     """Learned codes at `knots` evenly spaced normalised times in [-1, 1], linearly
     interpolated: tn [B, 1] -> [B, dim]. Every knot starts at the same vector, so an untrained
@@ -82,12 +93,7 @@ class TimeCodes(nn.Module):
         return self.codes.shape[1]
 
     def forward(self, tn: torch.Tensor) -> torch.Tensor:
-        k = self.codes.shape[0]
-        pos = (tn.reshape(-1).clamp(-1.0, 1.0) + 1.0) * 0.5 * (k - 1)
-        i0 = pos.floor().clamp(max=k - 2)
-        frac = (pos - i0)[:, None].to(self.codes.dtype)
-        i0 = i0.long()
-        return self.codes[i0] * (1.0 - frac) + self.codes[i0 + 1] * frac
+        return interpolate_knots(self.codes, tn)
 
     def total_variation(self) -> torch.Tensor:
         """Mean L1 change between neighbouring knots (per knot step and code channel)."""
@@ -113,13 +119,7 @@ class TimeGain(nn.Module):
             self.log_gain.copy_(torch.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0).clamp(-LOG_GAIN_LIMIT, LOG_GAIN_LIMIT))
 
     def forward(self, tn: torch.Tensor) -> torch.Tensor:
-        k = self.log_gain.shape[0]
-        pos = (tn.reshape(-1).clamp(-1.0, 1.0) + 1.0) * 0.5 * (k - 1)
-        i0 = pos.floor().clamp(max=k - 2)
-        frac = (pos - i0).to(self.log_gain.dtype)[:, None]
-        i0 = i0.long()
-        g = self.log_gain.clamp(-LOG_GAIN_LIMIT, LOG_GAIN_LIMIT)
-        return g[i0] * (1.0 - frac) + g[i0 + 1] * frac
+        return interpolate_knots(self.log_gain.clamp(-LOG_GAIN_LIMIT, LOG_GAIN_LIMIT), tn)
 
 
 LOG_GAIN_LIMIT = 23.0  # 10 decades either way: beyond it a "dimming" is a camera fault, not light
