@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+import pytest
+
 import torch
 
 from core.fields import FieldConfig, SceneBounds, build_field
@@ -77,3 +79,11 @@ def test_a_gain_of_too_few_knots_is_refused():
         assert "knots >= 2" in str(e)
     else:
         raise AssertionError("TimeGain(1) was accepted")
+
+
+def test_the_time_variation_penalty_includes_the_gain():
+    """A gain that changes between knots is penalised like the codes (distill.time_tv_weight)."""
+    field = gained_field(knots=3)
+    flat = float(field.time_variation())
+    field.time_gain.set_gain(torch.tensor([0.0, 1.0, 1.0]))
+    assert float(field.time_variation()) == pytest.approx(flat + 0.5, abs=1e-6)  # mean |step| over 2 steps x 3 channels

@@ -121,6 +121,10 @@ class TimeGain(nn.Module):
     def forward(self, tn: torch.Tensor) -> torch.Tensor:
         return interpolate_knots(self.log_gain.clamp(-LOG_GAIN_LIMIT, LOG_GAIN_LIMIT), tn)
 
+    def total_variation(self) -> torch.Tensor:
+        """Mean L1 change between neighbouring knots (per knot step and channel)."""
+        return (self.log_gain[1:] - self.log_gain[:-1]).abs().mean()
+
 
 LOG_GAIN_LIMIT = 23.0  # 10 decades either way: beyond it a "dimming" is a camera fault, not light
 
