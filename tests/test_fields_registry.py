@@ -33,7 +33,7 @@ def test_the_field_json_keeps_one_key_per_kind():
                          "view_detail_radius", "view_anchors", "view_detail_time_rank", "view_detail_time_knots",
                          "emitter_count", "emitter_knots", "emitter_gate_resolution", "emitter_sigma_floor",
                          "room_lattice", "room_lattice_height", "surface_points", "surface_knots", "surface_height",
-                         *field_kinds()]
+                         "time_gain_knots", "time_gain_channels", *field_kinds()]
     assert field_kinds()[:3] == ("mlp", "grid", "trunk")
     assert FieldConfig.model_validate(doc) == FieldConfig(kind="grid")
     assert FieldConfig(kind="mlp").with_section("mlp", width=7).section().width == 7

@@ -53,13 +53,6 @@ class FieldConfig(FieldSettings):
     # for a field with a time input.
     view_detail_time_rank: int = Field(4, ge=0, le=16)
     view_detail_time_knots: int = Field(2, ge=2, le=4096)
-    # Time gain (core.fields.encodings.TimeGain, docs/engine.md "Time gain"): a learned log gain
-    # per knot (the engine sets one knot per frame) and colour channel (or one for all three),
-    # multiplying the network's radiance (not the emitters' or the observed surfaces', which have
-    # their own time curves): a light that dims the whole room is one number per frame instead
-    # of a direction the time codes must find. 0 knots: none (a field without a time input has none).
-    time_gain_knots: int = Field(0, ge=0, le=4096)
-    time_gain_channels: Literal[1, 3] = 3
     # Emitters (core.fields.emitters, docs/engine.md): small bright sources as explicit spheres
     # whose positions and per-knot intensities the engine measures in the frames (in the saved
     # weights: positions and radii as buffers, intensities and visibility gates as parameters the
@@ -82,6 +75,13 @@ class FieldConfig(FieldSettings):
     surface_points: int = Field(0, ge=0, le=1 << 16)
     surface_knots: int = Field(1, ge=1, le=256)
     surface_height: int = Field(24, ge=4, le=128)
+    # Time gain (core.fields.encodings.TimeGain, docs/engine.md "Time gain"): a learned log gain
+    # per knot (the engine sets one knot per frame) and colour channel (or one for all three),
+    # multiplying the network's radiance (not the emitters' or the observed surfaces', which have
+    # their own time curves): a light that dims the whole room is one number per frame instead
+    # of a direction the time codes must find. 0 knots: none (a field without a time input has none).
+    time_gain_knots: int = Field(0, ge=0, le=4096)
+    time_gain_channels: Literal[1, 3] = 3
     # kind -> its settings; given (and serialised) as one top-level key per kind
     sections: Mapping[str, SerializeAsAny[BaseModel]] = Field(default_factory=dict, repr=False)
 
