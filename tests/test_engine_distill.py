@@ -78,7 +78,7 @@ def test_known_spatial_field_is_recovered_and_beats_a_constant():
 
 def test_light_switch_off_is_recovered_in_time():
     """A lamp that switches off between two frames. 400 steps: with the draft's time gain the
-    codes take longer to learn a local switch (one run, on / off 2.1 at 200 steps, 8.5 at 400;
+    codes take longer to learn a local switch (one run, on / off 1.5 at 200 steps, 8.6 at 400;
     8.0 at 200 without the gain): early on the gain takes part of the lamp's change for the
     whole room's (docs/engine.md, "Time gain")."""
     cap = capture_from_arrays(torch.full((2, H, W, 3), 0.4), fps=1.0)  # t = 0 s, 1 s

@@ -77,7 +77,8 @@ class DistillConfig(BaseModel):
     log_floor_fraction: float = Field(1e-3, gt=0, description="log(L + floor), floor = this x the frame's mean radiance")
     linear_weight: float = Field(0.1, ge=0, description="weight of the relative linear (energy) term")
     chroma_weight: float = Field(0.0, ge=0, description="extra weight of the log error's colour part (radiance loss)")
-    time_tv_weight: float = Field(0.01, ge=0, description="L1 total variation of the field's time codes (if any)")
+    time_tv_weight: float = Field(0.01, ge=0, description=(
+        "L1 total variation of the field's time curves (if any: codes, view-detail coefficients, emitters, time gain)"))
     time_gain: bool = Field(False, description=(
         "with radiance supervision, a field with a time input gets a learned log gain per knot (and colour channel) "
         "multiplying its network (core.fields TimeGain): a light that dims the whole room is one number per frame"))

@@ -137,8 +137,8 @@ class LightField(nn.Module):
 
     def time_variation(self) -> torch.Tensor | None:
         """The L1 total variation of the field's learned time codes, of its view detail's time
-        coefficients and of its emitters' log intensities (None when it has none of them): the
-        distillation penalises it so lighting changes only where the frames say so."""
+        coefficients, of its emitters' log intensities and of its time gain (None when it has none
+        of them): the distillation penalises it so lighting changes only where the frames say so."""
         terms = [m.total_variation() for m in (getattr(self, "pe_t", None), self.view_detail_time, self.emitters,
                                                self.time_gain) if hasattr(m, "total_variation")]
         return sum(terms) if terms else None

@@ -103,7 +103,7 @@ class TimeCodes(nn.Module):
 class TimeGain(nn.Module):
     """A log brightness per knot (one value, or one per colour channel) at evenly spaced
     normalised times in [-1, 1], linearly interpolated: tn [B, 1] -> [B, channels]. Starts at 0
-    (gain 1); `set_gain` sets a measured curve."""
+    (gain 1), so an untrained gain changes nothing; `set_gain` sets given values."""
 
     def __init__(self, knots: int, channels: int = 1):
         super().__init__()
