@@ -44,13 +44,12 @@ def stretch_courses(suite, series_preds: list[torch.Tensor]) -> list[dict]:
 
 
 def room_positions(scene, n: int, seed: int) -> list[tuple[float, float, float]]:
-    """n points uniform in the room's free space (the extra held-out probes' rule:
-    bench.suite.simulated.EXTRA_PROBE_MARGIN_M inside its bounding box, furniture redrawn)."""
-    from bench.suite.simulated import EXTRA_PROBE_MARGIN_M, EXTRA_PROBE_TRIES
+    """n points uniform in the room's free space (the extra held-out probes' box,
+    bench.suite.simulated.free_space_box; furniture redrawn)."""
+    from bench.suite.simulated import EXTRA_PROBE_TRIES, free_space_box
     from core.sim.render import ProbeError, check_probe
 
-    lo = torch.tensor([min(b.lo[k] for b in scene.room.boxes) for k in range(3)], dtype=torch.float64) + EXTRA_PROBE_MARGIN_M
-    hi = torch.tensor([max(b.hi[k] for b in scene.room.boxes) for k in range(3)], dtype=torch.float64) - EXTRA_PROBE_MARGIN_M
+    lo, hi = free_space_box(scene)
     gen = torch.Generator().manual_seed(seed)
     out = []
     for _ in range(n * EXTRA_PROBE_TRIES):

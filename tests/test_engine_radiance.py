@@ -288,7 +288,9 @@ def test_a_light_switching_off_in_view_is_followed_at_the_camera():
     # the clipped frame (5.5x without the time part)
     assert after <= 3.5, ratios
     assert after <= 0.5 * after_without, ratios  # seed 0: 0.17 (seeds 1, 2: 0.14, 0.09)
-    assert abs(before / steady - 1) <= 0.05, ratios  # a static stretch stays flat (measured 0.1 %)
+    # a static stretch stays flat: 4.4 % with the draft's time gain (seed 0; 2.2 % without it; 5.6 %
+    # before the gain shared the codes' TV penalty: docs/engine.md, "Time gain")
+    assert abs(before / steady - 1) <= 0.05, ratios
 
 
 @pytest.fixture(scope="module")

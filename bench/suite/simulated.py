@@ -151,6 +151,14 @@ EXTRA_PROBE_MARGIN_M = 0.3  # extra held-out probes keep this far from walls, fl
 EXTRA_PROBE_TRIES = 200  # draws per wanted probe before giving up (furniture rejects some)
 
 
+def free_space_box(scene) -> tuple[torch.Tensor, torch.Tensor]:
+    """(lo, hi) float64 [3]: the room's bounding box EXTRA_PROBE_MARGIN_M inside its walls, floor
+    and ceiling, where held-out points are drawn (check_probe still rejects furniture)."""
+    lo = torch.tensor([min(b.lo[k] for b in scene.room.boxes) for k in range(3)], dtype=torch.float64)
+    hi = torch.tensor([max(b.hi[k] for b in scene.room.boxes) for k in range(3)], dtype=torch.float64)
+    return lo + EXTRA_PROBE_MARGIN_M, hi - EXTRA_PROBE_MARGIN_M
+
+
 def with_extra_probes(suite: SuiteData, n: int, seed: int = 0) -> SuiteData:
     """The suite with `n` more held-out probes: positions uniform in the room's free space
     (EXTRA_PROBE_MARGIN_M inside its bounding box; a draw outside the room or in furniture is
@@ -163,8 +171,7 @@ def with_extra_probes(suite: SuiteData, n: int, seed: int = 0) -> SuiteData:
     if n <= 0:
         return suite
     scene = suite.scene
-    lo = torch.tensor([min(b.lo[k] for b in scene.room.boxes) for k in range(3)], dtype=torch.float64) + EXTRA_PROBE_MARGIN_M
-    hi = torch.tensor([max(b.hi[k] for b in scene.room.boxes) for k in range(3)], dtype=torch.float64) - EXTRA_PROBE_MARGIN_M
+    lo, hi = free_space_box(scene)
     t_end = (scene.frames - 1) / scene.fps
     gen = torch.Generator().manual_seed(seed)
     probes, gts = [], []

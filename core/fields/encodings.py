@@ -105,7 +105,7 @@ class TimeGain(nn.Module):
     normalised times in [-1, 1], linearly interpolated: tn [B, 1] -> [B, channels]. Starts at 0
     (gain 1), so an untrained gain changes nothing; `set_gain` sets given values."""
 
-    def __init__(self, knots: int, channels: int = 1):
+    def __init__(self, knots: int, channels: int = 3):
         super().__init__()
         if knots < 2 or channels not in (1, 3):
             raise ValueError(f"TimeGain needs knots >= 2 and 1 or 3 channels, got {knots}, {channels}")
