@@ -28,6 +28,7 @@ past it. `--set` overrides the draft preset (dotted keys).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import tempfile
@@ -56,13 +57,14 @@ def probe_method(name: str, base) -> "Method":
 
 def constant_maps(suite, height: int) -> torch.Tensor:
     from core.capture.load import load_capture
-    from core.conventions import equirect_width, inverse_tonemap
+    from core.conventions import equirect_width
 
     cap = load_capture(suite.capture_dir)
+    linear = cap.linear()  # a stated per-frame exposure removed, as the job does
     out = []
     for p in suite.probes:
         i = int(torch.argmin((cap.times.double() - float(p.t)).abs()))
-        mean = inverse_tonemap(cap.frames[i].clamp(0, 1)).reshape(-1, 3).mean(0)
+        mean = linear[i].reshape(-1, 3).mean(0)
         out.append(mean.expand(height, equirect_width(height), 3).clone())
     return torch.stack(out)
 
@@ -131,7 +133,7 @@ def series_checks(suite, series_preds: list[torch.Tensor]) -> dict:
     return {"switches": switches, "stretches": stretches}
 
 
-def distill_with_seed(method, suite, base, out_dir: Path, seed: int) -> Path:
+def distill_with_seed(method, suite, base, out_dir: Path, seed: int, temporal: str = "auto") -> Path:
     """run_job on the suite's capture (as bench.methods.distill_artefact, with a chosen seed)."""
     from core.engine import run_job
     from core.engine.params import JobParams
@@ -142,8 +144,35 @@ def distill_with_seed(method, suite, base, out_dir: Path, seed: int) -> Path:
 
         prior = OracleSimPrior(suite.scene)
     cfg = method.config(base)
-    params = JobParams(preset="draft", prior="reprojection", field=cfg.field.kind, seed=seed)
+    params = JobParams(preset="draft", prior="reprojection", field=cfg.field.kind, seed=seed, temporal=temporal)
     return run_job(suite.capture_dir, None, params, out_dir, prior=prior, config=cfg).path
+
+
+def scale_stops(pred: torch.Tensor, gt: torch.Tensor) -> dict:
+    """How far each probe's overall level is from the truth's, in stops (log2 of the ratio of
+    solid-angle-weighted mean luminances): the mean, and the spread over probes. The three-sphere
+    si-RMSE and angles ignore a scale; a compositor does not: a spread means the answer's
+    brightness drifts from probe to probe (e.g. it follows a video's auto-exposure)."""
+    from core.envmap import solid_angles
+    from core.exposure import luminance
+
+    w = solid_angles(gt.shape[1], dtype=gt.dtype)
+    level = lambda e: (luminance(e) * w).sum((1, 2)).clamp_min(1e-12)  # noqa: E731
+    stops = torch.log2(level(pred.to(gt.dtype)) / level(gt))
+    return {"mean": round(float(stops.mean()), 3), "sd": round(float(stops.std()), 3) if stops.numel() > 1 else 0.0}
+
+
+def without_frame_ev(capture_dir: Path, out: Path) -> Path:
+    """A copy of a simulator capture whose capture.json states no per-frame exposures (the files
+    linked, not copied)."""
+    out.mkdir(parents=True, exist_ok=True)
+    for item in capture_dir.iterdir():
+        if item.name != "capture.json":
+            (out / item.name).symlink_to(item.resolve(), target_is_directory=item.is_dir())
+    doc = json.loads((capture_dir / "capture.json").read_text())
+    doc.pop("frame_ev", None)
+    (out / "capture.json").write_text(json.dumps(doc, indent=2))
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -158,6 +187,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--probe-seed", type=int, default=0, help="seed of the extra probes' draw")
     p.add_argument("--observed-hybrid", action="store_true",
                    help="also score each method with the prior's splat where it saw (SHORTCUT, see observed_hybrid)")
+    p.add_argument("--withhold-frame-ev", action="store_true",
+                   help="run on a copy of each suite's capture without its per-frame exposures (`frame_ev`): the "
+                        "same frames as a plain video (auto-exposure suites)")
+    p.add_argument("--temporal", default="auto", choices=("auto", "on", "off"), help="the job's temporal mode")
     p.add_argument("--cache-dir", default=None)
     p.add_argument("-o", "--output", default=None)
     p.add_argument("--table", default=None, metavar="REPORT_JSON", help="print the markdown table of a saved report and exit")
@@ -176,10 +209,13 @@ def main(argv: list[str] | None = None) -> int:
     overrides = parse_set(args.set)
     base = preset("draft").with_overrides(overrides) if overrides else preset("draft")
     cache = Path(args.cache_dir) if args.cache_dir else default_cache_dir()
+    scratch = tempfile.TemporaryDirectory()  # the copies of `--withhold-frame-ev`
     report: dict = {"overrides": overrides, "seed": args.seed, "extra_probes": args.extra_probes,
                     "probe_seed": args.probe_seed, "suites": {}}
     for name in args.suites.split(","):
         suite = with_extra_probes(load_suite(name, cache, None, args.gt_height), args.extra_probes, args.probe_seed)
+        if args.withhold_frame_ev:
+            suite = dataclasses.replace(suite, capture_dir=without_frame_ev(suite.capture_dir, Path(scratch.name) / name))
         preds: dict[str, torch.Tensor] = {}
         series: dict[str, list] = {}
         seconds: dict[str, float] = {}
@@ -191,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
             for method in args.methods.split(","):
                 m = probe_method(method, base)
                 t0 = time.process_time()
-                path = distill_with_seed(m, suite, base, Path(tmp) / method, args.seed)
+                path = distill_with_seed(m, suite, base, Path(tmp) / method, args.seed, args.temporal)
                 seconds[method] = round(time.process_time() - t0, 1)
                 run = MethodRun(m)
                 query_field(run, path, suite)
@@ -210,7 +246,8 @@ def main(argv: list[str] | None = None) -> int:
                                     **{k: round(float(luminance(v[i]).max()), 3) for k, v in preds.items()}}
         scores = {k: mean_scores([pp[k] for pp in per_probe]) for k in preds}
         entry: dict = {"probes": [{"x": list(p.x), "t": p.t} for p in suite.probes], "scores": scores, "cpu_s": seconds,
-                       "ratios": {}, "interval_90": {}, "per_probe": per_probe}
+                       "ratios": {}, "interval_90": {}, "scale_stops": {k: scale_stops(v, suite.gt) for k, v in preds.items()},
+                       "per_probe": per_probe}
 
         def paired(method, ref, mat, metric):  # per-probe values of both, where both were scored
             both = [pp for pp in per_probe if "non_finite" not in pp[method] and "non_finite" not in pp[ref]]

@@ -20,7 +20,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def capture_params_from_meta(meta: dict):
-    """Rebuild the geometry the artefact was estimated with (intrinsics, poses, fps)."""
+    """Rebuild the geometry the artefact was estimated with (intrinsics, poses, fps, exposures)."""
     from core.capture.params import CaptureParams
 
     cap = meta.get("capture", {})
@@ -29,6 +29,7 @@ def capture_params_from_meta(meta: dict):
         intrinsics={n: k[n] for n in ("fx", "fy", "cx", "cy")} if k else None,
         poses=cap.get("poses"),
         fps=cap.get("fps"),
+        frame_ev=cap.get("frame_ev"),
     )
 
 
@@ -53,7 +54,8 @@ def render_preview(artefact_dir, input_path, output, depth=None, points=None, fr
 
     def render(i: int) -> np.ndarray:
         t = float(capture.times[i]) if art.uses_time else None
-        out = insert_objects(capture.frames[i], capture.depth[i], capture.camera(i), envmaps_at, t, pts)
+        out = insert_objects(capture.frames[i], capture.depth[i], capture.camera(i), envmaps_at, t, pts,
+                             ev=float(capture.frame_ev[i]))
         return out.numpy()
 
     output = Path(output)

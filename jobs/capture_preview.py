@@ -8,7 +8,9 @@ the surface. So, before the uploads go, the worker stores a preview beside the a
     <job_dir>/preview/capture.safetensors   frames uint8 [T,h,w,3], depth float16 [T,h,w]
                                             (NaN where invalid; beyond 65504 m it reads as
                                             inf, i.e. invalid), poses float64 [T,4,4],
-                                            times float32 [T] (seconds from the first frame)
+                                            times float32 [T] (seconds from the first frame),
+                                            frame_ev float32 [T] (stops; only when the
+                                            capture stated per-frame exposures)
     <job_dir>/preview/capture.json          format, version, intrinsics at the preview
                                             size, fps, depth source, source frame count,
                                             SHA-256 of capture.safetensors and of itself
@@ -66,6 +68,7 @@ class CapturePreview(PreviewCameras):
     fps: float
     depth_source: str
     source_frames: int  # frames the engine saw (before the preview's subsampling)
+    frame_ev: np.ndarray | None = None  # float32 [T] stated exposure per frame (stops), when the capture gave them
 
     @property
     def num_frames(self) -> int:
@@ -107,7 +110,8 @@ def preview_from_capture(capture, max_height: int = PREVIEW_MAX_HEIGHT, max_fram
 
     keep = torch.from_numpy(_evenly_spaced(capture.num_frames, max_frames))
     picked = dataclasses.replace(capture, frames=capture.frames[keep], depth=capture.depth[keep],
-                                 poses=capture.poses[keep], times=capture.times[keep])
+                                 poses=capture.poses[keep], times=capture.times[keep],
+                                 stated_ev=None if capture.stated_ev is None else capture.stated_ev[keep])
     small = picked.resized(max_height)
     frames = (small.frames.clamp(0, 1) * 255.0).round().to(torch.uint8).numpy()
     depth = torch.where(valid_depth_mask(small.depth), small.depth, float("nan")).numpy().astype(np.float32)
@@ -120,6 +124,7 @@ def preview_from_capture(capture, max_height: int = PREVIEW_MAX_HEIGHT, max_fram
         fps=float(small.fps),
         depth_source=str(small.depth_source),
         source_frames=int(capture.num_frames),
+        frame_ev=None if small.stated_ev is None else small.stated_ev.numpy().astype(np.float32),
     )
 
 
@@ -132,12 +137,15 @@ def save_preview(preview: CapturePreview, job_dir: Path) -> Path:
     final = preview_dir(job_dir)
     tmp = Path(tempfile.mkdtemp(prefix=f".{PREVIEW_DIR}.tmp-", dir=job_dir))
     try:
-        save_file({
+        tensors = {
             "frames": preview.frames,
             "depth": preview.depth.astype(np.float16),
             "poses": preview.poses.astype(np.float64),
             "times": preview.times.astype(np.float32),
-        }, str(tmp / TENSORS_FILE))
+        }
+        if preview.frame_ev is not None:
+            tensors["frame_ev"] = preview.frame_ev.astype(np.float32)
+        save_file(tensors, str(tmp / TENSORS_FILE))
         meta = {"format": FORMAT, "version": VERSION, "intrinsics": preview.intrinsics, "fps": preview.fps,
                 "depth_source": preview.depth_source, "source_frames": preview.source_frames,
                 "tensors_sha256": file_sha256(tmp / TENSORS_FILE)}

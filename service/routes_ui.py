@@ -217,7 +217,7 @@ def _render_insertion(preview: StoredPreview, cf: CachedField, index: int, point
 
     frame, depth, camera = _insertion_frame(preview, index)
     try:
-        out = insert_objects(frame, depth, camera, envmaps_at, t, points)
+        out = insert_objects(frame, depth, camera, envmaps_at, t, points, ev=preview.frame_ev(index))
     except (InsertionError, BallPlacementError) as exc:
         raise InvalidInput(f"points: {exc}", code="invalid_points") from None
     return encode_png(out.numpy())

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.capture.params import MAX_EXPOSURE_STOPS
 from core.integrity import IntegrityError, verify_document
 from jobs.capture_preview import (FORMAT, META_FILE, READABLE_VERSIONS, TENSORS_FILE, PreviewCameras, file_sha256,
                                   preview_dir)
@@ -57,7 +58,8 @@ class StoredPreview(PreviewCameras):
     """A preview on disk: cameras and times in memory, frames and depth read one at a time
     (safetensors slices), so a request touches one frame, not the whole clip."""
 
-    def __init__(self, root: Path, meta: dict, poses: np.ndarray, times: np.ndarray, shape: tuple[int, int, int]):
+    def __init__(self, root: Path, meta: dict, poses: np.ndarray, times: np.ndarray, shape: tuple[int, int, int],
+                 stated_ev: np.ndarray | None = None):
         self.root = root
         self.intrinsics = meta["intrinsics"]
         self.fps = float(meta["fps"])
@@ -65,7 +67,12 @@ class StoredPreview(PreviewCameras):
         self.source_frames = int(meta.get("source_frames", shape[0]))
         self.poses = poses
         self.times = times
+        self.stated_ev = stated_ev  # float32 [T] stops, when the capture stated them
         self.num_frames, self.height, self.width = shape
+
+    def frame_ev(self, index: int) -> float:
+        """The stated exposure of frame `index` in stops (0 when the capture gave none)."""
+        return 0.0 if self.stated_ev is None else float(self.stated_ev[index])
 
     def _slice(self, name: str, index: int) -> np.ndarray:
         from safetensors import safe_open
@@ -85,6 +92,7 @@ class StoredPreview(PreviewCameras):
 
 
 _DTYPES = {"frames": "U8", "depth": "F16", "poses": "F64", "times": "F32"}
+_OPTIONAL_DTYPES = {"frame_ev": "F32"}  # only in previews of captures that stated exposures
 
 
 def load_preview(job_dir: Path) -> StoredPreview:
@@ -105,17 +113,21 @@ def load_preview(job_dir: Path) -> StoredPreview:
                 raise PreviewCorrupt(str(exc)) from None
             _verify_tensors(root / TENSORS_FILE, meta.get("tensors_sha256"))
         with safe_open(str(root / TENSORS_FILE), framework="numpy") as f:
-            if set(f.keys()) != set(_DTYPES):
-                raise PreviewError(f"{TENSORS_FILE}: expected tensors {sorted(_DTYPES)}, got {sorted(f.keys())}")
-            shapes = {k: tuple(f.get_slice(k).get_shape()) for k in _DTYPES}
-            dtypes = {k: f.get_slice(k).get_dtype() for k in _DTYPES}
+            names = set(f.keys())
+            if not set(_DTYPES) <= names <= set(_DTYPES) | set(_OPTIONAL_DTYPES):
+                raise PreviewError(f"{TENSORS_FILE}: expected tensors {sorted(_DTYPES)} (and optionally "
+                                   f"{sorted(_OPTIONAL_DTYPES)}), got {sorted(names)}")
+            expected = {k: v for k, v in {**_DTYPES, **_OPTIONAL_DTYPES}.items() if k in names}
+            shapes = {k: tuple(f.get_slice(k).get_shape()) for k in expected}
+            dtypes = {k: f.get_slice(k).get_dtype() for k in expected}
             poses, times = f.get_tensor("poses"), f.get_tensor("times")
+            frame_ev = f.get_tensor("frame_ev") if "frame_ev" in names else None
     except (OSError, ValueError, SafetensorError) as exc:
         if isinstance(exc, PreviewError):
             raise
         raise PreviewCorrupt(f"capture preview in {root.name}/ is unreadable: {exc}") from None
-    if dtypes != _DTYPES:
-        raise PreviewError(f"{TENSORS_FILE}: dtypes must be {_DTYPES}, got {dtypes}")
+    if dtypes != expected:
+        raise PreviewError(f"{TENSORS_FILE}: dtypes must be {expected}, got {dtypes}")
     fs = shapes["frames"]
     if len(fs) != 4 or fs[-1] != 3 or fs[0] < 1:
         raise PreviewError(f"{TENSORS_FILE}: frames must be [T,h,w,3], got {fs}")
@@ -125,10 +137,14 @@ def load_preview(job_dir: Path) -> StoredPreview:
                            f"do not match {t} frames of {h}x{w}")
     if not (np.isfinite(poses).all() and np.isfinite(times).all()):
         raise PreviewError(f"{TENSORS_FILE}: poses and times must be finite")
+    if frame_ev is not None and (shapes["frame_ev"] != (t,) or not np.isfinite(frame_ev).all()
+                                    or np.abs(frame_ev).max() > MAX_EXPOSURE_STOPS):
+        raise PreviewError(f"{TENSORS_FILE}: frame_ev must be {t} finite stops within +-{MAX_EXPOSURE_STOPS:g}")
     intr = meta.get("intrinsics")
     if not isinstance(intr, dict) or intr.get("width") != w or intr.get("height") != h:
         raise PreviewError(f"{META_FILE}: intrinsics must describe the {w}x{h} preview frames")
     fps = meta.get("fps")
     if not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
         raise PreviewError(f"{META_FILE}: fps must be a positive number, got {fps!r}")
-    return StoredPreview(root, meta, poses.astype(np.float64), times.astype(np.float32), (t, h, w))
+    return StoredPreview(root, meta, poses.astype(np.float64), times.astype(np.float32), (t, h, w),
+                         None if frame_ev is None else frame_ev.astype(np.float32))

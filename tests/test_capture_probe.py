@@ -96,6 +96,8 @@ BAD = {
     "depth count": ("video", np.ones((3, H, W), np.float32), {}, "depth"),
     "depth all invalid": ("image", np.full((H, W), np.nan, np.float32), {}, "depth"),
     "pose count": ("image", None, {"poses": [np.eye(4).ravel().tolist()] * 2}, "poses"),
+    "exposure count": ("video", None, {"frame_ev": [0.0, -1.0]}, "frame_ev"),
+    "exposure out of range": ("image", None, {"frame_ev": [40.0]}, "params"),
     "pose not finite rows": ("video", None, {"poses": [[float("nan")] * 16] * 8}, "params"),
     "intrinsics": ("image", None, {"intrinsics": {"fx": -5.0, "fy": 5.0, "cx": 1.0, "cy": 1.0}}, "params"),
 }

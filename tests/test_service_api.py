@@ -95,6 +95,8 @@ BAD_INPUTS = [
     ("half intrinsics", "image", {"intrinsics": {"fx": 100}}, 422, "invalid_params"),
     ("pose count mismatch", "image", {"poses": [np.eye(4).ravel().tolist()] * 2}, 422, "invalid_poses"),
     ("pose not 16 numbers", "image", {"poses": [[1, 0, 0]]}, 422, "invalid_params"),
+    ("exposure count mismatch", "image", {"frame_ev": [0.0, -1.0]}, 422, "invalid_frame_ev"),
+    ("exposure not finite", "image", {"frame_ev": ["NaN"]}, 422, "invalid_params"),
     ("weights outside model dirs", "image", {"prior": "diffusion", "prior_weights": "/etc"}, 422, "invalid_params"),
     ("depth size mismatch", "image+depth_small", None, 422, "invalid_depth"),
     ("depth all nan", "image+depth_nan", None, 422, "invalid_depth"),

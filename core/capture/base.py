@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import torch
 
 from core.camera import Camera, Intrinsics
-from core.conventions import valid_depth_mask
+from core.conventions import inverse_tonemap, valid_depth_mask
 
 
 class CaptureError(ValueError):
@@ -32,6 +32,9 @@ class Capture:
     # what the files said and what was assumed or estimated (intrinsics_source, poses_source,
     # depth_given, file metadata, tracking), listed in the artefact (docs/captures.md)
     metadata: dict = field(default_factory=dict)
+    # [T] float32: the exposure (stops, core.conventions.tonemap's ev) each frame was taken at,
+    # when the capture says (an auto-exposure video's per-frame metadata); None: every frame at 0
+    stated_ev: torch.Tensor | None = None
     # the capture this one was resized from (Capture.resized): its LDR frames still hold what
     # area-averaging loses, which pixels clipped (core.capture.highlights linearises there)
     full_resolution: "Capture | None" = field(default=None, repr=False, compare=False)
@@ -51,6 +54,18 @@ class Capture:
     @property
     def duration(self) -> float:
         return float(self.times[-1] - self.times[0]) if self.num_frames > 1 else 0.0
+
+    @property
+    def frame_ev(self) -> torch.Tensor:
+        """[T] float32 exposure of each frame in stops (zeros unless the capture gave them)."""
+        if self.stated_ev is None:
+            return torch.zeros(self.num_frames)
+        return self.stated_ev.float()
+
+    def linear(self) -> torch.Tensor:
+        """[T, H, W, 3] linear radiance of the frames in scene units: each frame's own exposure
+        removed (core.conventions.inverse_tonemap), clipped pixels at their frame's white."""
+        return inverse_tonemap(self.frames, self.frame_ev[:, None, None, None])
 
     @property
     def static_camera(self) -> bool:
@@ -92,6 +107,7 @@ class Capture:
             source=self.source,
             warnings=list(self.warnings),
             metadata=dict(self.metadata),
+            stated_ev=self.stated_ev,
             full_resolution=self.full_resolution or self,
         )
 
@@ -107,6 +123,7 @@ class Capture:
             "static_camera": self.static_camera,
             "poses": self.poses.reshape(self.num_frames, 16).tolist(),
             "depth_source": self.depth_source,
+            "frame_ev": None if self.stated_ev is None else [round(float(e), 4) for e in self.stated_ev],
             "warnings": list(self.warnings),
             "metadata": dict(self.metadata),
         }

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from core.conventions import inverse_tonemap
+from core.conventions import expose, inverse_tonemap
 from core.exposure import LUMINANCE_WEIGHTS, luminance
 
 CLIP_LDR = 0.99  # a pixel with any channel at or above this is clipped
@@ -299,12 +299,14 @@ def exposure_ratios(linear: torch.Tensor, clipped: torch.Tensor) -> torch.Tensor
     return torch.stack(ratios)
 
 
-def recover_from_exposures(linear: torch.Tensor, clipped: torch.Tensor) -> torch.Tensor:
+def recover_from_exposures(linear: torch.Tensor, clipped: torch.Tensor,
+                           known_ratios: torch.Tensor | None = None) -> torch.Tensor:
     """[T, H, W, 3]: clipped pixels replaced by the same pixel of a darker frame, rescaled to
     this frame's exposure, where that is unclipped and above white (the brightest such
     reading wins); other pixels unchanged. Needs a static camera (the caller checks). Works
-    on the clipped pixels only (a video's frames are not copied)."""
-    ratios = exposure_ratios(linear, clipped)
+    on the clipped pixels only (a video's frames are not copied). `known_ratios` [T]: each
+    frame's exposure relative to frame 0 when the capture states it (else estimated)."""
+    ratios = exposure_ratios(linear, clipped) if known_ratios is None else known_ratios.to(linear.dtype)
     if ratios is None or linear.shape[0] < 2 or bool((ratios - 1.0).abs().max() < 0.05):
         return linear
     out = linear.clone()
@@ -333,8 +335,10 @@ def _compact(found: tuple[np.ndarray, list[Blob]]) -> tuple[np.ndarray, list[Blo
 
 
 def linearise_highlights(frames: torch.Tensor, intrinsics, compare_frames: bool,
-                         coefficients=RULE_COEFFICIENTS, static_camera: bool = False) -> torch.Tensor:
-    """LDR frames [T, H, W, 3] -> linear radiance (ev 0) with clipped sources estimated:
+                         coefficients=RULE_COEFFICIENTS, static_camera: bool = False,
+                         exposure_ev: torch.Tensor | None = None) -> torch.Tensor:
+    """LDR frames [T, H, W, 3] -> linear radiance with clipped sources estimated (ev 0, or with
+    `exposure_ev` [T] each frame's stated exposure removed: one radiance scale for all):
     exposure changes first, then the blob rule for what stays clipped. `compare_frames`: the
     frames see the same radiance up to exposure (a static camera and static lighting), so
     one frame's unclipped reading may stand in for another's clipped one. `static_camera`
@@ -343,19 +347,26 @@ def linearise_highlights(frames: torch.Tensor, intrinsics, compare_frames: bool,
     ldr = frames.clamp(0, 1)
     lin = inverse_tonemap(ldr)
     clipped = clipped_mask(ldr)
-    if not bool(clipped.any()):
-        return lin
+    if bool(clipped.any()):  # the rule works in each frame's own units (white = 1)
+        known = None if exposure_ev is None else torch.pow(2.0, exposure_ev.double() - float(exposure_ev[0]))
+        lin = _estimate_highlights(lin, clipped, intrinsics, compare_frames, coefficients, static_camera, known)
+    if exposure_ev is not None:
+        lin = expose(lin, -exposure_ev.to(lin.dtype)[:, None, None, None])
+    return lin
+
+
+def _estimate_highlights(lin, clipped, intrinsics, compare_frames, coefficients, static_camera, known_ratios):
     recovered = torch.zeros_like(clipped)
-    if compare_frames and frames.shape[0] > 1:
-        lin2 = recover_from_exposures(lin, clipped)
+    if compare_frames and lin.shape[0] > 1:
+        lin2 = recover_from_exposures(lin, clipped, known_ratios)
         recovered = clipped & (lin2 != lin).any(-1)
         lin = lin2
     pixel_sr = pixel_solid_angle(intrinsics)
     still = (clipped & ~recovered).numpy()
-    found = [_compact(find_blobs(lin[t].numpy(), still[t], pixel_sr)) for t in range(frames.shape[0])]
+    found = [_compact(find_blobs(lin[t].numpy(), still[t], pixel_sr)) for t in range(lin.shape[0])]
     stops = (stops_over_time(found, lin, coefficients)
-             if (static_camera or compare_frames) and frames.shape[0] > 1 else None)
-    for t in range(frames.shape[0]):  # in place: lin is this function's own tensor
+             if (static_camera or compare_frames) and lin.shape[0] > 1 else None)
+    for t in range(lin.shape[0]):  # in place: lin is this function's own tensor
         if not still[t].any():
             continue
         lin[t] = torch.from_numpy(estimate_clipped(lin[t].numpy(), still[t], pixel_sr, coefficients, found=found[t],

@@ -31,7 +31,7 @@ import torch
 from core.camera import CameraError, Intrinsics, check_rigid_pose
 from core.capture.base import Capture, CaptureError
 from core.capture.depth import resolve_depth
-from core.capture.params import CaptureParams
+from core.capture.params import MAX_EXPOSURE_STOPS, CaptureParams
 from core.conventions import DEFAULT_HFOV_DEG, frame_time
 from core.io.limits import MediaLimits
 
@@ -123,6 +123,11 @@ def _read_capture_dir(root: Path, limits: MediaLimits) -> dict:
     if intr:
         out["intrinsics_dict"] = intr
         out["intrinsics_source"] = "capture.json"
+    frame_ev = index.get("frame_ev")  # per-frame exposure metadata (an auto-exposure clip), optional
+    if frame_ev is not None:
+        if not isinstance(frame_ev, list) or not all(isinstance(e, (int, float)) for e in frame_ev):
+            raise CaptureError("frame_ev", f"{index_path} frame_ev must be a list of numbers, one per frame")
+        out["frame_ev"] = [frame_ev[i] for i in keep] if len(frame_ev) == len(names) else frame_ev
     poses = index.get("poses")
     if poses:
         out["poses"] = [poses[i] for i in keep] if len(poses) == len(names) else poses
@@ -166,9 +171,10 @@ def resolve_intrinsics(params: CaptureParams, file_intr: dict | None, width: int
     return Intrinsics.from_hfov(width, height, DEFAULT_HFOV_DEG)
 
 
-def kept_poses(given, T: int, source_count: int, source_indices: list[int]):
-    """The given poses of the kept frames: poses given for every source frame follow the
-    frames' subsampling; any other count is kept as is (resolve_poses refuses a mismatch)."""
+def kept_per_frame(given, T: int, source_count: int, source_indices: list[int]):
+    """The given per-frame values (poses, exposures) of the kept frames: values given for every
+    source frame follow the frames' subsampling; any other count is kept as is (resolve_poses
+    and resolve_exposures refuse a mismatch)."""
     if given is not None and len(given) == source_count != T:
         return [given[i] for i in source_indices]
     return given
@@ -200,6 +206,18 @@ def resolve_poses(poses, T: int) -> torch.Tensor:
         except CameraError as exc:
             raise CaptureError("poses", str(exc)) from None
     return p
+
+
+def resolve_exposures(frame_ev, T: int) -> torch.Tensor | None:
+    """[T] float32 per-frame exposure in stops, or None when the capture gives none."""
+    if frame_ev is None:
+        return None
+    e = torch.as_tensor(frame_ev, dtype=torch.float32).reshape(-1)
+    if e.shape[0] != T:
+        raise CaptureError("frame_ev", f"{e.shape[0]} exposures for {T} frames (they must match)")
+    if not bool((torch.isfinite(e) & (e.abs() <= MAX_EXPOSURE_STOPS)).all()):
+        raise CaptureError("frame_ev", f"must be finite and within +-{MAX_EXPOSURE_STOPS:g} stops")
+    return e
 
 
 def _estimate_depth(frames: torch.Tensor, intr: Intrinsics, model_dir: str, warn: list[str]) -> tuple[torch.Tensor, str]:
@@ -267,10 +285,15 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
     if loaded.get("intrinsics_source"):
         metadata["intrinsics_source"] = loaded["intrinsics_source"]
     intr = resolve_intrinsics(params, loaded.get("intrinsics_dict"), W, H, warn, loaded.get("exif_intrinsics"), metadata)
-    given_poses = loaded.get("poses") if params.poses is None else kept_poses(params.poses, T, loaded.get("original_count", T), source_idx)
+    source_count = loaded.get("original_count", T)
+    given_poses = loaded.get("poses") if params.poses is None else kept_per_frame(params.poses, T, source_count, source_idx)
     poses = resolve_poses(given_poses, T)
     if given_poses is not None:
         metadata["poses_source"] = "params" if params.poses is not None else loaded.get("poses_source", "capture file")
+    given_ev = loaded.get("frame_ev") if params.frame_ev is None else kept_per_frame(params.frame_ev, T, source_count, source_idx)
+    frame_ev = resolve_exposures(given_ev, T)
+    if given_ev is not None:
+        metadata["exposure_source"] = "params" if params.frame_ev is not None else "capture.json"
     depth_arg = _read_depth(Path(depth_path), limits) if depth_path is not None else loaded.get("depth")
     if depth_path is not None and depth_arg.ndim == 3 and depth_arg.shape[0] == loaded.get("original_count", T) != T:
         depth_arg = depth_arg[source_idx]
@@ -290,6 +313,7 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
         source=path.name,
         warnings=warn,
         metadata=metadata,
+        stated_ev=frame_ev,
     )
     if not track:  # the caller tracks, and reports the warnings that are left
         return capture
@@ -302,8 +326,10 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
 
 
 def capture_from_arrays(frames: torch.Tensor, depth: torch.Tensor | None = None, *, intrinsics: Intrinsics | None = None,
-                        poses: torch.Tensor | None = None, fps: float = 1.0, source: str = "arrays") -> Capture:
-    """Build a validated Capture from in-memory tensors (tests, the demo, the simulator)."""
+                        poses: torch.Tensor | None = None, fps: float = 1.0, source: str = "arrays",
+                        frame_ev=None) -> Capture:
+    """Build a validated Capture from in-memory tensors (tests, the demo, the simulator);
+    `frame_ev`: each frame's stated exposure in stops (as CaptureParams.frame_ev)."""
     frames = torch.as_tensor(frames, dtype=torch.float32)
     if frames.ndim == 3:
         frames = frames[None]
@@ -313,4 +339,5 @@ def capture_from_arrays(frames: torch.Tensor, depth: torch.Tensor | None = None,
     p = resolve_poses(None if poses is None else torch.as_tensor(poses, dtype=torch.float64), T)
     d, src = resolve_depth(depth, T, H, W, intr, "arrays" if depth is not None else None, warn)
     return Capture(frames.clamp(0, 1).contiguous(), d.contiguous(), intr, p,
-                   frame_time(torch.arange(T, dtype=torch.float32), fps), float(fps), src, source, warn)
+                   frame_time(torch.arange(T, dtype=torch.float32), fps), float(fps), src, source, warn,
+                   stated_ev=resolve_exposures(frame_ev, T))

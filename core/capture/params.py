@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 MAX_FPS = 240.0
 MAX_FRAMES_LIMIT = 10_000  # hard ceiling; MediaLimits may be stricter
+MAX_EXPOSURE_STOPS = 20.0  # |frame_ev|: the simulator's and tone map's exposure range
 
 
 class _Strict(BaseModel):
@@ -61,6 +62,11 @@ class CaptureParams(_Strict):
     poses: list[list[float]] | None = Field(default=None, description="T x 16 camera-to-world, row-major")
     fps: float | None = None
     max_frames: int | None = None
+    frame_ev: list[float] | None = Field(
+        default=None, description="each frame's exposure in stops, one per frame of the input (an auto-exposure "
+                                  "video's per-frame metadata, e.g. log2(exposure time x ISO / reference)); a "
+                                  "frame's linear values are divided by 2^ev, so the frames share one radiance scale "
+                                  "(docs/captures.md)")
     tracking: Literal["auto", "off"] = Field(
         default="auto", description="camera tracking when several frames come without poses: 'auto' detects camera "
                                      "motion and tracks it; 'off' treats the camera as static (docs/captures.md)")
@@ -77,6 +83,18 @@ class CaptureParams(_Strict):
                 raise ValueError(f"poses[{i}] must have 16 numbers (row-major 4x4), got {len(row)}")
             if not all(math.isfinite(x) for x in row):
                 raise ValueError(f"poses[{i}] contains non-finite values")
+        return v
+
+    @field_validator("frame_ev")
+    @classmethod
+    def _frame_ev(cls, v):
+        if v is None:
+            return v
+        if len(v) == 0:
+            raise ValueError("frame_ev must not be empty")
+        for i, e in enumerate(v):
+            if not (math.isfinite(e) and abs(e) <= MAX_EXPOSURE_STOPS):
+                raise ValueError(f"frame_ev[{i}] must be finite and within +-{MAX_EXPOSURE_STOPS:g} stops, got {e}")
         return v
 
     @field_validator("fps")

@@ -68,10 +68,10 @@ def _analysis_planes(capture, h: int, w: int) -> torch.Tensor:
     """[T, h, w, 2]: linear luminance and a 0/1 'usable' plane, linearised BEFORE any
     resampling (averaging gamma-encoded noise would bias linear means downwards)."""
     out = []
-    for f in capture.frames:
+    for f, ev in zip(capture.frames, capture.frame_ev):
         peak = f.amax(-1)
         usable = ((peak < CLIP_HI) & (peak >= DARK_LO)).float()
-        planes = torch.stack((_luminance(inverse_tonemap(f)), usable), 0)[None]
+        planes = torch.stack((_luminance(inverse_tonemap(f, ev)), usable), 0)[None]  # a stated exposure removed
         out.append(F.interpolate(planes, size=(h, w), mode="area")[0].permute(1, 2, 0))
     return torch.stack(out)
 

@@ -71,4 +71,4 @@ def track_capture(capture: Capture, params: CaptureParams | None = None) -> Capt
             warnings.append(w)
     return replace(capture, frames=capture.frames[keep].contiguous(), depth=depth.contiguous(), intrinsics=geo.intrinsics,
                    poses=geo.poses.clone(), times=capture.times[keep], depth_source=depth_source, warnings=warnings,
-                   metadata=meta)
+                   metadata=meta, stated_ev=None if capture.stated_ev is None else capture.stated_ev[keep])

@@ -69,6 +69,8 @@ def fingerprint(capture: Capture, cfg: DistillConfig, field_cfg: FieldConfig, se
     """What a checkpoint must match to be resumed: the frames (sampled), settings, seed and prior."""
     h = hashlib.sha256()
     h.update(capture.frames.numpy().tobytes()[:: max(1, capture.frames.numel() // 100_000)])
+    if capture.stated_ev is not None:  # the same frames under other stated exposures are another job
+        h.update(capture.stated_ev.numpy().tobytes())
     # the device is not part of it: a checkpoint written on a GPU resumes on CPU and back
     h.update(json.dumps([cfg.model_dump(exclude={"device"}), field_cfg.model_dump(), seed, prior.name],
                         sort_keys=True, default=str).encode())

@@ -15,7 +15,6 @@ import torch
 
 from core.camera import Camera
 from core.capture.base import Capture
-from core.conventions import inverse_tonemap
 from core.device import resolve_device
 from core.engine.checkpoints import fingerprint, load_checkpoint, save_checkpoint
 from core.engine.config import EngineConfig
@@ -98,7 +97,7 @@ def distill(
         restored = load_checkpoint(Path(checkpoint_dir), field, opt, gen, run_fingerprint)
         if restored is not None:
             start, losses = restored
-    frames_lin = inverse_tonemap(capture.frames)
+    frames_lin = capture.linear()  # one radiance scale: each frame's stated exposure removed
     trainer = Trainer(capture, frames_lin.to(device), capture.depth.to(device), prior, field, opt,
                       cfg, gen, PerceptualLoss(cfg.perceptual_net), timings, device,
                       use_envmaps=use_envmaps, floors=frame_floors(frames_lin, cfg.log_floor_fraction),

@@ -32,7 +32,7 @@ class Trainer:
     """The state one optimisation step needs; `step(k)` runs step k and returns its loss."""
 
     capture: Capture  # on CPU: probe sampling and geometry are small, sequential work
-    frames_lin: torch.Tensor  # [T, H, W, 3] ball-free background radiance at ev 0 (no clip boost), on `device`
+    frames_lin: torch.Tensor  # [T, H, W, 3] ball-free background radiance (Capture.linear: no clip boost), on `device`
     depth: torch.Tensor  # [T, H, W] capture.depth on `device`
     prior: Prior
     field: LightField
@@ -52,7 +52,9 @@ class Trainer:
             return self.radiance_step(step)
         capture, cfg, gen, timings, field = self.capture, self.cfg, self.gen, self.timings, self.field
         i = int(torch.randint(capture.num_frames, (1,), generator=gen))
-        ev = cfg.ev_at(step)
+        # the prior sees the composite as the camera took the frame: its stated exposure plus the step's
+        frame_ev = float(capture.frame_ev[i])
+        ev = cfg.ev_at(step) + frame_ev
         tau_min = cfg.tau_min_at(step)
         tau = float(tau_min + (cfg.tau_max - tau_min) * torch.rand(1, generator=gen, dtype=torch.float64))
         cam = capture.camera(i)
@@ -86,7 +88,7 @@ class Trainer:
             request = PriorRequest(
                 image=image.to(pd), ball_masks=layer.coverage.detach().to(pd),
                 depth=composite_depth(self.depth[i], layer).to(pd), ev=ev, tau=tau, steps=cfg.steps_for_tau(tau),
-                guidance_scale=cfg.guidance_scale, probes=probes, generator=gen,
+                guidance_scale=cfg.guidance_scale, probes=probes, generator=gen, frame_ev=frame_ev,
                 extras={"frame_linear": self.frames_lin[i].to(pd), "ball_rays": rays,
                         "depth_background": self.depth[i].to(pd)},
             )

@@ -52,13 +52,20 @@ class PriorRequest:
     image: torch.Tensor  # [3, H, W] LDR in [0, 1]: the frame with balls composited, tone mapped at ev
     ball_masks: torch.Tensor  # [N, H, W] anti-aliased coverage in [0, 1], mutual occlusion applied
     depth: torch.Tensor  # [H, W] planar depth with the balls composited (ControlNet condition)
-    ev: float  # exposure of `image` (<= 0)
+    ev: float  # exposure of `image`: the frame's own (`frame_ev`) plus the step's sweep (<= 0)
     tau: float  # noise level in [0, 1] (diffusion priors); others may ignore it
     steps: int  # denoising steps k = ceil(10 tau) (diffusion priors)
     guidance_scale: float
     probes: ProbeGeometry
     generator: torch.Generator | None = None
     extras: dict = field(default_factory=dict)
+    frame_ev: float = 0.0  # the exposure the camera took this frame at (a capture's stated per-frame ev)
+
+    @property
+    def sweep_ev(self) -> float:
+        """The step's exposure relative to the frame as taken (what an exposure-conditioned
+        prior is told): `ev` less the frame's own."""
+        return float(self.ev) - float(self.frame_ev)
 
 
 class PriorConfig(BaseModel):

@@ -47,7 +47,7 @@ import torch
 import torch.nn.functional as F
 from pydantic import Field
 
-from core.conventions import inverse_tonemap
+from core.conventions import expose, inverse_tonemap
 from core.capture.depth import surface_normals
 from core.capture.highlights import CLIP_LDR, linearise_highlights
 from core.envmap import SPLAT_Z_TOLERANCE, resize_envmap, splat_points
@@ -64,16 +64,16 @@ OTHER_VIEW_STRIDE = 3  # merged viewpoints contribute a third of their points (c
 
 def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP_BOOST,
                   lighting_changes: bool = True) -> torch.Tensor:
-    """Linear radiance [T, H, W, 3] (ev 0) of a capture at its own resolution, linearised at
+    """Linear radiance [T, H, W, 3] (ev 0; each frame's stated exposure removed) of a capture at its own resolution, linearised at
     the resolution it was resized from (see the module docstring, step 1). Exposure changes
     between frames are used only for a static camera under static lighting (a lamp switching
     off must not read as an exposure change)."""
     src = capture.full_resolution or capture
     if clip_rule == "fixed":
-        lin = linearise(src.frames, clip_boost)
+        lin = expose(linearise(src.frames, clip_boost), -src.frame_ev[:, None, None, None])
     else:
         lin = linearise_highlights(src.frames, src.intrinsics, src.static_camera and not lighting_changes,
-                                   static_camera=src.static_camera)
+                                   static_camera=src.static_camera, exposure_ev=src.stated_ev)
     if src is not capture and (src.height, src.width) != (capture.height, capture.width):
         lin = F.interpolate(lin.permute(0, 3, 1, 2), size=(capture.height, capture.width), mode="area").permute(0, 2, 3, 1)
     return lin.contiguous()

@@ -14,7 +14,7 @@ import numpy as np
 
 from core.sim.cost import CostReport
 from core.sim.render import check_probe, render_envmap, render_frame
-from core.sim.sensor import exposure_ev, sensor_sequence
+from core.sim.sensor import exposure_ev, frame_evs, sensor_sequence
 from core.sim.spec import ProbePoint, SceneSpec, SceneSpecError
 
 CAPTURE_FORMAT = "lightfield-capture"
@@ -106,6 +106,11 @@ def write_capture(
         "exposure_ev": exposure_ev(scene),
         "probes": probe_docs,
     }
+    if scene.has("sensor") and scene.sensor.auto_exposure:
+        evs = [round(e, 6) for e in frame_evs(scene, [r.hdr for r in renders])]
+        doc["sensor_frame_ev"] = evs  # informational: what the sensor did, stated or not
+        if scene.sensor.record_exposure:
+            doc["frame_ev"] = evs  # the capture's per-frame exposure metadata (core.capture.load reads it)
     # written last and atomically: a capture.json means a complete capture
     atomic_write(out / "capture.json", json.dumps(doc, indent=2).encode())
     return {**doc, "cost": cost.as_dict()}

@@ -1,12 +1,14 @@
 """The simulated sensor: HDR radiance -> LDR frames.
 
 Without the `sensor` effect the sensor is ideal: LDR = conventions.tonemap(hdr, ev=0).
-With it: exposure `sensor.ev`, the paper's tone map (which clips to [0, 1]), additive
+With it: exposure `sensor.ev` (with `auto_exposure`, plus each frame's metered offset:
+`frame_evs`), the paper's tone map (which clips to [0, 1]), additive
 Gaussian noise in LDR units (seeded by scene seed and frame, so re-renders are identical),
 8-bit quantisation, and optionally an H.264 round trip through core.io's mp4 writer.
 """
 from __future__ import annotations
 
+import math
 import tempfile
 from pathlib import Path
 
@@ -18,15 +20,39 @@ from core.sim.cost import CostReport
 from core.sim.spec import SceneSpec
 
 
+AE_MID_GREY = 0.18  # auto-exposure meters the frame's mean linear luminance to this
+AE_PIXEL_CAP = 4.0  # metered pixels are capped here (2^ev units): a tiny lamp must not set the exposure
+AE_RANGE_STOPS = 4.0  # the metered offset stays within this many stops of `sensor.ev`
+
+
 def exposure_ev(scene: SceneSpec) -> float:
     return scene.sensor.ev if scene.has("sensor") else 0.0
 
 
-def sensor_frame(scene: SceneSpec, hdr: torch.Tensor, frame_index: int, cost: CostReport | None = None) -> torch.Tensor:
-    """LDR [H, W, 3] in [0, 1] of one HDR frame (no video compression; see `sensor_sequence`)."""
+def frame_evs(scene: SceneSpec, hdr_frames: list[torch.Tensor]) -> list[float]:
+    """Each frame's exposure: `sensor.ev`, and with `auto_exposure` an offset that moves
+    `auto_exposure_speed` of the way each frame (frame 0: all the way) toward the one that
+    meters the frame's mean luminance (pixels capped at AE_PIXEL_CAP) at AE_MID_GREY."""
+    base = exposure_ev(scene)
+    if not (scene.has("sensor") and scene.sensor.auto_exposure):
+        return [base] * len(hdr_frames)
+    out, offset = [], None
+    for hdr in hdr_frames:
+        y = (0.2126 * hdr[..., 0] + 0.7152 * hdr[..., 1] + 0.0722 * hdr[..., 2]) * 2.0 ** base
+        metered = float(y.nan_to_num(0.0).clamp(0.0, AE_PIXEL_CAP).mean().clamp_min(1e-6))
+        goal = min(max(math.log2(AE_MID_GREY / metered), -AE_RANGE_STOPS), AE_RANGE_STOPS)
+        offset = goal if offset is None else offset + scene.sensor.auto_exposure_speed * (goal - offset)
+        out.append(base + offset)
+    return out
+
+
+def sensor_frame(scene: SceneSpec, hdr: torch.Tensor, frame_index: int, cost: CostReport | None = None,
+                 ev: float | None = None) -> torch.Tensor:
+    """LDR [H, W, 3] in [0, 1] of one HDR frame at exposure `ev` (default the sensor's; no video
+    compression; see `sensor_sequence`)."""
     cost = cost if cost is not None else CostReport()
     with cost.track("sensor"):
-        ldr = tonemap(hdr, exposure_ev(scene))
+        ldr = tonemap(hdr, exposure_ev(scene) if ev is None else ev)
         sigma = scene.sensor.noise_sigma if scene.has("sensor") else 0.0
         if sigma > 0:
             g = torch.Generator().manual_seed((scene.seed * 1_000_003 + frame_index) & 0x7FFFFFFF)
@@ -51,7 +77,8 @@ def video_round_trip(ldr: np.ndarray, fps: float, crf: int) -> np.ndarray:
 def sensor_sequence(scene: SceneSpec, hdr_frames: list[torch.Tensor], cost: CostReport | None = None) -> np.ndarray:
     """LDR frames [T, H, W, 3] float32 in [0, 1] of a whole sequence (with compression if set)."""
     cost = cost if cost is not None else CostReport()
-    ldr = np.stack([sensor_frame(scene, h, i, cost).numpy() for i, h in enumerate(hdr_frames)]).astype(np.float32)
+    evs = frame_evs(scene, hdr_frames)
+    ldr = np.stack([sensor_frame(scene, h, i, cost, ev).numpy() for i, (h, ev) in enumerate(zip(hdr_frames, evs))]).astype(np.float32)
     if scene.has("sensor") and scene.sensor.video_compression:
         with cost.track("sensor"):
             ldr = video_round_trip(ldr, scene.fps, scene.sensor.crf)

@@ -177,7 +177,13 @@ class CameraSpec(_Model):
 class SensorSpec(_Model):
     """Used only when the scene declares the `sensor` effect; otherwise LDR = tonemap(hdr, 0)."""
 
-    ev: float = Field(default=0.0, ge=-20.0, le=20.0)
+    ev: float = Field(default=0.0, ge=-20.0, le=20.0, description="exposure (with auto_exposure: its compensation)")
+    auto_exposure: bool = Field(default=False, description="a phone's auto-exposure: each frame's ev moves toward "
+                                "the one that meters it at mid-grey (core.sim.sensor.frame_evs), on top of `ev`")
+    auto_exposure_speed: float = Field(default=0.5, gt=0.0, le=1.0,
+                                       description="share of the way to the metered ev each frame moves (1: at once)")
+    record_exposure: bool = Field(default=True, description="with auto_exposure: capture.json states each frame's ev "
+                                  "as `frame_ev` (capture apps record it); false: the frames alone, as a plain video")
     noise_sigma: float = Field(default=0.0, ge=0.0, le=1.0, description="Gaussian noise std in LDR units, before 8-bit")
     video_compression: bool = False
     crf: int = Field(default=23, ge=0, le=51)

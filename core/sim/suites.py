@@ -156,6 +156,18 @@ def moving_camera() -> SceneSpec:
     )
 
 
+def auto_exposure() -> SceneSpec:
+    """`moving-camera`'s room under a wider pan with a phone's auto-exposure: the window comes
+    into view and the exposure drops (static light; capture.json states each frame's ev)."""
+    base = moving_camera()
+    return base.model_copy(update={
+        "name": "auto-exposure",
+        "seed": 606,
+        "camera": _camera(position=(2.5, 1.4, 3.6), yaw_deg=-100.0, path=PanPath(yaw_end_deg=20.0)),
+        "sensor": SensorSpec(ev=0.0, noise_sigma=0.01, auto_exposure=True, auto_exposure_speed=0.5),
+    })
+
+
 def hard() -> SceneSpec:
     """Dark room, a tiny lamp >= 1e4x brighter than the lit walls, saturated windows (LDR 1 at
     ev 0), a probe under a table, a dolly camera and a compressed, noisy sensor."""
@@ -184,6 +196,7 @@ SUITES: dict[str, Callable[[], SceneSpec]] = {
     "spatial": spatial,
     "temporal": temporal,
     "moving-camera": moving_camera,
+    "auto-exposure": auto_exposure,
     "hard": hard,
 }
 

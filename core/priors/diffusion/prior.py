@@ -117,7 +117,7 @@ class DiffusionPrior(Prior):
         inputs = control_inputs(request, depth, masks)
         if self.profile.schedule == "authors":
             return self._seed_target(request, image, per_ball, coverage, canvas, inputs)
-        cond, image_latents = self.condition(image, per_ball, depth, request.ev, inputs, canvas)
+        cond, image_latents = self.condition(image, per_ball, depth, request.sweep_ev, inputs, canvas)
         latents = self.denoiser.refine(
             image_latents, cond, float(request.tau), int(request.steps), float(request.guidance_scale), request.generator
         )
@@ -133,7 +133,7 @@ class DiffusionPrior(Prior):
         mask = canvas.mask_to_model(per_ball.to(c.device))[:, None]
         control = control_image(self.control_encoding, inputs, canvas, c.device).expand(b, -1, -1, -1)
         out = self.seed_denoiser.refine(
-            comp, clean, mask, control, self.conditioner(request.ev).repeat(b), self.conditioner.null_embedding(b),
+            comp, clean, mask, control, self.conditioner(request.sweep_ev).repeat(b), self.conditioner.null_embedding(b),
             float(request.tau), float(request.guidance_scale), self.profile.cfg_rescale, request.generator, trace,
         )
         generated = combine_per_ball(canvas.to_frame(to_unit(out)).to(image.device), per_ball)

@@ -1,0 +1,152 @@
+"""Per-frame exposure metadata (`frame_ev`): an auto-exposure video's frames share one radiance
+scale, read as static light, recover clipped sources from darker frames, and every consumer
+(prior, ball loop, preview, checkpoints) sees the frame as the camera took it."""
+import json
+import shutil
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from core.capture.base import CaptureError
+from core.capture.load import capture_from_arrays, load_capture
+from core.capture.params import CaptureParams
+from core.capture.temporal import decide_temporal
+from core.conventions import tonemap
+from core.engine.checkpoints import fingerprint
+from core.engine.distill import distill
+from core.engine.presets import preset
+from core.exposure import luminance
+from core.priors.known import KnownRadiancePrior
+from core.priors.reprojection import linear_frames
+
+H, W = 36, 48
+EVS = [0.0, 0.6, -1.0, -3.0]  # an auto-exposure's course, the last frame 3 stops darker
+
+
+def room_hdr() -> torch.Tensor:
+    """[H, W, 3] a smooth room in linear units with a lamp 6x brighter than white at ev 0."""
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
+    base = 0.05 + 0.25 * xx[..., None] * torch.tensor([1.0, 0.9, 0.8]) + 0.1 * yy[..., None]
+    lamp = ((yy - 0.3) ** 2 + (xx - 0.7) ** 2 < 0.004)[..., None] * torch.tensor([6.0, 5.4, 4.5])
+    return base + lamp
+
+
+def exposed_clip(evs=EVS) -> torch.Tensor:
+    """The same room taken at each ev: 8-bit LDR frames [T, H, W, 3]."""
+    hdr = room_hdr()
+    return torch.stack([torch.round(tonemap(hdr, ev) * 255) / 255 for ev in evs])
+
+
+def test_stated_exposures_put_the_frames_on_one_radiance_scale():
+    frames = exposed_clip()
+    cap = capture_from_arrays(frames, frame_ev=EVS)
+    lin = cap.linear()
+    truth = room_hdr()
+    unclipped = (frames.amax(-1) < 0.98).all(0)
+    rel = (luminance(lin) / luminance(truth).clamp_min(1e-6))[:, unclipped]
+    assert float((rel - 1).abs().median()) < 0.02  # every frame reads the room's own radiance
+    unstated = capture_from_arrays(frames).linear()
+    ratio = float(luminance(unstated[3])[unclipped].median() / luminance(unstated[0])[unclipped].median())
+    assert ratio == pytest.approx(2.0**-3, rel=0.05)  # without them the last frame reads 8x darker
+
+
+def test_the_lamp_clipped_in_the_bright_frame_is_read_from_the_dark_one():
+    frames = exposed_clip()
+    lamp = room_hdr()[..., 0] > 3.0
+    assert bool((frames[0][lamp] >= 0.99).all()) and bool((frames[3][lamp] < 0.99).all())
+    cap = capture_from_arrays(frames, frame_ev=EVS)
+    lin = linear_frames(cap, lighting_changes=False)  # a static camera under static light
+    got = float(luminance(lin[0])[lamp].mean())
+    want = float(luminance(room_hdr())[lamp].mean())
+    assert got == pytest.approx(want, rel=0.05)  # not the clip rule's guess: the darker frame's reading
+    for t in range(len(EVS)):  # and every frame reads the lamp at the same radiance
+        assert float(luminance(lin[t])[lamp].mean()) == pytest.approx(want, rel=0.05)
+
+
+def test_auto_exposure_reads_as_static_light_only_when_stated():
+    evs = [0.0] * 5 + [-0.2, -0.5, -0.8, -1.0, -1.0]  # the exposure settles a stop lower
+    frames = exposed_clip(evs)
+    assert decide_temporal(capture_from_arrays(frames)).uses_time  # indistinguishable from a dimmer
+    decision = decide_temporal(capture_from_arrays(frames, frame_ev=evs))
+    assert not decision.uses_time and decision.statistic < 0.3 * decision.threshold
+
+
+@pytest.mark.parametrize("bad, message", [([0.0, 1.0], "2 exposures for 4 frames"), ([0.0, 0.0, float("nan"), 0.0], "finite")])
+def test_bad_exposures_name_their_input(bad, message):
+    with pytest.raises(CaptureError, match=message) as info:
+        capture_from_arrays(exposed_clip(), frame_ev=bad)
+    assert info.value.field == "frame_ev"
+
+
+def test_the_schema_refuses_exposures_out_of_range():
+    with pytest.raises(ValueError, match="frame_ev"):
+        CaptureParams(frame_ev=[30.0])
+    with pytest.raises(ValueError, match="frame_ev"):
+        CaptureParams(frame_ev=[])
+
+
+def test_the_ball_loop_shows_the_prior_each_frame_as_the_camera_took_it():
+    frames = exposed_clip()
+    cap = capture_from_arrays(frames, frame_ev=EVS)
+    seen = []
+
+    class Recording(KnownRadiancePrior):
+        def __call__(self, request):
+            seen.append((request.probes.frame_index, request.ev, request.sweep_ev, request.image.clone(),
+                         request.ball_masks.sum(0).clone()))
+            return super().__call__(request)
+
+    prior = Recording(lambda x, t, d: torch.full((x.shape[0], 3), 0.3))
+    cfg = preset("draft").with_overrides({"distill": {"work_height": H, "iterations": 6, "warmup_steps": 2,
+                                                      "supervision": "balls", "ev_min": 0.0, "checkpoint_every": 1000}})
+    distill(cap, prior, cfg, uses_time=False, seed=0)
+    assert {i for i, *_ in seen} >= {0, 3} or len({i for i, *_ in seen}) >= 2
+    for i, ev, sweep, image, cover in seen:
+        assert ev == pytest.approx(EVS[i]) and sweep == pytest.approx(0.0)
+        outside = cover < 1e-6
+        assert torch.allclose(image.permute(1, 2, 0)[outside], frames[i][outside], atol=2e-3)  # the frame itself
+
+
+def test_checkpoints_of_other_stated_exposures_do_not_resume():
+    frames = exposed_clip()
+    cfg = preset("draft")
+    prior = KnownRadiancePrior(lambda x, t, d: torch.ones(x.shape[0], 3))
+    a = fingerprint(capture_from_arrays(frames), cfg.distill, cfg.field, 0, prior)
+    b = fingerprint(capture_from_arrays(frames, frame_ev=EVS), cfg.distill, cfg.field, 0, prior)
+    assert a != b
+
+
+def test_the_preview_keeps_each_frames_exposure(tmp_path):
+    from jobs.capture_preview import preview_from_capture, save_preview
+    from service.stored_preview import load_preview
+
+    cap = capture_from_arrays(exposed_clip(), torch.full((4, H, W), 2.0), frame_ev=EVS)
+    preview = preview_from_capture(cap, max_frames=2)  # frames 0 and 3
+    save_preview(preview, tmp_path)
+    stored = load_preview(tmp_path)
+    assert [stored.frame_ev(i) for i in range(stored.num_frames)] == pytest.approx([EVS[0], EVS[3]])
+    save_preview(preview_from_capture(capture_from_arrays(exposed_clip())), tmp_path / "plain")
+    assert load_preview(tmp_path / "plain").frame_ev(1) == 0.0
+
+
+def test_a_simulated_auto_exposure_pan_states_its_exposures(tmp_path):
+    from core.sim.capture import write_capture
+    from core.sim.suites import suite
+
+    scene = suite("auto-exposure").model_copy(update={"resolution": (96, 72), "probes": []})
+    write_capture(scene, tmp_path / "stated", video=False)
+    doc = json.loads((tmp_path / "stated" / "capture.json").read_text())
+    assert doc["frame_ev"] == doc["sensor_frame_ev"] and max(doc["frame_ev"]) - min(doc["frame_ev"]) > 0.8
+    shutil.copytree(tmp_path / "stated", tmp_path / "plain")
+    doc.pop("frame_ev")
+    (tmp_path / "plain" / "capture.json").write_text(json.dumps(doc))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        stated, plain = load_capture(tmp_path / "stated"), load_capture(tmp_path / "plain")
+        given = load_capture(tmp_path / "plain", params=CaptureParams(frame_ev=doc["sensor_frame_ev"]))
+    assert stated.metadata["exposure_source"] == "capture.json" and given.metadata["exposure_source"] == "params"
+    assert np.allclose(stated.frame_ev.numpy(), given.frame_ev.numpy())
+    assert not decide_temporal(stated).uses_time  # a pan under static light
+    assert decide_temporal(plain).uses_time  # the same frames as a plain video: the exposure reads as light
