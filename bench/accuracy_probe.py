@@ -58,8 +58,9 @@ def probe_method(name: str, base) -> "Method":
 def constant_maps(suite, height: int) -> torch.Tensor:
     from core.capture.load import load_capture
     from core.conventions import equirect_width
+    from core.engine.params import JobParams
 
-    cap = load_capture(suite.capture_dir)
+    cap = load_capture(suite.capture_dir, params=JobParams(**suite.params))
     linear = cap.linear()  # a stated per-frame exposure removed, as the job does
     out = []
     for p in suite.probes:
@@ -133,7 +134,7 @@ def series_checks(suite, series_preds: list[torch.Tensor]) -> dict:
     return {"switches": switches, "stretches": stretches}
 
 
-def distill_with_seed(method, suite, base, out_dir: Path, seed: int, temporal: str = "auto") -> Path:
+def distill_with_seed(method, suite, base, out_dir: Path, seed: int) -> Path:
     """run_job on the suite's capture (as bench.methods.distill_artefact, with a chosen seed)."""
     from core.engine import run_job
     from core.engine.params import JobParams
@@ -144,7 +145,7 @@ def distill_with_seed(method, suite, base, out_dir: Path, seed: int, temporal: s
 
         prior = OracleSimPrior(suite.scene)
     cfg = method.config(base)
-    params = JobParams(preset="draft", prior="reprojection", field=cfg.field.kind, seed=seed, temporal=temporal)
+    params = JobParams(preset="draft", prior="reprojection", field=cfg.field.kind, seed=seed, **suite.params)
     return run_job(suite.capture_dir, None, params, out_dir, prior=prior, config=cfg).path
 
 
@@ -190,7 +191,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--withhold-frame-ev", action="store_true",
                    help="run on a copy of each suite's capture without its per-frame exposures (`frame_ev`): the "
                         "same frames as a plain video (auto-exposure suites)")
-    p.add_argument("--temporal", default="auto", choices=("auto", "on", "off"), help="the job's temporal mode")
+    p.add_argument("--temporal", default="auto", choices=("auto", "on", "off"),
+                   help="the jobs' temporal mode (the prior is bound with the same decision)")
+    p.add_argument("--frame-ev", default=None, choices=("estimate",),
+                   help="the jobs' frame_ev parameter: 'estimate' takes the frames' overall brightness course for "
+                        "the camera's exposure")
     p.add_argument("--cache-dir", default=None)
     p.add_argument("-o", "--output", default=None)
     p.add_argument("--table", default=None, metavar="REPORT_JSON", help="print the markdown table of a saved report and exit")
@@ -211,11 +216,13 @@ def main(argv: list[str] | None = None) -> int:
     cache = Path(args.cache_dir) if args.cache_dir else default_cache_dir()
     scratch = tempfile.TemporaryDirectory()  # the copies of `--withhold-frame-ev`
     report: dict = {"overrides": overrides, "seed": args.seed, "extra_probes": args.extra_probes,
-                    "probe_seed": args.probe_seed, "suites": {}}
+                    "probe_seed": args.probe_seed, "temporal": args.temporal, "frame_ev": args.frame_ev,
+                    "withhold_frame_ev": args.withhold_frame_ev, "suites": {}}
     for name in args.suites.split(","):
         suite = with_extra_probes(load_suite(name, cache, None, args.gt_height), args.extra_probes, args.probe_seed)
         if args.withhold_frame_ev:
             suite = dataclasses.replace(suite, capture_dir=without_frame_ev(suite.capture_dir, Path(scratch.name) / name))
+        suite.params = {"temporal": args.temporal, **({"frame_ev": args.frame_ev} if args.frame_ev else {})}
         preds: dict[str, torch.Tensor] = {}
         series: dict[str, list] = {}
         seconds: dict[str, float] = {}
@@ -227,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
             for method in args.methods.split(","):
                 m = probe_method(method, base)
                 t0 = time.process_time()
-                path = distill_with_seed(m, suite, base, Path(tmp) / method, args.seed, args.temporal)
+                path = distill_with_seed(m, suite, base, Path(tmp) / method, args.seed)
                 seconds[method] = round(time.process_time() - t0, 1)
                 run = MethodRun(m)
                 query_field(run, path, suite)

@@ -217,8 +217,9 @@ def _bound_prior(suite: SuiteData, cfg: EngineConfig):
     from core.engine.params import JobParams
     from core.priors.registry import build_prior
 
-    capture = load_capture(suite.capture_dir)
-    decision = decide_temporal(capture, JobParams().temporal)
+    params = JobParams(**suite.params)
+    capture = load_capture(suite.capture_dir, params=params)
+    decision = decide_temporal(capture, params.temporal)
     work = capture.resized(cfg.distill.work_height)
     prior = build_prior("reprojection", cfg.prior_settings("reprojection"))
     prior.bind(work, lighting_changes=decision.uses_time)

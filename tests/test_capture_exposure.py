@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from core.capture.autoexposure import with_estimated_exposure
 from core.capture.base import CaptureError
 from core.capture.load import capture_from_arrays, load_capture
 from core.capture.params import CaptureParams
@@ -150,3 +151,27 @@ def test_a_simulated_auto_exposure_pan_states_its_exposures(tmp_path):
     assert np.allclose(stated.frame_ev.numpy(), given.frame_ev.numpy())
     assert not decide_temporal(stated).uses_time  # a pan under static light
     assert decide_temporal(plain).uses_time  # the same frames as a plain video: the exposure reads as light
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        estimated = load_capture(tmp_path / "plain", params=CaptureParams(frame_ev="estimate"))
+    truth = np.array(doc["sensor_frame_ev"]) - doc["sensor_frame_ev"][0]
+    assert np.abs(estimated.frame_ev.numpy() - truth).max() < 0.05  # chained through the pan's poses
+    assert estimated.metadata["exposure_source"].startswith("estimated")
+    assert not decide_temporal(estimated).uses_time
+
+
+def test_an_estimated_exposure_follows_a_static_cameras_auto_exposure():
+    evs = [0.0, 0.0, 0.3, 0.5, -0.4, -1.0, -1.0, -1.2]
+    cap = with_estimated_exposure(capture_from_arrays(exposed_clip(evs)), CaptureParams(frame_ev="estimate"))
+    assert np.abs(cap.frame_ev.numpy() - np.array(evs)).max() < 0.05
+    assert not decide_temporal(cap).uses_time
+    assert with_estimated_exposure(capture_from_arrays(exposed_clip([0.0])), CaptureParams(frame_ev="estimate")).frame_ev.tolist() == [0.0]
+
+
+def test_a_light_switching_off_in_part_of_the_view_is_not_taken_for_exposure():
+    evs = [0.0] * 4 + [-0.5] * 4
+    frames = exposed_clip(evs)
+    frames[6:, :, : W // 6] *= 0.4  # a lamp-lit corner goes dark in the last frames
+    cap = with_estimated_exposure(capture_from_arrays(frames), CaptureParams(frame_ev="estimate"))
+    assert np.abs(cap.frame_ev.numpy() - np.array(evs)).max() < 0.05
+    assert decide_temporal(cap).uses_time  # the switch is still a change of light

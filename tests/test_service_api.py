@@ -97,6 +97,7 @@ BAD_INPUTS = [
     ("pose not 16 numbers", "image", {"poses": [[1, 0, 0]]}, 422, "invalid_params"),
     ("exposure count mismatch", "image", {"frame_ev": [0.0, -1.0]}, 422, "invalid_frame_ev"),
     ("exposure not finite", "image", {"frame_ev": ["NaN"]}, 422, "invalid_params"),
+    ("exposure neither numbers nor 'estimate'", "image", {"frame_ev": "guess"}, 422, "invalid_params"),
     ("weights outside model dirs", "image", {"prior": "diffusion", "prior_weights": "/etc"}, 422, "invalid_params"),
     ("depth size mismatch", "image+depth_small", None, 422, "invalid_depth"),
     ("depth all nan", "image+depth_nan", None, 422, "invalid_depth"),

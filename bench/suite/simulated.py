@@ -45,6 +45,8 @@ class SuiteData:
     global_time: float
     series: list[Series] = field(default_factory=list)
     render_seconds: float = 0.0  # 0 when the capture came from the cache
+    # capture/job parameters every job and bound prior of this run uses (e.g. temporal, frame_ev)
+    params: dict = field(default_factory=dict)
 
     @property
     def eval_height(self) -> int:

@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 MAX_FPS = 240.0
 MAX_FRAMES_LIMIT = 10_000  # hard ceiling; MediaLimits may be stricter
+FRAME_EV_ESTIMATE = "estimate"  # frame_ev: estimate each frame's exposure from the frames (core.capture.autoexposure)
 MAX_EXPOSURE_STOPS = 20.0  # |frame_ev|: the simulator's and tone map's exposure range
 
 
@@ -62,11 +63,12 @@ class CaptureParams(_Strict):
     poses: list[list[float]] | None = Field(default=None, description="T x 16 camera-to-world, row-major")
     fps: float | None = None
     max_frames: int | None = None
-    frame_ev: list[float] | None = Field(
+    frame_ev: list[float] | Literal["estimate"] | None = Field(
         default=None, description="each frame's exposure in stops, one per frame of the input (an auto-exposure "
                                   "video's per-frame metadata, e.g. log2(exposure time x ISO / reference)); a "
-                                  "frame's linear values are divided by 2^ev, so the frames share one radiance scale "
-                                  "(docs/captures.md)")
+                                  "frame's linear values are divided by 2^ev, so the frames share one radiance scale. "
+                                  "'estimate': the camera adjusted its exposure without recording it, so the frames' "
+                                  "overall brightness course is taken as the exposure's (docs/captures.md)")
     tracking: Literal["auto", "off"] = Field(
         default="auto", description="camera tracking when several frames come without poses: 'auto' detects camera "
                                      "motion and tracks it; 'off' treats the camera as static (docs/captures.md)")
@@ -88,7 +90,7 @@ class CaptureParams(_Strict):
     @field_validator("frame_ev")
     @classmethod
     def _frame_ev(cls, v):
-        if v is None:
+        if v is None or v == FRAME_EV_ESTIMATE:
             return v
         if len(v) == 0:
             raise ValueError("frame_ev must not be empty")

@@ -115,8 +115,11 @@ def _warp_into(planes_src: torch.Tensor, depth_ref: torch.Tensor, depth_src: tor
     return img.permute(1, 2, 0), ok
 
 
-def detect_temporal_moving(capture) -> TemporalDecision:
-    """The moving-camera statistic: consecutive frames, warped, chained (module docstring)."""
+def _consecutive_changes(capture):
+    """A moving camera's frame-to-frame brightness changes: each frame warped into its
+    predecessor, per-block log differences over the pixels usable in both. Returns (steps:
+    [T-1] median block difference per pair, 0 without a shared block; local: [T-1] mean |block
+    difference|; diffs: the pairs' block differences; blind: frames without a shared block)."""
     small = capture.resized(ANALYSIS_HEIGHT)
     T, h, w = small.depth.shape
     planes = _analysis_planes(capture, h, w)
@@ -134,6 +137,31 @@ def detect_temporal_moving(capture) -> TemporalDecision:
         steps.append(float(d.median()))
         local.append(float(d.abs().mean()))
         diffs.append(d)
+    return steps, local, diffs, blind
+
+
+def global_log_course(capture) -> torch.Tensor:
+    """[T] float64: each frame's overall log brightness relative to frame 0, from what two
+    frames both show (blocks usable in every frame for a static camera; consecutive frames
+    warped and chained for a moving one): the median over blocks, so a change confined to
+    part of the view moves it little. What an auto-exposure changes."""
+    T = capture.num_frames
+    if T < 2:
+        return torch.zeros(T, dtype=torch.float64)
+    if not capture.static_camera:
+        steps = _consecutive_changes(capture)[0]
+        return torch.cat((torch.zeros(1, dtype=torch.float64), torch.tensor(steps, dtype=torch.float64).cumsum(0)))
+    l = block_log_luminance(capture)
+    keep = torch.isfinite(l).all(0)
+    if int(keep.sum()) == 0:
+        return torch.zeros(T, dtype=torch.float64)
+    l = l[:, keep].double()
+    return (l - l[:1]).median(dim=1).values
+
+
+def detect_temporal_moving(capture) -> TemporalDecision:
+    """The moving-camera statistic: consecutive frames, warped, chained (module docstring)."""
+    steps, local, diffs, blind = _consecutive_changes(capture)
     if not diffs:
         return TemporalDecision(False, float("nan"), float("nan"),
                                 "no two consecutive frames share a usable image block (saturated/dark/occluded): "
