@@ -114,6 +114,26 @@ def markdown_table(report: dict) -> str:
     return "\n".join(rows)
 
 
+def level_table(paths: list[str]) -> str:
+    """`--level-table R1.json R2.json ...`: one row per report and suite (its job settings, the
+    jobs' temporal decision, si-RMSE of the field / the constant map, the field's level against
+    the truth in stops: mean and spread over probes, the largest static-stretch deviation)."""
+    rows = ["| report | suite | frame_ev | temporal | time input | diffuse si / const | matte si / const "
+            "| level, stops: mean (sd over probes) | static stretches, max dev |", "|---|---|---|---|---|---|---|---|---|"]
+    for path in paths:
+        report = json.loads(Path(path).read_text())
+        given = ("withheld" if report.get("withhold_frame_ev") else "as captured") + (
+            f", {report['frame_ev']}" if report.get("frame_ev") else "")
+        for name, entry in report["suites"].items():
+            c, lv = entry["ratios"]["field"]["vs_constant"], entry["scale_stops"]["field"]
+            devs = [s["max_dev_vs_truth"] for s in entry.get("series", {}).get("field", {}).get("stretches", [])]
+            rows.append(f"| {Path(path).stem} | {name} | {given} | {report.get('temporal', 'auto')} "
+                        f"| {entry.get('uses_time', {}).get('field', '?')} | {c['diffuse.si_rmse']:.2f} "
+                        f"| {c['matte.si_rmse']:.2f} | {lv['mean']:+.2f} ({lv['sd']:.2f}) "
+                        f"| {f'{max(devs):.3f}' if devs else '-'} |")
+    return "\n".join(rows)
+
+
 def series_checks(suite, series_preds: list[torch.Tensor]) -> dict:
     """After/before brightness at each switch and the flatness of static stretches."""
     from bench.suite.evaluation import envmap_brightness, relative_course
@@ -199,9 +219,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cache-dir", default=None)
     p.add_argument("-o", "--output", default=None)
     p.add_argument("--table", default=None, metavar="REPORT_JSON", help="print the markdown table of a saved report and exit")
+    p.add_argument("--level-table", nargs="+", default=None, metavar="REPORT_JSON",
+                   help="print the exposure / level comparison of saved reports and exit")
     args = p.parse_args(argv)
     if args.table:
         print(markdown_table(json.loads(Path(args.table).read_text())))
+        return 0
+    if args.level_table:
+        print(level_table(args.level_table))
         return 0
 
     from bench.methods import Method, query_field, run_per_probe, MethodRun
@@ -226,6 +251,7 @@ def main(argv: list[str] | None = None) -> int:
         preds: dict[str, torch.Tensor] = {}
         series: dict[str, list] = {}
         seconds: dict[str, float] = {}
+        uses_time: dict[str, bool] = {}
         prior_run = run_per_probe(Method("prior", "per-probe", "baseline", "prior"), suite, base)
         preds["prior"], series["prior"] = prior_run.envmaps, prior_run.series
         preds["constant"] = constant_maps(suite, suite.eval_height)
@@ -236,6 +262,7 @@ def main(argv: list[str] | None = None) -> int:
                 t0 = time.process_time()
                 path = distill_with_seed(m, suite, base, Path(tmp) / method, args.seed)
                 seconds[method] = round(time.process_time() - t0, 1)
+                uses_time[method] = json.loads((path / "lightfield.json").read_text())["temporal"]["uses_time"]
                 run = MethodRun(m)
                 query_field(run, path, suite)
                 preds[method], series[method] = run.envmaps, run.series
@@ -252,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
             pp["peak_luminance"] = {"truth": round(float(luminance(suite.gt[i]).max()), 3),
                                     **{k: round(float(luminance(v[i]).max()), 3) for k, v in preds.items()}}
         scores = {k: mean_scores([pp[k] for pp in per_probe]) for k in preds}
-        entry: dict = {"probes": [{"x": list(p.x), "t": p.t} for p in suite.probes], "scores": scores, "cpu_s": seconds,
+        entry: dict = {"probes": [{"x": list(p.x), "t": p.t} for p in suite.probes], "scores": scores, "cpu_s": seconds, "uses_time": uses_time,
                        "ratios": {}, "interval_90": {}, "scale_stops": {k: scale_stops(v, suite.gt) for k, v in preds.items()},
                        "per_probe": per_probe}
 

@@ -27,6 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prior-profile", choices=choices.PRIOR_PROFILES, metavar="PROFILE", default=None,
                    help="diffusion prior's inference profile, one of %(choices)s (default: the preset's, else the model card's)")
     p.add_argument("--temporal", choices=choices.TEMPORAL_MODES, metavar="MODE", default=None, help="one of %(choices)s")
+    p.add_argument("--frame-ev", default=None, metavar="EVS",
+                   help="each frame's exposure in stops, comma-separated (an auto-exposure video's metadata), or "
+                        "'estimate' when the camera adjusted it without recording it (docs/captures.md, Exposure)")
     p.add_argument("--field", choices=choices.FIELDS, metavar="KIND", default=None,
                    help="field kind, one of %(choices)s (default: the preset's)")
     p.add_argument("--seed", type=int, default=None)
@@ -35,6 +38,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="resume from OUT.checkpoint if present (default)")
     p.add_argument("--no-resume", dest="resume", action="store_false", help="discard any checkpoint and start over")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def parse_frame_ev(text: str | None):
+    """`--frame-ev`: None, "estimate", or comma-separated numbers (a ValueError names a bad one)."""
+    if text is None or text.strip() == "estimate":
+        return None if text is None else "estimate"
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ValueError(f"--frame-ev must be 'estimate' or comma-separated numbers, got {text!r}") from None
 
 
 def checkpoint_dir_for(out: Path) -> Path:
@@ -90,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.output)
     try:
         params = parse_job_params(args.params, preset=args.preset, prior=args.prior, prior_weights=args.prior_weights,
-                                  prior_profile=args.prior_profile, temporal=args.temporal, field=args.field, seed=args.seed)
+                                  prior_profile=args.prior_profile, temporal=args.temporal, field=args.field, seed=args.seed,
+                                  frame_ev=parse_frame_ev(args.frame_ev))
     except (ValidationError, ValueError) as exc:
         print(f"error: invalid parameters: {exc}", file=sys.stderr)
         return 2

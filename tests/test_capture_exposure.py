@@ -13,7 +13,7 @@ from core.capture.autoexposure import with_estimated_exposure
 from core.capture.base import CaptureError
 from core.capture.load import capture_from_arrays, load_capture
 from core.capture.params import CaptureParams
-from core.capture.temporal import decide_temporal
+from core.capture.temporal import AUTO_EXPOSURE_HINT, decide_temporal
 from core.conventions import tonemap
 from core.engine.checkpoints import fingerprint
 from core.engine.distill import distill
@@ -151,6 +151,7 @@ def test_a_simulated_auto_exposure_pan_states_its_exposures(tmp_path):
     assert np.allclose(stated.frame_ev.numpy(), given.frame_ev.numpy())
     assert not decide_temporal(stated).uses_time  # a pan under static light
     assert decide_temporal(plain).uses_time  # the same frames as a plain video: the exposure reads as light
+    assert AUTO_EXPOSURE_HINT in decide_temporal(plain).reason  # and the artefact says what to send
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         estimated = load_capture(tmp_path / "plain", params=CaptureParams(frame_ev="estimate"))

@@ -104,3 +104,23 @@ def test_preview_mp4(estimated, tmp_path):
     assert main(["preview", str(tmp / "out"), "--input", str(tmp / "in.png"), "-o", str(tmp_path / "p.mp4")]) == 0
     video = read_video(tmp_path / "p.mp4")
     assert video.frames.shape[0] == 1 and video.frames.shape[1:3] == (H, W)
+
+
+def test_estimate_takes_each_frames_exposure(tmp_path, capsys):
+    from core.io import write_video
+
+    yy, xx = np.meshgrid(np.linspace(0, 1, H), np.linspace(0, 1, W), indexing="ij")
+    room = (0.05 + 0.3 * xx + 0.1 * yy)[..., None] * np.array([1.0, 0.9, 0.8])
+    frames = np.stack([tonemap(torch.from_numpy(room).float(), ev).numpy() for ev in (0.0, -1.0, -2.0)])
+    write_video(tmp_path / "ae.mp4", frames, fps=4.0)
+    code = main(["estimate", str(tmp_path / "ae.mp4"), "-o", str(tmp_path / "out"), "--iterations", "4", "--quiet",
+                 "--frame-ev", "0,-1,-2"])
+    assert code == 0
+    meta = json.loads((tmp_path / "out" / "lightfield.json").read_text())
+    assert meta["capture"]["frame_ev"] == [0.0, -1.0, -2.0] and not meta["temporal"]["uses_time"]
+    assert main(["preview", str(tmp_path / "out"), "--input", str(tmp_path / "ae.mp4"), "--frame", "2",
+                 "-o", str(tmp_path / "p.png")]) == 0  # the preview renders frame 2 at its own exposure
+    code = main(["estimate", str(tmp_path / "ae.mp4"), "-o", str(tmp_path / "o2"), "--frame-ev", "0,-1,x"])
+    assert code == 2 and "--frame-ev" in capsys.readouterr().err
+    code = main(["estimate", str(tmp_path / "ae.mp4"), "-o", str(tmp_path / "o3"), "--frame-ev", "0,-1", "--quiet"])
+    assert code == 2 and "frame_ev" in capsys.readouterr().err and not (tmp_path / "o3").exists()

@@ -60,6 +60,10 @@ class TemporalDecision:
         return asdict(self)
 
 
+AUTO_EXPOSURE_HINT = ("the whole view changed alike, as a camera's auto-exposure does: if it did, give the "
+                      "frames' exposures (params.frame_ev) or frame_ev='estimate' (docs/captures.md, Exposure)")
+
+
 def _luminance(rgb: torch.Tensor) -> torch.Tensor:
     return 0.2126 * rgb[..., 0] + 0.7152 * rgb[..., 1] + 0.0722 * rgb[..., 2]
 
@@ -181,6 +185,8 @@ def detect_temporal_moving(capture) -> TemporalDecision:
               f"{worst} vs threshold {thr:.3f} (noise sigma {sigma:.4f}; camera motion compensated: each frame compared "
               f"with the previous one, warped by depth and poses"
               f"{f', {len(blind)} pair(s) without a shared block' if blind else ''})")
+    if uses and kind == "overall" and capture.stated_ev is None:  # what a phone's auto-exposure does as it pans
+        reason += f"; {AUTO_EXPOSURE_HINT}"
     return TemporalDecision(uses, stat, thr, reason)
 
 
