@@ -1,0 +1,192 @@
+"""Auto-exposure pans of real panoramas: what an unrecorded exposure does to a job, and what
+`frame_ev="estimate"` recovers (docs/captures.md, "Exposure").
+
+    python -m bench.auto_exposure_pans --split dev [--limit N] [--iterations 200] [-o out.json]
+
+Per panorama of MANIFEST.tsv (`--split`; tune on dev, report test once): a phone-style pan
+from one spot (PAN_DEG of yaw with a pitch wobble, 60 deg FOV, FRAMES frames) of the panorama
+pasted on the assumed box room (core.sim.panorama_room), scaled so the clip's mean luminance is
+mid-grey, exposed per frame by a phone-style auto-exposure (core.sim.sensor.metered_evs), tone
+mapped (core.conventions.tonemap), 8-bit, H.264 at 10 fps: a plain video with no poses, no
+intrinsics, no exposures, as a user uploads it. Then:
+* `decision`: the temporal decision of the capture as loaded and tracked, without exposures
+  and with `frame_ev="estimate"` (static light is the truth);
+* `estimate_error_stops`: the largest |estimated - true| exposure over the frames, both
+  relative to frame 0, where tracking kept every frame;
+* `none` / `estimate` / `stated` (the true exposures given): run_job (draft at `--iterations`
+  steps, work height 72), the env map at the camera (the origin) at t = 0 and at the last
+  frame's time; `drift_stops` = |log2| of the ratio of their mean luminances (static light:
+  0 is right), and the t = 0 map's diffuse rel si-RMSE against the panorama rotated into the
+  first camera, with a constant map of frame 0's mean linear colour beside it;
+  `map_change_stops` = the RMS over the sphere of log2 of the two maps' luminance ratio: how
+  much the answer at the camera changed over the clip (static light: 0 is right; an
+  auto-exposure keeps each frame's mean near mid-grey, so the level alone barely moves while
+  what was seen brighter or darker does).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import torch
+
+FRAMES = 16
+PAN_DEG = 90.0
+SIZE = (160, 120)
+FPS = 10.0
+WORK_HEIGHT = 72
+GT_HEIGHT = 64
+
+
+def ae_clip(pano: torch.Tensor, yaw: float, pitch: float):
+    """(LDR [T, H, W, 3] at each frame's exposure, the exposures, poses) of one pan."""
+    from bench.tracking import HFOV_DEG, PITCH_WOBBLE_DEG
+    from core.camera import Camera, Intrinsics
+    from core.conventions import tonemap
+    from core.exposure import luminance
+    from core.sim.panorama_room import PanoramaRoom
+    from core.sim.sensor import metered_evs
+    from core.sim.state import pose_from_yaw_pitch
+    from core.tracking.room import assumed_room
+
+    poses = [pose_from_yaw_pitch((0, 0, 0), yaw + PAN_DEG * i / (FRAMES - 1), pitch + PITCH_WOBBLE_DEG * math.sin(i / 3))
+             for i in range(FRAMES)]
+    intr = Intrinsics.from_hfov(SIZE[0], SIZE[1], HFOV_DEG)
+    room = PanoramaRoom(pano, assumed_room(), torch.zeros(3))
+    hdr = torch.stack([room.render(Camera(intr, p), 2)[0] for p in poses])
+    hdr = hdr * (0.18 / float(luminance(hdr).mean().clamp_min(1e-12)))
+    evs = metered_evs(list(hdr))
+    ldr = torch.stack([torch.round(tonemap(h, ev) * 255) / 255 for h, ev in zip(hdr, evs)])
+    return ldr, evs, poses
+
+
+def map_change_stops(first: torch.Tensor, last: torch.Tensor) -> float:
+    """Root-mean-square over the sphere (solid-angle weighted) of log2 of one map's luminance
+    over another's: how much the answer at one point changed, in stops (static light: 0)."""
+    from core.envmap import solid_angles
+    from core.exposure import luminance
+
+    w = solid_angles(first.shape[0], dtype=first.dtype)
+    r = torch.log2(luminance(last).clamp_min(1e-8) / luminance(first).clamp_min(1e-8))
+    return float(((r**2 * w).sum() / w.sum()).sqrt())
+
+
+def level(env: torch.Tensor) -> float:
+    from core.envmap import solid_angles
+    from core.exposure import luminance
+
+    return float((luminance(env) * solid_angles(env.shape[0], dtype=env.dtype)).sum().clamp_min(1e-12))
+
+
+def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
+    from bench.suite.evaluation import score_probe
+    from bench.tracking import _view
+    from core.capture.load import load_capture
+    from core.capture.params import CaptureParams
+    from core.capture.temporal import decide_temporal
+    from core.conventions import equirect_width, inverse_tonemap
+    from core.engine.job import run_job
+    from core.engine.params import JobParams
+    from core.engine.presets import preset
+    from core.envmap import resize_envmap, rotate_envmap
+    from core.io.video import write_video
+    from core.sim.panorama_room import load_panorama
+
+    pano = load_panorama(path, 256)
+    yaw, pitch = _view(path.name)
+    ldr, evs, poses = ae_clip(pano, yaw, pitch)
+    video = write_video(workdir / f"{path.stem}.mp4", ldr.numpy(), FPS)
+    true = [e - evs[0] for e in evs]
+    out = {"file": path.name, "true_frame_ev": [round(e, 3) for e in true],
+           "ae_range_stops": round(max(true) - min(true), 3)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plain = load_capture(video, params=CaptureParams(fps=FPS))
+        est = load_capture(video, params=CaptureParams(fps=FPS, frame_ev="estimate"))
+    out["decision"] = {"none": decide_temporal(plain).uses_time, "estimate": decide_temporal(est).uses_time}
+    out["frames_tracked"] = est.num_frames
+    if est.num_frames == FRAMES:
+        out["estimate_error_stops"] = round(float((est.frame_ev - torch.tensor(true)).abs().max()), 3)
+    gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), poses[0][:3, :3].T)
+    cfg = preset("draft").with_overrides({"distill.iterations": iterations, "distill.work_height": WORK_HEIGHT})
+    preds, runs = {}, {}
+    for name, extra in (("none", {}), ("estimate", {"frame_ev": "estimate"}), ("stated", {"frame_ev": true})):
+        t0 = time.process_time()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            result = run_job(video, None, JobParams.model_validate({"preset": "draft", "fps": FPS, **extra}),
+                             workdir / f"{path.stem}-{name}", config=cfg)
+        art = result.artefact
+        t_end = float(art.meta["capture"]["duration_s"])
+        first, _ = art.envmap(torch.zeros(3), 0.0, GT_HEIGHT)
+        last, _ = art.envmap(torch.zeros(3), t_end, GT_HEIGHT)
+        preds[name] = first
+        runs[name] = {"uses_time": art.meta["temporal"]["uses_time"],
+                      "drift_stops": round(abs(math.log2(level(last) / level(first))), 3),
+                      "map_change_stops": round(map_change_stops(first, last), 3),
+                      "cpu_s": round(time.process_time() - t0, 1)}
+    mean = inverse_tonemap(ldr[0]).reshape(-1, 3).mean(0)
+    preds["mean-colour"] = mean.expand(GT_HEIGHT, equirect_width(GT_HEIGHT), 3).clone()
+    scores = score_probe(preds, gt, 64)
+    for name in runs:
+        runs[name]["diffuse_si_rmse_rel"] = round(scores[name]["diffuse"]["si_rmse_rel"], 4)
+    out["runs"] = runs
+    out["mean_colour_diffuse_si_rmse_rel"] = round(scores["mean-colour"]["diffuse"]["si_rmse_rel"], 4)
+    return out
+
+
+def summarise(rows: list[dict]) -> dict:
+    n = len(rows)
+    runs = ("none", "estimate", "stated")
+    errs = [r["estimate_error_stops"] for r in rows if "estimate_error_stops" in r]
+    mean = lambda xs: round(sum(xs) / len(xs), 4) if xs else None  # noqa: E731
+    return {
+        "panoramas": n,
+        "ae_range_stops_mean": mean([r["ae_range_stops"] for r in rows]),
+        "read_as_changing_light": {"none": sum(r["decision"]["none"] for r in rows),
+                                   "estimate": sum(r["decision"]["estimate"] for r in rows)},
+        "estimate_error_stops": {"panoramas": len(errs), "mean": mean(errs), "max": max(errs) if errs else None},
+        "drift_stops_mean": {k: mean([r["runs"][k]["drift_stops"] for r in rows]) for k in runs},
+        "map_change_stops_mean": {k: mean([r["runs"][k]["map_change_stops"] for r in rows]) for k in runs},
+        "diffuse_si_rmse_rel_mean": {**{k: mean([r["runs"][k]["diffuse_si_rmse_rel"] for r in rows]) for k in runs},
+                                     "mean-colour": mean([r["mean_colour_diffuse_si_rmse_rel"] for r in rows])},
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--split", default="dev", choices=("dev", "test"))
+    p.add_argument("--hdri-dir", default=str(Path(__file__).resolve().parents[2] / "shared" / "hdri"))
+    p.add_argument("--limit", type=int, default=None)
+    p.add_argument("--iterations", type=int, default=200)
+    p.add_argument("--workdir", default=None)
+    p.add_argument("-o", "--output", default=None)
+    args = p.parse_args(argv)
+
+    import tempfile
+
+    from bench.real_panoramas import read_manifest
+
+    hdri = Path(args.hdri_dir)
+    files = [hdri / r["filename"] for r in read_manifest(hdri) if r["split"] == args.split][: args.limit]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(args.workdir or tmp)
+        for f in files:
+            rows.append(evaluate(f, args.iterations, work))
+            print(json.dumps(rows[-1]), flush=True)
+    report = {"split": args.split, "frames": FRAMES, "pan_deg": PAN_DEG, "size": list(SIZE), "iterations": args.iterations,
+              "summary": summarise(rows), "panoramas": rows}
+    print(json.dumps(report["summary"], indent=1))
+    if args.output:
+        Path(args.output).write_text(json.dumps(report, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
