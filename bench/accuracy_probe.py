@@ -213,9 +213,9 @@ def main(argv: list[str] | None = None) -> int:
                         "same frames as a plain video (auto-exposure suites)")
     p.add_argument("--temporal", default="auto", choices=("auto", "on", "off"),
                    help="the jobs' temporal mode (the prior is bound with the same decision)")
-    p.add_argument("--frame-ev", default=None, choices=("estimate",),
+    p.add_argument("--frame-ev", default=None, choices=("estimate", "locked"),
                    help="the jobs' frame_ev parameter: 'estimate' takes the frames' overall brightness course for "
-                        "the camera's exposure")
+                        "the camera's exposure; 'locked' turns off the default's auto-exposure detection")
     p.add_argument("--cache-dir", default=None)
     p.add_argument("-o", "--output", default=None)
     p.add_argument("--table", default=None, metavar="REPORT_JSON", help="print the markdown table of a saved report and exit")

@@ -9,11 +9,13 @@ pasted on the assumed box room (core.sim.panorama_room), scaled so the clip's me
 mid-grey, exposed per frame by a phone-style auto-exposure (core.sim.sensor.metered_evs), tone
 mapped (core.conventions.tonemap), 8-bit, H.264 at 10 fps: a plain video with no poses, no
 intrinsics, no exposures, as a user uploads it. Then:
-* `decision`: the temporal decision of the capture as loaded and tracked, without exposures
-  and with `frame_ev="estimate"` (static light is the truth);
-* `estimate_error_stops`: the largest |estimated - true| exposure over the frames, both
-  relative to frame 0, where tracking kept every frame;
-* `none` / `estimate` / `stated` (the true exposures given): run_job (draft at `--iterations`
+* `decision`: the temporal decision of the capture as loaded and tracked with `frame_ev`
+  unset (`auto`: the product's default, which looks for a moving camera's auto-exposure),
+  `"locked"` (no exposure handling: what the product did before) and `"estimate"` (static
+  light is the truth); `auto_detected`, `frame_mean_ratio`: what the default found;
+* `estimate_error_stops`: the largest |estimated - true| exposure over the frames tracking
+  kept, both relative to the first kept frame;
+* `auto` / `locked` / `estimate` / `stated` (the true exposures given): run_job (draft at `--iterations`
   steps, work height 72), the env map at the camera (the origin) at t = 0 and at the last
   frame's time; `drift_stops` = |log2| of the ratio of their mean luminances (static light:
   0 is right), and the t = 0 map's diffuse rel si-RMSE against the panorama rotated into the
@@ -106,16 +108,21 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
            "ae_range_stops": round(max(true) - min(true), 3)}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        plain = load_capture(video, params=CaptureParams(fps=FPS))
-        est = load_capture(video, params=CaptureParams(fps=FPS, frame_ev="estimate"))
-    out["decision"] = {"none": decide_temporal(plain).uses_time, "estimate": decide_temporal(est).uses_time}
+        loaded = {mode: load_capture(video, params=CaptureParams(fps=FPS, frame_ev=mode))
+                  for mode in (None, "locked", "estimate")}
+    est = loaded["estimate"]
+    out["decision"] = {"auto" if mode is None else mode: decide_temporal(c).uses_time for mode, c in loaded.items()}
+    out["auto_detected"] = bool(loaded[None].metadata.get("exposure_estimate", {}).get("applied"))
+    out["frame_mean_ratio"] = loaded[None].metadata.get("exposure_estimate", {}).get("frame_mean_ratio")
     out["frames_tracked"] = est.num_frames
-    if est.num_frames == FRAMES:
-        out["estimate_error_stops"] = round(float((est.frame_ev - torch.tensor(true)).abs().max()), 3)
+    kept = (est.times.double() * FPS).round().long()  # the source frames tracking kept
+    truth = torch.tensor(true)[kept]
+    out["estimate_error_stops"] = round(float((est.frame_ev - (truth - truth[0])).abs().max()), 3)
     gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), poses[0][:3, :3].T)
     cfg = preset("draft").with_overrides({"distill.iterations": iterations, "distill.work_height": WORK_HEIGHT})
     preds, runs = {}, {}
-    for name, extra in (("none", {}), ("estimate", {"frame_ev": "estimate"}), ("stated", {"frame_ev": true})):
+    for name, extra in (("auto", {}), ("locked", {"frame_ev": "locked"}), ("estimate", {"frame_ev": "estimate"}),
+                        ("stated", {"frame_ev": true})):
         t0 = time.process_time()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -142,14 +149,14 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
 
 def summarise(rows: list[dict]) -> dict:
     n = len(rows)
-    runs = ("none", "estimate", "stated")
+    runs = ("auto", "locked", "estimate", "stated")
     errs = [r["estimate_error_stops"] for r in rows if "estimate_error_stops" in r]
     mean = lambda xs: round(sum(xs) / len(xs), 4) if xs else None  # noqa: E731
     return {
         "panoramas": n,
         "ae_range_stops_mean": mean([r["ae_range_stops"] for r in rows]),
-        "read_as_changing_light": {"none": sum(r["decision"]["none"] for r in rows),
-                                   "estimate": sum(r["decision"]["estimate"] for r in rows)},
+        "auto_exposure_detected": sum(r["auto_detected"] for r in rows),
+        "read_as_changing_light": {k: sum(r["decision"][k] for r in rows) for k in ("auto", "locked", "estimate")},
         "estimate_error_stops": {"panoramas": len(errs), "mean": mean(errs), "max": max(errs) if errs else None},
         "drift_stops_mean": {k: mean([r["runs"][k]["drift_stops"] for r in rows]) for k in runs},
         "map_change_stops_mean": {k: mean([r["runs"][k]["map_change_stops"] for r in rows]) for k in runs},

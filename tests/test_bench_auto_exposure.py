@@ -27,12 +27,13 @@ def test_a_pan_of_the_bundled_panorama_changes_its_exposure():
 
 
 def test_summary_counts_decisions_and_errors():
-    row = {"ae_range_stops": 1.0, "decision": {"none": True, "estimate": False}, "estimate_error_stops": 0.1,
-           "runs": {k: {"drift_stops": d, "map_change_stops": d, "diffuse_si_rmse_rel": 0.5} for k, d in (("none", 0.4), ("estimate", 0.0), ("stated", 0.0))},
-           "mean_colour_diffuse_si_rmse_rel": 0.6}
-    s = summarise([row, {**row, "decision": {"none": False, "estimate": False}}])
-    assert s["read_as_changing_light"] == {"none": 1, "estimate": 0}
-    assert s["drift_stops_mean"]["none"] == 0.4 and s["estimate_error_stops"]["max"] == 0.1
+    row = {"ae_range_stops": 1.0, "decision": {"auto": False, "locked": True, "estimate": False}, "auto_detected": True,
+           "estimate_error_stops": 0.1, "mean_colour_diffuse_si_rmse_rel": 0.6,
+           "runs": {k: {"drift_stops": d, "map_change_stops": d, "diffuse_si_rmse_rel": 0.5}
+                    for k, d in (("auto", 0.0), ("locked", 0.4), ("estimate", 0.0), ("stated", 0.0))}}
+    s = summarise([row, {**row, "auto_detected": False, "decision": {"auto": True, "locked": False, "estimate": False}}])
+    assert s["read_as_changing_light"] == {"auto": 1, "locked": 1, "estimate": 0} and s["auto_exposure_detected"] == 1
+    assert s["drift_stops_mean"]["locked"] == 0.4 and s["estimate_error_stops"]["max"] == 0.1
 
 
 def test_level_in_stops_and_a_capture_copy_without_exposures(tmp_path):

@@ -145,13 +145,17 @@ def test_a_simulated_auto_exposure_pan_states_its_exposures(tmp_path):
     (tmp_path / "plain" / "capture.json").write_text(json.dumps(doc))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        stated, plain = load_capture(tmp_path / "stated"), load_capture(tmp_path / "plain")
+        stated = load_capture(tmp_path / "stated")
+        plain = load_capture(tmp_path / "plain", params=CaptureParams(frame_ev="locked"))
         given = load_capture(tmp_path / "plain", params=CaptureParams(frame_ev=doc["sensor_frame_ev"]))
+        detected = load_capture(tmp_path / "plain")  # frame_ev unset: the moving camera's auto-exposure is found
     assert stated.metadata["exposure_source"] == "capture.json" and given.metadata["exposure_source"] == "params"
     assert np.allclose(stated.frame_ev.numpy(), given.frame_ev.numpy())
     assert not decide_temporal(stated).uses_time  # a pan under static light
-    assert decide_temporal(plain).uses_time  # the same frames as a plain video: the exposure reads as light
+    assert decide_temporal(plain).uses_time  # said to be locked, the exposure reads as light
     assert AUTO_EXPOSURE_HINT in decide_temporal(plain).reason  # and the artefact says what to send
+    assert detected.metadata["exposure_estimate"]["applied"] and detected.metadata["exposure_estimate"]["frame_mean_ratio"] < 0.5
+    assert not decide_temporal(detected).uses_time
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         estimated = load_capture(tmp_path / "plain", params=CaptureParams(frame_ev="estimate"))
@@ -167,6 +171,8 @@ def test_an_estimated_exposure_follows_a_static_cameras_auto_exposure():
     assert np.abs(cap.frame_ev.numpy() - np.array(evs)).max() < 0.05
     assert not decide_temporal(cap).uses_time
     assert with_estimated_exposure(capture_from_arrays(exposed_clip([0.0])), CaptureParams(frame_ev="estimate")).frame_ev.tolist() == [0.0]
+    static = with_estimated_exposure(capture_from_arrays(exposed_clip(evs)), CaptureParams())
+    assert static.stated_ev is None  # unset: a static camera's exposure moves only with the light, left alone
 
 
 def test_a_light_switching_off_in_part_of_the_view_is_not_taken_for_exposure():
@@ -176,3 +182,35 @@ def test_a_light_switching_off_in_part_of_the_view_is_not_taken_for_exposure():
     cap = with_estimated_exposure(capture_from_arrays(frames), CaptureParams(frame_ev="estimate"))
     assert np.abs(cap.frame_ev.numpy() - np.array(evs)).max() < 0.05
     assert decide_temporal(cap).uses_time  # the switch is still a change of light
+
+
+def test_a_locked_exposure_dimming_under_a_pan_stays_a_change_of_light():
+    """The default detection needs an auto-exposure's signature: the frames' own means hold
+    still while their overlap says the brightness moved. A locked exposure under a 0.5x
+    dimming half-way through a pan moves both alike; the same pan under steady light and an
+    auto-exposure is found (and "locked" turns that off)."""
+    from pathlib import Path
+
+    from core.camera import Camera, Intrinsics
+    from core.sim.panorama_room import PanoramaRoom, ldr_clip, load_panorama, render_clip
+    from core.sim.sensor import metered_evs
+    from core.sim.state import pose_from_yaw_pitch
+    from core.tracking.room import assumed_room
+
+    pano = load_panorama(Path(__file__).resolve().parents[1] / "assets" / "sample_panorama.hdr", 128)
+    k = Intrinsics.from_hfov(96, 72, 60.0)
+    poses = torch.stack([pose_from_yaw_pitch((0, 0, 0), 60 * i / 19, 0) for i in range(20)])
+    _, depth, hdr = render_clip(PanoramaRoom(pano, assumed_room(), torch.zeros(3)), [Camera(k, p) for p in poses], supersample=1)
+    dimmed = hdr * torch.tensor([1.0] * 10 + [0.5] * 10)[:, None, None, None]
+    locked = capture_from_arrays(ldr_clip(dimmed), depth, intrinsics=k, poses=poses, fps=10)
+    kept = with_estimated_exposure(locked, CaptureParams())
+    assert kept.stated_ev is None and not kept.metadata["exposure_estimate"]["applied"]
+    assert decide_temporal(kept).uses_time
+    scaled = hdr * (0.18 / float(luminance(hdr).mean()))  # steady light, auto-exposure
+    evs = metered_evs(list(scaled))
+    auto = torch.stack([torch.round(tonemap(h, ev) * 255) / 255 for h, ev in zip(scaled, evs)])
+    found = with_estimated_exposure(capture_from_arrays(auto, depth, intrinsics=k, poses=poses, fps=10), CaptureParams())
+    assert found.metadata["exposure_estimate"]["applied"]
+    assert np.abs(found.frame_ev.numpy() - (np.array(evs) - evs[0])).max() < 0.05
+    assert with_estimated_exposure(capture_from_arrays(auto, depth, intrinsics=k, poses=poses, fps=10),
+                                   CaptureParams(frame_ev="locked")).stated_ev is None

@@ -31,7 +31,7 @@ import torch
 from core.camera import CameraError, Intrinsics, check_rigid_pose
 from core.capture.base import Capture, CaptureError
 from core.capture.depth import resolve_depth
-from core.capture.params import FRAME_EV_ESTIMATE, MAX_EXPOSURE_STOPS, CaptureParams
+from core.capture.params import MAX_EXPOSURE_STOPS, CaptureParams
 from core.conventions import DEFAULT_HFOV_DEG, frame_time
 from core.io.limits import MediaLimits
 
@@ -291,7 +291,7 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
     if given_poses is not None:
         metadata["poses_source"] = "params" if params.poses is not None else loaded.get("poses_source", "capture file")
     given_ev = loaded.get("frame_ev") if params.frame_ev is None else kept_per_frame(params.frame_ev, T, source_count, source_idx)
-    if params.frame_ev == FRAME_EV_ESTIMATE:  # after tracking (core.capture.autoexposure)
+    if isinstance(params.frame_ev, str):  # "estimate" / "locked": after tracking (core.capture.autoexposure)
         given_ev = None
     frame_ev = resolve_exposures(given_ev, T)
     if given_ev is not None:

@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 MAX_FPS = 240.0
 MAX_FRAMES_LIMIT = 10_000  # hard ceiling; MediaLimits may be stricter
 FRAME_EV_ESTIMATE = "estimate"  # frame_ev: estimate each frame's exposure from the frames (core.capture.autoexposure)
+FRAME_EV_LOCKED = "locked"  # frame_ev: the exposure was locked (no estimate, not even the automatic one)
 MAX_EXPOSURE_STOPS = 20.0  # |frame_ev|: the simulator's and tone map's exposure range
 
 
@@ -63,12 +64,13 @@ class CaptureParams(_Strict):
     poses: list[list[float]] | None = Field(default=None, description="T x 16 camera-to-world, row-major")
     fps: float | None = None
     max_frames: int | None = None
-    frame_ev: list[float] | Literal["estimate"] | None = Field(
+    frame_ev: list[float] | Literal["estimate", "locked"] | None = Field(
         default=None, description="each frame's exposure in stops, one per frame of the input (an auto-exposure "
                                   "video's per-frame metadata, e.g. log2(exposure time x ISO / reference)); a "
                                   "frame's linear values are divided by 2^ev, so the frames share one radiance scale. "
                                   "'estimate': the camera adjusted its exposure without recording it, so the frames' "
-                                  "overall brightness course is taken as the exposure's (docs/captures.md)")
+                                  "overall brightness course is taken as the exposure's; 'locked': it did not; unset: "
+                                  "estimated for a moving camera whose frames show an auto-exposure (docs/captures.md)")
     tracking: Literal["auto", "off"] = Field(
         default="auto", description="camera tracking when several frames come without poses: 'auto' detects camera "
                                      "motion and tracks it; 'off' treats the camera as static (docs/captures.md)")
@@ -90,7 +92,7 @@ class CaptureParams(_Strict):
     @field_validator("frame_ev")
     @classmethod
     def _frame_ev(cls, v):
-        if v is None or v == FRAME_EV_ESTIMATE:
+        if v is None or isinstance(v, str):
             return v
         if len(v) == 0:
             raise ValueError("frame_ev must not be empty")

@@ -22,7 +22,7 @@ from core.capture.base import CaptureError
 from core.capture.depth import check_depth_shape
 from core.capture.load import (effective_limits, kept_per_frame, resolve_exposures, resolve_intrinsics, resolve_poses,
                                sniff_capture_file)
-from core.capture.params import FRAME_EV_ESTIMATE, CaptureParams
+from core.capture.params import CaptureParams
 from core.conventions import valid_depth_mask
 from core.io.limits import MediaLimits
 
@@ -71,7 +71,7 @@ def probe_capture(input_path, depth_path=None, params: CaptureParams | None = No
         raise CaptureError("fps", f"must be finite and > 0, got {fps}")
     resolve_intrinsics(params, None, width, height, [])
     resolve_poses(kept_per_frame(params.poses, frames, source_count, source_indices), frames)
-    if params.frame_ev != FRAME_EV_ESTIMATE:
+    if not isinstance(params.frame_ev, str):  # "estimate" / "locked" name no values
         resolve_exposures(kept_per_frame(params.frame_ev, frames, source_count, source_indices), frames)
     if depth_path is not None:
         shape, first = probe_depth(Path(depth_path), limits)
