@@ -23,7 +23,10 @@ intrinsics, no exposures, as a user uploads it. Then:
   `map_change_stops` = the RMS over the sphere of log2 of the two maps' luminance ratio: how
   much the answer at the camera changed over the clip (static light: 0 is right; an
   auto-exposure keeps each frame's mean near mid-grey, so the level alone barely moves while
-  what was seen brighter or darker does).
+  what was seen brighter or darker does);
+* `locked_dimming`, the control: the same pan under ONE exposure with the light halved from
+  the middle frame on (a real change the default must not take for exposure): whether the
+  default detected an auto-exposure, and whether the decision reads changing light.
 """
 from __future__ import annotations
 
@@ -43,10 +46,13 @@ SIZE = (160, 120)
 FPS = 10.0
 WORK_HEIGHT = 72
 GT_HEIGHT = 64
+DIMMING = 0.5  # the locked-exposure control: the light halved from the middle frame on
 
 
-def ae_clip(pano: torch.Tensor, yaw: float, pitch: float):
-    """(LDR [T, H, W, 3] at each frame's exposure, the exposures, poses) of one pan."""
+def ae_clip(pano: torch.Tensor, yaw: float, pitch: float, dimming: float | None = None):
+    """(LDR [T, H, W, 3] at each frame's exposure, the exposures, poses) of one pan. With
+    `dimming`: the light times `dimming` from the middle frame on, under ONE exposure (the
+    clip's mean at mid-grey): a locked exposure and a real change of light."""
     from bench.tracking import HFOV_DEG, PITCH_WOBBLE_DEG
     from core.camera import Camera, Intrinsics
     from core.conventions import tonemap
@@ -61,8 +67,10 @@ def ae_clip(pano: torch.Tensor, yaw: float, pitch: float):
     intr = Intrinsics.from_hfov(SIZE[0], SIZE[1], HFOV_DEG)
     room = PanoramaRoom(pano, assumed_room(), torch.zeros(3))
     hdr = torch.stack([room.render(Camera(intr, p), 2)[0] for p in poses])
+    if dimming is not None:
+        hdr = hdr * torch.tensor([1.0] * (FRAMES // 2) + [dimming] * (FRAMES - FRAMES // 2))[:, None, None, None]
     hdr = hdr * (0.18 / float(luminance(hdr).mean().clamp_min(1e-12)))
-    evs = metered_evs(list(hdr))
+    evs = [0.0] * FRAMES if dimming is not None else metered_evs(list(hdr))
     ldr = torch.stack([torch.round(tonemap(h, ev) * 255) / 255 for h, ev in zip(hdr, evs)])
     return ldr, evs, poses
 
@@ -118,6 +126,14 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
     kept = (est.times.double() * FPS).round().long()  # the source frames tracking kept
     truth = torch.tensor(true)[kept]
     out["estimate_error_stops"] = round(float((est.frame_ev - (truth - truth[0])).abs().max()), 3)
+    dim_ldr, _, _ = ae_clip(pano, yaw, pitch, dimming=DIMMING)
+    dim_video = write_video(workdir / f"{path.stem}-dimming.mp4", dim_ldr.numpy(), FPS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        dim = load_capture(dim_video, params=CaptureParams(fps=FPS))
+    out["locked_dimming"] = {"auto_detected": bool(dim.metadata.get("exposure_estimate", {}).get("applied")),
+                             "frame_mean_ratio": dim.metadata.get("exposure_estimate", {}).get("frame_mean_ratio"),
+                             "read_as_changing_light": decide_temporal(dim).uses_time}
     gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), poses[0][:3, :3].T)
     cfg = preset("draft").with_overrides({"distill.iterations": iterations, "distill.work_height": WORK_HEIGHT})
     preds, runs = {}, {}
@@ -156,6 +172,8 @@ def summarise(rows: list[dict]) -> dict:
         "panoramas": n,
         "ae_range_stops_mean": mean([r["ae_range_stops"] for r in rows]),
         "auto_exposure_detected": sum(r["auto_detected"] for r in rows),
+        "locked_dimming": {"auto_detected": sum(r["locked_dimming"]["auto_detected"] for r in rows),
+                           "read_as_changing_light": sum(r["locked_dimming"]["read_as_changing_light"] for r in rows)},
         "read_as_changing_light": {k: sum(r["decision"][k] for r in rows) for k in ("auto", "locked", "estimate")},
         "estimate_error_stops": {"panoramas": len(errs), "mean": mean(errs), "max": max(errs) if errs else None},
         "drift_stops_mean": {k: mean([r["runs"][k]["drift_stops"] for r in rows]) for k in runs},

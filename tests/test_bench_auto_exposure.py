@@ -24,16 +24,20 @@ def test_a_pan_of_the_bundled_panorama_changes_its_exposure():
     ldr, evs, poses = ae_clip(load_panorama(BUNDLED, 64), 0.0, 0.0)
     assert ldr.shape[0] == len(evs) == len(poses) == FRAMES and 0.0 <= float(ldr.min()) and float(ldr.max()) <= 1.0
     assert max(evs) - min(evs) > 0.2
+    dimmed, flat, _ = ae_clip(load_panorama(BUNDLED, 64), 0.0, 0.0, dimming=0.5)
+    assert flat == [0.0] * FRAMES and float(dimmed[-1].mean()) < float(dimmed[0].mean())
 
 
 def test_summary_counts_decisions_and_errors():
     row = {"ae_range_stops": 1.0, "decision": {"auto": False, "locked": True, "estimate": False}, "auto_detected": True,
            "estimate_error_stops": 0.1, "mean_colour_diffuse_si_rmse_rel": 0.6,
+           "locked_dimming": {"auto_detected": False, "read_as_changing_light": True},
            "runs": {k: {"drift_stops": d, "map_change_stops": d, "diffuse_si_rmse_rel": 0.5}
                     for k, d in (("auto", 0.0), ("locked", 0.4), ("estimate", 0.0), ("stated", 0.0))}}
     s = summarise([row, {**row, "auto_detected": False, "decision": {"auto": True, "locked": False, "estimate": False}}])
     assert s["read_as_changing_light"] == {"auto": 1, "locked": 1, "estimate": 0} and s["auto_exposure_detected"] == 1
     assert s["drift_stops_mean"]["locked"] == 0.4 and s["estimate_error_stops"]["max"] == 0.1
+    assert s["locked_dimming"] == {"auto_detected": 0, "read_as_changing_light": 2}
 
 
 def test_level_in_stops_and_a_capture_copy_without_exposures(tmp_path):
