@@ -52,7 +52,7 @@ class PriorRequest:
     image: torch.Tensor  # [3, H, W] LDR in [0, 1]: the frame with balls composited, tone mapped at ev
     ball_masks: torch.Tensor  # [N, H, W] anti-aliased coverage in [0, 1], mutual occlusion applied
     depth: torch.Tensor  # [H, W] planar depth with the balls composited (ControlNet condition)
-    ev: float  # exposure of `image`: the frame's own (`frame_ev`) plus the step's sweep (<= 0)
+    ev: float  # exposure of `image`: the frame's own (`frame_ev`, 0 unless stated) plus the step's sweep (<= 0)
     tau: float  # noise level in [0, 1] (diffusion priors); others may ignore it
     steps: int  # denoising steps k = ceil(10 tau) (diffusion priors)
     guidance_scale: float

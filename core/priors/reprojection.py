@@ -64,10 +64,10 @@ OTHER_VIEW_STRIDE = 3  # merged viewpoints contribute a third of their points (c
 
 def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP_BOOST,
                   lighting_changes: bool = True) -> torch.Tensor:
-    """Linear radiance [T, H, W, 3] (ev 0; each frame's stated exposure removed) of a capture at its own resolution, linearised at
-    the resolution it was resized from (see the module docstring, step 1). Exposure changes
-    between frames are used only for a static camera under static lighting (a lamp switching
-    off must not read as an exposure change)."""
+    """Linear radiance [T, H, W, 3] (ev 0; each frame's stated exposure removed) of a capture
+    at its own resolution, linearised at the resolution it was resized from (see the module
+    docstring, step 1). Exposure changes between frames are used only for a static camera
+    under static lighting (a lamp switching off must not read as an exposure change)."""
     src = capture.full_resolution or capture
     if clip_rule == "fixed":
         lin = expose(linearise(src.frames, clip_boost), -src.frame_ev[:, None, None, None])
