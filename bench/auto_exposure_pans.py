@@ -164,12 +164,20 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
 
 
 def summarise(rows: list[dict]) -> dict:
+    """Counts over every panorama; the means over the pans tracking followed (a pan it did not
+    follow is taken for a static camera, and then nothing about exposure is meaningful: its
+    default has no `frame_mean_ratio`), with the others listed."""
     n = len(rows)
+    failed = [r["file"] for r in rows if r.get("frame_mean_ratio") is None]
+    out = {"tracking_failed": failed}
+    rows = [r for r in rows if r.get("frame_mean_ratio") is not None]
     runs = ("auto", "locked", "estimate", "stated")
     errs = [r["estimate_error_stops"] for r in rows if "estimate_error_stops" in r]
     mean = lambda xs: round(sum(xs) / len(xs), 4) if xs else None  # noqa: E731
     return {
         "panoramas": n,
+        **out,
+        "panoramas_tracked": len(rows),
         "ae_range_stops_mean": mean([r["ae_range_stops"] for r in rows]),
         "auto_exposure_detected": sum(r["auto_detected"] for r in rows),
         "locked_dimming": {"auto_detected": sum(r["locked_dimming"]["auto_detected"] for r in rows),
@@ -191,7 +199,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iterations", type=int, default=200)
     p.add_argument("--workdir", default=None)
     p.add_argument("-o", "--output", default=None)
+    p.add_argument("--rescore", default=None, metavar="REPORT_JSON",
+                   help="recompute a saved report's summary from its per-panorama rows (no estimation) and exit")
     args = p.parse_args(argv)
+    if args.rescore:
+        report = json.loads(Path(args.rescore).read_text())
+        report["summary"] = summarise(report["panoramas"])
+        Path(args.rescore).write_text(json.dumps(report, indent=1))
+        print(json.dumps(report["summary"], indent=1))
+        return 0
 
     import tempfile
 

@@ -26,7 +26,7 @@ import torch
 from core.capture.base import Capture
 from core.capture.params import FRAME_EV_ESTIMATE, FRAME_EV_LOCKED, MAX_EXPOSURE_STOPS, CaptureParams
 
-AUTO_RATIO = 0.5  # frame means' spread / overlap course's spread below which a moving camera's exposure moved
+AUTO_RATIO = 0.3  # frame means' spread / overlap course's spread below which a moving camera's exposure moved (dev pans)
 AUTO_MIN_RANGE = math.log(1.08)  # a course smaller than the temporal decision's floor needs no exposure
 
 
