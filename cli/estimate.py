@@ -28,8 +28,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="diffusion prior's inference profile, one of %(choices)s (default: the preset's, else the model card's)")
     p.add_argument("--temporal", choices=choices.TEMPORAL_MODES, metavar="MODE", default=None, help="one of %(choices)s")
     p.add_argument("--frame-ev", default=None, metavar="EVS",
-                   help="each frame's exposure in stops, comma-separated (an auto-exposure video's metadata), or "
-                        "'estimate' when the camera adjusted it without recording it (docs/captures.md, Exposure)")
+                   help="each frame's exposure in stops, comma-separated (an auto-exposure video's metadata); "
+                        "'estimate' when the camera adjusted it without recording it; 'locked' when it did not "
+                        "(unset: a moving camera's auto-exposure is looked for; docs/captures.md, Exposure)")
     p.add_argument("--field", choices=choices.FIELDS, metavar="KIND", default=None,
                    help="field kind, one of %(choices)s (default: the preset's)")
     p.add_argument("--seed", type=int, default=None)
@@ -41,13 +42,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def parse_frame_ev(text: str | None):
-    """`--frame-ev`: None, "estimate", or comma-separated numbers (a ValueError names a bad one)."""
-    if text is None or text.strip() == "estimate":
-        return None if text is None else "estimate"
+    """`--frame-ev`: None, "estimate", "locked", or comma-separated numbers (a ValueError names a bad one)."""
+    if text is None or text.strip() in ("estimate", "locked"):
+        return None if text is None else text.strip()
     try:
         return [float(v) for v in text.split(",")]
     except ValueError:
-        raise ValueError(f"--frame-ev must be 'estimate' or comma-separated numbers, got {text!r}") from None
+        raise ValueError(f"--frame-ev must be 'estimate', 'locked' or comma-separated numbers, got {text!r}") from None
 
 
 def checkpoint_dir_for(out: Path) -> Path:

@@ -2,6 +2,7 @@
 a capture preview written to disk, no worker. Auth, tenancy and error codes as in the API."""
 from __future__ import annotations
 
+import dataclasses
 import io
 
 import numpy as np
@@ -64,7 +65,8 @@ def app_env(tmp_path_factory):
         redis.stop()
 
 
-def add_job(ctx, state="succeeded", with_preview=True, tenant="alice", uses_time=True, capture_meta=None) -> str:
+def add_job(ctx, state="succeeded", with_preview=True, tenant="alice", uses_time=True, capture_meta=None,
+            frame_ev=None) -> str:
     job = new_job_id()
     record = JobRecord(id=job, tenant=tenant, tenant_hash=tenant_hash(tenant), input_kind="video")
     ctx.store.create(record, max_in_flight=100)
@@ -72,7 +74,10 @@ def add_job(ctx, state="succeeded", with_preview=True, tenant="alice", uses_time
     if state == "succeeded":
         save_artefact(paths.artefact_dir, bright_field(uses_time), {"capture": {"fps": FPS, **(capture_meta or {})}})
         if with_preview:
-            save_preview(preview(), paths.job_dir)
+            stored = preview()
+            if frame_ev is not None:
+                stored = dataclasses.replace(stored, frame_ev=np.asarray(frame_ev, np.float32))
+            save_preview(stored, paths.job_dir)
         relative = str(paths.artefact_dir.relative_to(ctx.settings.data_dir))
         assert ctx.store.update(job, allowed=("queued",), state="succeeded", artefact=relative)
     elif state != "queued":
@@ -175,6 +180,25 @@ def test_a_field_without_time_is_queried_without_t(app_env):
     out = png(get(client, f"/lightfield/{job}/insertion", t=1.0, points="0.5,0.5,2.0"))
     frame = png(get(client, f"/lightfield/{job}/frame", t=1.0))
     assert np.abs(out.astype(int) - frame.astype(int)).max() > 20
+
+
+def test_insertion_renders_each_frame_at_its_own_exposure(app_env):
+    """A capture that stated its exposures: the field is in scene units, so the same ball is
+    composited 2 stops darker into the frame taken 2 stops darker."""
+    from core.conventions import inverse_tonemap
+
+    client, ctx = app_env
+    job = add_job(ctx, uses_time=False, frame_ev=[0.0, -2.0, 0.0, 0.0])
+    balls = {}
+    for t in (0.0, 0.5):  # frames 0 (ev 0) and 1 (ev -2)
+        out = png(get(client, f"/lightfield/{job}/insertion", t=t, points=f"0.3,0.5,{WALL - 0.5}"))
+        centre = out[int(0.5 * H) - 1: int(0.5 * H) + 2, int(0.3 * W) - 1: int(0.3 * W) + 2] / 255.0
+        balls[t] = float(inverse_tonemap(torch.from_numpy(centre).float()).mean())
+    assert balls[0.5] / balls[0.0] == pytest.approx(0.25, rel=0.15)
+    plain = add_job(ctx, uses_time=False)
+    out = png(get(client, f"/lightfield/{plain}/insertion", t=0.5, points=f"0.3,0.5,{WALL - 0.5}"))
+    centre = out[int(0.5 * H) - 1: int(0.5 * H) + 2, int(0.3 * W) - 1: int(0.3 * W) + 2] / 255.0
+    assert float(inverse_tonemap(torch.from_numpy(centre).float()).mean()) == pytest.approx(balls[0.0], rel=0.05)
 
 
 def test_insertion_of_a_large_frame_is_rendered_at_the_capped_height(app_env, job, monkeypatch):
