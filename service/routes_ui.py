@@ -59,6 +59,10 @@ class CaptureView(BaseModel):
     poses_source: str | None = Field(None, description="where given poses came from (null: none were given)")
     tracking: dict | None = Field(None, description="camera tracking: method, reprojection error, frames dropped, "
                                                     "scale source (null: not run)")
+    exposure_source: str | None = Field(None, description="where each frame's exposure came from: params, the capture "
+                                                          "file, or estimated (asked for, or a moving camera's "
+                                                          "auto-exposure detected); null: one locked exposure")
+    frame_ev: list[float] | None = Field(None, description="the stored frames' exposures in stops (null: none)")
     notes: list[str] = Field(default_factory=list, description="what was taken from the file's metadata and applied")
     warnings: list[str] = Field(default_factory=list, description="the capture's warnings (assumptions, fallbacks)")
 
@@ -136,6 +140,8 @@ def get_capture(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppConte
                        intrinsics_source=meta.get("intrinsics_source"), poses_source=meta.get("poses_source"),
                        tracking={k: tracking.get(k) for k in ("method", "reprojection_error_px", "frames_dropped",
                                                               "scale_source", "camera_moves", "reason")} if tracking else None,
+                       exposure_source=meta.get("exposure_source"),
+                       frame_ev=None if preview.stated_ev is None else [round(float(e), 4) for e in preview.stated_ev],
                        notes=notes, warnings=list(summary.get("warnings", [])))
 
 

@@ -347,6 +347,7 @@ def test_the_page_shows_the_fov_and_depth_it_used_and_re_estimates_with_a_correc
     assert text(browser, "fov-value") == f"{hfov_deg(doc):.1f}°"
     assert "params" in text(browser, "fov-source")
     assert "file:" in text(browser, "depth-source")
+    assert text(browser, "exposure-source").startswith("locked")  # a static camera, no exposures given
     before = job_id(browser)
     field = browser.find_element("id", "fov-correct")
     field.clear()

@@ -188,7 +188,10 @@ def test_insertion_renders_each_frame_at_its_own_exposure(app_env):
     from core.conventions import inverse_tonemap
 
     client, ctx = app_env
-    job = add_job(ctx, uses_time=False, frame_ev=[0.0, -2.0, 0.0, 0.0])
+    job = add_job(ctx, uses_time=False, frame_ev=[0.0, -2.0, 0.0, 0.0],
+                  capture_meta={"metadata": {"exposure_source": "params"}})
+    view = get(client, f"/lightfield/{job}/capture").json()
+    assert view["exposure_source"] == "params" and view["frame_ev"] == [0.0, -2.0, 0.0, 0.0]
     balls = {}
     for t in (0.0, 0.5):  # frames 0 (ev 0) and 1 (ev -2)
         out = png(get(client, f"/lightfield/{job}/insertion", t=t, points=f"0.3,0.5,{WALL - 0.5}"))
@@ -196,6 +199,8 @@ def test_insertion_renders_each_frame_at_its_own_exposure(app_env):
         balls[t] = float(inverse_tonemap(torch.from_numpy(centre).float()).mean())
     assert balls[0.5] / balls[0.0] == pytest.approx(0.25, rel=0.15)
     plain = add_job(ctx, uses_time=False)
+    view = get(client, f"/lightfield/{plain}/capture").json()
+    assert view["exposure_source"] is None and view["frame_ev"] is None
     out = png(get(client, f"/lightfield/{plain}/insertion", t=0.5, points=f"0.3,0.5,{WALL - 0.5}"))
     centre = out[int(0.5 * H) - 1: int(0.5 * H) + 2, int(0.3 * W) - 1: int(0.3 * W) + 2] / 255.0
     assert float(inverse_tonemap(torch.from_numpy(centre).float()).mean()) == pytest.approx(balls[0.0], rel=0.05)

@@ -410,6 +410,9 @@
       camera = `${capture.static_camera ? "static" : "moves"} (${capture.poses_source})`;
     }
     $("camera-source").textContent = camera;
+    const ev = capture.frame_ev || null;
+    const span = ev && ev.length ? ` (${(Math.max(...ev) - Math.min(...ev)).toFixed(2)} stops over the clip)` : "";
+    $("exposure-source").textContent = capture.exposure_source ? `${capture.exposure_source}${span}` : "locked (one exposure for every frame)";
     $("camera-source").classList.toggle("warning", Boolean(t && t.method === "failed:static-fallback"));
     const notes = capture.notes || [];
     $("capture-notes").hidden = !notes.length;
