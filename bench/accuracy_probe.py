@@ -174,12 +174,9 @@ def scale_stops(pred: torch.Tensor, gt: torch.Tensor) -> dict:
     solid-angle-weighted mean luminances): the mean, and the spread over probes. The three-sphere
     si-RMSE and angles ignore a scale; a compositor does not: a spread means the answer's
     brightness drifts from probe to probe (e.g. it follows a video's auto-exposure)."""
-    from core.envmap import solid_angles
-    from core.exposure import luminance
+    from bench.suite.evaluation import envmap_brightness
 
-    w = solid_angles(gt.shape[1], dtype=gt.dtype)
-    level = lambda e: (luminance(e) * w).sum((1, 2)).clamp_min(1e-12)  # noqa: E731
-    stops = torch.log2(level(pred.to(gt.dtype)) / level(gt))
+    stops = torch.log2(envmap_brightness(pred).clamp_min(1e-12) / envmap_brightness(gt).clamp_min(1e-12))
     return {"mean": round(float(stops.mean()), 3), "sd": round(float(stops.std()), 3) if stops.numel() > 1 else 0.0}
 
 

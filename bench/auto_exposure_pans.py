@@ -86,15 +86,8 @@ def map_change_stops(first: torch.Tensor, last: torch.Tensor) -> float:
     return float(((r**2 * w).sum() / w.sum()).sqrt())
 
 
-def level(env: torch.Tensor) -> float:
-    from core.envmap import solid_angles
-    from core.exposure import luminance
-
-    return float((luminance(env) * solid_angles(env.shape[0], dtype=env.dtype)).sum().clamp_min(1e-12))
-
-
 def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
-    from bench.suite.evaluation import score_probe
+    from bench.suite.evaluation import envmap_brightness, score_probe
     from bench.tracking import _view
     from core.capture.load import load_capture
     from core.capture.params import CaptureParams
@@ -148,9 +141,10 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
         t_end = float(art.meta["capture"]["duration_s"])
         first, _ = art.envmap(torch.zeros(3), 0.0, GT_HEIGHT)
         last, _ = art.envmap(torch.zeros(3), t_end, GT_HEIGHT)
+        level = envmap_brightness(torch.stack((first, last))).clamp_min(1e-12)
         preds[name] = first
         runs[name] = {"uses_time": art.meta["temporal"]["uses_time"],
-                      "drift_stops": round(abs(math.log2(level(last) / level(first))), 3),
+                      "drift_stops": round(abs(math.log2(float(level[1] / level[0]))), 3),
                       "map_change_stops": round(map_change_stops(first, last), 3),
                       "cpu_s": round(time.process_time() - t0, 1)}
     mean = inverse_tonemap(ldr[0]).reshape(-1, 3).mean(0)

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from core.conventions import expose, inverse_tonemap
+from core.conventions import inverse_tonemap
 from core.exposure import LUMINANCE_WEIGHTS, luminance
 
 CLIP_LDR = 0.99  # a pixel with any channel at or above this is clipped
@@ -336,10 +336,10 @@ def _compact(found: tuple[np.ndarray, list[Blob]]) -> tuple[np.ndarray, list[Blo
 
 def linearise_highlights(frames: torch.Tensor, intrinsics, compare_frames: bool,
                          coefficients=RULE_COEFFICIENTS, static_camera: bool = False,
-                         exposure_ev: torch.Tensor | None = None) -> torch.Tensor:
-    """LDR frames [T, H, W, 3] -> linear radiance with clipped sources estimated (ev 0, or with
-    `exposure_ev` [T] each frame's stated exposure removed: one radiance scale for all):
-    exposure changes first, then the blob rule for what stays clipped. `compare_frames`: the
+                         known_ratios: torch.Tensor | None = None) -> torch.Tensor:
+    """LDR frames [T, H, W, 3] -> linear radiance in each frame's own units (ev 0: white = 1)
+    with clipped sources estimated (`known_ratios` [T]: each frame's stated exposure relative
+    to frame 0, else estimated from the frames): exposure changes first, then the blob rule for what stays clipped. `compare_frames`: the
     frames see the same radiance up to exposure (a static camera and static lighting), so
     one frame's unclipped reading may stand in for another's clipped one. `static_camera`
     (implied by `compare_frames`): a source stays at its pixels, so its blobs are followed
@@ -347,11 +347,8 @@ def linearise_highlights(frames: torch.Tensor, intrinsics, compare_frames: bool,
     ldr = frames.clamp(0, 1)
     lin = inverse_tonemap(ldr)
     clipped = clipped_mask(ldr)
-    if bool(clipped.any()):  # the rule works in each frame's own units (white = 1)
-        known = None if exposure_ev is None else torch.pow(2.0, exposure_ev.double() - float(exposure_ev[0]))
-        lin = _estimate_highlights(lin, clipped, intrinsics, compare_frames, coefficients, static_camera, known)
-    if exposure_ev is not None:
-        lin = expose(lin, -exposure_ev.to(lin.dtype)[:, None, None, None])
+    if bool(clipped.any()):
+        lin = _estimate_highlights(lin, clipped, intrinsics, compare_frames, coefficients, static_camera, known_ratios)
     return lin
 
 

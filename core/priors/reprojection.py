@@ -70,10 +70,14 @@ def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP
     under static lighting (a lamp switching off must not read as an exposure change)."""
     src = capture.full_resolution or capture
     if clip_rule == "fixed":
-        lin = expose(linearise(src.frames, clip_boost), -src.frame_ev[:, None, None, None])
+        lin = linearise(src.frames, clip_boost)
     else:
+        ev = src.stated_ev
+        known = None if ev is None else torch.pow(2.0, ev.double() - float(ev[0]))  # frame t's exposure / frame 0's
         lin = linearise_highlights(src.frames, src.intrinsics, src.static_camera and not lighting_changes,
-                                   static_camera=src.static_camera, exposure_ev=src.stated_ev)
+                                   static_camera=src.static_camera, known_ratios=known)
+    if src.stated_ev is not None:  # each frame's own units -> one scale (ev 0)
+        lin = expose(lin, -src.frame_ev.to(lin.dtype)[:, None, None, None])
     if src is not capture and (src.height, src.width) != (capture.height, capture.width):
         lin = F.interpolate(lin.permute(0, 3, 1, 2), size=(capture.height, capture.width), mode="area").permute(0, 2, 3, 1)
     return lin.contiguous()

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from core.conventions import tonemap
+from core.exposure import luminance
 from core.sim.cost import CostReport
 from core.sim.spec import SceneSpec
 
@@ -43,7 +44,7 @@ def metered_evs(hdr_frames, base: float = 0.0, speed: float = 0.5) -> list[float
     """A phone-style auto-exposure's ev per HDR frame [H, W, 3] (see `frame_evs`)."""
     out, offset = [], None
     for hdr in hdr_frames:
-        y = (0.2126 * hdr[..., 0] + 0.7152 * hdr[..., 1] + 0.0722 * hdr[..., 2]) * 2.0 ** base
+        y = luminance(hdr) * 2.0 ** base
         metered = float(y.nan_to_num(0.0).clamp(0.0, AE_PIXEL_CAP).mean().clamp_min(1e-6))
         goal = min(max(math.log2(AE_MID_GREY / metered), -AE_RANGE_STOPS), AE_RANGE_STOPS)
         offset = goal if offset is None else offset + speed * (goal - offset)
