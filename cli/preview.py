@@ -19,26 +19,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", required=True, help="FILE.png (one frame) or FILE.mp4 (every frame)")
 
 
-def capture_params_from_meta(meta: dict):
-    """Rebuild the geometry the artefact was estimated with (intrinsics, poses, fps, exposures)."""
-    from core.capture.params import CaptureParams
-
-    cap = meta.get("capture", {})
-    k = cap.get("intrinsics") or {}
-    return CaptureParams(
-        intrinsics={n: k[n] for n in ("fx", "fy", "cx", "cy")} if k else None,
-        poses=cap.get("poses"),
-        fps=cap.get("fps"),
-        frame_ev=cap.get("frame_ev"),
-    )
-
-
 def render_preview(artefact_dir, input_path, output, depth=None, points=None, frame=0, env_height=32) -> Path:
     import warnings
 
     import numpy as np
 
-    from core.capture.load import load_capture
+    from core.capture.reload import reload_capture
     from core.fields.artefact import LightFieldArtefact
     from core.insertion import insert_objects, parse_points
     from core.io import write_png, write_video
@@ -47,7 +33,7 @@ def render_preview(artefact_dir, input_path, output, depth=None, points=None, fr
     pts = parse_points(points)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the defaults were already reported by `estimate`
-        capture = load_capture(input_path, depth, capture_params_from_meta(art.meta))
+        capture = reload_capture(input_path, depth, art.meta.get("capture", {}))  # as the job saw it
 
     def envmaps_at(xs, t):
         return art.envmaps(xs, t, env_height)[0]  # a scalar t applies to every position

@@ -165,3 +165,49 @@ def test_a_job_with_given_poses_and_no_depth_uses_the_world_fixed_room(tmp_path)
     meta = _run(video, {"poses": [p.reshape(-1).tolist() for p in poses]}, tmp_path / "field").artefact.meta
     assert "world-fixed" in meta["capture"]["depth_source"]
     assert "tracking" not in meta["training"]["stage_timings"]  # nothing was tracked
+
+
+def test_preview_of_a_pan_whose_tracking_dropped_a_frame_composites_into_the_frames_the_job_kept(tmp_path):
+    """A frame tracking cannot register (noise) is left out of the job; `lightfield preview`
+    loads the input again and must composite into the same 15 frames, cameras, exposures and
+    room depth the job estimated from (it used to refuse: 15 poses for 16 frames)."""
+    from cli.preview import render_preview
+    from core.capture.reload import reload_capture
+    from core.io.video import read_video
+
+    poses = [pose_from_yaw_pitch((0, 0, 0), 40 * i / 15, 0) for i in range(16)]
+    ldr, _, _ = panorama_clip(poses, 160, 120, pano_height=256, supersample=1)
+    ldr = ldr.numpy().copy()
+    ldr[9] = np.random.default_rng(0).random(ldr[9].shape)  # nothing in it to register
+    video = write_video(tmp_path / "pan.mp4", ldr, 10.0)
+    seen = []
+    result = _run(video, {"fps": 10}, tmp_path / "field", on_capture=seen.append)
+    record = result.artefact.meta["capture"]
+    assert record["metadata"]["tracking"]["frames_dropped"] == [9] and record["frames"] == 15
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        again = reload_capture(video, None, record)
+    job = seen[0]
+    assert again.num_frames == 15 and torch.equal(again.times, job.times)
+    assert torch.equal(again.frames, job.frames)
+    assert torch.allclose(again.poses, job.poses, atol=1e-9)
+    assert torch.allclose(again.depth, job.depth, atol=1e-5) and again.depth_source == job.depth_source
+    assert again.intrinsics.as_dict() == pytest.approx(job.intrinsics.as_dict(), abs=1e-6)
+    out = render_preview(tmp_path / "field", video, tmp_path / "preview.mp4")
+    assert read_video(out).frames.shape[0] == 15
+    png = render_preview(tmp_path / "field", video, tmp_path / "preview.png", frame=14)
+    assert png.is_file()
+
+
+def test_preview_refuses_an_input_that_is_not_the_one_estimated(tmp_path):
+    from core.capture.base import CaptureError
+    from core.capture.reload import reload_capture
+
+    poses = [pose_from_yaw_pitch((0, 0, 0), 20 * i / 5, 0) for i in range(6)]
+    ldr, _, _ = panorama_clip(poses, 64, 48, pano_height=128, supersample=1)
+    video = write_video(tmp_path / "pan.mp4", ldr.numpy(), 5.0)
+    other = write_video(tmp_path / "short.mp4", ldr.numpy()[:4], 5.0)
+    record = _run(video, {"tracking": "off"}, tmp_path / "field").artefact.meta["capture"]
+    with warnings.catch_warnings(), pytest.raises(CaptureError, match="estimated from 6"):
+        warnings.simplefilter("ignore")
+        reload_capture(other, None, record)

@@ -27,12 +27,10 @@ def _world_fixed_room(capture: Capture, meta: dict) -> Capture:
     """Given poses of a moving camera but no depth: the assumed room stays put in the world
     (upright, in front of the first camera) instead of turning with every frame."""
     from core.tracking.capture_geometry import ASSUMED_ROOM_SOURCE, WORLD_FIXED_ROOM_WARNING
-    from core.tracking.room import assumed_room
+    from core.tracking.room import assumed_room, box_depth
 
     box = assumed_room(first_camera=capture.poses[0])
-    depth = torch.stack([box.depth(capture.camera(i)) for i in range(capture.num_frames)])
-    if not bool(torch.isfinite(depth).all()):  # a camera outside the assumed room: its median
-        depth = torch.where(torch.isfinite(depth), depth, depth[torch.isfinite(depth)].median())
+    depth = box_depth(box, [capture.camera(i) for i in range(capture.num_frames)])
     warnings = [w for w in capture.warnings if not w.startswith(_ASSUMED_DEPTH_WARNING)] + [WORLD_FIXED_ROOM_WARNING]
     meta["room"] = {"source": "assumed", **box.as_dict()}
     return replace(capture, depth=depth.float().contiguous(), depth_source=ASSUMED_ROOM_SOURCE, warnings=warnings,

@@ -22,7 +22,7 @@ import torch
 
 from core.camera import Camera, Intrinsics
 from core.tracking.geometry import rotation_angle_deg
-from core.tracking.room import RoomFitError, assumed_room, fit_room
+from core.tracking.room import RoomFitError, assumed_room, box_depth, fit_room
 from core.tracking.track import TrackingResult, track_camera
 
 MIN_SELF_CALIBRATION_SPAN_DEG = 15.0
@@ -94,11 +94,7 @@ def room_depth(tr: TrackingResult, k: Intrinsics, poses: torch.Tensor, warn: lis
         source = ASSUMED_ROOM_SOURCE
         info = {"source": "assumed", **box.as_dict()}
         warn.append(WORLD_FIXED_ROOM_WARNING)
-    depth = torch.stack([box.depth(Camera(k, p)) for p in poses])
-    if not bool(torch.isfinite(depth).all()):  # a camera outside the box: nearest-valid fill by the median
-        med = depth[torch.isfinite(depth)].median() if torch.isfinite(depth).any() else torch.tensor(2.0)
-        depth = torch.where(torch.isfinite(depth), depth, med)
-    return depth, source, info
+    return box_depth(box, [Camera(k, p) for p in poses]), source, info
 
 
 def resolve_geometry(frames: torch.Tensor, intrinsics: Intrinsics, depth: torch.Tensor | None = None, *,

@@ -84,6 +84,27 @@ class RoomBox:
                 "size_m": [round(float(x), 4) for x in self.size]}
 
 
+def box_depth(box: RoomBox, cameras: list[Camera]) -> torch.Tensor:
+    """Planar depth [K, H, W] float32 of `box` seen by each camera; pixels of a camera outside
+    the box take the median of the valid ones (2 m when none is valid)."""
+    depth = torch.stack([box.depth(c) for c in cameras])
+    if not bool(torch.isfinite(depth).all()):
+        fill = depth[torch.isfinite(depth)].median() if torch.isfinite(depth).any() else torch.tensor(2.0)
+        depth = torch.where(torch.isfinite(depth), depth, fill)
+    return depth
+
+
+def room_from_dict(doc: dict) -> RoomBox:
+    """The box a capture's metadata recorded (`RoomBox.as_dict`, or a RoomFit's with the box's
+    keys): raises RoomFitError on a malformed one."""
+    try:
+        return RoomBox(torch.tensor(doc["axes"], dtype=torch.float64).reshape(3, 3),
+                       torch.tensor(doc["lo"], dtype=torch.float64).reshape(3),
+                       torch.tensor(doc["hi"], dtype=torch.float64).reshape(3))
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise RoomFitError(f"not a room box record: {exc}") from None
+
+
 def assumed_room(scale: float = 1.0, first_camera: torch.Tensor | None = None) -> RoomBox:
     """The documented box room around the first camera, `scale` x metres. Without
     `first_camera` (c2w) that camera is the world origin looking along -z (world = its frame,
