@@ -27,6 +27,14 @@ intrinsics, no exposures, as a user uploads it. Then:
 * `locked_dimming`, the control: the same pan under ONE exposure with the light halved from
   the middle frame on (a real change the default must not take for exposure): whether the
   default detected an auto-exposure, and whether the decision reads changing light.
+
+`--detection-only` runs no job: per panorama, the same pan under auto-exposures of other
+speeds (DETECTION_VARIANTS: a quarter, half or all the way to the metered ev per frame, and
+half way metered on the frame before) and under one locked exposure with the light halved
+at the middle frame, dimmed by a stop over the clip, or steady; per clip what the default
+found (`auto_detected`, `frame_mean_ratio`, `frame_step_ratio`, `step_mean_correlation`) and, per variant, how
+many clips it took for an auto-exposure. An auto-exposure should be found; a locked exposure
+never.
 """
 from __future__ import annotations
 
@@ -47,12 +55,23 @@ FPS = 10.0
 WORK_HEIGHT = 72
 GT_HEIGHT = 64
 DIMMING = 0.5  # the locked-exposure control: the light halved from the middle frame on
+# --detection-only: (name, auto-exposure speed or None for one locked exposure, metering delay
+# in frames, the light's factor per frame as a function of (i, FRAMES))
+DETECTION_VARIANTS = (
+    ("ae-0.25", 0.25, 0, None), ("ae-0.5", 0.5, 0, None), ("ae-1", 1.0, 0, None), ("ae-0.5-delay1", 0.5, 1, None),
+    ("locked-halved", None, 0, lambda i, n: 1.0 if i < n // 2 else DIMMING),
+    ("locked-ramp", None, 0, lambda i, n: 2.0 ** (-i / (n - 1))),
+    ("locked-steady", None, 0, lambda i, n: 1.0),
+)
 
 
-def ae_clip(pano: torch.Tensor, yaw: float, pitch: float, dimming: float | None = None):
-    """(LDR [T, H, W, 3] at each frame's exposure, the exposures, poses) of one pan. With
-    `dimming`: the light times `dimming` from the middle frame on, under ONE exposure (the
-    clip's mean at mid-grey): a locked exposure and a real change of light."""
+def ae_clip(pano: torch.Tensor, yaw: float, pitch: float, dimming: float | None = None, *, speed: float = 0.5,
+            delay: int = 0, light=None):
+    """(LDR [T, H, W, 3] at each frame's exposure, the exposures, poses) of one pan, exposed by
+    an auto-exposure moving `speed` of the way to the metered ev per frame, metering the frame
+    `delay` frames before. With `dimming`: the light times `dimming` from the middle frame on,
+    under ONE exposure (the clip's mean at mid-grey): a locked exposure and a real change of
+    light; `light(i, FRAMES)`: the light's factor per frame, under one exposure too."""
     from bench.tracking import HFOV_DEG, PITCH_WOBBLE_DEG
     from core.camera import Camera, Intrinsics
     from core.conventions import tonemap
@@ -68,11 +87,63 @@ def ae_clip(pano: torch.Tensor, yaw: float, pitch: float, dimming: float | None 
     room = PanoramaRoom(pano, assumed_room(), torch.zeros(3))
     hdr = torch.stack([room.render(Camera(intr, p), 2)[0] for p in poses])
     if dimming is not None:
-        hdr = hdr * torch.tensor([1.0] * (FRAMES // 2) + [dimming] * (FRAMES - FRAMES // 2))[:, None, None, None]
+        light = lambda i, n: 1.0 if i < n // 2 else dimming  # noqa: E731
+    if light is not None:
+        hdr = hdr * torch.tensor([float(light(i, FRAMES)) for i in range(FRAMES)])[:, None, None, None]
     hdr = hdr * (0.18 / float(luminance(hdr).mean().clamp_min(1e-12)))
-    evs = [0.0] * FRAMES if dimming is not None else metered_evs(list(hdr))
+    if light is not None:
+        evs = [0.0] * FRAMES
+    else:
+        metered = metered_evs(list(hdr), speed=speed)
+        evs = [metered[max(i - delay, 0)] for i in range(FRAMES)]
     ldr = torch.stack([torch.round(tonemap(h, ev) * 255) / 255 for h, ev in zip(hdr, evs)])
     return ldr, evs, poses
+
+
+def detection(path: Path, workdir: Path) -> dict:
+    """What the default finds in each of DETECTION_VARIANTS' clips of one panorama (no job)."""
+    from bench.tracking import _view
+    from core.capture.load import load_capture
+    from core.capture.params import CaptureParams
+    from core.io.video import write_video
+    from core.sim.panorama_room import load_panorama
+
+    pano = load_panorama(path, 256)
+    yaw, pitch = _view(path.name)
+    out = {"file": path.name, "clips": {}}
+    for name, speed, delay, light in DETECTION_VARIANTS:
+        ldr, evs, _ = ae_clip(pano, yaw, pitch, speed=speed or 0.5, delay=delay, light=light)
+        video = write_video(workdir / f"{path.stem}-{name}.mp4", ldr.numpy(), FPS)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            cap = load_capture(video, params=CaptureParams(fps=FPS))
+        found = cap.metadata.get("exposure_estimate", {})
+        out["clips"][name] = {"auto_exposure": speed is not None, "ae_range_stops": round(max(evs) - min(evs), 3),
+                              "static_camera": cap.static_camera, "auto_detected": bool(found.get("applied")),
+                              "course_range_stops": found.get("course_range_stops"),
+                              "frame_mean_ratio": found.get("frame_mean_ratio"),
+                              "frame_step_ratio": found.get("frame_step_ratio"),
+                              "step_mean_correlation": found.get("step_mean_correlation")}
+    return out
+
+
+def summarise_detection(rows: list[dict]) -> dict:
+    """Per variant: clips taken for an auto-exposure, of those tracking followed (a clip taken
+    for a static camera is not looked at, and is counted apart); `level_ratio_only`: what the
+    first rule, the frames' means' spread alone (AUTO_RATIO), would have taken."""
+    from core.capture.autoexposure import AUTO_MIN_RANGE, AUTO_RATIO
+
+    def level_only(c: dict) -> bool:
+        return c["course_range_stops"] * math.log(2.0) > AUTO_MIN_RANGE and c["frame_mean_ratio"] < AUTO_RATIO
+
+    out = {}
+    for name, speed, _, _ in DETECTION_VARIANTS:
+        clips = [r["clips"][name] for r in rows]
+        moving = [c for c in clips if not c["static_camera"]]
+        out[name] = {"auto_exposure": speed is not None, "clips": len(clips), "tracked": len(moving),
+                     "auto_detected": sum(c["auto_detected"] for c in moving),
+                     "level_ratio_only": sum(level_only(c) for c in moving)}
+    return out
 
 
 def map_change_stops(first: torch.Tensor, last: torch.Tensor) -> float:
@@ -193,12 +264,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iterations", type=int, default=200)
     p.add_argument("--workdir", default=None)
     p.add_argument("-o", "--output", default=None)
+    p.add_argument("--detection-only", action="store_true",
+                   help="no job: what the default detects over DETECTION_VARIANTS' auto-exposures and locked controls")
     p.add_argument("--rescore", default=None, metavar="REPORT_JSON",
                    help="recompute a saved report's summary from its per-panorama rows (no estimation) and exit")
     args = p.parse_args(argv)
     if args.rescore:
         report = json.loads(Path(args.rescore).read_text())
-        report["summary"] = summarise(report["panoramas"])
+        rows = report["panoramas"]
+        report["summary"] = summarise_detection(rows) if rows and "clips" in rows[0] else summarise(rows)
         Path(args.rescore).write_text(json.dumps(report, indent=1))
         print(json.dumps(report["summary"], indent=1))
         return 0
@@ -213,10 +287,13 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.workdir or tmp)
         for f in files:
-            rows.append(evaluate(f, args.iterations, work))
+            rows.append(detection(f, work) if args.detection_only else evaluate(f, args.iterations, work))
             print(json.dumps(rows[-1]), flush=True)
-    report = {"split": args.split, "frames": FRAMES, "pan_deg": PAN_DEG, "size": list(SIZE), "iterations": args.iterations,
-              "summary": summarise(rows), "panoramas": rows}
+    report = {"split": args.split, "frames": FRAMES, "pan_deg": PAN_DEG, "size": list(SIZE)}
+    if args.detection_only:
+        report.update(summary=summarise_detection(rows), panoramas=rows)
+    else:
+        report.update(iterations=args.iterations, summary=summarise(rows), panoramas=rows)
     print(json.dumps(report["summary"], indent=1))
     if args.output:
         Path(args.output).write_text(json.dumps(report, indent=1))

@@ -214,3 +214,123 @@ def test_a_locked_exposure_dimming_under_a_pan_stays_a_change_of_light():
     assert np.abs(found.frame_ev.numpy() - (np.array(evs) - evs[0])).max() < 0.05
     assert with_estimated_exposure(capture_from_arrays(auto, depth, intrinsics=k, poses=poses, fps=10),
                                    CaptureParams(frame_ev="locked")).stated_ev is None
+
+
+def _bundled_pan(frames: int = 20):
+    from pathlib import Path
+
+    from core.camera import Camera, Intrinsics
+    from core.sim.panorama_room import PanoramaRoom, load_panorama, render_clip
+    from core.sim.state import pose_from_yaw_pitch
+    from core.tracking.room import assumed_room
+
+    pano = load_panorama(Path(__file__).resolve().parents[1] / "assets" / "sample_panorama.hdr", 128)
+    k = Intrinsics.from_hfov(96, 72, 60.0)
+    poses = torch.stack([pose_from_yaw_pitch((0, 0, 0), 60 * i / (frames - 1), 0) for i in range(frames)])
+    _, depth, hdr = render_clip(PanoramaRoom(pano, assumed_room(), torch.zeros(3)), [Camera(k, p) for p in poses], supersample=1)
+    return hdr * (0.18 / float(luminance(hdr).mean())), depth, k, poses
+
+
+@pytest.mark.parametrize("speed, delay", [(0.25, 0), (0.5, 1)], ids=["lagging", "metering-the-frame-before"])
+def test_a_lagging_auto_exposure_is_found_by_its_steps_answering_the_frames(speed, delay):
+    """An exposure that moves a quarter of the way per frame (or meters the frame before) lets
+    the frames' own means wander; its steps still go against what the frame shows. A locked
+    exposure under a light dimming by a stop over the same pan is not taken for one."""
+    from core.capture.autoexposure import AUTO_STEP_CORRELATION
+    from core.sim.panorama_room import ldr_clip
+    from core.sim.sensor import metered_evs
+
+    hdr, depth, k, poses = _bundled_pan()
+    metered = metered_evs(list(hdr), speed=speed)
+    evs = [metered[max(i - delay, 0)] for i in range(len(metered))]
+    auto = torch.stack([torch.round(tonemap(h, ev) * 255) / 255 for h, ev in zip(hdr, evs)])
+    found = with_estimated_exposure(capture_from_arrays(auto, depth, intrinsics=k, poses=poses, fps=10), CaptureParams())
+    evidence = found.metadata["exposure_estimate"]
+    assert evidence["applied"] and evidence["step_mean_correlation"] < -AUTO_STEP_CORRELATION, evidence
+    assert np.abs(found.frame_ev.numpy() - (np.array(evs) - evs[0])).max() < 0.1
+    ramp = hdr * torch.tensor([2.0 ** (-i / 19) for i in range(20)])[:, None, None, None]
+    locked = with_estimated_exposure(capture_from_arrays(ldr_clip(ramp), depth, intrinsics=k, poses=poses, fps=10),
+                                     CaptureParams())
+    assert locked.stated_ev is None and not locked.metadata["exposure_estimate"]["applied"], locked.metadata["exposure_estimate"]
+
+
+def test_rank_correlation_is_not_made_by_one_large_step():
+    from core.capture.autoexposure import rank_correlation
+
+    steps = torch.zeros(15, dtype=torch.float64)
+    steps[7] = -0.7  # a light switching off at one frame
+    means = torch.linspace(0.0, 1.0, 15, dtype=torch.float64)
+    means[7:] -= 0.7
+    assert abs(rank_correlation(steps, means)) < 0.5
+    assert rank_correlation(-means, means) == pytest.approx(-1.0)
+    assert rank_correlation(torch.ones(5), means[:5]) == 0.0
+
+
+def _photo_with_exposure(path, ldr: np.ndarray, seconds: float | None, iso: float | None, f_number: float | None):
+    """A PNG whose EXIF states how it was exposed (the tags a phone writes in auto mode)."""
+    from fractions import Fraction
+
+    from PIL import ExifTags, Image
+    from PIL.TiffImagePlugin import IFDRational
+
+    def rational(x: float) -> IFDRational:
+        f = Fraction(x).limit_denominator(100000)
+        return IFDRational(f.numerator, f.denominator)
+
+    exif = Image.Exif()
+    sub = {}
+    if seconds is not None:
+        sub[ExifTags.Base.ExposureTime] = rational(seconds)
+    if iso is not None:
+        sub[ExifTags.Base.ISOSpeedRatings] = int(iso)
+    if f_number is not None:
+        sub[ExifTags.Base.FNumber] = rational(f_number)
+    exif[ExifTags.IFD.Exif] = sub
+    Image.fromarray((np.clip(ldr, 0, 1) * 255).round().astype(np.uint8)).save(path, exif=exif)
+
+
+def test_a_photo_set_in_auto_mode_takes_each_photos_exposure_from_its_exif(tmp_path):
+    """Photos of one spot taken in auto mode (shutter and ISO vary): the nerfstudio loader reads
+    each photo's EXIF exposure, so the frames land on one radiance scale with no parameter."""
+    from capture_fixtures import PANORAMA, write_nerfstudio
+    from core.camera import Camera, Intrinsics
+    from core.sim.panorama_room import PanoramaRoom, load_panorama, render_clip
+    from core.sim.state import pose_from_yaw_pitch
+    from core.tracking.room import assumed_room
+
+    poses = [pose_from_yaw_pitch((0, 0, 0), 0.0, 0.0)] * 3
+    intr = Intrinsics.from_hfov(64, 48, 60.0)
+    room = PanoramaRoom(load_panorama(PANORAMA, 128), assumed_room(), torch.zeros(3))
+    _, depth, hdr = render_clip(room, [Camera(intr, p) for p in poses], supersample=1)
+    hdr = hdr * (0.18 / float(luminance(hdr).mean()))
+    shots = [(1 / 60, 100, 0.0), (1 / 120, 100, -1.0), (1 / 60, 200, 1.0)]  # (seconds, ISO, stops vs the first)
+    root = write_nerfstudio(tmp_path / "set", np.zeros((3, 48, 64, 3)), depth.numpy(), intr, [p.numpy() for p in poses])
+    for i, (sec, iso, ev) in enumerate(shots):
+        _photo_with_exposure(root / f"images/frame_{i:05d}.png", tonemap(hdr[i], ev).numpy(), sec, iso, 1.8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cap = load_capture(root)
+    assert cap.frame_ev.tolist() == pytest.approx([0.0, -1.0, 1.0], abs=1e-3)
+    assert "EXIF" in cap.metadata["exposure_source"]
+    lin = cap.linear()
+    ok = (cap.frames < 0.95).all(-1).all(0) & (cap.frames > 0.1).all(-1).all(0)  # unclipped, above the 8-bit floor
+    assert int(ok.sum()) > 500
+    for i in (1, 2):  # one radiance scale: within 8-bit quantisation of frame 0
+        assert float((torch.log(lin[i][ok]) - torch.log(lin[0][ok])).abs().median()) < 0.03
+    with warnings.catch_warnings():  # "locked" still overrides what the files say
+        warnings.simplefilter("ignore")
+        assert load_capture(root, params=CaptureParams(frame_ev="locked")).stated_ev is None
+
+
+def test_exif_exposures_need_every_photo_to_state_them():
+    from core.io.metadata import ImageMetadata, frames_exposure_ev
+
+    a = ImageMetadata(exposure_time_s=1 / 50, iso=100, f_number=2.0)
+    b = ImageMetadata(exposure_time_s=1 / 100, iso=400, f_number=2.0)
+    assert frames_exposure_ev([a, b]) == pytest.approx([0.0, 1.0])
+    assert frames_exposure_ev([a, ImageMetadata(exposure_time_s=1 / 100, iso=None, f_number=2.0)]) is None
+    assert frames_exposure_ev([a]) is None  # one photo: nothing to put on a scale
+    no_aperture = [ImageMetadata(exposure_time_s=1 / 50, iso=100), ImageMetadata(exposure_time_s=1 / 25, iso=100)]
+    assert frames_exposure_ev(no_aperture) == pytest.approx([0.0, 1.0])  # a phone's fixed aperture
+    wide = ImageMetadata(exposure_time_s=30.0, iso=100, f_number=2.0), ImageMetadata(exposure_time_s=1e-6, iso=50, f_number=22)
+    assert frames_exposure_ev(list(wide)) is None  # a spread no camera shoots: a broken file

@@ -68,6 +68,9 @@ def sniff_capture_file(path: Path) -> str | None:
     return "video" if sniff_image(head) == "gif" else sniff_media(head)
 
 
+EXIF_EXPOSURE_SOURCE = "the images' EXIF: log2(exposure time x ISO / f-number^2), relative to the first"
+
+
 def _read_nerfstudio(source: Path, limits: MediaLimits) -> dict:
     """A nerfstudio capture (directory or zip with transforms.json; core.io.nerfstudio)."""
     from core.io.nerfstudio import load_nerfstudio
@@ -80,6 +83,9 @@ def _read_nerfstudio(source: Path, limits: MediaLimits) -> dict:
     if cap.depth is not None:
         out["depth"] = torch.from_numpy(cap.depth)
         out["depth_source"] = "file:nerfstudio depth_file_path"
+    if cap.frame_ev is not None:  # a photo set taken in auto mode: each photo's EXIF states its exposure
+        out["frame_ev"] = cap.frame_ev
+        out["exposure_source"] = EXIF_EXPOSURE_SOURCE
     return out
 
 
@@ -295,7 +301,7 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
         given_ev = None
     frame_ev = resolve_exposures(given_ev, T)
     if given_ev is not None:
-        metadata["exposure_source"] = "params" if params.frame_ev is not None else "capture.json"
+        metadata["exposure_source"] = "params" if params.frame_ev is not None else loaded.get("exposure_source", "capture.json")
     depth_arg = _read_depth(Path(depth_path), limits) if depth_path is not None else loaded.get("depth")
     if depth_path is not None and depth_arg.ndim == 3 and depth_arg.shape[0] == loaded.get("original_count", T) != T:
         depth_arg = depth_arg[source_idx]

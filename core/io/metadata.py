@@ -19,6 +19,11 @@ was assumed. The rules:
   (LittleCMS via Pillow's ImageCms, relative colorimetric), because every LDR value the
   engine reads is taken as sRGB-encoded; out-of-gamut colours clip. An sRGB profile is left
   alone. A profile LittleCMS cannot parse is reported and ignored.
+* **Exposure** (`ExposureTime` 0x829A seconds, `PhotographicSensitivity` 0x8827 ISO,
+  `FNumber` 0x829D): a photo's exposure in stops is log2(time × ISO / N²), higher = brighter
+  (`ImageMetadata.exposure_stops`; without `FNumber` the aperture is taken as fixed, as on
+  phones). A set of photos whose every one states time and ISO gets per-frame exposures
+  relative to its first (`frames_exposure_ev`); one that does not, none.
 * **Video rotation**: the display matrix's rotation (PyAV `VideoFrame.rotation`, counter-
   clockwise degrees, or an old `rotate` stream tag, clockwise) is applied to every frame in
   multiples of 90 degrees. Flips in the display matrix are not applied (reported).
@@ -59,9 +64,37 @@ class ImageMetadata:
     icc_description: str | None = None
     icc_is_srgb: bool | None = None
     icc_error: str | None = None
+    exposure_time_s: float | None = None
+    iso: float | None = None
+    f_number: float | None = None
 
     def as_dict(self) -> dict:
         return {k: v for k, v in asdict(self).items() if v is not None}
+
+    def exposure_stops(self, with_aperture: bool = True) -> float | None:
+        """log2(time x ISO / N^2) (without the aperture when `with_aperture` is false); None
+        unless the file states time and ISO."""
+        if self.exposure_time_s is None or self.iso is None or (with_aperture and self.f_number is None):
+            return None
+        stops = math.log2(self.exposure_time_s * self.iso)
+        return stops - 2.0 * math.log2(self.f_number) if with_aperture else stops
+
+
+MAX_EXIF_EXPOSURE_SPREAD_STOPS = 20.0  # CaptureParams' bound on frame_ev: a wider spread is a broken file
+
+
+def frames_exposure_ev(metas: list[ImageMetadata]) -> list[float] | None:
+    """Each photo's exposure in stops relative to the first, when every photo states its
+    exposure time and ISO (the aperture too if any does), else None; also None for one
+    photo, or for a spread past MAX_EXIF_EXPOSURE_SPREAD_STOPS."""
+    if len(metas) < 2:
+        return None
+    aperture = any(m.f_number is not None for m in metas)
+    stops = [m.exposure_stops(with_aperture=aperture) for m in metas]
+    if any(s is None for s in stops):
+        return None
+    ev = [s - stops[0] for s in stops]
+    return ev if max(abs(e) for e in ev) <= MAX_EXIF_EXPOSURE_SPREAD_STOPS else None
 
 
 def _number(v) -> float | None:
@@ -113,7 +146,15 @@ def image_metadata(image: Image.Image) -> ImageMetadata:
         exif_width=int(exif_width) if isinstance(exif_width, int) and exif_width > 0 else None,
         make=_text(exif.get(ExifTags.Base.Make)), model=_text(exif.get(ExifTags.Base.Model)),
         icc_description=desc, icc_is_srgb=is_srgb, icc_error=icc_error,
+        exposure_time_s=_number(sub.get(ExifTags.Base.ExposureTime)),
+        iso=_number(_first(sub.get(ExifTags.Base.ISOSpeedRatings))),
+        f_number=_number(sub.get(ExifTags.Base.FNumber)),
     )
+
+
+def _first(v):
+    """ISO may be stored as a tuple of values (EXIF allows several): the first."""
+    return v[0] if isinstance(v, (tuple, list)) and v else v
 
 
 def orient_image(image: Image.Image, orientation: int) -> Image.Image:

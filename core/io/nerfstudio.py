@@ -41,6 +41,7 @@ from core.io.archive import ArchiveError, CaptureFiles, ZipFiles, member_name, o
 from core.io.depth import read_depth
 from core.io.images import decode_image
 from core.io.limits import DEFAULT_LIMITS, MediaLimits, Source
+from core.io.metadata import frames_exposure_ev
 from core.io.video import select_frame_indices
 
 INDEX = "transforms.json"
@@ -132,6 +133,7 @@ class NerfstudioCapture:
     names: list[str]
     metadata: dict
     warnings: list[str]
+    frame_ev: list[float] | None = None  # each kept image's exposure (stops, vs the first) when every one's EXIF states it
 
 
 def _camera(meta: dict, where: str, image_size: tuple[int, int] | None) -> NerfstudioCamera:
@@ -337,7 +339,7 @@ def load_nerfstudio(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> Ner
         index = read_index(files)
         cam = index.camera
         keep = [int(i) for i in select_frame_indices(len(index.files), cam.width * cam.height, limits)]
-        frames, applied = [], []
+        frames, applied, metas = [], [], []
         for i in keep:
             key = f"frames[{i}].file_path"
             try:
@@ -347,6 +349,7 @@ def load_nerfstudio(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> Ner
             except ValueError as exc:
                 raise _err(key, f"{index.files[i]!r}: {exc}", getattr(exc, "code", "not_media")) from None
             frames.append(decoded.pixels)
+            metas.append(decoded.metadata)
             applied.extend(a for a in decoded.applied if a not in applied)
         h, w = frames[0].shape[:2]
         for n, f in enumerate(frames):
@@ -370,6 +373,7 @@ def load_nerfstudio(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> Ner
         frames=np.clip(stack, 0.0, 1.0).astype(np.float32), intrinsics=cam.as_dict(), poses=index.poses[keep],
         depth=depth, source_indices=keep, original_count=len(index.files), names=[index.files[i] for i in keep],
         metadata={**index.describe(), "notes": notes}, warnings=list(index.warnings),
+        frame_ev=frames_exposure_ev(metas),
     )
 
 
