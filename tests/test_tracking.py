@@ -24,6 +24,9 @@ from core.tracking.motion import detect_motion
 from core.tracking.room import RoomBox, RoomFitError, assumed_room, fit_room
 from core.tracking.capture_geometry import resolve_geometry
 from core.tracking.track import track_camera
+from core.tracking.capture_geometry import pose_errors
+from core.conventions import tonemap
+from core.exposure import luminance
 
 PANORAMA = Path(__file__).resolve().parents[1] / "assets" / "sample_panorama.hdr"
 SCENE_SCALE_M = 5.0  # the room's largest dimension
@@ -192,6 +195,42 @@ def test_tracking_failure_falls_back_to_a_labelled_static_camera(panorama):
     assert torch.equal(r.poses, torch.eye(4, dtype=torch.float64).expand(12, 4, 4))
     assert any("camera tracking failed" in w and "static" in w for w in r.warnings)
     assert r.summary()["method"] == "failed:static-fallback"
+
+
+def test_a_rolling_shutter_pan_is_still_tracked_as_a_rotation():
+    """A brisk handheld pan (90 deg in 2 s) read out top to bottom over 1/30 s: each frame is
+    sheared, a pure rotation fits a little worse than an essential matrix, and there is no
+    baseline for structure from motion. The camera must still come out as the rotation it
+    was (it used to fall back to a static camera: bench/handheld.py), within a degree."""
+    from bench import handheld
+
+    intr = Intrinsics.from_hfov(handheld.SIZE[0], handheld.SIZE[1], 60.0)
+    room = PanoramaRoom(load_panorama(PANORAMA, 512), assumed_room(), torch.zeros(3))
+    hdr = torch.stack([handheld.render_frame(room, intr, i, -120.0, -5.0, 0.0, handheld.READOUT_S)
+                       for i in range(handheld.FRAMES)])
+    ldr = torch.round(tonemap(hdr * (0.18 / float(luminance(hdr).mean())), 0.0) * 255) / 255
+    r = track_camera(ldr, intr, refine_focal=True, use_pycolmap=False)
+    assert r.method == "rotation" and len(r.kept) == handheld.FRAMES, (r.method, r.stats)
+    true = torch.stack([handheld.pose_at(i / handheld.FPS, -120.0, -5.0) for i in range(handheld.FRAMES)])
+    rot, _ = pose_errors(r.poses, torch.from_numpy(relative_to_first(true.numpy())[0]))
+    assert rot < 1.0
+
+
+def test_the_rotation_fallback_needs_a_rotation_that_explains_nearly_everything():
+    from core.tracking.rotation import RotationTrack
+    from core.tracking.track import rotation_fallback_ok
+
+    def track(**kw):
+        base = dict(rotations=np.eye(3)[None].repeat(10, 0), kept=list(range(10)), dropped=[], focal=100.0,
+                    median_px=0.4, rms_px=0.5, inlier_share=0.99, residuals=500, pairs=30, parallax_px=0.4,
+                    epipolar_px=0.18)
+        return RotationTrack(**{**base, **kw})
+
+    assert rotation_fallback_ok(track(), 10)  # a rolling shutter's 2.2x
+    assert not rotation_fallback_ok(track(parallax_px=0.9, epipolar_px=0.14), 10)  # a walk's parallax, 6.4x
+    assert not rotation_fallback_ok(track(median_px=1.5, parallax_px=0.5), 10)
+    assert not rotation_fallback_ok(track(inlier_share=0.8), 10)
+    assert not rotation_fallback_ok(track(kept=[0, 1, 2, 3]), 10)
 
 
 # ---------------------------------------------------------------------------------------

@@ -10,7 +10,11 @@
    back to OpenCV two-view geometry chained by PnP (method "sfm:opencv") if COLMAP finds no
    model; then scale (core.tracking.scale): from given depth, else the floor, else the room
    assumption.
-4. If every method fails: identity poses, method "failed:static-fallback", and a warning.
+4. If structure from motion fails too, the rotation track still stands when it registered
+   most frames and explains nearly every match within a pixel (`rotation_fallback_ok`: a
+   rolling shutter's shear fails the model comparison of step 2 on brisk handheld pans, and
+   such a pan has no baseline to reconstruct): method "rotation", with a warning.
+5. If every method fails: identity poses, method "failed:static-fallback", and a warning.
    The caller still succeeds (a capture is never refused for being hard to track).
 World = the first kept frame's camera frame (core.conventions). Frames that could not be
 registered are listed in `dropped`; the caller removes them from the capture.
@@ -32,6 +36,14 @@ from core.tracking.rotation import estimate_rotations
 from core.tracking.scale import ScaleEstimate, apply_scale, scale_from_depth, scale_from_room
 
 MIN_KEPT_FRACTION = 0.5  # a track that registers fewer frames than this is a failure
+# The rotation track stands in when structure from motion fails (rotation_fallback_ok): it must
+# explain this share of the matches with a median residual within this many pixels (analysis
+# resolution). Handheld pans with a rolling shutter: 0.98-1.00 and 0.30-0.69 px (bench/handheld.py).
+# Its residual may exceed an essential matrix's by up to FALLBACK_RATIO (a rolling shutter under a
+# brisk pan: 2.0-2.3; walks with parallax 4.8-10, core.tracking.rotation).
+FALLBACK_INLIER_SHARE = 0.9
+FALLBACK_MAX_MEDIAN_PX = 1.0
+FALLBACK_RATIO = 3.0
 SFM_ENV = "LIGHTFIELD_SFM"  # "pycolmap" (default) or "opencv": where pycolmap's wheel is unavailable or unwanted
 
 
@@ -148,10 +160,32 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
         return TrackingResult(torch.from_numpy(poses), track.kept, track.dropped, name, motion,
                               track.reprojection_error_px, size, scale, torch.from_numpy(points), None, warn,
                               stats={**stats, **track.stats, "failures": failures} if failures else {**stats, **track.stats})
+    if rotation_fallback_ok(rot, T):
+        focal = rot.focal * full.width / k.width if refine_focal else None
+        warn = [f"camera tracking: a pure rotation left residuals above an essential matrix's ({rot.parallax_px:.2f} vs "
+                f"{rot.epipolar_px:.2f} px: some parallax, or a rolling shutter) and structure from motion could not "
+                f"register the frames ({'; '.join(failures)}): using the rotation; give poses (params.poses) if the "
+                "camera moved far"] + _dropped_warning(rot.dropped)
+        return TrackingResult(_poses_from_rotations(rot.rotations), rot.kept, rot.dropped, "rotation", motion,
+                              rot.rms_px, size, None, None, focal, warn,
+                              stats={**stats, "failures": failures, "rotation_fallback": True})
     warning = ("camera tracking failed (" + "; ".join(failures) + "): treating the camera as static; "
                "give poses (params.poses) or a capture-app export for a moving camera")
     return TrackingResult(_identity(T), list(range(T)), [], "failed:static-fallback", motion, None, size,
                           warnings=[warning], stats={**stats, "failures": failures})
+
+
+def rotation_fallback_ok(rot, T: int) -> bool:
+    """When structure from motion cannot register a clip, is the rotation track still the
+    camera? A rolling shutter under a brisk pan shears each frame, so a pure rotation leaves
+    residuals a little over twice an essential matrix's and fails the model comparison
+    (RotationTrack.fits), while there is no baseline to reconstruct: the frames' motion is
+    still nearly all rotation when it registers most frames, explains nearly every match, its
+    median residual stays within a pixel and within FALLBACK_RATIO of the essential matrix's,
+    where a walk's parallax leaves 5-10 times (bench/handheld.py). A static camera is the
+    worse answer then: every frame's view at one heading."""
+    return (len(rot.kept) >= MIN_KEPT_FRACTION * T and rot.inlier_share >= FALLBACK_INLIER_SHARE
+            and rot.median_px <= FALLBACK_MAX_MEDIAN_PX and rot.parallax_px <= FALLBACK_RATIO * rot.epipolar_px)
 
 
 def _dropped_warning(dropped: list[int]) -> list[str]:
