@@ -1,0 +1,31 @@
+"""The handheld bench: its rolling shutter reads rows at different instants, its blur averages
+instants, and the summary counts what the fallback took."""
+import torch
+
+from bench.handheld import VARIANTS, pose_at, render_frame, summarise
+from bench.tracking import BUNDLED
+from core.camera import Camera, Intrinsics
+from core.sim.panorama_room import PanoramaRoom, load_panorama
+from core.tracking.room import assumed_room
+
+
+def test_a_global_shutter_is_one_instant_and_a_rolling_one_reads_rows_later():
+    intr = Intrinsics.from_hfov(32, 24, 60.0)
+    room = PanoramaRoom(load_panorama(BUNDLED, 64), assumed_room(), torch.zeros(3))
+    sharp = render_frame(room, intr, 3, 10.0, 0.0, 0.0, 0.0)
+    assert torch.equal(sharp, room.render(Camera(intr, pose_at(0.3, 10.0, 0.0)), 1)[0])
+    rolling = render_frame(room, intr, 3, 10.0, 0.0, 0.0, 0.2)  # a slow readout: the bottom rows 0.2 s later
+    later = room.render(Camera(intr, pose_at(0.3 + 0.2 * 23.5 / 24, 10.0, 0.0)), 1)[0]
+    assert float((rolling[-1] - later[-1]).abs().mean()) < float((rolling[-1] - sharp[-1]).abs().mean())
+    blurred = render_frame(room, intr, 3, 10.0, 0.0, 0.1, 0.0)
+    assert float(blurred.std()) < float(sharp.std())  # the pan smears it
+
+
+def test_summary_counts_the_fallback_and_the_errors():
+    clip = {"method": "rotation", "frames_kept": 20, "rotation_fallback": False, "max_rotation_error_deg": 0.5}
+    rows = [{"clips": {v: dict(clip) for v in VARIANTS}} for _ in range(3)]
+    rows[1]["clips"]["rolling"].update(rotation_fallback=True, max_rotation_error_deg=1.5)
+    rows[2]["clips"]["rolling"] = {"method": "failed:static-fallback", "frames_kept": 20, "rotation_fallback": False}
+    s = summarise(rows)["rolling"]
+    assert s["tracked"] == 2 and s["within_1_deg"] == 1 and s["by_the_rotation_fallback"] == 1
+    assert s["within_1_deg_by_the_fallback"] == 0
