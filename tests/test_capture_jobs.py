@@ -211,3 +211,16 @@ def test_preview_refuses_an_input_that_is_not_the_one_estimated(tmp_path):
     with warnings.catch_warnings(), pytest.raises(CaptureError, match="estimated from 6"):
         warnings.simplefilter("ignore")
         reload_capture(other, None, record)
+
+
+def test_preview_refuses_a_record_whose_poses_do_not_fit_its_frames(tmp_path):
+    from core.capture.base import CaptureError
+    from core.capture.reload import reload_capture
+
+    poses = [pose_from_yaw_pitch((0, 0, 0), 0.0, 0.0)] * 3
+    ldr, _, _ = panorama_clip(poses, 32, 24, pano_height=64, supersample=1)
+    video = write_video(tmp_path / "still.mp4", ldr.numpy(), 5.0)
+    record = {"frames": 3, "fps": 5.0, "duration_s": 0.4, "poses": [[1.0] * 16] * 2}
+    with warnings.catch_warnings(), pytest.raises(CaptureError, match="do not describe 3 frames"):
+        warnings.simplefilter("ignore")
+        reload_capture(video, None, record)

@@ -14,9 +14,8 @@ cannot tell from a dimmer switch turning the whole room down. Two things can:
   auto-exposure does. A lagging exposure steps the brightness up when the frame it meters is
   dark and down when it is bright, so the overlap's steps fall as the frames' means rise
   (rank correlation under -AUTO_STEP_CORRELATION, with the frame itself or the one before
-  it: a one-frame metering delay). With a locked exposure a dimming moves the means and the
-  overlap alike, and the overlap's steps do not answer the view. A static camera's exposure
-  only moves because the light did, so it is left alone.
+  it: a one-frame metering delay), where a locked exposure's steps follow the light, not the
+  view. A static camera's exposure only moves because the light did, so it is left alone.
 The overall brightness course (core.capture.temporal.global_log_course: the median over image
 blocks of each frame's log change against frame 0, chained through consecutive frames warped
 by depth and poses when the camera moves) is then taken as the exposure's, and the frames are

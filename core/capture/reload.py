@@ -62,11 +62,14 @@ def reload_capture(input_path, depth_path, record: dict) -> Capture:
     if abs(duration - float(record.get("duration_s", duration))) > DURATION_TOLERANCE_S:
         raise CaptureError("input", f"its kept frames span {duration:.3f} s, the artefact's {record['duration_s']:.3f} s: "
                            "not the file (or the fps) the artefact was estimated from")
-    poses = torch.as_tensor(record["poses"], dtype=torch.float64).reshape(count, 4, 4)
-    ev = record.get("frame_ev")
+    try:
+        poses = torch.as_tensor(record["poses"], dtype=torch.float64).reshape(count, 4, 4)
+        ev = None if record.get("frame_ev") is None else torch.tensor(record["frame_ev"], dtype=torch.float32).reshape(count)
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise CaptureError("artefact", f"its recorded poses or exposures do not describe {count} frames: {exc}") from None
     capture = dataclasses.replace(
         raw, frames=raw.frames[keep].contiguous(), depth=raw.depth[keep].contiguous(), poses=poses, times=times,
-        stated_ev=None if ev is None else torch.tensor(ev, dtype=torch.float32), metadata=dict(meta))
+        stated_ev=ev, metadata=dict(meta))
     room = meta.get("room")
     if room is not None and raw.depth_source == ASSUMED_DEPTH_SOURCE:  # the job's depth was the room's
         try:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-
 from core.capture.base import Capture
 from core.capture.depth import ASSUMED_DEPTH_SOURCE
 from core.capture.params import CaptureParams
