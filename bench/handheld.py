@@ -157,7 +157,9 @@ def main(argv: list[str] | None = None) -> int:
               "summary": summarise(rows), "panoramas": rows}
     print(json.dumps(report["summary"], indent=1))
     if args.output:
-        Path(args.output).write_text(json.dumps(report, indent=1))
+        from bench.report import write_json
+
+        write_json(report, Path(args.output))
     return 0
 
 

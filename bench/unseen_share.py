@@ -68,7 +68,9 @@ def main(argv: list[str] | None = None) -> int:
            "suites": {name: suite_share(name, args.extra_probes) for name in args.suites.split(",")}}
     print(json.dumps(out, indent=1))
     if args.output:
-        Path(args.output).write_text(json.dumps(out, indent=1))
+        from bench.report import write_json
+
+        write_json(out, Path(args.output))
     return 0
 
 
