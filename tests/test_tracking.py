@@ -216,6 +216,37 @@ def test_a_rolling_shutter_pan_is_still_tracked_as_a_rotation():
     assert rot < 1.0
 
 
+def test_a_reconstruction_that_loses_frames_a_near_rotation_keeps_does_not_win(monkeypatch, panorama):
+    """Structure from motion can take a rolling shutter's shear for a baseline and register a
+    handheld pan with invented translation, losing frames (bench/handheld.py: 11-19 of 20).
+    When the rotation track keeps more frames and would stand on its own, it is used; a
+    reconstruction that keeps as many frames as the rotation is still preferred."""
+    import core.tracking.track as track_mod
+    from core.tracking.rotation import RotationTrack
+    from core.tracking.sfm import SfMTrack
+
+    T = 8
+    intr = Intrinsics.from_hfov(96, 72, 60.0)
+    poses = [pose_from_yaw_pitch((0, 0, 0), 4.0 * i, 0) for i in range(T)]
+    ldr, _, _ = render_clip(PanoramaRoom(panorama, assumed_room(), torch.zeros(3)), [Camera(intr, p) for p in poses], 1)
+    near = RotationTrack(rotations=np.eye(3)[None].repeat(T, 0), kept=list(range(T)), dropped=[], focal=intr.fx,
+                         median_px=0.4, rms_px=0.5, inlier_share=0.99, residuals=400, pairs=20, parallax_px=0.4,
+                         epipolar_px=0.18)
+    monkeypatch.setattr(track_mod, "estimate_rotations", lambda *a, **kw: near)
+
+    def sfm(kept):
+        return lambda *a: SfMTrack(poses=np.eye(4)[None].repeat(len(kept), 0), kept=kept,
+                                   dropped=[i for i in range(T) if i not in kept], points=np.zeros((0, 3)),
+                                   observations=[], reprojection_error_px=0.5)
+
+    monkeypatch.setattr(track_mod, "_opencv_track", sfm(list(range(6))))
+    r = track_camera(ldr, intr, use_pycolmap=False)
+    assert r.method == "rotation" and r.stats.get("rotation_fallback") and len(r.kept) == T
+    assert any("registered 6 of 8 frames, the rotation 8" in w for w in r.warnings)
+    monkeypatch.setattr(track_mod, "_opencv_track", sfm(list(range(T))))
+    assert track_camera(ldr, intr, use_pycolmap=False).method == "sfm:opencv"
+
+
 def test_the_rotation_fallback_needs_a_rotation_that_explains_nearly_everything():
     from core.tracking.rotation import RotationTrack
     from core.tracking.track import rotation_fallback_ok

@@ -10,10 +10,12 @@
    back to OpenCV two-view geometry chained by PnP (method "sfm:opencv") if COLMAP finds no
    model; then scale (core.tracking.scale): from given depth, else the floor, else the room
    assumption.
-4. If structure from motion fails too, the rotation track still stands when it registered
-   most frames and explains nearly every match within a pixel (`rotation_fallback_ok`: a
-   rolling shutter's shear fails the model comparison of step 2 on brisk handheld pans, and
-   such a pan has no baseline to reconstruct): method "rotation", with a warning.
+4. If structure from motion fails too, or registers fewer frames than the rotation track,
+   the rotation track still stands when it registered most frames and explains nearly every
+   match within a pixel (`rotation_fallback_ok`: a rolling shutter's shear fails the model
+   comparison of step 2 on brisk handheld pans; such a pan has no baseline to reconstruct,
+   or a reconstruction takes the shear for one and loses frames): method "rotation", with a
+   warning.
 5. If every method fails: identity poses, method "failed:static-fallback", and a warning.
    The caller still succeeds (a capture is never refused for being hard to track).
 World = the first kept frame's camera frame (core.conventions). Frames that could not be
@@ -149,6 +151,10 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
         if track is None or len(track.kept) < max(2, MIN_KEPT_FRACTION * T):
             failures.append(f"{name}: registered {0 if track is None else len(track.kept)} of {T} frames")
             continue
+        if len(track.kept) < len(rot.kept) and rotation_fallback_ok(rot, T):
+            # a sheared pan: the reconstruction took the rolling shutter for a baseline and lost frames
+            failures.append(f"{name}: registered {len(track.kept)} of {T} frames, the rotation {len(rot.kept)}")
+            break
         scale = None
         if depth is not None:
             scale = scale_from_depth(track.poses, k, track.points, track.observations, depth, track.kept)
@@ -163,9 +169,9 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
     if rotation_fallback_ok(rot, T):
         focal = rot.focal * full.width / k.width if refine_focal else None
         warn = [f"camera tracking: a pure rotation left residuals above an essential matrix's ({rot.parallax_px:.2f} vs "
-                f"{rot.epipolar_px:.2f} px: some parallax, or a rolling shutter) and structure from motion could not "
-                f"register the frames ({'; '.join(failures)}): using the rotation; give poses (params.poses) if the "
-                "camera moved far"] + _dropped_warning(rot.dropped)
+                f"{rot.epipolar_px:.2f} px: some parallax, or a rolling shutter) and structure from motion did not "
+                f"register the frames as well ({'; '.join(failures)}): using the rotation; give poses (params.poses) "
+                "if the camera moved far"] + _dropped_warning(rot.dropped)
         return TrackingResult(_poses_from_rotations(rot.rotations), rot.kept, rot.dropped, "rotation", motion,
                               rot.rms_px, size, None, None, focal, warn,
                               stats={**stats, "failures": failures, "rotation_fallback": True})
