@@ -294,9 +294,9 @@ def main(argv: list[str] | None = None) -> int:
         report.update(summary=summarise_detection(rows), panoramas=rows)
     else:
         report.update(iterations=args.iterations, summary=summarise(rows), panoramas=rows)
-    print(json.dumps(report["summary"], indent=1))
-    if args.output:
-        Path(args.output).write_text(json.dumps(report, indent=1))
+    from bench.report import show_and_write
+
+    show_and_write(report["summary"], report, args.output)
     return 0
 
 

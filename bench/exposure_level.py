@@ -13,10 +13,8 @@ window reads brighter once the exposure is removed.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import warnings
-from pathlib import Path
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,9 +42,9 @@ def main(argv: list[str] | None = None) -> int:
             run = run_per_probe(Method("prior", "per-probe", "baseline", "prior"), suite, preset("draft"))
             out[name] = scale_stops(run.envmaps, suite.gt)
     out["fixed_in_scene_units"] = round(out[fixed_name]["mean"] - args.fixed_ev, 3)
-    print(json.dumps(out, indent=1))
-    if args.output:
-        Path(args.output).write_text(json.dumps(out, indent=1))
+    from bench.report import show_and_write
+
+    show_and_write(out, out, args.output)
     return 0
 
 

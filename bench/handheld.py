@@ -155,11 +155,9 @@ def main(argv: list[str] | None = None) -> int:
     report = {"split": args.split, "frames": FRAMES, "fps": FPS, "pan_deg": PAN_DEG, "size": list(SIZE),
               "exposure_s": EXPOSURE_S, "readout_s": READOUT_S, "noise_sigma": NOISE_SIGMA,
               "summary": summarise(rows), "panoramas": rows}
-    print(json.dumps(report["summary"], indent=1))
-    if args.output:
-        from bench.report import write_json
+    from bench.report import show_and_write
 
-        write_json(report, Path(args.output))
+    show_and_write(report["summary"], report, args.output)
     return 0
 
 

@@ -37,6 +37,14 @@ def write_json(results: dict, path: Path) -> None:
     path.write_text(json.dumps(sanitize(results), indent=1, allow_nan=False) + "\n")
 
 
+def show_and_write(shown: dict, report: dict, output: str | None) -> None:
+    """A one-off bench script's ending: print `shown` (the report or its summary), write the
+    whole report to `output` when given."""
+    print(json.dumps(sanitize(shown), indent=1))
+    if output:
+        write_json(report, Path(output))
+
+
 # ---------------------------------------------------------------------------------------
 # Table helpers
 # ---------------------------------------------------------------------------------------

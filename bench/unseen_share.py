@@ -18,10 +18,8 @@ the map a better prior must improve, not what users get.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import warnings
-from pathlib import Path
 
 import torch
 
@@ -66,11 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     warnings.simplefilter("ignore")
     out = {"extra_probes": args.extra_probes,
            "suites": {name: suite_share(name, args.extra_probes) for name in args.suites.split(",")}}
-    print(json.dumps(out, indent=1))
-    if args.output:
-        from bench.report import write_json
+    from bench.report import show_and_write
 
-        write_json(out, Path(args.output))
+    show_and_write(out, out, args.output)
     return 0
 
 
