@@ -1,6 +1,6 @@
 """Camera tracking on handheld-style pans: motion blur, a rolling shutter and sensor noise.
 
-    python -m bench.handheld --split dev [--limit N] [-o out.json]
+    python -m bench.handheld --split dev [--limit N] [--variants a,b] [--global-shutter] [-o out.json]
 
 bench/tracking.py renders each frame at one instant (a global shutter, no blur). A phone
 pans by hand: each frame integrates the scene over its exposure (motion blur) and its rows
@@ -10,7 +10,9 @@ bench.tracking draws for the file: PAN_DEG of yaw in FRAMES frames at FPS with a
 wobble, SIZE at 60 deg FOV, from one spot of the panorama pasted on the assumed box room,
 rendered at SUB_SAMPLES instants per frame. Variants (VARIANTS): `sharp` (global shutter),
 `blur` (EXPOSURE_S of exposure), `rolling` (READOUT_S from the top row to the bottom),
-`handheld` (both, with NOISE_SIGMA Gaussian noise in 8-bit LDR). Each is tone mapped at one
+`handheld` (both, with NOISE_SIGMA Gaussian noise in 8-bit LDR), and `portrait-rolling` /
+`portrait-handheld` (the phone held upright: SIZE turned, the sensor's rows vertical, so the
+readout runs along the pan and stretches the frame rather than shearing it). Each is tone mapped at one
 exposure and run through camera tracking as loading runs it (`core.tracking.track.track_camera`,
 no intrinsics given: the assumed 60 deg, refined by the pan as the product does). Reported per
 clip: the method, frames kept, the largest rotation error against the true poses (degrees,
@@ -18,7 +20,8 @@ the kept frames, world = the first kept frame), the refined horizontal FOV, the 
 model's evidence and whether it was taken only as the fallback after structure from motion
 failed (core.tracking.track.rotation_fallback_ok: without that fallback those clips were a
 static camera); per variant the clips tracked within MAX_ROTATION_ERROR_DEG, and how many of
-them the fallback took.
+them the fallback took. `--global-shutter` tracks without the rotation model's rolling shutter
+(an ablation: what modelling the readout buys).
 """
 from __future__ import annotations
 
@@ -40,11 +43,13 @@ EXPOSURE_S = 1.0 / 30.0  # a phone's video exposure indoors is often as long as 
 READOUT_S = 1.0 / 30.0  # top row to bottom row: phone sensors read out in ~10-33 ms
 NOISE_SIGMA = 0.02
 MAX_ROTATION_ERROR_DEG = 1.0
-VARIANTS = {  # name: (exposure seconds, readout seconds, noise sigma)
-    "sharp": (0.0, 0.0, 0.0),
-    "blur": (EXPOSURE_S, 0.0, 0.0),
-    "rolling": (0.0, READOUT_S, 0.0),
-    "handheld": (EXPOSURE_S, READOUT_S, NOISE_SIGMA),
+VARIANTS = {  # name: (exposure seconds, readout seconds, noise sigma, portrait)
+    "sharp": (0.0, 0.0, 0.0, False),
+    "blur": (EXPOSURE_S, 0.0, 0.0, False),
+    "rolling": (0.0, READOUT_S, 0.0, False),
+    "handheld": (EXPOSURE_S, READOUT_S, NOISE_SIGMA, False),
+    "portrait-rolling": (0.0, READOUT_S, 0.0, True),
+    "portrait-handheld": (EXPOSURE_S, READOUT_S, NOISE_SIGMA, True),
 }
 
 
@@ -58,9 +63,11 @@ def pose_at(t: float, yaw0: float, pitch0: float) -> torch.Tensor:
     return pose_from_yaw_pitch((0, 0, 0), yaw0 + PAN_DEG * i / (FRAMES - 1), pitch0 + PITCH_WOBBLE_DEG * math.sin(i / 3))
 
 
-def render_frame(room, intr, index: int, yaw0: float, pitch0: float, exposure: float, readout: float) -> torch.Tensor:
+def render_frame(room, intr, index: int, yaw0: float, pitch0: float, exposure: float, readout: float,
+                 portrait: bool = False) -> torch.Tensor:
     """HDR [H, W, 3] of frame `index`: row r integrates [t_r, t_r + exposure], t_r = t_frame +
-    readout r / H, from SUB_SAMPLES instants over [t_frame, t_frame + readout + exposure]."""
+    readout r / H, from SUB_SAMPLES instants over [t_frame, t_frame + readout + exposure]. A
+    `portrait` frame is a landscape sensor turned by 90 deg: its columns are read, left first."""
     from core.camera import Camera
 
     t0, span = index / FPS, readout + exposure
@@ -68,6 +75,8 @@ def render_frame(room, intr, index: int, yaw0: float, pitch0: float, exposure: f
         return room.render(Camera(intr, pose_at(t0, yaw0, pitch0)), 1)[0]
     times = [t0 + span * (k + 0.5) / SUB_SAMPLES for k in range(SUB_SAMPLES)]
     renders = torch.stack([room.render(Camera(intr, pose_at(t, yaw0, pitch0)), 1)[0] for t in times])  # [K, H, W, 3]
+    if portrait:
+        renders = renders.transpose(1, 2)  # columns as rows
     h = renders.shape[1]
     out = torch.empty_like(renders[0])
     for r in range(h):
@@ -76,10 +85,10 @@ def render_frame(room, intr, index: int, yaw0: float, pitch0: float, exposure: f
         if not inside:  # no exposure: the nearest instant
             inside = [min(range(SUB_SAMPLES), key=lambda k: abs(times[k] - start))]
         out[r] = renders[inside, r].mean(0)
-    return out
+    return out.transpose(0, 1) if portrait else out
 
 
-def evaluate(path: Path) -> dict:
+def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
     from bench.tracking import HFOV_DEG, _view
     from core.camera import Intrinsics
     from core.conventions import tonemap
@@ -92,12 +101,13 @@ def evaluate(path: Path) -> dict:
 
     pano = load_panorama(path, 512)
     yaw, pitch = _view(path.name)
-    intr = Intrinsics.from_hfov(SIZE[0], SIZE[1], HFOV_DEG)
     room = PanoramaRoom(pano, assumed_room(), torch.zeros(3))
     true, _ = relative_to_first(torch.stack([pose_at(i / FPS, yaw, pitch) for i in range(FRAMES)]).numpy())
     out = {"file": path.name, "clips": {}}
-    for name, (exposure, readout, sigma) in VARIANTS.items():
-        hdr = torch.stack([render_frame(room, intr, i, yaw, pitch, exposure, readout) for i in range(FRAMES)])
+    for name, (exposure, readout, sigma, portrait) in variants.items():
+        size = SIZE[::-1] if portrait else SIZE
+        intr = Intrinsics.from_hfov(size[0], size[1], HFOV_DEG)
+        hdr = torch.stack([render_frame(room, intr, i, yaw, pitch, exposure, readout, portrait) for i in range(FRAMES)])
         hdr = hdr * (0.18 / float(luminance(hdr).mean().clamp_min(1e-12)))
         ldr = tonemap(hdr, 0.0)
         if sigma > 0:
@@ -105,25 +115,26 @@ def evaluate(path: Path) -> dict:
         ldr = torch.round(ldr * 255) / 255
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            r = track_camera(ldr, Intrinsics.from_hfov(SIZE[0], SIZE[1], HFOV_DEG), refine_focal=True)
+            r = track_camera(ldr, intr, refine_focal=True)
         model = r.stats.get("rotation_model", {})
         clip = {"method": r.method, "frames_kept": len(r.kept), "cpu_s": round(r.cpu_seconds, 2),
                 "rotation_fallback": bool(r.stats.get("rotation_fallback")),
-                **{k: model.get(k) for k in ("median_px", "inlier_share", "parallax_px", "epipolar_px", "fits")}}
+                **{k: model.get(k) for k in ("median_px", "inlier_share", "parallax_px", "epipolar_px", "fits",
+                                             "readout_frames")}}
         if r.method not in ("static", "failed:static-fallback") and len(r.kept) > 1:
             rot, _ = pose_errors(r.poses, torch.from_numpy(true[r.kept]))
             clip["max_rotation_error_deg"] = round(rot, 3)
             clip["reprojection_error_px"] = r.reprojection_error_px
             focal = r.summary().get("refined_focal_px")
             if focal:
-                clip["refined_hfov_deg"] = round(math.degrees(2 * math.atan(SIZE[0] / 2 / float(focal))), 2)
+                clip["refined_hfov_deg"] = round(math.degrees(2 * math.atan(size[0] / 2 / float(focal))), 2)
         out["clips"][name] = clip
     return out
 
 
-def summarise(rows: list[dict]) -> dict:
+def summarise(rows: list[dict], variants: dict = VARIANTS) -> dict:
     out = {}
-    for name in VARIANTS:
+    for name in variants:
         clips = [r["clips"][name] for r in rows]
         errs = [c["max_rotation_error_deg"] for c in clips if "max_rotation_error_deg" in c]
         good = [e for e in errs if e <= MAX_ROTATION_ERROR_DEG]
@@ -142,19 +153,31 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split", default="dev", choices=("dev", "test"))
     p.add_argument("--hdri-dir", default=str(Path(__file__).resolve().parents[2] / "shared" / "hdri"))
     p.add_argument("--limit", type=int, default=None)
+    p.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated names of VARIANTS")
+    p.add_argument("--global-shutter", action="store_true", help="track without the rolling-shutter model")
     p.add_argument("-o", "--output", default=None)
     args = p.parse_args(argv)
     from bench.real_panoramas import read_manifest
 
     hdri = Path(args.hdri_dir)
     files = [hdri / r["filename"] for r in read_manifest(hdri) if r["split"] == args.split][: args.limit]
+    unknown = set(args.variants.split(",")) - set(VARIANTS)
+    if unknown:
+        p.error(f"unknown variants {sorted(unknown)}; known: {', '.join(VARIANTS)}")
+    variants = {k: v for k, v in VARIANTS.items() if k in args.variants.split(",")}
+    if args.global_shutter:
+        import functools
+
+        import core.tracking.track as track_module
+
+        track_module.estimate_rotations = functools.partial(track_module.estimate_rotations, rolling_shutter=False)
     rows = []
     for f in files:
-        rows.append(evaluate(f))
+        rows.append(evaluate(f, variants))
         print(json.dumps(rows[-1]), flush=True)
     report = {"split": args.split, "frames": FRAMES, "fps": FPS, "pan_deg": PAN_DEG, "size": list(SIZE),
               "exposure_s": EXPOSURE_S, "readout_s": READOUT_S, "noise_sigma": NOISE_SIGMA,
-              "summary": summarise(rows), "panoramas": rows}
+              "rolling_shutter_model": not args.global_shutter, "summary": summarise(rows, variants), "panoramas": rows}
     from bench.report import show_and_write
 
     show_and_write(report["summary"], report, args.output)

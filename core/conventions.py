@@ -126,6 +126,14 @@ def pixel_to_camera_ray(u: torch.Tensor, v: torch.Tensor, fx, fy, cx, cy) -> tor
     return torch.stack((x, y, -torch.ones_like(x)), dim=-1)
 
 
+def sensor_readout_direction(width: int, height: int) -> tuple[float, float]:
+    """The (u, v) axis along which a rolling shutter reads a frame: the frame's short side. Phone
+    and camera sensors are landscape and read their rows (the long side) one after another, and a
+    portrait video is that sensor turned by 90 deg, so the rows stay along the long side whatever
+    the display rotation. The sign (which end is read first) is left to the fit."""
+    return (1.0, 0.0) if height > width else (0.0, 1.0)
+
+
 def camera_point_to_pixel(p: torch.Tensor, fx, fy, cx, cy) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Camera-frame points [..., 3] -> (u, v, planar depth). Depth <= 0 means behind."""
     depth = -p[..., 2]

@@ -10,13 +10,17 @@ matched bearings b of frames i and j satisfy b_j = R_jᵀ R_i b_i with the c2w r
    of every inlier match through the two rotations; scipy least_squares with the Jacobian's
    sparsity, twice: all RANSAC inliers, then those within INLIER_PX of the first solution —
    a Huber loss converged ~10x slower in scipy's trust region for the same answer), optionally refining the focal length too (self-calibration: a pan of
-   more than ~15 deg fixes it).
-Frames that no pair links to frame 0 are dropped and listed. Whether the rotation model
-explains the motion is a model comparison (`parallax_evidence`, `RotationTrack.fits`): on the
-matches an essential matrix explains, a pure rotation leaves residuals at the noise level as
-the essential matrix does, while parallax from a moving centre leaves residuals that no
-rotation removes (an absolute threshold is not enough: a sideways walk past one wall looks
-like a turn to most features).
+   more than ~15 deg fixes it), and with a rolling shutter (`readout`, below).
+A phone reads its rows out one after another, so under a brisk pan each row sees the camera a
+little further on and the frame is sheared (or, held in portrait, stretched along the pan). The
+bundle adjustment models it with one number for the clip, the readout r (frame intervals from
+the first row to the last, signed: which end is read first): a pixel is read at
+tau = r (v - cy) / H frame intervals after the frame's centre, or r (u - cx) / W in a portrait
+frame (core.conventions.sensor_readout_direction: the short side), and the camera then is
+Exp(w tau) R, with w the frame's angular velocity from its neighbours' rotations (a constant
+turn over one frame). A global shutter fits r = 0; the rotations are the cameras at the frames'
+centre rows. Only that axis is fitted: a free readout along the long side of a landscape pan
+traded with the focal length on the benches (up to 4 deg worse; bench/handheld.py).
 """
 from __future__ import annotations
 
@@ -26,8 +30,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
+from scipy.spatial.transform import Rotation
 
 from core.camera import Intrinsics
+from core.conventions import sensor_readout_direction
 from core.tracking.features import PairMatches
 from core.tracking.geometry import bearings, kabsch, matrix_to_rotvec, project, rotvec_to_matrix
 
@@ -44,6 +50,8 @@ MAX_PAIR_OBSERVATIONS = 150
 FIT_RATIO = 2.0
 FIT_FLOOR_PX = 0.3
 FIT_INLIER_SHARE = 0.6
+# |readout| in frame intervals: a sensor cannot take longer to read out than a frame.
+MAX_READOUT = 1.0
 
 
 @dataclass
@@ -70,6 +78,14 @@ class RotationTrack:
     stats: dict = field(default_factory=dict)
     parallax_px: float = math.inf  # median rotation-model residual on the essential matrices' inliers
     epipolar_px: float = math.inf  # median essential-matrix (Sampson) residual on the same matches
+    readout: float = 0.0  # rolling shutter: frame intervals from the first row read to the last
+    readout_direction: tuple[float, float] = (0.0, 1.0)  # the axis the rows are read along (core.conventions)
+
+    def predict(self, xa: np.ndarray, a: np.ndarray, xb: np.ndarray, b: np.ndarray, k: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels xa of kept positions a seen in kept positions b (xb: where they were matched,
+        which dates the row that saw them): (pixels [M, 2], planar depth [M])."""
+        return _transfer(self.rotations, np.asarray(self.kept), self.readout, self.readout_direction, xa, a, xb, b, k,
+                         self.focal)
 
     @property
     def fits(self) -> bool:
@@ -149,37 +165,78 @@ class _Observations:
         return cls(np.concatenate(xa), np.concatenate(xb), np.concatenate(a), np.concatenate(b))
 
 
-def _unpack(params: np.ndarray, n_kept: int, k: Intrinsics, refine_focal: bool):
+def _neighbours(n_kept: int) -> tuple[np.ndarray, np.ndarray]:
+    """Kept positions before and after each one (itself at the ends): a frame's angular velocity
+    is the turn between them."""
+    n = np.arange(n_kept)
+    return np.maximum(n - 1, 0), np.minimum(n + 1, n_kept - 1)
+
+
+def angular_velocities(rots: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """[K, 3] world-frame rotation vectors per frame interval: central differences of the c2w
+    rotations over the kept frames (one-sided at the ends; frame numbers date them)."""
+    if len(rots) < 2:
+        return np.zeros((len(rots), 3))
+    prev, nxt = _neighbours(len(rots))
+    turn = matrix_to_rotvec(rots[nxt] @ np.transpose(rots[prev], (0, 2, 1)))
+    return turn / (frames[nxt] - frames[prev]).astype(np.float64)[:, None]
+
+
+def read_times(x: np.ndarray, readout: float, direction: tuple[float, float], k: Intrinsics) -> np.ndarray:
+    """Frame intervals after the frame's centre at which pixels [M, 2] were read."""
+    return readout * (direction[0] * (x[:, 0] - k.cx) / k.width + direction[1] * (x[:, 1] - k.cy) / k.height)
+
+
+def _transfer(rots, frames, readout, direction, xa, a, xb, b, k: Intrinsics, focal):
+    d = np.einsum("mij,mj->mi", rots[a], bearings(xa, k, focal))  # world rays at the frames' centres
+    if readout:
+        w = angular_velocities(rots, frames)
+        d = Rotation.from_rotvec(w[a] * read_times(xa, readout, direction, k)[:, None]).apply(d)
+        uv = xb
+        for _ in range(2):  # the row that sees it, dated where it is predicted (fixed point; xb only starts it)
+            uv, z = project(np.einsum("mji,mj->mi", rots[b], Rotation.from_rotvec(
+                -w[b] * read_times(uv, readout, direction, k)[:, None]).apply(d)), k, focal)
+        return uv, z
+    return project(np.einsum("mji,mj->mi", rots[b], d), k, focal)  # R_b^T d
+
+
+def _unpack(params: np.ndarray, n_kept: int, k: Intrinsics, refine_focal: bool, rolling: bool):
     rots = np.concatenate([np.eye(3)[None], rotvec_to_matrix(params[: 3 * (n_kept - 1)])])
-    return rots, (float(np.exp(params[-1])) * k.fx if refine_focal else None)
+    readout = float(params[3 * (n_kept - 1)]) if rolling else 0.0
+    return rots, (float(np.exp(params[-1])) * k.fx if refine_focal else None), readout
 
 
-def _residuals(params: np.ndarray, obs: _Observations, n_kept: int, k: Intrinsics, refine_focal: bool) -> np.ndarray:
-    rots, focal = _unpack(params, n_kept, k, refine_focal)
-    rel = np.einsum("mki,mkj->mij", rots[obs.b], rots[obs.a])  # R_b^T R_a per observation
-    p = np.einsum("mij,mj->mi", rel, bearings(obs.xa, k, focal))
-    uv, z = project(p, k, focal)
+def _residuals(params: np.ndarray, obs: _Observations, frames: np.ndarray, k: Intrinsics, refine_focal: bool,
+               rolling: bool, direction: tuple[float, float]) -> np.ndarray:
+    rots, focal, readout = _unpack(params, len(frames), k, refine_focal, rolling)
+    uv, z = _transfer(rots, frames, readout, direction, obs.xa, obs.a, obs.xb, obs.b, k, focal)
     res = uv - obs.xb
     res[z <= 0] = 1e3  # a match behind the other camera: as wrong as it gets
     return res.reshape(-1)
 
 
-def _sparsity(obs: _Observations, n_kept: int, refine_focal: bool):
-    cols = 3 * (n_kept - 1) + int(refine_focal)
+def _sparsity(obs: _Observations, n_kept: int, refine_focal: bool, rolling: bool):
+    """Each residual moves with its two frames' rotations, and with a rolling shutter with
+    their neighbours' too (the angular velocities), the readout and the focal length."""
+    globals_ = int(rolling) + int(refine_focal)
+    cols = 3 * (n_kept - 1) + globals_
     A = lil_matrix((2 * len(obs.a), cols), dtype=int)
     rows = np.arange(2 * len(obs.a))
+    prev, nxt = _neighbours(n_kept)
     for frames in (obs.a, obs.b):
-        f = np.repeat(frames, 2)
-        for c in range(3):
+        for near in ((frames, prev[frames], nxt[frames]) if rolling else (frames,)):
+            f = np.repeat(near, 2)
             sel = f > 0
-            A[rows[sel], 3 * (f[sel] - 1) + c] = 1
-    if refine_focal:
-        A[:, cols - 1] = 1
+            for c in range(3):
+                A[rows[sel], 3 * (f[sel] - 1) + c] = 1
+    if globals_:
+        A[:, cols - globals_:] = 1
     return A
 
 
 def estimate_rotations(pairs: list[PairMatches], n_frames: int, k: Intrinsics, refine_focal: bool = False,
-                       max_nfev: int = 30) -> RotationTrack:
+                       max_nfev: int = 30, rolling_shutter: bool = True) -> RotationTrack:
+    """Rotations of a pan's frames (module docstring); `rolling_shutter=False` fits a global one."""
     rel = [r for r in (relative_rotation(m, k, seed=m.i * 1000 + m.j) for m in pairs) if r is not None]
     init, dropped = _spanning_tree(n_frames, rel)
     kept = sorted(init)
@@ -187,22 +244,29 @@ def estimate_rotations(pairs: list[PairMatches], n_frames: int, k: Intrinsics, r
     matches = sum(len(r.xi) for r in rel)
     if len(kept) < 2 or not rel:
         return RotationTrack(np.eye(3)[None], [0], dropped, k.fx, math.inf, math.inf, 0.0, 0, 0)
+    rolling = rolling_shutter and len(kept) > 2  # two frames: no angular velocity to shear by
+    direction = sensor_readout_direction(k.width, k.height)
+    frames = np.asarray(kept)
     x0 = matrix_to_rotvec(np.stack([init[f] for f in kept[1:]])).reshape(-1)
+    lower, upper = np.full(len(x0), -np.inf), np.full(len(x0), np.inf)
+    if rolling:
+        x0, lower, upper = np.r_[x0, 0.0], np.r_[lower, -MAX_READOUT], np.r_[upper, MAX_READOUT]
     if refine_focal:
-        x0 = np.concatenate([x0, [0.0]])
+        x0, lower, upper = np.r_[x0, 0.0], np.r_[lower, -np.inf], np.r_[upper, np.inf]
     obs = _Observations.build(kept, rel)
     x, nfev = x0, 0
     for _ in range(BA_ROUNDS):  # least squares on the inliers, re-select, again
-        sol = least_squares(_residuals, x, jac_sparsity=_sparsity(obs, len(kept), refine_focal), x_scale=1.0,
-                            max_nfev=max_nfev, args=(obs, len(kept), k, refine_focal))
+        sol = least_squares(_residuals, x, jac_sparsity=_sparsity(obs, len(kept), refine_focal, rolling), x_scale=1.0,
+                            bounds=(lower, upper), max_nfev=max_nfev, args=(obs, frames, k, refine_focal, rolling, direction))
         x, nfev = sol.x, nfev + sol.nfev
         keep = np.linalg.norm(sol.fun.reshape(-1, 2), axis=1) < INLIER_PX
         if keep.all() or keep.sum() < MIN_INLIERS:
             break
         obs = _Observations(obs.xa[keep], obs.xb[keep], obs.a[keep], obs.b[keep])
-    err = np.linalg.norm(_residuals(x, _Observations.build(kept, rel), len(kept), k, refine_focal).reshape(-1, 2), axis=1)
+    err = np.linalg.norm(_residuals(x, _Observations.build(kept, rel), frames, k, refine_focal, rolling, direction)
+                         .reshape(-1, 2), axis=1)
     inl = err < INLIER_PX
-    rots, focal = _unpack(x, len(kept), k, refine_focal)
+    rots, focal, readout = _unpack(x, len(kept), k, refine_focal, rolling)
     focal = focal or k.fx
     inlier_share = float(inl.mean())  # of the RANSAC inliers the BA used, both directions
     track = RotationTrack(
@@ -210,6 +274,7 @@ def estimate_rotations(pairs: list[PairMatches], n_frames: int, k: Intrinsics, r
         median_px=float(np.median(err)), rms_px=float(np.sqrt(np.mean(err[inl] ** 2))) if inl.any() else math.inf,
         inlier_share=inlier_share, residuals=int(len(err)), pairs=len(rel),
         stats={"ba_evaluations": int(nfev), "matches": int(matches)},
+        readout=readout, readout_direction=direction,
     )
     track.parallax_px, track.epipolar_px = parallax_evidence(pairs, track, k)
     return track
@@ -246,8 +311,8 @@ def parallax_evidence(pairs: list[PairMatches], track: RotationTrack, k: Intrins
         if inl.sum() < MIN_INLIERS:
             continue
         e_res.append(_sampson_px(E, a[inl], b[inl], k.fx))
-        R = track.rotations[pos[m.j]].T @ track.rotations[pos[m.i]]
-        uv, _ = project(bearings(m.xi[inl], k, track.focal) @ R.T, k, track.focal)
+        n = int(inl.sum())
+        uv, _ = track.predict(m.xi[inl], np.full(n, pos[m.i]), m.xj[inl], np.full(n, pos[m.j]), k)
         rot_res.append(np.linalg.norm(uv - m.xj[inl], axis=1))
     if not e_res:
         return math.inf, math.inf

@@ -12,10 +12,11 @@
    assumption.
 4. If structure from motion fails too, or registers fewer frames than the rotation track,
    the rotation track still stands when it registered most frames and explains nearly every
-   match within a pixel (`rotation_fallback_ok`: a rolling shutter's shear fails the model
-   comparison of step 2 on brisk handheld pans; such a pan has no baseline to reconstruct,
-   or a reconstruction takes the shear for one and loses frames): method "rotation", with a
-   warning.
+   match within a pixel (`rotation_fallback_ok`: on a noisy, blurred handheld pan the rotation
+   model's residual, a point-to-point distance, grows against the essential matrix's, a
+   point-to-line one, until it fails the model comparison of step 2; such a pan has no
+   baseline to reconstruct, or a reconstruction takes its residual shear for one and loses
+   frames): method "rotation", with a warning.
 5. If every method fails: identity poses, method "failed:static-fallback", and a warning.
    The caller still succeeds (a capture is never refused for being hard to track).
 World = the first kept frame's camera frame (core.conventions). Frames that could not be
@@ -134,7 +135,8 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
     rot = estimate_rotations(pairs, T, k, refine_focal=refine_focal)
     stats = {"rotation_model": {"median_px": round(rot.median_px, 4), "inlier_share": round(rot.inlier_share, 4),
                                 "parallax_px": round(rot.parallax_px, 4), "epipolar_px": round(rot.epipolar_px, 4),
-                                "fits": rot.fits, "pairs": rot.pairs}}
+                                "fits": rot.fits, "pairs": rot.pairs, "readout_frames": round(rot.readout, 4),
+                                "readout_direction": list(rot.readout_direction)}}
     size = (k.width, k.height)
     if rot.fits and len(rot.kept) >= MIN_KEPT_FRACTION * T:
         focal = rot.focal * full.width / k.width if refine_focal else None
@@ -153,7 +155,7 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
             failures.append(f"{name}: registered {0 if track is None else len(track.kept)} of {T} frames")
             continue
         if len(track.kept) < len(rot.kept) and rotation_fallback_ok(rot, T):
-            # a sheared pan: the reconstruction took the rolling shutter for a baseline and lost frames
+            # a pan: the reconstruction took what the rotation left (noise, shear) for a baseline and lost frames
             failures.append(f"{name}: registered {len(track.kept)} of {T} frames, the rotation {len(rot.kept)}")
             break
         scale = None
@@ -170,7 +172,7 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
     if rotation_fallback_ok(rot, T):
         focal = rot.focal * full.width / k.width if refine_focal else None
         warn = [f"camera tracking: a pure rotation left residuals above an essential matrix's ({rot.parallax_px:.2f} vs "
-                f"{rot.epipolar_px:.2f} px: some parallax, or a rolling shutter) and structure from motion did not "
+                f"{rot.epipolar_px:.2f} px: some parallax, or blur and noise) and structure from motion did not "
                 f"register the frames as well ({'; '.join(failures)}): using the rotation; give poses (params.poses) "
                 "if the camera moved far"] + _dropped_warning(rot.dropped)
         return TrackingResult(_poses_from_rotations(rot.rotations), rot.kept, rot.dropped, "rotation", motion,
@@ -184,9 +186,10 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
 
 def rotation_fallback_ok(rot, T: int) -> bool:
     """When structure from motion cannot register a clip, is the rotation track still the
-    camera? A rolling shutter under a brisk pan shears each frame, so a pure rotation leaves
-    residuals two to three times an essential matrix's and fails the model comparison
-    (RotationTrack.fits), while there is no baseline to reconstruct: the frames' motion is
+    camera? Under motion blur and noise a rotation's point-to-point residual grows to two to
+    three times an essential matrix's point-to-line one and fails the model comparison
+    (RotationTrack.fits, which also models the rolling shutter), while there is no baseline to
+    reconstruct: the frames' motion is
     still nearly all rotation when it registers most frames, explains nearly every match, its
     median residual stays within a pixel and within FALLBACK_RATIO of the essential matrix's,
     where a walk's parallax leaves 5-10 times (bench/handheld.py). A static camera is the
