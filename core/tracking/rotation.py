@@ -20,7 +20,7 @@ frame (core.conventions.sensor_readout_direction: the short side), and the camer
 Exp(w tau) R, with w the frame's angular velocity from its neighbours' rotations (a constant
 turn over one frame). A global shutter fits r = 0; the rotations are the cameras at the frames'
 centre rows. Only that axis is fitted: a free readout along the long side of a landscape pan
-traded with the focal length on the benches (up to 4 deg worse; bench/handheld.py).
+traded with the focal length in trials on dev pans and made the rotations worse.
 """
 from __future__ import annotations
 

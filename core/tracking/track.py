@@ -42,9 +42,9 @@ MIN_KEPT_FRACTION = 0.5  # a track that registers fewer frames than this is a fa
 # The rotation track stands in when structure from motion fails (rotation_fallback_ok): it must
 # explain this share of the matches with a median residual within this many pixels (analysis
 # resolution), and may exceed an essential matrix's residual by up to FALLBACK_RATIO. The handheld
-# pans the fallback took (bench/results/handheld/): inliers 0.95-1.00, medians 0.34-0.84 px,
-# ratios 2.0-2.3 with a rolling shutter alone and 2.0-3.0 with blur and noise too (one dev clip at
-# 2.99); walks with parallax 4.8-10 (core.tracking.rotation).
+# pans the fallback took (bench/results/handheld/, the rotation model fitting the rolling shutter):
+# inliers 0.95-1.00, medians 0.49-0.82 px, ratios 2.06-2.76, all with blur and noise (before that
+# model, up to 2.99); walks with parallax 4.8-10 (core.tracking.rotation).
 FALLBACK_INLIER_SHARE = 0.9
 FALLBACK_MAX_MEDIAN_PX = 1.0
 FALLBACK_RATIO = 3.0
