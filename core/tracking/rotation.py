@@ -18,9 +18,12 @@ the first row to the last, signed: which end is read first): a pixel is read at
 tau = r (v - cy) / H frame intervals after the frame's centre, or r (u - cx) / W in a portrait
 frame (core.conventions.sensor_readout_direction: the short side), and the camera then is
 Exp(w tau) R, with w the frame's angular velocity from its neighbours' rotations (a constant
-turn over one frame). A global shutter fits r = 0; the rotations are the cameras at the frames'
-centre rows. Only that axis is fitted: a free readout along the long side of a landscape pan
-traded with the focal length in trials on dev pans and made the rotations worse.
+turn over one frame). The row that sees a match is dated where the model predicts it: dating it
+where the match was found let the noise push the readout up. A global shutter fits r = 0; the
+rotations are the cameras at the frames' centre rows. The readout is fitted from the
+global-shutter solution, on clips that one leaves close to a pan (ROLLING_MAX_RATIO), and only
+along the short side: a free readout along the long side of a landscape pan traded with the
+focal length in trials on dev pans and made the rotations worse.
 """
 from __future__ import annotations
 
@@ -52,6 +55,11 @@ FIT_FLOOR_PX = 0.3
 FIT_INLIER_SHARE = 0.6
 # |readout| in frame intervals: a sensor cannot take longer to read out than a frame.
 MAX_READOUT = 1.0
+# The rolling shutter is fitted where the global-shutter rotations leave at most this many times
+# the essential matrix's residual: a rolling shutter with blur and noise raised the handheld pans
+# to 3.0 (bench/results/handheld/ before the readout was modelled), a walk's parallax scores
+# 4.8-10; on a walk the readout only ran to its bound, at many times the bundle adjustment's cost.
+ROLLING_MAX_RATIO = 4.0
 
 
 @dataclass
@@ -82,8 +90,8 @@ class RotationTrack:
     readout_direction: tuple[float, float] = (0.0, 1.0)  # the axis the rows are read along (core.conventions)
 
     def predict(self, xa: np.ndarray, a: np.ndarray, xb: np.ndarray, b: np.ndarray, k: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-        """Pixels xa of kept positions a seen in kept positions b (xb: where they were matched,
-        which dates the row that saw them): (pixels [M, 2], planar depth [M])."""
+        """Pixels xa of kept positions a seen in kept positions b (xb: where they were matched, the
+        start of the search for the row that saw them): (pixels [M, 2], planar depth [M])."""
         return _transfer(self.rotations, np.asarray(self.kept), self.readout, self.readout_direction, xa, a, xb, b, k,
                          self.focal)
 
@@ -236,23 +244,39 @@ def _sparsity(obs: _Observations, n_kept: int, refine_focal: bool, rolling: bool
 
 def estimate_rotations(pairs: list[PairMatches], n_frames: int, k: Intrinsics, refine_focal: bool = False,
                        max_nfev: int = 30, rolling_shutter: bool = True) -> RotationTrack:
-    """Rotations of a pan's frames (module docstring); `rolling_shutter=False` fits a global one."""
+    """Rotations of a pan's frames (module docstring): a global shutter first, then, from it, the
+    rolling shutter where the motion is a pan at all (ROLLING_MAX_RATIO); `rolling_shutter=False`
+    stops at the global one."""
     rel = [r for r in (relative_rotation(m, k, seed=m.i * 1000 + m.j) for m in pairs) if r is not None]
     init, dropped = _spanning_tree(n_frames, rel)
     kept = sorted(init)
     rel = [r for r in rel if r.i in init and r.j in init]
-    matches = sum(len(r.xi) for r in rel)
     if len(kept) < 2 or not rel:
         return RotationTrack(np.eye(3)[None], [0], dropped, k.fx, math.inf, math.inf, 0.0, 0, 0)
-    rolling = rolling_shutter and len(kept) > 2  # two frames: no angular velocity to shear by
+    x0 = matrix_to_rotvec(np.stack([init[f] for f in kept[1:]])).reshape(-1)
+    if refine_focal:
+        x0 = np.r_[x0, 0.0]
+    essential = essential_evidence(pairs, k)
+    track, x = _adjust(x0, kept, dropped, rel, k, refine_focal, False, max_nfev)
+    track.parallax_px, track.epipolar_px = parallax_evidence(essential, track, k)
+    if not (rolling_shutter and len(kept) > 2 and track.parallax_px <= ROLLING_MAX_RATIO * track.epipolar_px):
+        return track  # two frames have no angular velocity to shear by; a walk is no pan either way
+    x1 = np.r_[x[: 3 * (len(kept) - 1)], 0.0, x[3 * (len(kept) - 1):]]  # readout 0 before the focal
+    rolling, _ = _adjust(x1, kept, dropped, rel, k, refine_focal, True, max_nfev)
+    rolling.stats["ba_evaluations"] += track.stats["ba_evaluations"]
+    rolling.parallax_px, rolling.epipolar_px = parallax_evidence(essential, rolling, k)
+    return rolling
+
+
+def _adjust(x0: np.ndarray, kept: list[int], dropped: list[int], rel: list[RelativeRotation], k: Intrinsics,
+            refine_focal: bool, rolling: bool, max_nfev: int) -> tuple[RotationTrack, np.ndarray]:
+    """The bundle adjustment from x0 (rotation vectors of kept[1:], the readout if `rolling`,
+    log focal ratio if `refine_focal`): the track (without the parallax evidence) and its parameters."""
     direction = sensor_readout_direction(k.width, k.height)
     frames = np.asarray(kept)
-    x0 = matrix_to_rotvec(np.stack([init[f] for f in kept[1:]])).reshape(-1)
     lower, upper = np.full(len(x0), -np.inf), np.full(len(x0), np.inf)
     if rolling:
-        x0, lower, upper = np.r_[x0, 0.0], np.r_[lower, -MAX_READOUT], np.r_[upper, MAX_READOUT]
-    if refine_focal:
-        x0, lower, upper = np.r_[x0, 0.0], np.r_[lower, -np.inf], np.r_[upper, np.inf]
+        lower[3 * (len(kept) - 1)], upper[3 * (len(kept) - 1)] = -MAX_READOUT, MAX_READOUT
     obs = _Observations.build(kept, rel)
     x, nfev = x0, 0
     for _ in range(BA_ROUNDS):  # least squares on the inliers, re-select, again
@@ -267,17 +291,15 @@ def estimate_rotations(pairs: list[PairMatches], n_frames: int, k: Intrinsics, r
                          .reshape(-1, 2), axis=1)
     inl = err < INLIER_PX
     rots, focal, readout = _unpack(x, len(kept), k, refine_focal, rolling)
-    focal = focal or k.fx
-    inlier_share = float(inl.mean())  # of the RANSAC inliers the BA used, both directions
     track = RotationTrack(
-        rotations=rots, kept=kept, dropped=dropped, focal=focal,
+        rotations=rots, kept=kept, dropped=dropped, focal=focal or k.fx,
         median_px=float(np.median(err)), rms_px=float(np.sqrt(np.mean(err[inl] ** 2))) if inl.any() else math.inf,
-        inlier_share=inlier_share, residuals=int(len(err)), pairs=len(rel),
-        stats={"ba_evaluations": int(nfev), "matches": int(matches)},
+        inlier_share=float(inl.mean()),  # of the RANSAC inliers the BA used, both directions
+        residuals=int(len(err)), pairs=len(rel),
+        stats={"ba_evaluations": int(nfev), "matches": int(sum(len(r.xi) for r in rel))},
         readout=readout, readout_direction=direction,
     )
-    track.parallax_px, track.epipolar_px = parallax_evidence(pairs, track, k)
-    return track
+    return track, x
 
 
 def _sampson_px(E: np.ndarray, a: np.ndarray, b: np.ndarray, f: float) -> np.ndarray:
@@ -290,17 +312,25 @@ def _sampson_px(E: np.ndarray, a: np.ndarray, b: np.ndarray, f: float) -> np.nda
     return f * np.sqrt(num / np.maximum(den, 1e-18))
 
 
-def parallax_evidence(pairs: list[PairMatches], track: RotationTrack, k: Intrinsics) -> tuple[float, float]:
-    """(median rotation-model residual, median essential-matrix residual) in pixels over the
-    matches an essential matrix explains (RANSAC), pooled over the pairs both models saw.
-    A pure rotation fits both to the noise level (E is then free in its translation); parallax
-    raises only the rotation model's residual, which no choice of rotation removes."""
+@dataclass(frozen=True)
+class EssentialFit:
+    """One pair's matches that an essential matrix explains (RANSAC) and their Sampson residuals."""
+
+    i: int
+    j: int
+    xi: np.ndarray
+    xj: np.ndarray
+    sampson_px: np.ndarray
+
+
+def essential_evidence(pairs: list[PairMatches], k: Intrinsics) -> list[EssentialFit]:
+    """Per pair with enough matches, the essential matrix's inliers (fitted once per clip: the
+    global and the rolling-shutter track are both compared with them)."""
     import cv2
 
-    pos = {f: n for n, f in enumerate(track.kept)}
-    rot_res, e_res = [], []
+    out = []
     for m in pairs:
-        if len(m) < MIN_INLIERS or m.i not in pos or m.j not in pos:
+        if len(m) < MIN_INLIERS:
             continue
         a = np.stack(((m.xi[:, 0] - k.cx) / k.fx, (m.xi[:, 1] - k.cy) / k.fy), 1)
         b = np.stack(((m.xj[:, 0] - k.cx) / k.fx, (m.xj[:, 1] - k.cy) / k.fy), 1)
@@ -310,10 +340,24 @@ def parallax_evidence(pairs: list[PairMatches], track: RotationTrack, k: Intrins
         inl = mask.ravel() > 0
         if inl.sum() < MIN_INLIERS:
             continue
-        e_res.append(_sampson_px(E, a[inl], b[inl], k.fx))
-        n = int(inl.sum())
-        uv, _ = track.predict(m.xi[inl], np.full(n, pos[m.i]), m.xj[inl], np.full(n, pos[m.j]), k)
-        rot_res.append(np.linalg.norm(uv - m.xj[inl], axis=1))
+        out.append(EssentialFit(m.i, m.j, m.xi[inl], m.xj[inl], _sampson_px(E, a[inl], b[inl], k.fx)))
+    return out
+
+
+def parallax_evidence(essential: list[EssentialFit], track: RotationTrack, k: Intrinsics) -> tuple[float, float]:
+    """(median rotation-model residual, median essential-matrix residual) in pixels over the
+    matches an essential matrix explains, pooled over the pairs both models saw.
+    A pure rotation fits both to the noise level (E is then free in its translation); parallax
+    raises only the rotation model's residual, which no choice of rotation removes."""
+    pos = {f: n for n, f in enumerate(track.kept)}
+    rot_res, e_res = [], []
+    for e in essential:
+        if e.i not in pos or e.j not in pos:
+            continue
+        n = len(e.xi)
+        uv, _ = track.predict(e.xi, np.full(n, pos[e.i]), e.xj, np.full(n, pos[e.j]), k)
+        rot_res.append(np.linalg.norm(uv - e.xj, axis=1))
+        e_res.append(e.sampson_px)
     if not e_res:
         return math.inf, math.inf
     return float(np.median(np.concatenate(rot_res))), float(np.median(np.concatenate(e_res)))
