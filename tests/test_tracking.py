@@ -217,8 +217,8 @@ def _rolling_pan(size, portrait: bool):
 def test_a_rolling_shutter_pan_is_tracked_as_a_rotation_with_its_readout():
     """Each frame of the pan is sheared. The rotation model with a rolling shutter explains it
     (no fallback needed), finds the readout (1/30 s at 10 fps: a third of a frame interval) and
-    keeps every camera within half a degree (the global-shutter model: 0.75 deg, and it failed
-    the model comparison, bench/handheld.py)."""
+    keeps every camera within half a degree (without the readout, the model comparison failed on
+    such pans and they relied on the fallback: bench/README.md section 7)."""
     from bench import handheld
 
     ldr, intr, true = _rolling_pan(handheld.SIZE, portrait=False)
@@ -235,8 +235,8 @@ def test_a_rolling_shutter_pan_is_tracked_as_a_rotation_with_its_readout():
 def test_a_portrait_pan_is_read_along_the_pan_and_its_stretch_is_not_taken_for_rotation():
     """Held upright, the sensor's rows are vertical and the readout runs along the pan: each
     frame is stretched, not sheared, which a global-shutter rotation model absorbs silently (it
-    still "fits") with 2.5 deg of error over the pan. Read along the short side, the readout
-    comes out at a third of a frame interval and the cameras within a degree."""
+    still "fits") with degrees of error over the pan (asserted below). Read along the short
+    side, the readout comes out at a third of a frame interval and the cameras within a degree."""
     from bench import handheld
     from core.tracking.features import analysis_frames, extract, match, pair_schedule
     from core.tracking.rotation import estimate_rotations
