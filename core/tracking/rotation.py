@@ -87,7 +87,7 @@ class RotationTrack:
     parallax_px: float = math.inf  # median rotation-model residual on the essential matrices' inliers
     epipolar_px: float = math.inf  # median essential-matrix (Sampson) residual on the same matches
     readout: float = 0.0  # rolling shutter: frame intervals from the first row read to the last
-    readout_direction: tuple[float, float] = (0.0, 1.0)  # the axis the rows are read along (core.conventions)
+    readout_direction: tuple[float, float] | None = None  # the axis the rows are read along (core.conventions)
 
     def predict(self, xa: np.ndarray, a: np.ndarray, xb: np.ndarray, b: np.ndarray, k: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
         """Pixels xa of kept positions a seen in kept positions b (xb: where they were matched, the

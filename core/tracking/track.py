@@ -136,7 +136,7 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
     stats = {"rotation_model": {"median_px": round(rot.median_px, 4), "inlier_share": round(rot.inlier_share, 4),
                                 "parallax_px": round(rot.parallax_px, 4), "epipolar_px": round(rot.epipolar_px, 4),
                                 "fits": rot.fits, "pairs": rot.pairs, "readout_frames": round(rot.readout, 4),
-                                "readout_direction": list(rot.readout_direction)}}
+                                "readout_direction": rot.readout_direction and list(rot.readout_direction)}}
     size = (k.width, k.height)
     if rot.fits and len(rot.kept) >= MIN_KEPT_FRACTION * T:
         focal = rot.focal * full.width / k.width if refine_focal else None
@@ -189,11 +189,11 @@ def rotation_fallback_ok(rot, T: int) -> bool:
     camera? Under motion blur and noise a rotation's point-to-point residual grows to two to
     three times an essential matrix's point-to-line one and fails the model comparison
     (RotationTrack.fits, which also models the rolling shutter), while there is no baseline to
-    reconstruct: the frames' motion is
-    still nearly all rotation when it registers most frames, explains nearly every match, its
-    median residual stays within a pixel and within FALLBACK_RATIO of the essential matrix's,
-    where a walk's parallax leaves 5-10 times (bench/handheld.py). A static camera is the
-    worse answer then: every frame's view at one heading."""
+    reconstruct: the frames' motion is still nearly all rotation when it registers most frames,
+    explains nearly every match, its median residual stays within a pixel and within
+    FALLBACK_RATIO of the essential matrix's, where a walk's parallax leaves 5-10 times
+    (bench/handheld.py). A static camera is the worse answer then: every frame's view at one
+    heading."""
     return (len(rot.kept) >= MIN_KEPT_FRACTION * T and rot.inlier_share >= FALLBACK_INLIER_SHARE
             and rot.median_px <= FALLBACK_MAX_MEDIAN_PX and rot.parallax_px <= FALLBACK_RATIO * rot.epipolar_px)
 
