@@ -122,7 +122,7 @@ def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
                 **{k: model.get(k) for k in ("median_px", "inlier_share", "parallax_px", "epipolar_px", "fits",
                                              "readout_frames")}}
         if r.method not in ("static", "failed:static-fallback") and len(r.kept) > 1:
-            rot, _ = pose_errors(r.poses, torch.from_numpy(true[r.kept]))
+            rot, _ = pose_errors(r.poses, torch.from_numpy(relative_to_first(true[r.kept])[0]))  # world = the first kept frame
             clip["max_rotation_error_deg"] = round(rot, 3)
             clip["reprojection_error_px"] = r.reprojection_error_px
             focal = r.summary().get("refined_focal_px")

@@ -376,3 +376,24 @@ def test_assumed_room_around_a_given_first_camera_stands_upright_in_front_of_it(
     b2 = assumed_room(first_camera=pitched)
     assert torch.allclose(b2.axes[:, 1], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
     assert float(b2.lo[1]) == pytest.approx(0.4 - 1.5)
+
+
+def test_a_pan_whose_first_frame_matches_nothing_is_tracked_from_the_next(pan):
+    """A first frame that is black (a lens cap, a cut, a frame lost to the encoder) matches
+    nothing. Motion detection and the rotation's spanning tree used to start at frame 0, so the
+    whole pan was read as a static camera; now both start at the first frame that matches."""
+    ldr, _, intr, poses = pan
+    ldr = ldr.clone()
+    ldr[0] = 0.0
+    r = track_camera(ldr, intr, use_pycolmap=False)
+    assert r.motion.moving and r.motion.evidence["reference_frame"] == 1, r.motion.reason
+    assert r.method == "rotation" and r.kept == list(range(1, 12)) and r.dropped == [0]
+    true, _ = relative_to_first(torch.stack(poses[1:]).numpy())
+    rot, _ = pose_errors(r.poses, torch.from_numpy(true))
+    assert rot < 1.0, rot
+
+
+def test_a_clip_whose_motion_cannot_be_judged_says_so():
+    frames = torch.full((3, 60, 80, 3), 0.5)
+    r = track_camera(frames, Intrinsics.from_hfov(80, 60, 60.0))
+    assert r.method == "static" and any("too few matched features" in w and "params.poses" in w for w in r.warnings)

@@ -2,10 +2,12 @@
 
 Statistic (docs/engine.md, "Camera tracking"):
 1. SIFT features per frame at the analysis resolution (core.tracking.features).
-2. For every frame t > 0, the MEDIAN displacement of the features matched between frame 0
-   and frame t (mutual ratio-test matches, at least MIN_MATCHES). The median ignores a
+2. The reference is the first frame that matches its successor (at least MIN_MATCHES mutual
+   ratio-test matches): frame 0 unless it is dark, blurred or cut; frames before it are listed
+   as without matches. For every later frame t, the MEDIAN displacement of the features
+   matched between the reference and frame t. The median ignores a
    minority of moving objects and mismatches; a lighting change moves no feature.
-   When frame t no longer overlaps frame 0 enough, its displacement is chained through
+   When frame t no longer overlaps the reference enough, its displacement is chained through
    frame t - 1 (displacement(t - 1) + median displacement between t - 1 and t).
    Frames with too few matches either way (dark, blurred, a cut) are left out and listed.
 3. statistic = max over frames of that displacement / image width (resolution-free).
@@ -56,11 +58,12 @@ def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
     T = len(features)
     if T < 2:
         return MotionDecision(False, 0.0, 0.0, "single frame: camera treated as static", {"frames": T})
+    ref = next((t for t in range(T - 1) if len(match(features[t], features[t + 1], t, t + 1)) >= MIN_MATCHES), 0)
     disp = np.full(T, np.nan)
-    disp[0] = 0.0
-    noise, matches, chained, lost = [], [0] * T, [], []
-    for t in range(1, T):
-        m = match(features[0], features[t], 0, t)
+    disp[ref] = 0.0
+    noise, matches, chained, lost = [], [0] * T, [], list(range(ref))
+    for t in range(ref + 1, T):
+        m = match(features[ref], features[t], ref, t)
         matches[t] = len(m)
         if len(m) >= MIN_MATCHES:
             disp[t], s = _median_displacement(m.xi, m.xj)
@@ -76,7 +79,7 @@ def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
             lost.append(t)
     finite = disp[np.isfinite(disp)]
     evidence = {"analysis_width": int(width), "frames": T, "displacement_px": [round(float(d), 3) for d in disp],
-                "matches_to_first": matches, "chained_frames": chained, "frames_without_matches": lost}
+                "reference_frame": ref, "matches_to_reference": matches, "chained_frames": chained, "frames_without_matches": lost}
     if len(finite) < 2:
         return MotionDecision(False, float("nan"), float("nan"),
                               "too few matched features to judge camera motion: camera treated as static", evidence)

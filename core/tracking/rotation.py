@@ -5,7 +5,8 @@ matched bearings b of frames i and j satisfy b_j = R_jᵀ R_i b_i with the c2w r
 1. every scheduled pair: a relative rotation from matched bearings (2-point Kabsch inside
    RANSAC; inlier threshold INLIER_PX reprojected);
 2. initial rotations by walking the maximum spanning tree of the pair graph (weights =
-   inliers) from frame 0 (R_0 = I: world = first camera frame);
+   inliers) over the largest set of frames the pairs connect, from its first frame (R = I there:
+   world = the first kept camera frame);
 3. a small bundle adjustment (Brown & Lowe's panorama formulation: symmetric transfer error
    of every inlier match through the two rotations; scipy least_squares with the Jacobian's
    sparsity, twice: all RANSAC inliers, then those within INLIER_PX of the first solution —
@@ -135,8 +136,11 @@ def relative_rotation(m: PairMatches, k: Intrinsics, seed: int = 0) -> RelativeR
 
 
 def _spanning_tree(n: int, rel: list[RelativeRotation]) -> tuple[dict[int, np.ndarray], list[int]]:
-    """Initial rotations: Prim's maximum spanning tree from frame 0 over inlier counts."""
-    R = {0: np.eye(3)}
+    """Initial rotations: Prim's maximum spanning tree over inlier counts, over the largest set of
+    frames the pairs connect (ties: the earliest), from its first frame. Not from frame 0 as such:
+    a first frame that matched nothing (dark, blurred, a cut) must not lose the clip."""
+    root = min(_components(n, rel), key=lambda c: (-len(c), min(c)))[0] if rel else 0
+    R = {root: np.eye(3)}
     edges = sorted(rel, key=lambda r: -len(r.xi))
     grown = True
     while grown:
@@ -151,6 +155,24 @@ def _spanning_tree(n: int, rel: list[RelativeRotation]) -> tuple[dict[int, np.nd
             grown = True
             break
     return R, sorted(set(range(n)) - set(R))
+
+
+def _components(n: int, rel: list[RelativeRotation]) -> list[list[int]]:
+    """The frames the pairs connect, as sorted lists (union-find)."""
+    parent = list(range(n))
+
+    def find(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for r in rel:
+        parent[find(r.i)] = find(r.j)
+    groups: dict[int, list[int]] = {}
+    for f in range(n):
+        groups.setdefault(find(f), []).append(f)
+    return list(groups.values())
 
 
 @dataclass(frozen=True)
@@ -321,6 +343,7 @@ class EssentialFit:
     xi: np.ndarray
     xj: np.ndarray
     sampson_px: np.ndarray
+    E: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))  # normalised coordinates, x_j^T E x_i = 0
 
 
 def essential_evidence(pairs: list[PairMatches], k: Intrinsics) -> list[EssentialFit]:
@@ -340,7 +363,7 @@ def essential_evidence(pairs: list[PairMatches], k: Intrinsics) -> list[Essentia
         inl = mask.ravel() > 0
         if inl.sum() < MIN_INLIERS:
             continue
-        out.append(EssentialFit(m.i, m.j, m.xi[inl], m.xj[inl], _sampson_px(E, a[inl], b[inl], k.fx)))
+        out.append(EssentialFit(m.i, m.j, m.xi[inl], m.xj[inl], _sampson_px(E, a[inl], b[inl], k.fx), E))
     return out
 
 

@@ -2,7 +2,9 @@
 
 `track_camera(frames, intrinsics, depth=None)`:
 1. SIFT features at the analysis resolution; `detect_motion` decides whether the camera
-   moves (statistic and evidence recorded). Static -> identity poses, method "static".
+   moves (statistic and evidence recorded). Static -> identity poses, method "static" (with a
+   warning when too few features matched to judge: a pan would then be read as the light
+   changing).
 2. Moving: rotation about a fixed centre first (core.tracking.rotation). When the rotation
    model explains the matches (`RotationTrack.fits`), the poses are those rotations with
    zero translation: method "rotation", no scale needed.
@@ -124,6 +126,8 @@ def track_camera(frames: torch.Tensor, intrinsics: Intrinsics, depth: torch.Tens
     result = TrackingResult(_identity(T), list(range(T)), [], "static", motion, analysis_size=(k.width, k.height))
     if motion.moving:
         result = _track_moving(images, features, k, intrinsics, depth, refine_focal, use_pycolmap, motion)
+    elif not np.isfinite(motion.statistic):  # could not be judged: say so, a moving camera would be misread
+        result.warnings.append(f"{motion.reason}; if the camera moved, give poses (params.poses) or a capture-app export")
     result.cpu_seconds = time.process_time() - t_cpu
     return result
 
