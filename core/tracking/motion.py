@@ -87,6 +87,7 @@ def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
     noise = [n for n in noise if np.isfinite(n)]
     sigma = float(min(noise)) / width if noise else 0.0
     thr = max(MIN_MOTION_FRACTION, K_SIGMA * sigma)
+    evidence["keypoint_noise_px"] = round(sigma * width, 4)
     moving = stat > thr
     worst = int(np.nanargmax(disp))
     reason = (f"camera {'moves' if moving else 'is static'}: max median feature displacement {stat * width:.2f} px "

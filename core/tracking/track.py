@@ -14,7 +14,8 @@
    assumption.
 4. If structure from motion fails too, or registers fewer frames than the rotation track,
    the rotation track still stands when it registered most frames and explains nearly every
-   match within a pixel (`rotation_fallback_ok`: on a noisy, blurred handheld pan the rotation
+   match within a pixel or the clip's keypoint noise (`rotation_fallback_ok`: on a noisy,
+   blurred handheld pan the rotation
    model's residual, a point-to-point distance, grows against the essential matrix's, a
    point-to-line one, until it fails the model comparison of step 2; such a pan has no
    baseline to reconstruct, or a reconstruction takes its residual shear for one and loses
@@ -142,6 +143,7 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
                                 "fits": rot.fits, "pairs": rot.pairs, "readout_frames": round(rot.readout, 4),
                                 "readout_direction": rot.readout_direction and list(rot.readout_direction)}}
     size = (k.width, k.height)
+    noise = float(motion.evidence.get("keypoint_noise_px", 0.0))
     if rot.fits and len(rot.kept) >= MIN_KEPT_FRACTION * T:
         focal = rot.focal * full.width / k.width if refine_focal else None
         return TrackingResult(_poses_from_rotations(rot.rotations), rot.kept, rot.dropped, "rotation", motion,
@@ -158,7 +160,7 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
         if track is None or len(track.kept) < max(2, MIN_KEPT_FRACTION * T):
             failures.append(f"{name}: registered {0 if track is None else len(track.kept)} of {T} frames")
             continue
-        if len(track.kept) < len(rot.kept) and rotation_fallback_ok(rot, T):
+        if len(track.kept) < len(rot.kept) and rotation_fallback_ok(rot, T, noise):
             # a pan: the reconstruction took what the rotation left (noise, shear) for a baseline and lost frames
             failures.append(f"{name}: registered {len(track.kept)} of {T} frames, the rotation {len(rot.kept)}")
             break
@@ -173,7 +175,7 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
         return TrackingResult(torch.from_numpy(poses), track.kept, track.dropped, name, motion,
                               track.reprojection_error_px, size, scale, torch.from_numpy(points), None, warn,
                               stats={**stats, **track.stats, "failures": failures} if failures else {**stats, **track.stats})
-    if rotation_fallback_ok(rot, T):
+    if rotation_fallback_ok(rot, T, noise, alone=True):
         focal = rot.focal * full.width / k.width if refine_focal else None
         warn = [f"camera tracking: a pure rotation left residuals above an essential matrix's ({rot.parallax_px:.2f} vs "
                 f"{rot.epipolar_px:.2f} px: some parallax, or blur and noise) and structure from motion did not "
@@ -188,18 +190,23 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
                           warnings=[warning], stats={**stats, "failures": failures})
 
 
-def rotation_fallback_ok(rot, T: int) -> bool:
-    """When structure from motion cannot register a clip, is the rotation track still the
+def rotation_fallback_ok(rot, T: int, noise_px: float = 0.0, alone: bool = False) -> bool:
+    """When structure from motion cannot register a clip as well, is the rotation track still the
     camera? Under motion blur and noise a rotation's point-to-point residual grows to two to
     three times an essential matrix's point-to-line one and fails the model comparison
     (RotationTrack.fits, which also models the rolling shutter), while there is no baseline to
-    reconstruct: the frames' motion is still nearly all rotation when it registers most frames,
-    explains nearly every match, its median residual stays within a pixel and within
-    FALLBACK_RATIO of the essential matrix's, where a walk's parallax leaves 5-10 times
-    (bench/handheld.py). A static camera is the worse answer then: every frame's view at one
-    heading."""
-    return (len(rot.kept) >= MIN_KEPT_FRACTION * T and rot.inlier_share >= FALLBACK_INLIER_SHARE
-            and rot.median_px <= FALLBACK_MAX_MEDIAN_PX and rot.parallax_px <= FALLBACK_RATIO * rot.epipolar_px)
+    reconstruct. The rotation must register most frames, explain nearly every match, and keep
+    its median residual within a pixel or within the clip's keypoint noise (`noise_px`, the
+    motion statistic's: a dim room's features are that much less precise).
+    Where a reconstruction registered fewer frames, the residual must also stay within
+    FALLBACK_RATIO of the essential matrix's: a walk's parallax leaves 5-10 times
+    (bench/handheld.py). Where nothing else registered the clip (`alone`), the choice is the
+    rotation or a static camera, which has no rotation either, so that ratio is not asked: dim
+    pans reach 4 (bench/handheld.py `dim`), as do noisy walks, whose turn is still better
+    followed than not."""
+    explains = (len(rot.kept) >= MIN_KEPT_FRACTION * T and rot.inlier_share >= FALLBACK_INLIER_SHARE
+                and rot.median_px <= max(FALLBACK_MAX_MEDIAN_PX, noise_px))
+    return explains and (alone or rot.parallax_px <= FALLBACK_RATIO * rot.epipolar_px)
 
 
 def _dropped_warning(dropped: list[int]) -> list[str]:
