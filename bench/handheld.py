@@ -127,6 +127,7 @@ def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
         model = r.stats.get("rotation_model", {})
         clip = {"method": r.method, "frames_kept": len(r.kept), "cpu_s": round(r.cpu_seconds, 2),
                 "rotation_fallback": bool(r.stats.get("rotation_fallback")),
+                "keypoint_noise_px": r.motion.evidence.get("keypoint_noise_px"),
                 **{k: model.get(k) for k in ("median_px", "inlier_share", "parallax_px", "epipolar_px", "fits",
                                              "readout_frames")}}
         if r.method not in ("static", "failed:static-fallback") and len(r.kept) > 1:
