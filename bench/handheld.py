@@ -21,7 +21,8 @@ the kept frames, world = the first kept frame), the refined horizontal FOV, the 
 model's evidence and whether it was taken only as the fallback after structure from motion
 failed (core.tracking.track.rotation_fallback_ok: without that fallback those clips were a
 static camera); per variant the clips tracked within MAX_ROTATION_ERROR_DEG, and how many of
-them the fallback took. `--global-shutter` tracks without the rotation model's rolling shutter
+them the fallback took. Walks (WALKS, `--variants walk-noisy,walk-short-noisy,walk-dim`) count the clips with a
+translation the tracker took for a pan, and how far off their turn then was. `--global-shutter` tracks without the rotation model's rolling shutter
 (an ablation: what modelling the readout buys).
 """
 from __future__ import annotations
@@ -59,6 +60,14 @@ VARIANTS = {  # name: (exposure seconds, readout seconds, noise sigma, portrait)
     "dim": (EXPOSURE_S, READOUT_S, DIM_NOISE_SIGMA, False),
 }
 VARIANT_EV = {"dim": DIM_EV}  # the tone map's exposure where not 0
+# Walks, which a rotation explains only in part: how many the tracker takes for a pan anyway
+# (`--variants walk-noisy,...`, not run by default): bench.tracking's walk (1.2 m across the box room, 0.5 m forward, turning 40 deg),
+# scaled, rendered at the frame instants, with noise. name: (scale, noise sigma, exposure ev)
+WALKS = {
+    "walk-noisy": (1.0, NOISE_SIGMA, 0.0),
+    "walk-short-noisy": (0.3, NOISE_SIGMA, 0.0),
+    "walk-dim": (1.0, DIM_NOISE_SIGMA, DIM_EV),
+}
 
 
 def pose_at(t: float, yaw0: float, pitch0: float) -> torch.Tensor:
@@ -98,7 +107,7 @@ def render_frame(room, intr, index: int, yaw0: float, pitch0: float, exposure: f
 
 def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
     from bench.tracking import HFOV_DEG, _view
-    from core.camera import Intrinsics
+    from core.camera import Camera, Intrinsics
     from core.conventions import tonemap
     from core.exposure import luminance
     from core.sim.panorama_room import PanoramaRoom, load_panorama
@@ -112,12 +121,22 @@ def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
     room = PanoramaRoom(pano, assumed_room(), torch.zeros(3))
     true, _ = relative_to_first(torch.stack([pose_at(i / FPS, yaw, pitch) for i in range(FRAMES)]).numpy())
     out = {"file": path.name, "clips": {}}
-    for name, (exposure, readout, sigma, portrait) in variants.items():
-        size = SIZE[::-1] if portrait else SIZE
-        intr = Intrinsics.from_hfov(size[0], size[1], HFOV_DEG)
-        hdr = torch.stack([render_frame(room, intr, i, yaw, pitch, exposure, readout, portrait) for i in range(FRAMES)])
+    pan_truth = true
+    for name, spec in variants.items():
+        if name in WALKS:
+            scale, sigma, ev = spec
+            size, portrait = SIZE, False
+            intr = Intrinsics.from_hfov(size[0], size[1], HFOV_DEG)
+            poses = walk_poses(FRAMES, scale)
+            true, _ = relative_to_first(torch.stack(poses).numpy())
+            hdr = torch.stack([room.render(Camera(intr, p), 1)[0] for p in poses])
+        else:
+            (exposure, readout, sigma, portrait), ev, true = spec, VARIANT_EV.get(name, 0.0), pan_truth
+            size = SIZE[::-1] if portrait else SIZE
+            intr = Intrinsics.from_hfov(size[0], size[1], HFOV_DEG)
+            hdr = torch.stack([render_frame(room, intr, i, yaw, pitch, exposure, readout, portrait) for i in range(FRAMES)])
         hdr = hdr * (0.18 / float(luminance(hdr).mean().clamp_min(1e-12)))
-        ldr = tonemap(hdr, VARIANT_EV.get(name, 0.0))
+        ldr = tonemap(hdr, ev)
         if sigma > 0:
             ldr = (ldr + sigma * torch.randn(ldr.shape, generator=torch.Generator().manual_seed(7))).clamp(0, 1)
         ldr = torch.round(ldr * 255) / 255
@@ -141,10 +160,26 @@ def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
     return out
 
 
+def walk_poses(n: int, scale: float) -> list[torch.Tensor]:
+    """bench.tracking's walk with its translation scaled."""
+    from core.sim.state import pose_from_yaw_pitch
+
+    return [pose_from_yaw_pitch((scale * (-0.6 + 1.2 * i / (n - 1)), scale * 0.1 * math.sin(i / 4), scale * -0.5 * i / (n - 1)),
+                                20 - 40 * i / (n - 1), 0) for i in range(n)]
+
+
 def summarise(rows: list[dict], variants: dict = VARIANTS) -> dict:
     out = {}
     for name in variants:
         clips = [r["clips"][name] for r in rows]
+        if name in WALKS:  # how each walk was read, and how far off its turn was
+            errs = [c["max_rotation_error_deg"] for c in clips if "max_rotation_error_deg" in c]
+            methods = [c["method"] for c in clips]
+            out[name] = {"clips": len(clips), "methods": {m: methods.count(m) for m in sorted(set(methods))},
+                         "taken_as_a_pan": methods.count("rotation"),
+                         "max_rotation_error_deg_median": round(sorted(errs)[len(errs) // 2], 3) if errs else None,
+                         "max_rotation_error_deg_worst": max(errs) if errs else None}
+            continue
         errs = [c["max_rotation_error_deg"] for c in clips if "max_rotation_error_deg" in c]
         good = [e for e in errs if e <= MAX_ROTATION_ERROR_DEG]
         fallback = [c for c in clips if c.get("rotation_fallback")]
@@ -170,10 +205,11 @@ def main(argv: list[str] | None = None) -> int:
 
     hdri = Path(args.hdri_dir)
     files = [hdri / r["filename"] for r in read_manifest(hdri) if r["split"] == args.split][: args.limit]
-    unknown = set(args.variants.split(",")) - set(VARIANTS)
+    known = {**VARIANTS, **WALKS}
+    unknown = set(args.variants.split(",")) - set(known)
     if unknown:
-        p.error(f"unknown variants {sorted(unknown)}; known: {', '.join(VARIANTS)}")
-    variants = {k: v for k, v in VARIANTS.items() if k in args.variants.split(",")}
+        p.error(f"unknown variants {sorted(unknown)}; known: {', '.join(known)}")
+    variants = {k: v for k, v in known.items() if k in args.variants.split(",")}
     if args.global_shutter:
         import functools
 
