@@ -44,8 +44,8 @@ from core.tracking.geometry import bearings, kabsch, matrix_to_rotvec, project, 
 INLIER_PX = 2.0
 # MIN_INLIERS consistent matches make a pair: an outlier lands within INLIER_PX of where a
 # 3-parameter rotation puts it with a chance of about 2e-4 at 320 px, so ten agreeing by chance
-# does not happen. Dim, noisy pans match 10-60 features a pair (bench/handheld.py `dim`); at 15
-# their pairs fell apart. Tried on the dev `dim` clips and not kept (one-off runs): a looser pair
+# does not happen. Dim, noisy pans match 10-60 features a pair (counted once on the dev clips of
+# bench/handheld.py `dim`); at 15 their pairs fell apart. Tried on the dev `dim` clips and not kept (one-off runs): a looser pair
 # threshold (4 px, for the shear) kept more frames but made the rotations worse, and matches
 # guided by the frames' phase-correlation shift added few true matches there and made the
 # noisy portrait pans' rotations worse (0.83 -> 1.05 deg, 0.95 -> 1.22 deg).
@@ -351,7 +351,6 @@ class EssentialFit:
     xi: np.ndarray
     xj: np.ndarray
     sampson_px: np.ndarray
-    E: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))  # normalised coordinates, x_j^T E x_i = 0
 
 
 def essential_evidence(pairs: list[PairMatches], k: Intrinsics) -> list[EssentialFit]:
@@ -371,7 +370,7 @@ def essential_evidence(pairs: list[PairMatches], k: Intrinsics) -> list[Essentia
         inl = mask.ravel() > 0
         if inl.sum() < ESSENTIAL_MIN_INLIERS:
             continue
-        out.append(EssentialFit(m.i, m.j, m.xi[inl], m.xj[inl], _sampson_px(E, a[inl], b[inl], k.fx), E))
+        out.append(EssentialFit(m.i, m.j, m.xi[inl], m.xj[inl], _sampson_px(E, a[inl], b[inl], k.fx)))
     return out
 
 

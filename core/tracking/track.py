@@ -52,7 +52,8 @@ FALLBACK_INLIER_SHARE = 0.9
 FALLBACK_MAX_MEDIAN_PX = 1.0
 FALLBACK_RATIO = 3.0
 # ... or, where nothing else registered the clip, a median residual within this many times the
-# keypoint noise (rotation_fallback_ok): pure noise leaves about 0.7x.
+# keypoint noise (rotation_fallback_ok): pure noise leaves about 0.7x (1.177 / 1.745: the median
+# of a 2D Gaussian residual over core.tracking.motion's 1.4826 x median after a homography).
 FALLBACK_NOISE_RATIO = 2.0
 SFM_ENV = "LIGHTFIELD_SFM"  # "pycolmap" (default) or "opencv": where pycolmap's wheel is unavailable or unwanted
 
