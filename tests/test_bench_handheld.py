@@ -29,3 +29,14 @@ def test_summary_counts_the_fallback_and_the_errors():
     s = summarise(rows)["rolling"]
     assert s["tracked"] == 2 and s["within_1_deg"] == 1 and s["by_the_rotation_fallback"] == 1
     assert s["within_1_deg_by_the_fallback"] == 0
+
+
+def test_walk_summary_counts_the_walks_taken_for_a_pan():
+    from bench.handheld import WALKS
+
+    rows = [{"clips": {"walk-noisy": {"method": m, "frames_kept": 20, "max_rotation_error_deg": e}}}
+            for m, e in (("rotation", 3.0), ("sfm:pycolmap", 1.0), ("sfm:pycolmap", 2.0))]
+    rows.append({"clips": {"walk-noisy": {"method": "failed:static-fallback", "frames_kept": 20}}})
+    s = summarise(rows, {"walk-noisy": WALKS["walk-noisy"]})["walk-noisy"]
+    assert s["taken_as_a_pan"] == 1 and s["methods"] == {"failed:static-fallback": 1, "rotation": 1, "sfm:pycolmap": 2}
+    assert s["max_rotation_error_deg_median"] == 2.0 and s["max_rotation_error_deg_worst"] == 3.0
