@@ -10,8 +10,8 @@ bench.tracking draws for the file: PAN_DEG of yaw in FRAMES frames at FPS with a
 wobble, SIZE at 60 deg FOV, from one spot of the panorama pasted on the assumed box room,
 rendered at SUB_SAMPLES instants per frame. Variants (VARIANTS): `sharp` (global shutter),
 `blur` (EXPOSURE_S of exposure), `rolling` (READOUT_S from the top row to the bottom),
-`handheld` (both, with NOISE_SIGMA Gaussian noise in 8-bit LDR), `dim` (the same DIM_EV stops
-under, with DIM_NOISE_SIGMA of noise), and `portrait-rolling` /
+`handheld` (both, with NOISE_SIGMA Gaussian noise in 8-bit LDR), `dim` (the same, exposed
+DIM_EV stops, with DIM_NOISE_SIGMA of noise), and `portrait-rolling` /
 `portrait-handheld` (the phone held upright: SIZE turned, the sensor's rows vertical, so the
 readout runs along the pan and stretches the frame rather than shearing it). Each is tone mapped at one
 exposure and run through camera tracking as loading runs it (`core.tracking.track.track_camera`,
@@ -21,9 +21,10 @@ the kept frames, world = the first kept frame), the refined horizontal FOV, the 
 model's evidence and whether it was taken only as the fallback after structure from motion
 failed (core.tracking.track.rotation_fallback_ok: without that fallback those clips were a
 static camera); per variant the clips tracked within MAX_ROTATION_ERROR_DEG, and how many of
-them the fallback took. Walks (WALKS, `--variants walk-noisy,walk-short-noisy,walk-dim`) count the clips with a
-translation the tracker took for a pan, and how far off their turn then was. `--global-shutter` tracks without the rotation model's rolling shutter
-(an ablation: what modelling the readout buys).
+them the fallback took. Walks (WALKS, `--variants walk-noisy,walk-short-noisy,walk-dim`)
+count the clips with a translation the tracker took for a pan, and how far off their turn then
+was. `--global-shutter` tracks without the rotation model's rolling shutter (an ablation: what
+modelling the readout buys).
 """
 from __future__ import annotations
 
@@ -45,8 +46,8 @@ EXPOSURE_S = 1.0 / 30.0  # a phone's video exposure indoors is often as long as 
 READOUT_S = 1.0 / 30.0  # top row to bottom row: phone sensors read out in ~10-33 ms
 NOISE_SIGMA = 0.02
 # A dim room: the phone exposes 2 stops under the bench's level (the frames' mean luminance at
-# 0.18) and its sensor gain raises the noise. Such frames match 10-60 features a pair, where
-# the others match hundreds.
+# 0.18) and its sensor gain raises the noise. Such frames matched 10-60 features a pair in a
+# one-off count on dev clips, where the others match hundreds.
 DIM_EV = -2.0
 DIM_NOISE_SIGMA = 0.03
 MAX_ROTATION_ERROR_DEG = 1.0
@@ -61,8 +62,8 @@ VARIANTS = {  # name: (exposure seconds, readout seconds, noise sigma, portrait)
 }
 VARIANT_EV = {"dim": DIM_EV}  # the tone map's exposure where not 0
 # Walks, which a rotation explains only in part: how many the tracker takes for a pan anyway
-# (`--variants walk-noisy,...`, not run by default): bench.tracking's walk (1.2 m across the box room, 0.5 m forward, turning 40 deg),
-# scaled, rendered at the frame instants, with noise. name: (scale, noise sigma, exposure ev)
+# (`--variants walk-noisy,...`, not run by default): bench.tracking's walk (1.2 m across the
+# box room, 0.5 m forward, turning 40 deg), scaled, rendered at the frame instants, with noise. name: (scale, noise sigma, exposure ev)
 WALKS = {
     "walk-noisy": (1.0, NOISE_SIGMA, 0.0),
     "walk-short-noisy": (0.3, NOISE_SIGMA, 0.0),
@@ -106,7 +107,7 @@ def render_frame(room, intr, index: int, yaw0: float, pitch0: float, exposure: f
 
 
 def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
-    from bench.tracking import HFOV_DEG, _view
+    from bench.tracking import HFOV_DEG, _view, walk_poses
     from core.camera import Camera, Intrinsics
     from core.conventions import tonemap
     from core.exposure import luminance
@@ -158,14 +159,6 @@ def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
                 clip["refined_hfov_deg"] = round(math.degrees(2 * math.atan(size[0] / 2 / float(focal))), 2)
         out["clips"][name] = clip
     return out
-
-
-def walk_poses(n: int, scale: float) -> list[torch.Tensor]:
-    """bench.tracking's walk with its translation scaled."""
-    from core.sim.state import pose_from_yaw_pitch
-
-    return [pose_from_yaw_pitch((scale * (-0.6 + 1.2 * i / (n - 1)), scale * 0.1 * math.sin(i / 4), scale * -0.5 * i / (n - 1)),
-                                20 - 40 * i / (n - 1), 0) for i in range(n)]
 
 
 def summarise(rows: list[dict], variants: dict = VARIANTS) -> dict:

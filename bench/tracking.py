@@ -45,10 +45,11 @@ def pan_poses(n: int, yaw0: float, pitch0: float) -> list[torch.Tensor]:
                                 pitch0 + PITCH_WOBBLE_DEG * math.sin(i / 3)) for i in range(n)]
 
 
-def walk_poses(n: int) -> list[torch.Tensor]:
+def walk_poses(n: int, scale: float = 1.0) -> list[torch.Tensor]:
+    """A 1.3 m walk (1.2 m across, 0.5 m forward) turning 40 deg; `scale` scales its translation."""
     from core.sim.state import pose_from_yaw_pitch
 
-    return [pose_from_yaw_pitch((-0.6 + 1.2 * i / (n - 1), 0.1 * math.sin(i / 4), -0.5 * i / (n - 1)),
+    return [pose_from_yaw_pitch((scale * (-0.6 + 1.2 * i / (n - 1)), scale * 0.1 * math.sin(i / 4), scale * -0.5 * i / (n - 1)),
                                 20 - 40 * i / (n - 1), 0) for i in range(n)]
 
 
