@@ -120,9 +120,8 @@ def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
     pano = load_panorama(path, 512)
     yaw, pitch = _view(path.name)
     room = PanoramaRoom(pano, assumed_room(), torch.zeros(3))
-    true, _ = relative_to_first(torch.stack([pose_at(i / FPS, yaw, pitch) for i in range(FRAMES)]).numpy())
+    pan_truth, _ = relative_to_first(torch.stack([pose_at(i / FPS, yaw, pitch) for i in range(FRAMES)]).numpy())
     out = {"file": path.name, "clips": {}}
-    pan_truth = true
     for name, spec in variants.items():
         if name in WALKS:
             scale, sigma, ev = spec

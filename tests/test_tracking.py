@@ -409,10 +409,9 @@ def test_a_clip_whose_motion_cannot_be_judged_says_so():
 
 
 def test_a_pan_in_a_dim_room_is_still_tracked_as_a_rotation(panorama):
-    """Three stops under the usual level with a phone's gain noise, the frames match 10-40
-    features a pair. Before ten-match pairs and a noise-scaled fallback, this pan was a labelled
-    static camera (the rotation kept 11 pairs of 62); a static camera reads
-    the pan as the light changing."""
+    """Three stops under the usual level with a phone's gain noise, the frames match few features
+    a pair. Before ten-match pairs and a noise-scaled fallback, this pan was a labelled static
+    camera (one-off run at a146bf7); a static camera reads the pan as the light changing."""
     intr = Intrinsics.from_hfov(240, 180, 60.0)
     poses = [pose_from_yaw_pitch((0, 0, 0), 15 + 60 * i / 11, 6 * math.sin(i / 3)) for i in range(12)]
     room = PanoramaRoom(panorama, assumed_room(), torch.zeros(3))

@@ -58,12 +58,19 @@ def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
     T = len(features)
     if T < 2:
         return MotionDecision(False, 0.0, 0.0, "single frame: camera treated as static", {"frames": T})
-    ref = next((t for t in range(T - 1) if len(match(features[t], features[t + 1], t, t + 1)) >= MIN_MATCHES), 0)
+    ref, first = 0, None
+    for t in range(T - 1):  # the reference: the first frame that matches its successor
+        first = match(features[t], features[t + 1], t, t + 1)
+        if len(first) >= MIN_MATCHES:
+            ref = t
+            break
+    else:
+        first = None  # none does: judged from frame 0, which finds too few matches below
     disp = np.full(T, np.nan)
     disp[ref] = 0.0
     noise, matches, chained, lost = [], [0] * T, [], list(range(ref))
     for t in range(ref + 1, T):
-        m = match(features[ref], features[t], ref, t)
+        m = first if t == ref + 1 and first is not None else match(features[ref], features[t], ref, t)
         matches[t] = len(m)
         if len(m) >= MIN_MATCHES:
             disp[t], s = _median_displacement(m.xi, m.xj)

@@ -33,7 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import coo_matrix, lil_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial.transform import Rotation
 
 from core.camera import Intrinsics
@@ -45,10 +46,11 @@ INLIER_PX = 2.0
 # MIN_INLIERS consistent matches make a pair: an outlier lands within INLIER_PX of where a
 # 3-parameter rotation puts it with a chance of about 2e-4 at 320 px, so ten agreeing by chance
 # does not happen. Dim, noisy pans match 10-60 features a pair (counted once on the dev clips of
-# bench/handheld.py `dim`); at 15 their pairs fell apart. Tried on the dev `dim` clips and not kept (one-off runs): a looser pair
-# threshold (4 px, for the shear) kept more frames but made the rotations worse, and matches
-# guided by the frames' phase-correlation shift added few true matches there and made the
-# noisy portrait pans' rotations worse (0.83 -> 1.05 deg, 0.95 -> 1.22 deg).
+# bench/handheld.py `dim`); at 15 their pairs fell apart. Tried on the dev `dim` clips and not
+# kept (one-off runs): a looser pair threshold (4 px, for the shear) kept more frames but made
+# the rotations worse, and matches guided by the frames' phase-correlation shift added few true
+# matches there and made the noisy portrait pans' rotations worse (0.83 -> 1.05 deg,
+# 0.95 -> 1.22 deg).
 MIN_INLIERS = 10
 ESSENTIAL_MIN_INLIERS = 15  # five parameters, fitted to the noise of a pure rotation: more matches
 RANSAC_ITERATIONS = 200
@@ -147,7 +149,12 @@ def _spanning_tree(n: int, rel: list[RelativeRotation]) -> tuple[dict[int, np.nd
     """Initial rotations: Prim's maximum spanning tree over inlier counts, over the largest set of
     frames the pairs connect (ties: the earliest), from its first frame. Not from frame 0 as such:
     a first frame that matched nothing (dark, blurred, a cut) must not lose the clip."""
-    root = min(_components(n, rel), key=lambda c: (-len(c), min(c)))[0] if rel else 0
+    root = 0
+    if rel:  # the first frame of the largest connected set (ties: the earliest set)
+        graph = coo_matrix((np.ones(len(rel)), ([r.i for r in rel], [r.j for r in rel])), shape=(n, n))
+        labels = connected_components(graph, directed=False)[1]
+        sizes = np.bincount(labels)
+        root = int(np.flatnonzero(sizes[labels] == sizes.max())[0])
     R = {root: np.eye(3)}
     edges = sorted(rel, key=lambda r: -len(r.xi))
     grown = True
@@ -163,24 +170,6 @@ def _spanning_tree(n: int, rel: list[RelativeRotation]) -> tuple[dict[int, np.nd
             grown = True
             break
     return R, sorted(set(range(n)) - set(R))
-
-
-def _components(n: int, rel: list[RelativeRotation]) -> list[list[int]]:
-    """The frames the pairs connect, as sorted lists (union-find)."""
-    parent = list(range(n))
-
-    def find(a: int) -> int:
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
-    for r in rel:
-        parent[find(r.i)] = find(r.j)
-    groups: dict[int, list[int]] = {}
-    for f in range(n):
-        groups.setdefault(find(f), []).append(f)
-    return list(groups.values())
 
 
 @dataclass(frozen=True)
