@@ -327,8 +327,9 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
         return capture
     from core.capture.autoexposure import with_estimated_exposure
     from core.capture.track import track_capture
+    from core.capture.transients import without_transients
 
-    capture = with_estimated_exposure(track_capture(capture, params), params)
+    capture = with_estimated_exposure(without_transients(track_capture(capture, params), params), params)
     for w in capture.warnings:
         _warnings.warn(w, stacklevel=2)
     return capture

@@ -18,6 +18,7 @@ from core.capture.base import Capture
 from core.capture.load import load_capture
 from core.capture.autoexposure import with_estimated_exposure
 from core.capture.track import track_capture
+from core.capture.transients import without_transients
 from core.capture.temporal import TemporalDecision, decide_temporal
 from core.device import resolve_device
 from core.engine.checkpoints import clear_checkpoint
@@ -100,6 +101,7 @@ def run_job(
             reporter.stage("tracking", 0.02, "finding the camera's motion")
         with timings("tracking" if tracks else "loading"):
             capture = track_capture(capture, params)
+    capture = without_transients(capture, params)  # after tracking: only a static camera's are looked for
     capture = with_estimated_exposure(capture, params)  # after tracking: a pan is compared through its poses
     for w in capture.warnings:  # after tracking, which may replace assumptions (FOV, room)
         warnings.warn(w, stacklevel=2)

@@ -1,0 +1,152 @@
+"""Something moving through a static camera's view (a person walking through) is painted out,
+not read as the light changing; a change of light, an exposure, a light switching late in the
+clip, are left alone (core/capture/transients.py; docs/captures.md)."""
+import warnings
+
+import pytest
+import torch
+
+from core.capture.load import capture_from_arrays, load_capture
+from core.capture.params import CaptureParams
+from core.capture.temporal import detect_temporal
+from core.capture.transients import MIN_FRAMES, transient_mask, without_transients
+from core.conventions import inverse_tonemap, tonemap
+
+T, H, W = 16, 72, 96
+
+
+def room_lights() -> tuple[torch.Tensor, torch.Tensor]:
+    """Two linear images [H, W, 3] of one textured room: what the light that stays gives it,
+    and what a lamp at the right adds (a broad blob); albedo with posters and a floor."""
+    g = torch.Generator().manual_seed(3)
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
+    albedo = 0.35 + 0.3 * torch.nn.functional.avg_pool2d(torch.rand(1, 3, H, W, generator=g), 5, 1, 2)[0].permute(1, 2, 0)
+    albedo[10:30, 15:40] = torch.tensor([0.7, 0.2, 0.15])  # a poster
+    albedo[50:, :] *= 0.5  # the floor
+    stay = albedo * (0.08 + 0.1 * (1 - yy))[..., None]
+    lamp = albedo * (0.25 * torch.exp(-((xx - 0.8) ** 2 + (yy - 0.4) ** 2) / 0.05))[..., None]
+    return stay, lamp
+
+
+def frames_of(linear: torch.Tensor, seed: int = 0) -> torch.Tensor:
+    """8-bit LDR frames [T, H, W, 3] of linear frames with a little sensor noise."""
+    g = torch.Generator().manual_seed(seed)
+    ldr = tonemap(linear) + 0.01 * torch.randn(linear.shape, generator=g)
+    return torch.round(ldr.clamp(0, 1) * 255) / 255
+
+
+def lit(lamp_course) -> torch.Tensor:
+    stay, lamp = room_lights()
+    return torch.stack([stay + float(lamp_course(t)) * lamp for t in range(T)])
+
+
+def walk_through(linear: torch.Tensor, brightness: float, first: int = 3, last: int = 12) -> tuple[torch.Tensor, torch.Tensor]:
+    """The clip with a textured figure (a sixth of the width, 70 % of the height) walking left to
+    right over frames first..last; and where it is [T, H, W]."""
+    g = torch.Generator().manual_seed(7)
+    out, where = linear.clone(), torch.zeros(T, H, W, dtype=torch.bool)
+    pw, ph = W // 6, int(H * 0.7)
+    coat = (brightness * (0.7 + 0.6 * torch.rand(ph, pw, 3, generator=g)))
+    for t in range(first, last + 1):
+        x0 = round((t - first) / (last - first) * (W - pw))
+        out[t, H - ph:, x0:x0 + pw] = coat
+        where[t, H - ph:, x0:x0 + pw] = True
+    return out, where
+
+
+def static_capture(frames: torch.Tensor):
+    n = frames.shape[0]
+    return capture_from_arrays(frames, torch.full((n, H, W), 3.0), fps=4.0)
+
+
+def iou(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a & b).sum()) / float((a | b).sum())
+
+
+@pytest.mark.parametrize("brightness", [0.003, 0.5], ids=["dark-coat", "bright-coat"])
+def test_a_person_walking_through_is_found_and_painted_out(brightness):
+    steady = lit(lambda t: 1.0)
+    walked, where = walk_through(steady, brightness)
+    capture = static_capture(frames_of(walked))
+    assert detect_temporal(capture).uses_time, "the figure reads as the light changing when left in"
+    mask, evidence = transient_mask(capture)
+    assert iou(mask, where) > 0.6 and float((mask & where).sum() / where.sum()) > 0.85
+    cleaned = without_transients(capture, CaptureParams())
+    assert not detect_temporal(cleaned).uses_time
+    assert cleaned.metadata["transients"]["frames_with_transients"] >= 9
+    assert any("moved through the view" in w for w in cleaned.warnings)
+    clean = inverse_tonemap(frames_of(steady))
+    before = (inverse_tonemap(capture.frames) - clean)[where].abs().mean()
+    after = (inverse_tonemap(cleaned.frames) - clean)[where].abs().mean()
+    assert after < 0.25 * before
+
+
+@pytest.mark.parametrize("course,name", [
+    (lambda t: 1.0 if t < 8 else 0.0, "lamp off at the middle"),
+    (lambda t: 1.0 if t < 13 else 0.0, "lamp off in the last three frames"),
+    (lambda t: 1.0 - 0.06 * t, "lamp dimming"),
+    (lambda t: 0.0 if t < 5 else 1.0, "lamp on"),
+])
+def test_a_change_of_light_is_not_a_transient(course, name):
+    capture = static_capture(frames_of(lit(course)))
+    mask, evidence = transient_mask(capture)
+    assert evidence["looked"] and not bool(mask.any()), (name, evidence)
+    assert detect_temporal(without_transients(capture)).uses_time, name
+
+
+def test_an_exposure_and_a_dimmed_room_are_not_transients():
+    room = lit(lambda t: 1.0)
+    scale = torch.tensor([1.0] * 8 + [0.5] * 8)[:, None, None, None]  # the room halved, or the exposure down a stop
+    mask, _ = transient_mask(static_capture(frames_of(room * scale)))
+    assert not bool(mask.any())
+    ramp = 2.0 ** (torch.arange(T) / 8.0)[:, None, None, None]  # an auto-exposure drifting up two stops
+    mask, _ = transient_mask(static_capture(frames_of(room * ramp)))
+    assert not bool(mask.any())
+
+
+def test_a_person_during_a_light_switch_is_found_and_the_switch_kept():
+    walked, where = walk_through(lit(lambda t: 1.0 if t < 8 else 0.0), 0.003)
+    capture = static_capture(frames_of(walked))
+    mask, _ = transient_mask(capture)
+    assert iou(mask, where) > 0.6
+    cleaned = without_transients(capture)
+    assert detect_temporal(cleaned).uses_time  # the lamp still switched off
+    _, lamp = room_lights()
+    near = torch.nn.functional.max_pool2d(where[:, None].float(), 9, 1, 4)[:, 0] > 0  # the mask grows at its edge
+    lamp_only = (lamp.mean(-1) > 0.05)[None].expand(T, -1, -1) & ~near
+    assert float(mask[lamp_only].float().mean()) < 0.02
+
+
+def test_what_is_not_looked_at():
+    walked, _ = walk_through(lit(lambda t: 1.0), 0.003)
+    frames = frames_of(walked)
+    few = static_capture(frames[:MIN_FRAMES - 1])
+    assert without_transients(few).frames.equal(few.frames)
+    assert "fewer than" in without_transients(few).metadata["transients"]["reason"]
+    capture = static_capture(frames)
+    kept = without_transients(capture, CaptureParams(transients="keep"))
+    assert kept.frames.equal(capture.frames) and "transients" not in kept.metadata
+    poses = torch.eye(4, dtype=torch.float64).repeat(T, 1, 1)
+    poses[:, 0, 3] = torch.linspace(0, 0.5, T, dtype=torch.float64)
+    moving = capture_from_arrays(frames, torch.full((T, H, W), 3.0), poses=poses, fps=4.0)
+    assert not without_transients(moving).metadata["transients"]["looked"]
+    with pytest.raises(ValueError):
+        CaptureParams(transients="erase")
+
+
+def test_a_video_upload_is_cleaned_on_load(tmp_path):
+    """The real path: an H.264 file with no parameters, loaded and tracked as a job does."""
+    from core.io.video import write_video
+
+    walked, _ = walk_through(lit(lambda t: 1.0), 0.003)
+    video = write_video(tmp_path / "walk.mp4", frames_of(walked).numpy(), 4.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        capture = load_capture(video, params=CaptureParams(fps=4.0))
+    assert capture.static_camera
+    assert capture.metadata["transients"]["frames_with_transients"] >= 9
+    assert not detect_temporal(capture).uses_time
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        kept = load_capture(video, params=CaptureParams(fps=4.0, transients="keep"))
+    assert detect_temporal(kept).uses_time
