@@ -150,3 +150,28 @@ def test_a_video_upload_is_cleaned_on_load(tmp_path):
         warnings.simplefilter("ignore")
         kept = load_capture(video, params=CaptureParams(fps=4.0, transients="keep"))
     assert detect_temporal(kept).uses_time
+
+
+def test_a_job_on_a_video_with_a_passer_by_reads_static_light_and_previews_the_upload(tmp_path):
+    """run_job as the CLI and the worker call it: the field gets no time input, the artefact
+    records what was painted out, and the preview keeps the frames as uploaded."""
+    from core.engine.job import run_job
+    from core.engine.params import JobParams
+    from core.engine.presets import preset
+    from core.io.video import write_video
+
+    walked, where = walk_through(lit(lambda t: 1.0), 0.003)
+    video = write_video(tmp_path / "walk.mp4", frames_of(walked).numpy(), 4.0)
+    tiny = preset("draft").with_overrides({"distill": {"iterations": 8, "work_height": 24, "warmup_steps": 2,
+                                                       "checkpoint_every": 1000}})
+    seen = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = run_job(video, None, JobParams.model_validate({"fps": 4.0}), tmp_path / "out", config=tiny,
+                         on_capture=seen.append)
+    meta = result.artefact.meta
+    assert meta["temporal"]["uses_time"] is False
+    assert meta["capture"]["metadata"]["transients"]["frames_with_transients"] >= 9
+    assert any("moved through the view" in w for w in meta["capture"]["warnings"])
+    preview = seen[0].frames
+    assert float((preview[where] - frames_of(walked)[where]).abs().mean()) < 0.05  # the figure is still there

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -101,12 +101,13 @@ def run_job(
             reporter.stage("tracking", 0.02, "finding the camera's motion")
         with timings("tracking" if tracks else "loading"):
             capture = track_capture(capture, params)
+    as_uploaded = capture
     capture = without_transients(capture, params)  # after tracking: only a static camera's are looked for
     capture = with_estimated_exposure(capture, params)  # after tracking: a pan is compared through its poses
     for w in capture.warnings:  # after tracking, which may replace assumptions (FOV, room)
         warnings.warn(w, stacklevel=2)
-    if on_capture is not None:
-        on_capture(capture)
+    if on_capture is not None:  # the preview shows the frames as the user took them, passers-by and all
+        on_capture(replace(capture, frames=as_uploaded.frames, depth=as_uploaded.depth))
     reporter.stage("temporal", 0.04, "detecting lighting changes")
     with timings("temporal"):
         decision: TemporalDecision = decide_temporal(capture, params.temporal)
