@@ -1,0 +1,231 @@
+"""A person walking through a static camera's view of real panorama rooms: read as the light
+changing, or painted out (core/capture/transients.py; docs/captures.md).
+
+    python -m bench.transients --split dev [--limit N] [--iterations 200] [-o out.json]
+
+Per panorama of MANIFEST.tsv (`--split`; tune on dev, report test once): a static view (the
+yaw and pitch of bench.tracking's clips, 60 deg FOV, SIZE) of the panorama pasted on the
+assumed box room (core.sim.panorama_room), FRAMES frames at FPS under one exposure (the clip's
+mean at mid-grey), 8-bit, H.264: a plain video with no parameters, as a user uploads it. A
+simulated figure (a head and a body 3/4 of the frame high, a textured coat whose brightness is
+drawn per panorama, 0.1x-2x mid-grey) walks from left to right over frames WALK. Clips:
+* `walk`: the figure under steady light;
+* `walk-halved`: the figure, and the room's light halved from the middle frame on (a real
+  change that must stay one);
+* `pool-off`: no figure; a lamp's pool of light (a soft blob adding 2x the room's light at its
+  centre) switches off at the middle frame (a local change of light that must not be painted
+  out);
+* `clean`: no figure, steady light (the reference).
+Per clip, as loaded: whether the temporal decision reads changing light with the default
+(`transients` unset: "remove") and with "keep"; the painted share; for the figure, the mask's
+intersection over union with where it was (at full resolution) and its recall.
+
+Jobs (`walk` with the default and with "keep", and `clean`; the draft at `--iterations` steps,
+work height 72): the env map at the camera at t = 0 and at the middle frame's time (the figure
+in view); `map_change_stops` = RMS over the sphere of log2 of their luminance ratio (static
+light: 0 is right); the middle map's diffuse rel si-RMSE against the panorama rotated into the
+camera, with a constant map of the clean frame's mean linear colour beside it. The figure is
+simulated: real people cast shadows, reflect, and stop.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import torch
+
+FRAMES = 16
+FPS = 4.0
+SIZE = (160, 120)
+WALK = (3, 12)  # the figure's first and last frame
+WORK_HEIGHT = 72
+GT_HEIGHT = 64
+
+
+def figure(h: int, w: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A person's silhouette [h, w] bool (a head over a body, 3/4 of the frame high, w/6 wide)
+    and a coat [h, w, 3] in linear units (textured; brightness 0.1x-2x mid-grey, drawn)."""
+    g = torch.Generator().manual_seed(seed)
+    yy, xx = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    tall, wide = 0.75 * h, w / 6
+    top = h - tall
+    head = ((yy - (top + 0.08 * tall)) ** 2 + (xx - wide / 2) ** 2) < (0.08 * tall) ** 2
+    body = (yy >= top + 0.16 * tall) & (xx >= 0.05 * wide) & (xx < 0.95 * wide)
+    shape = head | body
+    level = 0.18 * 10 ** (float(torch.rand(1, generator=g)) * math.log10(20.0) - 1.0)
+    colour = 0.6 + 0.8 * torch.rand(3, generator=g)
+    texture = 0.7 + 0.6 * torch.nn.functional.avg_pool2d(torch.rand(1, 1, h, w, generator=g), 3, 1, 1)[0, 0]
+    return shape, level * colour * texture[..., None]
+
+
+def clip(pano: torch.Tensor, yaw: float, pitch: float, seed: int, *, walker: bool, light) -> tuple[torch.Tensor, torch.Tensor]:
+    """(8-bit LDR [T, H, W, 3], where the figure is [T, H, W]) of one static view; `light(i, hdr)`
+    returns frame i's linear image from the steady one."""
+    from bench.tracking import HFOV_DEG
+    from core.camera import Camera, Intrinsics
+    from core.conventions import tonemap
+    from core.exposure import luminance
+    from core.sim.panorama_room import PanoramaRoom
+    from core.sim.state import pose_from_yaw_pitch
+    from core.tracking.room import assumed_room
+
+    w, h = SIZE
+    room = PanoramaRoom(pano, assumed_room(), torch.zeros(3))
+    steady = room.render(Camera(Intrinsics.from_hfov(w, h, HFOV_DEG), pose_from_yaw_pitch((0, 0, 0), yaw, pitch)), 2)[0]
+    steady = steady * (0.18 / float(luminance(steady).mean().clamp_min(1e-12)))
+    hdr = torch.stack([light(i, steady) for i in range(FRAMES)])
+    where = torch.zeros(FRAMES, h, w, dtype=torch.bool)
+    if walker:
+        shape, coat = figure(h, w, seed)
+        pw = w // 6
+        first, last = WALK
+        for i in range(first, last + 1):
+            x0 = round((i - first) / (last - first) * (w - pw))
+            s = torch.zeros(h, w, dtype=torch.bool)
+            s[:, x0:x0 + pw] = shape[:, :pw]
+            hdr[i][s] = coat[:, :pw][shape[:, :pw]]
+            where[i] = s
+    return torch.round(tonemap(hdr) * 255) / 255, where
+
+
+def pool(h: int, w: int) -> torch.Tensor:
+    """A lamp's pool of light [h, w, 1]: 2 at its centre (a third across, two thirds down)."""
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
+    return 2.0 * torch.exp(-((xx - 0.35) ** 2 + (yy - 0.65) ** 2) / 0.03)[..., None]
+
+
+def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
+    from bench.auto_exposure_pans import map_change_stops
+    from bench.suite.evaluation import score_probe
+    from bench.tracking import _view
+    from core.capture.load import load_capture
+    from core.capture.params import CaptureParams
+    from core.capture.temporal import decide_temporal
+    from core.capture.transients import transient_mask
+    from core.conventions import equirect_width, inverse_tonemap
+    from core.engine.job import run_job
+    from core.engine.params import JobParams
+    from core.engine.presets import preset
+    from core.envmap import resize_envmap, rotate_envmap
+    from core.io.video import write_video
+    from core.sim.panorama_room import load_panorama
+    from core.sim.state import pose_from_yaw_pitch
+
+    pano = load_panorama(path, 256)
+    yaw, pitch = _view(path.name)
+    seed = sum(path.name.encode())
+    w, h = SIZE
+    mid = FRAMES // 2
+    lights = {
+        "walk": (True, lambda i, x: x),
+        "walk-halved": (True, lambda i, x: x if i < mid else 0.5 * x),
+        "pool-off": (False, lambda i, x: x * (1.0 + pool(h, w)) if i < mid else x),
+        "clean": (False, lambda i, x: x),
+    }
+    out = {"file": path.name, "clips": {}}
+    videos = {}
+    for name, (walker, light) in lights.items():
+        ldr, where = clip(pano, yaw, pitch, seed, walker=walker, light=light)
+        videos[name] = write_video(workdir / f"{path.stem}-{name}.mp4", ldr.numpy(), FPS)
+        row = {}
+        for mode in ("remove", "keep"):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                cap = load_capture(videos[name], params=CaptureParams(fps=FPS, transients=mode))
+            row[f"changing_light_{mode}"] = decide_temporal(cap).uses_time
+            if mode == "remove":
+                found = cap.metadata.get("transients", {})
+                row.update(static_camera=cap.static_camera, painted_share=found.get("pixel_share", 0.0),
+                           frames_with_transients=found.get("frames_with_transients", 0), rank=found.get("rank"))
+            elif walker:  # the mask of the frames as loaded ("keep" leaves them so)
+                mask = transient_mask(cap)[0]
+                if mask.shape == where.shape:
+                    row["iou"] = round(float((mask & where).sum()) / max(float((mask | where).sum()), 1.0), 3)
+                    row["recall"] = round(float((mask & where).sum()) / max(float(where.sum()), 1.0), 3)
+        out["clips"][name] = row
+    gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), pose_from_yaw_pitch((0, 0, 0), yaw, pitch)[:3, :3].T)
+    cfg = preset("draft").with_overrides({"distill.iterations": iterations, "distill.work_height": WORK_HEIGHT})
+    t_mid = mid / FPS
+    preds, runs = {}, {}
+    for name, clip_name, extra in (("default", "walk", {}), ("keep", "walk", {"transients": "keep"}),
+                                   ("clean", "clean", {})):
+        t0 = time.process_time()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            result = run_job(videos[clip_name], None, JobParams.model_validate({"preset": "draft", "fps": FPS, **extra}),
+                             workdir / f"{path.stem}-job-{name}", config=cfg)
+        art = result.artefact
+        first, _ = art.envmap(torch.zeros(3), 0.0, GT_HEIGHT)
+        middle, _ = art.envmap(torch.zeros(3), t_mid, GT_HEIGHT)
+        preds[name] = middle
+        runs[name] = {"uses_time": art.meta["temporal"]["uses_time"], "map_change_stops": round(map_change_stops(first, middle), 3),
+                      "cpu_s": round(time.process_time() - t0, 1)}
+    clean_ldr, _ = clip(pano, yaw, pitch, seed, walker=False, light=lights["clean"][1])
+    mean = inverse_tonemap(clean_ldr[0]).reshape(-1, 3).mean(0)
+    preds["mean-colour"] = mean.expand(GT_HEIGHT, equirect_width(GT_HEIGHT), 3).clone()
+    scores = score_probe(preds, gt, 64)
+    for name in runs:
+        runs[name]["diffuse_si_rmse_rel"] = round(scores[name]["diffuse"]["si_rmse_rel"], 4)
+    out["runs"] = runs
+    out["mean_colour_diffuse_si_rmse_rel"] = round(scores["mean-colour"]["diffuse"]["si_rmse_rel"], 4)
+    return out
+
+
+def summarise(rows: list[dict]) -> dict:
+    mean = lambda xs: round(sum(xs) / len(xs), 4) if xs else None  # noqa: E731
+    clips = {}
+    for name in ("walk", "walk-halved", "pool-off", "clean"):
+        cs = [r["clips"][name] for r in rows]
+        clips[name] = {"read_as_changing_light": {m: sum(c[f"changing_light_{m}"] for c in cs) for m in ("remove", "keep")},
+                       "painted": sum(c["frames_with_transients"] > 0 for c in cs),
+                       "painted_share_mean": mean([c["painted_share"] for c in cs]),
+                       "static_camera": sum(c["static_camera"] for c in cs)}
+        if cs and "iou" in cs[0]:
+            clips[name].update(iou_mean=mean([c["iou"] for c in cs]), iou_min=min(c["iou"] for c in cs),
+                               recall_mean=mean([c["recall"] for c in cs]))
+    runs = ("default", "keep", "clean")
+    return {"panoramas": len(rows), "clips": clips,
+            "map_change_stops_mean": {k: mean([r["runs"][k]["map_change_stops"] for r in rows]) for k in runs},
+            "map_change_stops_max": {k: max(r["runs"][k]["map_change_stops"] for r in rows) for k in runs},
+            "jobs_with_time_input": {k: sum(r["runs"][k]["uses_time"] for r in rows) for k in runs},
+            "diffuse_si_rmse_rel_mean": {**{k: mean([r["runs"][k]["diffuse_si_rmse_rel"] for r in rows]) for k in runs},
+                                         "mean-colour": mean([r["mean_colour_diffuse_si_rmse_rel"] for r in rows])},
+            "cpu_s_mean": {k: mean([r["runs"][k]["cpu_s"] for r in rows]) for k in runs}}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--split", default="dev", choices=("dev", "test"))
+    p.add_argument("--hdri-dir", default=str(Path(__file__).resolve().parents[2] / "shared" / "hdri"))
+    p.add_argument("--limit", type=int, default=None)
+    p.add_argument("--iterations", type=int, default=200)
+    p.add_argument("--workdir", default=None)
+    p.add_argument("-o", "--output", default=None)
+    args = p.parse_args(argv)
+
+    import tempfile
+
+    from bench.real_panoramas import read_manifest
+    from bench.report import show_and_write
+
+    hdri = Path(args.hdri_dir)
+    files = [hdri / r["filename"] for r in read_manifest(hdri) if r["split"] == args.split][: args.limit]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(args.workdir or tmp)
+        for f in files:
+            rows.append(evaluate(f, args.iterations, work))
+            print(json.dumps(rows[-1]), flush=True)
+    report = {"split": args.split, "frames": FRAMES, "fps": FPS, "size": list(SIZE), "walk": list(WALK),
+              "iterations": args.iterations, "summary": summarise(rows), "panoramas": rows}
+    show_and_write(report["summary"], report, args.output)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
