@@ -175,3 +175,37 @@ def test_a_job_on_a_video_with_a_passer_by_reads_static_light_and_previews_the_u
     assert any("moved through the view" in w for w in meta["capture"]["warnings"])
     preview = seen[0].frames
     assert float((preview[where] - frames_of(walked)[where]).abs().mean()) < 0.05  # the figure is still there
+
+
+def test_a_patterned_passer_by_in_front_of_a_plain_wall_leaves_the_camera_still(tmp_path, monkeypatch):
+    """Camera motion detection: the passer-by's features outnumber the wall's, so the median
+    displacement of matched features is theirs; the wall's features that stayed put say the
+    camera did not move (core.tracking.motion.STILL_MIN)."""
+    import core.tracking.motion as motion
+    from core.io.video import write_video
+
+    g = torch.Generator().manual_seed(5)
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
+    wall = (0.1 + 0.08 * xx + 0.04 * yy)[..., None].expand(H, W, 3).clone()
+    for cx, cy in ((0.15, 0.2), (0.5, 0.15), (0.85, 0.25), (0.3, 0.5), (0.7, 0.55), (0.1, 0.7), (0.9, 0.7),
+                   (0.5, 0.8)):  # a few picture frames
+        wall[(((xx - cx).abs() < 0.05) & ((yy - cy).abs() < 0.06))] = torch.tensor([0.02, 0.02, 0.03])
+    room = wall[None].expand(T, -1, -1, -1).clone()
+    checks = (torch.rand(H // 4, W // 18, generator=g) > 0.5).float().repeat_interleave(3, 0).repeat_interleave(3, 1)
+    pattern = (0.03 + 0.5 * checks)[..., None].expand(-1, -1, 3)  # a checked shirt: many corners
+    pw, ph = pattern.shape[1], pattern.shape[0]
+    where = torch.zeros(T, H, W, dtype=torch.bool)
+    for t in range(2, 14):
+        x0 = round((t - 2) / 11 * (W - pw))
+        room[t, H - ph:, x0:x0 + pw] = pattern
+        where[t, H - ph:, x0:x0 + pw] = True
+    video = write_video(tmp_path / "shirt.mp4", frames_of(room).numpy(), 4.0)
+
+    def loaded():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return load_capture(video, params=CaptureParams(fps=4.0))
+
+    assert loaded().static_camera
+    monkeypatch.setattr(motion, "STILL_MIN", 10**9)  # the median of every match, as before
+    assert not loaded().static_camera

@@ -6,7 +6,12 @@ Statistic (docs/engine.md, "Camera tracking"):
    ratio-test matches): frame 0 unless it is dark, blurred or cut; frames before it are listed
    as without matches. For every later frame t, the MEDIAN displacement of the features
    matched between the reference and frame t. The median ignores a
-   minority of moving objects and mismatches; a lighting change moves no feature.
+   minority of moving objects and mismatches; a lighting change moves no feature. Where six
+   matches stayed put (within half a pixel), the median of those: a person walking through
+   may bring more features than the wall behind them, but a moving camera leaves no six
+   features of the room in place (mutual ratio-test matches landing within half a pixel by
+   chance do not come six at a time). A frame with too few matches to the reference to
+   measure a motion, but six that stayed put, did not move.
    When frame t no longer overlaps the reference enough, its displacement is chained through
    frame t - 1 (displacement(t - 1) + median displacement between t - 1 and t).
    Frames with too few matches either way (dark, blurred, a cut) are left out and listed.
@@ -29,6 +34,8 @@ from core.tracking.features import FrameFeatures, match
 MIN_MATCHES = 12
 MIN_MOTION_FRACTION = 0.004  # 0.4 % of the width: ~1.3 px at 320 px, ~0.25 deg at 60 deg FOV
 K_SIGMA = 4.0
+STILL_PX = 0.5  # a feature that moved less than this (analysis pixels) stayed put
+STILL_MIN = 6  # that many matches staying put mean a still camera (_median_displacement)
 
 
 @dataclass(frozen=True)
@@ -44,13 +51,24 @@ class MotionDecision:
 
 
 def _median_displacement(xi: np.ndarray, xj: np.ndarray) -> tuple[float, float]:
-    """(median displacement, robust spread of the residuals after a homography) in pixels."""
-    disp = float(np.median(np.linalg.norm(xj - xi, axis=1)))
+    """(median displacement, robust spread of the residuals after a homography) in pixels.
+    Where at least STILL_MIN of the matches stayed within STILL_PX, the median of those: a moving camera moves every feature of the room, so features that stayed
+    put are the room behind something moving through the view (a person whose features can
+    outnumber a plain wall's), not a camera that moved."""
+    norms = np.linalg.norm(xj - xi, axis=1)
+    still = norms < STILL_PX
+    disp = float(np.median(norms[still] if still.sum() >= STILL_MIN else norms))
+    if len(norms) < 4:  # a homography needs four
+        return disp, float("nan")
     H, _ = cv2.findHomography(xi, xj, cv2.RANSAC, 3.0)
     if H is None:
         return disp, float("nan")
     pred = cv2.perspectiveTransform(xi[None].astype(np.float64), H)[0]
     return disp, 1.4826 * float(np.median(np.linalg.norm(xj - pred, axis=1)))
+
+
+def _stayed_put(xi: np.ndarray, xj: np.ndarray) -> int:
+    return int((np.linalg.norm(xj - xi, axis=1) < STILL_PX).sum())
 
 
 def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
@@ -75,6 +93,9 @@ def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
         if len(m) >= MIN_MATCHES:
             disp[t], s = _median_displacement(m.xi, m.xj)
             noise.append(s)
+            continue
+        if _stayed_put(m.xi, m.xj) >= STILL_MIN:  # too few to measure a motion, enough to see none
+            disp[t] = _median_displacement(m.xi, m.xj)[0]
             continue
         prev = match(features[t - 1], features[t], t - 1, t)
         if len(prev) >= MIN_MATCHES and np.isfinite(disp[t - 1]):
