@@ -15,7 +15,9 @@ drawn per panorama, 0.1x-2x mid-grey) walks from left to right over frames WALK.
 * `pool-off`: no figure; a lamp's pool of light (a soft blob adding 2x the room's light at its
   centre) switches off at the middle frame (a local change of light that must not be painted
   out);
-* `clean`: no figure, steady light (the reference).
+* `clean`: no figure, steady light (the reference);
+* `pans` (what is left undone): a 90 deg pan with and without the figure (`pans`): tracked or
+  not, its largest rotation error, read as changing light or not.
 Per clip, as loaded: whether the temporal decision reads changing light with the default
 (`transients` unset: "remove") and with "keep"; the painted share; for the figure, the mask's
 intersection over union with where it was (at full resolution) and its recall.
@@ -99,6 +101,47 @@ def pool(h: int, w: int) -> torch.Tensor:
     return 2.0 * torch.exp(-((xx - 0.35) ** 2 + (yy - 0.65) ** 2) / 0.03)[..., None]
 
 
+def pans(pano: torch.Tensor, yaw: float, pitch: float, seed: int, stem: Path) -> dict:
+    """What is left undone: bench.auto_exposure_pans' pan (90 deg, 16 frames at 10 fps, one
+    exposure, steady light) with and without the figure walking across the frame over frames
+    4-11. Per clip as loaded: tracked or taken for a static camera, the tracking method, the
+    largest rotation error (deg, frames kept, world = the first kept frame), and whether the
+    temporal decision reads changing light (a moving camera's frames are not painted out)."""
+    from bench.auto_exposure_pans import FPS as PAN_FPS, ae_clip
+    from core.capture.load import load_capture
+    from core.capture.params import CaptureParams
+    from core.capture.temporal import decide_temporal
+    from core.conventions import inverse_tonemap, tonemap
+    from core.io.video import write_video
+
+    ldr, _, poses = ae_clip(pano, yaw, pitch, light=lambda i, n: 1.0)
+    T, h, w, _ = ldr.shape
+    lin = inverse_tonemap(ldr)
+    shape, coat = figure(h, w, seed)
+    pw = w // 6
+    for i in range(4, 12):
+        x0 = round((i - 4) / 7 * (w - pw))
+        s = torch.zeros(h, w, dtype=torch.bool)
+        s[:, x0:x0 + pw] = shape[:, :pw]
+        lin[i][s] = coat[:, :pw][shape[:, :pw]]
+    out = {}
+    for name, frames in (("pan", ldr), ("pan-walk", torch.round(tonemap(lin) * 255) / 255)):
+        video = write_video(Path(f"{stem}-{name}.mp4"), frames.numpy(), PAN_FPS)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            cap = load_capture(video, params=CaptureParams(fps=PAN_FPS))
+        kept = (cap.times.double() * PAN_FPS).round().long()
+        truth = torch.stack([torch.as_tensor(poses[int(k)], dtype=torch.float64) for k in kept])
+        rel_true = truth[0, :3, :3].T @ truth[:, :3, :3]
+        rel_est = cap.poses[0, :3, :3].T @ cap.poses[:, :3, :3]
+        cos = ((rel_true.transpose(1, 2) @ rel_est).diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2
+        out[name] = {"static_camera": cap.static_camera, "method": cap.metadata.get("tracking", {}).get("method"),
+                     "frames_kept": cap.num_frames,
+                     "max_rotation_error_deg": round(math.degrees(float(cos.clamp(-1, 1).acos().max())), 2),
+                     "read_as_changing_light": decide_temporal(cap).uses_time}
+    return out
+
+
 def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
     from bench.auto_exposure_pans import map_change_stops
     from bench.suite.evaluation import score_probe
@@ -148,6 +191,7 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
                     row["iou"] = round(float((mask & where).sum()) / max(float((mask | where).sum()), 1.0), 3)
                     row["recall"] = round(float((mask & where).sum()) / max(float(where.sum()), 1.0), 3)
         out["clips"][name] = row
+    out["pans"] = pans(pano, yaw, pitch, seed, workdir / path.stem)
     gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), pose_from_yaw_pitch((0, 0, 0), yaw, pitch)[:3, :3].T)
     cfg = preset("draft").with_overrides({"distill.iterations": iterations, "distill.work_height": WORK_HEIGHT})
     t_mid = mid / FPS
@@ -189,7 +233,11 @@ def summarise(rows: list[dict]) -> dict:
             clips[name].update(iou_mean=mean([c["iou"] for c in cs]), iou_min=min(c["iou"] for c in cs),
                                recall_mean=mean([c["recall"] for c in cs]))
     runs = ("default", "keep", "clean")
-    return {"panoramas": len(rows), "clips": clips,
+    pan = {name: {"taken_for_static": sum(r["pans"][name]["static_camera"] for r in rows),
+                  "read_as_changing_light": sum(r["pans"][name]["read_as_changing_light"] for r in rows),
+                  "within_1deg": sum(r["pans"][name]["max_rotation_error_deg"] <= 1.0 for r in rows)}
+           for name in ("pan", "pan-walk")}
+    return {"panoramas": len(rows), "clips": clips, "pans": pan,
             "map_change_stops_mean": {k: mean([r["runs"][k]["map_change_stops"] for r in rows]) for k in runs},
             "map_change_stops_max": {k: max(r["runs"][k]["map_change_stops"] for r in rows) for k in runs},
             "jobs_with_time_input": {k: sum(r["runs"][k]["uses_time"] for r in rows) for k in runs},
