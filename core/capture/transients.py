@@ -43,6 +43,12 @@ K_SIGMA = 5.0  # ... nor one within 5x the pixel's own noise (its departures' ro
 MAX_FRAME_SHARE = 0.5  # a frame more than half transient is left as it is
 MIN_SHARE = 1e-3  # a clip with fewer transient pixels than this share is left as it is
 ITERATIONS = 12
+MOVING_HEIGHT = 72  # a moving camera's frames are compared at this height (core.capture.temporal's)
+MOVING_WINDOW = 3  # ... each with its 3 neighbours either side, warped into it
+MOVING_MIN_SIDE = 2  # ... where at least 2 of them on each side see the point
+MOVING_ONE_SIDE = 3  # ... or, at the edge of a pan's view or the clip, all 3 on one side,
+SWITCH_SHARE = 0.03  # ... unless a light switched in the window (that share of points agree with one side only)
+MIN_SHARED_PIXELS = 50  # a neighbour that shares fewer usable pixels with the frame is not used
 KEEP_COURSE = 0.5  # a course of light is kept if it explains at least half of the departures left
 
 
@@ -114,40 +120,37 @@ def _weights(x: torch.Tensor, w: torch.Tensor, model: torch.Tensor) -> torch.Ten
 
 
 def transient_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
-    """[T, H, W] bool transient pixels of a static camera's clip (all False where nothing is
-    looked for) and the evidence (`looked`, `reason`, shares, rank)."""
+    """[T, H, W] bool transient pixels of a clip (all False where nothing is looked for) and the
+    evidence (`looked`, `camera`, `reason`, shares; a static camera's `rank`), with the model
+    the pixels are painted from (`evidence["model"]`, popped by `without_transients`)."""
     T, H, W = capture.num_frames, capture.height, capture.width
     none = torch.zeros(T, H, W, dtype=torch.bool)
-    if not capture.static_camera:
-        return none, {"looked": False, "reason": "moving camera: not looked for"}
     if T < MIN_FRAMES:
         return none, {"looked": False, "reason": f"fewer than {MIN_FRAMES} frames: not looked for"}
-    mask_small, evidence = _small_mask(capture)
+    mask_small, evidence = _static_mask(capture) if capture.static_camera else _moving_mask(capture)
     if not bool(mask_small.any()):
         return none, evidence
     mask = F.interpolate(mask_small[:, None].float(), size=(H, W), mode="nearest")[:, 0] > 0.5
     return mask, evidence
 
 
-def _small_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
-    T = capture.num_frames
-    h = min(ANALYSIS_HEIGHT, capture.height)
+def _analysis(capture: Capture, h: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(linear frames [T, h, w, 3] area-downsampled after linearising, usable [T, h, w]: every
+    source pixel neither clipped nor too dark)."""
     w = max(1, round(capture.width * h / capture.height))
     ldr = capture.frames.permute(0, 3, 1, 2)
     peak = ldr.max(1, keepdim=True).values
-    usable = ((peak < CLIP_HI) & (peak >= DARK_LO)).float()
-    lin = F.interpolate(inverse_tonemap(ldr), size=(h, w), mode="area")  # linearised before averaging
-    usable = F.interpolate(usable, size=(h, w), mode="area") > 0.999
-    x = lin.permute(0, 2, 3, 1).reshape(T, -1).double()  # [T, h*w*3]
-    ok = usable.permute(0, 2, 3, 1).expand(-1, -1, -1, 3).reshape(T, -1)
-    enough = ok.sum(0) >= (T + 1) // 2  # a pixel usable in most frames has a median to stand on
-    med = torch.where(ok, x, torch.nan).nanmedian(0).values
-    x = torch.where(ok & enough, x / med.clamp_min(1e-12), torch.ones_like(x))
-    wt = (ok & enough).double()
-    model, rank = low_rank_course(x, wt, _rank(T))
-    flagged = departures(x, wt, model).reshape(T, h, w, 3).any(-1)
-    # something in front of the scene covers a region: a pixel flagged with fewer than half its
-    # 3x3 neighbourhood is noise; the rest grow by a pixel, which shares the edge's blend
+    usable = F.interpolate(((peak < CLIP_HI) & (peak >= DARK_LO)).float(), size=(h, w), mode="area")[:, 0] > 0.999
+    lin = F.interpolate(inverse_tonemap(ldr), size=(h, w), mode="area").permute(0, 2, 3, 1)
+    return lin, usable
+
+
+def _tidy(flagged: torch.Tensor, evidence: dict) -> tuple[torch.Tensor, dict]:
+    """Flags [T, h, w] as regions: something in front of the scene covers a region, so a pixel
+    flagged with fewer than half its 3x3 neighbourhood is noise, and the rest grow by a pixel,
+    which shares the edge's blend; frames over MAX_FRAME_SHARE and clips under MIN_SHARE are
+    left alone. The evidence gains the shares and the reason."""
+    T = flagged.shape[0]
     near = F.avg_pool2d(flagged[:, None].float(), 3, stride=1, padding=1, count_include_pad=False)[:, 0]
     flagged = flagged & (near >= 0.5)
     flagged = F.max_pool2d(flagged[:, None].float(), 3, stride=1, padding=1)[:, 0] > 0.5
@@ -155,17 +158,107 @@ def _small_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
     too_much = share > MAX_FRAME_SHARE
     flagged[too_much] = False
     total = float(flagged.float().mean())
-    evidence = {"looked": True, "rank": rank, "analysis_height": h,
-                "frames_with_transients": int((flagged.reshape(T, -1).any(1)).sum()),
-                "pixel_share": round(total, 5), "max_frame_share": round(float(share[~too_much].max()) if bool((~too_much).any()) else 0.0, 4),
-                "frames_left_alone": [int(i) for i in torch.nonzero(too_much).flatten()]}
+    evidence.update({"looked": True, "analysis_height": int(flagged.shape[1]),
+                     "frames_with_transients": int((flagged.reshape(T, -1).any(1)).sum()),
+                     "pixel_share": round(total, 5),
+                     "max_frame_share": round(float(share[~too_much].max()) if bool((~too_much).any()) else 0.0, 4),
+                     "frames_left_alone": [int(i) for i in torch.nonzero(too_much).flatten()]})
     if total < MIN_SHARE:
         flagged[:] = False
         evidence["frames_with_transients"] = 0
         evidence["reason"] = f"nothing moved through the view (transient share {total:.5f} < {MIN_SHARE})"
     else:
         evidence["reason"] = "something moved through the view: its pixels painted out"
+    return flagged, evidence
+
+
+def _static_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
+    T = capture.num_frames
+    lin, usable = _analysis(capture, min(ANALYSIS_HEIGHT, capture.height))
+    _, h, w, _ = lin.shape
+    x = lin.reshape(T, -1).double()  # [T, h*w*3]
+    ok = usable[..., None].expand(-1, -1, -1, 3).reshape(T, -1)
+    enough = ok.sum(0) >= (T + 1) // 2  # a pixel usable in most frames has a median to stand on
+    med = torch.where(ok, x, torch.nan).nanmedian(0).values
+    x = torch.where(ok & enough, x / med.clamp_min(1e-12), torch.ones_like(x))
+    wt = (ok & enough).double()
+    model, rank = low_rank_course(x, wt, _rank(T))
+    flagged, evidence = _tidy(departures(x, wt, model).reshape(T, h, w, 3).any(-1), {"camera": "static", "rank": rank})
     evidence["model"] = model.float().reshape(T, h, w, 3)
+    return flagged, evidence
+
+
+def _moving_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
+    """A moving camera's frames: each frame against the medians of its MOVING_WINDOW neighbours
+    before and after it, warped into it by depth and poses (core.capture.temporal's warp), each
+    neighbour first scaled by its median log ratio to the frame over what both show (an
+    exposure, a change of the whole room). A passer-by who covers a point of the room in this
+    frame and in fewer than half the frames either side departs from both medians the same way;
+    a light that switched within the window agrees with the side the frame is on. A point that
+    fewer than MOVING_MIN_SIDE neighbours see on one side (the clip's first and last frames, the
+    edge of a pan's view) is judged by the other side alone, if all MOVING_ONE_SIDE neighbours
+    there see it and no light switched within the window (SWITCH_SHARE of the points judged
+    both ways agree with one side only); else not judged. Painted from the median of all the
+    neighbours."""
+    from core.capture.temporal import _warp_into
+    from core.conventions import valid_depth_mask
+
+    T = capture.num_frames
+    small = capture.resized(min(MOVING_HEIGHT, capture.height))
+    lin, usable = _analysis(capture, small.height)
+    depth = torch.where(valid_depth_mask(small.depth), small.depth, torch.nan)
+    flagged = torch.zeros(usable.shape, dtype=torch.bool)
+    consensus = lin.clone()
+    for t in range(T):
+        sides = {-1: [], 1: []}
+        for n in range(max(0, t - MOVING_WINDOW), min(T, t + MOVING_WINDOW + 1)):
+            if n == t:
+                continue
+            planes = torch.cat((lin[n], usable[n][..., None].float()), -1)
+            warped, ok = _warp_into(planes, depth[t], depth[n], small.intrinsics, capture.poses[t], capture.poses[n])
+            ok = ok & (warped[..., 3] > 0.999)
+            both = ok & usable[t]
+            if int(both.sum()) < MIN_SHARED_PIXELS:
+                continue
+            scale = (warped[..., :3][both].clamp_min(1e-8).log() - lin[t][both].clamp_min(1e-8).log()).median()
+            sides[1 if n > t else -1].append(torch.where(ok[..., None], warped[..., :3] / scale.exp(), torch.nan))
+        if not sides[-1] and not sides[1]:
+            continue
+        nan = torch.full_like(lin[t], torch.nan)[None]
+        before = torch.stack(sides[-1]) if sides[-1] else nan
+        after = torch.stack(sides[1]) if sides[1] else nan
+        n_before = torch.isfinite(before[..., 0]).sum(0)
+        n_after = torch.isfinite(after[..., 0]).sum(0)
+        two_sided = (n_before >= MOVING_MIN_SIDE) & (n_after >= MOVING_MIN_SIDE)
+        one_sided = ~two_sided & ((n_before >= MOVING_ONE_SIDE) | (n_after >= MOVING_ONE_SIDE))
+        judged = usable[t] & (two_sided | one_sided)
+        if not bool(judged.any()):
+            continue
+        own = lin[t].clamp_min(1e-6).log()
+        d_before = own - before.nanmedian(0).values.clamp_min(1e-6).log()  # [h, w, 3]
+        d_after = own - after.nanmedian(0).values.clamp_min(1e-6).log()
+        # a passer-by departs from both sides alike; a light that switched agrees with one side
+        same_way = torch.sign(d_before) == torch.sign(d_after)
+        dev = torch.where(same_way, torch.minimum(d_before.abs(), d_after.abs()), torch.zeros_like(d_before))
+        one = torch.where(n_before[..., None] >= MOVING_ONE_SIDE, d_before, d_after).abs()  # NaN-free side
+        dev = torch.where(two_sided[..., None], dev, one.nan_to_num(0.0)).max(-1).values
+        noise = 1.4826 * float(dev[judged].median())
+        threshold = max(TRANSIENT_RATIO, K_SIGMA * noise)
+        # where the light switched within the window (points that depart from one side and agree
+        # with the other), one side alone cannot tell a switch from a passer-by: not judged
+        # (a switch between two frames of one side: the neighbours beyond it all depart the same
+        # way and the nearer ones agree, and every neighbour of the other side agrees; something
+        # that comes into view in the next frame or two and moves on is not that)
+        near_b, near_a = before.flip(0), after  # nearest first
+        switched = two_sided & usable[t] & ((_switch_beyond(own, near_b, threshold) & _agrees(own, near_a, threshold))
+                                            | (_switch_beyond(own, near_a, threshold) & _agrees(own, near_b, threshold)))
+        if int(switched.sum()) >= SWITCH_SHARE * max(int((two_sided & usable[t]).sum()), 1):
+            judged = judged & two_sided
+        flagged[t] = judged & (dev > threshold)
+        median = torch.cat((before, after)).nanmedian(0).values.nan_to_num(0.0)
+        consensus[t] = torch.where(judged[..., None], median, lin[t])
+    flagged, evidence = _tidy(flagged, {"camera": "moving", "window": MOVING_WINDOW})
+    evidence["neighbours"] = consensus
     return flagged, evidence
 
 
@@ -194,21 +287,66 @@ def paint_out(capture: Capture, mask: torch.Tensor, model_small: torch.Tensor) -
     return replace(capture, frames=frames, depth=depth, full_resolution=None)
 
 
+def _log_ratios(own_log: torch.Tensor, side: torch.Tensor) -> torch.Tensor:
+    """[m, h, w] log ratio (channel mean) of a frame over each neighbour of one side ([m, h, w, 3]
+    linear, NaN where it does not see the point)."""
+    return (own_log[None] - side.clamp_min(1e-6).log()).mean(-1)
+
+
+def _agrees(own_log: torch.Tensor, side: torch.Tensor, threshold: float) -> torch.Tensor:
+    """[h, w]: every neighbour of the side that sees the point is within half the threshold."""
+    r = _log_ratios(own_log, side)
+    return ((r.abs() < threshold / 2) | r.isnan()).all(0)
+
+
+def _switch_beyond(own_log: torch.Tensor, side_nearest_first: torch.Tensor, threshold: float) -> torch.Tensor:
+    """[h, w]: for some split of the side (nearest first), the nearer neighbours agree and the
+    farther ones, at least two seen, all depart the same way (unseen ones count as either)."""
+    r = _log_ratios(own_log, side_nearest_first)
+    seen = ~r.isnan()
+    agree = (r.abs() < threshold / 2) | ~seen
+    up, down = (r > threshold) | ~seen, (r < -threshold) | ~seen
+    out = torch.zeros(r.shape[1:], dtype=torch.bool)
+    for j in range(r.shape[0]):
+        near_ok = agree[:j].all(0) if j else torch.ones_like(out)
+        far_seen = seen[j:].sum(0) >= 2  # one far frame alone is something coming into view
+        out |= near_ok & far_seen & (up[j:].all(0) | down[j:].all(0))
+    return out
+
+
+def paint_from_neighbours(capture: Capture, mask: torch.Tensor, neighbours: torch.Tensor) -> Capture:
+    """A moving camera's capture with `mask`ed pixels [T, H, W] replaced by the median of the
+    frame and its neighbours warped into it (`neighbours` [T, h, w, 3] linear, upsampled: the
+    painted region keeps the analysis height's detail, 72 rows, enough for light)."""
+    T, H, W = mask.shape
+    frames = capture.frames.clone()
+    for t in range(T):
+        if not bool(mask[t].any()):
+            continue
+        up = F.interpolate(neighbours[t].permute(2, 0, 1)[None], size=(H, W), mode="bilinear",
+                           align_corners=False)[0].permute(1, 2, 0)
+        frames[t][mask[t]] = tonemap(up[mask[t]].clamp_min(0.0)).clamp(0.0, 1.0)
+    return replace(capture, frames=frames, full_resolution=None)
+
+
 def without_transients(capture: Capture, params=None) -> Capture:
-    """The capture with what moved through a static camera's view painted out, the evidence in
+    """The capture with what moved through its view painted out, the evidence in
     `metadata["transients"]` and a warning when anything was (`params.transients="keep"`: as is)."""
     mode = getattr(params, "transients", "remove") if params is not None else "remove"
     if mode == "keep":
         return capture
     mask, evidence = transient_mask(capture)
-    model = evidence.pop("model", None)
+    model, neighbours = evidence.pop("model", None), evidence.pop("neighbours", None)
     meta = dict(capture.metadata)
     meta["transients"] = evidence
-    if model is None or not bool(mask.any()):
+    if not bool(mask.any()):
         return replace(capture, metadata=meta)
-    cleaned = paint_out(capture, mask, model)
+    if model is not None:
+        cleaned, source = paint_out(capture, mask, model), "the frames where they were clear"
+    else:
+        cleaned, source = paint_from_neighbours(capture, mask, neighbours), "the neighbouring frames"
     share = float(mask.float().mean())
     warning = (f"something moved through the view in {evidence['frames_with_transients']} of {capture.num_frames} frames "
-               f"(a person walking through?): {100 * share:.1f} % of the clip's pixels were painted out from the frames "
-               f"where they were clear, so it is not read as the light changing; params.transients='keep' keeps them")
+               f"(a person walking through?): {100 * share:.1f} % of the clip's pixels were painted out from {source}, "
+               f"so it is not read as the light changing; params.transients='keep' keeps them")
     return replace(cleaned, metadata=meta, warnings=[*capture.warnings, warning])
