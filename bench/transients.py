@@ -16,8 +16,11 @@ drawn per panorama, 0.1x-2x mid-grey) walks from left to right over frames WALK.
   centre) switches off at the middle frame (a local change of light that must not be painted
   out);
 * `clean`: no figure, steady light (the reference);
-* `pans` (what is left undone): a 90 deg pan with and without the figure (`pans`): tracked or
-  not, its largest rotation error, read as changing light or not.
+* `pans`: bench.auto_exposure_pans' 90 deg pan under one exposure and steady light, with and
+  without the figure, and two without it that must not be painted: under a phone's
+  auto-exposure (`pan-ae`) and with the light halved from the middle frame (`pan-halved`);
+  per clip: tracked or not, its largest rotation error, read as changing light or not, the
+  painted share.
 Per clip, as loaded: whether the temporal decision reads changing light with the default
 (`transients` unset: "remove") and with "keep"; the painted share; for the figure, the mask's
 intersection over union with where it was (at full resolution) and its recall.
@@ -102,11 +105,12 @@ def pool(h: int, w: int) -> torch.Tensor:
 
 
 def pans(pano: torch.Tensor, yaw: float, pitch: float, seed: int, stem: Path) -> dict:
-    """What is left undone: bench.auto_exposure_pans' pan (90 deg, 16 frames at 10 fps, one
-    exposure, steady light) with and without the figure walking across the frame over frames
-    4-11. Per clip as loaded: tracked or taken for a static camera, the tracking method, the
-    largest rotation error (deg, frames kept, world = the first kept frame), and whether the
-    temporal decision reads changing light (a moving camera's frames are not painted out)."""
+    """bench.auto_exposure_pans' pan (90 deg, 16 frames at 10 fps, one exposure, steady light)
+    with and without the figure walking across the frame over frames 4-11 (with the room's
+    drift in the frame, the camera half following them), under an auto-exposure, and with the
+    light halved from the middle frame. Per clip as loaded: tracked or taken for a static
+    camera, the tracking method, the largest rotation error (deg, frames kept, world = the
+    first kept frame), whether the temporal decision reads changing light, the painted share."""
     from bench.auto_exposure_pans import FPS as PAN_FPS, ae_clip
     from core.capture.load import load_capture
     from core.capture.params import CaptureParams
@@ -115,6 +119,8 @@ def pans(pano: torch.Tensor, yaw: float, pitch: float, seed: int, stem: Path) ->
     from core.io.video import write_video
 
     ldr, _, poses = ae_clip(pano, yaw, pitch, light=lambda i, n: 1.0)
+    ae, _, _ = ae_clip(pano, yaw, pitch, speed=0.5)
+    halved, _, _ = ae_clip(pano, yaw, pitch, light=lambda i, n: 1.0 if i < n // 2 else 0.5)
     T, h, w, _ = ldr.shape
     lin = inverse_tonemap(ldr)
     shape, coat = figure(h, w, seed)
@@ -125,7 +131,8 @@ def pans(pano: torch.Tensor, yaw: float, pitch: float, seed: int, stem: Path) ->
         s[:, x0:x0 + pw] = shape[:, :pw]
         lin[i][s] = coat[:, :pw][shape[:, :pw]]
     out = {}
-    for name, frames in (("pan", ldr), ("pan-walk", torch.round(tonemap(lin) * 255) / 255)):
+    for name, frames in (("pan", ldr), ("pan-walk", torch.round(tonemap(lin) * 255) / 255), ("pan-ae", ae),
+                         ("pan-halved", halved)):
         video = write_video(Path(f"{stem}-{name}.mp4"), frames.numpy(), PAN_FPS)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -138,7 +145,8 @@ def pans(pano: torch.Tensor, yaw: float, pitch: float, seed: int, stem: Path) ->
         out[name] = {"static_camera": cap.static_camera, "method": cap.metadata.get("tracking", {}).get("method"),
                      "frames_kept": cap.num_frames,
                      "max_rotation_error_deg": round(math.degrees(float(cos.clamp(-1, 1).acos().max())), 2),
-                     "read_as_changing_light": decide_temporal(cap).uses_time}
+                     "read_as_changing_light": decide_temporal(cap).uses_time,
+                     "painted_share": cap.metadata.get("transients", {}).get("pixel_share", 0.0)}
     return out
 
 
@@ -236,7 +244,10 @@ def summarise(rows: list[dict]) -> dict:
     pan = {name: {"taken_for_static": sum(r["pans"][name]["static_camera"] for r in rows),
                   "read_as_changing_light": sum(r["pans"][name]["read_as_changing_light"] for r in rows),
                   "within_1deg": sum(r["pans"][name]["max_rotation_error_deg"] <= 1.0 for r in rows)}
-           for name in ("pan", "pan-walk")}
+           for name in ("pan", "pan-walk", "pan-ae", "pan-halved")}
+    for name in pan:
+        shares = [r["pans"][name].get("painted_share", 0.0) for r in rows]
+        pan[name].update(painted=sum(x > 0 for x in shares), painted_share_mean=mean(shares))
     return {"panoramas": len(rows), "clips": clips, "pans": pan,
             "map_change_stops_mean": {k: mean([r["runs"][k]["map_change_stops"] for r in rows]) for k in runs},
             "map_change_stops_max": {k: max(r["runs"][k]["map_change_stops"] for r in rows) for k in runs},

@@ -32,7 +32,7 @@ import torch.nn.functional as F
 
 from core.capture.base import Capture
 from core.capture.temporal import CLIP_HI, DARK_LO  # LDR: clipped, and too dark for a ratio
-from core.conventions import inverse_tonemap, tonemap
+from core.conventions import GAMMA, inverse_tonemap, tonemap  # the tone curve: d(log linear)/d(LDR) = GAMMA/LDR
 
 MIN_FRAMES = 8  # fewer frames cannot separate a course of light from a passer-by
 RANK = 3  # what stays + up to two lights changing on their own courses (12+ frames; 8-11: 2)
@@ -235,14 +235,17 @@ def _moving_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
         if not bool(judged.any()):
             continue
         own = lin[t].clamp_min(1e-6).log()
-        d_before = own - before.nanmedian(0).values.clamp_min(1e-6).log()  # [h, w, 3]
-        d_after = own - after.nanmedian(0).values.clamp_min(1e-6).log()
+        d_before = _beyond_local_range(own, before.nanmedian(0).values)  # [h, w, 3]
+        d_after = _beyond_local_range(own, after.nanmedian(0).values)
         # a passer-by departs from both sides alike; a light that switched agrees with one side
         same_way = torch.sign(d_before) == torch.sign(d_after)
         dev = torch.where(same_way, torch.minimum(d_before.abs(), d_after.abs()), torch.zeros_like(d_before))
         one = torch.where(n_before[..., None] >= MOVING_ONE_SIDE, d_before, d_after).abs()  # NaN-free side
         dev = torch.where(two_sided[..., None], dev, one.nan_to_num(0.0)).max(-1).values
-        noise = 1.4826 * float(dev[judged].median())
+        median = torch.cat((before, after)).nanmedian(0).values
+        plain = (own - median.clamp_min(1e-6).log()).abs().max(-1).values  # the frame's noise: their robust spread
+        scored = judged & plain.isfinite()
+        noise = 1.4826 * float(plain[scored].median()) if bool(scored.any()) else 0.0
         threshold = max(TRANSIENT_RATIO, K_SIGMA * noise)
         # where the light switched within the window (points that depart from one side and agree
         # with the other), one side alone cannot tell a switch from a passer-by: not judged
@@ -254,9 +257,12 @@ def _moving_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
                                             | (_switch_beyond(own, near_a, threshold) & _agrees(own, near_b, threshold)))
         if int(switched.sum()) >= SWITCH_SHARE * max(int((two_sided & usable[t]).sum()), 1):
             judged = judged & two_sided
-        flagged[t] = judged & (dev > threshold)
-        median = torch.cat((before, after)).nanmedian(0).values.nan_to_num(0.0)
-        consensus[t] = torch.where(judged[..., None], median, lin[t])
+        # a dark pixel's log is noisier: the frame's noise in 8-bit units (tone curve slope
+        # GAMMA / value), scaled back to each pixel's log
+        slope = GAMMA / tonemap(lin[t]).max(-1).values.clamp_min(DARK_LO)
+        noise_ldr = 1.4826 * float((plain / slope)[scored].median()) if bool(scored.any()) else 0.0
+        flagged[t] = judged & (dev > torch.clamp(K_SIGMA * noise_ldr * slope, min=TRANSIENT_RATIO))
+        consensus[t] = torch.where(judged[..., None], median.nan_to_num(0.0), lin[t])
     flagged, evidence = _tidy(flagged, {"camera": "moving", "window": MOVING_WINDOW})
     evidence["neighbours"] = consensus
     return flagged, evidence
@@ -285,6 +291,18 @@ def paint_out(capture: Capture, mask: torch.Tensor, model_small: torch.Tensor) -
     clear_depth = torch.where(clear, d, torch.nan).nanmedian(0).values  # [N]
     depth[:, where] = torch.where(swap, clear_depth[None].expand_as(d), d)
     return replace(capture, frames=frames, depth=depth, full_resolution=None)
+
+
+def _beyond_local_range(own_log: torch.Tensor, other: torch.Tensor) -> torch.Tensor:
+    """[h, w, 3] how far (log) a frame's value lies outside the range of `other` [h, w, 3] (linear,
+    NaN where unseen) over the pixel's 3x3 neighbourhood: a warp a pixel off puts an edge's
+    value anywhere in that range, which is no departure (NaN where `other` is unseen)."""
+    seen = ~other.isnan().any(-1, keepdim=True)
+    o = torch.where(seen, other, own_log.exp()).clamp_min(1e-6).log().permute(2, 0, 1)[None]
+    hi = F.max_pool2d(o, 3, stride=1, padding=1)[0].permute(1, 2, 0)
+    lo = -F.max_pool2d(-o, 3, stride=1, padding=1)[0].permute(1, 2, 0)
+    d = own_log - own_log.clamp(min=lo, max=hi)
+    return torch.where(seen, d, torch.nan)
 
 
 def _log_ratios(own_log: torch.Tensor, side: torch.Tensor) -> torch.Tensor:
