@@ -75,9 +75,10 @@ class CaptureParams(_Strict):
         default="auto", description="camera tracking when several frames come without poses: 'auto' detects camera "
                                      "motion and tracks it; 'off' treats the camera as static (docs/captures.md)")
     transients: Literal["remove", "keep"] = Field(
-        default="remove", description="something moving through a static camera's view (a person walking through): "
-                                      "'remove' paints it out from the frames where its pixels are clear, so it is not "
-                                      "read as the light changing; 'keep' leaves the frames as they are (docs/captures.md)")
+        default="remove", description="something moving through the view (a person walking through): 'remove' "
+                                      "paints it out (a static camera: from the frames where its pixels are clear; a "
+                                      "moving one: from the neighbouring frames), so it is not read as the light "
+                                      "changing; 'keep' leaves the frames as they are (docs/captures.md)")
 
     @field_validator("poses")
     @classmethod

@@ -1,26 +1,29 @@
-"""Things moving in front of a static camera's scene (a person walking through the view), told
-apart from a change of light and painted out (docs/captures.md, "Things moving through the view").
+"""Things moving through the view (a person walking through), told apart from a change of
+light and painted out, so that they are not read as the light changing and the prior does not
+paint them into the room's light (docs/captures.md, "Things moving through the view").
 
-A static camera sees a room whose light may change: lights switch, dim, an exposure moves.
-In linear radiance every such change is a sum of a few fixed images, each on its own course
-over time (what stays, plus one image per light that changes on its own, times its intensity):
-the clip, as a frames x pixels matrix, has a low rank. A person walking through does not: the
-pixels they cover change at different times as they move, which no few shared courses make.
-So each frame is compared with a robust low-rank model of the clip (`low_rank_course`: at
-most RANK courses, each kept only if it explains most of what is left), and the pixels that
-depart from it by more than TRANSIENT_RATIO (and by more than K_SIGMA times their own noise)
-are transient.
-They are replaced by the model's prediction: the pixel's own detail from the frames where
-it is clear, on the model's course of light for that frame and pixel. Without this, a person
-walking through reads as the light changing, and the prior paints them into the room's light.
+A static camera (`_static_mask`) sees a room whose light may change: lights switch, dim, an
+exposure moves. In linear radiance every such change is a sum of a few fixed images, each on
+its own course over time (what stays, plus one image per light that changes on its own, times
+its intensity): the clip, as a frames x pixels matrix, has a low rank. A person walking
+through does not: the pixels they cover change at different times as they move, which no few
+shared courses make. So each frame is compared with a robust low-rank model of the clip
+(`low_rank_course`: at most RANK courses, each kept only if it explains most of what is left);
+the pixels that depart from it by more than TRANSIENT_RATIO (and by more than K_SIGMA times
+their own noise) are transient, and are replaced by the pixel's own detail from the frames
+where it is clear, on the model's course of light for that frame (`paint_out`).
+
+A moving camera (`_moving_mask`) has no fixed pixels: each frame is compared with its
+neighbours before and after it, warped into it by depth and poses, and painted from their
+median (`paint_from_neighbours`).
 
 Left alone, by design:
-* a moving camera (its frames need warping first; not done here);
 * clips of fewer than MIN_FRAMES frames (a few frames cannot tell a course of light from a
   passer-by);
-* something that stays in one place for most of the clip: it is part of the scene;
+* something that stays in one place for most of a static clip, or on the same part of the
+  room for most of a moving camera's window (someone the camera follows);
 * a frame whose transient share exceeds MAX_FRAME_SHARE: most of the view changed in a way no
-  low-rank light explains (a cut, the camera knocked), so painting it out would invent a frame.
+  light explains (a cut, the camera knocked), so painting it out would invent a frame.
 """
 from __future__ import annotations
 
