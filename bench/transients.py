@@ -237,9 +237,10 @@ def summarise(rows: list[dict]) -> dict:
                        "painted": sum(c["frames_with_transients"] > 0 for c in cs),
                        "painted_share_mean": mean([c["painted_share"] for c in cs]),
                        "static_camera": sum(c["static_camera"] for c in cs)}
-        if cs and "iou" in cs[0]:
-            clips[name].update(iou_mean=mean([c["iou"] for c in cs]), iou_min=min(c["iou"] for c in cs),
-                               recall_mean=mean([c["recall"] for c in cs]))
+        scored = [c for c in cs if "iou" in c]  # a clip tracking took for a moving camera has no mask to score
+        if scored:
+            clips[name].update(iou_mean=mean([c["iou"] for c in scored]), iou_min=min(c["iou"] for c in scored),
+                               recall_mean=mean([c["recall"] for c in scored]), scored=len(scored))
     runs = ("default", "keep", "clean")
     pan = {name: {"taken_for_static": sum(r["pans"][name]["static_camera"] for r in rows),
                   "read_as_changing_light": sum(r["pans"][name]["read_as_changing_light"] for r in rows),
@@ -265,7 +266,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iterations", type=int, default=200)
     p.add_argument("--workdir", default=None)
     p.add_argument("-o", "--output", default=None)
+    p.add_argument("--rescore", default=None, metavar="LOG",
+                   help="rebuild the report from a run's printed per-panorama lines (JSON, one per line) and exit")
     args = p.parse_args(argv)
+    if args.rescore:
+        from bench.report import show_and_write
+
+        rows = [json.loads(line) for line in Path(args.rescore).read_text().splitlines() if line.startswith('{"file"')]
+        report = {"split": args.split, "frames": FRAMES, "fps": FPS, "size": list(SIZE), "walk": list(WALK),
+                  "iterations": args.iterations, "summary": summarise(rows), "panoramas": rows}
+        show_and_write(report["summary"], report, args.output)
+        return 0
 
     import tempfile
 
