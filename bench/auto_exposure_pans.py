@@ -277,18 +277,11 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(report["summary"], indent=1))
         return 0
 
-    import tempfile
+    from bench.real_panoramas import rows_over, split_files
 
-    from bench.real_panoramas import read_manifest
-
-    hdri = Path(args.hdri_dir)
-    files = [hdri / r["filename"] for r in read_manifest(hdri) if r["split"] == args.split][: args.limit]
-    rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        work = Path(args.workdir or tmp)
-        for f in files:
-            rows.append(detection(f, work) if args.detection_only else evaluate(f, args.iterations, work))
-            print(json.dumps(rows[-1]), flush=True)
+    rows = rows_over(split_files(args.hdri_dir, args.split, args.limit),
+                     lambda f, work: detection(f, work) if args.detection_only else evaluate(f, args.iterations, work),
+                     args.workdir)
     report = {"split": args.split, "frames": FRAMES, "pan_deg": PAN_DEG, "size": list(SIZE)}
     if args.detection_only:
         report.update(summary=summarise_detection(rows), panoramas=rows)

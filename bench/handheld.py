@@ -193,10 +193,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--global-shutter", action="store_true", help="track without the rolling-shutter model")
     p.add_argument("-o", "--output", default=None)
     args = p.parse_args(argv)
-    from bench.real_panoramas import read_manifest
+    from bench.real_panoramas import split_files
 
-    hdri = Path(args.hdri_dir)
-    files = [hdri / r["filename"] for r in read_manifest(hdri) if r["split"] == args.split][: args.limit]
+    files = split_files(args.hdri_dir, args.split, args.limit)
     known = {**VARIANTS, **WALKS}
     unknown = set(args.variants.split(",")) - set(known)
     if unknown:

@@ -68,6 +68,27 @@ def read_manifest(hdri_dir: Path) -> list[dict]:
         return list(csv.DictReader(f, delimiter="\t"))
 
 
+def split_files(hdri_dir, split: str, limit: int | None = None) -> list[Path]:
+    """The panoramas of one split of MANIFEST.tsv, in its order (the first `limit`)."""
+    hdri = Path(hdri_dir)
+    return [hdri / r["filename"] for r in read_manifest(hdri) if r["split"] == split][:limit]
+
+
+def rows_over(files: list[Path], evaluate, workdir=None) -> list[dict]:
+    """evaluate(file, workdir) per panorama, each row printed as it comes (a run's log can
+    rebuild its report), in `workdir` or a temporary directory."""
+    import json
+    import tempfile
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(workdir or tmp)
+        for f in files:
+            rows.append(evaluate(f, work))
+            print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
 def camera_rotation(yaw_deg: float, pitch_deg: float) -> torch.Tensor:
     """Camera-to-world rotation: pitch about x (up positive), then yaw about +y (the simulator's camera rule)."""
     from core.sim.state import pose_from_yaw_pitch

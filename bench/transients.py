@@ -270,27 +270,19 @@ def main(argv: list[str] | None = None) -> int:
                    help="rebuild the report from a run's printed per-panorama lines (JSON, one per line) and exit")
     args = p.parse_args(argv)
     if args.rescore:
-        from bench.report import show_and_write
+        return _write([json.loads(line) for line in Path(args.rescore).read_text().splitlines()
+                       if line.startswith('{"file"')], args)
 
-        rows = [json.loads(line) for line in Path(args.rescore).read_text().splitlines() if line.startswith('{"file"')]
-        report = {"split": args.split, "frames": FRAMES, "fps": FPS, "size": list(SIZE), "walk": list(WALK),
-                  "iterations": args.iterations, "summary": summarise(rows), "panoramas": rows}
-        show_and_write(report["summary"], report, args.output)
-        return 0
+    from bench.real_panoramas import rows_over, split_files
 
-    import tempfile
+    rows = rows_over(split_files(args.hdri_dir, args.split, args.limit), lambda f, work: evaluate(f, args.iterations, work),
+                     args.workdir)
+    return _write(rows, args)
 
-    from bench.real_panoramas import read_manifest
+
+def _write(rows: list[dict], args) -> int:
     from bench.report import show_and_write
 
-    hdri = Path(args.hdri_dir)
-    files = [hdri / r["filename"] for r in read_manifest(hdri) if r["split"] == args.split][: args.limit]
-    rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        work = Path(args.workdir or tmp)
-        for f in files:
-            rows.append(evaluate(f, args.iterations, work))
-            print(json.dumps(rows[-1]), flush=True)
     report = {"split": args.split, "frames": FRAMES, "fps": FPS, "size": list(SIZE), "walk": list(WALK),
               "iterations": args.iterations, "summary": summarise(rows), "panoramas": rows}
     show_and_write(report["summary"], report, args.output)

@@ -337,8 +337,8 @@ def _switch_beyond(own_log: torch.Tensor, side_nearest_first: torch.Tensor, thre
 
 def paint_from_neighbours(capture: Capture, mask: torch.Tensor, neighbours: torch.Tensor) -> Capture:
     """A moving camera's capture with `mask`ed pixels [T, H, W] replaced by the median of the
-    frame and its neighbours warped into it (`neighbours` [T, h, w, 3] linear, upsampled: the
-    painted region keeps the analysis height's detail, 72 rows, enough for light)."""
+    frame's neighbours warped into it (`neighbours` [T, h, w, 3] linear, upsampled: the painted
+    region keeps the analysis height's detail, 72 rows, enough for light)."""
     T, H, W = mask.shape
     frames = capture.frames.clone()
     for t in range(T):

@@ -102,7 +102,8 @@ def run_job(
         with timings("tracking" if tracks else "loading"):
             capture = track_capture(capture, params)
     as_uploaded = capture
-    capture = without_transients(capture, params)  # after tracking: only a static camera's are looked for
+    with timings("transients"):  # after tracking: a moving camera's frames are compared through its poses
+        capture = without_transients(capture, params)
     capture = with_estimated_exposure(capture, params)  # after tracking: a pan is compared through its poses
     for w in capture.warnings:  # after tracking, which may replace assumptions (FOV, room)
         warnings.warn(w, stacklevel=2)
