@@ -158,12 +158,11 @@ def map_change_stops(first: torch.Tensor, last: torch.Tensor) -> float:
 
 
 def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
-    from bench.suite.evaluation import envmap_brightness, score_probe
+    from bench.suite.evaluation import envmap_brightness
     from bench.tracking import _view
     from core.capture.load import load_capture
     from core.capture.params import CaptureParams
     from core.capture.temporal import decide_temporal
-    from core.conventions import equirect_width, inverse_tonemap
     from core.engine.job import run_job
     from core.engine.params import JobParams
     from core.engine.presets import preset
@@ -218,14 +217,23 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
                       "drift_stops": round(abs(math.log2(float(level[1] / level[0]))), 3),
                       "map_change_stops": round(map_change_stops(first, last), 3),
                       "cpu_s": round(time.process_time() - t0, 1)}
-    mean = inverse_tonemap(ldr[0]).reshape(-1, 3).mean(0)
-    preds["mean-colour"] = mean.expand(GT_HEIGHT, equirect_width(GT_HEIGHT), 3).clone()
+    score_runs(runs, preds, gt, ldr[0], out)
+    return out
+
+
+def score_runs(runs: dict, preds: dict, gt: torch.Tensor, frame_ldr: torch.Tensor, out: dict) -> None:
+    """Each run's map (`preds`) scored on the diffuse sphere against `gt` (rel si-RMSE, into
+    `runs`), beside a constant map of the frame's mean linear colour; both land in `out`."""
+    from bench.suite.evaluation import score_probe
+    from core.conventions import equirect_width, inverse_tonemap
+
+    mean = inverse_tonemap(frame_ldr).reshape(-1, 3).mean(0)
+    preds = {**preds, "mean-colour": mean.expand(gt.shape[0], equirect_width(gt.shape[0]), 3).clone()}
     scores = score_probe(preds, gt, 64)
     for name in runs:
         runs[name]["diffuse_si_rmse_rel"] = round(scores[name]["diffuse"]["si_rmse_rel"], 4)
     out["runs"] = runs
     out["mean_colour_diffuse_si_rmse_rel"] = round(scores["mean-colour"]["diffuse"]["si_rmse_rel"], 4)
-    return out
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -257,13 +265,10 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from bench.real_panoramas import add_split_arguments
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--split", default="dev", choices=("dev", "test"))
-    p.add_argument("--hdri-dir", default=str(Path(__file__).resolve().parents[2] / "shared" / "hdri"))
-    p.add_argument("--limit", type=int, default=None)
-    p.add_argument("--iterations", type=int, default=200)
-    p.add_argument("--workdir", default=None)
-    p.add_argument("-o", "--output", default=None)
+    add_split_arguments(p, iterations=200)
     p.add_argument("--detection-only", action="store_true",
                    help="no job: what the default detects over DETECTION_VARIANTS' auto-exposures and locked controls")
     p.add_argument("--rescore", default=None, metavar="REPORT_JSON",

@@ -74,6 +74,18 @@ def split_files(hdri_dir, split: str, limit: int | None = None) -> list[Path]:
     return [hdri / r["filename"] for r in read_manifest(hdri) if r["split"] == split][:limit]
 
 
+def add_split_arguments(p, iterations: int | None = None) -> None:
+    """A per-panorama bench's common options: --split, --hdri-dir, --limit, --workdir, -o, and
+    --iterations (the draft's steps per job) where its jobs take a default."""
+    p.add_argument("--split", default="dev", choices=("dev", "test"))
+    p.add_argument("--hdri-dir", default=str(Path(__file__).resolve().parents[2] / "shared" / "hdri"))
+    p.add_argument("--limit", type=int, default=None)
+    if iterations is not None:
+        p.add_argument("--iterations", type=int, default=iterations)
+    p.add_argument("--workdir", default=None)
+    p.add_argument("-o", "--output", default=None)
+
+
 def rows_over(files: list[Path], evaluate, workdir=None) -> list[dict]:
     """evaluate(file, workdir) per panorama, each row printed as it comes (a run's log can
     rebuild its report), in `workdir` or a temporary directory."""

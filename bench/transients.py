@@ -151,14 +151,12 @@ def pans(pano: torch.Tensor, yaw: float, pitch: float, seed: int, stem: Path) ->
 
 
 def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
-    from bench.auto_exposure_pans import map_change_stops
-    from bench.suite.evaluation import score_probe
+    from bench.auto_exposure_pans import map_change_stops, score_runs
     from bench.tracking import _view
     from core.capture.load import load_capture
     from core.capture.params import CaptureParams
     from core.capture.temporal import decide_temporal
     from core.capture.transients import transient_mask
-    from core.conventions import equirect_width, inverse_tonemap
     from core.engine.job import run_job
     from core.engine.params import JobParams
     from core.engine.presets import preset
@@ -218,13 +216,7 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
         runs[name] = {"uses_time": art.meta["temporal"]["uses_time"], "map_change_stops": round(map_change_stops(first, middle), 3),
                       "cpu_s": round(time.process_time() - t0, 1)}
     clean_ldr, _ = clip(pano, yaw, pitch, seed, walker=False, light=lights["clean"][1])
-    mean = inverse_tonemap(clean_ldr[0]).reshape(-1, 3).mean(0)
-    preds["mean-colour"] = mean.expand(GT_HEIGHT, equirect_width(GT_HEIGHT), 3).clone()
-    scores = score_probe(preds, gt, 64)
-    for name in runs:
-        runs[name]["diffuse_si_rmse_rel"] = round(scores[name]["diffuse"]["si_rmse_rel"], 4)
-    out["runs"] = runs
-    out["mean_colour_diffuse_si_rmse_rel"] = round(scores["mean-colour"]["diffuse"]["si_rmse_rel"], 4)
+    score_runs(runs, preds, gt, clean_ldr[0], out)
     return out
 
 
@@ -259,13 +251,10 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from bench.real_panoramas import add_split_arguments
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--split", default="dev", choices=("dev", "test"))
-    p.add_argument("--hdri-dir", default=str(Path(__file__).resolve().parents[2] / "shared" / "hdri"))
-    p.add_argument("--limit", type=int, default=None)
-    p.add_argument("--iterations", type=int, default=200)
-    p.add_argument("--workdir", default=None)
-    p.add_argument("-o", "--output", default=None)
+    add_split_arguments(p, iterations=200)
     p.add_argument("--rescore", default=None, metavar="LOG",
                    help="rebuild the report from a run's printed per-panorama lines (JSON, one per line) and exit")
     args = p.parse_args(argv)
