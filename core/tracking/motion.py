@@ -35,7 +35,7 @@ MIN_MATCHES = 12
 MIN_MOTION_FRACTION = 0.004  # 0.4 % of the width: ~1.3 px at 320 px, ~0.25 deg at 60 deg FOV
 K_SIGMA = 4.0
 STILL_PX = 0.5  # a feature that moved less than this (analysis pixels) stayed put
-STILL_MIN = 6  # that many matches staying put mean a still camera (_median_displacement)
+STILL_MIN = 6  # that many matches staying put mean a still camera (_still_median)
 
 
 @dataclass(frozen=True)
@@ -50,25 +50,26 @@ class MotionDecision:
         return asdict(self)
 
 
-def _median_displacement(xi: np.ndarray, xj: np.ndarray) -> tuple[float, float]:
-    """(median displacement, robust spread of the residuals after a homography) in pixels.
-    Where at least STILL_MIN of the matches stayed within STILL_PX, the median of those: a moving camera moves every feature of the room, so features that stayed
-    put are the room behind something moving through the view (a person whose features can
-    outnumber a plain wall's), not a camera that moved."""
+def _still_median(xi: np.ndarray, xj: np.ndarray) -> float | None:
+    """The median displacement of the matches that stayed within STILL_PX, where at least
+    STILL_MIN did (else None): a moving camera moves every feature of the room, so features that
+    stayed put are the room behind something moving through the view (a person whose features
+    can outnumber a plain wall's), not a camera that moved."""
     norms = np.linalg.norm(xj - xi, axis=1)
     still = norms < STILL_PX
-    disp = float(np.median(norms[still] if still.sum() >= STILL_MIN else norms))
-    if len(norms) < 4:  # a homography needs four
-        return disp, float("nan")
+    return float(np.median(norms[still])) if still.sum() >= STILL_MIN else None
+
+
+def _median_displacement(xi: np.ndarray, xj: np.ndarray) -> tuple[float, float]:
+    """(median displacement, the still matches' where enough stayed put (`_still_median`);
+    robust spread of the residuals after a homography) in pixels."""
+    still = _still_median(xi, xj)
+    disp = still if still is not None else float(np.median(np.linalg.norm(xj - xi, axis=1)))
     H, _ = cv2.findHomography(xi, xj, cv2.RANSAC, 3.0)
     if H is None:
         return disp, float("nan")
     pred = cv2.perspectiveTransform(xi[None].astype(np.float64), H)[0]
     return disp, 1.4826 * float(np.median(np.linalg.norm(xj - pred, axis=1)))
-
-
-def _stayed_put(xi: np.ndarray, xj: np.ndarray) -> int:
-    return int((np.linalg.norm(xj - xi, axis=1) < STILL_PX).sum())
 
 
 def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
@@ -94,8 +95,9 @@ def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
             disp[t], s = _median_displacement(m.xi, m.xj)
             noise.append(s)
             continue
-        if _stayed_put(m.xi, m.xj) >= STILL_MIN:  # too few to measure a motion, enough to see none
-            disp[t] = _median_displacement(m.xi, m.xj)[0]
+        still = _still_median(m.xi, m.xj)  # too few to measure a motion, maybe enough to see none
+        if still is not None:
+            disp[t] = still
             continue
         prev = match(features[t - 1], features[t], t - 1, t)
         if len(prev) >= MIN_MATCHES and np.isfinite(disp[t - 1]):
