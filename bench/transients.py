@@ -146,11 +146,12 @@ def pans(pano: torch.Tensor, yaw: float, pitch: float, seed: int, stem: Path) ->
                      "frames_kept": cap.num_frames,
                      "max_rotation_error_deg": round(math.degrees(float(cos.clamp(-1, 1).acos().max())), 2),
                      "read_as_changing_light": decide_temporal(cap).uses_time,
+                     "exposure_detected": bool(cap.metadata.get("exposure_estimate", {}).get("applied", False)),
                      "painted_share": cap.metadata.get("transients", {}).get("pixel_share", 0.0)}
     return out
 
 
-def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
+def evaluate(path: Path, iterations: int, workdir: Path, pans_only: bool = False) -> dict:
     from bench.auto_exposure_pans import map_change_stops, score_runs
     from bench.tracking import _view
     from core.capture.load import load_capture
@@ -168,6 +169,8 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
     pano = load_panorama(path, 256)
     yaw, pitch = _view(path.name)
     seed = sum(path.name.encode())
+    if pans_only:
+        return {"file": path.name, "pans": pans(pano, yaw, pitch, seed, workdir / path.stem)}
     w, h = SIZE
     mid = FRAMES // 2
     lights = {
@@ -222,6 +225,9 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
 
 def summarise(rows: list[dict]) -> dict:
     mean = lambda xs: round(sum(xs) / len(xs), 4) if xs else None  # noqa: E731
+    pan = _pans_summary(rows, mean)
+    if any("clips" not in r for r in rows):  # --pans-only
+        return {"panoramas": len(rows), "pans": pan}
     clips = {}
     for name in ("walk", "walk-halved", "pool-off", "clean"):
         cs = [r["clips"][name] for r in rows]
@@ -234,13 +240,6 @@ def summarise(rows: list[dict]) -> dict:
             clips[name].update(iou_mean=mean([c["iou"] for c in scored]), iou_min=min(c["iou"] for c in scored),
                                recall_mean=mean([c["recall"] for c in scored]), scored=len(scored))
     runs = ("default", "keep", "clean")
-    pan = {name: {"taken_for_static": sum(r["pans"][name]["static_camera"] for r in rows),
-                  "read_as_changing_light": sum(r["pans"][name]["read_as_changing_light"] for r in rows),
-                  "within_1deg": sum(r["pans"][name]["max_rotation_error_deg"] <= 1.0 for r in rows)}
-           for name in ("pan", "pan-walk", "pan-ae", "pan-halved")}
-    for name in pan:
-        shares = [r["pans"][name].get("painted_share", 0.0) for r in rows]
-        pan[name].update(painted=sum(x > 0 for x in shares), painted_share_mean=mean(shares))
     return {"panoramas": len(rows), "clips": clips, "pans": pan,
             "map_change_stops_mean": {k: mean([r["runs"][k]["map_change_stops"] for r in rows]) for k in runs},
             "map_change_stops_max": {k: max(r["runs"][k]["map_change_stops"] for r in rows) for k in runs},
@@ -250,6 +249,17 @@ def summarise(rows: list[dict]) -> dict:
             "cpu_s_mean": {k: mean([r["runs"][k]["cpu_s"] for r in rows]) for k in runs}}
 
 
+def _pans_summary(rows: list[dict], mean) -> dict:
+    pan = {name: {"taken_for_static": sum(r["pans"][name]["static_camera"] for r in rows),
+                  "read_as_changing_light": sum(r["pans"][name]["read_as_changing_light"] for r in rows),
+                  "within_1deg": sum(r["pans"][name]["max_rotation_error_deg"] <= 1.0 for r in rows)}
+           for name in ("pan", "pan-walk", "pan-ae", "pan-halved")}
+    for name in pan:
+        shares = [r["pans"][name].get("painted_share", 0.0) for r in rows]
+        pan[name].update(painted=sum(x > 0 for x in shares), painted_share_mean=mean(shares))
+    return pan
+
+
 def main(argv: list[str] | None = None) -> int:
     from bench.real_panoramas import add_split_arguments
 
@@ -257,6 +267,8 @@ def main(argv: list[str] | None = None) -> int:
     add_split_arguments(p, iterations=200)
     p.add_argument("--rescore", default=None, metavar="LOG",
                    help="rebuild the report from a run's printed per-panorama lines (JSON, one per line) and exit")
+    p.add_argument("--pans-only", action="store_true",
+                   help="only the pans (pan, pan-walk, pan-ae, pan-halved: tracking and the temporal decision; no jobs)")
     args = p.parse_args(argv)
     if args.rescore:
         return _write([json.loads(line) for line in Path(args.rescore).read_text().splitlines()
@@ -264,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from bench.real_panoramas import rows_over, split_files
 
-    rows = rows_over(split_files(args.hdri_dir, args.split, args.limit), lambda f, work: evaluate(f, args.iterations, work),
+    rows = rows_over(split_files(args.hdri_dir, args.split, args.limit), lambda f, work: evaluate(f, args.iterations, work, args.pans_only),
                      args.workdir)
     return _write(rows, args)
 

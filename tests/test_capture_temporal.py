@@ -162,6 +162,60 @@ def test_dark_noisy_static_room_is_static():
     assert not d.uses_time, d.reason
 
 
+def _pan_of_sample_room(paint):
+    """A 60 deg pan (20 frames, 96 x 72, 60 deg FOV) of the bundled panorama; `paint(i, pano,
+    lat, lon)` gives frame i's panorama (degrees, lat up). Returns the capture with true poses."""
+    from pathlib import Path
+
+    from core.camera import Camera, Intrinsics
+    from core.sim.panorama_room import PanoramaRoom, ldr_clip, load_panorama, render_clip
+    from core.sim.state import pose_from_yaw_pitch
+    from core.tracking.room import assumed_room
+
+    pano = load_panorama(Path(__file__).resolve().parents[1] / "assets" / "sample_panorama.hdr", 128)
+    h, w = pano.shape[:2]
+    lat = torch.linspace(90, -90, h)[:, None].expand(h, w)
+    lon = torch.linspace(-180, 180, w)[None].expand(h, w)
+    k = Intrinsics.from_hfov(96, 72, 60.0)
+    poses = [pose_from_yaw_pitch((0, 0, 0), 60 * i / 19, 0) for i in range(20)]
+    frames, depths = [], []
+    for i, pose in enumerate(poses):
+        room = PanoramaRoom(paint(i, pano, lat, lon), assumed_room(), torch.zeros(3))
+        _, depth, hdr = render_clip(room, [Camera(k, pose)], supersample=1)
+        frames.append(hdr[0]), depths.append(depth[0])
+    return capture_from_arrays(ldr_clip(torch.stack(frames)), torch.stack(depths), intrinsics=k,
+                               poses=torch.stack(poses), fps=10)
+
+
+def test_a_pan_sees_a_pool_of_light_switch_off_in_part_of_the_view():
+    """A lamp's pool (2x at its centre, 20 deg wide) on part of the room goes off half-way
+    through a pan: no whole-view change (the median block moves little), a local one."""
+    def paint(i, pano, lat, lon):
+        pool = 1.0 + torch.exp(-(lon**2 + (lat - 10) ** 2) / (2 * 20.0**2))
+        return pano * pool[..., None] if i < 10 else pano
+
+    d = detect_temporal(_pan_of_sample_room(paint))
+    assert d.uses_time, d.reason
+    assert "local" in d.reason
+
+
+def test_something_dark_walking_along_the_wall_of_a_pan_is_not_light(monkeypatch):
+    """A dark figure (a fifth of the room's mean, 12 deg wide, soft-edged) walking 3 deg per
+    frame along the wall while the camera pans: its edges carry light between neighbouring
+    blocks, which the 3 x 3 neighbourhood's means keep; block by block it reads as a change."""
+    import core.capture.temporal as temporal
+
+    def paint(i, pano, lat, lon):
+        body = ((6 - (lon - (-20 + 3 * i)).abs()) / 1.4 + 0.5).clamp(0, 1) * ((lat > -40) & (lat < 15)).float()
+        return pano * (1 - body[..., None]) + body[..., None] * 0.2 * float(pano.mean())
+
+    cap = _pan_of_sample_room(paint)
+    d = detect_temporal(cap)
+    assert not d.uses_time, d.reason
+    monkeypatch.setattr(temporal, "NEIGHBOURHOOD", 1)
+    assert detect_temporal(cap).uses_time  # what the statistic read before it looked at neighbourhoods
+
+
 @pytest.mark.slow
 def test_simulator_suites_hard_is_static_temporal_is_not(tmp_path):
     """The `hard` suite (static lights; dolly camera, noise, compression, saturated windows)

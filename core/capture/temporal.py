@@ -22,7 +22,9 @@ and poses (pixels that leave the view or fail a 5 % depth-consistency test are d
 both are block-averaged over the pixels usable in both, and d[t, b] = l_t - l_{t-1} per
 block. The lighting trajectory L[t] = sum of the per-pair MEDIAN block change (a global
 change, chained over the clip) gives e_global[t] = |L[t] - median_t L|; a change confined
-to part of the view gives e_local[t] = mean_b |d[t, b]|. statistic = max of both over t;
+to part of the view gives e_local[t] = mean_b |d'[t, b]|, with d' the same change of the
+blocks' 3 x 3 neighbourhood means (NEIGHBOURHOOD: the edges of something that moves carry its
+light between neighbouring blocks, which cancels there). statistic = max of both over t;
 sigma = 1.4826 * MAD of all d / sqrt(2); the same threshold. A camera's own motion thus
 never reads as a lighting change, and a pan that ends far from where it started still
 compares every frame with one it overlaps.
@@ -46,6 +48,7 @@ K_SIGMA = 4.0
 CLIP_HI, DARK_LO = 0.99, 0.02
 ANALYSIS_HEIGHT = 72  # frames are area-downsampled to this height first (speed, noise)
 MIN_BLOCK_FRACTION = 0.2
+NEIGHBOURHOOD = 3  # blocks: the moving-camera local statistic compares 3 x 3 block means (an edge that moves cancels)
 
 
 @dataclass(frozen=True)
@@ -94,11 +97,15 @@ def block_log_luminance(capture) -> torch.Tensor:
     return _block_logs(planes[..., 0], usable)
 
 
-def _block_logs(lum: torch.Tensor, usable: torch.Tensor) -> torch.Tensor:
+def _block_logs(lum: torch.Tensor, usable: torch.Tensor, neighbourhood: bool = False) -> torch.Tensor:
     """[N, B] log mean linear luminance per block of [N, h, w] planes over `usable` pixels
-    (NaN where a block has too few)."""
+    (NaN where a block has too few). With `neighbourhood`, each block's mean is taken over it
+    and the blocks around it (3 x 3): light that only moves between neighbouring blocks (the
+    edges of something moving) then cancels."""
     num = F.adaptive_avg_pool2d(torch.where(usable, lum, 0.0)[:, None], (BLOCKS_Y, BLOCKS_X))
     cnt = F.adaptive_avg_pool2d(usable.float()[:, None], (BLOCKS_Y, BLOCKS_X))
+    if neighbourhood:
+        num, cnt = (F.avg_pool2d(x, NEIGHBOURHOOD, 1, NEIGHBOURHOOD // 2, count_include_pad=False) for x in (num, cnt))
     out = torch.log((num / cnt.clamp_min(1e-12)).clamp_min(1e-8))
     out = torch.where(cnt >= MIN_BLOCK_FRACTION, out, torch.full_like(out, float("nan")))
     return out.reshape(lum.shape[0], -1)
@@ -133,14 +140,17 @@ def _consecutive_changes(capture):
     for t in range(1, T):
         warped, ok = _warp_into(planes[t], depth[t - 1], depth[t], small.intrinsics, capture.poses[t - 1], capture.poses[t])
         usable = ok & (planes[t - 1][..., 1] > 0.999) & (warped[..., 1] > 0.999)
-        logs = _block_logs(torch.stack((planes[t - 1][..., 0], warped[..., 0])), usable[None].expand(2, -1, -1))
+        pair = torch.stack((planes[t - 1][..., 0], warped[..., 0])), usable[None].expand(2, -1, -1)
+        logs = _block_logs(*pair)
         keep = torch.isfinite(logs).all(0)
         if int(keep.sum()) == 0:
             steps.append(0.0), local.append(0.0), blind.append(t)
             continue
         d = (logs[1, keep] - logs[0, keep]).double()
         steps.append(float(d.median()))
-        local.append(float(d.abs().mean()))
+        around = _block_logs(*pair, neighbourhood=True)
+        near = torch.isfinite(around).all(0)
+        local.append(float((around[1, near] - around[0, near]).abs().mean()))
         diffs.append(d)
     return steps, local, diffs, blind
 
