@@ -78,6 +78,43 @@ def test_pan_from_one_spot_is_tracked_as_a_rotation_within_1_degree(pan):
     assert s["scale_source"] == "none: no translation" and s["frames_dropped"] == []
 
 
+def _pan_with_a_passer_by(panorama, yaw: float):
+    """A 90 deg pan (16 frames, 160 x 120, 60 deg FOV) with someone in a checked coat walking
+    across frames 4-11, the camera half following them: their many sharp features move
+    together, several degrees a frame against the room's."""
+    from core.sim.panorama_room import ldr_clip
+
+    w, h = 160, 120
+    intr = Intrinsics.from_hfov(w, h, 60.0)
+    poses = [pose_from_yaw_pitch((0, 0, 0), yaw + 90 * i / 15, 0) for i in range(16)]
+    room = PanoramaRoom(panorama, assumed_room(), torch.zeros(3))
+    _, _, hdr = render_clip(room, [Camera(intr, p) for p in poses])
+    v, u = torch.meshgrid(torch.arange(h), torch.arange(w // 6), indexing="ij")
+    body = ((v - 38) ** 2 + (u - 13) ** 2 < 49) | ((v >= 45) & (u >= 2) & (u < 25))
+    coat = 0.02 + 0.5 * ((v // 6 + u // 6) % 2).float()
+    level = float(luminance(hdr).mean())
+    for i in range(4, 12):
+        x0 = round((i - 4) / 7 * (w - w // 6))
+        hdr[i, :, x0:x0 + w // 6][body] = (coat[body] * 4 * level)[:, None].expand(-1, 3)
+    return ldr_clip(hdr), intr, poses
+
+
+@pytest.mark.parametrize("yaw", [90.0, 180.0])
+def test_a_pan_with_someone_walking_through_is_tracked_by_the_room(panorama, yaw, monkeypatch):
+    """Each pair offers the room's rotation and the passer-by's; the frames take the one their
+    pairs agree on. With one candidate per pair (the most matches), the passer-by's pulled the
+    pan several degrees off."""
+    import core.tracking.rotation as rotation
+
+    ldr, intr, poses = _pan_with_a_passer_by(panorama, yaw)
+    r = track_camera(ldr, intr)
+    assert r.method == "rotation" and len(r.kept) == 16, r.summary()
+    assert _errors(r, poses)[0] < 1.0
+    monkeypatch.setattr(rotation, "PAIR_HYPOTHESES", 1)
+    before = track_camera(ldr, intr)
+    assert before.method != "rotation" or _errors(before, poses)[0] > 2.0
+
+
 def test_pan_refines_a_wrong_assumed_focal_length_and_uses_a_world_fixed_room(pan):
     ldr, _, intr, poses = pan
     wrong = Intrinsics.from_hfov(intr.width, intr.height, 50.0)  # the truth is 60 deg

@@ -4,9 +4,11 @@ With a camera that only turns, two views are related by the homography K R K⁻�
 matched bearings b of frames i and j satisfy b_j = R_jᵀ R_i b_i with the c2w rotations R:
 1. every scheduled pair: a relative rotation from matched bearings (2-point Kabsch inside
    RANSAC; inlier threshold INLIER_PX reprojected);
-2. initial rotations by walking the maximum spanning tree of the pair graph (weights =
-   inliers) over the largest set of frames the pairs connect, from its first frame (R = I there:
-   world = the first kept camera frame);
+2. initial rotations grown frame by frame over the largest set of frames the pairs connect,
+   from its first frame (R = I there: world = the first kept camera frame), each frame placed
+   where most of its pairs with the placed frames agree (`_consensus_tree`; every pair offers
+   the rotation most of its matches agree on and a second one among the rest, so that someone
+   walking through the view, whose features agree with each other, is outvoted by the room);
 3. a small bundle adjustment (Brown & Lowe's panorama formulation: symmetric transfer error
    of every inlier match through the two rotations; scipy least_squares with the Jacobian's
    sparsity, twice: all RANSAC inliers, then those within INLIER_PX of the first solution —
@@ -54,6 +56,14 @@ INLIER_PX = 2.0
 MIN_INLIERS = 10
 ESSENTIAL_MIN_INLIERS = 15  # five parameters, fitted to the noise of a pure rotation: more matches
 RANSAC_ITERATIONS = 200
+# A pair's candidate rotations (relative_rotations): the room's and, where something moves
+# through the view, theirs. Candidates within CONSENSUS_DEG are one vote for a frame's rotation
+# (_consensus_tree: 1 deg is 2.7 px at 160 px and 60 deg, above INLIER_PX, while a passer-by
+# crossing a pan moves several degrees a frame against the room); a pair's candidate is used if
+# within AGREE_DEG of the placed rotations (_agreeing; the bundle adjustment refines from there).
+PAIR_HYPOTHESES = 2
+CONSENSUS_DEG = 1.0
+AGREE_DEG = 3.0
 BA_ROUNDS = 2
 MAX_PAIR_OBSERVATIONS = 150
 # The rotation model explains the motion when at least FIT_INLIER_SHARE of the matches are its
@@ -122,54 +132,139 @@ def _batched_kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("sji,sjk,slk->sil", vt, fix, u)
 
 
-def relative_rotation(m: PairMatches, k: Intrinsics, seed: int = 0) -> RelativeRotation | None:
+def relative_rotations(m: PairMatches, k: Intrinsics, seed: int = 0) -> list[RelativeRotation]:
+    """A pair's candidate rotations: the one most matches agree on and, among the matches it
+    leaves, a second one (`_ransac_rotation`). Someone walking through a pan moves their own
+    features one way and the room's another: where they carry more features than the room, the
+    first candidate is theirs and the room's is the second. Which one is the camera's is decided
+    across pairs (`_consensus_tree`)."""
     if len(m) < MIN_INLIERS:
-        return None
+        return []
     bi, bj = bearings(m.xi, k), bearings(m.xj, k)
     rng = np.random.default_rng(seed)
-    thr = INLIER_PX / k.fx  # angle (radians) ~ pixels / focal
-    samples = np.stack([rng.choice(len(bi), 2, replace=False) for _ in range(RANSAC_ITERATIONS)])
+    out, free = [], np.ones(len(bi), dtype=bool)
+    for _ in range(PAIR_HYPOTHESES):
+        found = _ransac_rotation(bi, bj, free, rng, INLIER_PX / k.fx)  # angle (radians) ~ pixels / focal
+        if found is None:
+            break
+        R, best = found
+        keep = np.flatnonzero(best)
+        if len(keep) > MAX_PAIR_OBSERVATIONS:  # enough to constrain 6 numbers; bounds the BA's cost
+            keep = keep[np.linspace(0, len(keep) - 1, MAX_PAIR_OBSERVATIONS).round().astype(int)]
+        out.append(RelativeRotation(m.i, m.j, R, m.xi[keep], m.xj[keep], len(m)))
+        free &= ~best
+        if free.sum() < MIN_INLIERS:
+            break
+    return out
+
+
+def relative_rotation(m: PairMatches, k: Intrinsics, seed: int = 0) -> RelativeRotation | None:
+    """The rotation most of a pair's matches agree on (None: too few agree)."""
+    found = relative_rotations(m, k, seed)
+    return found[0] if found else None
+
+
+def _ransac_rotation(bi: np.ndarray, bj: np.ndarray, usable: np.ndarray, rng, thr: float):
+    """(R, inliers [N] among `usable`) of the rotation the most usable bearings agree on (2-point
+    Kabsch inside RANSAC, refitted twice), or None with fewer than MIN_INLIERS."""
+    idx = np.flatnonzero(usable)
+    if len(idx) < MIN_INLIERS:
+        return None
+    samples = idx[np.stack([rng.choice(len(idx), 2, replace=False) for _ in range(RANSAC_ITERATIONS)])]
     hyp = _batched_kabsch(bi[samples], bj[samples])  # [S, 3, 3]
     err = np.linalg.norm(bj[None] - np.einsum("sij,nj->sni", hyp, bi), axis=-1)
-    best = err[int((err < thr).sum(1).argmax())] < thr
+    ok = (err < thr) & usable[None]
+    best = ok[int(ok.sum(1).argmax())]
     if best.sum() < MIN_INLIERS:
         return None
     for _ in range(2):  # refit on inliers, re-select
         R = kabsch(bi[best], bj[best])
-        best = np.linalg.norm(bj - bi @ R.T, axis=1) < thr
+        best = (np.linalg.norm(bj - bi @ R.T, axis=1) < thr) & usable
     if best.sum() < MIN_INLIERS:
         return None
-    keep = np.flatnonzero(best)
-    if len(keep) > MAX_PAIR_OBSERVATIONS:  # enough to constrain 6 numbers; bounds the BA's cost
-        keep = keep[np.linspace(0, len(keep) - 1, MAX_PAIR_OBSERVATIONS).round().astype(int)]
-    return RelativeRotation(m.i, m.j, R, m.xi[keep], m.xj[keep], len(m))
+    return R, best
 
 
-def _spanning_tree(n: int, rel: list[RelativeRotation]) -> tuple[dict[int, np.ndarray], list[int]]:
-    """Initial rotations: Prim's maximum spanning tree over inlier counts, over the largest set of
-    frames the pairs connect (ties: the earliest), from its first frame. Not from frame 0 as such:
-    a first frame that matched nothing (dark, blurred, a cut) must not lose the clip."""
-    root = 0
-    if rel:  # the first frame of the largest connected set (ties: the earliest set)
-        graph = coo_matrix((np.ones(len(rel)), ([r.i for r in rel], [r.j for r in rel])), shape=(n, n))
-        labels = connected_components(graph, directed=False)[1]
-        sizes = np.bincount(labels)
-        root = int(np.flatnonzero(sizes[labels] == sizes.max())[0])
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return math.degrees(math.acos(float(np.clip((np.trace(a.T @ b) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def _root(n: int, rel: list[RelativeRotation]) -> int:
+    """The first frame of the largest set of frames the pairs connect (ties: the earliest set).
+    Not frame 0 as such: a first frame that matched nothing (dark, blurred, a cut) must not lose
+    the clip."""
+    if not rel:
+        return 0
+    graph = coo_matrix((np.ones(len(rel)), ([r.i for r in rel], [r.j for r in rel])), shape=(n, n))
+    labels = connected_components(graph, directed=False)[1]
+    sizes = np.bincount(labels)
+    return int(np.flatnonzero(sizes[labels] == sizes.max())[0])
+
+
+def _consensus_tree(n: int, rel: list[RelativeRotation]) -> tuple[dict[int, np.ndarray], list[int]]:
+    """Initial rotations, grown frame by frame from the root (`_root`, R = I there). Each frame
+    not yet placed that shares pairs with the placed ones gets one candidate rotation per
+    candidate of those pairs; a candidate's support is the number of those pairs with a
+    candidate within CONSENSUS_DEG of it. The frame and candidate with the most support is
+    placed next (ties: a frame next to two placed ones, with the candidate nearest
+    `_coasting`'s rotation; else the candidate nearest those that agree with it). Something moving through the view agrees with itself
+    only over the frames it is in, while the room agrees across every pair that reaches a frame
+    it is not in, so the room wins the vote even where it has fewer features in a pair."""
+    root = _root(n, rel)
     R = {root: np.eye(3)}
-    edges = sorted(rel, key=lambda r: -len(r.xi))
-    grown = True
-    while grown:
-        grown = False
-        for r in edges:
-            if (r.i in R) == (r.j in R):
+    by_frame: dict[int, list[tuple[RelativeRotation, int]]] = {}
+    for r in rel:  # each candidate, from the side of either frame
+        by_frame.setdefault(r.j, []).append((r, r.i))
+        by_frame.setdefault(r.i, []).append((r, r.j))
+    while True:
+        best = None
+        for f, links in by_frame.items():
+            if f in R:
                 continue
-            if r.i in R:  # R_j = R_i R_rel^T
-                R[r.j] = R[r.i] @ r.R.T
-            else:  # R_i = R_j R_rel
-                R[r.i] = R[r.j] @ r.R
-            grown = True
+            placed = [(r, other) for r, other in links if other in R]
+            if not placed:
+                continue
+            # r.R = R_j^T R_i: R_j = R_i r.R^T, R_i = R_j r.R
+            cands = np.stack([R[o] @ r.R.T if f == r.j else R[o] @ r.R for r, o in placed])
+            pair = np.array([r.i * n + r.j for r, _ in placed])
+            cos = np.clip((np.einsum("aij,bij->ab", cands, cands) - 1.0) / 2.0, -1.0, 1.0)
+            angle = np.degrees(np.arccos(cos))
+            close = angle <= CONSENSUS_DEG
+            coasting = _coasting(R, f)
+            for a in range(len(placed)):
+                # the most pairs agreeing, then the candidate nearest the camera coasting on from
+                # its two placed neighbours, or (without them) nearest the others that agree
+                off = _angle_deg(cands[a], coasting) if coasting is not None else float(angle[a, close[a]].mean())
+                score = (len(np.unique(pair[close[a]])), coasting is not None, -off)
+                if best is None or score > best[0]:
+                    best = (score, f, cands[a])
+        if best is None:
             break
+        R[best[1]] = best[2]
     return R, sorted(set(range(n)) - set(R))
+
+
+def _coasting(R: dict[int, np.ndarray], f: int) -> np.ndarray | None:
+    """Frame f's rotation if the camera kept turning as it did between its two placed
+    neighbours on one side (a camera has inertia; someone walking through the view does not
+    move it), or None."""
+    for a, b in ((f - 1, f - 2), (f + 1, f + 2)):
+        if a in R and b in R:
+            return R[a] @ (R[b].T @ R[a])
+    return None
+
+
+def _agreeing(rel: list[RelativeRotation], R: dict[int, np.ndarray]) -> list[RelativeRotation]:
+    """Per pair between placed frames, the candidate closest to what the placed rotations say,
+    if within AGREE_DEG (a pair none of whose candidates agrees is left out)."""
+    chosen: dict[tuple[int, int], tuple[float, RelativeRotation]] = {}
+    for r in rel:
+        if r.i not in R or r.j not in R:
+            continue
+        off = _angle_deg(R[r.j].T @ R[r.i], r.R)
+        if off <= AGREE_DEG and ((r.i, r.j) not in chosen or off < chosen[(r.i, r.j)][0]):
+            chosen[(r.i, r.j)] = (off, r)
+    return [r for _, r in chosen.values()]
 
 
 @dataclass(frozen=True)
@@ -266,10 +361,10 @@ def estimate_rotations(pairs: list[PairMatches], n_frames: int, k: Intrinsics, r
     """Rotations of a pan's frames (module docstring): a global shutter first, then, from it, the
     rolling shutter where the motion is a pan at all (ROLLING_MAX_RATIO); `rolling_shutter=False`
     stops at the global one."""
-    rel = [r for r in (relative_rotation(m, k, seed=m.i * 1000 + m.j) for m in pairs) if r is not None]
-    init, dropped = _spanning_tree(n_frames, rel)
+    rel = [r for m in pairs for r in relative_rotations(m, k, seed=m.i * 1000 + m.j)]
+    init, dropped = _consensus_tree(n_frames, rel)
     kept = sorted(init)
-    rel = [r for r in rel if r.i in init and r.j in init]
+    rel = _agreeing(rel, init)
     if len(kept) < 2 or not rel:
         return RotationTrack(np.eye(3)[None], [0], dropped, k.fx, math.inf, math.inf, 0.0, 0, 0)
     x0 = matrix_to_rotvec(np.stack([init[f] for f in kept[1:]])).reshape(-1)
