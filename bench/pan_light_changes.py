@@ -28,7 +28,7 @@ FRAMES, SIZE, PAN_DEG, SWITCH = 20, (96, 72), 60.0, 10
 RULES = (1, 3)
 
 
-def _pan(paint) -> object:
+def pan_capture(paint) -> object:
     """The capture of the pan with frame i's panorama `paint(i, pano, lat, lon)` (degrees)."""
     from core.camera import Camera, Intrinsics
     from core.capture.load import capture_from_arrays
@@ -85,9 +85,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("-o", "--output", default=None)
     args = p.parse_args(argv)
-    pools = [{"gain": g, "width_deg": wd, "centre_deg": c, **_decide(_pan(pool(g, wd, c)))}
+    pools = [{"gain": g, "width_deg": wd, "centre_deg": c, **_decide(pan_capture(pool(g, wd, c)))}
              for g in (1.5, 2.0, 3.0) for wd in (10.0, 20.0, 40.0) for c in (-30.0, 0.0, 30.0)]
-    drifts = [{"brightness": b, "deg_per_frame": s, **_decide(_pan(drift(b, s)))}
+    drifts = [{"brightness": b, "deg_per_frame": s, **_decide(pan_capture(drift(b, s)))}
               for b in (0.2, 2.0, 4.0, 20.0) for s in (1.0, 2.0, 3.0)]
     summary = {f"neighbourhood {n}": {"pools found": f"{sum(r[str(n)]['changing'] for r in pools)} of {len(pools)}",
                                       "drifts read as changing": f"{sum(r[str(n)]['changing'] for r in drifts)} of {len(drifts)}"}

@@ -162,39 +162,12 @@ def test_dark_noisy_static_room_is_static():
     assert not d.uses_time, d.reason
 
 
-def _pan_of_sample_room(paint):
-    """A 60 deg pan (20 frames, 96 x 72, 60 deg FOV) of the bundled panorama; `paint(i, pano,
-    lat, lon)` gives frame i's panorama (degrees, lat up). Returns the capture with true poses."""
-    from pathlib import Path
-
-    from core.camera import Camera, Intrinsics
-    from core.sim.panorama_room import PanoramaRoom, ldr_clip, load_panorama, render_clip
-    from core.sim.state import pose_from_yaw_pitch
-    from core.tracking.room import assumed_room
-
-    pano = load_panorama(Path(__file__).resolve().parents[1] / "assets" / "sample_panorama.hdr", 128)
-    h, w = pano.shape[:2]
-    lat = torch.linspace(90, -90, h)[:, None].expand(h, w)
-    lon = torch.linspace(-180, 180, w)[None].expand(h, w)
-    k = Intrinsics.from_hfov(96, 72, 60.0)
-    poses = [pose_from_yaw_pitch((0, 0, 0), 60 * i / 19, 0) for i in range(20)]
-    frames, depths = [], []
-    for i, pose in enumerate(poses):
-        room = PanoramaRoom(paint(i, pano, lat, lon), assumed_room(), torch.zeros(3))
-        _, depth, hdr = render_clip(room, [Camera(k, pose)], supersample=1)
-        frames.append(hdr[0]), depths.append(depth[0])
-    return capture_from_arrays(ldr_clip(torch.stack(frames)), torch.stack(depths), intrinsics=k,
-                               poses=torch.stack(poses), fps=10)
-
-
 def test_a_pan_sees_a_pool_of_light_switch_off_in_part_of_the_view():
     """A lamp's pool (2x at its centre, 20 deg wide) on part of the room goes off half-way
     through a pan: no whole-view change (the median block moves little), a local one."""
-    def paint(i, pano, lat, lon):
-        pool = 1.0 + torch.exp(-(lon**2 + (lat - 10) ** 2) / (2 * 20.0**2))
-        return pano * pool[..., None] if i < 10 else pano
+    from bench.pan_light_changes import pan_capture, pool
 
-    d = detect_temporal(_pan_of_sample_room(paint))
+    d = detect_temporal(pan_capture(pool(gain=2.0, width=20.0, centre=0.0)))
     assert d.uses_time, d.reason
     assert "local" in d.reason
 
@@ -204,12 +177,9 @@ def test_something_dark_walking_along_the_wall_of_a_pan_is_not_light(monkeypatch
     frame along the wall while the camera pans: its edges carry light between neighbouring
     blocks, which the 3 x 3 neighbourhood's means keep; block by block it reads as a change."""
     import core.capture.temporal as temporal
+    from bench.pan_light_changes import drift, pan_capture
 
-    def paint(i, pano, lat, lon):
-        body = ((6 - (lon - (-20 + 3 * i)).abs()) / 1.4 + 0.5).clamp(0, 1) * ((lat > -40) & (lat < 15)).float()
-        return pano * (1 - body[..., None]) + body[..., None] * 0.2 * float(pano.mean())
-
-    cap = _pan_of_sample_room(paint)
+    cap = pan_capture(drift(brightness=0.2, speed=3.0))
     d = detect_temporal(cap)
     assert not d.uses_time, d.reason
     monkeypatch.setattr(temporal, "NEIGHBOURHOOD", 1)
