@@ -158,12 +158,6 @@ def relative_rotations(m: PairMatches, k: Intrinsics, seed: int = 0) -> list[Rel
     return out
 
 
-def relative_rotation(m: PairMatches, k: Intrinsics, seed: int = 0) -> RelativeRotation | None:
-    """The rotation most of a pair's matches agree on (None: too few agree)."""
-    found = relative_rotations(m, k, seed)
-    return found[0] if found else None
-
-
 def _ransac_rotation(bi: np.ndarray, bj: np.ndarray, usable: np.ndarray, rng, thr: float):
     """(R, inliers [N] among `usable`) of the rotation the most usable bearings agree on (2-point
     Kabsch inside RANSAC, refitted twice), or None with fewer than MIN_INLIERS."""
@@ -207,9 +201,10 @@ def _consensus_tree(n: int, rel: list[RelativeRotation]) -> tuple[dict[int, np.n
     candidate of those pairs; a candidate's support is the number of those pairs with a
     candidate within CONSENSUS_DEG of it. The frame and candidate with the most support is
     placed next (ties: a frame next to two placed ones, with the candidate nearest
-    `_coasting`'s rotation; else the candidate nearest those that agree with it). Something moving through the view agrees with itself
-    only over the frames it is in, while the room agrees across every pair that reaches a frame
-    it is not in, so the room wins the vote even where it has fewer features in a pair."""
+    `_coasting`'s rotation; else the candidate nearest those that agree with it). Something
+    moving through the view agrees with itself only over the frames it is in, while the room
+    agrees across every pair that reaches a frame it is not in, so the room wins the vote even
+    where it has fewer features in a pair."""
     root = _root(n, rel)
     R = {root: np.eye(3)}
     by_frame: dict[int, list[tuple[RelativeRotation, int]]] = {}
