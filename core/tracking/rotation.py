@@ -42,7 +42,7 @@ from scipy.spatial.transform import Rotation
 from core.camera import Intrinsics
 from core.conventions import sensor_readout_direction
 from core.tracking.features import PairMatches
-from core.tracking.geometry import bearings, kabsch, matrix_to_rotvec, project, rotvec_to_matrix
+from core.tracking.geometry import bearings, kabsch, matrix_to_rotvec, project, rotation_angle_deg, rotvec_to_matrix
 
 INLIER_PX = 2.0
 # MIN_INLIERS consistent matches make a pair: an outlier lands within INLIER_PX of where a
@@ -179,10 +179,6 @@ def _ransac_rotation(bi: np.ndarray, bj: np.ndarray, usable: np.ndarray, rng, th
     return R, best
 
 
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    return math.degrees(math.acos(float(np.clip((np.trace(a.T @ b) - 1.0) / 2.0, -1.0, 1.0))))
-
-
 def _root(n: int, rel: list[RelativeRotation]) -> int:
     """The first frame of the largest set of frames the pairs connect (ties: the earliest set).
     Not frame 0 as such: a first frame that matched nothing (dark, blurred, a cut) must not lose
@@ -229,7 +225,7 @@ def _consensus_tree(n: int, rel: list[RelativeRotation]) -> tuple[dict[int, np.n
             for a in range(len(placed)):
                 # the most pairs agreeing, then the candidate nearest the camera coasting on from
                 # its two placed neighbours, or (without them) nearest the others that agree
-                off = _angle_deg(cands[a], coasting) if coasting is not None else float(angle[a, close[a]].mean())
+                off = rotation_angle_deg(cands[a].T @ coasting) if coasting is not None else float(angle[a, close[a]].mean())
                 score = (len(np.unique(pair[close[a]])), coasting is not None, -off)
                 if best is None or score > best[0]:
                     best = (score, f, cands[a])
@@ -256,7 +252,7 @@ def _agreeing(rel: list[RelativeRotation], R: dict[int, np.ndarray]) -> list[Rel
     for r in rel:
         if r.i not in R or r.j not in R:
             continue
-        off = _angle_deg(R[r.j].T @ R[r.i], r.R)
+        off = rotation_angle_deg((R[r.j].T @ R[r.i]).T @ r.R)
         if off <= AGREE_DEG and ((r.i, r.j) not in chosen or off < chosen[(r.i, r.j)][0]):
             chosen[(r.i, r.j)] = (off, r)
     return [r for _, r in chosen.values()]
