@@ -151,6 +151,26 @@ def test_walk_with_depth_recovers_translation_within_5_percent(walk, walk_tracke
     assert not r.warnings
 
 
+@pytest.fixture(scope="module")
+def noisy_walk(walk):
+    """The walk with 8-bit sensor noise."""
+    ldr, _, intr, poses = walk
+    noise = 0.02 * torch.randn(ldr.shape, generator=torch.Generator().manual_seed(3))
+    images, k = analysis_frames(torch.round((ldr + noise).clamp(0, 1) * 255) / 255, intr)
+    return images, k
+
+
+def test_structure_from_motion_gives_the_same_poses_every_time(noisy_walk):
+    """One thread per COLMAP stage: with two, these frames gave poses differing in the third
+    decimal from run to run (core.tracking.sfm)."""
+    from core.tracking.sfm import run_sfm
+
+    images, k = noisy_walk
+    first, again = run_sfm(images, k), run_sfm(images, k)
+    assert first.kept == again.kept and np.array_equal(first.poses, again.poses)
+    assert np.array_equal(first.points, again.points)
+
+
 def test_opencv_fallback_without_depth_tracks_fits_a_room_and_says_its_scale_is_assumed(walk):
     ldr, depth, intr, poses = walk
     geo = resolve_geometry(ldr, intr, use_pycolmap=False)

@@ -7,6 +7,13 @@ also puts pixel centres at + 0.5, as we do). The initial pair's minimum triangul
 is lowered from COLMAP's 16 deg, which suits object scans, to INIT_MIN_TRI_ANGLE_DEG: a
 phone walking through a room rarely gets that much parallax between two frames.
 
+The same clip gives the same poses every time: every stage runs on one thread (THREADS). With
+two, COLMAP's feature extraction, matching and mapping each differed from run to run with the
+random seed fixed. On a noisy 20-frame walk (bench.handheld's dev `blocky_photo_studio`
+`walk-short-noisy`, one-off runs), three runs with two threads throughout gave three different
+reconstructions of all 20 frames, and with two threads in any one stage models of 3 to 20
+frames; one thread gave the same model every time (tests/test_tracking.py asserts the repeat).
+
 Output: c2w poses in OUR camera convention and world = the first registered frame's camera
 frame (core.conventions), the sparse points in that frame, COLMAP's mean reprojection error,
 and the frames COLMAP could not register (dropped). The scale is COLMAP's arbitrary one:
@@ -29,6 +36,7 @@ INIT_MIN_TRI_ANGLE_DEG = 4.0
 EXHAUSTIVE_MAX_FRAMES = 40
 SEQUENTIAL_OVERLAP = 10
 MAX_FEATURES = 2048
+THREADS = 1  # more make every COLMAP stage differ from run to run (module docstring)
 
 
 class SfMUnavailable(RuntimeError):
@@ -54,7 +62,7 @@ def _pycolmap():
     return pycolmap
 
 
-def run_sfm(images: list[np.ndarray], k: Intrinsics, threads: int = 2, seed: int = 0) -> SfMTrack | None:
+def run_sfm(images: list[np.ndarray], k: Intrinsics, threads: int = THREADS, seed: int = 0) -> SfMTrack | None:
     """Register grey uint8 `images` (analysis resolution, intrinsics `k`); None if COLMAP
     finds no model with at least two frames."""
     pycolmap = _pycolmap()
