@@ -352,6 +352,43 @@ def test_a_reconstruction_that_loses_frames_a_near_rotation_keeps_does_not_win(m
     assert track_camera(ldr, intr, use_pycolmap=False).method == "sfm:opencv"
 
 
+def test_a_pan_colmap_cannot_start_is_not_left_to_opencvs_two_view_chain(monkeypatch, panorama):
+    """Where COLMAP registers too few frames (a pan offers no pair with parallax to start from)
+    and the rotation explains the clip, OpenCV's chained two-view geometry is not tried: it
+    registers a pan with a translation it invents (bench/handheld.py: dev
+    `brown_photostudio_07` `portrait-handheld`, 11.3 deg off, where the rotation is 1.0 deg).
+    With parallax the rotation cannot explain, OpenCV still gets the clip."""
+    import dataclasses
+
+    import core.tracking.track as track_mod
+    from core.tracking.rotation import RotationTrack
+    from core.tracking.sfm import SfMTrack
+
+    T = 8
+    intr = Intrinsics.from_hfov(96, 72, 60.0)
+    poses = [pose_from_yaw_pitch((0, 0, 0), 4.0 * i, 0) for i in range(T)]
+    ldr, _, _ = render_clip(PanoramaRoom(panorama, assumed_room(), torch.zeros(3)), [Camera(intr, p) for p in poses], 1)
+    near = RotationTrack(rotations=np.eye(3)[None].repeat(T, 0), kept=list(range(T)), dropped=[], focal=intr.fx,
+                         median_px=0.4, rms_px=0.5, inlier_share=0.99, residuals=400, pairs=20, parallax_px=0.4,
+                         epipolar_px=0.18)
+    calls = []
+
+    def opencv(*a):
+        calls.append(1)
+        return SfMTrack(poses=np.eye(4)[None].repeat(T, 0), kept=list(range(T)), dropped=[], points=np.zeros((0, 3)),
+                        observations=[], reprojection_error_px=0.5)
+
+    monkeypatch.setattr(track_mod, "_pycolmap_track", lambda *a: None)
+    monkeypatch.setattr(track_mod, "_opencv_track", opencv)
+    monkeypatch.setattr(track_mod, "estimate_rotations", lambda *a, **kw: near)
+    r = track_camera(ldr, intr, use_pycolmap=True)
+    assert r.method == "rotation" and r.stats["rotation_fallback"] and not calls
+    assert any("sfm:opencv: not tried" in f for f in r.stats["failures"])
+    walk = dataclasses.replace(near, parallax_px=1.5)  # 8x the essential matrix's residual
+    monkeypatch.setattr(track_mod, "estimate_rotations", lambda *a, **kw: walk)
+    assert track_camera(ldr, intr, use_pycolmap=True).method == "sfm:opencv" and calls
+
+
 def test_the_rotation_fallback_needs_a_rotation_that_explains_nearly_everything():
     from core.tracking.rotation import RotationTrack
     from core.tracking.track import rotation_fallback_ok

@@ -156,6 +156,11 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
     for name, runner in (("sfm:pycolmap", _pycolmap_track if use_pycolmap else None), ("sfm:opencv", _opencv_track)):
         if runner is None:
             continue
+        if name == "sfm:opencv" and failures and rotation_fallback_ok(rot, T, noise):
+            # COLMAP could not start from a pair with parallax, and the rotation explains the matches:
+            # a pan, which OpenCV's chained two-view geometry would register with a translation it invents
+            failures.append(f"{name}: not tried: COLMAP registered too few frames and the rotation explains the clip")
+            break
         try:
             track = runner(images, features, k)
         except Exception as exc:  # a library failure is a tracking failure, never a job failure
