@@ -15,11 +15,12 @@
 4. If structure from motion fails too, or registers fewer frames than the rotation track,
    the rotation track still stands when it registered most frames and explains nearly every
    match within a pixel or the clip's keypoint noise (`rotation_fallback_ok`: on a noisy,
-   blurred handheld pan the rotation
-   model's residual, a point-to-point distance, grows against the essential matrix's, a
-   point-to-line one, until it fails the model comparison of step 2; such a pan has no
-   baseline to reconstruct, or a reconstruction takes its residual shear for one and loses
-   frames): method "rotation", with a warning.
+   blurred handheld pan the rotation model's residual, a point-to-point distance, grows
+   against the essential matrix's, a point-to-line one, until it fails the model comparison
+   of step 2; such a pan has no baseline to reconstruct, or a reconstruction takes its
+   residual shear for one and loses frames): method "rotation", with a warning. Where COLMAP
+   registered too few frames, that test comes before OpenCV's chained two-view geometry,
+   which registers a pan with a translation it invents.
 5. If every method fails: identity poses, method "failed:static-fallback", and a warning.
    The caller still succeeds (a capture is never refused for being hard to track).
 World = the first kept frame's camera frame (core.conventions). Frames that could not be
