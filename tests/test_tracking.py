@@ -161,8 +161,8 @@ def noisy_walk(walk):
 
 
 def test_structure_from_motion_gives_the_same_poses_every_time(noisy_walk):
-    """One thread per COLMAP stage: with two, these frames gave poses differing in the third
-    decimal from run to run (core.tracking.sfm)."""
+    """One thread per COLMAP stage: with two, these frames gave different poses from run to run
+    (one-off runs; core.tracking.sfm)."""
     from core.tracking.sfm import run_sfm
 
     images, k = noisy_walk

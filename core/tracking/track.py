@@ -158,8 +158,8 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
         if runner is None:
             continue
         if name == "sfm:opencv" and failures and rotation_fallback_ok(rot, T, noise):
-            # COLMAP could not start from a pair with parallax, and the rotation explains the matches:
-            # a pan, which OpenCV's chained two-view geometry would register with a translation it invents
+            # COLMAP registered too few frames (a pan offers no pair with parallax to start from) and the
+            # rotation explains the matches: OpenCV's chained two-view geometry would invent a translation
             failures.append(f"{name}: not tried: COLMAP registered too few frames and the rotation explains the clip")
             break
         try:
