@@ -157,18 +157,18 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
     for name, runner in (("sfm:pycolmap", _pycolmap_track if use_pycolmap else None), ("sfm:opencv", _opencv_track)):
         if runner is None:
             continue
-        if name == "sfm:opencv" and failures and rotation_fallback_ok(rot, T, noise):
-            # COLMAP registered too few frames (a pan offers no pair with parallax to start from) and the
-            # rotation explains the matches: OpenCV's chained two-view geometry would invent a translation
-            failures.append(f"{name}: not tried: COLMAP registered too few frames and the rotation explains the clip")
-            break
         try:
             track = runner(images, features, k)
+            kept = 0 if track is None else len(track.kept)
+            failure = f"{name}: registered {kept} of {T} frames" if kept < max(2, MIN_KEPT_FRACTION * T) else None
         except Exception as exc:  # a library failure is a tracking failure, never a job failure
-            failures.append(f"{name}: {type(exc).__name__}: {exc}")
-            continue
-        if track is None or len(track.kept) < max(2, MIN_KEPT_FRACTION * T):
-            failures.append(f"{name}: registered {0 if track is None else len(track.kept)} of {T} frames")
+            failure = f"{name}: {type(exc).__name__}: {exc}"
+        if failure:
+            failures.append(failure)
+            if rotation_fallback_ok(rot, T, noise):
+                # a pan: no pair with parallax to start from; the next, weaker reconstruction (OpenCV's
+                # chained two-view geometry) would register it with a translation it invents
+                break
             continue
         if len(track.kept) < len(rot.kept) and rotation_fallback_ok(rot, T, noise):
             # a pan: the reconstruction took what the rotation left (noise, shear) for a baseline and lost frames
