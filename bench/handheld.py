@@ -149,6 +149,9 @@ def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
                 "keypoint_noise_px": r.motion.evidence.get("keypoint_noise_px"),
                 **{k: model.get(k) for k in ("median_px", "inlier_share", "parallax_px", "epipolar_px", "fits",
                                              "readout_frames")}}
+        if "models" in r.stats:  # structure from motion's starts (core.tracking.sfm.choose_model)
+            clip["sfm_start_deg"] = r.stats.get("init_min_tri_angle_deg")
+            clip["sfm_models"] = r.stats["models"]
         if r.method not in ("static", "failed:static-fallback") and len(r.kept) > 1:
             rot, _ = pose_errors(r.poses, torch.from_numpy(relative_to_first(true[r.kept])[0]))  # world = the first kept frame
             clip["max_rotation_error_deg"] = round(rot, 3)

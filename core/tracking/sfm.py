@@ -3,9 +3,20 @@
 The analysis frames go to a private temporary directory as PNGs, COLMAP extracts SIFT,
 matches every pair (sequentially with an overlap for long clips), and its incremental
 mapper registers the frames with the intrinsics held fixed (a single PINHOLE camera; COLMAP
-also puts pixel centres at + 0.5, as we do). The initial pair's minimum triangulation angle
-is lowered from COLMAP's 16 deg, which suits object scans, to INIT_MIN_TRI_ANGLE_DEG: a
-phone walking through a room rarely gets that much parallax between two frames.
+also puts pixel centres at + 0.5, as we do).
+
+Which model comes out depends on the pair the mapper starts from, and on a phone's walk the
+wrong start leaves a model that drifts: a sideways step and a turn move a room's features
+almost alike, and with noisy keypoints a model can trade one for the other, frame after frame
+(dev `dancing_hall` `walk-noisy` turned 0.9 deg a frame too far, 17.7 deg by the last, and
+COLMAP's bundle adjustment, rerun to convergence, stayed there, though the true poses
+reproject its own tracks with half its median error). So the mapper runs from the matches
+once per initial-pair angle in INIT_MIN_TRI_ANGLES_DEG (4 deg lets a phone's small baselines
+start; COLMAP's 16 deg suits object scans), and `choose_model` keeps the model that registers
+the most frames; among those, the first start's, unless another reprojects the pooled feature
+tracks of all the models clearly better (`pooled_median_error`, CLEARLY_BETTER). Each model's
+own tracks were pruned to fit its own poses; the pooled ones are a common yardstick. Measured
+in bench/README.md section 7, "Three starts".
 
 The same clip gives the same poses every time: every stage runs on one thread (THREADS). With
 two, COLMAP's feature extraction, matching and mapping each differed from run to run with the
@@ -30,9 +41,12 @@ import cv2
 import numpy as np
 
 from core.camera import Intrinsics
-from core.tracking.geometry import opencv_w2c_to_c2w, relative_to_first
+from core.tracking.geometry import c2w_to_opencv_w2c, opencv_w2c_to_c2w, relative_to_first
 
-INIT_MIN_TRI_ANGLE_DEG = 4.0
+INIT_MIN_TRI_ANGLES_DEG = (4.0, 8.0, 16.0)  # the mapper's starts, the first preferred (module docstring)
+# Another start's model replaces the first's only with a pooled median error this many times the
+# first's or lower: smaller differences went either way on dev walks (bench/README.md section 7).
+CLEARLY_BETTER = 0.9
 EXHAUSTIVE_MAX_FRAMES = 40
 SEQUENTIAL_OVERLAP = 10
 MAX_FEATURES = 2048
@@ -99,24 +113,33 @@ def _run(pycolmap, images: list[np.ndarray], k: Intrinsics, threads: int, seed: 
             pairing = pycolmap.SequentialPairingOptions()
             pairing.overlap = SEQUENTIAL_OVERLAP
             pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
-        opts = pycolmap.IncrementalPipelineOptions()
-        opts.num_threads = threads
-        opts.random_seed = seed
-        opts.multiple_models = False
-        opts.min_model_size = 2
-        opts.ba_refine_focal_length = False
-        opts.ba_refine_principal_point = False
-        opts.ba_refine_extra_params = False
-        opts.extract_colors = False
-        opts.mapper.init_min_tri_angle = INIT_MIN_TRI_ANGLE_DEG
-        opts.mapper.abs_pose_refine_focal_length = False
-        opts.mapper.abs_pose_refine_extra_params = False
-        out = root / "sparse"
-        out.mkdir()
-        recs = pycolmap.incremental_mapping(db, image_dir, out, opts)
-    if not recs:
-        return None
-    rec = max(recs.values(), key=lambda r: r.num_reg_images())
+        models = []
+        for n, angle in enumerate(INIT_MIN_TRI_ANGLES_DEG):
+            opts = pycolmap.IncrementalPipelineOptions()
+            opts.num_threads = threads
+            opts.random_seed = seed
+            opts.multiple_models = False
+            opts.min_model_size = 2
+            opts.ba_refine_focal_length = False
+            opts.ba_refine_principal_point = False
+            opts.ba_refine_extra_params = False
+            opts.extract_colors = False
+            opts.mapper.init_min_tri_angle = angle
+            opts.mapper.abs_pose_refine_focal_length = False
+            opts.mapper.abs_pose_refine_extra_params = False
+            out = root / f"sparse{n}"
+            out.mkdir()
+            recs = pycolmap.incremental_mapping(db, image_dir, out, opts)
+            track = _track(max(recs.values(), key=lambda r: r.num_reg_images()), len(images)) if recs else None
+            if track is not None:
+                track.stats["init_min_tri_angle_deg"] = angle
+                models.append(track)
+    return choose_model(models, k)
+
+
+def _track(rec, n_images: int) -> SfMTrack | None:
+    """COLMAP's reconstruction -> SfMTrack (ours: c2w, world = the first kept frame); None
+    under two frames."""
     if rec.num_reg_images() < 2:
         return None
     frame_of = {img.image_id: int(Path(img.name).stem) for img in rec.images.values() if img.has_pose}
@@ -140,6 +163,59 @@ def _run(pycolmap, images: list[np.ndarray], k: Intrinsics, threads: int, seed: 
                 idx.append(index_of[p2d.point3D_id])
         observations.append((f, np.array(uv, np.float64).reshape(-1, 2), np.array(idx, np.int64)))
     err = float(rec.compute_mean_reprojection_error())
-    return SfMTrack(poses, kept, sorted(set(range(len(images))) - set(kept)), pts, observations,
+    return SfMTrack(poses, kept, sorted(set(range(n_images)) - set(kept)), pts, observations,
                     err if math.isfinite(err) else math.inf,
                     {"points": int(len(pts)), "mean_track_length": float(rec.compute_mean_track_length())})
+
+
+def choose_model(models: list[SfMTrack], k: Intrinsics) -> SfMTrack | None:
+    """The model that registers the most frames; among those the first, unless another has a
+    `pooled_median_error` over every model's tracks CLEARLY_BETTER times the first's or lower
+    (module docstring). The candidates are recorded in the chosen model's stats."""
+    if not models:
+        return None
+    pool = [t for m in models for t in feature_tracks(m)]
+    most = max(len(m.kept) for m in models)
+    errors = [pooled_median_error(m, pool, k) if len(m.kept) == most else math.inf for m in models]
+    first = next(n for n, m in enumerate(models) if len(m.kept) == most)
+    best = min(range(len(models)), key=lambda n: (errors[n], n))
+    chosen = models[best if errors[best] < CLEARLY_BETTER * errors[first] else first]
+    chosen.stats["models"] = [{"init_min_tri_angle_deg": m.stats.get("init_min_tri_angle_deg"), "frames": len(m.kept),
+                               "pooled_median_px": round(e, 4) if math.isfinite(e) else None}
+                              for e, m in zip(errors, models)]
+    return chosen
+
+
+def feature_tracks(model: SfMTrack) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The model's 3D points as (frames [M], pixels [M, 2]) observation tracks."""
+    frames, pixels = {}, {}
+    for f, uv, idx in model.observations:
+        for p, i in zip(uv, idx):
+            frames.setdefault(int(i), []).append(f)
+            pixels.setdefault(int(i), []).append(p)
+    return [(np.array(frames[i]), np.array(pixels[i], np.float64)) for i in frames]
+
+
+def pooled_median_error(model: SfMTrack, tracks: list[tuple[np.ndarray, np.ndarray]], k: Intrinsics) -> float:
+    """Median reprojection error (px) of `tracks` (frames, pixels) under the model's poses: each
+    track is triangulated (DLT) from its frames the model registered (two at least); a point
+    behind a camera counts as infinitely far off."""
+    K = np.array([[k.fx, 0.0, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]])
+    P = {f: K @ c2w_to_opencv_w2c(c2w)[:3] for f, c2w in zip(model.kept, model.poses)}
+    by_length: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for frames, uv in tracks:
+        keep = np.array([f in P for f in frames.tolist()], bool)
+        if keep.sum() >= 2:
+            by_length.setdefault(int(keep.sum()), []).append((np.stack([P[f] for f in frames[keep].tolist()]), uv[keep]))
+    errors = []
+    for group in by_length.values():
+        Ps = np.stack([g[0] for g in group])  # [N, M, 3, 4]
+        uv = np.stack([g[1] for g in group])  # [N, M, 2]
+        A = np.concatenate([uv[..., :1] * Ps[:, :, 2] - Ps[:, :, 0], uv[..., 1:] * Ps[:, :, 2] - Ps[:, :, 1]], 1)
+        X = np.linalg.svd(A)[2][:, -1]  # [N, 4] homogeneous points
+        x = np.einsum("nmij,nj->nmi", Ps, X)  # [N, M, 3]
+        z = x[..., 2] * np.sign(X[:, 3:4])  # depth up to the positive scale of X's w
+        with np.errstate(divide="ignore", invalid="ignore"):
+            err = np.linalg.norm(x[..., :2] / x[..., 2:] - uv, axis=-1)
+        errors.append(np.where((z > 0) & np.isfinite(err), err, np.inf).ravel())
+    return float(np.median(np.concatenate(errors))) if errors else math.inf
