@@ -106,27 +106,25 @@ def render_frame(room, intr, index: int, yaw0: float, pitch0: float, exposure: f
     return out.transpose(0, 1) if portrait else out
 
 
-def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
+def clips(path: Path, variants: dict = VARIANTS):
+    """Yield (name, LDR frames [T, H, W, 3] in 8-bit steps, intrinsics, true c2w poses [T, 4, 4]
+    relative to the first frame) per variant of `variants` (VARIANTS or WALKS) for the panorama."""
     from bench.tracking import HFOV_DEG, _view, walk_poses
     from core.camera import Camera, Intrinsics
     from core.conventions import tonemap
     from core.exposure import luminance
     from core.sim.panorama_room import PanoramaRoom, load_panorama
-    from core.tracking.capture_geometry import pose_errors
     from core.tracking.geometry import relative_to_first
     from core.tracking.room import assumed_room
-    from core.tracking.track import track_camera
 
     pano = load_panorama(path, 512)
     yaw, pitch = _view(path.name)
     room = PanoramaRoom(pano, assumed_room(), torch.zeros(3))
     pan_truth, _ = relative_to_first(torch.stack([pose_at(i / FPS, yaw, pitch) for i in range(FRAMES)]).numpy())
-    out = {"file": path.name, "clips": {}}
     for name, spec in variants.items():
         if name in WALKS:
             scale, sigma, ev = spec
-            size, portrait = SIZE, False
-            intr = Intrinsics.from_hfov(size[0], size[1], HFOV_DEG)
+            intr = Intrinsics.from_hfov(SIZE[0], SIZE[1], HFOV_DEG)
             poses = walk_poses(FRAMES, scale)
             true, _ = relative_to_first(torch.stack(poses).numpy())
             hdr = torch.stack([room.render(Camera(intr, p), 1)[0] for p in poses])
@@ -139,7 +137,17 @@ def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
         ldr = tonemap(hdr, ev)
         if sigma > 0:
             ldr = (ldr + sigma * torch.randn(ldr.shape, generator=torch.Generator().manual_seed(7))).clamp(0, 1)
-        ldr = torch.round(ldr * 255) / 255
+        yield name, torch.round(ldr * 255) / 255, intr, true
+
+
+def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
+    from core.tracking.capture_geometry import pose_errors
+    from core.tracking.geometry import relative_to_first
+    from core.tracking.track import track_camera
+
+    out = {"file": path.name, "clips": {}}
+    for name, ldr, intr, true in clips(path, variants):
+        size = (intr.width, intr.height)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             r = track_camera(ldr, intr, refine_focal=True)

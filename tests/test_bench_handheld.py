@@ -40,3 +40,21 @@ def test_walk_summary_counts_the_walks_taken_for_a_pan():
     s = summarise(rows, {"walk-noisy": WALKS["walk-noisy"]})["walk-noisy"]
     assert s["taken_as_a_pan"] == 1 and s["methods"] == {"failed:static-fallback": 1, "rotation": 1, "sfm:pycolmap": 2}
     assert s["max_rotation_error_deg_median"] == 2.0 and s["max_rotation_error_deg_worst"] == 3.0
+
+
+def test_sfm_starts_summary_compares_the_first_start_the_kept_model_and_the_best():
+    from bench.handheld import WALKS
+    from bench.sfm_starts import summarise as summarise_starts
+
+    def clip(kept, **starts):
+        return {**{a: {"frames": f, "max_rotation_error_deg": e, "pooled_median_px": 0.3} for a, (f, e) in starts.items()},
+                "kept": kept}
+    rows = [{"clips": {"walk-noisy": clip(8.0, **{"4.0": (20, 17.0), "8.0": (20, 6.0), "16.0": (20, 5.0)})}},
+            {"clips": {"walk-noisy": clip(16.0, **{"4.0": (5, 11.0), "16.0": (20, 3.0)})}},  # the first start falls short
+            {"clips": {"walk-noisy": clip(4.0, **{"4.0": (20, 2.0), "8.0": (20, 1.0)})}},
+            {"clips": {"walk-noisy": {}}}]  # no start registered half the frames: not counted
+    s = summarise_starts(rows, {"walk-noisy": WALKS["walk-noisy"]}, (4.0, 8.0, 16.0))["walk-noisy"]
+    assert s["clips"] == 3 and s["first_start_short_of_the_most_frames"] == 1
+    assert s["first_start_alone"] == {"worst": 17.0, "median": 17.0, "over_5_deg": 1}
+    assert s["kept"] == {"worst": 6.0, "median": 3.0, "over_5_deg": 1}
+    assert s["best_start_oracle"] == {"worst": 5.0, "median": 3.0, "over_5_deg": 0}

@@ -76,19 +76,22 @@ def _pycolmap():
     return pycolmap
 
 
-def run_sfm(images: list[np.ndarray], k: Intrinsics, threads: int = THREADS, seed: int = 0) -> SfMTrack | None:
+def run_sfm(images: list[np.ndarray], k: Intrinsics, threads: int = THREADS, seed: int = 0,
+            starts: tuple[float, ...] | None = None) -> SfMTrack | None:
     """Register grey uint8 `images` (analysis resolution, intrinsics `k`); None if COLMAP
-    finds no model with at least two frames."""
+    finds no model with at least two frames. `starts`: the mapper's initial-pair angles
+    (default INIT_MIN_TRI_ANGLES_DEG)."""
     pycolmap = _pycolmap()
     pycolmap.set_random_seed(seed)
     quiet, pycolmap.logging.minloglevel = pycolmap.logging.minloglevel, 2  # COLMAP logs every step at INFO
     try:
-        return _run(pycolmap, images, k, threads, seed)
+        return _run(pycolmap, images, k, threads, seed, starts or INIT_MIN_TRI_ANGLES_DEG)
     finally:
         pycolmap.logging.minloglevel = quiet
 
 
-def _run(pycolmap, images: list[np.ndarray], k: Intrinsics, threads: int, seed: int) -> SfMTrack | None:
+def _run(pycolmap, images: list[np.ndarray], k: Intrinsics, threads: int, seed: int,
+         starts: tuple[float, ...]) -> SfMTrack | None:
     with tempfile.TemporaryDirectory(prefix="lf-sfm-") as tmp:
         root = Path(tmp)
         image_dir = root / "images"
@@ -114,7 +117,7 @@ def _run(pycolmap, images: list[np.ndarray], k: Intrinsics, threads: int, seed: 
             pairing.overlap = SEQUENTIAL_OVERLAP
             pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
         models = []
-        for n, angle in enumerate(INIT_MIN_TRI_ANGLES_DEG):
+        for n, angle in enumerate(starts):
             opts = pycolmap.IncrementalPipelineOptions()
             opts.num_threads = threads
             opts.random_seed = seed
