@@ -430,13 +430,15 @@ def test_a_reconstruction_that_loses_frames_a_near_rotation_keeps_does_not_win(m
     monkeypatch.setattr(track_mod, "estimate_rotations", lambda *a, **kw: near)
 
     def sfm(kept):
+        models = [{"init_min_tri_angle_deg": 4.0, "frames": len(kept), "pooled_median_px": 0.3}]
         return lambda *a: SfMTrack(poses=np.eye(4)[None].repeat(len(kept), 0), kept=kept,
                                    dropped=[i for i in range(T) if i not in kept], points=np.zeros((0, 3)),
-                                   observations=[], reprojection_error_px=0.5)
+                                   observations=[], reprojection_error_px=0.5, stats={"models": models})
 
     monkeypatch.setattr(track_mod, "_opencv_track", sfm(list(range(6))))
     r = track_camera(ldr, intr, use_pycolmap=False)
     assert r.method == "rotation" and r.stats.get("rotation_fallback") and len(r.kept) == T
+    assert r.stats["models"][0]["frames"] == 6  # what the reconstruction's starts gave is still recorded
     assert any("registered 6 of 8 frames, the rotation 8" in w for w in r.warnings)
     monkeypatch.setattr(track_mod, "_opencv_track", sfm(list(range(T))))
     assert track_camera(ldr, intr, use_pycolmap=False).method == "sfm:opencv"

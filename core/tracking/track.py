@@ -159,6 +159,8 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
             continue
         try:
             track = runner(images, features, k)
+            if track is not None and "models" in track.stats:  # COLMAP's starts, kept whichever method wins
+                stats["models"] = track.stats["models"]
             kept = 0 if track is None else len(track.kept)
             failure = f"{name}: registered {kept} of {T} frames" if kept < max(2, MIN_KEPT_FRACTION * T) else None
         except Exception as exc:  # a library failure is a tracking failure, never a job failure
