@@ -81,16 +81,14 @@ def summarise(rows: list[dict], variants: dict, starts: tuple[float, ...]) -> di
 
 
 def main(argv: list[str] | None = None) -> int:
+    from bench.real_panoramas import add_split_arguments, split_files
+    from core.tracking.sfm import INIT_MIN_TRI_ANGLES_DEG
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--split", default="dev", choices=("dev", "test"))
-    p.add_argument("--hdri-dir", default=str(Path(__file__).resolve().parents[2] / "shared" / "hdri"))
-    p.add_argument("--limit", type=int, default=None)
+    add_split_arguments(p)  # its --workdir is not used: nothing here is written but the report
     p.add_argument("--variants", default="walk-noisy,walk-dim", help="comma-separated names of bench.handheld's WALKS")
     p.add_argument("--starts", default=None, help="comma-separated initial-pair angles (default: the product's)")
-    p.add_argument("-o", "--output", default=None)
     args = p.parse_args(argv)
-    from bench.real_panoramas import split_files
-    from core.tracking.sfm import INIT_MIN_TRI_ANGLES_DEG
 
     unknown = set(args.variants.split(",")) - set(WALKS)
     if unknown:
