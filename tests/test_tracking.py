@@ -227,11 +227,11 @@ def test_a_dim_walk_colmap_loses_from_its_first_start_is_registered_from_another
     """bench.handheld's `walk-dim` (1.3 m, turning 40 deg; 2 stops under, 8-bit noise) in the
     bundled room turned by 180 deg: from the 4 deg initial pair COLMAP registers 5 of the 20
     frames (11.8 deg off, a one-off run), from the 16 deg one all of them."""
+    from bench.tracking import walk_poses
     from core.tracking.sfm import run_sfm
 
     intr = Intrinsics.from_hfov(320, 240, 60.0)
-    poses = [pose_from_yaw_pitch((-0.6 + 1.2 * i / 19, 0.1 * math.sin(i / 4), -0.5 * i / 19), 20 - 40 * i / 19, 0)
-             for i in range(20)]
+    poses = walk_poses(20)
     room = PanoramaRoom(panorama.roll(panorama.shape[1] // 2, dims=1), assumed_room(), torch.zeros(3))
     hdr = torch.stack([room.render(Camera(intr, p), 1)[0] for p in poses])
     ldr = tonemap(hdr * (0.18 / float(luminance(hdr).mean())), -2.0)

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
 from core.camera import Intrinsics
 from core.tracking.geometry import c2w_to_opencv_w2c, opencv_w2c_to_c2w, relative_to_first
@@ -203,7 +204,7 @@ def pooled_median_error(model: SfMTrack, tracks: list[tuple[np.ndarray, np.ndarr
     """Median reprojection error (px) of `tracks` (frames, pixels) under the model's poses: each
     track is triangulated (DLT) from its frames the model registered (two at least); a point
     behind a camera counts as infinitely far off."""
-    K = np.array([[k.fx, 0.0, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]])
+    K = k.matrix(torch.float64).numpy()  # pixel centres at + 0.5, as COLMAP's keypoints
     P = {f: K @ c2w_to_opencv_w2c(c2w)[:3] for f, c2w in zip(model.kept, model.poses)}
     by_length: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
     for frames, uv in tracks:
