@@ -78,7 +78,11 @@ ABLATION = {
     "pull-push, fixed 8x": {"unseen_fill": "push-pull", "clip_rule": "fixed"},
     "pull-push, clip rule": {"unseen_fill": "push-pull"},
     "indoor fill, fixed 8x": {"clip_rule": "fixed"},
-    "indoor fill, clip rule (default)": {},
+    "indoor fill, clip rule, no source cap": {"fill_source_cap": None},
+    "indoor fill, clip rule, source cap 1x": {"fill_source_cap": 1.0},
+    "indoor fill, clip rule, source cap 2x (default)": {},
+    "indoor fill, clip rule, source cap 4x": {"fill_source_cap": 4.0},
+    "indoor fill, clip rule, source cap 8x": {"fill_source_cap": 8.0},
 }
 
 

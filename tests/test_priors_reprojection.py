@@ -281,6 +281,59 @@ def test_indoor_fill_keeps_seen_pixels_and_shapes_unseen_by_elevation_and_colour
     assert torch.isfinite(out).all()
 
 
+def test_cap_sources_caps_only_what_is_above_the_multiple_of_the_seen_median():
+    from core.exposure import luminance
+    from core.priors.indoor_fill import cap_sources
+
+    env = torch.zeros(2, 8, 16, 3)
+    seen = torch.zeros(2, 8, 16, dtype=torch.bool)
+    seen[:, 3:5, 4:10] = True
+    env[seen] = torch.tensor([0.5, 0.4, 0.3])
+    env[0, 4, 6] = torch.tensor([900.0, 600.0, 300.0])  # a lamp in map 0
+    out = cap_sources(env, seen, 2.0)
+    median = float(luminance(torch.tensor([0.5, 0.4, 0.3])))
+    assert float(luminance(out[0, 4, 6])) == pytest.approx(2.0 * median, rel=1e-5)
+    assert torch.allclose(out[0, 4, 6] / out[0, 4, 6].sum(), env[0, 4, 6] / env[0, 4, 6].sum())  # colour kept
+    keep = torch.ones(2, 8, 16, dtype=torch.bool)
+    keep[0, 4, 6] = False
+    assert torch.equal(out[keep], env[keep])  # walls, map 1 and the unseen zeros untouched
+    assert torch.equal(cap_sources(env, torch.zeros_like(seen), 2.0), env)  # nothing seen: nothing to cap against
+    assert torch.equal(cap_sources(env, seen, None), env)
+
+
+def test_a_bright_lamp_in_view_does_not_glow_across_the_unseen_sphere():
+    """Pull-push spreads each seen pixel into the holes around it: a lamp 2000x the walls, in
+    view, would light the unseen directions as if the room were full of lamps. The indoor fill
+    extrapolates the seen radiance capped at SOURCE_CAP x its median (the lamp keeps its value
+    where it was seen); the unseen directions then stay at the walls' level times the elevation
+    gain, as they are without the lamp."""
+    from core.exposure import luminance
+    from core.priors.indoor_fill import ELEVATION_GAIN, SOURCE_CAP
+
+    cap_frames = torch.full((1, H, W, 3), 0.5)
+    env = {}
+    for lamp in (False, True):
+        prior = ReprojectionPrior(env_height=16)
+        prior.bind(_capture(cap_frames))
+        raw, seen = prior.observed_envmaps(torch.zeros(1, 3), 0.0)
+        if lamp:  # a lamp's radiance straight into the splat (the clip rule's estimate is tested elsewhere)
+            lit = raw.clone()
+            r, c = seen[0].nonzero()[len(seen[0].nonzero()) // 2].tolist()
+            lit[0, r, c] = 2000.0 * raw[0, r, c]
+            prior._splat_seen = lambda centers, frame, lit=lit, seen=seen: (lit, seen)
+        env[lamp] = prior.envmaps(torch.zeros(1, 3), 0.0, 16)[0]
+    unseen = ~seen[0]
+    walls = float(luminance(raw[0][seen[0]]).median())
+    assert float(luminance(env[True])[~unseen].max()) == pytest.approx(2000.0 * walls, rel=1e-4)  # seen: kept
+    y = luminance(env[True])[unseen]
+    assert float(y.max()) <= SOURCE_CAP * walls * max(ELEVATION_GAIN) / min(ELEVATION_GAIN)
+    assert float(y.mean()) <= 1.5 * float(luminance(env[False])[unseen].mean())
+    plain = ReprojectionPrior(env_height=16, fill_source_cap=None)
+    plain.bind(_capture(cap_frames))
+    plain._splat_seen = lambda centers, frame: (lit, seen)
+    assert float(luminance(plain.envmaps(torch.zeros(1, 3), 0.0, 16)[0])[unseen].mean()) > 10 * float(y.mean())
+
+
 def test_linear_frames_see_clipping_at_full_resolution():
     """A 1-pixel clipped lamp disappears from a 4x downsampled LDR frame (area averaging), but
     the prior linearises at the full resolution first, so its light survives the resize."""

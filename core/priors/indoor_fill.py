@@ -20,6 +20,12 @@ misses, both measured on the `dev` panoramas only (`python -m bench.indoor_fill`
    sources that dominate the unseen irradiance much less. Unseen pixels keep the pull-push
    luminance, with the seen region's mean chromaticity moved towards grey by
    UNSEEN_WHITENING.
+3. Compact bright sources do not continue where the camera did not look: pull-push spreads
+   every seen pixel's radiance into the holes around it, so a lamp or a window in view would
+   become a glowing halo across the unseen sphere, brighter the brighter the source (its
+   energy is already in the map where it was seen, and in the field's emitters). The
+   extrapolation therefore starts from the seen radiance capped at SOURCE_CAP x the seen
+   pixels' median luminance (`cap_sources`); the seen pixels themselves keep their value.
 Elevation is measured from the world's +y: right for single images and tracked videos (the
 first camera is upright by assumption) and the simulator; a capture whose world up is not
 +y (some nerfstudio exports) gets the profile tilted. Seen pixels are never changed.
@@ -38,6 +44,7 @@ ELEVATION_GAIN = (
     0.847, 0.862, 0.908, 0.995, 1.121, 1.278, 1.447, 1.578, 1.605, 1.487, 1.267, 1.028,
     0.83, 0.693, 0.606, 0.553, 0.513, 0.479, 0.449, 0.428, 0.416, 0.41, 0.408, 0.407,
 )
+SOURCE_CAP = 2.0  # x the seen median luminance: what pull-push may extrapolate (chosen on dev, docs/highlights.md)
 UNSEEN_WHITENING = 0.5  # 0: the seen mean colour; 1: grey (chosen on dev: bench/indoor_fill.py)
 
 
@@ -67,3 +74,17 @@ def fill_unseen(filled: torch.Tensor, env: torch.Tensor, weight: torch.Tensor) -
     ok = (count > 0)[:, None, None, None] & (luminance(mean) > 0)[:, None, None, None]
     out = torch.where(ok, recoloured, filled)
     return torch.where(weight[..., None] > 0, filled, out)
+
+
+def cap_sources(env: torch.Tensor, seen: torch.Tensor, cap: float | None = SOURCE_CAP) -> torch.Tensor:
+    """The seen radiance pull-push extrapolates: env [N, h, w, 3] with each pixel's luminance
+    capped at `cap` x the median luminance of its map's seen pixels (`seen` [N, h, w] bool),
+    colour kept. A map with no seen pixel, or `cap` None, is returned as it is."""
+    if cap is None:
+        return env
+    lum = luminance(env)
+    nan = torch.full_like(lum, float("nan"))
+    median = torch.nanmedian(torch.where(seen, lum, nan).flatten(1), dim=1).values  # [N], NaN: nothing seen
+    limit = cap * median[:, None, None]
+    factor = torch.where(torch.isfinite(limit) & (lum > limit), limit / lum.clamp_min(1e-30), torch.ones_like(lum))
+    return env * factor[..., None]

@@ -51,7 +51,7 @@ from core.conventions import expose, inverse_tonemap
 from core.capture.depth import surface_normals
 from core.capture.highlights import CLIP_LDR, linearise_highlights
 from core.envmap import SPLAT_Z_TOLERANCE, resize_envmap, splat_points
-from core.priors.indoor_fill import fill_unseen
+from core.priors.indoor_fill import SOURCE_CAP, cap_sources, fill_unseen
 from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
 from core.priors.known import ball_target
 from core.priors.registry import prior_settings, register_prior
@@ -160,6 +160,9 @@ class ReprojectionSettings(PriorConfig):
     unseen_fill: Literal["indoor", "push-pull"] = Field("indoor", description=(
         "unobserved directions: pull-push with the indoor elevation gain and whitened colour (core.priors.indoor_fill), "
         "or plain pull-push"))
+    fill_source_cap: float | None = Field(SOURCE_CAP, gt=0, description=(
+        "with unseen_fill 'indoor': seen radiance above this multiple of the seen median luminance is capped "
+        "before it is extrapolated into unseen directions (core.priors.indoor_fill.cap_sources); null: not capped"))
     back_faces: Literal["dark", "front"] = Field("front", description=(
         "points whose observed side faces away from the probe: occluders of radiance 0 ('dark') or with the "
         "radiance of their observed side ('front')"))
@@ -180,6 +183,7 @@ class ReprojectionPrior(Prior):
         self.clip_boost = float(s.clip_boost)
         self.clip_rule = s.clip_rule
         self.unseen_fill = s.unseen_fill
+        self.fill_source_cap = s.fill_source_cap
         self.back_faces = s.back_faces
         self.configured_merge_views = s.merge_views
         self.merge_views = s.merge_views or 1
@@ -286,8 +290,10 @@ class ReprojectionPrior(Prior):
 
     def _splat(self, centers: torch.Tensor, frame_index: int) -> torch.Tensor:
         env, seen = self._splat_seen(centers, frame_index)
-        filled = push_pull_fill(env, seen)
-        return fill_unseen(filled, env, seen) if self.unseen_fill == "indoor" else filled
+        if self.unseen_fill != "indoor":
+            return push_pull_fill(env, seen)
+        extrapolated = push_pull_fill(cap_sources(env, seen, self.fill_source_cap), seen)
+        return fill_unseen(torch.where(seen[..., None], env, extrapolated), env, seen)
 
     def _splat_seen(self, centers: torch.Tensor, frame_index: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Splatted radiance [N, h, w, 3] and its seen mask [N, h, w] (no fill)."""
@@ -327,6 +333,7 @@ class ReprojectionPrior(Prior):
             "z_tolerance": Z_TOLERANCE,
             "hole_fill": "pull-push pyramid in the equirect domain" + (
                 " + indoor elevation gain and whitened colour" if self.unseen_fill == "indoor" else ""),
+            "fill_source_cap": self.fill_source_cap if self.unseen_fill == "indoor" else None,
             "back_faces": self.back_faces,
             "merge_views": self.merge_views,
             "point_cloud_builds": self.point_cloud_builds,
