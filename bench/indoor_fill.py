@@ -99,11 +99,12 @@ def elevation_gain_as(gain: tuple[float, ...] | None):
         fill.ELEVATION_GAIN = kept
 
 
-def ablation(hdri: Path, split: str, variants: dict | None = None, gains: dict | None = None) -> list[str]:
+def ablation(hdri: Path, split: str, variants: dict | None = None, gains: dict | None = None, views: int = 1) -> list[str]:
     """The reprojection prior alone at the camera centre, draft settings (24-row maps, frames
     at 72 rows), per fill/clip variant (`variants`, default ABLATION), on the panorama protocol:
-    mean ratios to the constant map. `gains` maps a panorama's file name to the elevation gain
-    its prior uses (leave-one-out); else the module's."""
+    mean ratios to the constant map (diffuse si-RMSE and angle, matte si-RMSE). `gains` maps a
+    panorama's file name to the elevation gain its prior uses (leave-one-out); else the module's.
+    `views` photos per panorama (bench.real_panoramas.view_for)."""
     import tempfile
 
     import bench.real_panoramas as rp
@@ -124,28 +125,32 @@ def ablation(hdri: Path, split: str, variants: dict | None = None, gains: dict |
     with tempfile.TemporaryDirectory() as tmp:
         for f in files:
             pano = rp.load_panorama(hdri / f)
-            R = rp.camera_rotation(*rp.view_for(f))
-            hdr, intr = rp.perspective_crop(pano, R)
-            ldr = rp.ldr_photo(hdr)
-            work = load_capture(rp.write_photo(ldr, Path(tmp) / f"{f}.png"), None, rp.job_params(), track=False).resized(cfg.distill.work_height)
-            preds = {}
-            with elevation_gain_as((gains or {}).get(f)):
-                for name, settings in variants.items():
-                    prior = ReprojectionPrior(**{**base, **settings})
-                    prior.bind(work)
-                    preds[name] = prior.envmaps(torch.zeros(1, 3), 0.0, rp.GT_HEIGHT)[0]
-            preds["mean-colour"] = rp.estimate_mean_colour(ldr)
-            scores = score_probe(preds, rotate_envmap(resize_envmap(pano, rp.GT_HEIGHT), R.T), 64)
-            rays = Camera(intr, torch.eye(4, dtype=torch.float64)).pixel_rays(dtype=torch.float64)[1]
-            for name, env in preds.items():
-                acc[name].append((scores[name]["diffuse"]["si_rmse_rel"], scores[name]["diffuse"]["angular_deg"],
-                                  observed_region_correlation(env, inverse_tonemap(ldr), rays)))
+            for view in range(views):
+                R = rp.camera_rotation(*rp.view_for(f, view, views))
+                hdr, intr = rp.perspective_crop(pano, R)
+                ldr = rp.ldr_photo(hdr)
+                work = load_capture(rp.write_photo(ldr, Path(tmp) / f"{f}_{view}.png"), None, rp.job_params(), track=False).resized(cfg.distill.work_height)
+                preds = {}
+                with elevation_gain_as((gains or {}).get(f)):
+                    for name, settings in variants.items():
+                        prior = ReprojectionPrior(**{**base, **settings})
+                        prior.bind(work)
+                        preds[name] = prior.envmaps(torch.zeros(1, 3), 0.0, rp.GT_HEIGHT)[0]
+                preds["mean-colour"] = rp.estimate_mean_colour(ldr)
+                scores = score_probe(preds, rotate_envmap(resize_envmap(pano, rp.GT_HEIGHT), R.T), 64)
+                rays = Camera(intr, torch.eye(4, dtype=torch.float64)).pixel_rays(dtype=torch.float64)[1]
+                for name, env in preds.items():
+                    acc[name].append((scores[name]["diffuse"]["si_rmse_rel"], scores[name]["diffuse"]["angular_deg"],
+                                      observed_region_correlation(env, inverse_tonemap(ldr), rays),
+                                      scores[name]["matte"]["si_rmse_rel"]))
     const = acc["mean-colour"]
     mean = lambda rows, i: sum(r[i] for r in rows) / len(rows)  # noqa: E731
-    lines = [f"{split}, {len(files)} panoramas, prior at the camera (shortcut, not the product):", "",
-             "| variant | diffuse si-RMSE vs const | diffuse ang vs const | observed corr. |", "|---|---|---|---|"]
+    lines = [f"{split}, {len(files)} panoramas x {views} view(s), prior at the camera (shortcut, not the product):", "",
+             "| variant | diffuse si-RMSE vs const | diffuse ang vs const | matte si-RMSE vs const | observed corr. |",
+             "|---|---|---|---|---|"]
     for name, rows in acc.items():
-        lines.append(f"| {name} | {mean(rows, 0) / mean(const, 0):.3f} | {mean(rows, 1) / mean(const, 1):.3f} | {mean(rows, 2):.3f} |")
+        lines.append(f"| {name} | {mean(rows, 0) / mean(const, 0):.3f} | {mean(rows, 1) / mean(const, 1):.3f} "
+                     f"| {mean(rows, 3) / mean(const, 3):.3f} | {mean(rows, 2):.3f} |")
     return lines
 
 
@@ -157,6 +162,7 @@ def main(argv=None) -> int:
     p.add_argument("--hdri-dir", default=str(DEFAULT_HDRI_DIR))
     p.add_argument("--ablation", action="store_true", help="score the prior's fill/clip variants instead of fitting")
     p.add_argument("--split", default="dev", help="split for --ablation (tune on dev only)")
+    p.add_argument("--views", type=int, default=1, help="photos per panorama for --ablation (bench.real_panoramas.view_for)")
     p.add_argument("--average", choices=AVERAGES, default="arithmetic", help="how the panoramas' profiles are averaged")
     p.add_argument("--leave-one-out", action="store_true",
                    help="score the default fill on each dev panorama with the profile fitted on the others")
@@ -164,7 +170,7 @@ def main(argv=None) -> int:
     hdri = Path(args.hdri_dir)
     torch.set_num_threads(1)
     if args.ablation:
-        print("\n".join(ablation(hdri, args.split)))
+        print("\n".join(ablation(hdri, args.split, views=max(1, args.views))))
         return 0
     dev = sorted(hdri / r["filename"] for r in read_manifest(hdri) if r.get("split") == "dev" and (hdri / r["filename"]).is_file())
     if args.leave_one_out:
