@@ -18,8 +18,8 @@ misses, both measured on the `dev` panoramas only (`python -m bench.indoor_fill`
    so the seen rows set the level and the profile its shape.
 2. Light is whiter than the surfaces it lights: walls are tinted by their albedo, the
    sources that dominate the unseen irradiance much less. Unseen pixels keep the pull-push
-   luminance, with the seen region's mean chromaticity moved towards grey by
-   UNSEEN_WHITENING.
+   luminance, with the seen region's mean chromaticity (of the capped radiance of rule 3: the
+   walls', not a seen lamp's) moved towards grey by UNSEEN_WHITENING.
 3. Compact bright sources do not continue where the camera did not look: pull-push spreads
    every seen pixel's radiance into the holes around it, so a lamp or a window in view would
    become a glowing halo across the unseen sphere, brighter the brighter the source (its
@@ -57,8 +57,9 @@ def elevation_gain(height: int, dtype=torch.float64) -> torch.Tensor:
 
 
 def fill_unseen(filled: torch.Tensor, env: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """filled: pull-push result [N, h, w, 3]; env, weight: its inputs (weight > 0 = seen).
-    Unseen pixels get the elevation gain and the whitened seen colour; seen ones are kept."""
+    """filled: pull-push result [N, h, w, 3]; env, weight: its inputs (weight > 0 = seen; the
+    reprojection prior passes env after cap_sources). Unseen pixels get the elevation gain and
+    the whitened mean colour of env's seen pixels; seen ones are kept."""
     n, h = filled.shape[:2]
     seen = weight.to(filled.dtype)  # [N, h, w]
     count = seen.sum((1, 2))

@@ -292,8 +292,9 @@ class ReprojectionPrior(Prior):
         env, seen = self._splat_seen(centers, frame_index)
         if self.unseen_fill != "indoor":
             return push_pull_fill(env, seen)
-        extrapolated = push_pull_fill(cap_sources(env, seen, self.fill_source_cap), seen)
-        return fill_unseen(torch.where(seen[..., None], env, extrapolated), env, seen)
+        source = cap_sources(env, seen, self.fill_source_cap)  # the walls, not the lamps, set the fill's level and colour
+        extrapolated = push_pull_fill(source, seen)
+        return fill_unseen(torch.where(seen[..., None], env, extrapolated), source, seen)
 
     def _splat_seen(self, centers: torch.Tensor, frame_index: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Splatted radiance [N, h, w, 3] and its seen mask [N, h, w] (no fill)."""
