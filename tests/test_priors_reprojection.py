@@ -306,7 +306,7 @@ def test_a_bright_lamp_in_view_does_not_glow_across_the_unseen_sphere():
     view, would light the unseen directions as if the room were full of lamps. The indoor fill
     extrapolates the seen radiance capped at SOURCE_CAP x its median (the lamp keeps its value
     where it was seen); the unseen directions then stay at the walls' level times the elevation
-    gain, as they are without the lamp."""
+    gain, and in the walls' colour, as they are without the lamp."""
     from core.exposure import luminance
     from core.priors.indoor_fill import ELEVATION_GAIN, SOURCE_CAP
 
@@ -319,19 +319,24 @@ def test_a_bright_lamp_in_view_does_not_glow_across_the_unseen_sphere():
         if lamp:  # a lamp's radiance straight into the splat (the clip rule's estimate is tested elsewhere)
             lit = raw.clone()
             r, c = seen[0].nonzero()[len(seen[0].nonzero()) // 2].tolist()
-            lit[0, r, c] = 2000.0 * raw[0, r, c]
+            lit[0, r, c] = 2000.0 * raw[0, r, c] * torch.tensor([1.0, 0.2, 0.05])  # a warm, almost red lamp
             prior._splat_seen = lambda centers, frame, lit=lit, seen=seen: (lit, seen)
         env[lamp] = prior.envmaps(torch.zeros(1, 3), 0.0, 16)[0]
     unseen = ~seen[0]
     walls = float(luminance(raw[0][seen[0]]).median())
-    assert float(luminance(env[True])[~unseen].max()) == pytest.approx(2000.0 * walls, rel=1e-4)  # seen: kept
+    assert torch.equal(env[True][~unseen], lit[0][~unseen])  # seen: kept
     y = luminance(env[True])[unseen]
+    # the unseen colour is the walls' (grey here; the capped lamp pixel tints it by 0.02), not the lamp's
+    chroma = env[True][unseen] / env[True][unseen].sum(-1, keepdim=True)
+    assert torch.allclose(chroma, torch.full_like(chroma, 1 / 3), atol=0.03)
     assert float(y.max()) <= SOURCE_CAP * walls * max(ELEVATION_GAIN) / min(ELEVATION_GAIN)
     assert float(y.mean()) <= 1.5 * float(luminance(env[False])[unseen].mean())
     plain = ReprojectionPrior(env_height=16, fill_source_cap=None)
     plain.bind(_capture(cap_frames))
     plain._splat_seen = lambda centers, frame: (lit, seen)
-    assert float(luminance(plain.envmaps(torch.zeros(1, 3), 0.0, 16)[0])[unseen].mean()) > 10 * float(y.mean())
+    glow = plain.envmaps(torch.zeros(1, 3), 0.0, 16)[0][unseen]
+    assert float(luminance(glow).mean()) > 10 * float(y.mean())
+    assert float((glow[:, 0] / glow.sum(-1)).mean()) > 0.45  # uncapped, the fill takes the lamp's red
 
 
 def test_linear_frames_see_clipping_at_full_resolution():
