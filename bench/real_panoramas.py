@@ -301,6 +301,33 @@ def rescore(report: dict) -> dict:
     return report
 
 
+COMPARED = (("diffuse", "si_rmse_rel"), ("diffuse", "angular_deg"), ("matte", "si_rmse_rel"), ("matte", "angular_deg"))
+SAME_WITHIN = 0.005  # a photo's score moving less than this counts as unchanged
+
+
+def compare_reports(before: dict, after: dict, method: str = FIELD) -> list[str]:
+    """Photo by photo, how `method`'s scores moved between two saved reports of the same
+    photos (a change's runs): per split and metric, how many photos got better or worse by
+    more than SAME_WITHIN, and the median of after / before. A mean can move on a few photos
+    while most move the other way; this says which."""
+    import statistics
+
+    lines = ["| split | metric | photos | better | worse | median after / before |", "|---|---|---|---|---|---|"]
+    for name, split in after.get("splits", {}).items():
+        old = {(i["file"], i.get("view", 0)): i for i in before.get("splits", {}).get(name, {}).get("images", [])}
+        pairs = [(old[k], i) for i in split["images"] if (k := (i["file"], i.get("view", 0))) in old]
+        for material, metric in COMPARED:
+            a = [p["scores"][method][material][metric] for p, _ in pairs]
+            b = [q["scores"][method][material][metric] for _, q in pairs]
+            if not pairs:
+                continue
+            better = sum(y < x - SAME_WITHIN for x, y in zip(a, b))
+            worse = sum(y > x + SAME_WITHIN for x, y in zip(a, b))
+            ratio = statistics.median(y / x for x, y in zip(a, b) if x > 0)
+            lines.append(f"| {name} | {material} {metric} | {len(pairs)} | {better} | {worse} | {ratio:.3f} |")
+    return lines
+
+
 def run_panoramas(hdri_dir: Path, limit: int | None, sphere_size: int, quick: bool = False,
                   workdir: Path | None = None, splits=SPLITS, log=None, overrides: dict | None = None,
                   views: int = 1) -> dict:
@@ -366,7 +393,13 @@ def main(argv=None) -> int:
                    '\'{"priors.reprojection.env_height": 64}\'')
     p.add_argument("--rescore", default=None, metavar="REPORT_JSON", help="re-summarise a saved report from its "
                    "per-image results (nothing is estimated again); with -o, write the result")
+    p.add_argument("--compare", nargs=2, default=None, metavar=("BEFORE_JSON", "AFTER_JSON"),
+                   help="photo by photo, how the field's scores moved between two saved reports; nothing is estimated")
     args = p.parse_args(argv)
+    if args.compare:
+        before, after = (json.loads(Path(f).read_text()) for f in args.compare)
+        print("\n".join(compare_reports(before, after)))
+        return 0
     if args.rescore:
         res = rescore(json.loads(Path(args.rescore).read_text()))
         if args.out:

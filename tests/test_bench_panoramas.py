@@ -127,3 +127,22 @@ def test_intervals_resample_panoramas_and_rescore_reproduces_the_summary():
     assert s1[FIELD]["photos_beating_constant"]["diffuse_si_rmse_rel"] == [3, 4]  # room d loses
     report = {"splits": {"dev": {"images": once, "methods": {FIELD: {}, CONSTANT: {}, "truth": {}}}}}
     assert rescore(report)["splits"]["dev"]["methods"] == s1
+
+
+def test_compare_counts_photos_that_moved_each_way_not_the_mean():
+    """A mean can improve on one photo while most get a little worse: the comparison counts them."""
+    from bench.real_panoramas import compare_reports
+
+    def report(diffuse):
+        images = [{"file": f"p{i}.hdr", "view": 0,
+                   "scores": {"field": {"diffuse": {"si_rmse_rel": d, "angular_deg": 5.0},
+                                        "matte": {"si_rmse_rel": 0.9, "angular_deg": 5.0}}}}
+                  for i, d in enumerate(diffuse)]
+        return {"splits": {"dev": {"images": images}}}
+
+    before, after = report([0.9, 0.5, 0.5, 0.5]), report([0.3, 0.52, 0.52, 0.5])
+    rows = compare_reports(before, after)
+    diffuse = next(r for r in rows if "diffuse si_rmse_rel" in r)
+    # one better (0.9 -> 0.3), two worse by 0.02, one unchanged; median ratio of 0.33, 1.04, 1.04, 1.0
+    assert diffuse == "| dev | diffuse si_rmse_rel | 4 | 1 | 2 | 1.020 |"
+    assert next(r for r in rows if "matte si_rmse_rel" in r) == "| dev | matte si_rmse_rel | 4 | 0 | 0 | 1.000 |"
