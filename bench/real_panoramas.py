@@ -316,11 +316,11 @@ def compare_reports(before: dict, after: dict, method: str = FIELD) -> list[str]
     for name, split in after.get("splits", {}).items():
         old = {(i["file"], i.get("view", 0)): i for i in before.get("splits", {}).get(name, {}).get("images", [])}
         pairs = [(old[k], i) for i in split["images"] if (k := (i["file"], i.get("view", 0))) in old]
+        if not pairs:
+            continue
         for material, metric in COMPARED:
             a = [p["scores"][method][material][metric] for p, _ in pairs]
             b = [q["scores"][method][material][metric] for _, q in pairs]
-            if not pairs:
-                continue
             better = sum(y < x - SAME_WITHIN for x, y in zip(a, b))
             worse = sum(y > x + SAME_WITHIN for x, y in zip(a, b))
             ratio = statistics.median(y / x for x, y in zip(a, b) if x > 0)

@@ -3,8 +3,8 @@ fill for unobserved directions (a small statistical prior, not a light source fi
 
 Pull-push (core.priors.reprojection.push_pull_fill) extrapolates the seen pixels smoothly,
 which gives every unseen direction roughly the brightness and the colour of the walls the
-photo happened to show. Two regularities of indoor light that a constant extrapolation
-misses, both measured on the `dev` panoramas only (`python -m bench.indoor_fill`):
+photo happened to show. Three regularities of indoor light that a plain extrapolation
+misses, each chosen on the `dev` panoramas only (`python -m bench.indoor_fill [--ablation]`):
 
 1. Brightness depends on elevation: ELEVATION_GAIN[k] is the mean over dev panoramas of
    row-mean luminance / the panorama's mean luminance within +-HORIZON_BAND_DEG of the
