@@ -21,7 +21,9 @@ the protocol's `--views` photos of the panorama it left out (leave one panorama 
 variants, all at the camera, against the constant map (a SHORTCUT: the prior, not the
 product): the prior; its unseen directions replaced by each ridge's predicted SH (times the
 prior's mean seen luminance, floored at FLOOR of it, in the prior's colour); `oracle` (the
-target itself) and `fill-sh` (the prior's fill reduced to its own SH fit).
+target itself), `oracle, band 1 only` (the truth's constant and dipole), `oracle, row means
+only` (the truth's mean over each row's unseen part: its elevation profile) and `fill-sh` (the
+prior's fill reduced to its own SH fit).
 
 It is an experiment, not a product path: what it found decided that the indoor fill keeps its
 fixed elevation profile (docs/engine.md).
@@ -89,10 +91,13 @@ class ShapeBasis:
     def moments(self, lum: torch.Tensor, region: torch.Tensor) -> torch.Tensor:
         return torch.einsum("hwk,hw->k", self.cells, lum * region) / (self.mean(lum, region) * (self.area * region).sum())
 
-    def fit(self, lum: torch.Tensor, region: torch.Tensor) -> torch.Tensor:
-        """Solid-angle-weighted least-squares SH coefficients [9] of `lum` over `region`."""
+    def fit(self, lum: torch.Tensor, region: torch.Tensor, bands: int = 3) -> torch.Tensor:
+        """Solid-angle-weighted least-squares SH coefficients [9] of `lum` over `region`, with
+        `bands` bands (1: the constant, 2: and the dipole, 3: band 2 too; the rest zero)."""
+        k = bands * bands
         w = self.area[region].sqrt()
-        return torch.linalg.lstsq(self.Y[region] * w[:, None], (lum[region] * w)[:, None]).solution[:, 0]
+        c = torch.linalg.lstsq(self.Y[region][:, :k] * w[:, None], (lum[region] * w)[:, None]).solution[:, 0]
+        return torch.cat([c, torch.zeros(9 - k, dtype=c.dtype)])
 
 
 def table(basis: ShapeBasis, data: list[dict], features: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -161,6 +166,8 @@ def main(argv=None) -> int:
             r2[key] = round(float(1 - ((preds[key] - Tev) ** 2).sum() / ((Tev - Tev.mean(0)) ** 2).sum()), 4)
     _, Tev, Mev = table(basis, evaluate, "moments")
     preds["oracle"] = Tev
+    preds["oracle, band 1 only"] = torch.stack([basis.fit(luminance(q["gt"]) / basis.mean(luminance(q["gt"]), q["seen"]), ~q["seen"], bands=2)
+                                                for q in evaluate])
     preds["fill-sh"] = torch.stack([basis.fit(luminance(q["env"]) / m, ~q["seen"]) for q, m in zip(evaluate, Mev)])
     scores: dict[str, list] = {}
     for i, photo in enumerate(evaluate):
@@ -170,6 +177,10 @@ def main(argv=None) -> int:
         for key, P in preds.items():
             lum = ((basis.Y @ P[i]) * Mev[i]).clamp_min(FLOOR * float(Mev[i]))
             maps[key] = torch.where(seen, env, lum[..., None] * colour)
+        truth = luminance(photo["gt"]) / basis.mean(luminance(photo["gt"]), photo["seen"]) * Mev[i]
+        unseen = (~photo["seen"]).double()
+        rows = (truth * unseen).sum(1, keepdim=True) / unseen.sum(1, keepdim=True).clamp_min(1)  # the unseen part of each row
+        maps["oracle, row means only"] = torch.where(seen, env, rows.expand_as(truth)[..., None] * colour)
         for key, s in score_probe(maps, photo["gt"], 64).items():
             scores.setdefault(key, []).append([s["diffuse"]["si_rmse_rel"], s["diffuse"]["angular_deg"], s["matte"]["si_rmse_rel"]])
     const = torch.tensor(scores["mean-colour"]).mean(0)

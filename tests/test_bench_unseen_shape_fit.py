@@ -36,3 +36,13 @@ def test_a_panorama_is_never_predicted_from_its_own_photos():
     Ttr = torch.tensor([[100.0], [100.0], [1.0], [1.0], [3.0], [3.0]], dtype=torch.float64)
     pred = leave_one_out(train, evaluate, Xtr, Ttr, torch.zeros(2, 1, dtype=torch.float64), 1.0)
     assert pred[:, 0].tolist() == pytest.approx([2.0, 51.5])  # a: mean of b and c; b: of a and c
+
+
+def test_fewer_bands_leave_the_higher_coefficients_zero():
+    basis = ShapeBasis(16)
+    dipole = torch.tensor([1.0, 0.4, -0.3, 0.2, 0, 0, 0, 0, 0], dtype=torch.float64)
+    region = torch.ones(16, 32, dtype=torch.bool)
+    region[:, :6] = False
+    c = basis.fit(basis.Y @ dipole, region, bands=2)
+    assert torch.allclose(c, dipole, atol=1e-9)
+    assert basis.fit(basis.Y @ dipole, region, bands=1)[1:].abs().max() == 0
