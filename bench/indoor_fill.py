@@ -105,12 +105,9 @@ def ablation(hdri: Path, split: str, variants: dict | None = None, gains: dict |
     mean ratios to the constant map (diffuse si-RMSE and angle, matte si-RMSE). `gains` maps a
     panorama's file name to the elevation gain its prior uses (leave-one-out); else the module's.
     `views` photos per panorama (bench.real_panoramas.view_for)."""
-    import tempfile
-
     import bench.real_panoramas as rp
     from bench.suite.evaluation import score_probe
     from core.camera import Camera
-    from core.capture.load import load_capture
     from core.conventions import inverse_tonemap
     from core.engine.presets import preset
     from core.envmap import resize_envmap, rotate_envmap
@@ -119,33 +116,28 @@ def ablation(hdri: Path, split: str, variants: dict | None = None, gains: dict |
 
     cfg = preset(rp.PRESET)
     base = dict(cfg.priors.get("reprojection", {}))
-    files = sorted(r["filename"] for r in rp.read_manifest(hdri) if r.get("split") == split and (hdri / r["filename"]).is_file())
     variants = ABLATION if variants is None else variants
     acc: dict = {k: [] for k in [*variants, "mean-colour"]}
-    with tempfile.TemporaryDirectory() as tmp:
-        for f in files:
-            pano = rp.load_panorama(hdri / f)
-            for view in range(views):
-                R = rp.camera_rotation(*rp.view_for(f, view, views))
-                hdr, intr = rp.perspective_crop(pano, R)
-                ldr = rp.ldr_photo(hdr)
-                work = load_capture(rp.write_photo(ldr, Path(tmp) / f"{f}_{view}.png"), None, rp.job_params(), track=False).resized(cfg.distill.work_height)
-                preds = {}
-                with elevation_gain_as((gains or {}).get(f)):
-                    for name, settings in variants.items():
-                        prior = ReprojectionPrior(**{**base, **settings})
-                        prior.bind(work)
-                        preds[name] = prior.envmaps(torch.zeros(1, 3), 0.0, rp.GT_HEIGHT)[0]
-                preds["mean-colour"] = rp.estimate_mean_colour(ldr)
-                scores = score_probe(preds, rotate_envmap(resize_envmap(pano, rp.GT_HEIGHT), R.T), 64)
-                rays = Camera(intr, torch.eye(4, dtype=torch.float64)).pixel_rays(dtype=torch.float64)[1]
-                for name, env in preds.items():
-                    acc[name].append((scores[name]["diffuse"]["si_rmse_rel"], scores[name]["diffuse"]["angular_deg"],
-                                      observed_region_correlation(env, inverse_tonemap(ldr), rays),
-                                      scores[name]["matte"]["si_rmse_rel"]))
+    names = set()
+    for photo in rp.protocol_photos(hdri, split, views, cfg.distill.work_height):
+        names.add(photo["name"])
+        R, ldr = photo["rotation"], photo["ldr"]
+        preds = {}
+        with elevation_gain_as((gains or {}).get(photo["name"])):
+            for name, settings in variants.items():
+                prior = ReprojectionPrior(**{**base, **settings})
+                prior.bind(photo["work"])
+                preds[name] = prior.envmaps(torch.zeros(1, 3), 0.0, rp.GT_HEIGHT)[0]
+        preds["mean-colour"] = rp.estimate_mean_colour(ldr)
+        scores = score_probe(preds, rotate_envmap(resize_envmap(photo["pano"], rp.GT_HEIGHT), R.T), 64)
+        rays = Camera(photo["intrinsics"], torch.eye(4, dtype=torch.float64)).pixel_rays(dtype=torch.float64)[1]
+        for name, env in preds.items():
+            acc[name].append((scores[name]["diffuse"]["si_rmse_rel"], scores[name]["diffuse"]["angular_deg"],
+                              observed_region_correlation(env, inverse_tonemap(ldr), rays),
+                              scores[name]["matte"]["si_rmse_rel"]))
     const = acc["mean-colour"]
     mean = lambda rows, i: sum(r[i] for r in rows) / len(rows)  # noqa: E731
-    lines = [f"{split}, {len(files)} panoramas x {views} view(s), prior at the camera (shortcut, not the product):", "",
+    lines = [f"{split}, {len(names)} panoramas x {views} view(s), prior at the camera (shortcut, not the product):", "",
              "| variant | diffuse si-RMSE vs const | diffuse ang vs const | matte si-RMSE vs const | observed corr. |",
              "|---|---|---|---|---|"]
     for name, rows in acc.items():

@@ -208,6 +208,25 @@ def write_photo(ldr: torch.Tensor, path: Path) -> Path:
     return write_png(path, (ldr.clamp(0, 1) * 255.0).round().to(torch.uint8).numpy())
 
 
+def protocol_photos(hdri_dir: Path, split: str, views: int, work_height: int):
+    """The protocol's photos of a split, for benches that query the prior alone: per panorama
+    (sorted by name) and view (view_for), a dict with the file `name`, the `pano`, the camera's
+    `rotation` and `intrinsics`, the `ldr` photo and the capture `work` at `work_height` rows,
+    loaded from its PNG as the job loads it (in a temporary directory, gone after the loop)."""
+    from core.capture.load import load_capture
+
+    files = sorted(r["filename"] for r in read_manifest(hdri_dir) if r.get("split") == split and (hdri_dir / r["filename"]).is_file())
+    with tempfile.TemporaryDirectory() as tmp:
+        for f in files:
+            pano = load_panorama(hdri_dir / f)
+            for view in range(views):
+                R = camera_rotation(*view_for(f, view, views))
+                hdr, intr = perspective_crop(pano, R)
+                ldr = ldr_photo(hdr)
+                work = load_capture(write_photo(ldr, Path(tmp) / f"{f}_{view}.png"), None, job_params(), track=False).resized(work_height)
+                yield {"name": f, "pano": pano, "rotation": R, "intrinsics": intr, "ldr": ldr, "work": work}
+
+
 def evaluate_panorama(path: Path, sphere_size: int, workdir: Path, methods=METHODS, overrides: dict | None = None,
                       view: int = 0, views: int = 1) -> dict:
     from bench.suite.evaluation import score_probe

@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 from pathlib import Path
 
 import torch
@@ -46,7 +45,6 @@ def photos(hdri: Path, split: str, views: int) -> list[dict]:
     """Per photo: the prior's map, the truth (camera frame), the seen mask, the constant map."""
     import bench.real_panoramas as rp
     from core.camera import Camera
-    from core.capture.load import load_capture
     from core.engine.extrapolation import observed_directions
     from core.engine.presets import preset
     from core.envmap import resize_envmap, rotate_envmap
@@ -54,23 +52,14 @@ def photos(hdri: Path, split: str, views: int) -> list[dict]:
 
     cfg = preset(rp.PRESET)
     base = dict(cfg.priors.get("reprojection", {}))
-    files = sorted(r["filename"] for r in rp.read_manifest(hdri) if r.get("split") == split and (hdri / r["filename"]).is_file())
     out = []
-    with tempfile.TemporaryDirectory() as tmp:
-        for f in files:
-            pano = rp.load_panorama(hdri / f)
-            for view in range(views):
-                R = rp.camera_rotation(*rp.view_for(f, view, views))
-                hdr, intr = rp.perspective_crop(pano, R)
-                ldr = rp.ldr_photo(hdr)
-                work = load_capture(rp.write_photo(ldr, Path(tmp) / f"{f}_{view}.png"), None, rp.job_params(),
-                                    track=False).resized(cfg.distill.work_height)
-                prior = ReprojectionPrior(**base)
-                prior.bind(work)
-                out.append({"name": f, "env": prior.envmaps(torch.zeros(1, 3), 0.0, rp.GT_HEIGHT)[0].double(),
-                            "gt": rotate_envmap(resize_envmap(pano, rp.GT_HEIGHT), R.T).double(),
-                            "seen": observed_directions(Camera(intr, torch.eye(4, dtype=torch.float64)), rp.GT_HEIGHT),
-                            "const": rp.estimate_mean_colour(ldr).double()})
+    for photo in rp.protocol_photos(hdri, split, views, cfg.distill.work_height):
+        prior = ReprojectionPrior(**base)
+        prior.bind(photo["work"])
+        out.append({"name": photo["name"], "env": prior.envmaps(torch.zeros(1, 3), 0.0, rp.GT_HEIGHT)[0].double(),
+                    "gt": rotate_envmap(resize_envmap(photo["pano"], rp.GT_HEIGHT), photo["rotation"].T).double(),
+                    "seen": observed_directions(Camera(photo["intrinsics"], torch.eye(4, dtype=torch.float64)), rp.GT_HEIGHT),
+                    "const": rp.estimate_mean_colour(photo["ldr"]).double()})
     return out
 
 
