@@ -68,11 +68,12 @@ class ShapeBasis:
 
     def __init__(self, height: int):
         from core.conventions import equirect_directions
+        from core.envmap import solid_angles
         from core.sh import pixel_basis_integrals, sh_basis
 
         self.Y = sh_basis(equirect_directions(height, dtype=torch.float64))  # [h, w, 9]
         self.cells = pixel_basis_integrals(height).double()  # [h, w, 9]
-        self.area = self.cells[..., 0] / self.cells[..., 0].sum() * 4 * torch.pi
+        self.area = solid_angles(height, dtype=torch.float64)
 
     def mean(self, lum: torch.Tensor, region: torch.Tensor) -> torch.Tensor:
         return (lum * self.area * region).sum() / (self.area * region).sum()
@@ -148,12 +149,11 @@ def main(argv=None) -> int:
     r2: dict[str, float] = {}
     for features in args.features.split(","):
         Xtr, Ttr, _ = table(basis, train, features)
-        Xev, Tev, _ = table(basis, evaluate, features)
+        Xev, Tev, Mev = table(basis, evaluate, features)  # targets and levels do not depend on the features
         for lam in lambdas:
             key = f"{features}, ridge {lam:g}"
             preds[key] = leave_one_out(train, evaluate, Xtr, Ttr, Xev, lam)
             r2[key] = round(float(1 - ((preds[key] - Tev) ** 2).sum() / ((Tev - Tev.mean(0)) ** 2).sum()), 4)
-    _, Tev, Mev = table(basis, evaluate, "moments")
     preds["oracle"] = Tev
     preds["oracle, band 1 only"] = torch.stack([basis.fit(luminance(q["gt"]) / basis.mean(luminance(q["gt"]), q["seen"]), ~q["seen"], bands=2)
                                                 for q in evaluate])
