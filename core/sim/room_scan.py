@@ -1,0 +1,129 @@
+"""Room scans: a phone turned about one spot the way photo-sphere apps guide a user.
+
+A scan is a ring at the horizon, a ring looking up and a ring looking down, with tilts between,
+filmed with the phone's auto-exposure on and nothing else recorded (no poses, no exposures):
+what a user of an AR app or a 360 capture app produces when asked to "look around the room".
+This module makes such clips from a panorama, as test captures with known answers: the camera
+sits at the panorama's centre, so every frame is an exact perspective crop of it.
+
+* Path (`scan_poses`): SCAN_FRAMES frames at SCAN_FPS; RINGS (pitch, frames) joined by TILTS
+  (the frames that move between two rings while the yaw keeps turning); the yaw advances by
+  360 deg / frames over each ring and by the ring's step during a tilt; every frame gets a
+  small hand jitter (yaw, pitch and roll, HAND_JITTER_DEG, seeded).
+* Exposure (`lagging_auto_exposure`): each frame's meter is the mean linear luminance of the
+  view with pixels capped at METER_CAP x the scan's median (a lamp pulls the exposure down,
+  not to black); the exposure moves AE_SPEED of the way towards the metered goal each frame
+  (the lag a real auto-exposure has), and the course of goals is stretched or squeezed in log
+  so that it spans `span_stops` (drawn per room from SPAN_STOPS): the 4-9 stops a phone's
+  exposure moves between a floor in shadow and a ceiling with its lamps.
+* Sensor: the tone map of core.conventions at each frame's exposure, 8-bit, H.264 (the caller
+  writes the video).
+"""
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass
+
+import torch
+
+from core.camera import Camera, Intrinsics
+from core.conventions import tonemap
+from core.exposure import luminance
+
+SCAN_FPS = 10.0
+SCAN_SIZE = (192, 144)  # width, height
+SCAN_HFOV_DEG = 60.0
+# (pitch in degrees, frames) per ring, and the pitches of the tilts between consecutive rings
+RINGS = ((10.0, 16), (55.0, 12), (-40.0, 13))
+TILTS = ((25.0, 40.0), (30.0, 5.0, -20.0))
+SCAN_FRAMES = sum(n for _, n in RINGS) + sum(len(t) for t in TILTS)  # 46
+HAND_JITTER_DEG = 1.5
+AE_SPEED = 0.5  # of the way to the metered goal per frame
+METER_CAP = 16.0  # metered pixels are capped at this many times the scan's median luminance
+SPAN_STOPS = (4.0, 9.0)
+MID_GREY = 0.18
+
+
+@dataclass(frozen=True)
+class ScanClip:
+    ldr: torch.Tensor  # [T, H, W, 3] 8-bit-quantised LDR at each frame's exposure
+    hdr: torch.Tensor  # [T, H, W, 3] linear radiance (the truth the sensor saw)
+    evs: list[float]  # each frame's exposure in stops (unknown to the product)
+    poses: list[torch.Tensor]  # [4, 4] c2w, world = the panorama's frame
+    intrinsics: Intrinsics
+    span_stops: float
+
+
+def _rotation(yaw_deg: float, pitch_deg: float, roll_deg: float) -> torch.Tensor:
+    """c2w rotation: roll about the camera's z, then pitch about x, then yaw about +y."""
+    y, p, r = (math.radians(v) for v in (yaw_deg, pitch_deg, roll_deg))
+    ry = torch.tensor([[math.cos(y), 0, math.sin(y)], [0, 1, 0], [-math.sin(y), 0, math.cos(y)]], dtype=torch.float64)
+    rx = torch.tensor([[1, 0, 0], [0, math.cos(p), -math.sin(p)], [0, math.sin(p), math.cos(p)]], dtype=torch.float64)
+    rz = torch.tensor([[math.cos(r), -math.sin(r), 0], [math.sin(r), math.cos(r), 0], [0, 0, 1]], dtype=torch.float64)
+    return ry @ rx @ rz
+
+
+def scan_angles(yaw0: float = 0.0) -> list[tuple[float, float]]:
+    """(yaw, pitch) in degrees of each frame of the scan path, without the hand's jitter."""
+    out: list[tuple[float, float]] = []
+    yaw = yaw0
+    for k, (pitch, frames) in enumerate(RINGS):
+        step = 360.0 / frames
+        for _ in range(frames):
+            out.append((yaw, pitch))
+            yaw += step
+        for tilt_pitch in TILTS[k] if k < len(TILTS) else ():
+            out.append((yaw, tilt_pitch))
+            yaw += step
+    return out
+
+
+def scan_poses(yaw0: float = 0.0, seed: int = 0, jitter_deg: float = HAND_JITTER_DEG) -> list[torch.Tensor]:
+    """c2w poses [4, 4] float64 at the origin along the scan path, with a seeded hand jitter."""
+    rng = random.Random(f"scan:{seed}")
+    poses = []
+    for yaw, pitch in scan_angles(yaw0):
+        c2w = torch.eye(4, dtype=torch.float64)
+        c2w[:3, :3] = _rotation(yaw + rng.gauss(0, jitter_deg), pitch + rng.gauss(0, jitter_deg), rng.gauss(0, jitter_deg))
+        poses.append(c2w)
+    return poses
+
+
+def lagging_auto_exposure(hdr: torch.Tensor, span_stops: float, speed: float = AE_SPEED) -> list[float]:
+    """Each frame's exposure (stops) for HDR frames [T, H, W, 3]: a metered goal per frame (mean
+    luminance, pixels capped at METER_CAP x the clip's median, to MID_GREY), its course rescaled
+    in log to span `span_stops`, followed with a lag (`speed` of the way per frame)."""
+    y = luminance(hdr.to(torch.float64)).clamp_min(0.0)
+    cap = METER_CAP * float(y.median().clamp_min(1e-12))
+    goals = [math.log2(MID_GREY / max(float(f.clamp(max=cap).mean()), 1e-12)) for f in y]
+    lo, hi = min(goals), max(goals)
+    mid = 0.5 * (lo + hi)
+    stretch = span_stops / (hi - lo) if hi - lo > 1e-9 else 0.0
+    goals = [mid + (g - mid) * stretch for g in goals]
+    evs, ev = [], goals[0]
+    for g in goals:
+        ev += speed * (g - ev)
+        evs.append(ev)
+    return evs
+
+
+def render_scan(panorama: torch.Tensor, yaw0: float = 0.0, seed: int = 0, span_stops: float | None = None,
+                size: tuple[int, int] = SCAN_SIZE, hfov_deg: float = SCAN_HFOV_DEG, supersample: int = 2) -> ScanClip:
+    """A room scan of `panorama` [h, 2h, 3] (linear HDR, the camera at its centre)."""
+    from core.envmap import sample_envmap
+
+    span = span_stops if span_stops is not None else random.Random(f"span:{seed}").uniform(*SPAN_STOPS)
+    intr = Intrinsics.from_hfov(size[0], size[1], hfov_deg)
+    big = intr.scaled(size[0] * supersample, size[1] * supersample)
+    poses = scan_poses(yaw0, seed)
+    pano = panorama.to(torch.float64)
+    frames = []
+    for c2w in poses:
+        _, d = Camera(big, c2w).pixel_rays(dtype=torch.float64)
+        rgb = sample_envmap(pano, d).permute(2, 0, 1)[None]
+        frames.append(torch.nn.functional.avg_pool2d(rgb, supersample)[0].permute(1, 2, 0))
+    hdr = torch.stack(frames).float()
+    evs = lagging_auto_exposure(hdr, span)
+    ldr = torch.stack([torch.round(tonemap(h, ev) * 255.0) / 255.0 for h, ev in zip(hdr, evs)])
+    return ScanClip(ldr, hdr, evs, poses, intr, span)
