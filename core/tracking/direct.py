@@ -44,19 +44,22 @@ PYRAMID_HEIGHTS = (18, 36, 72)  # rows per level, coarse to fine (capped at the 
 SEARCH_STEP_DEG = 5.0  # the coarse grid's spacing around a starting guess
 SEARCH_SPAN_DEG = 30.0  # ... and its half-width in yaw and pitch (roll: +-ROLL_SPAN_DEG)
 ROLL_SPAN_DEG = 15.0
-COARSE_CANDIDATES = 6  # distinct best grid rotations refined on the coarse level
-SURVIVORS = [6, 3, 2]  # candidates kept after each level (coarse to fine)
-LBFGS_ITERATIONS = 20
+LOCAL_SPAN_DEG, LOCAL_STEP_DEG = 4.0, 2.0  # the finer grid around each coarse survivor, on the second level
+LOCAL_CANDIDATES = 6  # ... of which the best are refined there
+COARSE_CANDIDATES = 24  # distinct best grid rotations refined on the coarse level
+SURVIVORS = [24, 3, 2]  # candidates kept after each level (coarse to fine)
+GRID_ITERATIONS = 2  # Gauss-Newton steps every grid rotation takes before they are compared
+GN_ITERATIONS = (6, 4, 3)  # Gauss-Newton steps per level, coarse to fine
+MAX_STEP_DEG = 3.0  # a Gauss-Newton step turns by at most this
 ROBUST_SCALE = 0.05  # LDR units: pseudo-Huber scale of the residual
-# Candidates are compared by a capped cost per pixel in units of the residual noise (_score): an
-# explained pixel costs about 1, an unexplained one SCORE_CAP^2, one frame j does not show
-# OUTSIDE_COST; a wrong rotation can neither leave pixels unexplained nor push the frames apart
-# until nothing is left to disagree.
+# Candidates are compared by the textured pixels they explain (_score): residual within SCORE_CAP
+# times what 8-bit and compression noise (SCORE_NOISE, LDR units) and a misregistration of
+# SCORE_SUBPIXEL pixels leave.
 SCORE_CAP = 3.0
-OUTSIDE_COST = 4.0
-MIN_SCORE_SIGMA = 0.002  # LDR units: the noise floor the score assumes
+SCORE_NOISE = 0.01
+SCORE_SUBPIXEL = 0.5
 MIN_OVERLAP = 0.15  # share of frame i's usable pixels frame j must show
-MAX_PAIR_COST = 0.0015  # mean robust cost over the overlap above which a pair is not trusted
+MAX_PAIR_COST = 0.0004  # mean robust cost over the overlap above which a pair is not trusted
 MAX_PAIR_SIGMA_DEG = 1.0  # a pair fixes the rotation when its least certain direction is within this
 INFO_STEP_DEG = 1.5  # the differences the information is measured over
 MIN_RESIDUAL_SIGMA = 0.004  # LDR units: the floor of a pair's residual noise (8-bit, compression)
@@ -64,6 +67,7 @@ MOTION_SIGMA_DEG = 5.0  # prior: a frame's turn differs from the previous frame'
 DARK_LDR, BRIGHT_LDR = 0.03, 0.97  # usable pixels: neither sunk into the black nor clipped
 LOOP_MAX_AXIS_DEG = 40.0  # frames whose optical axes are this close are tried as loop closures
 LOOP_MIN_GAP = 3  # ... when at least this many frames apart (neighbours are already paired)
+LOOP_SPAN_DEG = 10.0  # a loop closure searches this far around what the chain says
 MAX_LOOP_PAIRS = 120
 
 
@@ -143,6 +147,8 @@ class _Level:
         keep = Vi.reshape(-1) > 0.5
         self.bearings = _pixel_bearings(self.h, self.w, k).reshape(-1, 3)[keep]
         self.li = Li.reshape(-1)[keep]
+        gy, gx = torch.gradient(Li)
+        self.texture = torch.sqrt(gx * gx + gy * gy).reshape(-1)[keep]  # what a pixel can tell apart
 
     def residuals(self, R: torch.Tensor, gain: torch.Tensor):
         """(residuals [S, N], weights [S, N]: 1 where frame j shows the pixel usable) for rotations [S, 3, 3]."""
@@ -164,32 +170,36 @@ def _robust(r: torch.Tensor) -> torch.Tensor:
     return s * s * (torch.sqrt(1.0 + (r / s) ** 2) - 1.0)
 
 
+def _masked_median(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Per row [S]: the median of x over the entries with w > 0 (NaN where there is none)."""
+    return torch.nanmedian(torch.where(w > 0, x, torch.full_like(x, math.nan)), dim=1).values
+
+
 def _gain_estimate(lev: "_Level", R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per candidate rotation [S, 3, 3]: the log gain it implies (median of log(Y_j / Y_i) over its
     overlap), and its residuals and weights under that gain."""
-    zero = torch.zeros(R.shape[0], dtype=torch.float64)
-    r, w = lev.residuals(R, zero)
+    r, w = lev.residuals(R, torch.zeros(R.shape[0], dtype=torch.float64))
     ratio = torch.log((r + lev.li[None]).clamp_min(1e-3) / lev.li[None].clamp_min(1e-3))
-    g = torch.zeros(R.shape[0], dtype=torch.float64)
-    for s in range(R.shape[0]):
-        vals = ratio[s][w[s] > 0]
-        if vals.numel():
-            g[s] = vals.median()
+    g = _masked_median(ratio, w).nan_to_num(0.0)
     r, w = lev.residuals(R, g)
     return g, r, w
 
 
-def _search_grid(start: np.ndarray) -> torch.Tensor:
-    """Rotations [S, 3, 3] on a grid of small turns (about frame j's axes) around `start`."""
-    yaw = np.arange(-SEARCH_SPAN_DEG, SEARCH_SPAN_DEG + 1e-9, SEARCH_STEP_DEG)
-    roll = np.arange(-ROLL_SPAN_DEG, ROLL_SPAN_DEG + 1e-9, SEARCH_STEP_DEG * 3)
+def _search_grid(start: np.ndarray, span: float = SEARCH_SPAN_DEG, step: float = SEARCH_STEP_DEG,
+                 roll_span: float | None = None) -> torch.Tensor:
+    """Rotations [S, 3, 3] on a grid of turns (about frame j's axes) around `start`: yaw and pitch
+    within +-span, roll within +-roll_span (default: span up to ROLL_SPAN_DEG), `step` apart."""
+    yaw = np.arange(-span, span + 1e-9, step)
+    rs = min(span, ROLL_SPAN_DEG) if roll_span is None else roll_span
+    roll = np.arange(-rs, rs + 1e-9, step)
     a, b, c = np.meshgrid(np.radians(yaw), np.radians(yaw), np.radians(roll), indexing="ij")
     vec = np.stack([b.ravel(), a.ravel(), c.ravel()], -1)  # about x (pitch), y (yaw), z (roll)
     return torch.from_numpy(rotvec_to_matrix(vec) @ start)
 
 
 def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.Tensor, k: Intrinsics,
-               starts: list[np.ndarray], i: int = 0, j: int = 1, search: bool = True) -> DirectPair:
+               starts: list[np.ndarray], i: int = 0, j: int = 1, search: bool = True,
+               span: float = SEARCH_SPAN_DEG) -> DirectPair:
     """Register frame j against frame i (luma and masks [H, W] from `frame_luma`) from
     the starting rotations `starts` (bearing i -> bearing j); see the module docstring."""
     starts = [_nearest_rotation(s) for s in starts]
@@ -199,41 +209,49 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
     coarse = levels[0]
     if coarse.li.numel() < 8:
         return DirectPair(i, j, np.asarray(starts[0]), 0.0, math.inf, 0.0)
-    cands = torch.cat([_search_grid(s) if search else torch.from_numpy(np.asarray(s)[None]) for s in starts])
+    cands = torch.cat([_search_grid(s, span) if search else torch.from_numpy(np.asarray(s)[None]) for s in starts])
     with torch.no_grad():
-        g, r, w = _gain_estimate(coarse, cands)
-        cost = _score(r, w, _noise(r, w))
+        # every grid rotation a few Gauss-Newton steps on the coarse level (each falls into the
+        # basin it is in), then scored one level up (18 rows blur what tells candidates apart)
+        g, _, _ = _gain_estimate(coarse, cands)
+        cands, g = _refine(coarse, cands, g, GRID_ITERATIONS)
+        scorer = levels[min(1, len(levels) - 1)]
+        r, w = scorer.residuals(cands, g)
+        cost = _score(r, w, scorer.texture)
     # the coarse grid is a few degrees apart, where a right answer scores little better than a
     # wrong one: refine the best distinct candidates on the coarse level, then the best of those
     # through the pyramid
     picked: list[int] = []
     for idx in torch.argsort(cost).tolist():
-        if all(rotation_angle_deg(cands[idx].numpy().T @ cands[q].numpy()) > 2 * SEARCH_STEP_DEG for q in picked):
+        if all(rotation_angle_deg(cands[idx].numpy().T @ cands[q].numpy()) > SEARCH_STEP_DEG + 1e-6 for q in picked):
             picked.append(idx)
         if len(picked) == COARSE_CANDIDATES:
             break
-    # successive halving: refine the survivors on each level, keep the best by the penalised score
-    survivors = [(cands[idx], float(g[idx])) for idx in picked]
+    # successive halving: refine the survivors on each level, keep the best by the score
+    R, g = cands[picked], g[picked]
     keep_counts = SURVIVORS[: len(levels)] + [1] * max(0, len(levels) - len(SURVIVORS))
-    scored: list[tuple[float, torch.Tensor, float, torch.Tensor, torch.Tensor]] = []
-    for lev, keep in zip(levels, keep_counts):
-        fits = []
-        for R0, gain0 in survivors:
-            R, gain = _refine([lev], R0, gain0)
-            with torch.no_grad():
-                r, w = lev.residuals(R[None], torch.tensor([gain], dtype=torch.float64))
-            fits.append((R, gain, r[0], w[0]))
-        rs, ws = torch.stack([f[2] for f in fits]), torch.stack([f[3] for f in fits])
-        sc = _score(rs, ws, _noise(rs, ws))
-        scored = sorted(((float(c), *f) for c, f in zip(sc, fits)), key=lambda c: c[0])
-        survivors = [(R, gain) for _, R, gain, _, _ in scored[:keep]]
-    for _, R, gain, r, w in scored:
-        n = float(w.sum())
-        overlap = n / max(1, w.numel())
-        if overlap >= MIN_OVERLAP:
-            return DirectPair(i, j, _nearest_rotation(R.numpy()), GAMMA * gain, float((_robust(r) * w).sum()) / max(n, 1.0), overlap,
-                              _information(levels[-1], R, gain))
-    return DirectPair(i, j, scored[0][1].numpy(), GAMMA * scored[0][2], math.inf, 0.0)
+    with torch.no_grad():
+        for n, (lev, keep) in enumerate(zip(levels, keep_counts)):
+            if n == 1 and search:  # a finer grid around each survivor: the coarse level's minima can sit a few degrees off
+                R = torch.cat([_search_grid(x.numpy(), LOCAL_SPAN_DEG, LOCAL_STEP_DEG) for x in R])
+                g, r, w = _gain_estimate(lev, R)
+                best = torch.argsort(_score(r, w, lev.texture))[:LOCAL_CANDIDATES]
+                R, g = R[best], g[best]
+            R, g = _refine(lev, R, g, GN_ITERATIONS[min(n, len(GN_ITERATIONS) - 1)])
+            r, w = lev.residuals(R, g)
+            order = torch.argsort(_score(r, w, lev.texture))[:keep]
+            R, g, r, w = R[order], g[order], r[order], w[order]
+    overlap = w.mean(1)
+    cost = (_robust(r) * w).sum(1) / w.sum(1).clamp_min(1.0)
+    # the best-scored survivor that fits (MAX_PAIR_COST), else the best-scored
+    order = sorted(range(R.shape[0]), key=lambda c: (bool(cost[c] > MAX_PAIR_COST), c))
+    for c in order:
+        if float(overlap[c]) >= MIN_OVERLAP:
+            Rc = R[c]
+            mean = float((_robust(r[c]) * w[c]).sum() / w[c].sum())
+            return DirectPair(i, j, _nearest_rotation(Rc.numpy()), GAMMA * float(g[c]), mean, float(overlap[c]),
+                              _information(levels[-1], Rc, float(g[c])))
+    return DirectPair(i, j, _nearest_rotation(R[0].numpy()), GAMMA * float(g[0]), math.inf, 0.0)
 
 
 def _information(lev: _Level, R: torch.Tensor, gain: float) -> np.ndarray:
@@ -263,53 +281,56 @@ def _information(lev: _Level, R: torch.Tensor, gain: float) -> np.ndarray:
 
 
 def _spread(r: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """Per candidate [S]: the robust spread (1.4826 MAD) of its residuals over its overlap."""
-    out = torch.full((r.shape[0],), math.inf, dtype=r.dtype)
-    for s in range(r.shape[0]):
-        vals = r[s][w[s] > 0]
-        if vals.numel() >= 8:
-            out[s] = 1.4826 * (vals - vals.median()).abs().median()
-    return out
+    """Per candidate [S]: the robust spread (1.4826 MAD) of its residuals over its overlap (inf
+    with fewer than 8 pixels)."""
+    med = _masked_median(r, w)
+    spread = 1.4826 * _masked_median((r - med[:, None]).abs(), w)
+    return torch.where((w > 0).sum(1) >= 8, spread, torch.full_like(spread, math.inf)).nan_to_num(math.inf)
 
 
-def _noise(r: torch.Tensor, w: torch.Tensor) -> float:
-    """The residual noise candidates are scored against: the smallest spread among those that
-    keep MIN_OVERLAP in view (the right rotation's is the noise), at least MIN_SCORE_SIGMA."""
-    ok = w.mean(1) >= MIN_OVERLAP
-    spread = _spread(r, w)[ok]
-    return max(MIN_SCORE_SIGMA, float(spread.min())) if spread.numel() else MIN_SCORE_SIGMA
+def _score(r: torch.Tensor, w: torch.Tensor, texture: torch.Tensor) -> torch.Tensor:
+    """Per candidate [S] (lower is better): the evidence against it. Each pixel of frame i in the
+    overlap counts by its texture (the luma gradient: a blank wall agrees with any rotation and
+    says nothing), for the candidate where its residual is within SCORE_CAP of what noise and a
+    fraction of a pixel's misregistration leave there (sqrt(NOISE^2 + (SUBPIXEL x gradient)^2)),
+    against it where beyond; the sum over frame i's texture. The right rotation explains what
+    the two frames both show, however little that is; a wrong one leaves textured pixels
+    unexplained or only overlaps blank ones."""
+    tol2 = (SCORE_CAP ** 2) * (SCORE_NOISE ** 2 + (SCORE_SUBPIXEL * texture[None]) ** 2)
+    explained = (1.0 - r * r / tol2).clamp(min=0.0)
+    vote = (w * texture[None] * (1.0 - 2.0 * explained)).sum(1) / texture.sum().clamp_min(1e-12)
+    return torch.where(w.mean(1) >= MIN_OVERLAP, vote, torch.full_like(vote, math.inf))
 
 
-def _score(r: torch.Tensor, w: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Per candidate [S], per pixel of frame i: min((r / sigma)^2, SCORE_CAP^2) over the overlap and
-    OUTSIDE_COST for a pixel frame j does not show, `sigma` the smallest residual spread among the
-    candidates compared (the right rotation's is the noise). Textured or blank, the right rotation
-    explains its overlap at the noise level, where a wrong one leaves residuals of several sigma
-    (capped: a pixel is either explained or not) or gives up pixels at OUTSIDE_COST each."""
-    z = (r / sigma) ** 2
-    score = ((z.clamp(max=SCORE_CAP ** 2) * w).sum(1) + OUTSIDE_COST * (1 - w).sum(1)) / w.shape[1]
-    return torch.where(w.mean(1) >= MIN_OVERLAP, score, torch.full_like(score, math.inf))
-
-
-def _refine(levels: list[_Level], R0: torch.Tensor, gain0: float) -> tuple[torch.Tensor, float]:
-    """L-BFGS over a turn about R0 and the log gain, coarse to fine; the mean robust cost over the
-    overlap (the overlap itself is held by starting close)."""
-    w = torch.zeros(3, dtype=torch.float64, requires_grad=True)
-    g = torch.tensor([gain0], dtype=torch.float64, requires_grad=True)
-    for lev in levels:
-        opt = torch.optim.LBFGS([w, g], lr=1.0, max_iter=LBFGS_ITERATIONS, line_search_fn="strong_wolfe")
-
-        def closure():
-            opt.zero_grad()
-            R = torch.matrix_exp(_skew(w)) @ R0
-            r, wt = lev.residuals(R[None], g)
-            loss = (_robust(r) * wt).sum() / wt.sum().clamp_min(1.0)
-            loss.backward()
-            return loss
-
-        opt.step(closure)
-    with torch.no_grad():
-        return torch.matrix_exp(_skew(w)) @ R0, float(g)
+def _refine(lev: _Level, R0: torch.Tensor, g0: torch.Tensor, iterations: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Gauss-Newton (iteratively reweighted for the pseudo-Huber cost) over a turn about each of
+    the rotations R0 [S, 3, 3] and its log gain g0 [S], all candidates at once on one level; the
+    Jacobian by central differences (one batched lookup of 7 probes per candidate), steps of at
+    most MAX_STEP_DEG. Returns (R [S, 3, 3], g [S])."""
+    S = R0.shape[0]
+    step = 1e-3
+    probes = torch.cat([torch.zeros(1, 3), step * torch.eye(3), -step * torch.eye(3)]).double()  # [7, 3]
+    turn_probes = torch.matrix_exp(_skew(probes))  # [7, 3, 3]
+    R, g = R0.clone(), g0.clone().double()
+    for _ in range(iterations):
+        Rp = (turn_probes[None] @ R[:, None]).reshape(-1, 3, 3)  # [S * 7, 3, 3]
+        r, w = lev.residuals(Rp, g.repeat_interleave(7))
+        r, w = r.reshape(S, 7, -1), w.reshape(S, 7, -1)
+        common = w.prod(1)  # [S, N] pixels every probe sees
+        r0 = r[:, 0]
+        J = torch.stack([(r[:, 1 + a] - r[:, 4 + a]) / (2 * step) for a in range(3)]
+                        + [-torch.exp(g)[:, None] * lev.li[None]], -1)  # [S, N, 4]
+        irls = common / torch.sqrt(1.0 + (r0 / ROBUST_SCALE) ** 2)
+        JtJ = torch.einsum("sn,sna,snb->sab", irls, J, J) + 1e-9 * torch.eye(4, dtype=torch.float64)
+        Jtr = torch.einsum("sn,sna,sn->sa", irls, J, r0)
+        delta = -torch.linalg.solve(JtJ, Jtr)  # [S, 4]
+        turn = delta[:, :3]
+        norm = turn.norm(dim=1, keepdim=True)
+        limit = math.radians(MAX_STEP_DEG)
+        turn = torch.where(norm > limit, turn * limit / norm.clamp_min(1e-12), turn)
+        R = torch.matrix_exp(_skew(turn)) @ R
+        g = g + delta[:, 3].clamp(-1.0, 1.0)
+    return R, g
 
 
 def exposure_from_offsets(pairs: list[DirectPair], frames: list[int]) -> np.ndarray:
@@ -368,9 +389,9 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
     loops = [(a, b) for a in range(T) for b in range(a + LOOP_MIN_GAP, T)
              if math.degrees(math.acos(float(np.clip(axes[a] @ axes[b], -1, 1)))) <= LOOP_MAX_AXIS_DEG][:MAX_LOOP_PAIRS]
     for a, b in loops:
-        pairs.append(align_pair(l[a], v[a], l[b], v[b], k, [R[b].T @ R[a]], a, b, search=False))
+        pairs.append(align_pair(l[a], v[a], l[b], v[b], k, [R[b].T @ R[a]], a, b, span=LOOP_SPAN_DEG))
     matched = [p for p in pairs if p.matched]
-    rots = _average_rotations(T, matched, R)
+    rots = _average_rotations(T, matched, _spanning_tree(T, matched, R))
     placed = _placed(T, [p for p in matched if p.trusted])
     stats = {"pairs": len(pairs), "matched_pairs": len(matched), "trusted_pairs": sum(p.trusted for p in pairs),
              "loop_pairs": len(loops), "loop_pairs_trusted": sum(p.trusted for p in pairs[T - 1:]),
@@ -378,6 +399,40 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
              "frames_from_motion_prior": sorted(set(range(T)) - placed),
              "median_cost": float(np.median([p.cost for p in matched])) if matched else None}
     return DirectTrack(rots, list(range(T)), [], pairs, stats)
+
+
+def _spanning_tree(T: int, pairs: list[DirectPair], chain: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+    """Starting rotations for the averaging: grown from frame 0 along the matched pairs, the pair
+    with the most information (its least certain direction) first (a maximum spanning tree), so
+    a frame the chain only coasted past is placed by a loop closure where one reaches it; frames
+    no pair reaches keep the chain's rotation relative to the last placed frame before them."""
+    import heapq
+
+    def strength(p: DirectPair) -> float:
+        return float(np.linalg.eigvalsh(p.info)[0])
+
+    links: dict[int, list[DirectPair]] = {}
+    for p in pairs:
+        links.setdefault(p.i, []).append(p)
+        links.setdefault(p.j, []).append(p)
+    R = {0: np.eye(3)}
+    heap = [(-strength(p), n, p) for n, p in enumerate(links.get(0, []))]
+    heapq.heapify(heap)
+    count = len(heap)
+    while heap:
+        _, _, p = heapq.heappop(heap)
+        if p.i in R and p.j in R:
+            continue
+        new = p.j if p.i in R else p.i
+        R[new] = _nearest_rotation(R[p.i] @ p.R.T) if new == p.j else _nearest_rotation(R[p.j] @ p.R)
+        for q in links.get(new, []):
+            if not (q.i in R and q.j in R):
+                count += 1
+                heapq.heappush(heap, (-strength(q), count, q))
+    for f in range(1, T):
+        if f not in R:
+            R[f] = _nearest_rotation(R[f - 1] @ chain[f - 1].T @ chain[f])
+    return R
 
 
 def _placed(T: int, pairs: list[DirectPair]) -> set[int]:

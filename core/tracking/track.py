@@ -37,7 +37,9 @@ import numpy as np
 import torch
 
 from core.camera import Intrinsics
+from core.tracking.direct import track_rotation_direct
 from core.tracking.features import analysis_frames, extract, match, pair_schedule
+from core.tracking.geometry import rotation_angle_deg
 from core.tracking.motion import MotionDecision, detect_motion
 from core.tracking.rotation import estimate_rotations
 from core.tracking.scale import ScaleEstimate, apply_scale, scale_from_depth, scale_from_room
@@ -131,7 +133,7 @@ def track_camera(frames: torch.Tensor, intrinsics: Intrinsics, depth: torch.Tens
     motion = detect_motion(features, k.width)
     result = TrackingResult(_identity(T), list(range(T)), [], "static", motion, analysis_size=(k.width, k.height))
     if motion.moving:
-        result = _track_moving(images, features, k, intrinsics, depth, refine_focal, use_pycolmap, motion)
+        result = _track_moving(images, features, k, intrinsics, depth, refine_focal, use_pycolmap, motion, frames)
     elif not np.isfinite(motion.statistic):  # could not be judged: say so, a moving camera would be misread
         result.warnings.append(f"{motion.reason}; if the camera moved, give poses (params.poses) or a capture-app export")
     result.cpu_seconds = time.process_time() - t_cpu
@@ -139,7 +141,7 @@ def track_camera(frames: torch.Tensor, intrinsics: Intrinsics, depth: torch.Tens
 
 
 def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refine_focal, use_pycolmap,
-                  motion: MotionDecision) -> TrackingResult:
+                  motion: MotionDecision, frames: torch.Tensor) -> TrackingResult:
     T = len(images)
     pairs = [match(features[i], features[j], i, j) for i, j in pair_schedule(T)]
     rot = estimate_rotations(pairs, T, k, refine_focal=refine_focal)
@@ -149,10 +151,19 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
                                 "readout_direction": rot.readout_direction and list(rot.readout_direction)}}
     size = (k.width, k.height)
     noise = float(motion.evidence.get("keypoint_noise_px", 0.0))
-    if rot.fits and len(rot.kept) >= MIN_KEPT_FRACTION * T:
+    if rot.fits and len(rot.kept) == T:
         focal = rot.focal * full.width / k.width if refine_focal else None
         return TrackingResult(_poses_from_rotations(rot.rotations), rot.kept, rot.dropped, "rotation", motion,
                               rot.rms_px, size, None, None, focal, _dropped_warning(rot.dropped), stats=stats)
+    if rot.fits:  # the matches say the camera turns about one spot but leave frames out: their pixels place them
+        direct = _direct_completion(frames, k, full, rot, refine_focal, stats)
+        if direct is not None:
+            direct.motion, direct.analysis_size = motion, size
+            return direct
+        if len(rot.kept) >= MIN_KEPT_FRACTION * T:
+            focal = rot.focal * full.width / k.width if refine_focal else None
+            return TrackingResult(_poses_from_rotations(rot.rotations), rot.kept, rot.dropped, "rotation", motion,
+                                  rot.rms_px, size, None, None, focal, _dropped_warning(rot.dropped), stats=stats)
     failures = []
     for name, runner in (("sfm:pycolmap", _pycolmap_track if use_pycolmap else None), ("sfm:opencv", _opencv_track)):
         if runner is None:
@@ -196,10 +207,55 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
         return TrackingResult(_poses_from_rotations(rot.rotations), rot.kept, rot.dropped, "rotation", motion,
                               rot.rms_px, size, None, None, focal, warn,
                               stats={**stats, "failures": failures, "rotation_fallback": True})
+    if not rot.fits:  # too few matches to judge the motion: the pixels may still register a turn
+        direct = _direct_completion(frames, k, full, rot, refine_focal, stats)
+        if direct is not None:
+            direct.motion, direct.analysis_size = motion, size
+            direct.warnings.insert(0, "camera tracking: too few matched features ("
+                                   + "; ".join(failures) + "); the frames were registered as a camera turning about "
+                                   "one spot from their pixels: give poses (params.poses) if the camera moved far")
+            return direct
     warning = ("camera tracking failed (" + "; ".join(failures) + "): treating the camera as static; "
                "give poses (params.poses) or a capture-app export for a moving camera")
     return TrackingResult(_identity(T), list(range(T)), [], "failed:static-fallback", motion, None, size,
                           warnings=[warning], stats={**stats, "failures": failures})
+
+
+DIRECT_MAX_DISAGREEMENT_DEG = 2.0  # the photometric track must agree with the features' rotations this well
+
+
+def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, rot, refine_focal: bool,
+                       stats: dict) -> TrackingResult | None:
+    """The rotation of every frame from its pixels (core.tracking.direct), where matched features
+    say the camera turns about one spot but register too few frames (a room scan's blank ceiling
+    and floor, a studio's smooth walls). The features' rotations start the pairs they cover and
+    their refined focal length is used; the result is kept if it places more frames than they did
+    and agrees with them, frame by frame, within DIRECT_MAX_DISAGREEMENT_DEG (else None)."""
+    T = frames.shape[0]
+    focal = rot.focal * full.width / k.width if refine_focal and len(rot.kept) >= 3 else None
+    intr = full if focal is None else Intrinsics(focal, focal * full.fy / full.fx, full.cx, full.cy, full.width, full.height)
+    pos = {f: n for n, f in enumerate(rot.kept)}
+    feature_pairs = {(f - 1, f): rot.rotations[pos[f]].T @ rot.rotations[pos[f - 1]]
+                     for f in range(1, T) if f in pos and f - 1 in pos}
+    track = track_rotation_direct(frames, intr, feature_pairs)
+    placed = track.stats["frames_fixed_by_pairs"]
+    common = [f for f in rot.kept if f in set(track.kept)]
+    if common:  # both tracks in the first common frame's axes
+        a, b = rot.rotations[pos[common[0]]], track.rotations[common[0]]
+        disagree = max(rotation_angle_deg((a.T @ rot.rotations[pos[f]]).T @ (b.T @ track.rotations[f])) for f in common)
+    else:
+        disagree = 0.0
+    stats["direct"] = {**track.stats, "max_disagreement_with_features_deg": round(disagree, 3)}
+    if placed <= len(rot.kept) or disagree > DIRECT_MAX_DISAGREEMENT_DEG or placed < MIN_KEPT_FRACTION * T:
+        return None
+    rots = track.rotations[0].T[None] @ track.rotations  # world = frame 0's camera
+    warn = []
+    if track.stats["frames_from_motion_prior"]:
+        warn.append(f"camera tracking placed {len(track.stats['frames_from_motion_prior'])} frame(s) "
+                    f"{track.stats['frames_from_motion_prior'][:20]} from the camera's motion alone (too little "
+                    "texture to register them)")
+    return TrackingResult(_poses_from_rotations(rots), list(range(T)), [], "rotation", None, None, (0, 0), None, None,
+                          focal, warn, stats={**stats, "rotation_source": "photometric (core.tracking.direct)"})
 
 
 def rotation_fallback_ok(rot, T: int, noise_px: float = 0.0, alone: bool = False) -> bool:
