@@ -110,10 +110,11 @@ def test_glb_structure_rgbd_round_trip_and_irradiance_sh():
     assert doc["scenes"][0]["extensions"]["EXT_lights_image_based"]["light"] == 0
     assert light["specularImageSize"] == 16 and len(light["specularImages"]) == 3
     assert light["intensity"] > 1.0
-    # irradiance SH: E(n) = sum E_k Y_k(n) reproduces our irradiance
+    # irradiance SH in Babylon's basis (Condon-Shortley phase): E(n) = sum E_k Y_k^CS(n) is our irradiance
     e_k = torch.tensor(light["irradianceCoefficients"], dtype=torch.float64) * light["intensity"]
+    cs = torch.tensor([1.0, -1, 1, -1, 1, -1, 1, -1, 1], dtype=torch.float64)[:, None]
     n = random_dirs(16)
-    assert torch.allclose(eval_sh(e_k, n), sh_irradiance(sh, n), rtol=1e-6)
+    assert torch.allclose(eval_sh(e_k * cs, n), sh_irradiance(sh, n), rtol=1e-6)
     # a face decodes back (RGBD, un-mirrored, times intensity) to the float face
     view = doc["bufferViews"][doc["images"][light["specularImages"][1][4]]["bufferView"]]
     png = blob[view["byteOffset"]:view["byteOffset"] + view["byteLength"]]

@@ -40,6 +40,7 @@ def metal_cube_slices(faces: np.ndarray, pixel_format: str = "rgba16Float", expo
 
 
 def arkit_sh_planes(radiance_sh) -> list[float]:
-    """Our [9, 3] SH -> 27 floats as three planes of 9 (all R, then G, then B)."""
-    c = np.asarray(radiance_sh, np.float64).reshape(9, 3)
-    return [float(v) for v in c.T.reshape(-1)]
+    """Our [9, 3] SH -> 27 floats as three planes of 9 (all R, then G, then B): core.export.sh_layouts 'arkit'."""
+    from core.export.sh_layouts import pack
+
+    return pack(radiance_sh, "arkit")

@@ -11,14 +11,9 @@ checks it against our irradiance.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 UNITY_FROM_OURS = np.diag([1.0, 1.0, -1.0])
-_BASIS_CONST = (0.5 * math.sqrt(1 / math.pi), math.sqrt(3 / (4 * math.pi)), math.sqrt(3 / (4 * math.pi)),
-                math.sqrt(3 / (4 * math.pi)), 0.5 * math.sqrt(15 / math.pi), 0.5 * math.sqrt(15 / math.pi),
-                0.25 * math.sqrt(5 / math.pi), 0.5 * math.sqrt(15 / math.pi), 0.25 * math.sqrt(15 / math.pi))
 
 
 def to_unity(v) -> np.ndarray:
@@ -30,14 +25,17 @@ def unity_sh(env) -> list[list[float]]:
     """SphericalHarmonicsL2 values [3 channels][9] for an env map of ours [H, 2H, 3]."""
     import torch
 
-    from core.envmap import mirror_envmap
-    from core.sh import COSINE_LOBE_BY_BAND, SH_BANDS, project_sh
+    from core.sh import project_sh
 
-    e = torch.as_tensor(np.asarray(env, np.float64))
-    c = project_sh(mirror_envmap(e, "z")).numpy()  # radiance SH on Unity's axes
-    lobe = np.array([COSINE_LOBE_BY_BAND[l] for l in SH_BANDS])
-    stored = c * (lobe * np.array(_BASIS_CONST) / math.pi)[:, None]
-    return stored.T.tolist()
+    return unity_sh_from_coefficients(project_sh(torch.as_tensor(np.asarray(env, np.float64))))
+
+
+def unity_sh_from_coefficients(radiance_sh) -> list[list[float]]:
+    """Our radiance SH [9, 3] -> SphericalHarmonicsL2 values [3][9] (core.export.sh_layouts 'unity':
+    the z mirror's signs and Unity's A_l C_k / pi scale)."""
+    from core.export.sh_layouts import to_layout
+
+    return to_layout(radiance_sh, "unity").T.tolist()
 
 
 def unity_shade_sh9(sh: list[list[float]], normal_unity: np.ndarray) -> np.ndarray:
