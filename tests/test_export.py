@@ -109,9 +109,11 @@ def test_glb_structure_rgbd_round_trip_and_irradiance_sh():
     assert doc["extensionsUsed"] == ["EXT_lights_image_based"]
     assert doc["scenes"][0]["extensions"]["EXT_lights_image_based"]["light"] == 0
     assert light["specularImageSize"] == 16 and len(light["specularImages"]) == 3
-    assert light["intensity"] > 1.0
+    assert light["intensity"] == 1.0  # the scale RGBD needs is in extras (Babylon applies intensity twice)
+    radiance_scale = doc["nodes"][0]["extras"]["radianceScale"]
+    assert radiance_scale > 1.0
     # irradiance SH in Babylon's basis (Condon-Shortley phase): E(n) = sum E_k Y_k^CS(n) is our irradiance
-    e_k = torch.tensor(light["irradianceCoefficients"], dtype=torch.float64) * light["intensity"]
+    e_k = torch.tensor(light["irradianceCoefficients"], dtype=torch.float64) * radiance_scale
     cs = torch.tensor([1.0, -1, 1, -1, 1, -1, 1, -1, 1], dtype=torch.float64)[:, None]
     n = random_dirs(16)
     assert torch.allclose(eval_sh(e_k * cs, n), sh_irradiance(sh, n), rtol=1e-6)
@@ -119,7 +121,7 @@ def test_glb_structure_rgbd_round_trip_and_irradiance_sh():
     view = doc["bufferViews"][doc["images"][light["specularImages"][1][4]]["bufferView"]]
     png = blob[view["byteOffset"]:view["byteOffset"] + view["byteLength"]]
     rgbd = _png_rgba(png)
-    face = rgbd_decode(rgbd)[:, ::-1] * light["intensity"]
+    face = rgbd_decode(rgbd)[:, ::-1] * radiance_scale
     np.testing.assert_allclose(face, mips[1][4], rtol=0.05, atol=0.02 * float(mips[1][4].max()))
 
 

@@ -15,8 +15,11 @@ and how its reference loader (Babylon.js, @babylonjs/loaders) reads it:
   mips evenly spaced in roughness 0..1 (core.export.prefilter), power-of-two faces.
 - HDR images are 4-channel PNGs packed as RGBD: stored rgb = (value * D)^(1/2.2), alpha = D,
   value = stored_linear / D; D = floor(min(255 / max(rgb), 255)) / 255 (Babylon.js's packing).
-  RGBD holds values up to 255, so the map is divided by a scale that brings its maximum to 255
-  and `intensity` carries that scale back.
+  RGBD holds values up to 255. A brighter map is divided, images, SH and main light alike, by
+  the scale N that brings its maximum to 255, with `intensity` left at 1 and N recorded in the
+  probe node's `extras.radianceScale` (multiply by it for the field's units). Not `intensity = N`:
+  Babylon multiplies the SH by `intensity` in its loader *and* by the texture level (= intensity)
+  in its PBR shader, so its diffuse light would come out N times too bright.
 - "each saved image must be flipped about its vertical axis": every face is mirrored left-right
   before encoding.
 
@@ -101,15 +104,15 @@ def build_glb(mips: list[np.ndarray], radiance_sh: np.ndarray, x, t: float | Non
         specular.append(faces)
     light_found = main_light is not None and bool(main_light.found)
     sh = np.asarray(main_light.ambient_sh.detach().cpu().double() if light_found else radiance_sh, np.float64)
-    ibl = {"name": name, "intensity": float(scale), "rotation": [0.0, 0.0, 0.0, 1.0],
+    ibl = {"name": name, "intensity": 1.0, "rotation": [0.0, 0.0, 0.0, 1.0],
            "irradianceCoefficients": irradiance_coefficients(sh / scale),
            "specularImageSize": size, "specularImages": specular}
     nodes = [g.Node(name="probe", translation=[float(v) for v in x],
                     extras={"t": t, "irradiance": "ambient (main light separate)" if light_found else "whole map",
-                            **(extras or {})})]
+                            "radianceScale": float(scale), **(extras or {})})]
     used, root_ext = [EXTENSION], {EXTENSION: {"lights": [ibl]}}
     if light_found:
-        rgb = np.asarray(main_light.intensity_rgb.detach().cpu().double(), np.float64)
+        rgb = np.asarray(main_light.intensity_rgb.detach().cpu().double(), np.float64) / scale
         strength = float(rgb.max())
         color = (rgb / strength).tolist() if strength > 0 else [1.0, 1.0, 1.0]
         used.append(PUNCTUAL)
