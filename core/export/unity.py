@@ -51,6 +51,33 @@ def unity_shade_sh9(sh: list[list[float]], normal_unity: np.ndarray) -> np.ndarr
     return n4 @ sha.T + vb @ shb.T + (x * x - y * y) * shc
 
 
+def unity_probe_grid(evaluate, bounds, counts, t, artefact: str = "", lo=None, hi=None):
+    """The Unity probe grid product (core.export.schema.UnityProbeGrid), shared by the CLI and the API.
+
+    `evaluate(x)` -> (env map [H, 2H, 3] of ours, {'x': bool, 't': bool} the field's own flags).
+    Without lo/hi the probes sit at the cell centres of the region the captures cover
+    (core.export.coverage); every probe outside that region (or the time range) is flagged."""
+    from core.export.coverage import cell_centre_grid, covered_region, inside
+    from core.export.schema import Flags, Region, UnityProbe, UnityProbeGrid
+
+    c_lo, c_hi, source = covered_region(bounds)
+    if lo is None and hi is None:
+        positions = cell_centre_grid(c_lo, c_hi, counts)
+    else:
+        positions = probe_grid(c_lo if lo is None else lo, c_hi if hi is None else hi, counts)
+    covered = inside(c_lo, c_hi, positions)
+    probes = []
+    for x, ok in zip(positions, covered):
+        env, flags = evaluate(tuple(float(v) for v in x))
+        probes.append(UnityProbe(position=tuple(float(v) for v in x), position_unity=tuple(float(v) for v in to_unity(x)),
+                                 sh=unity_sh(np.asarray(env, np.float64)),
+                                 extrapolated=Flags(x=bool(flags["x"] or not ok), t=bool(flags["t"]))))
+    return UnityProbeGrid(t=t, grid=tuple(int(n) for n in counts),
+                          covered=Region(lo=tuple(c_lo.tolist()), hi=tuple(c_hi.tolist()), source=source),
+                          extrapolated_probes=sum(p.extrapolated.x or p.extrapolated.t for p in probes),
+                          probes=probes, artefact=artefact)
+
+
 def probe_grid(lo, hi, counts) -> np.ndarray:
     """Probe positions (ours) on a regular grid inside [lo, hi], `counts` per axis -> [N, 3]."""
     axes = [np.linspace(a, b, int(n)) if int(n) > 1 else np.array([(a + b) / 2]) for a, b, n in zip(lo, hi, counts)]
