@@ -286,3 +286,36 @@ def test_sequence_zip_streams_frames_with_metadata():
             assert read_exr_header(data)["lightfield:time"] == pytest.approx(t)
     with pytest.raises(ValueError):
         sequence_times(0, 1, 0)
+
+
+def test_openimageio_reads_the_sequence_with_time_code_rate_and_acescg_chromaticities(tmp_path):
+    """OpenImageIO (the VFX tools' image library) reads the unzipped sequence: frame rate, SMPTE
+    time code, AP1 chromaticities, and pixels equal to OIIO's own Rec. 709 -> ACEScg conversion."""
+    oiio = pytest.importorskip("OpenImageIO", reason="OpenImageIO is a dev dependency (pip install OpenImageIO)")
+    from core.export.metadata import ACESCG_CHROMATICITIES
+    from core.export.sequence import sequence_fps, sequence_members, sequence_times, zip_stream
+    from core.io.exr import read_exr_header
+
+    times = sequence_times(0.0, 2.0, 49)  # 24 frames per second
+    maps = [(t, lamp_map(8).float().numpy() * (1 + t)) for t in times]
+    blob = b"".join(zip_stream(sequence_members(maps, (0, 1, 2), "job", fps=sequence_fps(times), colour="acescg")))
+    with zipfile.ZipFile(io.BytesIO(blob)) as z:
+        assert all(info.external_attr >> 16 == 0o100644 for info in z.infolist())  # regular files, rw-r--r--
+        z.extractall(tmp_path)
+    assert (tmp_path / "envmap.0030.exr").stat().st_mode & 0o777 == 0o644
+    frame = 30  # t = 29 / 24 s = 00:00:01 frame 05 at 24 fps
+    path = str(tmp_path / f"envmap.{frame:04d}.exr")
+    spec = oiio.ImageInput.open(path).spec()
+    assert spec.getattribute("framesPerSecond") == (24, 1)
+    np.testing.assert_allclose(spec.getattribute("chromaticities"), ACESCG_CHROMATICITIES, rtol=1e-6)
+    code = read_exr_header(path)["timeCode"]
+    assert (code.hours, code.minutes, code.seconds, code.frame) == (0, 0, 1, 5)
+    # OIIO's own colour management (its built-in OCIO config) converts our Rec. 709 map to ACEScg like ours
+    src = oiio.ImageBuf(oiio.ImageSpec(16, 8, 3, oiio.FLOAT))
+    src.set_pixels(oiio.ROI(), np.ascontiguousarray(maps[frame - 1][1], np.float32))
+    theirs = oiio.ImageBufAlgo.colorconvert(src, "Linear Rec.709 (sRGB)", "ACEScg").get_pixels(oiio.FLOAT)
+    ours = oiio.ImageBuf(path).get_pixels(oiio.FLOAT)
+    np.testing.assert_allclose(ours, theirs, rtol=2e-4, atol=1e-6)
+    # and every frame reads back as a sequence of the documented name pattern
+    assert sorted(p.name for p in tmp_path.glob("envmap.*.exr"))[::24] == ["envmap.0001.exr", "envmap.0025.exr",
+                                                                            "envmap.0049.exr"]

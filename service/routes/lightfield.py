@@ -328,8 +328,11 @@ async def get_sequence(job_id: str, x: str = XQuery,
                        first_frame: int = Query(1, ge=0, description="number of the first file (envmap.0001.exr)"),
                        quality: Quality = Query("exact", description=QUALITY_HELP.replace(" (default)", "") +
                                                 "; this route's default is exact"),
+                       colour: Literal["rec709", "acescg"] = Query(
+                           "rec709", description="pixel colour space: linear Rec. 709 (as estimated) or ACEScg (AP1 "
+                           "primaries, ACES white, Bradford-adapted; the EXR chromaticities say which)"),
                        tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
-    from core.export.sequence import sequence_members, sequence_times, zip_stream
+    from core.export.sequence import sequence_fps, sequence_members, sequence_times, zip_stream
 
     point, t0, t1 = queries.parse_x(x), queries.check_t(t0), queries.check_t(t1)
     queries.check_size(height, ctx.settings.limits.max_envmap_height, "height")
@@ -341,6 +344,7 @@ async def get_sequence(job_id: str, x: str = XQuery,
     for probe_t in {times[0], times[-1]}:  # refuse a bad query now, not after the 200 is sent
         await run_in_threadpool(queries.envmap, cf, point, probe_t, 1)
     maps = ((t, hdr) for t, hdr, _ in queries.envmap_sequence(cf, point, times, height, quality))
-    members = sequence_members(maps, point, job_id, first_frame=first_frame, extra={"height": height, "quality": quality})
+    members = sequence_members(maps, point, job_id, first_frame=first_frame, extra={"height": height, "quality": quality},
+                               fps=sequence_fps(times), colour=colour)
     return StreamingResponse(zip_stream(members), media_type="application/zip", headers={
         CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, "Content-Disposition": 'attachment; filename="envmaps.zip"'})
