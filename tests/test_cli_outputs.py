@@ -198,3 +198,12 @@ def test_arkit_command_writes_metal_slices_and_sh_planes(artefact_dir, tmp_path)
     np.testing.assert_allclose(got[..., :3].astype(np.float32), np.clip(faces, 0, 65504), rtol=2e-3, atol=1e-4)
     light = extract_dominant_light(env)
     np.testing.assert_allclose(unpack(doc.sh_planes, "arkit"), light.ambient_sh.double().numpy(), rtol=1e-5, atol=1e-7)
+
+
+def test_usd_without_usd_core_says_which_extra_to_install(artefact_dir, tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "pxr", None)  # as if usd-core were not installed: `import pxr` fails
+    assert main(["usd", str(artefact_dir), "--x", X, "--t", "1", "--height", "4", "-o", str(tmp_path / "p.usdz")]) == 2
+    err = capsys.readouterr().err
+    assert "usd-core" in err and "lightfield[usd]" in err and not (tmp_path / "p.usdz").exists()

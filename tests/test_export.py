@@ -151,6 +151,8 @@ def test_envmap_exr_carries_colour_space_probe_time_units_and_artefact():
 
 # ------------------------------------------------------------------------------ USD (usd-core)
 def test_usdz_opens_in_usd_core_with_a_dome_light_in_openexr_latlong():
+    """The .usdz usd-core packaged (UsdUtils.CreateNewARKitUsdzPackage) opens in usd-core, passes all
+    its validators, and its DomeLight's texture is our map in OpenEXR's latlong layout."""
     pxr = pytest.importorskip("pxr", reason="usd-core is a dev dependency (pip install usd-core)")
     from pxr import Usd, UsdLux, UsdValidation
 
@@ -169,7 +171,8 @@ def test_usdz_opens_in_usd_core_with_a_dome_light_in_openexr_latlong():
         assert stage is not None
         dome = UsdLux.DomeLight(stage.GetPrimAtPath("/Probe/EnvLight"))
         assert dome and dome.GetTextureFormatAttr().Get() == "latlong"
-        assert dome.GetTextureFileAttr().Get().path == "envmap.exr"
+        texture = dome.GetTextureFileAttr().Get().path
+        assert texture.endswith("envmap.exr")
         from pxr import UsdGeom
 
         assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
@@ -180,13 +183,16 @@ def test_usdz_opens_in_usd_core_with_a_dome_light_in_openexr_latlong():
         errors = UsdValidation.ValidationContext(validators).Validate(stage)
         assert not errors, [(e.GetName(), e.GetMessage()) for e in errors]
     with zipfile.ZipFile(io.BytesIO(blob)) as z:
-        assert z.namelist() == ["probe.usda", "envmap.exr"]
-        tex = z.read("envmap.exr")
-        for info in z.infolist():  # usdz: stored, data 64-byte aligned
+        assert z.namelist() == ["probe.usdc", texture]  # one flattened layer first, then its texture
+        tex = z.read(texture)
+        for info in z.infolist():  # usdz: stored, data 64-byte aligned; no restrictive mode bits
             assert info.compress_type == zipfile.ZIP_STORED
             assert (info.header_offset + 30 + len(info.filename) + len(info.extra)) % 64 == 0
+            assert info.external_attr >> 16 in (0, 0o100644)
     header = read_exr_header(tex)
     assert str(header["envmap"]).endswith("LATLONG") and header["lightfield:artefactId"] == "job-9"
+    assert "lightfield:t" not in header  # (the stage's customData carries t; the EXR its own time attribute)
+    assert header["lightfield:time"] == 0.75
     img = read_exr(tex)
     rows, cols = np.meshgrid(np.arange(16), np.arange(32), indexing="ij")
     d = torch.from_numpy(openexr_latlong_direction(rows, cols, 16))  # where OpenEXR/UsdLux says each texel looks

@@ -14,7 +14,7 @@ from fastapi.responses import JSONResponse, StreamingResponse
 from core.conventions import CONVENTIONS_SUMMARY
 from service import queries
 from service.context import AppContext, Tenant, get_ctx, get_tenant
-from service.errors import ErrorBody, InvalidInput, PayloadTooLarge
+from service.errors import ErrorBody, InvalidInput, PayloadTooLarge, ServiceUnavailable
 from service.fieldcache import CachedField
 from service.lightfields import job_field, recent_field
 from service.queries import DEFAULT_QUALITY, MAX_ABS_EV, MAX_ABS_T_S, X_PATTERN
@@ -307,12 +307,16 @@ async def get_usdz(job_id: str, x: str = XQuery, t: float = TQuery,
                    height: int = Query(256, ge=1, description="rows of the dome's latlong EXR (width = 2 x height)"),
                    tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     from core.export.products import probe_usdz
+    from core.export.usd import USDUnavailable
 
     point, t = queries.parse_x(x), queries.check_t(t)
     queries.check_size(height, ctx.settings.limits.max_envmap_height, "height")
     cf = await _field_async(job_id, tenant, ctx)
     hdr, flags = await run_in_threadpool(queries.envmap, cf, point, t, height)
-    data = await run_in_threadpool(probe_usdz, hdr, point, t, job_id)
+    try:
+        data = await run_in_threadpool(probe_usdz, hdr, point, t, job_id)
+    except USDUnavailable as exc:
+        raise ServiceUnavailable(str(exc), code="usd_unavailable") from exc
     return _download(data, "model/vnd.usdz+zip", "probe.usdz", flags)
 
 
