@@ -26,11 +26,26 @@ def prefiltered(env, size: int, levels: int | None = None) -> list[np.ndarray]:
     return [m.numpy() for m in prefiltered_cubemap(_tensor(env), size, levels)]
 
 
-def cube_ktx2(env, size: int, levels: int | None = None) -> bytes:
-    """KTX2 cube map, RGBA16F, GGX roughness mips (levels=1: the mirror cube only)."""
+CUBE_LAYOUTS = ("gl", "threejs")
+
+
+def cube_for(env, layout: str = "gl"):
+    """The map whose GL-table cube faces a consumer samples as our radiance: 'gl' (OpenGL/Vulkan/Metal
+    cube tables, Babylon, Filament, ARCore) is ours; 'threejs' is mirrored in x, because three.js
+    samples a CubeTexture it did not render at (-x, y, z) (`flipEnvMap = -1`)."""
+    from core.envmap import mirror_envmap
+
+    if layout not in CUBE_LAYOUTS:
+        raise ValueError(f"cube layout must be one of {', '.join(CUBE_LAYOUTS)}, got {layout!r}")
+    e = _tensor(env)
+    return mirror_envmap(e, "x") if layout == "threejs" else e
+
+
+def cube_ktx2(env, size: int, levels: int | None = None, layout: str = "gl") -> bytes:
+    """KTX2 cube map, RGBA16F, GGX roughness mips (levels=1: the mirror cube only), in `layout`."""
     from core.export.ktx2 import encode_ktx2_cubemap
 
-    return encode_ktx2_cubemap(prefiltered(env, size, levels))
+    return encode_ktx2_cubemap(prefiltered(cube_for(env, layout), size, levels))
 
 
 def probe_glb(env, x, t, size: int = 64, levels: int | None = None, artefact: str = "",

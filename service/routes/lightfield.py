@@ -239,6 +239,10 @@ async def get_cubemap(job_id: str, x: str = XQuery, t: float = TQuery,
                       format: Literal["json", "npy", "ktx2"] = "json", quality: Quality = QualityQuery,
                       levels: int | None = Query(None, ge=1, le=16, description="ktx2 only: mip levels, roughness "
                                                  "i / (levels - 1); default: down to size/32 (6 for 128); 1 = mirror only"),
+                      layout: Literal["gl", "threejs"] = Query(
+                          "gl", description="gl: the OpenGL/Vulkan/Metal face table (Babylon, Filament, ARCore, "
+                          "engines reading KTX2 cubes); threejs: mirrored in x for a three.js CubeTexture, which "
+                          "three samples at (-x, y, z) (docs/integrations.md has the recipe)"),
                       tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     point, t = queries.parse_x(x), queries.check_t(t)
     queries.check_size(size, ctx.settings.limits.max_cubemap_size, "size")
@@ -250,11 +254,13 @@ async def get_cubemap(job_id: str, x: str = XQuery, t: float = TQuery,
 
         hdr, flags, used = await run_in_threadpool(queries.envmap_with_quality, cf, point, t,
                                                    cube_source_height(size), quality)
-        data = await run_in_threadpool(cube_ktx2, hdr, size, levels)
+        data = await run_in_threadpool(cube_ktx2, hdr, size, levels, layout)
         return _download(data, "image/ktx2", "cubemap.ktx2", flags)
 
     def finish(hdr: np.ndarray, _flags):  # in the batch's thread
-        faces = queries.cube_faces(hdr, size)
+        from core.export.products import cube_for
+
+        faces = queries.cube_faces(cube_for(hdr, layout).numpy(), size)
         if format == "npy":
             return _npy(faces)
         from core.io.exr import encode_exr
