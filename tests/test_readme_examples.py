@@ -105,11 +105,23 @@ def test_readme_command_line_block_runs_and_answers_inside_the_room(cli_run, wor
     assert (workdir / "insertion.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     probes = json.loads((workdir / "probes.json").read_text())
     assert len(probes["probes"]) == 18 and probes["extrapolated_probes"] == 0  # the default grid: inside the room
-    # the main light is found on the demo scene, at the README point and at the held-out probes
+    # the main light of the ESTIMATED field, at the README point and the held-out probes: when found,
+    # within 20 deg of the source that dominates the irradiance there (the scene's emitters say which)
+    from core.sim.oracle import load_scene
+    from light_truth import angle_deg, dominant_source
+
     doc = json.loads((workdir / "cap" / "capture.json").read_text())
-    found = [extract_dominant_light(art.envmap(p, None, 128)[0]) for p in [point, *[q["x"] for q in doc["probes"]]]]
-    assert found[0].found, found[0].reason
-    assert sum(light.found for light in found) >= len(found) - 1, [light.reason for light in found]
+    scene = load_scene(workdir / "cap")
+    found = 0
+    for p in [point, *[q["x"] for q in doc["probes"]]]:
+        light = extract_dominant_light(art.envmap(p, None, 128)[0].double())
+        name, towards, ratio = dominant_source(scene, p)
+        off = angle_deg(light.direction, towards)
+        print(f"\nmain light at {p}: {off:.0f} deg from {name} ({ratio:.1f}x the next source), "
+              f"confidence {light.confidence:.2f}, found {light.found}")
+        assert not light.found or off <= 20.0, (p, off, light.reason)
+        found += light.found
+    assert found >= 2, "the demo's lamps should be found at some probes"
 
 
 @pytest.fixture(scope="module")
