@@ -169,3 +169,65 @@ def test_readme_curl_block_runs_against_lightfield_serve(cli_run, workdir, readm
     assert sh[0]["dominant_light"]["reason"] and 0 <= sh[0]["dominant_light"]["confidence"] <= 1
     for name in ("env.exr", "cube.ktx2", "probe.glb", "probe.usdz", "shot.zip"):
         assert (workdir / name).stat().st_size > 100, name
+
+
+# ------------------------------------------------------------------ docs/integrations.md's recipes
+INTEGRATIONS = REPO / "docs" / "integrations.md"
+# languages whose consumer cannot run here; the page must say so next to each block
+NOT_RUNNABLE_HERE = {"python": "Not run in Blender", "csharp": "Not run in Unity", "swift": "Not run on an Apple device"}
+
+
+def integration_blocks(lang: str) -> list[str]:
+    return re.findall(rf"```{lang}\n(.*?)```", INTEGRATIONS.read_text(), re.S)
+
+
+def test_every_integrations_recipe_is_run_by_a_test_or_says_why_not():
+    text = INTEGRATIONS.read_text()
+    langs = re.findall(r"```(\w+)\n", text)
+    assert set(langs) <= {"sh", "js", *NOT_RUNNABLE_HERE}, set(langs)  # sh: below; js: test_integrations_browser.py
+    for lang, note in NOT_RUNNABLE_HERE.items():
+        for block in integration_blocks(lang):
+            after = text[text.index(block) + len(block):][:2500]
+            assert note in after, f"the {lang} recipe must say '{note}' after it"
+
+
+def _a_finished_job(port: int, workdir: Path) -> str:
+    import httpx
+
+    jobs = httpx.get(f"http://127.0.0.1:{port}/jobs", timeout=10).json()["jobs"]
+    done = [j["id"] for j in jobs if j["state"] == "succeeded"]
+    if done:
+        return done[0]
+    submit = "\n".join(sh_block_after("## API").splitlines()[:4]).replace("localhost:8000", f"127.0.0.1:{port}")
+    proc = subprocess.run(["bash", "-euo", "pipefail", "-c", submit + '\necho "$JOB"'], cwd=workdir,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc.stdout.split()[-1]
+
+
+def test_integrations_shell_recipes_run_against_lightfield_serve(cli_run, workdir, readme_server):
+    """Every ```sh block of docs/integrations.md, as written, with LF and JOB set: the API download and
+    the CLI command of each hand-off write what the page says."""
+    if not shutil.which("curl"):
+        pytest.skip("curl is needed to run docs/integrations.md's API lines")
+    from core.export.schema import ArkitProbe, UnityProbeGrid
+
+    job = _a_finished_job(readme_server, workdir)
+    env = dict(os.environ, LF=f"http://127.0.0.1:{readme_server}", JOB=job,
+               PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    blocks = integration_blocks("sh")
+    assert len(blocks) >= 5
+    for block in blocks:
+        proc = subprocess.run(["bash", "-euo", "pipefail", "-c", block], cwd=workdir, env=env, capture_output=True,
+                              text=True, timeout=600)
+        assert proc.returncode == 0, (block, proc.stdout[-2000:], proc.stderr[-2000:])
+    assert (workdir / "probe.glb").read_bytes()[:4] == b"glTF"
+    assert (workdir / "probe.usda").read_text().startswith("#usda 1.0") and (workdir / "probe.exr").is_file()
+    with zipfile.ZipFile(workdir / "probe.usdz") as z:
+        assert z.namelist()[0] == "probe.usdc"
+    grid = UnityProbeGrid.model_validate_json((workdir / "probes.json").read_text())
+    assert len(grid.probes) == 32 and grid.extrapolated_probes == 0
+    assert len(ArkitProbe.model_validate_json((workdir / "arkit.json").read_text()).slices_base64) == 6
+    with zipfile.ZipFile(workdir / "shot.zip") as z:
+        assert len(json.loads(z.read("sequence.json"))["frames"]) == 13
+    assert len(list((workdir / "shot").glob("envmap.*.exr"))) == 13
