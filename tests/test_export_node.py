@@ -50,12 +50,18 @@ def test_threejs_exrloader_reads_our_exr_bottom_up_as_linear_srgb(node_consumers
 def test_khronos_validator_accepts_our_glb(node_consumers, tmp_path):
     from core.export.gltf import build_glb
     from core.export.prefilter import prefiltered_cubemap
+    from core.export.products import probe_glb
 
     env = lamp_map(32) * 10
     mips = [m.numpy() for m in prefiltered_cubemap(env, 16, levels=3)]
     (tmp_path / "probe.glb").write_bytes(build_glb(mips, project_sh(env).numpy(), (0.5, 1.0, -2.0), 0.25))
     report = run_consumer("gltf", tmp_path / "probe.glb")
     assert_valid_glb(report)
+    # with the main light: KHR_lights_punctual is a Khronos extension the validator checks in full
+    (tmp_path / "lit.glb").write_bytes(probe_glb(env.float(), (0.5, 1.0, -2.0), 0.25, size=16))
+    report = run_consumer("gltf", tmp_path / "lit.glb")
+    assert_valid_glb(report)
+    assert "KHR_lights_punctual" in report["info"]["extensionsUsed"]
 
 
 def assert_valid_glb(report: dict) -> None:
