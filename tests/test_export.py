@@ -325,3 +325,46 @@ def test_openimageio_reads_the_sequence_with_time_code_rate_and_acescg_chromatic
     # and every frame reads back as a sequence of the documented name pattern
     assert sorted(p.name for p in tmp_path.glob("envmap.*.exr"))[::24] == ["envmap.0001.exr", "envmap.0025.exr",
                                                                             "envmap.0049.exr"]
+
+
+# ------------------------------------------------------------------ the SH layout table
+@pytest.mark.parametrize("name", ["arcore", "threejs", "babylon", "unity", "arkit", "gltf"])
+def test_every_sh_layout_round_trips_and_says_what_it_is(name):
+    from core.export.sh_layouts import get_layout, pack, to_layout, unpack
+
+    sh = project_sh(lamp_map(16))
+    np.testing.assert_allclose(unpack(pack(sh, name), name), sh.numpy(), rtol=1e-12, atol=1e-12)
+    layout = get_layout(name)
+    values = to_layout(sh, name)
+    flat = np.asarray(pack(sh, name))
+    np.testing.assert_allclose(flat, (values.T if layout.packing == "channel_planes" else values).reshape(-1))
+    assert layout.reads_it and layout.checked_by and layout.name in layout.describe()
+
+
+def test_unity_row_is_the_z_mirrored_maps_projection():
+    """The table's Unity signs (k = 2, 5, 7) equal re-projecting the map mirrored in z, as Unity's
+    left-handed axes see it."""
+    from core.envmap import mirror_envmap
+    from core.export.sh_layouts import get_layout
+    from core.export.unity import unity_sh
+
+    env = lamp_map(32)
+    mirrored = project_sh(mirror_envmap(env, "z")).numpy()
+    unity = get_layout("unity")
+    np.testing.assert_allclose(np.asarray(unity_sh(env.numpy())).T, mirrored * np.asarray(unity.scale)[:, None],
+                               rtol=1e-9, atol=1e-12)
+    assert [k for k, s in enumerate(unity.signs) if s < 0] == [2, 5, 7]
+
+
+def test_covered_region_undoes_the_fields_margin_and_the_default_grid_stays_inside():
+    from core.export.coverage import cell_centre_grid, covered_region, inside
+    from core.fields.normalization import SceneBounds
+
+    points = torch.tensor([[0.0, 0.0, -4.0], [5.0, 2.8, 0.0]] * 50, dtype=torch.float64)
+    bounds = SceneBounds.from_points(points)  # the room [0, 5] x [0, 2.8] x [-4, 0], padded 10 % per side
+    lo, hi, source = covered_region(bounds)
+    np.testing.assert_allclose(lo, [0.0, 0.0, -4.0], atol=0.06)
+    np.testing.assert_allclose(hi, [5.0, 2.8, 0.0], atol=0.06)
+    grid = cell_centre_grid(lo, hi, (3, 2, 3))
+    assert grid.shape == (18, 3) and inside(lo, hi, grid).all() and "margin" in source
+    assert not inside(lo, hi, [bounds.lo]).any()  # the padded box's corner is outside the room
