@@ -290,10 +290,14 @@ def _check_cube_size(size: int, levels: int | None) -> None:
 
 @router.get("/lightfield/{job_id}/gltf", response_class=Response, responses={
     200: {"content": {"model/gltf-binary": {}}, "description": "glTF 2.0 binary with EXT_lights_image_based"},
-    **_ERRORS}, summary="glTF (.glb) image-based light at (x, t): irradiance SH + prefiltered specular cube mips")
+    **_ERRORS}, summary="glTF (.glb) image-based light at (x, t): irradiance SH + prefiltered specular cube mips "
+                         "(+ the main light as KHR_lights_punctual)")
 async def get_gltf(job_id: str, x: str = XQuery, t: float = TQuery,
                    size: int = Query(64, ge=1, description="specular cube face edge (a power of two)"),
                    levels: int | None = Query(None, ge=1, le=16, description="specular mips (roughness 0..1)"),
+                   main_light: bool = Query(True, description="add the main light (when found) as a KHR_lights_punctual "
+                                            "directional light, with the ambient SH as irradiance; false: the whole "
+                                            "map's SH and no punctual light"),
                    tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     from core.export.products import cube_source_height, probe_glb
 
@@ -302,7 +306,7 @@ async def get_gltf(job_id: str, x: str = XQuery, t: float = TQuery,
     _check_cube_size(size, levels)
     cf = await _field_async(job_id, tenant, ctx)
     hdr, flags = await run_in_threadpool(queries.envmap, cf, point, t, cube_source_height(size))
-    data = await run_in_threadpool(probe_glb, hdr, point, t, size, levels, job_id)
+    data = await run_in_threadpool(probe_glb, hdr, point, t, size, levels, job_id, main_light)
     return _download(data, "model/gltf-binary", "probe.glb", flags)
 
 
