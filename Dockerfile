@@ -28,7 +28,8 @@ WORKDIR /src
 COPY constraints.txt ./
 RUN pip install -c constraints.txt --extra-index-url "${TORCH_INDEX}" torch==2.13.0
 COPY --from=sources /src ./
-RUN pip install -c constraints.txt --extra-index-url "${TORCH_INDEX}" .
+# the API serves /usdz, which needs the `usd` extra (usd-core)
+RUN pip install -c constraints.txt --extra-index-url "${TORCH_INDEX}" ".[usd]"
 
 # ---------------------------------------------------------------- CPU runtime
 FROM ${PYTHON_IMAGE} AS cpu

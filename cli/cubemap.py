@@ -19,6 +19,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--format", choices=FORMATS, default=None,
                    help="ktx2 (one file), npy ([6, S, S, 3]) or exr (a directory of px.exr ... nz.exr); default: "
                         "the -o extension, exr for a name without one")
+    p.add_argument("--layout", choices=("gl", "threejs"), default="gl",
+                   help="gl: the OpenGL/Vulkan/Metal face table; threejs: mirrored in x for a three.js CubeTexture")
     p.add_argument("-o", "--output", required=True, metavar="FILE|DIR", help="file (ktx2, npy) or directory (exr)")
 
 
@@ -27,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
         import numpy as np
 
         from core.cubemap import equirect_to_cubemap
-        from core.export.products import cube_ktx2, cube_source_height, envmap_exr_attributes
+        from core.export.products import cube_for, cube_ktx2, cube_source_height, envmap_exr_attributes
         from core.io.exr import atomic_write, encode_exr
 
         out = Path(args.output)
@@ -41,9 +43,9 @@ def run(args: argparse.Namespace) -> int:
         probe = Probe(args.artefact, args.fast)
         hdr, flags = probe.envmap(args.x, args.t, cube_source_height(args.size))
         if fmt == "ktx2":
-            atomic_write(out, cube_ktx2(hdr, args.size, args.levels))
+            atomic_write(out, cube_ktx2(hdr, args.size, args.levels, args.layout))
         else:
-            faces = equirect_to_cubemap(hdr, args.size).numpy()
+            faces = equirect_to_cubemap(cube_for(hdr, args.layout), args.size).numpy()
             if fmt == "npy":
                 np.save(out, faces.astype(np.float32), allow_pickle=False)
             else:

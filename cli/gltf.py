@@ -13,6 +13,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_probe_arguments(p)
     p.add_argument("--size", type=int, default=64, help="specular cube face edge (a power of two)")
     p.add_argument("--levels", type=int, default=None, help="specular mips, roughness 0..1 (default: down to size/32)")
+    p.add_argument("--no-main-light", dest="main_light", action="store_false",
+                   help="no KHR_lights_punctual main light: the whole map's SH as irradiance")
     p.add_argument("-o", "--output", required=True, metavar="FILE.glb", help="file to write")
 
 
@@ -27,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(problem)
         probe = Probe(args.artefact, args.fast)
         hdr, flags = probe.envmap(args.x, args.t, cube_source_height(args.size))
-        atomic_write(out, probe_glb(hdr, args.x, args.t, args.size, args.levels, probe.id))
+        atomic_write(out, probe_glb(hdr, args.x, args.t, args.size, args.levels, probe.id, args.main_light))
         warn_extrapolated(flags)
         print_json({"output": str(out), "format": "glb", "size": args.size, "x": list(args.x), "t": args.t, **flags})
         return 0

@@ -18,6 +18,7 @@ COMMANDS = [
     "usd",
     "sequence",
     "unity",
+    "arkit",
     "preview",
     "serve",
     "worker",

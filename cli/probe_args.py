@@ -68,6 +68,13 @@ def extrapolated(flags: dict) -> list[str]:
     return [axis for axis, key in (("x", "extrapolated_x"), ("t", "extrapolated_t")) if flags[key]]
 
 
+def flags_model(flags: dict):
+    """The field's {'extrapolated_x', 'extrapolated_t'} as the products' Flags model."""
+    from core.export.schema import Flags
+
+    return Flags(x=bool(flags["extrapolated_x"]), t=bool(flags["extrapolated_t"]))
+
+
 def warn_extrapolated(flags: dict) -> None:
     axes = extrapolated(flags)
     if axes:

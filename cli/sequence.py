@@ -17,13 +17,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", type=int, required=True, help="evenly spaced frames from t0 to t1")
     p.add_argument("--height", type=int, default=64, help="rows of each map (width = 2 x height)")
     p.add_argument("--first-frame", type=int, default=1, help="number of the first file")
+    p.add_argument("--colour", choices=("rec709", "acescg"), default="rec709",
+                   help="pixel colour space: linear Rec. 709 (as estimated) or ACEScg (AP1, for ACES pipelines)")
     p.add_argument("--fast", action="store_true", help="answer from the baked grid (approximate)")
     p.add_argument("-o", "--output", required=True, metavar="DIR|FILE.zip", help="a directory, or a .zip")
 
 
 def run(args: argparse.Namespace) -> int:
     def body() -> int:
-        from core.export.sequence import sequence_members, sequence_times, zip_stream
+        from core.export.sequence import sequence_fps, sequence_members, sequence_times, zip_stream
         from core.io.exr import atomic_write
 
         if args.t1 < args.t0:
@@ -32,7 +34,8 @@ def run(args: argparse.Namespace) -> int:
         probe = Probe(args.artefact, args.fast)
         times = sequence_times(args.t0, args.t1, args.frames)
         maps = ((t, probe.envmap(args.x, t, args.height)[0].cpu().numpy()) for t in times)
-        members = sequence_members(maps, args.x, probe.id, first_frame=args.first_frame, extra={"height": args.height})
+        members = sequence_members(maps, args.x, probe.id, first_frame=args.first_frame, extra={"height": args.height},
+                                   fps=sequence_fps(times), colour=args.colour)
         if out.suffix.lower() == ".zip":
             atomic_write(out, b"".join(zip_stream(members)))
         else:

@@ -1,13 +1,15 @@
-"""`lightfield sh OUT --x X,Y,Z [--x ...] [--t SEC]`: main light + ambient SH (ARCore / three.js layout) as JSON."""
+"""`lightfield sh OUT --x X,Y,Z [--x ...] [--t SEC]`: main light + ambient SH in a consumer's layout, as JSON:
+the same model (core.export.schema.SphericalHarmonics) as the API's /sh."""
 from __future__ import annotations
 
 import argparse
 import json
 from pathlib import Path
 
-from cli.probe_args import Probe, add_probe_arguments, extrapolated, parse_position, print_json, run_guarded
+from cli.probe_args import Probe, flags_model, parse_position, print_json, run_guarded
+from core.export.sh_layouts import LAYOUT_NAMES
 
-HELP = "Print the main light and ambient spherical harmonics at one or many probes (ARCore or three.js layout)."
+HELP = "Print the main light and ambient spherical harmonics at one or many probes, in a consumer's SH layout."
 SH_HEIGHT = 128  # the service's /sh evaluates the same map height
 
 
@@ -18,8 +20,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--t", type=float, default=None, metavar="SEC", help="seconds from the first frame, for every --x")
     p.add_argument("--queries", type=Path, default=None, metavar="FILE",
                    help='JSON list of {"x": [X, Y, Z], "t": SEC} (a batch; instead of --x)')
-    p.add_argument("--layout", choices=("arcore", "threejs"), default="arcore",
-                   help="coefficient layout: ARCore's signs, or three.js SphericalHarmonics3.fromArray")
+    p.add_argument("--layout", choices=LAYOUT_NAMES, default="arcore",
+                   help="coefficient layout (core.export.sh_layouts): arcore, threejs (SphericalHarmonics3.fromArray), "
+                        "babylon (SphericalHarmonics.FromArray / glTF irradiance), unity (SphericalHarmonicsL2), "
+                        "arkit (three planes)")
     p.add_argument("--fast", action="store_true", help="answer from the baked grid (approximate)")
 
 
@@ -36,7 +40,7 @@ def _queries(args) -> list[tuple[tuple[float, float, float], float | None]]:
 
 def run(args: argparse.Namespace) -> int:
     def body() -> int:
-        from core.export.products import sh_in_layout
+        from core.export.schema import SphericalHarmonics
         from core.lights import extract_dominant_light
         from core.sh import project_sh
 
@@ -45,11 +49,8 @@ def run(args: argparse.Namespace) -> int:
         for x, t in _queries(args):
             hdr, flags = probe.envmap(x, t, SH_HEIGHT)
             light = extract_dominant_light(hdr)
-            out.append({"x": list(x), "t": t, "layout": args.layout, "extrapolated": extrapolated(flags),
-                        "coefficients": sh_in_layout(light.ambient_sh, args.layout),
-                        "coefficients_with_light": sh_in_layout(project_sh(hdr.double()), args.layout),
-                        "dominant_light": {k: v for k, v in light.to_dict().items()
-                                           if k not in ("ambient_sh", "ambient_sh_arcore27")}})
+            out.append(SphericalHarmonics.of(x, t, flags_model(flags), args.layout, light,
+                                             project_sh(hdr.double())).model_dump(mode="json"))
         print_json(out if len(out) > 1 or args.queries is not None else out[0])
         return 0
 

@@ -1,8 +1,9 @@
-"""`lightfield unity OUT --grid NX,NY,NZ -o probes.json`: a Unity light-probe grid (positions + SphericalHarmonicsL2)."""
+"""`lightfield unity OUT --grid NX,NY,NZ -o probes.json`: a Unity light-probe grid (positions +
+SphericalHarmonicsL2, each probe flagged when extrapolated): core.export.schema.UnityProbeGrid, as the API's /unity."""
 from __future__ import annotations
 
 import argparse
-import json
+import sys
 from pathlib import Path
 
 from cli.probe_args import Probe, parse_position, print_json, run_guarded
@@ -25,8 +26,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("artefact", metavar="OUT", help="artefact directory written by `lightfield estimate -o OUT`")
     p.add_argument("--grid", type=_counts, default=(3, 2, 3), metavar="NX,NY,NZ", help="probes per axis")
     p.add_argument("--lo", type=parse_position, default=None, metavar="X,Y,Z",
-                   help="grid corner, our world metres (default: the scene box the field was trained on)")
-    p.add_argument("--hi", type=parse_position, default=None, metavar="X,Y,Z", help="opposite corner (default: the scene box)")
+                   help="grid corner, our world metres (default: the probes sit at the cell centres of the region "
+                        "the captures cover)")
+    p.add_argument("--hi", type=parse_position, default=None, metavar="X,Y,Z",
+                   help="opposite corner (default: that region's)")
     p.add_argument("--t", type=float, default=None, metavar="SEC", help="seconds from the first frame")
     p.add_argument("--fast", action="store_true", help="answer from the baked grid (approximate)")
     p.add_argument("-o", "--output", required=True, metavar="FILE.json", help="file to write")
@@ -34,21 +37,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     def body() -> int:
-        from core.export.unity import probe_grid, to_unity, unity_sh
+        from core.export.unity import unity_probe_grid
+        from core.io.exr import atomic_write
 
         probe = Probe(args.artefact, args.fast)
-        bounds = probe.artefact.bounds
-        lo, hi = args.lo or bounds.lo, args.hi or bounds.hi
-        positions = probe_grid(lo, hi, args.grid)
-        sh = [unity_sh(probe.envmap(tuple(float(v) for v in x), args.t, SH_HEIGHT)[0].cpu().numpy()) for x in positions]
-        doc = {
-            "about": "Unity light probes: positions_unity are Unity coordinates (z flipped from ours); sh[i] is "
-                     "SphericalHarmonicsL2 [channel][k] in Unity's convention (docs/integrations.md)",
-            "t": args.t, "grid": list(args.grid), "positions": positions.tolist(),
-            "positions_unity": to_unity(positions).tolist(), "sh": sh, "artefact": probe.id,
-        }
-        Path(args.output).write_text(json.dumps(doc))
-        print_json({"output": args.output, "probes": len(positions), "grid": list(args.grid)})
+
+        def evaluate(x):
+            hdr, flags = probe.envmap(x, args.t, SH_HEIGHT)
+            return hdr.cpu().numpy(), {"x": flags["extrapolated_x"], "t": flags["extrapolated_t"]}
+
+        doc = unity_probe_grid(evaluate, probe.artefact.bounds, args.grid, args.t, probe.id, args.lo, args.hi)
+        atomic_write(Path(args.output), doc.model_dump_json().encode())
+        if doc.extrapolated_probes:
+            print(f"warning: {doc.extrapolated_probes} of {len(doc.probes)} probes lie outside the region the captures "
+                  f"cover (or the time range); probes[i].extrapolated says which", file=sys.stderr)
+        print_json({"output": args.output, "probes": len(doc.probes), "grid": list(args.grid),
+                    "extrapolated_probes": doc.extrapolated_probes})
         return 0
 
     return run_guarded(body)

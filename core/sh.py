@@ -17,7 +17,8 @@ Condon-Shortley phase), evaluated on the unit direction d = (x, y, z) of core.co
 The formulas use our axes literally, so the basis' polar axis (m = 0) is our z (backward),
 not up. This is exactly the polynomial form ARCore's samples evaluate in ARCore's world
 frame (also +y up, -z forward); ARCore's coefficients differ only by the sign of the odd-m
-entries (k = 1, 3, 5, 7), see `to_arcore_27` and docs/conventions.md.
+entries (k = 1, 3, 5, 7), see `to_arcore_27`, core.export.sh_layouts (every consumer's
+layout) and docs/conventions.md.
 """
 from __future__ import annotations
 
@@ -42,9 +43,6 @@ C2_2 = 0.25 * math.sqrt(15.0 / math.pi)  # 0.546274
 
 # Clamped-cosine convolution (Ramamoorthi & Hanrahan 2001): E_lm = A_l L_lm.
 COSINE_LOBE_BY_BAND = (math.pi, 2.0 * math.pi / 3.0, math.pi / 4.0)
-
-# ARCore's basis carries the Condon-Shortley phase: coefficients with odd m change sign.
-ARCORE_SIGNS = tuple(-1.0 if m % 2 else 1.0 for m in SH_ORDERS)
 
 
 class SHError(ValueError):
@@ -162,23 +160,26 @@ def to_arcore_27(coeffs: torch.Tensor) -> list[float]:
     ARCore (`LightEstimate.getEnvironmentalHdrAmbientSphericalHarmonics`): coefficient-major,
     RGB interleaved [c0.r, c0.g, c0.b, c1.r, ...], same band order and world frame as ours,
     but with the Condon-Shortley phase, so entries with odd m (k = 1, 3, 5, 7) are negated.
+    The signs live in core.export.sh_layouts, the one table of every consumer's layout.
     """
+    from core.export.sh_layouts import pack
+
     _check_coeffs(coeffs)
     if tuple(coeffs.shape) != (SH_COUNT, 3):
         raise SHError(f"ARCore layout needs RGB coefficients [9, 3], got {tuple(coeffs.shape)}")
-    signs = torch.tensor(ARCORE_SIGNS, dtype=torch.float64)[:, None]
-    return [float(v) for v in (coeffs.detach().cpu().to(torch.float64) * signs).reshape(-1)]
+    return pack(coeffs, "arcore")
 
 
 def from_arcore_27(values: Sequence[float] | torch.Tensor, dtype=torch.float32) -> torch.Tensor:
     """Inverse of `to_arcore_27`: 27 floats -> our [9, 3] coefficients."""
+    from core.export.sh_layouts import unpack
+
     t = torch.as_tensor(values, dtype=torch.float64).reshape(-1)
     if t.numel() != 27:
         raise SHError(f"ARCore spherical harmonics need exactly 27 floats, got {t.numel()}")
     if not torch.isfinite(t).all():
         raise SHError("ARCore spherical harmonics contain non-finite values")
-    signs = torch.tensor(ARCORE_SIGNS, dtype=torch.float64)[:, None]
-    return (t.reshape(SH_COUNT, 3) * signs).to(dtype)
+    return torch.from_numpy(unpack(t.numpy(), "arcore")).to(dtype)
 
 
 __all__ = [

@@ -6,6 +6,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt
 
+from core.export.schema import (  # noqa: F401  (the hand-off products: one model each, shared with the CLI)
+    ArkitProbe, DominantLight, Flags, SHLayoutName as SHLayout, SphericalHarmonics, UnityProbeGrid,
+)
 from jobs.store import JobRecord, JobState
 from service.errors import ErrorDetail
 
@@ -80,11 +83,6 @@ class LightfieldInfo(BaseModel):
     fast_available: bool = Field(description="whether quality=baked (the worker's lattice) can answer queries")
 
 
-class Flags(BaseModel):
-    x: bool = Field(description="x lies outside the scene bounds the field was trained on")
-    t: bool = Field(description="t lies outside the capture's time range")
-
-
 # JSON numbers only (strict: `true` is not 1, "2" is not 2), within what the queries accept
 Coordinate = Annotated[StrictFloat, Field(ge=-1e6, le=1e6, description="metres")]
 Seconds = Annotated[StrictFloat, Field(ge=-1e9, le=1e9)]
@@ -120,35 +118,6 @@ class EnvmapBatchResponse(BaseModel):
     width: int
     format: EnvmapFormat
     items: list[EncodedEnvmap]
-
-
-SHLayout = Literal["arcore", "threejs"]
-
-
-class DominantLight(BaseModel):
-    direction: tuple[float, float, float] = Field(description="unit vector the light arrives from (world); "
-                                                  "the best guess even when found is false")
-    intensity: tuple[float, float, float] = Field(description="RGB intensity of a directional light (radiance x sr, "
-                                                  "relative units): ambient SH + this light reproduce the map's irradiance")
-    solid_angle: float = Field(description="effective steradians of the light's lobe")
-    found: bool = Field(description="confidence >= 0.05: the light is real; when false, use the ambient SH alone "
-                        "or the light at your own risk")
-    confidence: float = Field(description="0..1: share of the irradiance facing the light that it gives x (1 - 1/contrast)")
-    reason: str = Field(description="why it was or was not found, in words")
-
-
-class SphericalHarmonics(BaseModel):
-    x: tuple[float, float, float]
-    t: float
-    extrapolated: Flags
-    layout: SHLayout = Field(description="layout of `coefficients` and `coefficients_with_light`")
-    coefficients: list[float] = Field(description="ambient SH (the map without the main light), 27 floats in `layout`")
-    coefficients_with_light: list[float] = Field(description="SH of the whole map (for clients without a "
-                                                 "directional light), 27 floats in `layout`")
-    arcore_27: list[float] = Field(description="ambient SH in ARCore's 27-float layout (9 coefficients x RGB "
-                                   "interleaved, Condon-Shortley signs), whatever the layout")
-    band_order: str
-    dominant_light: DominantLight
 
 
 class CubemapFace(BaseModel):

@@ -48,11 +48,11 @@ def ensure_installed() -> Path:
 
 
 def run_consumer(command: str, path: Path, timeout_s: float = 120) -> dict:
-    """`node tests/node/consumers.mjs COMMAND PATH` -> its JSON output."""
+    """`node tests/node/consumers.mjs COMMAND PATH` -> its JSON answer (the last line of stdout)."""
     proc = subprocess.run(["node", "consumers.mjs", command, str(Path(path).resolve())], cwd=NODE_DIR,
                           capture_output=True, text=True, timeout=timeout_s)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    return json.loads(proc.stdout)
+    return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 @pytest.fixture(scope="session")

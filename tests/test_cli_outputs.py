@@ -14,6 +14,7 @@ from cli.main import build_parser, main
 from core.fields import FieldConfig, SceneBounds, build_field
 from core.fields.artefact import LightFieldArtefact, save_artefact
 from core.fields.mlp import MLPSettings
+from core.lights import extract_dominant_light
 
 BOUNDS = SceneBounds((-1.0, -1.0, -3.0), (1.0, 1.0, 0.0), t0=0.0, t1=2.0)
 X = "0.1,0.2,-1"
@@ -65,7 +66,6 @@ def test_help_shows_defaults():
 
 
 def test_sh_batch_in_both_layouts(artefact_dir, tmp_path, capsys):
-    from core.lights import extract_dominant_light
     from core.sh import to_arcore_27
 
     queries = tmp_path / "q.json"
@@ -75,10 +75,27 @@ def test_sh_batch_in_both_layouts(artefact_dir, tmp_path, capsys):
     assert len(out) == 2 and out[0]["layout"] == "threejs"
     light = extract_dominant_light(envmap_at(artefact_dir, 0.5, 128))
     np.testing.assert_allclose(out[0]["coefficients"], light.ambient_sh.reshape(-1).tolist(), rtol=1e-5, atol=1e-7)
-    assert set(out[0]["dominant_light"]) >= {"found", "confidence", "reason", "direction", "intensity_rgb"}
     assert main(["sh", str(artefact_dir), "--x", X, "--t", "0.5"]) == 0
     one = json.loads(capsys.readouterr().out)
     np.testing.assert_allclose(one["coefficients"], to_arcore_27(light.ambient_sh), rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("layout", ["arcore", "threejs", "babylon", "unity", "arkit"])
+def test_sh_json_is_the_apis_model_in_every_layout(artefact_dir, capsys, layout):
+    """The CLI prints exactly the API's /sh model (core.export.schema.SphericalHarmonics): same fields,
+    same names (`intensity`, `solid_angle`, `extrapolated` {x, t}), so the docs' recipes read both."""
+    from core.export.schema import SphericalHarmonics
+    from core.export.sh_layouts import unpack
+
+    assert main(["sh", str(artefact_dir), "--x", X, "--t", "0.5", "--layout", layout]) == 0
+    raw = json.loads(capsys.readouterr().out)
+    doc = SphericalHarmonics.model_validate(raw)
+    assert set(raw) == set(SphericalHarmonics.model_fields)
+    assert set(raw["dominant_light"]) == set(SphericalHarmonics.model_fields["dominant_light"].annotation.model_fields)
+    assert doc.layout == layout and doc.extrapolated.x is False and doc.t == 0.5
+    light = extract_dominant_light(envmap_at(artefact_dir, 0.5, 128))
+    np.testing.assert_allclose(unpack(doc.coefficients, layout), light.ambient_sh.double().numpy(), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(doc.dominant_light.intensity, light.intensity_rgb.tolist(), rtol=1e-5)
 
 
 def test_cubemap_ktx2_holds_prefiltered_mips(artefact_dir, tmp_path):
@@ -135,15 +152,58 @@ def test_sequence_command_writes_frames_over_time(artefact_dir, tmp_path):
     assert main(["sequence", str(artefact_dir), "--x", X, "--t0", "2", "--t1", "1", "--frames", "2", "-o", str(tmp_path / "d")]) == 2
 
 
-def test_unity_command_writes_a_probe_grid_in_unitys_convention(artefact_dir, tmp_path):
+def test_unity_command_writes_a_probe_grid_in_unitys_convention(artefact_dir, tmp_path, capsys):
+    from core.export.coverage import covered_region
+    from core.export.schema import UnityProbeGrid
     from core.export.unity import unity_sh, unity_shade_sh9
 
     out = tmp_path / "probes.json"
     assert main(["unity", str(artefact_dir), "--grid", "2,1,2", "--t", "1", "-o", str(out)]) == 0
-    doc = json.loads(out.read_text())
-    assert len(doc["positions"]) == 4 and len(doc["sh"]) == 4 and np.shape(doc["sh"][0]) == (3, 9)
-    np.testing.assert_allclose(np.asarray(doc["positions_unity"])[:, 2], -np.asarray(doc["positions"])[:, 2])
-    x = doc["positions"][0]
+    doc = UnityProbeGrid.model_validate_json(out.read_text())
+    assert len(doc.probes) == 4 and all(np.shape(p.sh) == (3, 9) for p in doc.probes)
+    for p in doc.probes:
+        assert p.position_unity == pytest.approx((p.position[0], p.position[1], -p.position[2]))
+    x = doc.probes[0].position
     env = LightFieldArtefact.load(artefact_dir).envmap(x, 1.0, 32)[0].numpy()
-    np.testing.assert_allclose(doc["sh"][0], unity_sh(env), rtol=1e-6)
-    assert np.isfinite(unity_shade_sh9(doc["sh"][0], np.array([0.0, 1.0, 0.0]))).all()
+    np.testing.assert_allclose(doc.probes[0].sh, unity_sh(env), rtol=1e-6)
+    assert np.isfinite(unity_shade_sh9(doc.probes[0].sh, np.array([0.0, 1.0, 0.0]))).all()
+    # the default grid: cell centres of the region the captures cover, none flagged, none on its faces
+    lo, hi, _ = covered_region(BOUNDS)
+    positions = np.array([p.position for p in doc.probes])
+    assert (positions > lo).all() and (positions < hi).all() and doc.extrapolated_probes == 0
+    assert "outside" not in capsys.readouterr().err
+    # a grid over the whole padded box: the corners are outside what the captures cover, and say so
+    assert main(["unity", str(artefact_dir), "--grid", "2,2,2", "--t", "1", "--lo=-1,-1,-3", "--hi=1,1,0",
+                 "-o", str(out)]) == 0
+    doc = UnityProbeGrid.model_validate_json(out.read_text())
+    assert doc.extrapolated_probes == 8 and all(p.extrapolated.x for p in doc.probes)
+    assert "8 of 8 probes lie outside" in capsys.readouterr().err
+
+
+def test_arkit_command_writes_metal_slices_and_sh_planes(artefact_dir, tmp_path):
+    import base64
+
+    from core.cubemap import equirect_to_cubemap
+    from core.export.products import cube_source_height
+    from core.export.schema import ArkitProbe
+    from core.export.sh_layouts import unpack
+
+    out = tmp_path / "arkit.json"
+    assert main(["arkit", str(artefact_dir), "--x", X, "--t", "0.5", "--size", "8", "-o", str(out)]) == 0
+    doc = ArkitProbe.model_validate_json(out.read_text())
+    assert (doc.size, doc.bytes_per_row, doc.bytes_per_image, len(doc.slices_base64)) == (8, 64, 512, 6)
+    env = envmap_at(artefact_dir, 0.5, cube_source_height(8))
+    faces = equirect_to_cubemap(env, 8).numpy()
+    got = np.stack([np.frombuffer(base64.b64decode(s), "<f2").reshape(8, 8, 4) for s in doc.slices_base64])
+    np.testing.assert_allclose(got[..., :3].astype(np.float32), np.clip(faces, 0, 65504), rtol=2e-3, atol=1e-4)
+    light = extract_dominant_light(env)
+    np.testing.assert_allclose(unpack(doc.sh_planes, "arkit"), light.ambient_sh.double().numpy(), rtol=1e-5, atol=1e-7)
+
+
+def test_usd_without_usd_core_says_which_extra_to_install(artefact_dir, tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "pxr", None)  # as if usd-core were not installed: `import pxr` fails
+    assert main(["usd", str(artefact_dir), "--x", X, "--t", "1", "--height", "4", "-o", str(tmp_path / "p.usdz")]) == 2
+    err = capsys.readouterr().err
+    assert "usd-core" in err and "lightfield[usd]" in err and not (tmp_path / "p.usdz").exists()

@@ -109,16 +109,19 @@ def test_glb_structure_rgbd_round_trip_and_irradiance_sh():
     assert doc["extensionsUsed"] == ["EXT_lights_image_based"]
     assert doc["scenes"][0]["extensions"]["EXT_lights_image_based"]["light"] == 0
     assert light["specularImageSize"] == 16 and len(light["specularImages"]) == 3
-    assert light["intensity"] > 1.0
-    # irradiance SH: E(n) = sum E_k Y_k(n) reproduces our irradiance
-    e_k = torch.tensor(light["irradianceCoefficients"], dtype=torch.float64) * light["intensity"]
+    assert light["intensity"] == 1.0  # the scale RGBD needs is in extras (Babylon applies intensity twice)
+    radiance_scale = doc["nodes"][0]["extras"]["radianceScale"]
+    assert radiance_scale > 1.0
+    # irradiance SH in Babylon's basis (Condon-Shortley phase): E(n) = sum E_k Y_k^CS(n) is our irradiance
+    e_k = torch.tensor(light["irradianceCoefficients"], dtype=torch.float64) * radiance_scale
+    cs = torch.tensor([1.0, -1, 1, -1, 1, -1, 1, -1, 1], dtype=torch.float64)[:, None]
     n = random_dirs(16)
-    assert torch.allclose(eval_sh(e_k, n), sh_irradiance(sh, n), rtol=1e-6)
+    assert torch.allclose(eval_sh(e_k * cs, n), sh_irradiance(sh, n), rtol=1e-6)
     # a face decodes back (RGBD, un-mirrored, times intensity) to the float face
     view = doc["bufferViews"][doc["images"][light["specularImages"][1][4]]["bufferView"]]
     png = blob[view["byteOffset"]:view["byteOffset"] + view["byteLength"]]
     rgbd = _png_rgba(png)
-    face = rgbd_decode(rgbd)[:, ::-1] * light["intensity"]
+    face = rgbd_decode(rgbd)[:, ::-1] * radiance_scale
     np.testing.assert_allclose(face, mips[1][4], rtol=0.05, atol=0.02 * float(mips[1][4].max()))
 
 
@@ -148,6 +151,8 @@ def test_envmap_exr_carries_colour_space_probe_time_units_and_artefact():
 
 # ------------------------------------------------------------------------------ USD (usd-core)
 def test_usdz_opens_in_usd_core_with_a_dome_light_in_openexr_latlong():
+    """The .usdz usd-core packaged (UsdUtils.CreateNewARKitUsdzPackage) opens in usd-core, passes all
+    its validators, and its DomeLight's texture is our map in OpenEXR's latlong layout."""
     pxr = pytest.importorskip("pxr", reason="usd-core is a dev dependency (pip install usd-core)")
     from pxr import Usd, UsdLux, UsdValidation
 
@@ -166,7 +171,8 @@ def test_usdz_opens_in_usd_core_with_a_dome_light_in_openexr_latlong():
         assert stage is not None
         dome = UsdLux.DomeLight(stage.GetPrimAtPath("/Probe/EnvLight"))
         assert dome and dome.GetTextureFormatAttr().Get() == "latlong"
-        assert dome.GetTextureFileAttr().Get().path == "envmap.exr"
+        texture = dome.GetTextureFileAttr().Get().path
+        assert texture.endswith("envmap.exr")
         from pxr import UsdGeom
 
         assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
@@ -177,13 +183,16 @@ def test_usdz_opens_in_usd_core_with_a_dome_light_in_openexr_latlong():
         errors = UsdValidation.ValidationContext(validators).Validate(stage)
         assert not errors, [(e.GetName(), e.GetMessage()) for e in errors]
     with zipfile.ZipFile(io.BytesIO(blob)) as z:
-        assert z.namelist() == ["probe.usda", "envmap.exr"]
-        tex = z.read("envmap.exr")
-        for info in z.infolist():  # usdz: stored, data 64-byte aligned
+        assert z.namelist() == ["probe.usdc", texture]  # one flattened layer first, then its texture
+        tex = z.read(texture)
+        for info in z.infolist():  # usdz: stored, data 64-byte aligned; no restrictive mode bits
             assert info.compress_type == zipfile.ZIP_STORED
             assert (info.header_offset + 30 + len(info.filename) + len(info.extra)) % 64 == 0
+            assert info.external_attr >> 16 in (0, 0o100644)
     header = read_exr_header(tex)
     assert str(header["envmap"]).endswith("LATLONG") and header["lightfield:artefactId"] == "job-9"
+    assert "lightfield:t" not in header  # (the stage's customData carries t; the EXR its own time attribute)
+    assert header["lightfield:time"] == 0.75
     img = read_exr(tex)
     rows, cols = np.meshgrid(np.arange(16), np.arange(32), indexing="ij")
     d = torch.from_numpy(openexr_latlong_direction(rows, cols, 16))  # where OpenEXR/UsdLux says each texel looks
@@ -283,3 +292,79 @@ def test_sequence_zip_streams_frames_with_metadata():
             assert read_exr_header(data)["lightfield:time"] == pytest.approx(t)
     with pytest.raises(ValueError):
         sequence_times(0, 1, 0)
+
+
+def test_openimageio_reads_the_sequence_with_time_code_rate_and_acescg_chromaticities(tmp_path):
+    """OpenImageIO (the VFX tools' image library) reads the unzipped sequence: frame rate, SMPTE
+    time code, AP1 chromaticities, and pixels equal to OIIO's own Rec. 709 -> ACEScg conversion."""
+    oiio = pytest.importorskip("OpenImageIO", reason="OpenImageIO is a dev dependency (pip install OpenImageIO)")
+    from core.export.metadata import ACESCG_CHROMATICITIES
+    from core.export.sequence import sequence_fps, sequence_members, sequence_times, zip_stream
+    from core.io.exr import read_exr_header
+
+    times = sequence_times(0.0, 2.0, 49)  # 24 frames per second
+    maps = [(t, lamp_map(8).float().numpy() * (1 + t)) for t in times]
+    blob = b"".join(zip_stream(sequence_members(maps, (0, 1, 2), "job", fps=sequence_fps(times), colour="acescg")))
+    with zipfile.ZipFile(io.BytesIO(blob)) as z:
+        assert all(info.external_attr >> 16 == 0o100644 for info in z.infolist())  # regular files, rw-r--r--
+        z.extractall(tmp_path)
+    assert (tmp_path / "envmap.0030.exr").stat().st_mode & 0o777 == 0o644
+    frame = 30  # t = 29 / 24 s = 00:00:01 frame 05 at 24 fps
+    path = str(tmp_path / f"envmap.{frame:04d}.exr")
+    spec = oiio.ImageInput.open(path).spec()
+    assert spec.getattribute("framesPerSecond") == (24, 1)
+    np.testing.assert_allclose(spec.getattribute("chromaticities"), ACESCG_CHROMATICITIES, rtol=1e-6)
+    code = read_exr_header(path)["timeCode"]
+    assert (code.hours, code.minutes, code.seconds, code.frame) == (0, 0, 1, 5)
+    # OIIO's own colour management (its built-in OCIO config) converts our Rec. 709 map to ACEScg like ours
+    src = oiio.ImageBuf(oiio.ImageSpec(16, 8, 3, oiio.FLOAT))
+    src.set_pixels(oiio.ROI(), np.ascontiguousarray(maps[frame - 1][1], np.float32))
+    theirs = oiio.ImageBufAlgo.colorconvert(src, "Linear Rec.709 (sRGB)", "ACEScg").get_pixels(oiio.FLOAT)
+    ours = oiio.ImageBuf(path).get_pixels(oiio.FLOAT)
+    np.testing.assert_allclose(ours, theirs, rtol=2e-4, atol=1e-6)
+    # and every frame reads back as a sequence of the documented name pattern
+    assert sorted(p.name for p in tmp_path.glob("envmap.*.exr"))[::24] == ["envmap.0001.exr", "envmap.0025.exr",
+                                                                            "envmap.0049.exr"]
+
+
+# ------------------------------------------------------------------ the SH layout table
+@pytest.mark.parametrize("name", ["arcore", "threejs", "babylon", "unity", "arkit", "gltf"])
+def test_every_sh_layout_round_trips_and_says_what_it_is(name):
+    from core.export.sh_layouts import get_layout, pack, to_layout, unpack
+
+    sh = project_sh(lamp_map(16))
+    np.testing.assert_allclose(unpack(pack(sh, name), name), sh.numpy(), rtol=1e-12, atol=1e-12)
+    layout = get_layout(name)
+    values = to_layout(sh, name)
+    flat = np.asarray(pack(sh, name))
+    np.testing.assert_allclose(flat, (values.T if layout.packing == "channel_planes" else values).reshape(-1))
+    assert layout.reads_it and layout.checked_by and layout.name in layout.describe()
+
+
+def test_unity_row_is_the_z_mirrored_maps_projection():
+    """The table's Unity signs (k = 2, 5, 7) equal re-projecting the map mirrored in z, as Unity's
+    left-handed axes see it."""
+    from core.envmap import mirror_envmap
+    from core.export.sh_layouts import get_layout
+    from core.export.unity import unity_sh
+
+    env = lamp_map(32)
+    mirrored = project_sh(mirror_envmap(env, "z")).numpy()
+    unity = get_layout("unity")
+    np.testing.assert_allclose(np.asarray(unity_sh(env.numpy())).T, mirrored * np.asarray(unity.scale)[:, None],
+                               rtol=1e-9, atol=1e-12)
+    assert [k for k, s in enumerate(unity.signs) if s < 0] == [2, 5, 7]
+
+
+def test_covered_region_undoes_the_fields_margin_and_the_default_grid_stays_inside():
+    from core.export.coverage import cell_centre_grid, covered_region, inside
+    from core.fields.normalization import SceneBounds
+
+    points = torch.tensor([[0.0, 0.0, -4.0], [5.0, 2.8, 0.0]] * 50, dtype=torch.float64)
+    bounds = SceneBounds.from_points(points)  # the room [0, 5] x [0, 2.8] x [-4, 0], padded 10 % per side
+    lo, hi, source = covered_region(bounds)
+    np.testing.assert_allclose(lo, [0.0, 0.0, -4.0], atol=0.06)
+    np.testing.assert_allclose(hi, [5.0, 2.8, 0.0], atol=0.06)
+    grid = cell_centre_grid(lo, hi, (3, 2, 3))
+    assert grid.shape == (18, 3) and inside(lo, hi, grid).all() and "margin" in source
+    assert not inside(lo, hi, [bounds.lo]).any()  # the padded box's corner is outside the room

@@ -99,16 +99,29 @@ def test_readme_command_line_block_runs_and_answers_inside_the_room(cli_run, wor
     assert len(decode_ktx2_cubemap((workdir / "cube.ktx2").read_bytes())) >= 3
     assert (workdir / "probe.glb").read_bytes()[:4] == b"glTF"
     with zipfile.ZipFile(workdir / "probe.usdz") as z:
-        assert z.namelist() == ["probe.usda", "envmap.exr"]
+        assert z.namelist()[0] == "probe.usdc" and z.namelist()[1].endswith("envmap.exr")
     with zipfile.ZipFile(workdir / "shot.zip") as z:
         assert len(json.loads(z.read("sequence.json"))["frames"]) == 2
     assert (workdir / "insertion.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert len(json.loads((workdir / "probes.json").read_text())["sh"]) == 18
-    # the main light is found on the demo scene, at the README point and at the held-out probes
+    probes = json.loads((workdir / "probes.json").read_text())
+    assert len(probes["probes"]) == 18 and probes["extrapolated_probes"] == 0  # the default grid: inside the room
+    # the main light of the ESTIMATED field, at the README point and the held-out probes: when found,
+    # within 20 deg of the source that dominates the irradiance there (the scene's emitters say which)
+    from core.sim.oracle import load_scene
+    from light_truth import angle_deg, dominant_source
+
     doc = json.loads((workdir / "cap" / "capture.json").read_text())
-    found = [extract_dominant_light(art.envmap(p, None, 128)[0]) for p in [point, *[q["x"] for q in doc["probes"]]]]
-    assert found[0].found, found[0].reason
-    assert sum(light.found for light in found) >= len(found) - 1, [light.reason for light in found]
+    scene = load_scene(workdir / "cap")
+    found = 0
+    for p in [point, *[q["x"] for q in doc["probes"]]]:
+        light = extract_dominant_light(art.envmap(p, None, 128)[0].double())
+        name, towards, ratio = dominant_source(scene, p)
+        off = angle_deg(light.direction, towards)
+        print(f"\nmain light at {p}: {off:.0f} deg from {name} ({ratio:.1f}x the next source), "
+              f"confidence {light.confidence:.2f}, found {light.found}")
+        assert not light.found or off <= 20.0, (p, off, light.reason)
+        found += light.found
+    assert found >= 2, "the demo's lamps should be found at some probes"
 
 
 @pytest.fixture(scope="module")
@@ -156,3 +169,65 @@ def test_readme_curl_block_runs_against_lightfield_serve(cli_run, workdir, readm
     assert sh[0]["dominant_light"]["reason"] and 0 <= sh[0]["dominant_light"]["confidence"] <= 1
     for name in ("env.exr", "cube.ktx2", "probe.glb", "probe.usdz", "shot.zip"):
         assert (workdir / name).stat().st_size > 100, name
+
+
+# ------------------------------------------------------------------ docs/integrations.md's recipes
+INTEGRATIONS = REPO / "docs" / "integrations.md"
+# languages whose consumer cannot run here; the page must say so next to each block
+NOT_RUNNABLE_HERE = {"python": "Not run in Blender", "csharp": "Not run in Unity", "swift": "Not run on an Apple device"}
+
+
+def integration_blocks(lang: str) -> list[str]:
+    return re.findall(rf"```{lang}\n(.*?)```", INTEGRATIONS.read_text(), re.S)
+
+
+def test_every_integrations_recipe_is_run_by_a_test_or_says_why_not():
+    text = INTEGRATIONS.read_text()
+    langs = re.findall(r"```(\w+)\n", text)
+    assert set(langs) <= {"sh", "js", *NOT_RUNNABLE_HERE}, set(langs)  # sh: below; js: test_integrations_browser.py
+    for lang, note in NOT_RUNNABLE_HERE.items():
+        for block in integration_blocks(lang):
+            after = text[text.index(block) + len(block):][:2500]
+            assert note in after, f"the {lang} recipe must say '{note}' after it"
+
+
+def _a_finished_job(port: int, workdir: Path) -> str:
+    import httpx
+
+    jobs = httpx.get(f"http://127.0.0.1:{port}/jobs", timeout=10).json()["jobs"]
+    done = [j["id"] for j in jobs if j["state"] == "succeeded"]
+    if done:
+        return done[0]
+    submit = "\n".join(sh_block_after("## API").splitlines()[:4]).replace("localhost:8000", f"127.0.0.1:{port}")
+    proc = subprocess.run(["bash", "-euo", "pipefail", "-c", submit + '\necho "$JOB"'], cwd=workdir,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc.stdout.split()[-1]
+
+
+def test_integrations_shell_recipes_run_against_lightfield_serve(cli_run, workdir, readme_server):
+    """Every ```sh block of docs/integrations.md, as written, with LF and JOB set: the API download and
+    the CLI command of each hand-off write what the page says."""
+    if not shutil.which("curl"):
+        pytest.skip("curl is needed to run docs/integrations.md's API lines")
+    from core.export.schema import ArkitProbe, UnityProbeGrid
+
+    job = _a_finished_job(readme_server, workdir)
+    env = dict(os.environ, LF=f"http://127.0.0.1:{readme_server}", JOB=job,
+               PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    blocks = integration_blocks("sh")
+    assert len(blocks) >= 5
+    for block in blocks:
+        proc = subprocess.run(["bash", "-euo", "pipefail", "-c", block], cwd=workdir, env=env, capture_output=True,
+                              text=True, timeout=600)
+        assert proc.returncode == 0, (block, proc.stdout[-2000:], proc.stderr[-2000:])
+    assert (workdir / "probe.glb").read_bytes()[:4] == b"glTF"
+    assert (workdir / "probe.usda").read_text().startswith("#usda 1.0") and (workdir / "probe.exr").is_file()
+    with zipfile.ZipFile(workdir / "probe.usdz") as z:
+        assert z.namelist()[0] == "probe.usdc"
+    grid = UnityProbeGrid.model_validate_json((workdir / "probes.json").read_text())
+    assert len(grid.probes) == 32 and grid.extrapolated_probes == 0
+    assert len(ArkitProbe.model_validate_json((workdir / "arkit.json").read_text()).slices_base64) == 6
+    with zipfile.ZipFile(workdir / "shot.zip") as z:
+        assert len(json.loads(z.read("sequence.json"))["frames"]) == 13
+    assert len(list((workdir / "shot").glob("envmap.*.exr"))) == 13

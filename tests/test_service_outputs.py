@@ -50,6 +50,35 @@ def test_sh_layouts_agree_and_the_light_says_how_sure_it_is(stack, job):
     assert (full[0] >= a[0] - 1e-6).all()
 
 
+def test_unity_and_arkit_endpoints_serve_the_clis_models(stack, job):
+    """/unity and /arkit answer the same pydantic models the CLI writes (core.export.schema), the
+    grid's probes flagged per probe; /cubemap's OpenAPI lists the KTX2 media type it serves."""
+    import base64
+
+    from core.export.schema import ArkitProbe, SphericalHarmonics, UnityProbeGrid
+
+    with stack.client() as c:
+        x = inside_point(c, job)
+        unity = c.get(f"/lightfield/{job}/unity", params={"grid": "2,1,2"})
+        outside = c.get(f"/lightfield/{job}/unity", params={"grid": "2,1,1", "lo": "-50,-50,-50", "hi": "50,50,50"})
+        arkit = c.get(f"/lightfield/{job}/arkit", params={"x": x, "size": 8})
+        sh = c.get(f"/lightfield/{job}/sh", params={"x": x, "layout": "babylon"})
+        bad = c.get(f"/lightfield/{job}/unity", params={"grid": "9,9,9"})
+        openapi = c.get("/openapi.json").json()
+    assert unity.status_code == 200, unity.text
+    grid = UnityProbeGrid.model_validate(unity.json())
+    assert len(grid.probes) == 4 and grid.extrapolated_probes == 0 and unity.headers["X-Lightfield-Extrapolated"] == "none"
+    far = UnityProbeGrid.model_validate(outside.json())
+    assert far.extrapolated_probes == 2 and all(p.extrapolated.x for p in far.probes)
+    assert outside.headers["X-Lightfield-Extrapolated"] == "x"
+    probe = ArkitProbe.model_validate(arkit.json())
+    assert probe.bytes_per_row == 64 and [len(base64.b64decode(s)) for s in probe.slices_base64] == [512] * 6
+    assert SphericalHarmonics.model_validate(sh.json()).layout == "babylon"
+    assert bad.status_code == 413 and bad.json()["error"]["code"] == "grid_too_large"
+    content = openapi["paths"]["/lightfield/{job_id}/cubemap"]["get"]["responses"]["200"]["content"]
+    assert {"application/json", "application/x-npy", "image/ktx2"} <= set(content)
+
+
 def test_prefiltered_cubemap_is_a_binary_ktx2(stack, job):
     from core.export.ktx2 import decode_ktx2_cubemap
 

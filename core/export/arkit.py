@@ -25,14 +25,15 @@ def _srgb_encode(linear: np.ndarray) -> np.ndarray:
 def metal_cube_slices(faces: np.ndarray, pixel_format: str = "rgba16Float", exposure_ev: float = 0.0) -> list[bytes]:
     """Per-slice bytes of cube faces [6, S, S, 3] (ours) for a Metal cube texture.
 
-    `rgba16Float`: linear radiance, alpha 1 (bytesPerRow = 8 S). `rgba8Unorm_srgb`: 2^ev scaled,
+    `rgba16Float`: linear radiance clipped to the half range (+-65504), alpha 1 (bytesPerRow = 8 S). `rgba8Unorm_srgb`: 2^ev scaled,
     clipped to [0, 1], sRGB-encoded, alpha 255 (bytesPerRow = 4 S)."""
     f = np.asarray(faces, np.float32)
     if f.ndim != 4 or f.shape[0] != 6 or f.shape[1] != f.shape[2] or f.shape[3] != 3:
         raise ValueError(f"faces must be [6, S, S, 3], got {f.shape}")
     alpha = np.ones(f.shape[:3] + (1,), np.float32)
     if pixel_format == "rgba16Float":
-        return [s.tobytes() for s in np.concatenate((f, alpha), -1).astype("<f2")]
+        rgba = np.clip(np.concatenate((f, alpha), -1), -65504.0, 65504.0)  # the half range: no inf for a bright lamp
+        return [s.tobytes() for s in rgba.astype("<f2")]
     if pixel_format == "rgba8Unorm_srgb":
         ldr = np.round(_srgb_encode(f * 2.0 ** exposure_ev) * 255).astype(np.uint8)
         return [s.tobytes() for s in np.concatenate((ldr, (alpha * 255).astype(np.uint8)), -1)]
@@ -40,6 +41,29 @@ def metal_cube_slices(faces: np.ndarray, pixel_format: str = "rgba16Float", expo
 
 
 def arkit_sh_planes(radiance_sh) -> list[float]:
-    """Our [9, 3] SH -> 27 floats as three planes of 9 (all R, then G, then B)."""
-    c = np.asarray(radiance_sh, np.float64).reshape(9, 3)
-    return [float(v) for v in c.T.reshape(-1)]
+    """Our [9, 3] SH -> 27 floats as three planes of 9 (all R, then G, then B): core.export.sh_layouts 'arkit'."""
+    from core.export.sh_layouts import pack
+
+    return pack(radiance_sh, "arkit")
+
+
+def arkit_probe(env, x, t, flags, size: int = 64, pixel_format: str = "rgba16Float", exposure_ev: float = 0.0):
+    """The ARKit product (core.export.schema.ArkitProbe) of one env map of ours [H, 2H, 3]: Metal cube
+    slices, the ambient SH planes and the main light. `flags`: core.export.schema.Flags."""
+    import base64
+
+    import torch
+
+    from core.cubemap import equirect_to_cubemap
+    from core.export.schema import ArkitProbe, DominantLight
+    from core.lights import extract_dominant_light
+
+    e = torch.as_tensor(np.asarray(env, np.float32))
+    faces = equirect_to_cubemap(e, size).numpy()
+    slices = metal_cube_slices(faces, pixel_format, exposure_ev)
+    light = extract_dominant_light(e.double())
+    texel = 8 if pixel_format == "rgba16Float" else 4
+    return ArkitProbe(x=tuple(float(v) for v in x), t=None if t is None else float(t), extrapolated=flags,
+                      pixel_format=pixel_format, size=size, bytes_per_row=texel * size,
+                      bytes_per_image=texel * size * size, slices_base64=[base64.b64encode(s).decode() for s in slices],
+                      sh_planes=arkit_sh_planes(light.ambient_sh), dominant_light=DominantLight.of(light))

@@ -13,6 +13,13 @@ the Khronos Data Format Specification 1.3, section 5). Layout written here:
 
 Alpha is 1. `precision="auto"` writes half floats unless a value exceeds the half range, so
 nothing is clamped; "half" forces half floats (values beyond +-65504 clamped), "float" float32.
+
+Written by hand because no library does the job here: KTX-Software's own binding (`pyktx` on
+PyPI) ships as a source package only and needs libktx built and installed (`pip install
+pyktx==4.4.2` fails to build on this machine); the other PyPI packages parse KTX2 or convert
+8-bit images through Basis Universal, neither writes float cube mip chains. The files are
+checked by the readers users run: three's ktx-parse in Node and three's KTX2Loader in
+Chromium (tests/test_export_node.py, tests/test_integrations_browser.py).
 """
 from __future__ import annotations
 

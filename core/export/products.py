@@ -9,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-SH_LAYOUTS = ("arcore", "threejs")
 
 
 def cube_source_height(size: int) -> int:
@@ -27,22 +26,41 @@ def prefiltered(env, size: int, levels: int | None = None) -> list[np.ndarray]:
     return [m.numpy() for m in prefiltered_cubemap(_tensor(env), size, levels)]
 
 
-def cube_ktx2(env, size: int, levels: int | None = None) -> bytes:
-    """KTX2 cube map, RGBA16F, GGX roughness mips (levels=1: the mirror cube only)."""
+CUBE_LAYOUTS = ("gl", "threejs")
+
+
+def cube_for(env, layout: str = "gl"):
+    """The map whose GL-table cube faces a consumer samples as our radiance: 'gl' (OpenGL/Vulkan/Metal
+    cube tables, Babylon, Filament, ARCore) is ours; 'threejs' is mirrored in x, because three.js
+    samples a CubeTexture it did not render at (-x, y, z) (`flipEnvMap = -1`)."""
+    from core.envmap import mirror_envmap
+
+    if layout not in CUBE_LAYOUTS:
+        raise ValueError(f"cube layout must be one of {', '.join(CUBE_LAYOUTS)}, got {layout!r}")
+    e = _tensor(env)
+    return mirror_envmap(e, "x") if layout == "threejs" else e
+
+
+def cube_ktx2(env, size: int, levels: int | None = None, layout: str = "gl") -> bytes:
+    """KTX2 cube map, RGBA16F, GGX roughness mips (levels=1: the mirror cube only), in `layout`."""
     from core.export.ktx2 import encode_ktx2_cubemap
 
-    return encode_ktx2_cubemap(prefiltered(env, size, levels))
+    return encode_ktx2_cubemap(prefiltered(cube_for(env, layout), size, levels))
 
 
-def probe_glb(env, x, t, size: int = 64, levels: int | None = None, artefact: str = "") -> bytes:
-    """glTF binary with EXT_lights_image_based (irradiance SH + prefiltered specular mips)."""
+def probe_glb(env, x, t, size: int = 64, levels: int | None = None, artefact: str = "",
+              main_light: bool = True) -> bytes:
+    """glTF binary with EXT_lights_image_based (irradiance SH + prefiltered specular mips) and, with
+    `main_light` and a light found, a KHR_lights_punctual directional light (core.export.gltf)."""
     from core.conventions import CONVENTIONS_SUMMARY
     from core.export.gltf import build_glb
+    from core.lights import extract_dominant_light
     from core.sh import project_sh
 
     e = _tensor(env)
+    light = extract_dominant_light(e) if main_light else None
     return build_glb(prefiltered(e, size, levels), project_sh(e.double()).numpy(), x, t,
-                     extras={"artefact": artefact, "conventions": CONVENTIONS_SUMMARY})
+                     extras={"artefact": artefact, "conventions": CONVENTIONS_SUMMARY}, main_light=light)
 
 
 def probe_usdz(env, x, t, artefact: str = "") -> bytes:
@@ -58,12 +76,7 @@ def envmap_exr_attributes(x, t, artefact: str = "", extrapolated: str | None = N
 
 
 def sh_in_layout(radiance_sh, layout: str) -> list[float]:
-    """27 floats: 'arcore' (Condon-Shortley signs, RGB interleaved) or 'threejs' (SphericalHarmonics3.fromArray)."""
-    from core.export.threejs import threejs_sh
-    from core.sh import to_arcore_27
+    """27 floats of our radiance SH in a consumer's layout (core.export.sh_layouts)."""
+    from core.export.sh_layouts import pack
 
-    if layout == "arcore":
-        return to_arcore_27(radiance_sh)
-    if layout == "threejs":
-        return threejs_sh(radiance_sh)
-    raise ValueError(f"SH layout must be one of {SH_LAYOUTS}, got {layout!r}")
+    return pack(radiance_sh, layout)

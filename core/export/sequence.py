@@ -2,8 +2,10 @@
 
 Files `envmap.<frame:04d>.exr` (frame numbers from `first_frame`, the usual `name.####.exr`
 pattern Nuke / Houdini / Blender read as a sequence), each with `core.export.metadata`
-attributes (probe position, time, units, colour space, artefact id), plus `sequence.json`
-listing frame -> t. The zip is produced incrementally: `zip_stream` yields its bytes as each
+attributes (probe position, time, units, colour space, artefact id, and the standard
+`timeCode` / `framesPerSecond` of evenly spaced frames), plus `sequence.json` listing
+frame -> t. `colour="acescg"` writes ACEScg pixels (AP1 chromaticities). Members are regular
+files with mode 0644 (what unzip restores), not Python's default of no permissions. The zip is produced incrementally: `zip_stream` yields its bytes as each
 member is written, so a caller can send frames while later ones are still being evaluated.
 """
 from __future__ import annotations
@@ -40,13 +42,20 @@ class _Sink(io.RawIOBase):
         return out
 
 
+def zip_member(name: str) -> zipfile.ZipInfo:
+    """A stored zip entry for a regular file with mode 0644 (Unix), fixed date."""
+    info = zipfile.ZipInfo(name, date_time=(2020, 1, 1, 0, 0, 0))
+    info.create_system = 3  # Unix: the mode bits below are honoured by unzip / Python's extract
+    info.external_attr = (0o100644 & 0xFFFF) << 16
+    return info
+
+
 def zip_stream(members: Iterable[tuple[str, bytes]]) -> Iterator[bytes]:
     """Stream a zip (stored, no compression: EXR is already compressed) of (name, bytes) members."""
     sink = _Sink()
     with zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_STORED) as z:
         for name, data in members:
-            info = zipfile.ZipInfo(name, date_time=(2020, 1, 1, 0, 0, 0))
-            z.writestr(info, data)
+            z.writestr(zip_member(name), data)
             chunk = sink.take()
             if chunk:
                 yield chunk
@@ -62,18 +71,28 @@ def sequence_times(t0: float, t1: float, frames: int) -> list[float]:
     return [float(t0)] if frames == 1 else [float(v) for v in np.linspace(t0, t1, frames)]
 
 
+def sequence_fps(times: list[float]) -> float | None:
+    """Frames per second of evenly spaced times (None for one frame or a zero range)."""
+    if len(times) < 2 or times[-1] <= times[0]:
+        return None
+    return (len(times) - 1) / (times[-1] - times[0])
+
+
 def sequence_members(maps: Iterable[tuple[float, np.ndarray]], x, artefact: str | None = None,
-                     first_frame: int = 1, extra: dict | None = None) -> Iterator[tuple[str, bytes]]:
-    """(name, EXR bytes) per (t, env map), then `sequence.json`."""
-    from core.export.metadata import envmap_attributes
+                     first_frame: int = 1, extra: dict | None = None, fps: float | None = None,
+                     colour: str = "rec709") -> Iterator[tuple[str, bytes]]:
+    """(name, EXR bytes) per (t, env map), then `sequence.json`. `fps` (see `sequence_fps`) gives
+    each frame its `framesPerSecond` and `timeCode`."""
+    from core.export.metadata import envmap_attributes, in_colour, sequence_attributes
     from core.io.exr import encode_exr
 
     index = []
     for i, (t, env) in enumerate(maps):
         frame = first_frame + i
         name = f"envmap.{frame:04d}.exr"
-        attrs = envmap_attributes(x, t, artefact, frame=float(frame))
+        attrs = {**envmap_attributes(x, t, artefact, colour=colour, frame=float(frame)), **sequence_attributes(t, fps)}
         index.append({"frame": frame, "t": float(t), "file": name})
-        yield name, encode_exr(np.asarray(env, np.float32), attributes=attrs)
-    doc = {"x": [float(v) for v in x], "artefact": artefact, "frames": index, **(extra or {})}
+        yield name, encode_exr(in_colour(env, colour), attributes=attrs)
+    doc = {"x": [float(v) for v in x], "artefact": artefact, "frames": index, "fps": fps, "colour": colour,
+           **(extra or {})}
     yield "sequence.json", json.dumps(doc, indent=1).encode()

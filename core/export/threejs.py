@@ -16,11 +16,11 @@ import numpy as np
 
 
 def threejs_sh(radiance_sh) -> list[float]:
-    """Our [9, 3] radiance SH -> the 27 floats `SphericalHarmonics3.fromArray` reads."""
-    c = np.asarray(radiance_sh.detach().cpu() if hasattr(radiance_sh, "detach") else radiance_sh, np.float64)
-    if c.shape != (9, 3):
-        raise ValueError(f"SH must be [9, 3], got {c.shape}")
-    return [float(v) for v in c.reshape(-1)]
+    """Our [9, 3] radiance SH -> the 27 floats `SphericalHarmonics3.fromArray` reads
+    (core.export.sh_layouts 'threejs')."""
+    from core.export.sh_layouts import pack
+
+    return pack(radiance_sh, "threejs")
 
 
 def equirect_for_threejs(env: np.ndarray) -> np.ndarray:

@@ -11,14 +11,9 @@ checks it against our irradiance.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 UNITY_FROM_OURS = np.diag([1.0, 1.0, -1.0])
-_BASIS_CONST = (0.5 * math.sqrt(1 / math.pi), math.sqrt(3 / (4 * math.pi)), math.sqrt(3 / (4 * math.pi)),
-                math.sqrt(3 / (4 * math.pi)), 0.5 * math.sqrt(15 / math.pi), 0.5 * math.sqrt(15 / math.pi),
-                0.25 * math.sqrt(5 / math.pi), 0.5 * math.sqrt(15 / math.pi), 0.25 * math.sqrt(15 / math.pi))
 
 
 def to_unity(v) -> np.ndarray:
@@ -30,14 +25,17 @@ def unity_sh(env) -> list[list[float]]:
     """SphericalHarmonicsL2 values [3 channels][9] for an env map of ours [H, 2H, 3]."""
     import torch
 
-    from core.envmap import mirror_envmap
-    from core.sh import COSINE_LOBE_BY_BAND, SH_BANDS, project_sh
+    from core.sh import project_sh
 
-    e = torch.as_tensor(np.asarray(env, np.float64))
-    c = project_sh(mirror_envmap(e, "z")).numpy()  # radiance SH on Unity's axes
-    lobe = np.array([COSINE_LOBE_BY_BAND[l] for l in SH_BANDS])
-    stored = c * (lobe * np.array(_BASIS_CONST) / math.pi)[:, None]
-    return stored.T.tolist()
+    return unity_sh_from_coefficients(project_sh(torch.as_tensor(np.asarray(env, np.float64))))
+
+
+def unity_sh_from_coefficients(radiance_sh) -> list[list[float]]:
+    """Our radiance SH [9, 3] -> SphericalHarmonicsL2 values [3][9] (core.export.sh_layouts 'unity':
+    the z mirror's signs and Unity's A_l C_k / pi scale)."""
+    from core.export.sh_layouts import to_layout
+
+    return to_layout(radiance_sh, "unity").T.tolist()
 
 
 def unity_shade_sh9(sh: list[list[float]], normal_unity: np.ndarray) -> np.ndarray:
@@ -51,6 +49,33 @@ def unity_shade_sh9(sh: list[list[float]], normal_unity: np.ndarray) -> np.ndarr
     n4 = np.concatenate((x, y, z, np.ones_like(x)), axis=-1)
     vb = np.concatenate((x * y, y * z, z * z, z * x), axis=-1)
     return n4 @ sha.T + vb @ shb.T + (x * x - y * y) * shc
+
+
+def unity_probe_grid(evaluate, bounds, counts, t, artefact: str = "", lo=None, hi=None):
+    """The Unity probe grid product (core.export.schema.UnityProbeGrid), shared by the CLI and the API.
+
+    `evaluate(x)` -> (env map [H, 2H, 3] of ours, {'x': bool, 't': bool} the field's own flags).
+    Without lo/hi the probes sit at the cell centres of the region the captures cover
+    (core.export.coverage); every probe outside that region (or the time range) is flagged."""
+    from core.export.coverage import cell_centre_grid, covered_region, inside
+    from core.export.schema import Flags, Region, UnityProbe, UnityProbeGrid
+
+    c_lo, c_hi, source = covered_region(bounds)
+    if lo is None and hi is None:
+        positions = cell_centre_grid(c_lo, c_hi, counts)
+    else:
+        positions = probe_grid(c_lo if lo is None else lo, c_hi if hi is None else hi, counts)
+    covered = inside(c_lo, c_hi, positions)
+    probes = []
+    for x, ok in zip(positions, covered):
+        env, flags = evaluate(tuple(float(v) for v in x))
+        probes.append(UnityProbe(position=tuple(float(v) for v in x), position_unity=tuple(float(v) for v in to_unity(x)),
+                                 sh=unity_sh(np.asarray(env, np.float64)),
+                                 extrapolated=Flags(x=bool(flags["x"] or not ok), t=bool(flags["t"]))))
+    return UnityProbeGrid(t=t, grid=tuple(int(n) for n in counts),
+                          covered=Region(lo=tuple(c_lo.tolist()), hi=tuple(c_hi.tolist()), source=source),
+                          extrapolated_probes=sum(p.extrapolated.x or p.extrapolated.t for p in probes),
+                          probes=probes, artefact=artefact)
 
 
 def probe_grid(lo, hi, counts) -> np.ndarray:

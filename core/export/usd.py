@@ -10,14 +10,15 @@ tag. The stage: `upAxis = "Y"`, `metersPerUnit = 1`, a `/Probe` Xform at the que
 `/Probe/EnvLight` (DomeLight, `inputs:texture:format = "latlong"`), with our metadata in
 `customData`.
 
-A .usdz is an uncompressed zip whose first file is the stage and whose file data starts on
-64-byte boundaries (USDZ specification); `usdz_package` writes one without needing usd-core.
+The stage is built with Pixar's usd-core (UsdLux.DomeLight, UsdGeom) and packaged by
+`UsdUtils.CreateNewARKitUsdzPackage` (one flattened layer, 64-byte aligned stored zip: the
+USDZ rules), so no USD text or zip layout is written by hand here. usd-core is the `usd` extra
+(~160 MB installed); without it these functions raise `USDUnavailable`, which names the extra.
 """
 from __future__ import annotations
 
-import io
-import json
-import zipfile
+import tempfile
+from pathlib import Path
 
 import numpy as np
 
@@ -25,6 +26,19 @@ from core.export.metadata import envmap_attributes
 
 OPENEXR_LAYOUT = ("OpenEXR latlong: row 0 up (+y), column 0 at longitude +pi, image centre looks along +z "
                   "(our map rolled by W/2; docs/integrations.md)")
+INSTALL_HINT = "pip install 'lightfield[usd]' (or: pip install usd-core)"
+
+
+class USDUnavailable(ValueError):
+    """usd-core is not installed: USD export cannot run."""
+
+
+def _pxr():
+    try:
+        from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdUtils
+    except ImportError as exc:
+        raise USDUnavailable(f"USD export needs Pixar's usd-core, which is not installed: {INSTALL_HINT}") from exc
+    return Gf, Sdf, Usd, UsdGeom, UsdLux, UsdUtils
 
 
 def to_openexr_latlong(env: np.ndarray) -> np.ndarray:
@@ -52,68 +66,51 @@ def dome_texture_exr(env: np.ndarray, x=None, t: float | None = None, artefact: 
     return encode_exr(to_openexr_latlong(np.asarray(env, np.float32)), attributes=attrs)
 
 
-def _usd_string(text: str) -> str:
-    return json.dumps(text)  # a JSON string literal is a valid usda string literal (quotes, escapes)
+def dome_light_stage(path, texture: str, x, t: float | None, artefact: str | None = None, intensity: float = 1.0):
+    """A new USD stage at `path` (.usda/.usdc): /Probe (an Xform at x, our metadata in customData)
+    holding /Probe/EnvLight, a DomeLight textured by `texture` (a path relative to the stage)."""
+    Gf, Sdf, Usd, UsdGeom, UsdLux, _ = _pxr()
+    if "@" in texture or "\n" in texture:
+        raise ValueError(f"texture path {texture!r} cannot be written as a USD asset path")
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    px, py, pz = (float(v) for v in x)
+    stage.GetRootLayer().documentation = (f"lightfield: env map at x = ({px:g}, {py:g}, {pz:g}) m"
+                                          + ("" if t is None else f", t = {t:g} s"))
+    probe = UsdGeom.Xform.Define(stage, "/Probe")
+    probe.AddTranslateOp().Set(Gf.Vec3d(px, py, pz))
+    stage.SetDefaultPrim(probe.GetPrim())
+    custom = {"t": None if t is None else float(t), "artefactId": artefact or "", "units": "relative linear radiance"}
+    for key, value in custom.items():
+        if value is not None:
+            probe.GetPrim().SetCustomDataByKey(f"lightfield:{key}", value)
+    dome = UsdLux.DomeLight.Define(stage, "/Probe/EnvLight")
+    dome.CreateIntensityAttr().Set(float(intensity))
+    dome.CreateTextureFileAttr().Set(Sdf.AssetPath(texture))
+    dome.CreateTextureFormatAttr().Set(UsdLux.Tokens.latlong)
+    return stage
 
 
 def dome_light_usda(texture: str, x, t: float | None, artefact: str | None = None, intensity: float = 1.0) -> str:
-    """The stage text (usda) referencing `texture` (a relative path inside the package or folder)."""
-    if "@" in texture or "\n" in texture:
-        raise ValueError(f"texture path {texture!r} cannot be written as a USD asset path")
-    px, py, pz = (float(v) for v in x)
-    custom = {"lightfield:t": t, "lightfield:artefactId": artefact or "", "lightfield:units": "relative linear radiance"}
-    custom_text = "\n".join(
-        f"            {'double' if isinstance(v, float) else 'string'} {k.replace(':', '_')} = "
-        f"{repr(float(v)) if isinstance(v, float) else _usd_string(str(v))}"
-        for k, v in custom.items() if v is not None)
-    return f'''#usda 1.0
-(
-    defaultPrim = "Probe"
-    doc = "lightfield: env map at x = ({px:g}, {py:g}, {pz:g}) m{"" if t is None else f", t = {t:g} s"}"
-    metersPerUnit = 1
-    upAxis = "Y"
-)
-
-def Xform "Probe" (
-    customData = {{
-        dictionary lightfield = {{
-{custom_text}
-        }}
-    }}
-)
-{{
-    double3 xformOp:translate = ({px!r}, {py!r}, {pz!r})
-    uniform token[] xformOpOrder = ["xformOp:translate"]
-
-    def DomeLight "EnvLight"
-    {{
-        float inputs:intensity = {float(intensity)!r}
-        asset inputs:texture:file = @{texture}@
-        token inputs:texture:format = "latlong"
-    }}
-}}
-'''
-
-
-def usdz_package(files: dict[str, bytes]) -> bytes:
-    """Uncompressed zip with every file's data 64-byte aligned; the first entry is the stage."""
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as z:
-        for name, data in files.items():
-            info = zipfile.ZipInfo(name, date_time=(2020, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_STORED
-            header_end = buf.tell() + 30 + len(name.encode())  # local file header + name
-            pad = -(header_end + 4) % 64  # an extra field (id 0x1986, length) padded to the boundary
-            info.extra = (b"\x86\x19" + pad.to_bytes(2, "little") + bytes(pad))
-            z.writestr(info, data)
-    return buf.getvalue()
+    """The stage as usda text, referencing `texture` (a relative path inside the package or folder)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        stage = dome_light_stage(Path(tmp) / "probe.usda", texture, x, t, artefact, intensity)
+        return stage.GetRootLayer().ExportToString()
 
 
 def usdz(env: np.ndarray, x, t: float | None, artefact: str | None = None) -> bytes:
-    """One .usdz: `probe.usda` + `envmap.exr` (OpenEXR latlong)."""
-    stage = dome_light_usda("envmap.exr", x, t, artefact).encode()
-    return usdz_package({"probe.usda": stage, "envmap.exr": dome_texture_exr(env, x, t, artefact)})
+    """One .usdz packaged by usd-core's UsdUtils.CreateNewARKitUsdzPackage: the stage (flattened to
+    one layer) and its texture `envmap.exr` (OpenEXR latlong)."""
+    *_, UsdUtils = _pxr()
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        (root / "envmap.exr").write_bytes(dome_texture_exr(env, x, t, artefact))
+        dome_light_stage(root / "probe.usda", "envmap.exr", x, t, artefact).Save()
+        if not UsdUtils.CreateNewARKitUsdzPackage(str(root / "probe.usda"), str(root / "probe.usdz")):
+            raise RuntimeError("usd-core could not package the stage as a .usdz")
+        return (root / "probe.usdz").read_bytes()
 
 
-__all__ = ["to_openexr_latlong", "openexr_latlong_direction", "dome_texture_exr", "dome_light_usda",
-           "usdz_package", "usdz"]
+__all__ = ["to_openexr_latlong", "openexr_latlong_direction", "dome_texture_exr", "dome_light_stage",
+           "dome_light_usda", "usdz", "USDUnavailable", "INSTALL_HINT"]

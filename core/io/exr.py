@@ -6,6 +6,7 @@ enforced before any pixel data is decoded.
 """
 from __future__ import annotations
 
+import fractions
 import io
 import os
 import warnings
@@ -110,7 +111,8 @@ def _check_attributes(attributes: Optional[Mapping[str, object]]) -> dict:
     for key, value in (attributes or {}).items():
         if not isinstance(key, str) or not key or key in _RESERVED:
             raise ValueError(f"EXR attribute name {key!r} is empty or reserved by OpenEXR")
-        if isinstance(value, bool) or not isinstance(value, (str, int, float, tuple, np.ndarray, OpenEXR.Envmap)):
+        if isinstance(value, bool) or not isinstance(value, (str, int, float, tuple, np.ndarray, OpenEXR.Envmap,
+                                                             OpenEXR.TimeCode, fractions.Fraction)):
             raise ValueError(f"EXR attribute {key!r}: unsupported value type {type(value).__name__}")
         out[key] = value
     return out
@@ -153,7 +155,8 @@ def encode_exr(
     clamped with a HalfOverflowWarning or refused (`on_overflow='error'`); values below ~6e-5
     become half subnormals (absolute precision ~6e-8). NaN/inf are refused unless
     `allow_non_finite`. `attributes` adds header attributes (str, int, float, a tuple of 8
-    floats for `chromaticities`, float32 numpy vectors for V2f/V3f); see
+    floats for `chromaticities`, float32 numpy vectors for V2f/V3f, OpenEXR.TimeCode, a
+    fractions.Fraction for a rational); see
     `core.export.metadata` for the ones our env maps carry."""
     stream = io.BytesIO()
     _build(array, half, on_overflow, allow_non_finite, channel_names, attributes, compress).write(stream)

@@ -7,6 +7,15 @@ not interpreted. The `EXPOSURE=` header is ignored, like OpenCV and most readers
 values are the stored ones. Decoding follows Radiance: x = (m + 0.5) * 2^(e - 136),
 encoding truncates the mantissa, so a round trip is within one mantissa step (< 0.8% of
 the pixel's largest channel).
+
+Why by hand when OpenCV (a dependency) reads and writes .hdr: its Radiance codec has no
+in-memory path in the pinned opencv 5.0 (`cv2.imencode('.hdr')` / `imdecode` write the bytes to
+a temporary file `/tmp/__opencv_temp.*` and read it back, on every call: seen with
+`strace -e trace=openat python -c "import cv2, numpy; cv2.imencode('.hdr', numpy.ones((4, 8, 3), 'f4'))"`),
+it rejects bottom-up ('+Y') files, and it cannot refuse an oversized upload from its header
+before decoding (`MediaLimits`). The service encodes /envmap?format=hdr and decodes uploads per
+request, so both stay here; tests/test_io_hdr.py reads our files with OpenCV and real Poly Haven
+files with both, within half a mantissa step.
 """
 from __future__ import annotations
 

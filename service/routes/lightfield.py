@@ -14,13 +14,13 @@ from fastapi.responses import JSONResponse, StreamingResponse
 from core.conventions import CONVENTIONS_SUMMARY
 from service import queries
 from service.context import AppContext, Tenant, get_ctx, get_tenant
-from service.errors import ErrorBody, InvalidInput, PayloadTooLarge
+from service.errors import ErrorBody, InvalidInput, PayloadTooLarge, ServiceUnavailable
 from service.fieldcache import CachedField
 from service.lightfields import job_field, recent_field
 from service.queries import DEFAULT_QUALITY, MAX_ABS_EV, MAX_ABS_T_S, X_PATTERN
 from service.models import (
-    CubemapFace, CubemapResponse, DominantLight, EncodedEnvmap, EnvmapBatchRequest, EnvmapBatchResponse,
-    EnvmapFormat, Flags, LightfieldInfo, Quality, SHLayout, SphericalHarmonics,
+    ArkitProbe, CubemapFace, CubemapResponse, EncodedEnvmap, EnvmapBatchRequest, EnvmapBatchResponse,
+    EnvmapFormat, Flags, LightfieldInfo, Quality, SHLayout, SphericalHarmonics, UnityProbeGrid,
 )
 
 router = APIRouter(tags=["lightfield"])
@@ -29,10 +29,6 @@ CONVENTIONS_HEADER = "X-Lightfield-Conventions"
 EXTRAPOLATED_HEADER = "X-Lightfield-Extrapolated"
 QUALITY_HEADER = "X-Lightfield-Quality"
 CUBE_FACES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
-SH_BAND_ORDER = ("coefficient k = 0..8 is (l, m) = (0,0), (1,-1), (1,0), (1,1), (2,-2), (2,-1), (2,0), (2,1), "
-                 "(2,2), i.e. 1, y, z, x, xy, yz, 3z^2-1, xz, x^2-y^2; 27 floats = 9 coefficients x RGB interleaved; "
-                 "layout arcore: odd m negated (Condon-Shortley phase); layout threejs: SphericalHarmonics3.fromArray "
-                 "(no phase) (docs/conventions.md, docs/integrations.md)")
 X_HELP = "world position 'X,Y,Z' in metres: three finite numbers, each within +-1e6"
 T_HELP = "seconds from the first frame"
 QUALITY_HELP = ("fast (default) = the field evaluated at (x, t) at a quarter of the rows (at least 16) and "
@@ -139,16 +135,18 @@ async def post_envmaps(job_id: str, body: EnvmapBatchRequest, response: Response
     ])
 
 
+def _layout_help() -> str:
+    from core.export.sh_layouts import LAYOUTS
+
+    return "; ".join(layout.describe() for layout in LAYOUTS.values())
+
+
 @router.get("/lightfield/{job_id}/sh", response_model=SphericalHarmonics, responses=_ERRORS,
-            summary="ARCore-style lighting: main light + ambient SH (ARCore or three.js layout)")
+            summary="ARCore-style lighting: main light + ambient SH, in a consumer's SH layout")
 async def get_sh(job_id: str, response: Response, x: str = XQuery, t: float = TQuery,
-                 layout: SHLayout = Query("arcore", description="arcore: ARCore's signs; threejs: "
-                                          "SphericalHarmonics3.fromArray / LightProbe"),
+                 layout: SHLayout = Query("arcore", description=_layout_help()),
                  quality: Quality = QualityQuery,
                  tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
-    from core.export.products import sh_in_layout
-    from core.sh import to_arcore_27
-
     point, t = queries.parse_x(x), queries.check_t(t)
     cf = await _field_async(job_id, tenant, ctx)
     answer = await queries.envmap_answer(ctx, cf, point, t, queries.SH_ENVMAP_HEIGHT, quality,
@@ -158,19 +156,80 @@ async def get_sh(job_id: str, response: Response, x: str = XQuery, t: float = TQ
     response.headers[CONVENTIONS_HEADER] = CONVENTIONS_SUMMARY
     response.headers[EXTRAPOLATED_HEADER] = flags.header()
     response.headers[QUALITY_HEADER] = answer.quality
-    return SphericalHarmonics(
-        x=point, t=t, extrapolated=Flags(x=flags.x, t=flags.t), layout=layout,
-        coefficients=sh_in_layout(light.ambient_sh, layout), coefficients_with_light=sh_in_layout(full_sh, layout),
-        arcore_27=to_arcore_27(light.ambient_sh), band_order=SH_BAND_ORDER,
-        dominant_light=DominantLight(
-            direction=tuple(float(v) for v in light.direction), intensity=tuple(float(v) for v in light.intensity_rgb),
-            solid_angle=float(light.solid_angle), found=bool(light.found), confidence=float(light.confidence),
-            reason=light.reason),
-    )
+    return SphericalHarmonics.of(point, t, Flags(x=flags.x, t=flags.t), layout, light, full_sh)
+
+
+UNITY_SH_HEIGHT = 32  # band-2 SH need little resolution (the CLI's `unity` uses the same)
+MAX_UNITY_PROBES = 512
+
+
+def _counts(text: str) -> tuple[int, int, int]:
+    try:
+        values = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(1 <= v <= 64 for v in values):
+        raise InvalidInput(f"grid must be three integers in 1..64 'NX,NY,NZ', got {text!r}", code="invalid_query")
+    if values[0] * values[1] * values[2] > MAX_UNITY_PROBES:
+        raise PayloadTooLarge(f"grid {text} has {values[0] * values[1] * values[2]} probes; at most {MAX_UNITY_PROBES}",
+                              code="grid_too_large")
+    return values  # type: ignore[return-value]
+
+
+@router.get("/lightfield/{job_id}/unity", response_model=UnityProbeGrid, responses=_ERRORS,
+            summary="Unity light-probe grid: positions (ours and Unity's) + SphericalHarmonicsL2, extrapolated probes flagged")
+async def get_unity(job_id: str, response: Response,
+                    grid: str = Query("3,2,3", description="probes per axis 'NX,NY,NZ' (each 1..64, at most "
+                                      f"{MAX_UNITY_PROBES} in all)", max_length=40),
+                    lo: str | None = Query(None, description="grid corner 'X,Y,Z' (our metres); default: the probes "
+                                           "sit at the cell centres of the region the captures cover", pattern=X_PATTERN,
+                                           max_length=200),
+                    hi: str | None = Query(None, description="opposite corner; default: that region's", pattern=X_PATTERN,
+                                           max_length=200),
+                    t: float | None = Query(None, description=T_HELP + " (required when the field varies over time)",
+                                            ge=-MAX_ABS_T_S, le=MAX_ABS_T_S),
+                    tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+    from core.export.unity import unity_probe_grid
+
+    counts = _counts(grid)
+    corner_lo, corner_hi = (None if v is None else queries.parse_x(v) for v in (lo, hi))
+    t = None if t is None else queries.check_t(t)
+    cf = await _field_async(job_id, tenant, ctx)
+
+    def evaluate(point):
+        hdr, flags = queries.envmap(cf, point, t, UNITY_SH_HEIGHT)
+        return hdr, {"x": flags.x, "t": flags.t}
+
+    doc = await run_in_threadpool(unity_probe_grid, evaluate, cf.artefact.bounds, counts, t, job_id, corner_lo, corner_hi)
+    response.headers[CONVENTIONS_HEADER] = CONVENTIONS_SUMMARY
+    response.headers[EXTRAPOLATED_HEADER] = "x" if doc.extrapolated_probes else "none"
+    return doc
+
+
+@router.get("/lightfield/{job_id}/arkit", response_model=ArkitProbe, responses=_ERRORS,
+            summary="ARKit / RealityKit / SceneKit: Metal cube slices + SH planes + main light at (x, t)")
+async def get_arkit(job_id: str, response: Response, x: str = XQuery, t: float = TQuery,
+                    size: int = Query(64, ge=1, description="cube face edge in texels (at most LIGHTFIELD_MAX_CUBEMAP_SIZE)"),
+                    pixel_format: Literal["rgba16Float", "rgba8Unorm_srgb"] = Query(
+                        "rgba16Float", description="rgba16Float: linear HDR (EnvironmentResource, lightingEnvironment); "
+                        "rgba8Unorm_srgb: what AREnvironmentProbeAnchor.environmentTexture holds (tone-mapped at ev)"),
+                    ev: float = Query(0.0, ge=-MAX_ABS_EV, le=MAX_ABS_EV, description="exposure of the sRGB slices"),
+                    tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+    from core.export.arkit import arkit_probe
+    from core.export.products import cube_source_height
+
+    point, t, ev = queries.parse_x(x), queries.check_t(t), queries.check_ev(ev)
+    queries.check_size(size, ctx.settings.limits.max_cubemap_size, "size")
+    cf = await _field_async(job_id, tenant, ctx)
+    hdr, flags = await run_in_threadpool(queries.envmap, cf, point, t, cube_source_height(size))
+    doc = await run_in_threadpool(arkit_probe, hdr, point, t, Flags(x=flags.x, t=flags.t), size, pixel_format, ev)
+    response.headers[CONVENTIONS_HEADER] = CONVENTIONS_SUMMARY
+    response.headers[EXTRAPOLATED_HEADER] = flags.header()
+    return doc
 
 
 @router.get("/lightfield/{job_id}/cubemap", responses={
-    200: {"model": CubemapResponse, "content": {"application/x-npy": {}},
+    200: {"model": CubemapResponse, "content": {"application/x-npy": {}, "image/ktx2": {}},
           "description": "format=ktx2: one KTX2 file (RGBA16F cube, GGX roughness mips); format=npy: float32 array "
                          "[6, size, size, 3]; format=json: one EXR per face, base64 (kept for compatibility)"},
     **_ERRORS}, summary="Cube map faces +X, -X, +Y, -Y, +Z, -Z at (x, t); prefiltered mips as KTX2")
@@ -180,6 +239,10 @@ async def get_cubemap(job_id: str, x: str = XQuery, t: float = TQuery,
                       format: Literal["json", "npy", "ktx2"] = "json", quality: Quality = QualityQuery,
                       levels: int | None = Query(None, ge=1, le=16, description="ktx2 only: mip levels, roughness "
                                                  "i / (levels - 1); default: down to size/32 (6 for 128); 1 = mirror only"),
+                      layout: Literal["gl", "threejs"] = Query(
+                          "gl", description="gl: the OpenGL/Vulkan/Metal face table (Babylon, Filament, ARCore, "
+                          "engines reading KTX2 cubes); threejs: mirrored in x for a three.js CubeTexture, which "
+                          "three samples at (-x, y, z) (docs/integrations.md has the recipe)"),
                       tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     point, t = queries.parse_x(x), queries.check_t(t)
     queries.check_size(size, ctx.settings.limits.max_cubemap_size, "size")
@@ -191,11 +254,13 @@ async def get_cubemap(job_id: str, x: str = XQuery, t: float = TQuery,
 
         hdr, flags, used = await run_in_threadpool(queries.envmap_with_quality, cf, point, t,
                                                    cube_source_height(size), quality)
-        data = await run_in_threadpool(cube_ktx2, hdr, size, levels)
+        data = await run_in_threadpool(cube_ktx2, hdr, size, levels, layout)
         return _download(data, "image/ktx2", "cubemap.ktx2", flags)
 
     def finish(hdr: np.ndarray, _flags):  # in the batch's thread
-        faces = queries.cube_faces(hdr, size)
+        from core.export.products import cube_for
+
+        faces = queries.cube_faces(cube_for(hdr, layout).numpy(), size)
         if format == "npy":
             return _npy(faces)
         from core.io.exr import encode_exr
@@ -225,10 +290,14 @@ def _check_cube_size(size: int, levels: int | None) -> None:
 
 @router.get("/lightfield/{job_id}/gltf", response_class=Response, responses={
     200: {"content": {"model/gltf-binary": {}}, "description": "glTF 2.0 binary with EXT_lights_image_based"},
-    **_ERRORS}, summary="glTF (.glb) image-based light at (x, t): irradiance SH + prefiltered specular cube mips")
+    **_ERRORS}, summary="glTF (.glb) image-based light at (x, t): irradiance SH + prefiltered specular cube mips "
+                         "(+ the main light as KHR_lights_punctual)")
 async def get_gltf(job_id: str, x: str = XQuery, t: float = TQuery,
                    size: int = Query(64, ge=1, description="specular cube face edge (a power of two)"),
                    levels: int | None = Query(None, ge=1, le=16, description="specular mips (roughness 0..1)"),
+                   main_light: bool = Query(True, description="add the main light (when found) as a KHR_lights_punctual "
+                                            "directional light, with the ambient SH as irradiance; false: the whole "
+                                            "map's SH and no punctual light"),
                    tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     from core.export.products import cube_source_height, probe_glb
 
@@ -237,7 +306,7 @@ async def get_gltf(job_id: str, x: str = XQuery, t: float = TQuery,
     _check_cube_size(size, levels)
     cf = await _field_async(job_id, tenant, ctx)
     hdr, flags = await run_in_threadpool(queries.envmap, cf, point, t, cube_source_height(size))
-    data = await run_in_threadpool(probe_glb, hdr, point, t, size, levels, job_id)
+    data = await run_in_threadpool(probe_glb, hdr, point, t, size, levels, job_id, main_light)
     return _download(data, "model/gltf-binary", "probe.glb", flags)
 
 
@@ -248,12 +317,16 @@ async def get_usdz(job_id: str, x: str = XQuery, t: float = TQuery,
                    height: int = Query(256, ge=1, description="rows of the dome's latlong EXR (width = 2 x height)"),
                    tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     from core.export.products import probe_usdz
+    from core.export.usd import USDUnavailable
 
     point, t = queries.parse_x(x), queries.check_t(t)
     queries.check_size(height, ctx.settings.limits.max_envmap_height, "height")
     cf = await _field_async(job_id, tenant, ctx)
     hdr, flags = await run_in_threadpool(queries.envmap, cf, point, t, height)
-    data = await run_in_threadpool(probe_usdz, hdr, point, t, job_id)
+    try:
+        data = await run_in_threadpool(probe_usdz, hdr, point, t, job_id)
+    except USDUnavailable as exc:
+        raise ServiceUnavailable(str(exc), code="usd_unavailable") from exc
     return _download(data, "model/vnd.usdz+zip", "probe.usdz", flags)
 
 
@@ -269,8 +342,11 @@ async def get_sequence(job_id: str, x: str = XQuery,
                        first_frame: int = Query(1, ge=0, description="number of the first file (envmap.0001.exr)"),
                        quality: Quality = Query("exact", description=QUALITY_HELP.replace(" (default)", "") +
                                                 "; this route's default is exact"),
+                       colour: Literal["rec709", "acescg"] = Query(
+                           "rec709", description="pixel colour space: linear Rec. 709 (as estimated) or ACEScg (AP1 "
+                           "primaries, ACES white, Bradford-adapted; the EXR chromaticities say which)"),
                        tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
-    from core.export.sequence import sequence_members, sequence_times, zip_stream
+    from core.export.sequence import sequence_fps, sequence_members, sequence_times, zip_stream
 
     point, t0, t1 = queries.parse_x(x), queries.check_t(t0), queries.check_t(t1)
     queries.check_size(height, ctx.settings.limits.max_envmap_height, "height")
@@ -282,6 +358,7 @@ async def get_sequence(job_id: str, x: str = XQuery,
     for probe_t in {times[0], times[-1]}:  # refuse a bad query now, not after the 200 is sent
         await run_in_threadpool(queries.envmap, cf, point, probe_t, 1)
     maps = ((t, hdr) for t, hdr, _ in queries.envmap_sequence(cf, point, times, height, quality))
-    members = sequence_members(maps, point, job_id, first_frame=first_frame, extra={"height": height, "quality": quality})
+    members = sequence_members(maps, point, job_id, first_frame=first_frame, extra={"height": height, "quality": quality},
+                               fps=sequence_fps(times), colour=colour)
     return StreamingResponse(zip_stream(members), media_type="application/zip", headers={
         CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, "Content-Disposition": 'attachment; filename="envmaps.zip"'})
