@@ -23,6 +23,7 @@ from service.fieldcache import FieldCache
 from service.metrics import Metrics, MetricsMiddleware
 from service.origin import OriginGuard
 from service.routes import health, jobs, lightfield
+from service.uploadcheck import UploadChecks
 
 log = logging.getLogger("lightfield.service")
 UI_DIR = Path(__file__).parent / "ui"
@@ -47,7 +48,8 @@ def create_app(settings: ServiceSettings | None = None,
     keyring = KeyRing.parse(settings.api_keys)
     metrics = Metrics(store)
     ctx = AppContext(settings=settings, keyring=keyring, store=store, celery=make_celery(settings),
-                     fields=FieldCache(settings.field_cache_size), metrics=metrics)
+                     fields=FieldCache(settings.field_cache_size), metrics=metrics,
+                     upload_checks=UploadChecks(settings.limits.upload_checks, settings.limits.upload_check_s))
     app = FastAPI(title="lightfield", version="0.1.0", description=DESCRIPTION, docs_url=None, redoc_url=None)
     install_offline_docs(app)
     app.state.ctx = ctx

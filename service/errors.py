@@ -10,6 +10,7 @@ Redis (broker and job store) is not unexpected: it is a 503 `broker_unavailable`
 from __future__ import annotations
 
 import logging
+from contextlib import contextmanager
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -109,6 +110,28 @@ class ServiceUnavailable(ApiError):
 
 
 BROKER_DOWN = "the job store and queue (Redis) are unreachable; try again shortly"
+RETRY_AFTER_STORAGE_S = 30  # an operator frees or remounts a disk in minutes, not seconds
+
+
+def storage_unavailable(exc: OSError, what: str) -> ServiceUnavailable:
+    """503 storage_unavailable for an OSError of the storage root: the error's kind, never its path."""
+    import errno as errno_names
+
+    kind = errno_names.errorcode.get(exc.errno or 0, type(exc).__name__)
+    reason = {"ENOSPC": "storage is full", "EDQUOT": "storage quota exceeded", "EROFS": "storage is read-only",
+              "EACCES": "storage is not writable", "EPERM": "storage is not writable"}.get(kind, "storage error")
+    log.warning("storage unavailable while %s: %s", what, exc)
+    return ServiceUnavailable(f"{reason} ({kind}) while {what}; nothing was kept, try again later",
+                              code="storage_unavailable", retry_after_s=RETRY_AFTER_STORAGE_S)
+
+
+@contextmanager
+def storage_errors(what: str):
+    """Turn an OSError of the storage root (unwritable, full, gone) into 503 storage_unavailable."""
+    try:
+        yield
+    except OSError as exc:
+        raise storage_unavailable(exc, what) from None
 
 
 def error_response(status: int, code: str, message: str, headers: dict[str, str] | None = None) -> JSONResponse:

@@ -7,8 +7,9 @@ Celery shim.
 """
 from __future__ import annotations
 
+import errno
+import json
 import logging
-import shutil
 import time
 from dataclasses import dataclass
 from enum import Enum
@@ -18,7 +19,7 @@ from typing import TYPE_CHECKING, Callable
 from jobs.errors import broker_errors, error_code_of, user_error_types
 from jobs.lease import RunLease
 from jobs.settings import JobSettings
-from jobs.storage import JobPaths
+from jobs.storage import JobPaths, is_storage_error, remove_tree, storage_writable
 from jobs.store import JobStore
 
 if TYPE_CHECKING:
@@ -37,6 +38,7 @@ class Outcome(str, Enum):
     FAILED = "failed"
     CANCELLED = "cancelled"
     ABANDONED = "abandoned"  # lease lost mid-run: another worker owns the job now
+    STORAGE_RETRY = "storage_retry"  # the storage failed: re-queued to resume from its checkpoint later
 
 
 @dataclass
@@ -48,6 +50,7 @@ class JobRunner:
     engine: Callable[..., "JobResult"]
     # how the engine builds the job's prior (worker.prior_cache keeps weight-loading ones); None: the engine's own
     prior_factory: Callable[..., object] | None = None
+    retry_delay_s: float = 0.0  # after Outcome.STORAGE_RETRY: when to deliver the job again
 
     def run(self, job_id: str) -> Outcome:
         record = self.store.get(job_id)
@@ -69,10 +72,14 @@ class JobRunner:
         job_id = record.id
         paths = JobPaths.for_job(self.settings.data_dir, record.tenant_hash, job_id)
         resumed = paths.checkpoint_dir.is_dir() and any(paths.checkpoint_dir.iterdir())
+        step = checkpoint_step(paths.checkpoint_dir) if resumed else None
+        # the record says where the run restarts: the checkpoint's iteration, not the dead run's last progress
+        restart = {"iteration": step, "message": f"resuming from the checkpoint at iteration {step}"} if step else \
+            {"message": "resuming from checkpoint" if resumed else ""}
         started = self.store.update(
             job_id, allowed=("queued", "running"), state="running", attempts=record.attempts + 1,
             started_at=record.started_at or time.time(), resumed=record.resumed or resumed,
-            stage="starting", message="resuming from checkpoint" if resumed else "",
+            stage="starting", **restart,
         )
         if not started:
             return Outcome.SKIPPED
@@ -90,7 +97,8 @@ class JobRunner:
                 return Outcome.ABANDONED
             self.store.update(job_id, allowed=("running",), state="cancelled", finished_at=time.time(),
                               stage="cancelled", eta_s=None)
-            paths.remove_all()
+            if paths.remove_all():
+                log.warning("job %s: files left on storage after cancelling; DELETE removes them", job_id)
             return Outcome.CANCELLED
         except user_errors as exc:
             self._fail(record, paths, error_code_of(exc), str(exc))
@@ -98,18 +106,46 @@ class JobRunner:
         except Exception as exc:  # the engine broke: log it, tell the user without internals
             if isinstance(exc, broker_errors()):  # Redis went away mid-run: not the job's fault, retry it
                 raise
+            if is_storage_error(exc) or not storage_writable(paths.job_dir):  # the disk's fault, not the job's
+                return self._storage_fault(job_id, paths, exc)
             log.exception("job %s: engine error", job_id)
             self._fail(record, paths, "engine_error", f"the estimation failed ({type(exc).__name__}); see worker logs")
             return Outcome.FAILED
 
         if lease.lost.is_set():
             return Outcome.ABANDONED
-        self._prebake(job_id, result.artefact if result else saved)
+        artefact = result.artefact if result else saved
+        self._prebake(job_id, artefact)
+        iterations = int(artefact.meta.get("training", {}).get("iterations") or 0)
+        done = {"iteration": iterations, "total": iterations} if iterations else {}
         self.store.update(job_id, allowed=("running",), state="succeeded", progress=1.0, stage="done",
-                          message="light field ready", eta_s=0.0, artefact=relative, finished_at=time.time())
-        paths.remove_uploads()
-        shutil.rmtree(paths.checkpoint_dir, ignore_errors=True)
+                          message="light field ready", eta_s=0.0, artefact=relative, finished_at=time.time(), **done)
+        if paths.remove_uploads() or not remove_tree(paths.checkpoint_dir):
+            log.warning("job %s: its uploads or checkpoint could not be deleted (storage); DELETE removes them", job_id)
         return Outcome.SUCCEEDED
+
+    def _storage_fault(self, job_id: str, paths: JobPaths, exc: Exception) -> Outcome:
+        """The storage failed mid-run (full, read-only, gone): give the job back to the queue to
+        resume from its last checkpoint (written atomically, so it survived) once storage is
+        back, after a growing delay; failed as storage_unavailable after settings.storage_retries."""
+        record = self.store.get(job_id)
+        if record is None:
+            return Outcome.SKIPPED
+        kind = errno.errorcode.get(getattr(exc, "errno", None) or 0, type(exc).__name__)
+        retry, limit = record.storage_retries + 1, self.settings.storage_retries
+        log.warning("job %s: storage error during %s (%s: %s); retry %d of %d", job_id, record.stage or "the run",
+                    type(exc).__name__, exc, retry, limit)
+        if retry > limit:
+            self.store.update(job_id, allowed=("running",), state="failed", error_code="storage_unavailable",
+                              error_message=f"the storage failed {retry} times in a row ({kind}); the job was "
+                                            "given up", finished_at=time.time(), eta_s=None, storage_retries=retry)
+            return Outcome.FAILED
+        self.retry_delay_s = self.settings.storage_retry_delay_s(retry)
+        applied = self.store.update(
+            job_id, allowed=("running",), state="queued", stage="waiting_for_storage", eta_s=None,
+            storage_retries=retry, message=f"storage error ({kind}) during {record.stage or 'the run'}: resuming from "
+                                           f"the last checkpoint in {self.retry_delay_s:g} s (retry {retry} of {limit})")
+        return Outcome.STORAGE_RETRY if applied else Outcome.SKIPPED
 
     def _call_engine(self, record, paths: JobPaths, lease: RunLease) -> "JobResult":
         from core.engine.params import JobParams
@@ -146,7 +182,7 @@ class JobRunner:
             return LightFieldArtefact.load(paths.artefact_dir)
         except ArtefactError as exc:
             log.error("job %s: the saved artefact failed verification (%s); estimating it again", job_id, exc)
-            shutil.rmtree(paths.artefact_dir, ignore_errors=True)
+            remove_tree(paths.artefact_dir)
             return None
 
     def _cancel_requested(self, job_id: str) -> bool:
@@ -201,7 +237,8 @@ class JobRunner:
     def _fail(self, record, paths: JobPaths, code: str, message: str) -> None:
         self.store.update(record.id, allowed=("running",), state="failed", error_code=code,
                           error_message=message[:2000], finished_at=time.time(), eta_s=None)
-        paths.remove_all()
+        if paths.remove_all():
+            log.warning("job %s: files left on storage after failing; DELETE removes them", record.id)
 
     def _relative_artefact(self, artefact: Path, paths: JobPaths) -> str:
         """The engine's returned directory, checked to lie inside this job's area."""
@@ -209,3 +246,14 @@ class JobRunner:
         if not resolved.is_relative_to(paths.job_dir.resolve()):
             raise RuntimeError(f"engine wrote its artefact outside the job area: {artefact}")
         return str(resolved.relative_to(Path(self.settings.data_dir).resolve()))
+
+
+def checkpoint_step(checkpoint_dir: Path) -> int | None:
+    """The iteration a run restarting from `checkpoint_dir` resumes at (its checkpoint.json), or None."""
+    from core.engine.checkpoints import CHECKPOINT_META
+
+    try:
+        step = json.loads((checkpoint_dir / CHECKPOINT_META).read_text()).get("step")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return int(step) if isinstance(step, int) and step > 0 else None
