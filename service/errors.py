@@ -140,13 +140,45 @@ def error_response(status: int, code: str, message: str, headers: dict[str, str]
 
 
 def describe_validation_errors(errors) -> str:
-    """pydantic/FastAPI error list -> "field.path: message; ..." (names the offending fields)."""
+    """pydantic/FastAPI error list -> "field.path: message; ..." (names the offending fields).
+    Query values with a rule of their own (service.queries.FIELD_RULES) are described by it and
+    the value sent ("x: must be three finite numbers ..., got 'nan,0,0'"), not by the regular
+    expression or the one bound that happened to fail."""
+    from service.queries import FIELD_RULES
+
     parts = []
     for err in errors:
         loc = [str(p) for p in err.get("loc", ()) if p not in ("body", "query", "path", "header")]
         where = ".".join(loc) or "request"
-        parts.append(f"{where}: {err.get('msg', 'invalid')}")
+        rule = FIELD_RULES.get(loc[-1]) if loc and not loc[-1].isdigit() else None
+        if rule is None and len(loc) >= 2 and loc[-1].isdigit():  # an element: queries.0.x.2 -> x[]
+            rule = FIELD_RULES.get(loc[-2] + "[]")
+        if rule is not None and isinstance(err.get("input"), (str, int, float)) and err.get("type") != "missing":
+            parts.append(f"{where}: must be {rule}, got {str(err['input'])[:80]!r}")
+        else:
+            parts.append(f"{where}: {err.get('msg', 'invalid')}")
     return "; ".join(parts)
+
+
+def malformed_json(errors) -> str | None:
+    """The message for a body that is not JSON at all (pydantic's json_invalid), else None."""
+    for err in errors:
+        if err.get("type") == "json_invalid":
+            at = next((p for p in err.get("loc", ()) if isinstance(p, int)), None)
+            reason = (err.get("ctx") or {}).get("error", "JSON decode error")
+            return f"request body is not valid JSON: {reason}" + (f" at character {at}" if at is not None else "")
+    return None
+
+
+PARSE_FAILURE = "There was an error parsing the body"  # FastAPI's detail when its json.loads raised
+
+
+def body_parse_message(exc: BaseException) -> str:
+    cause = exc.__cause__
+    if isinstance(cause, RecursionError):
+        return "request body: JSON nested too deeply to parse (arrays/objects inside each other; a batch is "\
+               '{"queries": [{"x": [X, Y, Z], "t": T}, ...]})'
+    return f"request body could not be parsed ({type(cause).__name__ if cause else 'unreadable'})"
 
 
 _HTTP_CODES = {404: "not_found", 405: "method_not_allowed", 401: "unauthorized", 413: "too_large",
@@ -174,6 +206,9 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_request: Request, exc: RequestValidationError):
+        malformed = malformed_json(exc.errors())
+        if malformed is not None:
+            return error_response(400, "malformed_body", malformed)
         return error_response(422, validation_code(exc.errors()), describe_validation_errors(exc.errors()))
 
     async def _broker_down(request: Request, exc: Exception):
@@ -185,6 +220,8 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_request: Request, exc: StarletteHTTPException):
+        if exc.status_code == 400 and exc.detail == PARSE_FAILURE:
+            return error_response(400, "malformed_body", body_parse_message(exc))
         code = _HTTP_CODES.get(exc.status_code, "http_error")
         return error_response(exc.status_code, code, str(exc.detail), getattr(exc, "headers", None))
 
