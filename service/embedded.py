@@ -49,7 +49,8 @@ def embedded_children(settings: ServiceSettings) -> tuple[list[Child], str]:
     log_path = settings.data_dir / "worker.log"
     redis = Child("redis", start=lambda: start_redis(redis_dir, port=port, password=password).proc,
                   stop=lambda proc: stop(proc, signal.SIGTERM, grace_s=15.0))  # SIGTERM: Redis flushes its AOF
-    worker = Child("worker", start=lambda: spawn(worker_command("embedded"), env=env, log_path=log_path),
+    worker = Child("worker", start=lambda: spawn(worker_command("embedded"), env=env, log_path=log_path,
+                                                 death_signal=signal.SIGKILL),  # no orphan finishing its job
                    stop=lambda proc: stop(proc, signal.SIGTERM, grace_s=WORKER_GRACE_S),
                    before_restart=lambda: recover_abandoned_jobs(settings))
     return [redis, worker], url
