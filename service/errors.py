@@ -225,6 +225,13 @@ def install_error_handlers(app: FastAPI) -> None:
         code = _HTTP_CODES.get(exc.status_code, "http_error")
         return error_response(exc.status_code, code, str(exc.detail), getattr(exc, "headers", None))
 
+    from service.exports import ExportCancelled
+
+    @app.exception_handler(ExportCancelled)
+    async def _client_gone(request: Request, _exc: ExportCancelled):
+        log.info("%s %s: the client left; its export was cancelled", request.method, request.url.path)
+        return error_response(499, "client_closed", "the client closed the connection before the answer was ready")
+
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception):
         log.exception("unhandled error on %s %s", request.method, request.url.path)
