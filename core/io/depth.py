@@ -191,7 +191,7 @@ def _probe_depth_stream(f, size: int, limits: MediaLimits) -> tuple[tuple[int, .
     return shape, first
 
 
-_COLUMN_READ_BYTES = 8 << 20
+_COLUMN_READ_BYTES = 4 << 20
 
 
 def _npy_first_map(fp, limits: MediaLimits, after_header=None) -> tuple[tuple[int, ...], np.ndarray]:
