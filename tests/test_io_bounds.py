@@ -15,7 +15,7 @@ import zipfile
 import numpy as np
 import pytest
 
-import hostile_inputs as h
+import bench.hostile_inputs as h
 from core.capture.probe import probe_capture
 from core.io import MediaError, MediaLimits, probe_depth, probe_video, read_depth, read_video, select_frame_indices
 from core.io.archive import ArchiveError, ZipFiles

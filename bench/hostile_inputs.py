@@ -1,5 +1,6 @@
 """Hostile and damaged inputs of issue 45, generated in code (a few KB to a few MB each):
-files that declare far more than they hold, or values a capture may not state."""
+files that declare far more than they hold, or values a capture may not state. Used by the
+tests (tests/test_io_bounds.py, tests/test_service_hostile2.py) and by bench/hostile_uploads.py."""
 from __future__ import annotations
 
 import io
@@ -12,7 +13,18 @@ from pathlib import Path
 
 import numpy as np
 
-from conftest import room_frames
+
+
+def room_frames(t: int = 1, h: int = 48, w: int = 64) -> np.ndarray:
+    """Float frames [T, H, W, 3]: a lit wall gradient with a bright window."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    base = 0.25 + 0.35 * (yy / h)[..., None] * np.array([1.0, 0.9, 0.8], np.float32)
+    frames = []
+    for k in range(t):
+        img = np.broadcast_to(base, (h, w, 3)).copy()
+        img[(np.abs(xx - w * 0.7) < w * 0.1) & (yy < h * 0.35)] = 1.0 - 0.3 * k / max(t - 1, 1)
+        frames.append(img)
+    return np.stack(frames)
 
 
 def tiny_mp4(path: Path, frames: int = 6) -> Path:
