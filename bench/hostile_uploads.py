@@ -94,7 +94,7 @@ def measure(stack, name: str, files: dict) -> dict:
     if resp.status_code == 202:
         httpx.delete(f"{stack.url}/jobs/{body['id']}", timeout=30)
     return {"case": name, "bytes": sum(len(v) for v in files.values()), "status": resp.status_code,
-            "code": body.get("error", {}).get("code", "accepted"), "message": body.get("error", {}).get("message", "")[:160],
+            "code": (body.get("error") or {}).get("code", "accepted"), "message": (body.get("error") or {}).get("message", "")[:160],
             "seconds": round(seconds, 3), "api_rss_before_mb": round(before, 1), "api_rss_peak_mb": round(peak[0], 1),
             "api_growth_mb": round(peak[0] - before, 1)}
 
