@@ -223,11 +223,13 @@ class JobRunner:
             if p.stage == last["stage"] and now - last["t"] < PROGRESS_MIN_INTERVAL_S:
                 return
             last["t"], last["stage"] = now, p.stage
+            # a stage change carries no iteration (0 of 0): the record keeps the last one it had,
+            # which after a resume is the checkpoint's, until the loop reports again
+            steps = {"iteration": int(p.iteration), "total": int(p.total)} if p.total else {}
             try:
                 self.store.update(
                     job_id, allowed=("running",), progress=min(max(float(p.fraction), 0.0), 1.0), stage=p.stage,
-                    iteration=int(p.iteration), total=int(p.total), loss=p.loss, eta_s=p.eta_s,
-                    message=getattr(p, "message", "") or "",
+                    loss=p.loss, eta_s=p.eta_s, message=getattr(p, "message", "") or "", **steps,
                 )
             except broker_errors():  # progress is best effort: a Redis restart must not fail the job
                 log.warning("job %s: progress not recorded (Redis unreachable)", job_id)
