@@ -34,6 +34,10 @@ class JobSettings(BaseModel):
     # storage_retries times, then failed as storage_unavailable
     storage_retries: int = Field(8, ge=0)
     storage_retry_s: float = Field(5.0, gt=0)
+    # where job files are kept (jobs.blobstore): None = the data directory; s3://bucket/prefix =
+    # an S3-compatible store shared by hosts that share nothing else (AWS_* variables for access)
+    storage_url: str | None = None
+    cache_bytes: int = Field(4 << 30, gt=0)  # this host's cache of fetched light fields (LRU)
 
     def storage_retry_delay_s(self, retry: int) -> float:
         """Seconds before storage retry number `retry` (1, 2, ...)."""
@@ -61,6 +65,10 @@ class JobSettings(BaseModel):
                           ("storage_retry_s", "STORAGE_RETRY_S")):
             if ENV_PREFIX + key in env:
                 values[name] = env_number(env, ENV_PREFIX + key, float)
+        if env.get(ENV_PREFIX + "STORAGE_URL"):
+            values["storage_url"] = env[ENV_PREFIX + "STORAGE_URL"]
+        if ENV_PREFIX + "CACHE_BYTES" in env:
+            values["cache_bytes"] = env_number(env, ENV_PREFIX + "CACHE_BYTES", int)
         if ENV_PREFIX + "STORAGE_RETRIES" in env:
             values["storage_retries"] = env_number(env, ENV_PREFIX + "STORAGE_RETRIES", int)
         if env.get(ENV_PREFIX + "DISTILL_OVERRIDES"):

@@ -135,19 +135,21 @@ async def create_job(request: Request, tenant: Tenant = Depends(get_tenant), ctx
         paths.upload_dir.mkdir(parents=True, exist_ok=False)
     try:
         record = await _accept_upload(request, ctx, tenant, job_id, paths)
+        with storage_errors("storing the upload"):  # to the shared store (a no-op on the local one)
+            await run_in_threadpool(ctx.files.push_uploads, paths)
         await run_in_threadpool(ctx.store.create, record, limit)  # atomic re-check of the limit
     except JobLimitReached as exc:
-        paths.remove_all()
+        await run_in_threadpool(ctx.files.delete_job, paths)
         raise TooManyJobs(str(exc)) from None
     except BaseException:  # including a client that disconnects mid-upload
-        paths.remove_all()
+        ctx.files.delete_job(paths)
         raise
     try:
         await run_in_threadpool(ctx.celery.send_task, TASK_NAME, args=[job_id])
     except Exception:
         log.exception("job %s: could not enqueue", job_id)
         await _fail_unqueued(ctx, job_id)
-        paths.remove_uploads()
+        await run_in_threadpool(ctx.files.delete_job, paths)
         raise ServiceUnavailable("the job queue is unreachable; try again later", code="broker_unavailable") from None
     view = JobView.of(await run_in_threadpool(ctx.store.get, job_id))
     return JSONResponse(view.model_dump(mode="json"), status_code=202, headers={"Location": f"/jobs/{job_id}"})
@@ -193,7 +195,7 @@ def delete_job(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppContex
         # files first: a record is deleted only once nothing it owns is left, so a storage
         # fault never orphans files (the client is told, and DELETE can be retried)
         forget(record.id, ctx)
-        left = paths.remove_all()
+        left = ctx.files.delete_job(paths)
         if left:
             raise ServiceUnavailable(
                 f"job {job_id}: its {' and '.join(left)} could not be deleted (storage unavailable); the job is "
@@ -206,7 +208,7 @@ def delete_job(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppContex
     if not ctx.store.lease_held(job_id):
         if ctx.store.update(job_id, allowed=("queued", "running"), state="cancelled", stage="cancelled",
                             finished_at=time.time(), eta_s=None):
-            left = paths.remove_all()
+            left = ctx.files.delete_job(paths)
             if left:
                 ctx.store.update(job_id, message=f"its {' and '.join(left)} could not be deleted yet (storage "
                                                  "unavailable); DELETE again to retry")
