@@ -7,7 +7,6 @@ with tracemalloc; the measured costs are in bench/upload_cost.py."""
 from __future__ import annotations
 
 import io
-import json
 import time
 import tracemalloc
 import zipfile

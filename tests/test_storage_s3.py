@@ -11,8 +11,6 @@ import signal
 import time
 from pathlib import Path
 
-import httpx
-import numpy as np
 import pytest
 
 from conftest import ServiceStack, wait_until

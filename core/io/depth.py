@@ -10,7 +10,6 @@ shape is read from the array header before the data is decompressed (zip bombs).
 from __future__ import annotations
 
 import io
-import math
 import os
 import zipfile
 from pathlib import Path
