@@ -83,12 +83,20 @@ async def run_export(request, fn: Callable[..., Any], *args, on_cancel: Callable
                 return task.result()
             if await request.is_disconnected():
                 cancellation.cancel()
+                task.add_done_callback(_consume)
                 if on_cancel is not None:
                     on_cancel()
                 raise ExportCancelled()
     except asyncio.CancelledError:
         cancellation.cancel()
+        task.add_done_callback(_consume)
         raise
+
+
+def _consume(task: asyncio.Future) -> None:
+    """The abandoned call's outcome (its ExportCancelled) is expected: not an unretrieved error."""
+    if not task.cancelled():
+        task.exception()
 
 
 _DONE = object()
@@ -106,7 +114,15 @@ async def stream_export(chunks: Iterator[bytes], cancellation: Cancellation,
     finished = False
     try:
         while True:
-            chunk = await run_in_threadpool(_next, chunks)
+            # asyncio.wait, not `await task`: a cancelled stream must not wait for the chunk in
+            # flight to finish (the thread call is not interruptible from here) but cancel it
+            task = asyncio.ensure_future(run_in_threadpool(_next, chunks))
+            try:
+                await asyncio.wait({task})
+            except asyncio.CancelledError:
+                task.add_done_callback(_consume)
+                raise
+            chunk = task.result()
             if chunk is _DONE:
                 finished = True
                 return
