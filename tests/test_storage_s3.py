@@ -240,3 +240,24 @@ def test_a_stored_object_that_fails_its_checksum_is_410(multi_host, s3_server, t
         assert resp.status_code == 410 and resp.json()["error"]["code"] == "artefact_corrupt", resp.text
         assert "SHA-256" in resp.json()["error"]["message"]
         assert JobStore(connect(stack.redis.url)).get(job).error_code == "artefact_corrupt"
+
+
+@pytest.mark.slow
+def test_an_unreachable_store_is_503_at_submission_and_nothing_is_kept(tmp_path, tiny_image):
+    from service.processes import free_port
+
+    dead = f"http://127.0.0.1:{free_port()}"  # nothing listens there
+    env = {"AWS_ACCESS_KEY_ID": "x", "AWS_SECRET_ACCESS_KEY": "x", "AWS_DEFAULT_REGION": "us-east-1",
+           "AWS_ENDPOINT_URL": dead, "LIGHTFIELD_STORAGE_URL": "s3://nowhere/jobs"}
+    stack = MultiHostStack(tmp_path / "stack", extra_env=env)
+    try:
+        stack.start(workers=0)
+        with stack.client("alice") as c:
+            resp = c.post("/jobs", files={"file": ("room.png", tiny_image.read_bytes())})
+            assert resp.status_code == 503, resp.text
+            assert resp.json()["error"]["code"] == "storage_unavailable" and int(resp.headers["retry-after"]) > 0
+            assert dead not in resp.text
+            assert c.get("/jobs").json()["total"] == 0  # no record
+        assert not list(stack.host_dir("api").glob("uploads/*/*"))  # no upload left on the API's disk
+    finally:
+        stack.stop()
