@@ -22,6 +22,7 @@ import json
 import logging
 import os
 import shutil
+import threading
 import uuid
 from pathlib import Path
 
@@ -37,6 +38,8 @@ USED_MARKER = ".used"  # its mtime is the last use of a cached job directory (LR
 class JobFiles:
     def __init__(self, store: BlobStore, data_dir: Path, cache_bytes: int = 4 << 30):
         self.store, self.data_dir, self.cache_bytes = store, Path(data_dir), cache_bytes
+        self._locks: dict[str, threading.Lock] = {}
+        self._locks_guard = threading.Lock()
         local = store.local_path("x")
         self.shared = local is None or local.parent.resolve() != self.data_dir.resolve()
 
@@ -133,15 +136,22 @@ class JobFiles:
         object fails its SHA-256."""
         if not self.shared:
             return True
-        if refresh or not (paths.artefact_dir / "lightfield.json").is_file():
-            if not self.pull_dir(paths.artefact_dir, first="lightfield.json"):
-                return False
-            self.pull_dir(paths.job_dir / "preview", first="capture.json")
-            self._touch(paths.job_dir)
-            self.evict(keep=paths.job_dir)
-        else:
-            self._touch(paths.job_dir)
+        with self._lock_for(paths.job_dir):  # a burst of first queries fetches once
+            if refresh or not (paths.artefact_dir / "lightfield.json").is_file():
+                if not self.pull_dir(paths.artefact_dir, first="lightfield.json"):
+                    return False
+                self.pull_dir(paths.job_dir / "preview", first="capture.json")
+                self._touch(paths.job_dir)
+                self.evict(keep=paths.job_dir)
+            else:
+                self._touch(paths.job_dir)
         return True
+
+    def _lock_for(self, job_dir: Path) -> threading.Lock:
+        with self._locks_guard:
+            if len(self._locks) > 4096:  # bounded: locks of jobs nobody is fetching now
+                self._locks = {k: v for k, v in self._locks.items() if v.locked()}
+            return self._locks.setdefault(str(job_dir), threading.Lock())
 
     def _touch(self, job_dir: Path) -> None:
         marker = job_dir / USED_MARKER

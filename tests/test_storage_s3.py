@@ -140,6 +140,30 @@ def test_the_local_cache_is_bounded_least_recently_used_first(store, tmp_path):
     assert api.fetch_artefact(missing) is False
 
 
+def test_a_burst_of_first_queries_fetches_a_field_once(store, tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from jobs.jobfiles import JobFiles
+    from jobs.storage import JobPaths, new_job_id
+
+    job = new_job_id()
+    worker = JobFiles(store, tmp_path / "worker")
+    paths = JobPaths.for_job(worker.data_dir, "ab" * 8, job)
+    paths.artefact_dir.mkdir(parents=True)
+    (paths.artefact_dir / "field.safetensors").write_bytes(os.urandom(MB))
+    (paths.artefact_dir / "lightfield.json").write_text("{}")
+    worker.push_results(paths)
+    api = JobFiles(store, tmp_path / "api")
+    fetched = []
+    real = api.pull_dir
+    api.pull_dir = lambda *a, **k: fetched.append(1) or real(*a, **k)
+    local = JobPaths.for_job(api.data_dir, "ab" * 8, job)
+    with ThreadPoolExecutor(8) as pool:
+        assert all(pool.map(lambda _: api.fetch_artefact(local), range(16)))
+    assert len(fetched) == 2  # lightfield/ and preview/, once
+    assert (local.artefact_dir / "field.safetensors").read_bytes() == (paths.artefact_dir / "field.safetensors").read_bytes()
+
+
 # -- several hosts: the service sharing only Redis and the object store -----------------------------------
 class MultiHostStack(ServiceStack):
     """The API and each worker with a data directory of its own (their "hosts"), sharing only
