@@ -29,6 +29,19 @@ class JobSettings(BaseModel):
     lease_ttl_s: float = Field(60.0, gt=0)  # a job's run lease; heartbeat every ttl/3
     # operator overrides of the engine preset's loop settings (e.g. {"iterations": 50} on a slow CPU box)
     distill_overrides: dict = Field(default_factory=dict)
+    # a run that meets a storage fault (full, read-only, unreachable disk) is re-queued to resume
+    # from its checkpoint after storage_retry_s, 2x, 4x, ... (capped at 5 min), at most
+    # storage_retries times, then failed as storage_unavailable
+    storage_retries: int = Field(8, ge=0)
+    storage_retry_s: float = Field(5.0, gt=0)
+    # where job files are kept (jobs.blobstore): None = the data directory; s3://bucket/prefix =
+    # an S3-compatible store shared by hosts that share nothing else (AWS_* variables for access)
+    storage_url: str | None = None
+    cache_bytes: int = Field(4 << 30, gt=0)  # this host's cache of fetched light fields (LRU)
+
+    def storage_retry_delay_s(self, retry: int) -> float:
+        """Seconds before storage retry number `retry` (1, 2, ...)."""
+        return min(self.storage_retry_s * 2.0 ** max(retry - 1, 0), 300.0)
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None):
@@ -48,9 +61,16 @@ class JobSettings(BaseModel):
             values["data_dir"] = Path(env[ENV_PREFIX + "DATA_DIR"])
         if env.get(ENV_PREFIX + "BROKER_URL"):
             values["broker_url"] = env[ENV_PREFIX + "BROKER_URL"]
-        for name, key in (("visibility_timeout_s", "VISIBILITY_TIMEOUT"), ("lease_ttl_s", "LEASE_TTL")):
+        for name, key in (("visibility_timeout_s", "VISIBILITY_TIMEOUT"), ("lease_ttl_s", "LEASE_TTL"),
+                          ("storage_retry_s", "STORAGE_RETRY_S")):
             if ENV_PREFIX + key in env:
                 values[name] = env_number(env, ENV_PREFIX + key, float)
+        if env.get(ENV_PREFIX + "STORAGE_URL"):
+            values["storage_url"] = env[ENV_PREFIX + "STORAGE_URL"]
+        if ENV_PREFIX + "CACHE_BYTES" in env:
+            values["cache_bytes"] = env_number(env, ENV_PREFIX + "CACHE_BYTES", int)
+        if ENV_PREFIX + "STORAGE_RETRIES" in env:
+            values["storage_retries"] = env_number(env, ENV_PREFIX + "STORAGE_RETRIES", int)
         if env.get(ENV_PREFIX + "DISTILL_OVERRIDES"):
             try:
                 values["distill_overrides"] = json.loads(env[ENV_PREFIX + "DISTILL_OVERRIDES"])

@@ -9,6 +9,8 @@ point outside the root.
 """
 from __future__ import annotations
 
+import errno
+import os
 import re
 import shutil
 import uuid
@@ -49,9 +51,54 @@ class JobPaths:
         root = Path(data_dir)
         return cls(root / "uploads" / tenant_hash / job_id, root / "artefacts" / tenant_hash / job_id)
 
-    def remove_uploads(self) -> None:
-        shutil.rmtree(self.upload_dir, ignore_errors=True)
+    def remove_uploads(self) -> list[str]:
+        """Delete the job's uploads; returns what is left (["uploads"] when storage refused)."""
+        return [] if remove_tree(self.upload_dir) else ["uploads"]
 
-    def remove_all(self) -> None:
-        self.remove_uploads()
-        shutil.rmtree(self.job_dir, ignore_errors=True)
+    def remove_all(self) -> list[str]:
+        """Delete everything the job owns on the storage root; returns the parts that could not be
+        deleted ("uploads", "artefacts": the light field, checkpoint and preview), so a caller
+        can say so and keep the record that owns them instead of orphaning files."""
+        left = self.remove_uploads()
+        if not remove_tree(self.job_dir):
+            left.append("artefacts")
+        return left
+
+
+def remove_tree(path: Path) -> bool:
+    """rmtree that reports instead of raising: True when nothing is left at `path`."""
+    shutil.rmtree(path, ignore_errors=True)
+    return not os.path.lexists(path)
+
+
+# OSError numbers that mean "the storage refused", not "this job's data is bad"
+STORAGE_ERRNOS = frozenset({errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EROFS, errno.EDQUOT, errno.EIO,
+                            errno.ENOTDIR, errno.ENOENT, errno.ESTALE, errno.ENODEV, errno.ENXIO, errno.ETIMEDOUT})
+
+
+def is_storage_error(exc: BaseException) -> bool:
+    """An exception from writing or reading the storage root (a full, read-only, unmounted or
+    unreachable disk) rather than from the job's data or the engine's logic. safetensors
+    reports I/O failures as SafetensorError("... I/O error: ... (os error N) ...")."""
+    if isinstance(exc, OSError):
+        return exc.errno in STORAGE_ERRNOS or exc.errno is None and "No space" in str(exc)
+    if type(exc).__name__ == "SafetensorError":
+        match = re.search(r"\(os error (\d+)\)|Os \{ code: (\d+)", str(exc))
+        return bool(match) and int(match.group(1) or match.group(2)) in STORAGE_ERRNOS
+    return False
+
+
+def storage_writable(directory: Path) -> bool:
+    """Whether a file can be created, written, synced and removed in `directory` now (made if
+    missing): the check a worker makes before blaming an error on the storage."""
+    probe = Path(directory) / f".probe-{uuid.uuid4().hex}"
+    try:
+        Path(directory).mkdir(parents=True, exist_ok=True)
+        with open(probe, "wb") as f:
+            f.write(b"probe")
+            f.flush()
+            os.fsync(f.fileno())
+        probe.unlink()
+        return True
+    except OSError:
+        return False

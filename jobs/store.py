@@ -53,6 +53,7 @@ class JobRecord:
     error_message: str = ""
     attempts: int = 0  # deliveries that started running
     resumed: bool = False  # a run started from an existing checkpoint
+    storage_retries: int = 0  # runs re-queued after a storage fault (jobs.settings.storage_retries)
     artefact: str = ""  # artefact dir relative to the data dir, once succeeded
     created_at: float = 0.0
     started_at: float | None = None

@@ -11,6 +11,7 @@ from fastapi import FastAPI
 from fastapi.responses import RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
+from jobs.jobfiles import job_files
 from jobs.queue import make_celery
 from jobs.store import JobStore, connect
 from service import openapi, routes_ui
@@ -23,6 +24,7 @@ from service.fieldcache import FieldCache
 from service.metrics import Metrics, MetricsMiddleware
 from service.origin import OriginGuard
 from service.routes import health, jobs, lightfield
+from service.uploadcheck import UploadChecks
 
 log = logging.getLogger("lightfield.service")
 UI_DIR = Path(__file__).parent / "ui"
@@ -47,7 +49,9 @@ def create_app(settings: ServiceSettings | None = None,
     keyring = KeyRing.parse(settings.api_keys)
     metrics = Metrics(store)
     ctx = AppContext(settings=settings, keyring=keyring, store=store, celery=make_celery(settings),
-                     fields=FieldCache(settings.field_cache_size), metrics=metrics)
+                     fields=FieldCache(settings.field_cache_size), metrics=metrics,
+                     upload_checks=UploadChecks(settings.limits.upload_checks, settings.limits.upload_check_s),
+                     files=job_files(settings))
     app = FastAPI(title="lightfield", version="0.1.0", description=DESCRIPTION, docs_url=None, redoc_url=None)
     install_offline_docs(app)
     app.state.ctx = ctx

@@ -31,6 +31,9 @@ class ServiceLimits(BaseModel):
     max_json_bytes: int = Field(256 * 1024, gt=0, description="JSON request body size")
     # queued field evaluations per light field, in env map pixels (an exact 1024-row map is 2 Mpx)
     max_pending_pixels: int = Field(1 << 25, gt=0, description="env map pixels queued per light field")
+    # upload checks (service.uploadcheck): threads of their own, and a time budget per upload
+    upload_checks: int = Field(2, gt=0, description="upload checks run at once per API process")
+    upload_check_s: int = Field(30, gt=0, description="seconds one upload's check may take (413 beyond)")
 
 
 class HttpTimeouts(BaseModel):

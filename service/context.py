@@ -1,7 +1,6 @@
 """Per-process state of the API, built once by `create_app` and reached through dependencies."""
 from __future__ import annotations
 
-import asyncio
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,9 +24,8 @@ class AppContext:
     fields: FieldCache
     metrics: Any = None  # service.metrics.Metrics
     recent_jobs: dict = field(default_factory=dict)  # job id -> (tenant, expiry): service.lightfields
-    # upload checks hold a file (up to its byte limit) and one decoded video frame: one at a
-    # time per process keeps memory bounded
-    validation_slots: asyncio.Semaphore = field(default_factory=lambda: asyncio.Semaphore(1))
+    upload_checks: Any = None  # service.uploadcheck.UploadChecks: the upload checks' own threads and budget
+    files: Any = None  # jobs.jobfiles.JobFiles: this host's directory and the shared store
 
 
 @dataclass(frozen=True)

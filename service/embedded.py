@@ -49,15 +49,15 @@ def embedded_children(settings: ServiceSettings) -> tuple[list[Child], str]:
     log_path = settings.data_dir / "worker.log"
     redis = Child("redis", start=lambda: start_redis(redis_dir, port=port, password=password).proc,
                   stop=lambda proc: stop(proc, signal.SIGTERM, grace_s=15.0))  # SIGTERM: Redis flushes its AOF
-    worker = Child("worker", start=lambda: spawn(worker_command("embedded"), env=env, log_path=log_path),
+    worker = Child("worker", start=lambda: spawn(worker_command("embedded"), env=env, log_path=log_path,
+                                                 death_signal=signal.SIGKILL),  # no orphan finishing its job
                    stop=lambda proc: stop(proc, signal.SIGTERM, grace_s=WORKER_GRACE_S),
                    before_restart=lambda: recover_abandoned_jobs(settings))
     return [redis, worker], url
 
 
 def serve(host: str, port: int, settings: ServiceSettings, log_level: str = "info") -> int:
-    import uvicorn
-
+    from service.frontdoor import FrontDoorServer
     from service.routes.health import health_probe
     from service.server import server_config
 
@@ -90,7 +90,10 @@ def serve(host: str, port: int, settings: ServiceSettings, log_level: str = "inf
             return 0
         states = supervisor.states if supervisor else None
         app = create_app(settings, dependency_states=states)
-        uvicorn.Server(server_config(app, host, port, settings.timeouts, log_level, health_probe(states, app.state.metrics))).run()
+        probe = health_probe(states, app.state.metrics)
+        # connections are accepted on a thread of its own, which answers /healthz itself
+        # (service.frontdoor): a liveness probe never waits for the event loop's turn
+        FrontDoorServer(server_config(app, host, port, settings.timeouts, log_level, probe), probe).run()
         return 0
     finally:
         if supervisor is not None:

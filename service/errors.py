@@ -10,6 +10,7 @@ Redis (broker and job store) is not unexpected: it is a 503 `broker_unavailable`
 from __future__ import annotations
 
 import logging
+from contextlib import contextmanager
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -109,6 +110,28 @@ class ServiceUnavailable(ApiError):
 
 
 BROKER_DOWN = "the job store and queue (Redis) are unreachable; try again shortly"
+RETRY_AFTER_STORAGE_S = 30  # an operator frees or remounts a disk in minutes, not seconds
+
+
+def storage_unavailable(exc: OSError, what: str) -> ServiceUnavailable:
+    """503 storage_unavailable for an OSError of the storage root: the error's kind, never its path."""
+    import errno as errno_names
+
+    kind = errno_names.errorcode.get(exc.errno or 0, type(exc).__name__)
+    reason = {"ENOSPC": "storage is full", "EDQUOT": "storage quota exceeded", "EROFS": "storage is read-only",
+              "EACCES": "storage is not writable", "EPERM": "storage is not writable"}.get(kind, "storage error")
+    log.warning("storage unavailable while %s: %s", what, exc)
+    return ServiceUnavailable(f"{reason} ({kind}) while {what}; nothing was kept, try again later",
+                              code="storage_unavailable", retry_after_s=RETRY_AFTER_STORAGE_S)
+
+
+@contextmanager
+def storage_errors(what: str):
+    """Turn an OSError of the storage root (unwritable, full, gone) into 503 storage_unavailable."""
+    try:
+        yield
+    except OSError as exc:
+        raise storage_unavailable(exc, what) from None
 
 
 def error_response(status: int, code: str, message: str, headers: dict[str, str] | None = None) -> JSONResponse:
@@ -117,13 +140,45 @@ def error_response(status: int, code: str, message: str, headers: dict[str, str]
 
 
 def describe_validation_errors(errors) -> str:
-    """pydantic/FastAPI error list -> "field.path: message; ..." (names the offending fields)."""
+    """pydantic/FastAPI error list -> "field.path: message; ..." (names the offending fields).
+    Query values with a rule of their own (service.queries.FIELD_RULES) are described by it and
+    the value sent ("x: must be three finite numbers ..., got 'nan,0,0'"), not by the regular
+    expression or the one bound that happened to fail."""
+    from service.queries import FIELD_RULES
+
     parts = []
     for err in errors:
         loc = [str(p) for p in err.get("loc", ()) if p not in ("body", "query", "path", "header")]
         where = ".".join(loc) or "request"
-        parts.append(f"{where}: {err.get('msg', 'invalid')}")
+        rule = FIELD_RULES.get(loc[-1]) if loc and not loc[-1].isdigit() else None
+        if rule is None and len(loc) >= 2 and loc[-1].isdigit():  # an element: queries.0.x.2 -> x[]
+            rule = FIELD_RULES.get(loc[-2] + "[]")
+        if rule is not None and isinstance(err.get("input"), (str, int, float)) and err.get("type") != "missing":
+            parts.append(f"{where}: must be {rule}, got {str(err['input'])[:80]!r}")
+        else:
+            parts.append(f"{where}: {err.get('msg', 'invalid')}")
     return "; ".join(parts)
+
+
+def malformed_json(errors) -> str | None:
+    """The message for a body that is not JSON at all (pydantic's json_invalid), else None."""
+    for err in errors:
+        if err.get("type") == "json_invalid":
+            at = next((p for p in err.get("loc", ()) if isinstance(p, int)), None)
+            reason = (err.get("ctx") or {}).get("error", "JSON decode error")
+            return f"request body is not valid JSON: {reason}" + (f" at character {at}" if at is not None else "")
+    return None
+
+
+PARSE_FAILURE = "There was an error parsing the body"  # FastAPI's detail when its json.loads raised
+
+
+def body_parse_message(exc: BaseException) -> str:
+    cause = exc.__cause__
+    if isinstance(cause, RecursionError):
+        return "request body: JSON nested too deeply to parse (arrays/objects inside each other; a batch is "\
+               '{"queries": [{"x": [X, Y, Z], "t": T}, ...]})'
+    return f"request body could not be parsed ({type(cause).__name__ if cause else 'unreadable'})"
 
 
 _HTTP_CODES = {404: "not_found", 405: "method_not_allowed", 401: "unauthorized", 413: "too_large",
@@ -151,6 +206,9 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_request: Request, exc: RequestValidationError):
+        malformed = malformed_json(exc.errors())
+        if malformed is not None:
+            return error_response(400, "malformed_body", malformed)
         return error_response(422, validation_code(exc.errors()), describe_validation_errors(exc.errors()))
 
     async def _broker_down(request: Request, exc: Exception):
@@ -162,8 +220,17 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_request: Request, exc: StarletteHTTPException):
+        if exc.status_code == 400 and exc.detail == PARSE_FAILURE:
+            return error_response(400, "malformed_body", body_parse_message(exc))
         code = _HTTP_CODES.get(exc.status_code, "http_error")
         return error_response(exc.status_code, code, str(exc.detail), getattr(exc, "headers", None))
+
+    from service.exports import ExportCancelled
+
+    @app.exception_handler(ExportCancelled)
+    async def _client_gone(request: Request, _exc: ExportCancelled):
+        log.info("%s %s: the client left; its export was cancelled", request.method, request.url.path)
+        return error_response(499, "client_closed", "the client closed the connection before the answer was ready")
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception):

@@ -21,6 +21,18 @@ class CachedField:
     lock: threading.Lock = field(default_factory=threading.Lock)
     baked: Any = None  # core.fields.bake.BakedField, loaded (or baked) on the first fast query
     batcher: Any = None  # service.evaluator.FieldBatcher, created on the first query
+    # long exports (service.exports) evaluate a copy of their own, one at a time, so they never
+    # hold `lock` (the batcher's small queries) for seconds
+    export_lock: threading.Lock = field(default_factory=threading.Lock)
+    _export_copy: Any = None
+
+    def export_artefact(self):
+        """The exports' copy of the artefact (made on first use). Call with export_lock held."""
+        if self._export_copy is None:
+            import copy
+
+            self._export_copy = copy.deepcopy(self.artefact)
+        return self._export_copy
 
 
 class FieldCache:

@@ -35,12 +35,29 @@ def succeeded_job(job_id: str, tenant: Tenant, ctx: AppContext, what: str = "its
 
 
 def load_field(record: JobRecord, ctx: AppContext) -> CachedField:
+    """The job's loaded field. With a shared store the artefact is first fetched into this host's
+    cache (jobs.jobfiles; verified against the SHA-256 of every object), and a cached copy that
+    fails verification is fetched once more before the job is marked corrupt."""
     from core.fields.artefact import ArtefactError
+    from jobs.jobfiles import ObjectCorrupt
+    from jobs.storage import JobPaths
 
     directory = ctx.settings.data_dir / record.artefact
+    paths = JobPaths.for_job(ctx.settings.data_dir, record.tenant_hash, record.id)
+    cached = ctx.fields.peek(record.id)
+    if cached is not None:
+        return cached
     try:
-        return ctx.fields.get(record.id, directory)
-    except ArtefactError as exc:
+        for attempt in (0, 1):
+            try:
+                if not ctx.files.fetch_artefact(paths, refresh=attempt > 0):
+                    raise ArtefactError("lightfield.json: missing from storage")
+                return ctx.fields.get(record.id, directory)
+            except ArtefactError:
+                if attempt or not ctx.files.shared:
+                    raise
+                log.warning("job %s: the cached light field failed verification; fetching it again", record.id)
+    except (ArtefactError, ObjectCorrupt) as exc:
         detail = str(exc).replace(str(directory), "lightfield")  # no server paths in client messages
         message = f"the stored light field failed verification and will not be served: {detail}"
         log.error("job %s: %s", record.id, message)
@@ -51,6 +68,7 @@ def load_field(record: JobRecord, ctx: AppContext) -> CachedField:
         log.exception("job %s: reading the artefact failed", record.id)
         raise ServiceUnavailable("the light field could not be read from storage; try again shortly",
                                  code="storage_unavailable") from None
+    raise AssertionError("unreachable")
 
 
 RECENT_S = 1.0

@@ -46,6 +46,10 @@ class Metrics:
                                    ["quality"], registry=self.registry)
         self.field_maps = Counter("lightfield_field_maps", "Env maps answered by field calls", ["quality"],
                                   registry=self.registry)
+        self.export_maps = Counter("lightfield_export_maps", "Env maps evaluated for exports (sequences, large maps, "
+                                   "probes) on a field's export copy", ["quality"], registry=self.registry)
+        self.exports_cancelled = Counter("lightfield_exports_cancelled", "Exports stopped because their client left",
+                                         registry=self.registry)
         self.registry.register(JobCollector(store))
 
     def observe_batch(self, requests) -> None:

@@ -41,6 +41,8 @@ class JobView(BaseModel):
     cancel_requested: bool = False
     attempts: int = Field(description="deliveries that started running (> 1 after a worker died)")
     resumed: bool = Field(description="a run started from a checkpoint of an earlier run")
+    storage_retries: int = Field(0, description="runs given back to the queue after a storage fault (stage "
+                                                "waiting_for_storage while the next one waits)")
     input_kind: str
     params: dict[str, Any]
     created_at: datetime
@@ -56,7 +58,8 @@ class JobView(BaseModel):
             id=r.id, state=r.state, progress=r.progress, stage=r.stage, iteration=r.iteration, total=r.total,
             loss=r.loss, eta_s=r.eta_s, message=r.message,
             error=ErrorDetail(code=r.error_code, message=r.error_message) if r.state == "failed" else None,
-            cancel_requested=cancel_requested, attempts=r.attempts, resumed=r.resumed, input_kind=r.input_kind,
+            cancel_requested=cancel_requested, attempts=r.attempts, resumed=r.resumed,
+            storage_retries=r.storage_retries, input_kind=r.input_kind,
             params=r.params_dict(), created_at=_ts(r.created_at), started_at=_ts(r.started_at),
             finished_at=_ts(r.finished_at), updated_at=_ts(r.updated_at),
             links=JobLinks(

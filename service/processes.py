@@ -7,6 +7,7 @@ they do not outlive a parent that was killed with SIGKILL.
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import secrets
 import shutil
@@ -37,16 +38,19 @@ def _load_prctl():
 _PRCTL = _load_prctl() if sys.platform.startswith("linux") else None
 
 
-def _die_with_parent() -> None:  # runs in the child between fork and exec
-    _PRCTL(PR_SET_PDEATHSIG, signal.SIGTERM)
-
-
-def spawn(cmd: list[str], env: dict[str, str] | None = None, log_path: Path | None = None) -> subprocess.Popen:
+def spawn(cmd: list[str], env: dict[str, str] | None = None, log_path: Path | None = None,
+          death_signal: int = signal.SIGTERM) -> subprocess.Popen:
+    """Start `cmd` in its own session; on Linux it receives `death_signal` when the thread that
+    spawned it ends (its parent died). SIGTERM lets Redis flush its AOF; a Celery worker must get
+    SIGKILL: on SIGTERM it shuts down warmly, finishing its job first, with its Redis already
+    gone (an orphan computing for minutes). Killed, its job stays unacknowledged and resumes
+    from its checkpoint at the next start."""
     out = open(log_path, "ab") if log_path else subprocess.DEVNULL
+    # built in the parent: the child, between fork and exec, only makes the call
+    die_with_parent = functools.partial(_PRCTL, PR_SET_PDEATHSIG, int(death_signal)) if _PRCTL is not None else None
     try:
         return subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                start_new_session=True,
-                                preexec_fn=_die_with_parent if _PRCTL is not None else None)
+                                start_new_session=True, preexec_fn=die_with_parent)
     finally:
         if log_path:
             out.close()

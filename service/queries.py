@@ -33,6 +33,25 @@ MAX_ABS_T_S = 1e9  # times: seconds from the first frame
 SH_ENVMAP_HEIGHT = 128  # enough to isolate a small light; SH only needs band 2
 DEFAULT_QUALITY = "fast"
 FAST_MIN_ROWS, FAST_DIVISOR = 16, 4
+# what each query value must be, in words (service.errors.describe_validation_errors uses these
+# instead of the regular expression or the one bound that failed)
+def _bound(v: float) -> str:
+    return f"{v:.0e}".replace("e+0", "e").replace("e+", "e") if v >= 1e5 else f"{v:g}"
+
+
+FIELD_RULES = {
+    "x": f"three finite numbers 'X,Y,Z' in metres, each within +-{_bound(MAX_ABS_X_M)}",
+    "x[]": f"a finite number of metres within +-{_bound(MAX_ABS_X_M)}",  # one coordinate of a JSON x
+    "t": f"a finite number of seconds within +-{_bound(MAX_ABS_T_S)}",
+    "t0": f"a finite number of seconds within +-{_bound(MAX_ABS_T_S)}",
+    "t1": f"a finite number of seconds within +-{_bound(MAX_ABS_T_S)}",
+    "ev": f"a finite number of stops within +-{_bound(MAX_ABS_EV)}",
+    "height": "a whole number of rows >= 1",
+    "size": "a whole number of texels >= 1",
+    "frames": "a whole number of frames >= 1",
+    "offset": "a whole number >= 0",
+    "limit": "a whole number >= 1",
+}
 _NUMBER = r"\s*[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?\s*"
 X_PATTERN = rf"^{_NUMBER},{_NUMBER},{_NUMBER}$"
 
@@ -168,25 +187,50 @@ def sh_from_envmap(hdr: np.ndarray):
     return extract_dominant_light(env), project_sh(env.double())
 
 
-# -- one map at a time, in the caller's thread (exports: ktx2, glTF, USD, EXR sequences) ----------
+# -- one map at a time, in the caller's thread (exports: ktx2, glTF, USD, EXR sequences, large maps) --
+# A query costing more than this many field evaluations (an exact map above 362 rows) is an
+# export: evaluated on the exports' copy of the field, cancellable, never through the batcher.
+LARGE_COST = 1 << 17
+
+
+def is_large(height: int, quality: str) -> bool:
+    return EnvmapRequest((0.0, 0.0, 0.0), 0.0, int(height), quality).cost > LARGE_COST
+
+
 def envmap(cf: CachedField, x, t: float, height: int) -> tuple[np.ndarray, EvalFlags]:
-    with _as_invalid_input(), cf.lock:
-        hdr, flags = cf.artefact.envmap(x, t, height)
-    return _numpy(hdr), _flags(flags)
+    hdr, flags, _ = envmap_with_quality(cf, x, t, height, "exact")
+    return hdr, flags
 
 
-def envmap_with_quality(cf: CachedField, x, t: float, height: int, quality: str):
-    """(hdr, flags, quality used) of one map."""
-    with _as_invalid_input(), cf.lock:
-        hdrs, flags = _evaluate(cf, quality, [list(x)], [t], height)
+def envmap_with_quality(cf: CachedField, x, t: float, height: int, quality: str, on_map=None):
+    """(hdr, flags, quality used) of one map, on the exports' copy of the field (service.exports:
+    the small queries' batches never wait for it)."""
+    if quality == "baked":  # interpolation of the shared bake: cheap, under the batcher's lock
+        with _as_invalid_input(), cf.lock:
+            hdrs, flags = _evaluate(cf, quality, [list(x)], [t], height)
+    else:
+        with _as_invalid_input(), cf.export_lock:
+            artefact = cf.export_artefact()
+            if quality == "fast":
+                from core.envmap import upsample_envmaps
+
+                low, flags = artefact.envmaps([list(x)], [t], fast_rows(height))
+                hdrs = upsample_envmaps(low, height)
+            else:
+                hdrs, flags = artefact.envmaps([list(x)], [t], height)
+    if on_map is not None:
+        on_map(quality)
     return _numpy(hdrs[0]), _flags(flags[0]), quality
 
 
-def envmap_sequence(cf: CachedField, x, times, height: int, quality: str = "exact"):
-    """Yield (t, hdr, flags) one time at a time (the field lock is taken per frame, so other
-    queries interleave with a long sequence)."""
+def envmap_sequence(cf: CachedField, x, times, height: int, quality: str = "exact", cancellation=None, on_map=None):
+    """Yield (t, hdr, flags) one time at a time, each frame inside `cancellation.running()`
+    (service.exports) when given."""
+    from contextlib import nullcontext
+
     for t in times:
-        hdr, flags, _ = envmap_with_quality(cf, x, t, height, quality)
+        with cancellation.running() if cancellation is not None else nullcontext():
+            hdr, flags, _ = envmap_with_quality(cf, x, t, height, quality, on_map)
         yield t, hdr, flags
 
 

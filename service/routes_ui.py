@@ -18,7 +18,7 @@ from pydantic import BaseModel, Field
 from core.conventions import CONVENTIONS_SUMMARY
 from jobs.storage import JobPaths
 from service.context import AppContext, Tenant, get_ctx, get_tenant
-from service.errors import ErrorBody, Gone, InvalidInput, NotFound
+from service.errors import ErrorBody, Gone, InvalidInput, NotFound, storage_errors
 from service.fieldcache import CachedField
 from service.lightfields import load_field, succeeded_job
 from service.models import Flags
@@ -89,6 +89,8 @@ def _succeeded(job_id: str, tenant: Tenant, ctx: AppContext):
 def _stored_preview(record, ctx: AppContext) -> StoredPreview:
     paths = JobPaths.for_job(ctx.settings.data_dir, record.tenant_hash, record.id)
     try:
+        with storage_errors("fetching the stored frames"):
+            ctx.files.fetch_artefact(paths)  # this host's cache (a no-op with the local store)
         return load_preview(paths.job_dir)
     except FileNotFoundError:
         raise NotFound(f"job {record.id} has no stored frames (it finished before the page's previews existed)",

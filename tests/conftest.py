@@ -226,3 +226,47 @@ def tiny_video(tmp_path_factory) -> Path:
     from core.io.video import write_video
 
     return write_video(tmp_path_factory.mktemp("media") / "room.mp4", room_frames(6), fps=6.0)
+
+
+@dataclass
+class S3Server:
+    """moto's S3-API server: a real HTTP server speaking S3, on a loopback port."""
+
+    endpoint: str
+    bucket: str = "lightfield-test"
+
+    @property
+    def env(self) -> dict[str, str]:
+        """The standard AWS variables a client (boto3, the service) reads."""
+        return {"AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing",
+                "AWS_DEFAULT_REGION": "us-east-1", "AWS_ENDPOINT_URL": self.endpoint}
+
+    def client(self):
+        import boto3
+
+        return boto3.client("s3", endpoint_url=self.endpoint, aws_access_key_id="testing",
+                            aws_secret_access_key="testing", region_name="us-east-1")
+
+    def keys(self, prefix: str = "") -> list[str]:
+        pages = self.client().get_paginator("list_objects_v2").paginate(Bucket=self.bucket, Prefix=prefix)
+        return [o["Key"] for page in pages for o in page.get("Contents", [])]
+
+
+@pytest.fixture(scope="session")
+def s3_server():
+    """moto in server mode (Flask in a thread of the test process; the service's processes reach
+    it over HTTP like any S3 endpoint) on a free loopback port, with one bucket."""
+    from moto.server import ThreadedMotoServer
+
+    from service.processes import free_port
+
+    port = free_port()
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    server.start()
+    s3 = S3Server(f"http://127.0.0.1:{port}")
+    try:
+        wait_until(lambda: s3.client().list_buckets() is not None, 30, what="the moto server")
+        s3.client().create_bucket(Bucket=s3.bucket)
+        yield s3
+    finally:
+        server.stop()

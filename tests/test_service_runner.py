@@ -274,3 +274,69 @@ def test_one_job_decodes_its_upload_once(redis_url, tmp_path, tiny_video, monkey
         assert r.run(rec.id) is Outcome.SUCCEEDED
     assert len(decodes) == 1
     assert (paths.artefact_dir / "baked.safetensors").is_file() and (paths.job_dir / "preview").is_dir()
+
+
+# -- issue 45: storage faults are the storage's, not the job's --------------------------------------------
+def engine_disk_full(*a, **kw):
+    """What safetensors raises when the checkpoint's directory cannot be written."""
+    from safetensors import SafetensorError
+
+    raise SafetensorError('Error while serializing: I/O error: No space left on device (os error 28) at path "x"')
+
+
+def test_a_storage_fault_requeues_the_job_then_gives_up_after_the_bound(runner):
+    """Issue: an unwritable artefact directory failed the job as engine_error (SafetensorError),
+    never retried once storage was back."""
+    r = runner(engine_disk_full)
+    job, paths = _job(r)
+    assert r.run(job) is Outcome.STORAGE_RETRY
+    rec = r.store.get(job)
+    assert (rec.state, rec.stage, rec.storage_retries, rec.error_code) == ("queued", "waiting_for_storage", 1, "")
+    assert "ENOSPC" in rec.message or "SafetensorError" in rec.message
+    assert r.retry_delay_s == r.settings.storage_retry_s and paths.upload_dir.is_dir()  # nothing deleted
+    for n in range(2, r.settings.storage_retries + 1):
+        assert r.run(job) is Outcome.STORAGE_RETRY
+        assert r.retry_delay_s == r.settings.storage_retry_delay_s(n)
+    assert r.run(job) is Outcome.FAILED
+    rec = r.store.get(job)
+    assert rec.state == "failed" and rec.error_code == "storage_unavailable"
+    r.engine = engine_ok  # a terminal job is never run again
+    assert r.run(job) is Outcome.SKIPPED
+
+
+def test_an_engine_error_while_storage_is_unwritable_is_a_storage_fault(runner, monkeypatch):
+    import worker.runner as runner_module
+
+    r = runner(engine_crash)
+    job, _ = _job(r)
+    monkeypatch.setattr(runner_module, "storage_writable", lambda directory: False)
+    assert r.run(job) is Outcome.STORAGE_RETRY
+    monkeypatch.setattr(runner_module, "storage_writable", lambda directory: True)
+    assert r.run(job) is Outcome.FAILED and r.store.get(job).error_code == "engine_error"
+
+
+def test_a_resumed_run_records_the_checkpoints_iteration_then_the_final_one(runner):
+    """Issue: after a restart the job was succeeded but its record still said iteration 177/600."""
+    import torch
+
+    from core.engine import JobResult
+    from core.fields import FieldConfig, SceneBounds, build_field
+    from core.fields.artefact import save_artefact
+
+    seen = []
+
+    def engine(input_path, depth_path, params, out_dir, **kw):
+        seen.append((r.store.get(job).iteration, r.store.get(job).message))
+        field = build_field(FieldConfig(kind="grid", uses_time=False, grid={"resolution": (2, 2, 2), "env_height": 4}),
+                            SceneBounds((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), 0.0, 0.0))
+        return JobResult(save_artefact(out_dir, field, {"training": {"iterations": 600}}))
+
+    r = runner(engine)
+    job, paths = _job(r)
+    r.store.update(job, iteration=177, total=600)  # the dead run's last progress, beyond its checkpoint
+    paths.checkpoint_dir.mkdir(parents=True)
+    (paths.checkpoint_dir / "checkpoint.json").write_text('{"step": 150, "fingerprint": "x"}')
+    assert r.run(job) is Outcome.SUCCEEDED
+    assert seen == [(150, "resuming from the checkpoint at iteration 150")]
+    rec = r.store.get(job)
+    assert rec.resumed and (rec.iteration, rec.total) == (600, 600)

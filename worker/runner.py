@@ -7,8 +7,9 @@ Celery shim.
 """
 from __future__ import annotations
 
+import errno
+import json
 import logging
-import shutil
 import time
 from dataclasses import dataclass
 from enum import Enum
@@ -18,7 +19,7 @@ from typing import TYPE_CHECKING, Callable
 from jobs.errors import broker_errors, error_code_of, user_error_types
 from jobs.lease import RunLease
 from jobs.settings import JobSettings
-from jobs.storage import JobPaths
+from jobs.storage import JobPaths, is_storage_error, remove_tree, storage_writable
 from jobs.store import JobStore
 
 if TYPE_CHECKING:
@@ -37,6 +38,7 @@ class Outcome(str, Enum):
     FAILED = "failed"
     CANCELLED = "cancelled"
     ABANDONED = "abandoned"  # lease lost mid-run: another worker owns the job now
+    STORAGE_RETRY = "storage_retry"  # the storage failed: re-queued to resume from its checkpoint later
 
 
 @dataclass
@@ -48,6 +50,17 @@ class JobRunner:
     engine: Callable[..., "JobResult"]
     # how the engine builds the job's prior (worker.prior_cache keeps weight-loading ones); None: the engine's own
     prior_factory: Callable[..., object] | None = None
+    retry_delay_s: float = 0.0  # after Outcome.STORAGE_RETRY: when to deliver the job again
+    _files: object = None
+
+    @property
+    def files(self):
+        """jobs.jobfiles.JobFiles: this host's directory and the shared store (a no-op by default)."""
+        if self._files is None:
+            from jobs.jobfiles import job_files
+
+            self._files = job_files(self.settings)
+        return self._files
 
     def run(self, job_id: str) -> Outcome:
         record = self.store.get(job_id)
@@ -68,11 +81,22 @@ class JobRunner:
     def _run_leased(self, record, lease: RunLease) -> Outcome:
         job_id = record.id
         paths = JobPaths.for_job(self.settings.data_dir, record.tenant_hash, job_id)
+        try:  # with a shared store: the uploads, and a checkpoint another host's run left (jobs.jobfiles)
+            self.files.pull_uploads(paths, [n for n in (record.input_file, record.depth_file) if n])
+            self.files.pull_checkpoint(paths)
+        except Exception as exc:
+            if is_storage_error(exc):
+                return self._storage_fault(job_id, paths, exc)
+            raise
         resumed = paths.checkpoint_dir.is_dir() and any(paths.checkpoint_dir.iterdir())
+        step = checkpoint_step(paths.checkpoint_dir) if resumed else None
+        # the record says where the run restarts: the checkpoint's iteration, not the dead run's last progress
+        restart = {"iteration": step, "message": f"resuming from the checkpoint at iteration {step}"} if step else \
+            {"message": "resuming from checkpoint" if resumed else ""}
         started = self.store.update(
             job_id, allowed=("queued", "running"), state="running", attempts=record.attempts + 1,
             started_at=record.started_at or time.time(), resumed=record.resumed or resumed,
-            stage="starting", message="resuming from checkpoint" if resumed else "",
+            stage="starting", **restart,
         )
         if not started:
             return Outcome.SKIPPED
@@ -90,7 +114,8 @@ class JobRunner:
                 return Outcome.ABANDONED
             self.store.update(job_id, allowed=("running",), state="cancelled", finished_at=time.time(),
                               stage="cancelled", eta_s=None)
-            paths.remove_all()
+            if self.files.delete_job(paths):
+                log.warning("job %s: files left on storage after cancelling; DELETE removes them", job_id)
             return Outcome.CANCELLED
         except user_errors as exc:
             self._fail(record, paths, error_code_of(exc), str(exc))
@@ -98,18 +123,57 @@ class JobRunner:
         except Exception as exc:  # the engine broke: log it, tell the user without internals
             if isinstance(exc, broker_errors()):  # Redis went away mid-run: not the job's fault, retry it
                 raise
+            if is_storage_error(exc) or not storage_writable(paths.job_dir):  # the disk's fault, not the job's
+                return self._storage_fault(job_id, paths, exc)
             log.exception("job %s: engine error", job_id)
             self._fail(record, paths, "engine_error", f"the estimation failed ({type(exc).__name__}); see worker logs")
             return Outcome.FAILED
 
         if lease.lost.is_set():
+            self.files.forget_local(paths)  # another host runs it now
             return Outcome.ABANDONED
-        self._prebake(job_id, result.artefact if result else saved)
+        artefact = result.artefact if result else saved
+        self._prebake(job_id, artefact)
+        try:  # the artefact, its bake and the preview to the shared store, lightfield.json last
+            self.files.push_results(paths)
+        except Exception as exc:
+            if is_storage_error(exc):
+                return self._storage_fault(job_id, paths, exc)
+            raise
+        iterations = int(artefact.meta.get("training", {}).get("iterations") or 0)
+        done = {"iteration": iterations, "total": iterations} if iterations else {}
         self.store.update(job_id, allowed=("running",), state="succeeded", progress=1.0, stage="done",
-                          message="light field ready", eta_s=0.0, artefact=relative, finished_at=time.time())
-        paths.remove_uploads()
-        shutil.rmtree(paths.checkpoint_dir, ignore_errors=True)
+                          message="light field ready", eta_s=0.0, artefact=relative, finished_at=time.time(), **done)
+        if paths.remove_uploads() or not remove_tree(paths.checkpoint_dir):
+            log.warning("job %s: its uploads or checkpoint could not be deleted (storage); DELETE removes them", job_id)
+        try:
+            self.files.finish_run(paths)  # shared store: uploads and checkpoint deleted there, nothing kept here
+        except OSError:
+            log.warning("job %s: its uploads or checkpoint could not be deleted from the store", job_id, exc_info=True)
         return Outcome.SUCCEEDED
+
+    def _storage_fault(self, job_id: str, paths: JobPaths, exc: Exception) -> Outcome:
+        """The storage failed mid-run (full, read-only, gone): give the job back to the queue to
+        resume from its last checkpoint (written atomically, so it survived) once storage is
+        back, after a growing delay; failed as storage_unavailable after settings.storage_retries."""
+        record = self.store.get(job_id)
+        if record is None:
+            return Outcome.SKIPPED
+        kind = errno.errorcode.get(getattr(exc, "errno", None) or 0, type(exc).__name__)
+        retry, limit = record.storage_retries + 1, self.settings.storage_retries
+        log.warning("job %s: storage error during %s (%s: %s); retry %d of %d", job_id, record.stage or "the run",
+                    type(exc).__name__, exc, retry, limit)
+        if retry > limit:
+            self.store.update(job_id, allowed=("running", "queued"), state="failed", error_code="storage_unavailable",
+                              error_message=f"the storage failed {retry} times in a row ({kind}); the job was "
+                                            "given up", finished_at=time.time(), eta_s=None, storage_retries=retry)
+            return Outcome.FAILED
+        self.retry_delay_s = self.settings.storage_retry_delay_s(retry)
+        applied = self.store.update(
+            job_id, allowed=("running", "queued"), state="queued", stage="waiting_for_storage", eta_s=None,
+            storage_retries=retry, message=f"storage error ({kind}) during {record.stage or 'the run'}: resuming from "
+                                           f"the last checkpoint in {self.retry_delay_s:g} s (retry {retry} of {limit})")
+        return Outcome.STORAGE_RETRY if applied else Outcome.SKIPPED
 
     def _call_engine(self, record, paths: JobPaths, lease: RunLease) -> "JobResult":
         from core.engine.params import JobParams
@@ -118,7 +182,7 @@ class JobRunner:
         params = JobParams.model_validate_json(record.params or "{}")
         paths.job_dir.mkdir(parents=True, exist_ok=True)
         kwargs = dict(
-            progress=self._progress_writer(record.id),
+            progress=self._progress_writer(record.id, paths),
             should_cancel=lambda: lease.lost.is_set() or self._cancel_requested(record.id),
             checkpoint_dir=paths.checkpoint_dir,
             limits=MediaLimits.from_env(),
@@ -133,20 +197,20 @@ class JobRunner:
         depth = paths.upload_dir / record.depth_file if record.depth_file else None
         return self.engine(paths.upload_dir / record.input_file, depth, params, paths.artefact_dir, **kwargs)
 
-    @staticmethod
-    def _saved_artefact(job_id: str, paths: JobPaths) -> "LightFieldArtefact | None":
+    def _saved_artefact(self, job_id: str, paths: JobPaths) -> "LightFieldArtefact | None":
         """The artefact a previous run saved before dying (the engine renames a complete
         directory into place): finish it, don't redo it. One that fails verification is
         removed and the engine runs again (from its checkpoint), so it is never served."""
         from core.fields.artefact import META_FILE, ArtefactError, LightFieldArtefact
 
+        self.files.pull_dir(paths.artefact_dir, first=META_FILE)  # a shared store's copy, if one was pushed
         if not (paths.artefact_dir / META_FILE).is_file():
             return None
         try:
             return LightFieldArtefact.load(paths.artefact_dir)
         except ArtefactError as exc:
             log.error("job %s: the saved artefact failed verification (%s); estimating it again", job_id, exc)
-            shutil.rmtree(paths.artefact_dir, ignore_errors=True)
+            remove_tree(paths.artefact_dir)
             return None
 
     def _cancel_requested(self, job_id: str) -> bool:
@@ -179,19 +243,27 @@ class JobRunner:
         except Exception:
             log.warning("job %s: storing the UI preview failed", job_id, exc_info=True)
 
-    def _progress_writer(self, job_id: str):
-        last = {"t": 0.0, "stage": None}
+    def _progress_writer(self, job_id: str, paths: JobPaths | None = None):
+        last = {"t": 0.0, "stage": None, "checkpoint": None}
 
         def write(p) -> None:
+            if paths is not None and self.files.shared:  # a new checkpoint goes to the store at once
+                pointer = paths.checkpoint_dir / "checkpoint.json"
+                stamp = pointer.stat().st_mtime_ns if pointer.is_file() else None
+                if stamp is not None and stamp != last["checkpoint"]:
+                    self.files.push_checkpoint(paths)  # a storage error here is the run's (retried)
+                    last["checkpoint"] = stamp
             now = time.monotonic()
             if p.stage == last["stage"] and now - last["t"] < PROGRESS_MIN_INTERVAL_S:
                 return
             last["t"], last["stage"] = now, p.stage
+            # a stage change carries no iteration (0 of 0): the record keeps the last one it had,
+            # which after a resume is the checkpoint's, until the loop reports again
+            steps = {"iteration": int(p.iteration), "total": int(p.total)} if p.total else {}
             try:
                 self.store.update(
                     job_id, allowed=("running",), progress=min(max(float(p.fraction), 0.0), 1.0), stage=p.stage,
-                    iteration=int(p.iteration), total=int(p.total), loss=p.loss, eta_s=p.eta_s,
-                    message=getattr(p, "message", "") or "",
+                    loss=p.loss, eta_s=p.eta_s, message=getattr(p, "message", "") or "", **steps,
                 )
             except broker_errors():  # progress is best effort: a Redis restart must not fail the job
                 log.warning("job %s: progress not recorded (Redis unreachable)", job_id)
@@ -201,7 +273,8 @@ class JobRunner:
     def _fail(self, record, paths: JobPaths, code: str, message: str) -> None:
         self.store.update(record.id, allowed=("running",), state="failed", error_code=code,
                           error_message=message[:2000], finished_at=time.time(), eta_s=None)
-        paths.remove_all()
+        if self.files.delete_job(paths):
+            log.warning("job %s: files left on storage after failing; DELETE removes them", record.id)
 
     def _relative_artefact(self, artefact: Path, paths: JobPaths) -> str:
         """The engine's returned directory, checked to lie inside this job's area."""
@@ -209,3 +282,14 @@ class JobRunner:
         if not resolved.is_relative_to(paths.job_dir.resolve()):
             raise RuntimeError(f"engine wrote its artefact outside the job area: {artefact}")
         return str(resolved.relative_to(Path(self.settings.data_dir).resolve()))
+
+
+def checkpoint_step(checkpoint_dir: Path) -> int | None:
+    """The iteration a run restarting from `checkpoint_dir` resumes at (its checkpoint.json), or None."""
+    from core.engine.checkpoints import CHECKPOINT_META
+
+    try:
+        step = json.loads((checkpoint_dir / CHECKPOINT_META).read_text()).get("step")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return int(step) if isinstance(step, int) and step > 0 else None

@@ -26,7 +26,9 @@ def register_distill_task(app: Celery, make_runner: Callable[[], JobRunner]):
         except Exception as exc:  # e.g. Redis unreachable: keep the job, try again later
             log.exception("job %s: delivery failed, retrying", job_id)
             raise self.retry(exc=exc, countdown=max(runner.settings.lease_ttl_s, 1.0))
-        if outcome in (Outcome.REQUEUE, Outcome.ABANDONED):
+        if outcome is Outcome.STORAGE_RETRY:  # resumes from its checkpoint once the storage is back
+            self.apply_async(args=[job_id], countdown=runner.retry_delay_s)
+        elif outcome in (Outcome.REQUEUE, Outcome.ABANDONED):
             # Another delivery holds the lease, or this run lost it (its renewals failed while
             # Redis was away). Re-queue (not drop): if no other delivery runs the job, this copy
             # is its only message; one that finds the job finished skips it.

@@ -9,7 +9,9 @@ Defaults when the user gives nothing (recorded in `Capture.warnings` / `depth_so
   with horizontal FOV `core.conventions.DEFAULT_HFOV_DEG`;
 * poses: several frames are tracked (core.capture.track; `params.tracking`), one frame is a
   camera at the world origin (world = first camera frame);
-* fps: the video's own rate, else 1 (a single image has t = 0);
+* fps: the video's own rate, else 1 (a single image has t = 0); a video's frame times are its
+  presentation timestamps (a variable frame rate keeps its real timing) unless params.fps is
+  given, which times frame i at i / fps;
 * depth: the given file, else the geometric assumption `assumed_box_depth` (a 5 x 3 x 4 m box
   room seen from a camera 1.5 m above the floor looking at the back wall; the SCALE IS
   ARBITRARY and so is the geometry — good enough to place probes and splat colours, not a
@@ -264,7 +266,8 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
             vf = read_video(path, limits)
             warn.extend(vf.warnings)
             loaded = {"frames": torch.from_numpy(np.ascontiguousarray(vf.frames)), "fps": vf.fps,
-                      "source_indices": [int(i) for i in vf.source_frame_indices], "original_count": vf.original_frame_count}
+                      "source_indices": [int(i) for i in vf.source_frame_indices], "original_count": vf.original_frame_count,
+                      "times": vf.times}  # presentation timestamps (variable frame rate), else index / fps
             if vf.rotation_ccw_deg:
                 loaded["metadata"] = {"applied": [f"video display rotation {vf.rotation_ccw_deg} deg counter-clockwise: "
                                                   "frames turned upright"]}
@@ -315,7 +318,8 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
         depth=depth.contiguous(),
         intrinsics=intr,
         poses=poses,
-        times=frame_time(torch.tensor(source_idx, dtype=torch.float32), fps),
+        times=(torch.as_tensor(loaded["times"], dtype=torch.float32) if loaded.get("times") is not None
+               and params.fps is None else frame_time(torch.tensor(source_idx, dtype=torch.float32), fps)),
         fps=float(fps),
         depth_source=depth_src,
         source=path.name,

@@ -55,13 +55,11 @@ def probe_capture(input_path, depth_path=None, params: CaptureParams | None = No
         (width, height), fps = probe_image(path, limits), None
         source_count, source_indices = 1, [0]
     elif kind == "archive":  # a nerfstudio capture: transforms.json and the files it names
-        from core.io import select_frame_indices
         from core.io.nerfstudio import inspect_nerfstudio
 
         info = inspect_nerfstudio(path, limits)
         width, height, fps = info["intrinsics"]["width"], info["intrinsics"]["height"], None
-        source_count = info["frames"]
-        source_indices = [int(i) for i in select_frame_indices(source_count, width * height, limits)]
+        source_count, source_indices = info["frames"], info["kept"]
     else:
         raise CaptureError("input", f"{path.name} is neither an image, a video nor a capture zip")
     frames = len(source_indices)

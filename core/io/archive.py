@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 import posixpath
 import stat
+import struct
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +26,13 @@ from core.io.sniff import ZIP_MAGIC
 MAX_MEMBERS = 20_000
 MAX_RATIO = 200.0
 _RATIO_MIN_BYTES = 1 << 20  # tiny members compress absurdly well and harmlessly
+# zipfile reads the whole central directory into ZipInfo objects (~500 bytes each) before any
+# check can run: its entry count and size are read from the end record and walked here first
+MAX_DIRECTORY_BYTES_PER_MEMBER = 1024
+_EOCD = struct.Struct("<4s4H2LH")  # signature, disk, cd disk, entries here, entries, cd size, cd offset, comment
+_EOCD64_LOCATOR = struct.Struct("<4sLQL")
+_EOCD64 = struct.Struct("<4sQ2H2L4Q")
+_CD_ENTRY = struct.Struct("<4s6H3L5H2L")  # central directory file header (46 bytes)
 
 
 class ArchiveError(MediaError):
@@ -45,6 +53,54 @@ def member_name(name: str, field: str = "file_path") -> str:
     if not parts or ".." in parts:
         raise ArchiveError("not_found", f"{field}: {name!r} leaves the capture ('..' is not allowed)", field)
     return "/".join(parts)
+
+
+def check_zip_directory(f, size: int, max_members: int = MAX_MEMBERS, what: str = "capture archive") -> int:
+    """Entries in the zip open as the binary file `f` (`size` bytes), refusing more than
+    `max_members` (or a central directory larger than `max_members` entries could need) from the
+    end record and a walk over the directory's fixed-size headers, before zipfile builds an
+    object per entry. A directory that disagrees with its end record is refused (zipfile
+    trusts the byte size, not the count). Returns the entry count."""
+    tail_len = min(size, _EOCD.size + 0xFFFF)
+    f.seek(size - tail_len)
+    tail = f.read(tail_len)
+    at = tail.rfind(b"PK\x05\x06")
+    if at < 0 or at + _EOCD.size > len(tail):
+        raise ArchiveError("truncated", f"{what} is not a readable zip (no end of central directory record)")
+    _, _, _, _, entries, cd_size, _, _ = _EOCD.unpack_from(tail, at)
+    end = size - tail_len + at  # where the directory must end
+    if entries == 0xFFFF or cd_size == 0xFFFFFFFF:  # ZIP64: the real values are in the ZIP64 end record
+        loc = at - _EOCD64_LOCATOR.size
+        if loc < 0 or tail[loc:loc + 4] != b"PK\x06\x07":
+            raise ArchiveError("truncated", f"{what}: ZIP64 end record locator is missing")
+        end = size - tail_len + loc - _EOCD64.size
+        if end < 0:
+            raise ArchiveError("truncated", f"{what}: ZIP64 end record is missing")
+        f.seek(end)
+        record = f.read(_EOCD64.size)
+        if len(record) != _EOCD64.size or record[:4] != b"PK\x06\x06":
+            raise ArchiveError("truncated", f"{what}: ZIP64 end record is missing")
+        entries, cd_size = _EOCD64.unpack(record)[7], _EOCD64.unpack(record)[8]
+    if entries > max_members:
+        raise ArchiveError("too_large", f"{what} has {entries} entries, more than the limit of {max_members}")
+    if cd_size > max(max_members, 1) * MAX_DIRECTORY_BYTES_PER_MEMBER:
+        raise ArchiveError("too_large", f"{what}'s central directory is {cd_size} bytes, more than the limit of "
+                                        f"{max_members * MAX_DIRECTORY_BYTES_PER_MEMBER} ({max_members} entries)")
+    start = end - cd_size
+    if start < 0:
+        raise ArchiveError("truncated", f"{what}: central directory lies outside the file")
+    f.seek(start)
+    directory = f.read(cd_size)
+    count, pos = 0, 0
+    while pos < len(directory):
+        if directory[pos:pos + 4] != b"PK\x01\x02" or pos + _CD_ENTRY.size > len(directory):
+            raise ArchiveError("truncated", f"{what}: central directory is corrupt at entry {count}")
+        fields = _CD_ENTRY.unpack_from(directory, pos)
+        pos += _CD_ENTRY.size + fields[10] + fields[11] + fields[12]  # name, extra, comment lengths
+        count += 1
+        if count > max_members:
+            raise ArchiveError("too_large", f"{what} has more than {max_members} entries (its end record says {entries})")
+    return count
 
 
 def is_zip(source: Source) -> bool:
@@ -71,6 +127,10 @@ class CaptureFiles:
     def exists(self, name: str) -> bool:
         raise NotImplementedError
 
+    def size(self, name: str, field: str = "file_path") -> int:
+        """Bytes of a member as declared (zip) or stored (directory), without reading it."""
+        raise NotImplementedError
+
     def close(self) -> None:
         pass
 
@@ -94,10 +154,13 @@ class ZipFiles(CaptureFiles):
         if isinstance(source, (bytes, bytearray, memoryview)):
             limits.check_bytes(len(source), "capture archive")
             target = io.BytesIO(bytes(source))
+            check_zip_directory(target, len(source), max_members)
         else:
             path = Path(source)
             limits.check_bytes(path.stat().st_size, "capture archive")
             target = str(path)
+            with open(path, "rb") as f:
+                check_zip_directory(f, path.stat().st_size, max_members)
         try:
             self.zip = zipfile.ZipFile(target)
         except (zipfile.BadZipFile, OSError, ValueError) as exc:
@@ -138,6 +201,12 @@ class ZipFiles(CaptureFiles):
         except ArchiveError:
             return False
 
+    def size(self, name: str, field: str = "file_path") -> int:
+        info = self.members.get(self._full(name, field))
+        if info is None:
+            raise ArchiveError("not_found", f"{field}: {name!r} is not in the archive", field)
+        return info.file_size
+
     def read(self, name: str, field: str = "file_path") -> bytes:
         full = self._full(name, field)
         info = self.members.get(full)
@@ -176,6 +245,12 @@ class DirectoryFiles(CaptureFiles):
             return self._path(name, "file_path").is_file()
         except ArchiveError:
             return False
+
+    def size(self, name: str, field: str = "file_path") -> int:
+        p = self._path(name, field)
+        if not p.is_file():
+            raise ArchiveError("not_found", f"{field}: {name!r} does not exist in the capture", field)
+        return p.stat().st_size
 
     def read(self, name: str, field: str = "file_path") -> bytes:
         p = self._path(name, field)

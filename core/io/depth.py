@@ -10,7 +10,6 @@ shape is read from the array header before the data is decompressed (zip bombs).
 from __future__ import annotations
 
 import io
-import math
 import os
 import zipfile
 from pathlib import Path
@@ -24,6 +23,13 @@ from core.io.sniff import npy_header, sniff_depth
 
 MM_PER_METRE = 1000.0
 _EXR_DEPTH_CHANNELS = ("Z", "depth", "Y", "R")
+# Planar depth a capture may state: indoor scenes span metres; 10 km is a unit error (depth in
+# millimetres sent as metres) or a sentinel, and the scene bounds built from it break the field
+# (the same bound as core.camera.MAX_POSE_TRANSLATION_M and the API's insertion depths).
+MAX_DEPTH_M = 1.0e4
+_NPZ_MAX_MEMBERS = 64  # an .npz holds one array; a few more are named in the refusal
+_NPZ_MAX_RATIO = 200.0  # as core.io.archive.MAX_RATIO: float depth compresses a few times, not 600x
+_NPZ_RATIO_MIN_BYTES = 1 << 20
 
 
 def _check_shape(shape: tuple, limits: MediaLimits, what: str) -> None:
@@ -43,6 +49,45 @@ def _check_array_header(shape: tuple, dtype: np.dtype, limits: MediaLimits, what
     _check_shape(tuple(shape), limits, what)
 
 
+def check_depth_range(depth: np.ndarray, what: str = "depth") -> None:
+    """Refuse ('invalid_depth') depths beyond MAX_DEPTH_M in a sanitised map (invalid = NaN),
+    naming the value and the range."""
+    if not depth.size or np.isnan(depth).all():
+        return
+    deepest = np.nanmax(depth)  # sanitised depth: invalid pixels are NaN (an inf here came from scaling)
+    if deepest > MAX_DEPTH_M:
+        raise MediaError("invalid_depth", f"{what}: values up to {float(deepest):.4g} m; planar depth must be within "
+                                          f"(0, {MAX_DEPTH_M:g}] m (metres; a 16-bit PNG holds millimetres)")
+
+
+def _open_npz(target, size: int, limits: MediaLimits) -> zipfile.ZipFile:
+    """The .npz (a zip) with its directory walked within bounds (core.io.archive) before zipfile
+    parses it, and exactly one member `depth.npy`."""
+    from core.io.archive import check_zip_directory
+
+    check_zip_directory(target, size, _NPZ_MAX_MEMBERS, "depth .npz")
+    target.seek(0)
+    archive = zipfile.ZipFile(target)
+    try:
+        _check_npz_members(archive)
+    except BaseException:
+        archive.close()
+        raise
+    return archive
+
+
+def _check_npz_data(archive: zipfile.ZipFile, limits: MediaLimits) -> None:
+    """After the array header: `depth.npy` at most `limits.max_bytes` and not compressed more
+    than _NPZ_MAX_RATIO : 1 (a 1 MB file declaring 800 MB of float64), before its data is read."""
+    info = archive.getinfo("depth.npy")
+    if info.file_size > limits.max_bytes:
+        raise MediaError("too_large", f"depth array is {info.file_size} bytes uncompressed, more than the limit "
+                                      f"of {limits.max_bytes}")
+    if info.file_size > _NPZ_RATIO_MIN_BYTES and info.file_size > _NPZ_MAX_RATIO * max(info.compress_size, 1):
+        raise MediaError("too_large", f"depth array expands {info.file_size / max(info.compress_size, 1):.0f}x "
+                                      f"(more than {_NPZ_MAX_RATIO:g}x: a zip bomb?)")
+
+
 def _check_npz_members(archive: zipfile.ZipFile) -> None:
     names = archive.namelist()
     if names != ["depth.npy"]:
@@ -52,11 +97,11 @@ def _check_npz_members(archive: zipfile.ZipFile) -> None:
 
 def _load_npz(data: bytes, limits: MediaLimits) -> np.ndarray:
     try:
-        with zipfile.ZipFile(io.BytesIO(data)) as archive:
-            _check_npz_members(archive)
+        with _open_npz(io.BytesIO(data), len(data), limits) as archive:
             with archive.open("depth.npy") as member:
                 shape, dtype = npy_header(member)
                 _check_array_header(shape, dtype, limits, "depth array")
+            _check_npz_data(archive, limits)
         with np.load(io.BytesIO(data), allow_pickle=False) as npz:
             return npz["depth"]
     except MediaError:
@@ -103,47 +148,79 @@ def read_depth(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> np.ndarr
         raise MediaError("not_media", "depth must be .npz/.npy (array 'depth'), OpenEXR or 16-bit PNG in millimetres")
     depth = np.asarray(loaders[kind](data, limits))
     _check_shape(depth.shape, limits, "depth map")
-    return sanitize_depth(depth)
+    depth = sanitize_depth(depth)
+    check_depth_range(depth, "depth")
+    return depth
 
 
 def probe_depth(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> tuple[tuple[int, ...], np.ndarray]:
     """(shape, first map) of a depth file `read_depth` accepts: the array header checked under
     `limits` as read_depth does, and only the first [H, W] map read (sanitised: invalid pixels
-    NaN), however many maps the file holds. EXR and PNG files hold one map."""
-    data = read_source(source, limits, "depth file")
-    kind = sniff_depth(data)
+    NaN; its range checked), however many maps the file holds, with memory bounded by one map
+    (a path is read as a stream, never whole). EXR and PNG files hold one map."""
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        return _probe_depth_stream(io.BytesIO(bytes(source)), len(source), limits)
+    path = Path(source)
+    if not path.is_file():
+        raise MediaError("not_found", f"depth file {str(path)!r} does not exist or is not a regular file")
+    with open(path, "rb") as f:
+        return _probe_depth_stream(f, path.stat().st_size, limits)
+
+
+def _probe_depth_stream(f, size: int, limits: MediaLimits) -> tuple[tuple[int, ...], np.ndarray]:
+    limits.check_bytes(size, "depth file")
+    kind = sniff_depth(f.read(16))
+    f.seek(0)
     if kind is None:
         raise MediaError("not_media", "depth must be .npz/.npy (array 'depth'), OpenEXR or 16-bit PNG in millimetres")
     if kind in ("exr", "png"):
-        depth = read_depth(data, limits)
+        depth = read_depth(f.read(), limits)
         return depth.shape, depth
     try:
         if kind == "npy":
-            return _npy_first_map(io.BytesIO(data), limits)
-        with zipfile.ZipFile(io.BytesIO(data)) as archive:
-            _check_npz_members(archive)
-            with archive.open("depth.npy") as member:
-                return _npy_first_map(member, limits)
+            shape, first = _npy_first_map(f, limits)
+        else:
+            with _open_npz(f, size, limits) as archive, archive.open("depth.npy") as member:
+                shape, first = _npy_first_map(member, limits, lambda: _check_npz_data(archive, limits))
     except MediaError:
         raise
     except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as exc:
         raise MediaError("truncated", f".{kind} depth file is truncated or corrupt ({exc})") from None
+    check_depth_range(first, "depth" if len(shape) == 2 else "depth map 0")
+    return shape, first
 
 
-def _npy_first_map(fp, limits: MediaLimits) -> tuple[tuple[int, ...], np.ndarray]:
+_COLUMN_READ_BYTES = 4 << 20
+
+
+def _npy_first_map(fp, limits: MediaLimits, after_header=None) -> tuple[tuple[int, ...], np.ndarray]:
     version = np.lib.format.read_magic(fp)
     read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
     shape, fortran_order, dtype = read_header(fp)
     _check_array_header(shape, dtype, limits, "depth array")
+    if after_header is not None:
+        after_header()
     h, w = shape[-2:]
-    # a Fortran-ordered stack's first map is not contiguous: read the whole (limit-checked) array
-    count = math.prod(shape) if fortran_order else h * w
-    raw = fp.read(count * dtype.itemsize)
-    if len(raw) < count * dtype.itemsize:
-        raise MediaError("truncated", "depth array data is truncated")
-    array = np.frombuffer(raw, dtype).reshape(shape if fortran_order else (h, w), order="F" if fortran_order else "C")
-    first = array[0] if array.ndim == 3 else array
-    return tuple(shape), sanitize_depth(np.array(first))
+    frames = shape[0] if len(shape) == 3 else 1
+    if not fortran_order or frames == 1:
+        raw = fp.read(h * w * dtype.itemsize)
+        if len(raw) < h * w * dtype.itemsize:
+            raise MediaError("truncated", "depth array data is truncated")
+        first = np.frombuffer(raw, dtype).reshape((h, w), order="F" if fortran_order else "C")
+        return tuple(shape), sanitize_depth(first)
+    # Fortran order [T, H, W]: map 0 is every T-th value. Read column blocks of the stack (each
+    # column holds T * H values) and keep map 0's share: memory stays at one block, never the stack.
+    first = np.empty((h, w), dtype)
+    column = frames * h
+    per_read = max(1, _COLUMN_READ_BYTES // (column * dtype.itemsize))
+    for c0 in range(0, w, per_read):
+        n = min(per_read, w - c0)
+        raw = fp.read(n * column * dtype.itemsize)
+        if len(raw) < n * column * dtype.itemsize:
+            raise MediaError("truncated", "depth array data is truncated")
+        block = np.frombuffer(raw, dtype).reshape((frames, h, n), order="F")
+        first[:, c0:c0 + n] = block[0]
+    return tuple(shape), sanitize_depth(first)
 
 
 def sanitize_depth(depth: np.ndarray) -> np.ndarray:

@@ -74,7 +74,37 @@ def probe_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> tuple[i
     w, h = image.size
     with Image.open(io.BytesIO(data)) as again:  # verify() spends the image: EXIF from a fresh header parse
         swap = orientation_swaps_axes(image_metadata(again).orientation)
+        if again.format != "PNG":  # verify() reads PNG chunks to the end, other formats not at all
+            _decode_to_the_end(again)
     return (h, w) if swap else (w, h)
+
+
+def _decode_to_the_end(image: Image.Image) -> None:
+    """Decode every byte of the image data, as decode_image will, so that a truncated or corrupt
+    file is refused now ('truncated'). A JPEG is decoded at 1/8 scale (its DCT scaling reads all
+    the entropy-coded data but makes 1/64 of the pixels): a 16 Mpx photo costs ~1 MB, not 48."""
+    try:
+        if image.format == "JPEG":
+            image.draft("RGB", (max(1, image.size[0] // 8), max(1, image.size[1] // 8)))
+        image.load()
+    except Image.DecompressionBombError as exc:
+        raise MediaError("too_many_pixels", str(exc)) from None
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise MediaError("truncated", f"{image.format} data is truncated or corrupt ({exc})") from None
+
+
+def check_complete(data: bytes) -> None:
+    """Refuse ('truncated') a JPEG or PNG whose end is missing, from its markers alone (no
+    decode): a PNG must hold its IEND chunk, a JPEG an end-of-image marker after its last scan
+    (markers cannot occur inside entropy-coded data, where 0xFF bytes are stuffed). For the
+    frames of a capture beyond the first, which the upload check does not decode."""
+    fmt = sniff_image(data)
+    if fmt == "png" and data.rfind(b"IEND\xaeB`\x82") < 0:
+        raise MediaError("truncated", "PNG data is truncated (no IEND chunk)")
+    if fmt == "jpeg":
+        last_scan = data.rfind(b"\xff\xda")
+        if last_scan < 0 or data.find(b"\xff\xd9", last_scan) < 0:
+            raise MediaError("truncated", "JPEG data is truncated (no end-of-image marker after its last scan)")
 
 
 def _check_sample_format(image: Image.Image, data: bytes) -> None:

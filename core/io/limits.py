@@ -28,6 +28,8 @@ HTTP_STATUS: dict[str, int] = {
     "too_large": 413,
     "non_finite": 422,
     "shape_mismatch": 422,
+    "invalid_poses": 422,  # a capture file's poses outside the range a capture may state (core.camera)
+    "invalid_intrinsics": 422,  # a capture file's intrinsics or distortion outside theirs
 }
 ERROR_CODES = tuple(HTTP_STATUS)
 

@@ -37,15 +37,26 @@ from typing import Any
 import cv2
 import numpy as np
 
+from core.camera import MAX_FOV_DEG, MAX_POSE_TRANSLATION_M, MIN_FOV_DEG
 from core.io.archive import ArchiveError, CaptureFiles, ZipFiles, member_name, open_capture_files
-from core.io.depth import read_depth
-from core.io.images import decode_image
-from core.io.limits import DEFAULT_LIMITS, MediaLimits, Source
+from core.io.depth import check_depth_range, read_depth
+from core.io.images import check_complete, decode_image, probe_image
+from core.io.jsonbounds import JsonBudget, load_json
+from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source
 from core.io.metadata import frames_exposure_ev
 from core.io.video import select_frame_indices
 
 INDEX = "transforms.json"
-MAX_INDEX_BYTES = 64 * 1024 * 1024
+# The index is parsed in the API's upload check: its cost is bounded before it is parsed
+# (core.io.jsonbounds). 10 000 frames is 30x the default frame budget; a 10 000-frame index
+# with 4x4 matrices is about 2 MB compact, 8 MB indented.
+MAX_INDEX_BYTES = 8 * 1024 * 1024
+MAX_INDEX_FRAMES = 10_000
+INDEX_BUDGET = JsonBudget(max_bytes=MAX_INDEX_BYTES, max_depth=32, max_containers=20 * MAX_INDEX_FRAMES)
+# Distortion a real lens has (OpenCV's radial k1..k4 are O(0.1-1), tangential p1, p2 O(0.01));
+# beyond these the undistortion maps are garbage or not finite.
+MAX_RADIAL_DISTORTION = 10.0
+MAX_TANGENTIAL_DISTORTION = 1.0
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 DISTORTED_MODELS = ("OPENCV", "OPENCV_FISHEYE")
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
@@ -58,6 +69,10 @@ Z_UP_TO_Y_UP = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]
 def _err(key: str, message: str, code: str = "shape_mismatch") -> ArchiveError:
     f = f"{INDEX}: {key}" if key else INDEX
     return ArchiveError(code, f"{f}: {message}", f)
+
+
+def _index_error(code: str, message: str) -> ArchiveError:
+    return ArchiveError(code, message, INDEX)
 
 
 def _num(obj: dict, key: str, where: str, required: bool = True, positive: bool = False) -> float | None:
@@ -166,7 +181,34 @@ def _camera(meta: dict, where: str, image_size: tuple[int, int] | None) -> Nerfs
     cy = _num(meta, "cy", where) if "cy" in meta else h / 2
     keys = {"OPENCV": ("k1", "k2", "p1", "p2", "k3"), "OPENCV_FISHEYE": ("k1", "k2", "k3", "k4")}.get(model, ())
     dist = tuple(_num(meta, k, where, required=False) or 0.0 for k in keys)
-    return NerfstudioCamera(float(fx), float(fy), float(cx), float(cy), int(w), int(h), model, dist)
+    for k, value in zip(keys, dist):
+        bound = MAX_TANGENTIAL_DISTORTION if k.startswith("p") else MAX_RADIAL_DISTORTION
+        if abs(value) > bound:
+            raise _err(f"{where}{k}", f"distortion coefficient {value:g} is outside the range [-{bound:g}, {bound:g}]",
+                       "invalid_intrinsics")
+    cam = NerfstudioCamera(float(fx), float(fy), float(cx), float(cy), int(w), int(h), model, dist)
+    fx_key = "fl_x" if "fl_x" in meta else "camera_angle_x"
+    _check_plausible(cam, where, fx_key, "fl_y" if "fl_y" in meta else fx_key)
+    return cam
+
+
+def _check_plausible(cam: NerfstudioCamera, where: str, fx_key: str, fy_key: str) -> None:
+    """core.camera.Intrinsics.check_plausible's rules (what load_capture enforces), with the
+    key that breaks them and its allowed range: fields of view within [MIN_FOV_DEG,
+    MAX_FOV_DEG], the principal point within one image size of the centre."""
+    lo_fov, hi_fov = math.radians(MIN_FOV_DEG) / 2, math.radians(MAX_FOV_DEG) / 2
+    for key, f, size, axis in ((fx_key, cam.fx, cam.width, "horizontal"), (fy_key, cam.fy, cam.height, "vertical")):
+        fov = math.degrees(2 * math.atan(0.5 * size / f))
+        if not MIN_FOV_DEG <= fov <= MAX_FOV_DEG:
+            raise _err(f"{where}{key}", f"{f:g} px gives a {fov:.4g} deg {axis} field of view for {cam.width}x{cam.height} "
+                                        f"images; expected {MIN_FOV_DEG:g} to {MAX_FOV_DEG:g} deg (a focal length of "
+                                        f"{0.5 * size / math.tan(hi_fov):.4g} to {0.5 * size / math.tan(lo_fov):.4g} px)",
+                       "invalid_intrinsics")
+    for key, c, size in (("cx", cam.cx, cam.width), ("cy", cam.cy, cam.height)):
+        if abs(c - size / 2) > size:
+            raise _err(f"{where}{key}", f"{c:g} px lies more than one image size from the centre; expected "
+                                        f"{-size / 2:g} to {1.5 * size:g} px for {cam.width}x{cam.height} images",
+                       "invalid_intrinsics")
 
 
 def _same_camera(a: NerfstudioCamera, b: NerfstudioCamera) -> bool:
@@ -195,6 +237,32 @@ def _pose(v: Any, key: str) -> np.ndarray:
     if dev > RIGID_TOLERANCE or np.linalg.det(R) < 0:
         raise _err(key, f"is not a rigid camera-to-world transform (rotation part off orthonormal by {dev:.3g}, "
                         f"det {np.linalg.det(R):.3g}); scaled or mirrored poses are not accepted")
+    if np.abs(m[:3, 3]).max() > MAX_POSE_TRANSLATION_M:
+        raise _err(key, f"translation {m[:3, 3].tolist()} m is outside +-{MAX_POSE_TRANSLATION_M:g} m "
+                        "(the capture's camera positions, in metres)", "invalid_poses")
+    return m
+
+
+def _poses(values: list, keys: list[str]) -> np.ndarray:
+    """[N, 4, 4] from the frames' transform_matrix values: checked all at once (an index may list
+    thousands), and per frame (for the message naming the first bad one) only when one fails."""
+    try:
+        m = np.asarray(values, np.float64)
+    except (TypeError, ValueError):
+        m = None
+    if m is None or m.ndim != 3 or m.shape[1:] not in ((4, 4), (3, 4)):
+        return np.stack([_pose(v, k) for v, k in zip(values, keys)])
+    if m.shape[1:] == (3, 4):
+        m = np.concatenate([m, np.broadcast_to(np.array([[[0.0, 0, 0, 1]]]), (m.shape[0], 1, 4))], axis=1)
+    with np.errstate(invalid="ignore", over="ignore"):
+        finite = np.isfinite(m).all(axis=(1, 2))
+        R = np.where(finite[:, None, None], m[:, :3, :3], 0.0)
+        dev = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
+        bad = (~finite | (np.abs(m[:, 3] - [0, 0, 0, 1]).max(axis=1) > 1e-6) | (dev > RIGID_TOLERANCE)
+               | (np.linalg.det(R) < 0) | ~(np.abs(m[:, :3, 3]).max(axis=1) <= MAX_POSE_TRANSLATION_M))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        _pose(values[i], keys[i])  # raises, naming the frame
     return m
 
 
@@ -208,19 +276,27 @@ def _world_rotation(poses: np.ndarray) -> np.ndarray | None:
     return Z_UP_TO_Y_UP if up[2] > 0.7 and up[2] > abs(up[1]) else None
 
 
-def _image_size(files: CaptureFiles, name: str, key: str) -> tuple[int, int]:
-    """(width, height) from an image's header (Pillow parses headers lazily)."""
+def _image_size(files: CaptureFiles, name: str, key: str, limits: MediaLimits = DEFAULT_LIMITS) -> tuple[int, int]:
+    """(width, height) as stored (before any EXIF turn, as transforms.json's w, h are), checked
+    as a directly uploaded image is (core.io.images.probe_image), so a bad image gets the same
+    code in a capture as on its own."""
+    data = files.read(name, f"{INDEX}: {key}")
+    try:
+        probe_image(data, limits)
+        return _stored_size(data)
+    except ArchiveError:
+        raise
+    except MediaError as exc:
+        raise _err(key, f"{name!r}: {exc}", exc.code) from None
+
+
+def _stored_size(data: bytes) -> tuple[int, int]:
     import io
 
     from PIL import Image
 
-    try:
-        with Image.open(io.BytesIO(files.read(name, f"{INDEX}: {key}"))) as im:
-            return im.size
-    except ArchiveError:
-        raise
-    except Exception as exc:  # not an image Pillow knows
-        raise _err(key, f"{name!r} is not a readable image ({type(exc).__name__})", "not_media") from None
+    with Image.open(io.BytesIO(data)) as im:
+        return im.size
 
 
 def _find_index(files: CaptureFiles) -> None:
@@ -237,24 +313,25 @@ def _find_index(files: CaptureFiles) -> None:
 
 
 def read_index(files: CaptureFiles) -> NerfstudioIndex:
-    """Parse and check transforms.json against the files present (headers only, no decoding)."""
+    """Parse and check transforms.json against the files present (headers only, no decoding),
+    its cost bounded before it is parsed (size, depth and count of its arrays/objects, frames)."""
     _find_index(files)
-    raw = files.read(INDEX, INDEX)
-    if len(raw) > MAX_INDEX_BYTES:
-        raise _err("", f"is {len(raw)} bytes, more than {MAX_INDEX_BYTES}", "too_large")
-    try:
-        meta = json.loads(raw.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise _err("", f"is not valid UTF-8 JSON ({exc})", "truncated") from None
+    size = files.size(INDEX)
+    if size > MAX_INDEX_BYTES:
+        raise _index_error("too_large", f"{INDEX} is {size} bytes, more than the limit of {MAX_INDEX_BYTES}")
+    meta = load_json(files.read(INDEX, INDEX), INDEX, INDEX_BUDGET, _index_error)
     if not isinstance(meta, dict):
         raise _err("", "must be a JSON object")
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
         raise _err("frames", "must be a non-empty list")
+    if len(frames) > MAX_INDEX_FRAMES:
+        raise _err("frames", f"lists {len(frames)} frames, more than the limit of {MAX_INDEX_FRAMES}", "too_many_frames")
     top = {k: meta[k] for k in CAMERA_KEYS if k in meta}
     notes: list[str] = []
-    cams, names, poses, depth_files = [], [], [], []
+    cams, names, matrices, depth_files = [], [], [], []
     cache: dict[str, NerfstudioCamera] = {}
+    safe_names: dict[str, str] = {}
     image_size = None
     for i, fr in enumerate(frames):
         where = f"frames[{i}]."
@@ -263,24 +340,26 @@ def read_index(files: CaptureFiles) -> NerfstudioIndex:
         path = fr.get("file_path")
         if not isinstance(path, str):
             raise _err(f"{where}file_path", "is missing or not a string", "not_found")
-        name = member_name(path, f"{INDEX}: {where}file_path")
-        if not files.exists(name):
-            raise _err(f"{where}file_path", f"{path!r} is not in the capture", "not_found")
+        name = safe_names.get(path)
+        if name is None:
+            name = safe_names[path] = member_name(path, f"{INDEX}: {where}file_path")
+            if not files.exists(name):
+                raise _err(f"{where}file_path", f"{path!r} is not in the capture", "not_found")
         if "transform_matrix" not in fr:
             raise _err(f"{where}transform_matrix", "is missing")
         own = {k: fr[k] for k in CAMERA_KEYS if k in fr}
-        merged = {**top, **own}
+        merged = {**top, **own} if own else top
         if "w" not in merged and image_size is None:
-            image_size = _image_size(files, name, f"{where}file_path")
-        key = json.dumps(merged, sort_keys=True, default=str)
+            image_size = _image_size(files, name, f"{where}file_path", files.limits)
+        key = json.dumps(merged, sort_keys=True, default=str) if own else ""
         if key not in cache:
             cache[key] = _camera(merged, where if own else "", image_size)
         cam = cache[key]
-        if cams and not _same_camera(cams[0], cam):
+        if cams and cam is not cams[0] and not _same_camera(cams[0], cam):
             raise _err(f"{where}fl_x", "intrinsics differ from frames[0]: captures from several cameras are not supported")
         cams.append(cam)
         names.append(name)
-        poses.append(_pose(fr["transform_matrix"], f"{where}transform_matrix"))
+        matrices.append(fr["transform_matrix"])
         d = fr.get("depth_file_path")
         if d is not None:
             dname = member_name(d, f"{INDEX}: {where}depth_file_path")
@@ -294,7 +373,7 @@ def read_index(files: CaptureFiles) -> NerfstudioIndex:
         warnings.append(f"only {len(depth_files)} of {len(frames)} frames have a depth_file_path: depth ignored")
         depth_files = []
     scale = _num(meta, "depth_unit_scale_factor", "", required=False, positive=True) if "depth_unit_scale_factor" in meta else None
-    P = np.stack(poses)
+    P = _poses(matrices, [f"frames[{i}].transform_matrix" for i in range(len(matrices))])
     R = _world_rotation(P)
     if R is not None:
         P = R[None] @ P
@@ -328,6 +407,10 @@ def _depth_frame(files: CaptureFiles, name: str, key: str, shape: tuple[int, int
         raise _err(key, f"{name!r} must hold one [H, W] depth map, got shape {d.shape}", "invalid_depth")
     if scale is not None and data[:4] == b"\x89PNG":
         d = d * (scale * 1000.0)  # read_depth gave mm / 1000; the file says mm * 1000 * scale metres
+        try:
+            check_depth_range(d, f"{name!r}")
+        except MediaError as exc:
+            raise _err(key, str(exc), exc.code) from None
     if d.shape != shape:
         d = cv2.resize(d, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
     return d
@@ -378,10 +461,27 @@ def load_nerfstudio(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> Ner
 
 
 def inspect_nerfstudio(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> dict:
-    """Submission-time check without decoding pixels: the index, the files it names, and the
-    first image's header against the limits. Returns `NerfstudioIndex.describe()`."""
+    """Submission-time check without decoding the capture: the index, the files it names, the
+    first kept image checked as a direct upload is (header, structure, a full decode for
+    formats whose structure check does not see truncation), every other kept image's end
+    marker (a truncated JPEG or PNG), and the first kept depth map (valid pixels, range).
+    Returns `NerfstudioIndex.describe()` and the kept frames' indices (`kept`)."""
     with open_capture_files(source, limits) as files:
         index = read_index(files)
         limits.check_pixels(index.camera.width, index.camera.height, f"{INDEX}: w x h")
-        limits.check_pixels(*_image_size(files, index.files[0], "frames[0].file_path"), "frames[0] image")
-        return index.describe()
+        keep = [int(i) for i in select_frame_indices(len(index.files), index.camera.width * index.camera.height, limits)]
+        first = keep[0]
+        limits.check_pixels(*_image_size(files, index.files[first], f"frames[{first}].file_path", limits),
+                            f"frames[{first}] image")
+        for i in keep[1:]:
+            key = f"frames[{i}].file_path"
+            try:
+                check_complete(files.read(index.files[i], f"{INDEX}: {key}"))
+            except ArchiveError:
+                raise
+            except MediaError as exc:
+                raise _err(key, f"{index.files[i]!r}: {exc}", exc.code) from None
+        if index.depth_files:
+            _depth_frame(files, index.depth_files[first], f"frames[{first}].depth_file_path",
+                         (index.camera.height, index.camera.width), index.depth_unit_scale, limits)
+        return {**index.describe(), "kept": keep}

@@ -33,7 +33,9 @@ _SNIFF_BYTES = 64
 @dataclass
 class VideoFrames:
     """Decoded frames. `fps` is the SOURCE frame rate; frame k was source frame
-    `source_frame_indices[k]`, so its time is `times[k]` = index / fps (seconds)."""
+    `source_frame_indices[k]`. Its time `times[k]` (seconds from the first frame) is its
+    presentation timestamp when the stream has them (a variable-frame-rate clip keeps its
+    real timing), else index / fps."""
 
     frames: np.ndarray  # float32 [T, H, W, 3] in [0, 1]
     fps: float
@@ -41,9 +43,12 @@ class VideoFrames:
     original_frame_count: int  # frames in the source (declared, or counted when undeclared)
     warnings: list[str] = field(default_factory=list)
     rotation_ccw_deg: int = 0  # display rotation applied to the stored frames
+    presentation_times: np.ndarray | None = None  # float64 [T] s from the first frame's timestamp
 
     @property
     def times(self) -> np.ndarray:
+        if self.presentation_times is not None:
+            return self.presentation_times
         return self.source_frame_indices.astype(np.float64) / self.fps
 
 
@@ -54,20 +59,23 @@ def select_frame_indices(
     subsample (or a 'too_many_frames' error) if more than the frame budget remain."""
     if on_too_many not in ("subsample", "error"):
         raise ValueError(f"on_too_many must be 'subsample' or 'error', got {on_too_many!r}")
-    candidates = np.arange(0, frame_count, limits.frame_stride, dtype=np.int64)
+    # Nothing is allocated from the declared count (a file may declare 2e9 frames): only the
+    # kept indices, at most `budget` of them.
+    stride = limits.frame_stride
+    count = (max(int(frame_count), 0) + stride - 1) // stride  # candidates 0, stride, 2 stride, ...
     budget = min(limits.max_frames, limits.max_total_pixels // max(frame_pixels, 1))
     if budget < 1:
         raise MediaError("too_many_pixels", f"one frame of {frame_pixels} pixels exceeds max_total_pixels={limits.max_total_pixels}")
-    if candidates.size <= budget:
-        return candidates
+    if count <= budget:
+        return np.arange(count, dtype=np.int64) * stride
     if on_too_many == "error":
         raise MediaError(
             "too_many_frames",
-            f"video has {candidates.size} frames after frame_stride={limits.frame_stride}, more than the limit of {budget} "
+            f"video has {count} frames after frame_stride={stride}, more than the limit of {budget} "
             f"(max_frames={limits.max_frames}, max_total_pixels={limits.max_total_pixels})",
         )
-    pick = np.round(np.linspace(0, candidates.size - 1, budget)).astype(np.int64)
-    return candidates[pick]
+    pick = np.round(np.linspace(0, count - 1, budget)).astype(np.int64)
+    return pick * stride
 
 
 def _open_container(source: Source, limits: MediaLimits):
@@ -106,6 +114,12 @@ def _video_stream(container):
     return stream
 
 
+def _source_bytes(source: Source) -> int:
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        return len(source)
+    return Path(source).stat().st_size
+
+
 def _count_packets(source: Source, limits: MediaLimits) -> int:
     """Frame count of a stream that does not declare one: its non-empty packets."""
     container, _ = _open_container(source, limits)
@@ -137,7 +151,12 @@ def _header(source: Source, container, stream, limits: MediaLimits, on_too_many:
         fps = 30.0
         warnings.append("video has no frame rate; assumed 30 fps")
     declared = int(stream.frames or 0)
-    frame_count = declared if declared > 0 else _count_packets(source, limits)
+    if declared > _source_bytes(source):  # every frame takes bytes: a count the file cannot hold is a lie
+        counted = _count_packets(source, limits)
+        warnings.append(f"the container declares {declared} frames but holds {counted}; using {counted}")
+        frame_count = counted
+    else:
+        frame_count = declared if declared > 0 else _count_packets(source, limits)
     if frame_count <= 0:
         raise MediaError("truncated", "video stream has no frames (empty, truncated or corrupt file)")
     pixels = (ctx.width * ctx.height) if ctx.width and ctx.height else 1
@@ -170,14 +189,39 @@ def read_video(source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_many
     with container:
         stream = _video_stream(container)
         fps, frame_count, wanted = _header(source, container, stream, limits, on_too_many, warnings)
-        kept, indices, rotation = _decode_selected(container, stream, wanted, limits, warnings)
+        kept, indices, rotation, stamps = _decode_selected(container, stream, wanted, limits, warnings)
     if not kept:
         raise MediaError("truncated", f"no frame could be decoded (the stream declares {frame_count})")
     if len(kept) < wanted.size:
         warnings.append(f"decoded {len(kept)} of {wanted.size} selected frames; the file ends early or is corrupt")
     frames = rotate_frames(np.stack(kept), rotation).astype(np.float32)
     frames /= np.float32(255.0)
-    return VideoFrames(frames, fps, np.asarray(indices, np.int64), frame_count, warnings, rotation)
+    times = presentation_times(stamps, indices, fps, warnings)
+    return VideoFrames(frames, fps, np.asarray(indices, np.int64), frame_count, warnings, rotation, times)
+
+
+UNEVEN_INTERVALS = 0.25  # frame intervals spread more than this fraction of the median: a variable rate
+
+
+def presentation_times(stamps: list[float | None], indices: list[int], fps: float,
+                       warnings: list[str]) -> np.ndarray | None:
+    """Seconds from the first frame of the kept frames (`indices` into `stamps`, the
+    presentation time of every decoded frame in order), or None when the stream has no usable
+    timestamps (then index / fps is the frame time). Uneven intervals (a variable frame rate:
+    phones, screen recordings) are reported, since the frame times are then not index / fps."""
+    if not stamps or any(s is None for s in stamps):
+        return None
+    t = np.asarray(stamps, np.float64) - float(stamps[0])
+    steps = np.diff(t)
+    if steps.size and (not np.isfinite(t).all() or (steps <= 0).any()):
+        warnings.append("the video's presentation timestamps are not increasing; frame times taken as index / fps")
+        return None
+    if steps.size >= 2:
+        median = float(np.median(steps))
+        if float(steps.max() - steps.min()) > UNEVEN_INTERVALS * median:
+            warnings.append(f"variable frame rate: frame intervals range from {steps.min():.4g} to {steps.max():.4g} s "
+                            f"(nominal {1 / fps:.4g} s); frame times are the presentation timestamps")
+    return t[np.asarray(indices, np.int64)]
 
 
 def _decoded_frames(container, stream, warnings: list[str]):
@@ -202,13 +246,16 @@ def _decoded_frames(container, stream, warnings: list[str]):
 
 def _decode_selected(container, stream, wanted: np.ndarray, limits: MediaLimits, warnings: list[str]):
     """(uint8 frames at the `wanted` source indices (presentation order), their indices, the
-    display rotation in ccw degrees), stopping after the last wanted frame."""
+    display rotation in ccw degrees, the presentation time in seconds (None: unknown) of
+    every frame decoded), stopping after the last wanted frame."""
     wanted_set = set(wanted.tolist())
     last = int(wanted[-1])
     kept: list[np.ndarray] = []
     indices: list[int] = []
+    stamps: list[float | None] = []
     rotation = 0
     for index, frame in enumerate(_decoded_frames(container, stream, warnings)):
+        stamps.append(frame.time)
         if index == 0:  # streams that did not declare a size are checked here
             limits.check_pixels(frame.width, frame.height, "video frame")
             rotation = video_rotation_ccw(stream, frame)
@@ -220,7 +267,7 @@ def _decode_selected(container, stream, wanted: np.ndarray, limits: MediaLimits,
             indices.append(index)
         if index >= last:
             break
-    return kept, indices, rotation
+    return kept, indices, rotation, stamps
 
 
 @functools.lru_cache(maxsize=None)

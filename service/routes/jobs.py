@@ -17,8 +17,8 @@ from jobs.queue import TASK_NAME
 from jobs.storage import JobPaths, new_job_id
 from jobs.store import JobLimitReached, JobRecord
 from service.context import AppContext, Tenant, get_ctx, get_tenant, owned_job
-from service.errors import (BROKER_DOWN, ErrorBody, InvalidInput, ServiceUnavailable, TooManyJobs, broker_errors,
-                            describe_validation_errors)
+from service.errors import (BROKER_DOWN, RETRY_AFTER_STORAGE_S, ErrorBody, InvalidInput, ServiceUnavailable,
+                            TooManyJobs, broker_errors, describe_validation_errors, storage_errors)
 from service.lightfields import forget
 from service.models import JobList, JobView
 from service.upload import FormReader
@@ -105,17 +105,19 @@ def _finalise_upload(path: Path, suffix: str, stem: str) -> str:
 
 async def _accept_upload(request: Request, ctx: AppContext, tenant: Tenant, job_id: str, paths: JobPaths) -> JobRecord:
     """Stream the form to the job's upload dir, validate it as the worker will load it, and
-    return the record to create. Raises a 4xx ApiError for any bad part."""
-    form = await FormReader(paths.upload_dir, ctx.settings.limits).read(
-        request.headers.get("content-type"), request.headers.get("content-length"), request.stream())
+    return the record to create. Raises a 4xx ApiError for any bad part, 503
+    storage_unavailable when the storage root refuses the upload."""
+    with storage_errors("storing the upload"):
+        form = await FormReader(paths.upload_dir, ctx.settings.limits).read(
+            request.headers.get("content-type"), request.headers.get("content-length"), request.stream())
     params = parse_params(form.texts.get("params"), ctx)
-    kind, suffix = classify_input(form.files["file"])
-    input_name = _finalise_upload(form.files["file"], suffix, "input")
-    depth_name = ""
-    if "depth" in form.files:
-        depth_name = _finalise_upload(form.files["depth"], classify_depth(form.files["depth"]), "depth")
-    async with ctx.validation_slots:
-        await run_in_threadpool(check_capture, paths.upload_dir / input_name,
+    with storage_errors("storing the upload"):
+        kind, suffix = classify_input(form.files["file"])
+        input_name = _finalise_upload(form.files["file"], suffix, "input")
+        depth_name = ""
+        if "depth" in form.files:
+            depth_name = _finalise_upload(form.files["depth"], classify_depth(form.files["depth"]), "depth")
+    await ctx.upload_checks.run(check_capture, paths.upload_dir / input_name,
                                 paths.upload_dir / depth_name if depth_name else None, params)
     return JobRecord(id=job_id, tenant=tenant.name, tenant_hash=tenant.hash, input_kind=kind,
                      input_file=input_name, depth_file=depth_name, params=params.model_dump_json())
@@ -129,22 +131,25 @@ async def create_job(request: Request, tenant: Tenant = Depends(get_tenant), ctx
         raise TooManyJobs(f"at most {limit} jobs may be queued or running per tenant")
     job_id = new_job_id()
     paths = JobPaths.for_job(ctx.settings.data_dir, tenant.hash, job_id)
-    paths.upload_dir.mkdir(parents=True, exist_ok=False)
+    with storage_errors("storing the upload"):
+        paths.upload_dir.mkdir(parents=True, exist_ok=False)
     try:
         record = await _accept_upload(request, ctx, tenant, job_id, paths)
+        with storage_errors("storing the upload"):  # to the shared store (a no-op on the local one)
+            await run_in_threadpool(ctx.files.push_uploads, paths)
         await run_in_threadpool(ctx.store.create, record, limit)  # atomic re-check of the limit
     except JobLimitReached as exc:
-        paths.remove_all()
+        await run_in_threadpool(ctx.files.delete_job, paths)
         raise TooManyJobs(str(exc)) from None
     except BaseException:  # including a client that disconnects mid-upload
-        paths.remove_all()
+        ctx.files.delete_job(paths)
         raise
     try:
         await run_in_threadpool(ctx.celery.send_task, TASK_NAME, args=[job_id])
     except Exception:
         log.exception("job %s: could not enqueue", job_id)
         await _fail_unqueued(ctx, job_id)
-        paths.remove_uploads()
+        await run_in_threadpool(ctx.files.delete_job, paths)
         raise ServiceUnavailable("the job queue is unreachable; try again later", code="broker_unavailable") from None
     view = JobView.of(await run_in_threadpool(ctx.store.get, job_id))
     return JSONResponse(view.model_dump(mode="json"), status_code=202, headers={"Location": f"/jobs/{job_id}"})
@@ -187,9 +192,15 @@ def delete_job(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppContex
     record = owned_job(job_id, tenant, ctx)
     paths = JobPaths.for_job(ctx.settings.data_dir, record.tenant_hash, record.id)
     if record.is_terminal:
-        ctx.store.delete(record)
+        # files first: a record is deleted only once nothing it owns is left, so a storage
+        # fault never orphans files (the client is told, and DELETE can be retried)
         forget(record.id, ctx)
-        paths.remove_all()
+        left = ctx.files.delete_job(paths)
+        if left:
+            raise ServiceUnavailable(
+                f"job {job_id}: its {' and '.join(left)} could not be deleted (storage unavailable); the job is "
+                "kept so that DELETE can be retried", code="storage_unavailable", retry_after_s=RETRY_AFTER_STORAGE_S)
+        ctx.store.delete(record)
         return Response(status_code=204)
     ctx.store.request_cancel(job_id)
     # Nobody runs it (still queued, or its worker died): cancel now rather than at the
@@ -197,7 +208,10 @@ def delete_job(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppContex
     if not ctx.store.lease_held(job_id):
         if ctx.store.update(job_id, allowed=("queued", "running"), state="cancelled", stage="cancelled",
                             finished_at=time.time(), eta_s=None):
-            paths.remove_all()
+            left = ctx.files.delete_job(paths)
+            if left:
+                ctx.store.update(job_id, message=f"its {' and '.join(left)} could not be deleted yet (storage "
+                                                 "unavailable); DELETE again to retry")
     record = ctx.store.get(job_id) or record
     return JSONResponse(JobView.of(record, cancel_requested=not record.is_terminal).model_dump(mode="json"),
                         status_code=202)

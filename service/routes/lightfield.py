@@ -7,7 +7,7 @@ import io
 from typing import Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, Query, Response
+from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, StreamingResponse
 
@@ -15,6 +15,7 @@ from core.conventions import CONVENTIONS_SUMMARY
 from service import queries
 from service.context import AppContext, Tenant, get_ctx, get_tenant
 from service.errors import ErrorBody, InvalidInput, PayloadTooLarge, ServiceUnavailable
+from service.exports import Cancellation, run_export, stream_export
 from service.fieldcache import CachedField
 from service.lightfields import job_field, recent_field
 from service.queries import DEFAULT_QUALITY, MAX_ABS_EV, MAX_ABS_T_S, X_PATTERN
@@ -86,6 +87,7 @@ async def lightfield_info(job_id: str, tenant: Tenant = Depends(get_tenant), ctx
     summary="Environment map at (x, t)")
 async def get_envmap(
     job_id: str,
+    request: Request,
     x: str = XQuery,
     t: float = TQuery,
     height: int = Query(64, ge=1, description="rows; width = 2 x height (at most LIGHTFIELD_MAX_ENVMAP_HEIGHT)"),
@@ -102,12 +104,24 @@ async def get_envmap(
     def finish(hdr: np.ndarray, flags: queries.EvalFlags):  # in the batch's thread
         return _encode(hdr, format, ev, _attributes(point, t, job_id, flags) if format == "exr" else None)
 
-    answer = await queries.envmap_answer(ctx, cf, point, t, height, quality, finish=finish)
-    data, media_type = answer.value
+    if queries.is_large(height, quality):  # an export: its own field copy, cancelled if the client leaves
+        hdr, flags, used = await _export(request, ctx, queries.envmap_with_quality, cf, point, t, height, quality)
+        data, media_type = await run_in_threadpool(finish, hdr, flags)
+    else:
+        answer = await queries.envmap_answer(ctx, cf, point, t, height, quality, finish=finish)
+        (data, media_type), flags, used = answer.value, answer.flags, answer.quality
     return Response(data, media_type=media_type, headers={
-        CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, EXTRAPOLATED_HEADER: answer.flags.header(),
-        QUALITY_HEADER: answer.quality, "Content-Disposition": f'inline; filename="envmap.{format}"',
+        CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, EXTRAPOLATED_HEADER: flags.header(),
+        QUALITY_HEADER: used, "Content-Disposition": f'inline; filename="envmap.{format}"',
     })
+
+
+async def _export(request: Request, ctx: AppContext, fn, *args):
+    """fn(*args, on_map) as a cancellable export (service.exports), counted in the metrics."""
+    metrics = ctx.metrics
+    on_map = (lambda quality: metrics.export_maps.labels(quality).inc()) if metrics is not None else None
+    on_cancel = metrics.exports_cancelled.inc if metrics is not None else None
+    return await run_export(request, fn, *args, on_map, on_cancel=on_cancel)
 
 
 @router.post("/lightfield/{job_id}/envmaps", response_model=EnvmapBatchResponse, responses=_ERRORS,
@@ -233,7 +247,7 @@ async def get_arkit(job_id: str, response: Response, x: str = XQuery, t: float =
           "description": "format=ktx2: one KTX2 file (RGBA16F cube, GGX roughness mips); format=npy: float32 array "
                          "[6, size, size, 3]; format=json: one EXR per face, base64 (kept for compatibility)"},
     **_ERRORS}, summary="Cube map faces +X, -X, +Y, -Y, +Z, -Z at (x, t); prefiltered mips as KTX2")
-async def get_cubemap(job_id: str, x: str = XQuery, t: float = TQuery,
+async def get_cubemap(job_id: str, request: Request, x: str = XQuery, t: float = TQuery,
                       size: int = Query(64, ge=1, description="face edge in texels (a power of two for ktx2; at "
                                         "most LIGHTFIELD_MAX_CUBEMAP_SIZE)"),
                       format: Literal["json", "npy", "ktx2"] = "json", quality: Quality = QualityQuery,
@@ -252,8 +266,8 @@ async def get_cubemap(job_id: str, x: str = XQuery, t: float = TQuery,
     if format == "ktx2":
         from core.export.products import cube_ktx2, cube_source_height
 
-        hdr, flags, used = await run_in_threadpool(queries.envmap_with_quality, cf, point, t,
-                                                   cube_source_height(size), quality)
+        hdr, flags, used = await _export(request, ctx, queries.envmap_with_quality, cf, point, t,
+                                         cube_source_height(size), quality)
         data = await run_in_threadpool(cube_ktx2, hdr, size, levels, layout)
         return _download(data, "image/ktx2", "cubemap.ktx2", flags)
 
@@ -292,7 +306,7 @@ def _check_cube_size(size: int, levels: int | None) -> None:
     200: {"content": {"model/gltf-binary": {}}, "description": "glTF 2.0 binary with EXT_lights_image_based"},
     **_ERRORS}, summary="glTF (.glb) image-based light at (x, t): irradiance SH + prefiltered specular cube mips "
                          "(+ the main light as KHR_lights_punctual)")
-async def get_gltf(job_id: str, x: str = XQuery, t: float = TQuery,
+async def get_gltf(job_id: str, request: Request, x: str = XQuery, t: float = TQuery,
                    size: int = Query(64, ge=1, description="specular cube face edge (a power of two)"),
                    levels: int | None = Query(None, ge=1, le=16, description="specular mips (roughness 0..1)"),
                    main_light: bool = Query(True, description="add the main light (when found) as a KHR_lights_punctual "
@@ -305,7 +319,8 @@ async def get_gltf(job_id: str, x: str = XQuery, t: float = TQuery,
     queries.check_size(size, ctx.settings.limits.max_cubemap_size, "size")
     _check_cube_size(size, levels)
     cf = await _field_async(job_id, tenant, ctx)
-    hdr, flags = await run_in_threadpool(queries.envmap, cf, point, t, cube_source_height(size))
+    hdr, flags, _ = await _export(request, ctx, queries.envmap_with_quality, cf, point, t, cube_source_height(size),
+                                  "exact")
     data = await run_in_threadpool(probe_glb, hdr, point, t, size, levels, job_id, main_light)
     return _download(data, "model/gltf-binary", "probe.glb", flags)
 
@@ -313,16 +328,16 @@ async def get_gltf(job_id: str, x: str = XQuery, t: float = TQuery,
 @router.get("/lightfield/{job_id}/usdz", response_class=Response, responses={
     200: {"content": {"model/vnd.usdz+zip": {}}, "description": "USD package: DomeLight + its EXR (OpenEXR latlong)"},
     **_ERRORS}, summary="USD (.usdz) dome light at (x, t)")
-async def get_usdz(job_id: str, x: str = XQuery, t: float = TQuery,
+async def get_usdz(job_id: str, request: Request, x: str = XQuery, t: float = TQuery,
                    height: int = Query(256, ge=1, description="rows of the dome's latlong EXR (width = 2 x height)"),
-                   tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+                                  tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     from core.export.products import probe_usdz
     from core.export.usd import USDUnavailable
 
     point, t = queries.parse_x(x), queries.check_t(t)
     queries.check_size(height, ctx.settings.limits.max_envmap_height, "height")
     cf = await _field_async(job_id, tenant, ctx)
-    hdr, flags = await run_in_threadpool(queries.envmap, cf, point, t, height)
+    hdr, flags, _ = await _export(request, ctx, queries.envmap_with_quality, cf, point, t, height, "exact")
     try:
         data = await run_in_threadpool(probe_usdz, hdr, point, t, job_id)
     except USDUnavailable as exc:
@@ -357,8 +372,15 @@ async def get_sequence(job_id: str, x: str = XQuery,
     times = sequence_times(t0, t1, frames)
     for probe_t in {times[0], times[-1]}:  # refuse a bad query now, not after the 200 is sent
         await run_in_threadpool(queries.envmap, cf, point, probe_t, 1)
-    maps = ((t, hdr) for t, hdr, _ in queries.envmap_sequence(cf, point, times, height, quality))
+    # frame by frame on the exports' copy of the field; the frame in flight is cancelled when the
+    # client leaves (service.exports)
+    metrics = ctx.metrics
+    cancellation = Cancellation()
+    on_map = (lambda q: metrics.export_maps.labels(q).inc()) if metrics is not None else None
+    maps = ((t, hdr) for t, hdr, _ in queries.envmap_sequence(cf, point, times, height, quality, cancellation, on_map))
     members = sequence_members(maps, point, job_id, first_frame=first_frame, extra={"height": height, "quality": quality},
                                fps=sequence_fps(times), colour=colour)
-    return StreamingResponse(zip_stream(members), media_type="application/zip", headers={
+    stream = stream_export(zip_stream(members), cancellation,
+                           on_cancel=metrics.exports_cancelled.inc if metrics is not None else None)
+    return StreamingResponse(stream, media_type="application/zip", headers={
         CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, "Content-Disposition": 'attachment; filename="envmaps.zip"'})
