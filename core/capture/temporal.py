@@ -48,6 +48,7 @@ K_SIGMA = 4.0
 CLIP_HI, DARK_LO = 0.99, 0.02
 ANALYSIS_HEIGHT = 72  # frames are area-downsampled to this height first (speed, noise)
 MIN_BLOCK_FRACTION = 0.2
+OVERLAP_PAIRS_PER_FRAME = 6  # a moving camera's frames are compared with at most this many later ones that overlap
 NEIGHBOURHOOD = 3  # blocks: the moving-camera local statistic compares 3 x 3 block means (an edge that moves cancels)
 
 
@@ -155,17 +156,78 @@ def _consecutive_changes(capture):
     return steps, local, diffs, blind
 
 
+def _overlapping_pairs(capture) -> list[tuple[int, int]]:
+    """Frame pairs (i < j) of a moving camera that may show the same surfaces: consecutive frames
+    and any whose optical axes are within the diagonal field of view (a pan back, a scan's
+    rings), at most OVERLAP_PAIRS_PER_FRAME later partners per frame, nearest in angle first."""
+    k = capture.intrinsics
+    diag = math.degrees(2 * math.atan(math.hypot(k.width / (2 * k.fx), k.height / (2 * k.fy))))
+    axes = -capture.poses[:, :3, 2].to(torch.float64)
+    angle = torch.rad2deg(torch.acos((axes @ axes.T).clamp(-1.0, 1.0)))
+    T = capture.num_frames
+    pairs = {(i, i + 1) for i in range(T - 1)}
+    for i in range(T - 1):
+        later = [j for j in range(i + 2, T) if float(angle[i, j]) <= diag]
+        later.sort(key=lambda j: float(angle[i, j]))
+        pairs.update((i, j) for j in later[:OVERLAP_PAIRS_PER_FRAME])
+    return sorted(pairs)
+
+
+def overlap_course(capture) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """A moving camera's overall log brightness per frame [T] (relative to frame 0) from every
+    pair of frames that show the same surfaces (`_overlapping_pairs`, the later frame warped into
+    the earlier by depth and poses): the median block difference of each pair, then per-frame
+    values fitted to all of them by least squares (weighted by the blocks they share), as a
+    panorama stitcher balances exposures. A chain of consecutive frames would add up every
+    step's error; the pairs of a pan back or a scan's rings tie the ends together. Also returns
+    the consecutive pairs' block differences (the noise estimate). Frames no pair reaches keep
+    the value of the last one before them."""
+    small = capture.resized(ANALYSIS_HEIGHT)
+    T, h, w = small.depth.shape
+    planes = _analysis_planes(capture, h, w)
+    depth = torch.where(valid_depth_mask(small.depth), small.depth, torch.nan)
+    rows, vals, weights, consecutive = [], [], [], []
+    for i, j in _overlapping_pairs(capture):
+        warped, ok = _warp_into(planes[j], depth[i], depth[j], small.intrinsics, capture.poses[i], capture.poses[j])
+        usable = ok & (planes[i][..., 1] > 0.999) & (warped[..., 1] > 0.999)
+        logs = _block_logs(torch.stack((planes[i][..., 0], warped[..., 0])), usable[None].expand(2, -1, -1))
+        keep = torch.isfinite(logs).all(0)
+        if int(keep.sum()) == 0:
+            continue
+        d = (logs[1, keep] - logs[0, keep]).double()
+        rows.append((i, j)), vals.append(float(d.median())), weights.append(float(keep.sum()))
+        if j == i + 1:
+            consecutive.append(d)
+    course = torch.zeros(T, dtype=torch.float64)
+    if not rows:
+        return course, consecutive
+    A = torch.zeros(len(rows) + 1, T, dtype=torch.float64)
+    b = torch.zeros(len(rows) + 1, dtype=torch.float64)
+    for n, ((i, j), d, wt) in enumerate(zip(rows, vals, weights)):
+        A[n, j], A[n, i], b[n] = math.sqrt(wt), -math.sqrt(wt), math.sqrt(wt) * d
+    A[-1, 0] = 1e3  # gauge: frame 0 at 0
+    reached = torch.zeros(T, dtype=torch.bool)
+    reached[0] = True
+    for i, j in rows:
+        reached[i] = reached[j] = True
+    A[:, ~reached] = 0.0
+    course = torch.linalg.lstsq(A, b[:, None]).solution[:, 0]
+    for t in range(1, T):
+        if not bool(reached[t]):
+            course[t] = course[t - 1]
+    return course, consecutive
+
+
 def global_log_course(capture) -> torch.Tensor:
-    """[T] float64: each frame's overall log brightness relative to frame 0, from what two
-    frames both show (blocks usable in every frame for a static camera; consecutive frames
-    warped and chained for a moving one): the median over blocks, so a change confined to
-    part of the view moves it little. What an auto-exposure changes."""
+    """[T] float64: each frame's overall log brightness relative to frame 0, from what frames
+    both show (blocks usable in every frame for a static camera; every overlapping pair of a
+    moving one, `overlap_course`): the median over blocks, so a change confined to part of the
+    view moves it little. What an auto-exposure changes."""
     T = capture.num_frames
     if T < 2:
         return torch.zeros(T, dtype=torch.float64)
     if not capture.static_camera:
-        steps = _consecutive_changes(capture)[0]
-        return torch.cat((torch.zeros(1, dtype=torch.float64), torch.tensor(steps, dtype=torch.float64).cumsum(0)))
+        return overlap_course(capture)[0]
     l = block_log_luminance(capture)
     keep = torch.isfinite(l).all(0)
     if int(keep.sum()) == 0:
@@ -175,13 +237,13 @@ def global_log_course(capture) -> torch.Tensor:
 
 
 def detect_temporal_moving(capture) -> TemporalDecision:
-    """The moving-camera statistic: consecutive frames, warped, chained (module docstring)."""
+    """The moving-camera statistic: overlapping frames, warped (module docstring)."""
     steps, local, diffs, blind = _consecutive_changes(capture)
     if not diffs:
         return TemporalDecision(False, float("nan"), float("nan"),
                                 "no two consecutive frames share a usable image block (saturated/dark/occluded): "
                                 "assuming static lighting")
-    L = torch.cat((torch.zeros(1, dtype=torch.float64), torch.tensor(steps, dtype=torch.float64).cumsum(0)))
+    L = overlap_course(capture)[0]
     e_global = (L - L.median()).abs()
     e_local = torch.tensor([0.0] + local, dtype=torch.float64)
     dev = torch.maximum(e_global, e_local)
@@ -193,8 +255,8 @@ def detect_temporal_moving(capture) -> TemporalDecision:
     kind = "overall" if float(e_global[worst]) >= float(e_local[worst]) else "local"
     uses = stat > thr
     reason = (f"lighting {'changes' if uses else 'is stable'}: max {kind} |log-luminance change| {stat:.3f} at frame "
-              f"{worst} vs threshold {thr:.3f} (noise sigma {sigma:.4f}; camera motion compensated: each frame compared "
-              f"with the previous one, warped by depth and poses"
+              f"{worst} vs threshold {thr:.3f} (noise sigma {sigma:.4f}; camera motion compensated: frames that show "
+              f"the same surfaces compared, warped by depth and poses"
               f"{f', {len(blind)} pair(s) without a shared block' if blind else ''})")
     if uses and kind == "overall" and capture.stated_ev is None:  # what a phone's auto-exposure does as it pans
         reason += f"; {AUTO_EXPOSURE_HINT}"

@@ -41,6 +41,7 @@ the diffusion prior, not a replacement for it.
 from __future__ import annotations
 
 import functools
+import math
 from typing import Literal
 
 import torch
@@ -49,6 +50,7 @@ from pydantic import Field
 
 from core.conventions import expose, inverse_tonemap
 from core.capture.depth import surface_normals
+from core.capture.hdr_merge import capture_reading_weights, merge_frames
 from core.capture.highlights import CLIP_LDR, linearise_highlights
 from core.envmap import SPLAT_Z_TOLERANCE, resize_envmap, splat_points
 from core.priors.indoor_fill import SOURCE_CAP, cap_sources, fill_unseen
@@ -57,9 +59,9 @@ from core.priors.known import ball_target
 from core.priors.registry import prior_settings, register_prior
 
 CLIP_BOOST = 8.0  # clip_rule "fixed" only
-MERGE_VIEWS_STATIC_LIGHTING = 4  # viewpoints pooled when the lighting is static and the camera moves
 Z_TOLERANCE = SPLAT_Z_TOLERANCE  # the z-buffer of core.envmap.splat_points
-OTHER_VIEW_STRIDE = 3  # merged viewpoints contribute a third of their points (cost)
+OTHER_VIEW_STRIDE = 3  # merged viewpoints contribute at most a third of their points (cost) ...
+OTHER_VIEWS_POINTS = 16384  # ... and this many points in all
 
 
 def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP_BOOST,
@@ -200,9 +202,10 @@ class ReprojectionPrior(Prior):
         """Linearise all frames once and work out which frames share geometry."""
         self._capture = capture
         static_lighting_moving_camera = not lighting_changes and not capture.static_camera
-        self.merge_views = self.configured_merge_views or (
-            MERGE_VIEWS_STATIC_LIGHTING if static_lighting_moving_camera else 1)
+        self.merge_views = self.configured_merge_views or (capture.num_frames if static_lighting_moving_camera else 1)
         self._colors = linear_frames(capture, self.clip_rule, self.clip_boost, lighting_changes)
+        if static_lighting_moving_camera:  # what one frame clipped or lost in the black, another saw
+            self._colors = merge_frames(capture, self._colors, capture_reading_weights(capture))
         self._points = {}
         self._normals = {}
         self._camera_maps = {}
@@ -240,15 +243,18 @@ class ReprojectionPrior(Prior):
             self._normals[owner] = surface_normals(pts, cap.poses[owner, :3, 3]).reshape(-1, 3)
         return self._normals[owner]
 
-    def views_for(self, frame_index: int) -> list[int]:
-        """Frames whose point clouds a request for `frame_index` splats (see merge_views)."""
+    def views_for(self, frame_index: int) -> list[tuple[int, int]]:
+        """(frame, stride) whose point clouds a request for `frame_index` splats (see merge_views):
+        its own in full, the others every stride-th point, within OTHER_VIEWS_POINTS in all."""
         own = self._geometry_key[frame_index]
         if self.merge_views == 1:
-            return [frame_index]
+            return [(frame_index, 1)]
         owners = sorted(set(self._geometry_key) - {own})
         k = min(self.merge_views - 1, len(owners))
-        picked = [owners[round(j * (len(owners) - 1) / max(k - 1, 1))] for j in range(k)] if k else []
-        return [frame_index] + sorted(set(picked))
+        picked = sorted({owners[round(j * (len(owners) - 1) / max(k - 1, 1))] for j in range(k)}) if k else []
+        per_frame = self._capture.height * self._capture.width
+        stride = max(OTHER_VIEW_STRIDE, math.ceil(len(picked) * per_frame / OTHER_VIEWS_POINTS))
+        return [(frame_index, 1)] + [(v, stride) for v in picked]
 
     # ------------------------------------------------------------------ per request
     def frame_at(self, time: float) -> int:
@@ -298,9 +304,7 @@ class ReprojectionPrior(Prior):
 
     def _splat_seen(self, centers: torch.Tensor, frame_index: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Splatted radiance [N, h, w, 3] and its seen mask [N, h, w] (no fill)."""
-        views = self.views_for(frame_index)
-        # the other views only fill in what this one misses: every OTHER_VIEW_STRIDE-th point
-        stride = [1] + [OTHER_VIEW_STRIDE] * (len(views) - 1)
+        views, stride = zip(*self.views_for(frame_index))
         pts = torch.cat([self.points(v)[::k] for v, k in zip(views, stride)])
         col = torch.cat([self._colors[v].reshape(-1, 3)[::k] for v, k in zip(views, stride)])
         ok = torch.isfinite(pts).all(-1)

@@ -1,0 +1,248 @@
+"""Room scans of real panoramas, end to end: what a user gets from a phone turned around a room.
+
+    python -m bench.room_scans [--rooms a,b] [--modes product,true-poses] [-o out.json]
+
+Per indoor panorama of MANIFEST.tsv (dev, test and extra together; `control` rooms are not
+indoor and are reported apart): a room scan as core.sim.room_scan makes it (46 frames at 10 fps,
+192x144, rings at pitch +10, +55 and -40 with tilts between, hand jitter, a lagging
+auto-exposure spanning 4-9 stops, 8-bit H.264; seeded by the file name), uploaded as a plain
+MP4: no poses, no exposures, no intrinsics. Then `run_job` (the draft preset, as `lightfield
+estimate scan.mp4` runs it) and the env map at the first camera (the origin) at t = 0 and at
+the last frame's time.
+
+Modes: `product` (THE PRODUCT: the video alone); `true-poses` (a diagnostic shortcut, labelled:
+the scan's true rotations given as params.poses, exposures still unknown); `true-poses+ev` (the
+true exposures given too: what tracking and exposure recovery could reach at best).
+
+Scores, against the panorama rotated into the first camera's frame (world = first camera):
+three-sphere metrics (bench.suite.evaluation.score_probe) as ratios to the constant map of the
+clip's mean linearised colour (`mean-colour`, as in bench.real_panoramas); `seen_corr`, the
+log-luminance correlation of the map re-projected into every frame (true rotations) with the
+linearised frame, over the frames (does what was seen reappear where it was seen); `drift`, the
+relative L1 between the maps at the first and the last time (static light: 0); the job's CPU
+seconds; and for tracking, the method, frames kept and the largest rotation error.
+No setting of the product is fitted here; what the product itself fitted on panoramas (the
+indoor fill's elevation profile, the clip rule) is refitted per held-out room by bench.cv where
+it exists (`--cv`), so no room is scored by a rule it helped fit.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+import time
+import warnings
+import zlib
+from pathlib import Path
+
+import torch
+
+GT_HEIGHT = 128
+MODES = ("product", "true-poses", "true-poses+ev")
+CONSTANT = "mean-colour"
+DEFAULT_HDRI_DIR = Path(__file__).resolve().parents[2] / "shared" / "hdri"
+TARGETS = {"diffuse_si_rmse_rel": 0.5, "diffuse_angular_deg": 0.5, "mirror_si_rmse_rel": 0.7, "seen_corr": 0.8,
+           "drift": 0.1, "cpu_s": 60.0}
+
+
+def room_seed(name: str) -> int:
+    return zlib.crc32(name.encode()) % 1000
+
+
+def make_scan(pano_path: Path, workdir: Path):
+    """(video path, ScanClip) of the room's scan, seeded by its file name."""
+    from core.io.video import write_video
+    from core.sim.panorama_room import load_panorama
+    from core.sim.room_scan import SCAN_FPS, render_scan
+
+    seed = room_seed(pano_path.name)
+    clip = render_scan(load_panorama(pano_path, 256), yaw0=float(seed % 360), seed=seed)
+    video = write_video(workdir / f"{pano_path.stem}.mp4", clip.ldr.numpy(), SCAN_FPS)
+    return video, clip
+
+
+def relative_poses(clip) -> list[torch.Tensor]:
+    """The scan's c2w poses with the first camera as the world (core.conventions)."""
+    inv0 = torch.linalg.inv(clip.poses[0])
+    return [inv0 @ p for p in clip.poses]
+
+
+def ground_truth(pano_path: Path, clip) -> torch.Tensor:
+    from core.envmap import resize_envmap, rotate_envmap
+    from core.sim.panorama_room import load_panorama
+
+    R0 = clip.poses[0][:3, :3]
+    return rotate_envmap(resize_envmap(load_panorama(pano_path, 256), GT_HEIGHT), R0.T)  # gt(d) = pano(R0 d)
+
+
+def constant_map(clip) -> torch.Tensor:
+    from core.conventions import equirect_width, inverse_tonemap
+
+    mean = inverse_tonemap(clip.ldr).reshape(-1, 3).mean(0)
+    return mean.expand(GT_HEIGHT, equirect_width(GT_HEIGHT), 3).clone()
+
+
+def run_mode(video: Path, clip, mode: str, workdir: Path, overrides: dict | None):
+    """(artefact, cpu seconds) of the job in `mode`."""
+    from core.engine import run_job
+    from core.engine.params import JobParams
+    from core.engine.presets import preset
+
+    params: dict = {"preset": "draft"}
+    if mode != "product":
+        params["poses"] = [p.reshape(-1).tolist() for p in relative_poses(clip)]
+        params["intrinsics"] = {"hfov_deg": clip.intrinsics.hfov_deg}
+    if mode == "true-poses+ev":
+        params["frame_ev"] = [float(e) for e in clip.evs]
+    config = preset("draft").with_overrides(overrides) if overrides else None
+    t0 = time.process_time()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = run_job(video, None, JobParams.model_validate(params), workdir / f"{video.stem}-{mode}", config=config)
+    return result.artefact, time.process_time() - t0
+
+
+def seen_correlation(env: torch.Tensor, clip) -> float:
+    """Mean over the frames of the map re-projected into the frame (true rotation relative to the
+    first camera) against the linearised frame (core.metrics.observed_region_correlation)."""
+    from core.camera import Camera
+    from core.conventions import inverse_tonemap
+    from core.metrics import observed_region_correlation
+
+    vals = []
+    for c2w, ldr in zip(relative_poses(clip), clip.ldr):
+        rays = Camera(clip.intrinsics, c2w).pixel_rays(dtype=torch.float64)[1]
+        unclipped = ldr.amax(-1) < 0.99
+        if int(unclipped.sum()) < 16:
+            continue
+        vals.append(observed_region_correlation(env, inverse_tonemap(ldr), rays, unclipped))
+    return sum(vals) / len(vals) if vals else 0.0
+
+
+def relative_l1(a: torch.Tensor, b: torch.Tensor) -> float:
+    """|a - b| / |a| over the sphere (solid-angle weighted), each map's scale as it is."""
+    from core.envmap import solid_angles
+
+    w = solid_angles(a.shape[0], dtype=torch.float64)[..., None]
+    a, b = a.double(), b.double()
+    return float(((a - b).abs() * w).sum() / (a.abs() * w).sum().clamp_min(1e-30))
+
+
+def tracking_summary(artefact, clip) -> dict:
+    """Tracking method, frames kept and the largest rotation error against the truth."""
+    from core.tracking.geometry import rotation_angle_deg
+
+    cap = artefact.meta.get("capture", {})
+    meta = cap.get("metadata", cap)
+    tracking = meta.get("tracking", {}) if isinstance(meta, dict) else {}
+    out = {"method": tracking.get("method"), "frames_kept": len(tracking.get("frames_kept", []) or []),
+           "frames": len(clip.poses)}
+    poses = cap.get("poses")
+    kept = tracking.get("frames_kept") or list(range(len(clip.poses)))
+    if poses is not None and len(poses) == len(kept):
+        true = relative_poses(clip)
+        k0 = kept[0]
+        base = torch.linalg.inv(true[k0])
+        errs = [rotation_angle_deg((base @ true[f])[:3, :3].numpy().T @ torch.tensor(p, dtype=torch.float64).reshape(4, 4)[:3, :3].numpy())
+                for f, p in zip(kept, poses)]
+        out["max_rotation_error_deg"] = round(max(errs), 3)
+    return out
+
+
+def evaluate_room(pano_path: Path, modes, workdir: Path, sphere_size: int, overrides_for=None) -> dict:
+    from bench.suite.evaluation import score_probe
+
+    video, clip = make_scan(pano_path, workdir)
+    gt = ground_truth(pano_path, clip)
+    preds = {CONSTANT: constant_map(clip)}
+    extra: dict = {}
+    for mode in modes:
+        overrides = overrides_for(pano_path.name) if overrides_for else None
+        art, cpu = run_mode(video, clip, mode, workdir, overrides)
+        t_last = float(art.meta["time"]["t1"])
+        first, _ = art.envmap(torch.zeros(3), 0.0, GT_HEIGHT)
+        last, _ = art.envmap(torch.zeros(3), t_last, GT_HEIGHT)
+        preds[mode] = first
+        extra[mode] = {"cpu_s": round(cpu, 2), "seen_corr": round(seen_correlation(first, clip), 4),
+                       "drift": round(relative_l1(first, last), 4), "uses_time": bool(art.meta["time"]["uses_time"]),
+                       "tracking": tracking_summary(art, clip),
+                       "exposure": art.meta.get("capture", {}).get("metadata", {}).get("exposure_source")}
+    scores = score_probe(preds, gt, sphere_size)
+    return {"file": pano_path.name, "span_stops": round(clip.span_stops, 2), "scores": scores, "modes": extra,
+            "constant_seen_corr": round(seen_correlation(preds[CONSTANT], clip), 4)}
+
+
+def summarise(rows: list[dict], modes) -> dict:
+    """Per mode: mean ratios to the constant map with a 90 % bootstrap interval over rooms, worst
+    room, mean seen correlation / drift / CPU, and which targets hold."""
+    from bench.suite.evaluation import ratio_interval
+
+    out: dict = {"rooms": len(rows)}
+    for mode in modes:
+        m: dict = {}
+        for material, metric in (("diffuse", "si_rmse_rel"), ("diffuse", "angular_deg"), ("mirror", "si_rmse_rel"),
+                                 ("matte", "si_rmse_rel")):
+            pairs = [(r["scores"][mode][material][metric], r["scores"][CONSTANT][material][metric]) for r in rows
+                     if "non_finite" not in r["scores"].get(mode, {"non_finite": 1})]
+            if not pairs:
+                continue
+            num, den = zip(*pairs)
+            key = f"{material}_{metric}"
+            m[key] = {"ratio": round(sum(num) / sum(den), 4), "interval_90": ratio_interval(list(num), list(den)),
+                      "worst_room_ratio": round(max(a / b for a, b in pairs if b > 0), 3)}
+        for key in ("seen_corr", "drift", "cpu_s"):
+            vals = [r["modes"][mode][key] for r in rows if mode in r["modes"]]
+            m[key] = round(sum(vals) / len(vals), 4) if vals else None
+            m[key + "_worst"] = (min(vals) if key == "seen_corr" else max(vals)) if vals else None
+        m["tracked_as_rotation"] = sum(r["modes"][mode]["tracking"].get("method") == "rotation" for r in rows
+                                       if mode in r["modes"])
+        out[mode] = m
+    return out
+
+
+def main(argv=None) -> int:
+    from bench.real_panoramas import read_manifest
+    from bench.report import sanitize
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--hdri-dir", default=str(DEFAULT_HDRI_DIR))
+    p.add_argument("--rooms", default=None, help="comma-separated file names (default: every indoor room)")
+    p.add_argument("--splits", default="dev,test,extra", help="MANIFEST splits to score (control: reported apart)")
+    p.add_argument("--modes", default="product", help=f"comma-separated subset of {','.join(MODES)}")
+    p.add_argument("--sphere-size", type=int, default=64)
+    p.add_argument("--workdir", default=None)
+    p.add_argument("-o", "--out", default=None)
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    hdri = Path(args.hdri_dir)
+    rows = read_manifest(hdri)
+    names = args.rooms.split(",") if args.rooms else [r["filename"] for r in rows if r["split"] in args.splits.split(",")]
+    modes = tuple(args.modes.split(","))
+    out: dict = {"protocol": __doc__, "modes": modes, "rooms": {}, "targets": TARGETS}
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(args.workdir or tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        results = []
+        for name in names:
+            t0 = time.perf_counter()
+            row = evaluate_room(hdri / name, modes, work, args.sphere_size)
+            row["split"] = next((r["split"] for r in rows if r["filename"] == name), None)
+            results.append(row)
+            print(json.dumps(sanitize(row)), flush=True)
+            print(f"{name}: {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+    indoor = [r for r in results if r["split"] != "control"]
+    out["summary"] = summarise(indoor, modes)
+    control = [r for r in results if r["split"] == "control"]
+    if control:
+        out["summary_control"] = summarise(control, modes)
+    out["rooms"] = results
+    if args.out:
+        Path(args.out).write_text(json.dumps(sanitize(out), indent=1))
+    print(json.dumps(sanitize(out["summary"]), indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
