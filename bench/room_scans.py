@@ -171,7 +171,7 @@ def evaluate_room(pano_path: Path, modes, workdir: Path, sphere_size: int, overr
                        "exposure": art.meta.get("capture", {}).get("metadata", {}).get("exposure_source")}
     scores = score_probe(preds, gt, sphere_size)
     return {"file": pano_path.name, "span_stops": round(clip.span_stops, 2), "scores": scores, "modes": extra,
-            "constant_seen_corr": round(seen_correlation(preds[CONSTANT], clip), 4)}
+            "truth_seen_corr": round(seen_correlation(gt, clip), 4)}
 
 
 def summarise(rows: list[dict], modes) -> dict:

@@ -12,10 +12,10 @@ sits at the panorama's centre, so every frame is an exact perspective crop of it
   small hand jitter (yaw, pitch and roll, HAND_JITTER_DEG, seeded).
 * Exposure (`lagging_auto_exposure`): each frame's meter is the mean linear luminance of the
   view with pixels capped at METER_CAP x the scan's median (a lamp pulls the exposure down,
-  not to black); the exposure moves AE_SPEED of the way towards the metered goal each frame
-  (the lag a real auto-exposure has), and the course of goals is stretched or squeezed in log
-  so that it spans `span_stops` (drawn per room from SPAN_STOPS): the 4-9 stops a phone's
-  exposure moves between a floor in shadow and a ceiling with its lamps.
+  not to black), metered to MID_GREY; the exposure moves AE_SPEED of the way towards that goal
+  each frame (the lag a real auto-exposure has). Nothing is stretched: the span is what the
+  room makes it, 2-7 stops over the rooms here (floor in shadow to ceiling with its lamps);
+  `span_stops` rescales the course of goals in log for a test that wants a given span.
 * Sensor: the tone map of core.conventions at each frame's exposure, 8-bit, H.264 (the caller
   writes the video).
 """
@@ -40,8 +40,7 @@ TILTS = ((25.0, 40.0), (30.0, 5.0, -20.0))
 SCAN_FRAMES = sum(n for _, n in RINGS) + sum(len(t) for t in TILTS)  # 46
 HAND_JITTER_DEG = 1.5
 AE_SPEED = 0.5  # of the way to the metered goal per frame
-METER_CAP = 16.0  # metered pixels are capped at this many times the scan's median luminance
-SPAN_STOPS = (4.0, 9.0)
+METER_CAP = 64.0  # metered pixels are capped at this many times the scan's median luminance
 MID_GREY = 0.18
 
 
@@ -52,7 +51,7 @@ class ScanClip:
     evs: list[float]  # each frame's exposure in stops (unknown to the product)
     poses: list[torch.Tensor]  # [4, 4] c2w, world = the panorama's frame
     intrinsics: Intrinsics
-    span_stops: float
+    span_stops: float  # the exposure's range over the clip
 
 
 def _rotation(yaw_deg: float, pitch_deg: float, roll_deg: float) -> torch.Tensor:
@@ -90,17 +89,18 @@ def scan_poses(yaw0: float = 0.0, seed: int = 0, jitter_deg: float = HAND_JITTER
     return poses
 
 
-def lagging_auto_exposure(hdr: torch.Tensor, span_stops: float, speed: float = AE_SPEED) -> list[float]:
+def lagging_auto_exposure(hdr: torch.Tensor, span_stops: float | None = None, speed: float = AE_SPEED) -> list[float]:
     """Each frame's exposure (stops) for HDR frames [T, H, W, 3]: a metered goal per frame (mean
-    luminance, pixels capped at METER_CAP x the clip's median, to MID_GREY), its course rescaled
-    in log to span `span_stops`, followed with a lag (`speed` of the way per frame)."""
+    luminance, pixels capped at METER_CAP x the clip's median, to MID_GREY), followed with a lag
+    (`speed` of the way per frame); with `span_stops`, the goals' course rescaled in log to span it."""
     y = luminance(hdr.to(torch.float64)).clamp_min(0.0)
     cap = METER_CAP * float(y.median().clamp_min(1e-12))
     goals = [math.log2(MID_GREY / max(float(f.clamp(max=cap).mean()), 1e-12)) for f in y]
-    lo, hi = min(goals), max(goals)
-    mid = 0.5 * (lo + hi)
-    stretch = span_stops / (hi - lo) if hi - lo > 1e-9 else 0.0
-    goals = [mid + (g - mid) * stretch for g in goals]
+    if span_stops is not None:
+        lo, hi = min(goals), max(goals)
+        mid = 0.5 * (lo + hi)
+        stretch = span_stops / (hi - lo) if hi - lo > 1e-9 else 0.0
+        goals = [mid + (g - mid) * stretch for g in goals]
     evs, ev = [], goals[0]
     for g in goals:
         ev += speed * (g - ev)
@@ -113,7 +113,6 @@ def render_scan(panorama: torch.Tensor, yaw0: float = 0.0, seed: int = 0, span_s
     """A room scan of `panorama` [h, 2h, 3] (linear HDR, the camera at its centre)."""
     from core.envmap import sample_envmap
 
-    span = span_stops if span_stops is not None else random.Random(f"span:{seed}").uniform(*SPAN_STOPS)
     intr = Intrinsics.from_hfov(size[0], size[1], hfov_deg)
     big = intr.scaled(size[0] * supersample, size[1] * supersample)
     poses = scan_poses(yaw0, seed)
@@ -124,6 +123,6 @@ def render_scan(panorama: torch.Tensor, yaw0: float = 0.0, seed: int = 0, span_s
         rgb = sample_envmap(pano, d).permute(2, 0, 1)[None]
         frames.append(torch.nn.functional.avg_pool2d(rgb, supersample)[0].permute(1, 2, 0))
     hdr = torch.stack(frames).float()
-    evs = lagging_auto_exposure(hdr, span)
+    evs = lagging_auto_exposure(hdr, span_stops)
     ldr = torch.stack([torch.round(tonemap(h, ev) * 255.0) / 255.0 for h, ev in zip(hdr, evs)])
-    return ScanClip(ldr, hdr, evs, poses, intr, span)
+    return ScanClip(ldr, hdr, evs, poses, intr, max(evs) - min(evs))
