@@ -382,7 +382,7 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
         pairs.append(p)
         # a pair that fixes the rotation places the frame; else the camera coasts on (a blank
         # wall fixes nothing: the averaging below weighs what each pair does fix)
-        step = p.R if p.trusted or c is None and p.matched else c
+        step = p.R if p.trusted or c is None else c
         R[f] = _nearest_rotation(R[f - 1] @ step.T)  # bearing_f = step bearing_{f-1}: R_f = R_{f-1} step^T
     chained = [p.j for p in pairs if p.trusted]
     axes = {f: R[f] @ np.array([0.0, 0.0, -1.0]) for f in R}
