@@ -356,3 +356,30 @@ def splat_points(points: torch.Tensor, colors: torch.Tensor, centers: torch.Tens
     cnt = torch.zeros(bins + 1, dtype=col.dtype, device=points.device).index_add(0, key, torch.ones_like(dist, dtype=col.dtype))[:bins]
     env = (acc / cnt.clamp_min(1.0)[:, None]).reshape(n, h, w, -1)
     return env, (cnt > 0).reshape(n, h, w)
+
+
+VOXEL_GROWTH = 1.25  # voxel_merge: the voxel grows by this factor until the points fit
+
+
+def voxel_merge(points: torch.Tensor, colors: torch.Tensor, max_points: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """At most `max_points` points: the mean position and colour of the points in each cell of a
+    voxel grid, the cell the smallest (x VOXEL_GROWTH steps from 1/1024 of the extent) that
+    leaves few enough cells occupied. Points that already fit are returned as they are."""
+    if points.shape[0] <= max_points:
+        return points, colors
+    lo = points.amin(0)
+    extent = float((points.amax(0) - lo).amax().clamp_min(1e-6))
+    size = extent / 1024
+    while True:
+        cells = torch.floor((points - lo) / size).long()
+        n = int(cells.amax()) + 1
+        key = (cells[:, 0] * n + cells[:, 1]) * n + cells[:, 2]
+        _, inverse = torch.unique(key, return_inverse=True)
+        count = int(inverse.amax()) + 1
+        if count <= max_points:
+            break
+        size *= VOXEL_GROWTH
+    weight = torch.zeros(count, dtype=points.dtype).index_add(0, inverse, torch.ones_like(inverse, dtype=points.dtype))
+    merged_points = torch.zeros(count, 3, dtype=points.dtype).index_add(0, inverse, points) / weight[:, None]
+    merged_colors = torch.zeros(count, *colors.shape[1:], dtype=colors.dtype).index_add(0, inverse, colors)
+    return merged_points, merged_colors / weight.reshape(-1, *([1] * (colors.dim() - 1)))

@@ -204,20 +204,21 @@ def envmap(cf: CachedField, x, t: float, height: int) -> tuple[np.ndarray, EvalF
 
 def envmap_with_quality(cf: CachedField, x, t: float, height: int, quality: str, on_map=None):
     """(hdr, flags, quality used) of one map, on the exports' copy of the field (service.exports:
-    the small queries' batches never wait for it)."""
+    the small queries' batches never wait for it). t=None: a field that does not vary in time."""
+    times = None if t is None else [t]
     if quality == "baked":  # interpolation of the shared bake: cheap, under the batcher's lock
         with _as_invalid_input(), cf.lock:
-            hdrs, flags = _evaluate(cf, quality, [list(x)], [t], height)
+            hdrs, flags = _evaluate(cf, quality, [list(x)], times, height)
     else:
         with _as_invalid_input(), cf.export_lock:
             artefact = cf.export_artefact()
             if quality == "fast":
                 from core.envmap import upsample_envmaps
 
-                low, flags = artefact.envmaps([list(x)], [t], fast_rows(height))
+                low, flags = artefact.envmaps([list(x)], times, fast_rows(height))
                 hdrs = upsample_envmaps(low, height)
             else:
-                hdrs, flags = artefact.envmaps([list(x)], [t], height)
+                hdrs, flags = artefact.envmaps([list(x)], times, height)
     if on_map is not None:
         on_map(quality)
     return _numpy(hdrs[0]), _flags(flags[0]), quality

@@ -72,7 +72,6 @@ def test_the_prior_row_is_bound_as_the_job_binds_it(tmp_path):
 
     from bench.methods import _bound_prior
     from core.engine.presets import preset
-    from core.priors.reprojection import MERGE_VIEWS_STATIC_LIGHTING
     from core.sim.capture import write_capture
     from core.sim.suites import hard, temporal
 
@@ -86,7 +85,7 @@ def test_the_prior_row_is_bound_as_the_job_binds_it(tmp_path):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             merged[name] = _bound_prior(suite, preset("draft")).merge_views
-    assert merged["hard"] == MERGE_VIEWS_STATIC_LIGHTING  # static lighting, a dolly: viewpoints merged, as in run_job
+    assert merged["hard"] == 4  # static lighting, a dolly: every viewpoint merged, as in run_job
     assert merged["temporal"] == 1  # a light switches (and the camera is static): one frame per request
 
 

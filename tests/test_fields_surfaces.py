@@ -10,7 +10,8 @@ import torch
 
 from core.capture.load import capture_from_arrays
 from core.conventions import equirect_directions
-from core.engine.surfaces import observed_surfaces, voxel_merge
+from core.engine.surfaces import observed_surfaces
+from core.envmap import voxel_merge
 from core.envmap import SPLAT_MIN_DISTANCE
 from core.fields import FieldConfig, SceneBounds, build_field
 from core.fields.base import EMITTER_PIXEL_SIGMA

@@ -20,11 +20,11 @@ import torch
 from core.capture.base import Capture
 from core.engine.emitters import EmitterSources
 from core.fields.config import MAX_SURFACE_VALUES
+from core.envmap import voxel_merge
 from core.fields.normalization import SceneBounds
 
 MAX_SURFACE_VIEWS = 16  # viewpoints of a moving camera merged into the layer
 EMITTER_CLEARANCE = 2.0  # radii around an emitter's centre whose points the layer leaves to it
-VOXEL_GROWTH = 1.25  # the voxel grows by this factor until the points fit
 
 
 @dataclass
@@ -73,30 +73,6 @@ def observed_surfaces(capture: Capture, view_radiance, bounds: SceneBounds, *, m
         return None
     points, colors = voxel_merge(points[ok].double(), colors[ok].double(), max_points)
     return SurfacePoints(points.float(), colors.float().clamp_min(0.0))
-
-
-def voxel_merge(points: torch.Tensor, colors: torch.Tensor, max_points: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """At most `max_points` points: the mean position and colour of the points in each cell of a
-    voxel grid, the cell the smallest (x VOXEL_GROWTH steps from 1/1024 of the extent) that
-    leaves few enough cells occupied. Points that already fit are returned as they are."""
-    if points.shape[0] <= max_points:
-        return points, colors
-    lo = points.amin(0)
-    extent = float((points.amax(0) - lo).amax().clamp_min(1e-6))
-    size = extent / 1024
-    while True:
-        cells = torch.floor((points - lo) / size).long()
-        n = int(cells.amax()) + 1
-        key = (cells[:, 0] * n + cells[:, 1]) * n + cells[:, 2]
-        _, inverse = torch.unique(key, return_inverse=True)
-        count = int(inverse.amax()) + 1
-        if count <= max_points:
-            break
-        size *= VOXEL_GROWTH
-    weight = torch.zeros(count, dtype=points.dtype).index_add(0, inverse, torch.ones_like(inverse, dtype=points.dtype))
-    merged_points = torch.zeros(count, 3, dtype=points.dtype).index_add(0, inverse, points) / weight[:, None]
-    merged_colors = torch.zeros(count, *colors.shape[1:], dtype=colors.dtype).index_add(0, inverse, colors)
-    return merged_points, merged_colors / weight.reshape(-1, *([1] * (colors.dim() - 1)))
 
 
 def _frame_points(capture: Capture, i: int) -> torch.Tensor:

@@ -13,9 +13,11 @@ It answers "what would a chrome ball at c show?" from the frame itself:
 2. Unproject the frame with its depth into a coloured point cloud. The geometry is computed
    once per distinct (pose, depth) — once in total for a static camera with static depth;
    colours come from the requested frame, so lighting changes over time are followed. When
-   the engine has decided the lighting is static, a moving camera's request also splats up
-   to `merge_views - 1` other viewpoints (evenly spaced; MERGE_VIEWS_STATIC_LIGHTING unless
-   configured), so a probe sees what any frame saw.
+   the engine has decided the lighting is static, a moving camera's request also splats the
+   other viewpoints (all of them unless `merge_views` is configured; points thinned to a
+   budget, OTHER_VIEWS_POINTS), so a probe sees what any frame saw; each frame's radiance is
+   first merged with the other frames' readings of the same surfaces (core.capture.hdr_merge:
+   what one frame clipped or left dark another exposed well).
 3. For each probe centre, splat the points into an equirect env map (ENV height from the
    config) with a depth test: per env pixel only points within Z_TOLERANCE of the nearest
    distance contribute (a z-buffer by distance from the probe), averaged. back_faces "dark"
@@ -52,7 +54,7 @@ from core.conventions import expose, inverse_tonemap
 from core.capture.depth import surface_normals
 from core.capture.hdr_merge import capture_reading_weights, merge_frames
 from core.capture.highlights import CLIP_LDR, linearise_highlights
-from core.envmap import SPLAT_Z_TOLERANCE, resize_envmap, splat_points
+from core.envmap import SPLAT_Z_TOLERANCE, resize_envmap, splat_points, voxel_merge
 from core.priors.indoor_fill import SOURCE_CAP, cap_sources, fill_unseen
 from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
 from core.priors.known import ball_target
@@ -62,6 +64,7 @@ CLIP_BOOST = 8.0  # clip_rule "fixed" only
 Z_TOLERANCE = SPLAT_Z_TOLERANCE  # the z-buffer of core.envmap.splat_points
 OTHER_VIEW_STRIDE = 3  # merged viewpoints contribute at most a third of their points (cost) ...
 OTHER_VIEWS_POINTS = 16384  # ... and this many points in all
+STATIC_CLOUD_POINTS = 12288  # still light, moving camera: one cloud of every frame's points, voxel-merged
 
 
 def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP_BOOST,
@@ -170,7 +173,7 @@ class ReprojectionSettings(PriorConfig):
         "radiance of their observed side ('front')"))
     merge_views: int | None = Field(None, ge=1, description=(
         "viewpoints a request splats (its own + evenly spaced others); only valid when the lighting is static. "
-        "None: MERGE_VIEWS_STATIC_LIGHTING when bind() is told the lighting is static and the camera moves, else 1"))
+        "None: every frame when bind() is told the lighting is static and the camera moves, else 1"))
 
 
 @register_prior("reprojection", for_jobs=True)
@@ -195,6 +198,7 @@ class ReprojectionPrior(Prior):
         self._normals: dict[int, torch.Tensor] = {}
         self._camera_maps: dict[int, torch.Tensor] = {}  # frame -> its map at its own camera centre
         self._geometry_key: list[int] = []
+        self._static_cloud: tuple[torch.Tensor, torch.Tensor] | None = None
         self.point_cloud_builds = 0  # how many times geometry was unprojected (reported)
 
     # ------------------------------------------------------------------ per capture
@@ -204,6 +208,7 @@ class ReprojectionPrior(Prior):
         static_lighting_moving_camera = not lighting_changes and not capture.static_camera
         self.merge_views = self.configured_merge_views or (capture.num_frames if static_lighting_moving_camera else 1)
         self._colors = linear_frames(capture, self.clip_rule, self.clip_boost, lighting_changes)
+        self._static_cloud = None
         if static_lighting_moving_camera:  # what one frame clipped or lost in the black, another saw
             self._colors = merge_frames(capture, self._colors, capture_reading_weights(capture))
         self._points = {}
@@ -222,6 +227,19 @@ class ReprojectionPrior(Prior):
                     break
             key.append(owner)
         self._geometry_key = key
+        if static_lighting_moving_camera and self.configured_merge_views is None and self.back_faces == "front":
+            self._static_cloud = self._merged_cloud()
+
+    def _merged_cloud(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every frame's points with their (merged) radiance, voxel-merged to STATIC_CLOUD_POINTS:
+        under still light a surface looks the same from every frame, so one cloud answers every
+        request, whatever frame it comes from."""
+        owners = sorted(set(self._geometry_key))
+        pts = torch.cat([self.points(v) for v in owners])
+        col = torch.cat([self._colors[v].reshape(-1, 3) for v in owners])
+        ok = torch.isfinite(pts).all(-1) & torch.isfinite(col).all(-1)
+        pts, col = voxel_merge(pts[ok].double(), col[ok].double(), STATIC_CLOUD_POINTS)
+        return pts.float(), col.float()
 
     def prepare_frame(self, frame_index: int) -> None:
         self.points(frame_index)
@@ -304,6 +322,8 @@ class ReprojectionPrior(Prior):
 
     def _splat_seen(self, centers: torch.Tensor, frame_index: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Splatted radiance [N, h, w, 3] and its seen mask [N, h, w] (no fill)."""
+        if self._static_cloud is not None:
+            return splat_points(*self._static_cloud, centers, self.env_height)
         views, stride = zip(*self.views_for(frame_index))
         pts = torch.cat([self.points(v)[::k] for v, k in zip(views, stride)])
         col = torch.cat([self._colors[v].reshape(-1, 3)[::k] for v, k in zip(views, stride)])
@@ -341,5 +361,6 @@ class ReprojectionPrior(Prior):
             "fill_source_cap": self.fill_source_cap if self.unseen_fill == "indoor" else None,
             "back_faces": self.back_faces,
             "merge_views": self.merge_views,
+            "merged_cloud_points": None if self._static_cloud is None else int(self._static_cloud[0].shape[0]),
             "point_cloud_builds": self.point_cloud_builds,
         }
