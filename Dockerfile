@@ -16,6 +16,7 @@ COPY jobs ./jobs
 COPY service ./service
 COPY worker ./worker
 COPY cli ./cli
+COPY assets ./assets
 COPY bench ./bench
 
 # ---------------------------------------------------------------- CPU: build the venv

@@ -70,18 +70,16 @@ def relative_poses(clip) -> list[torch.Tensor]:
 
 
 def ground_truth(pano_path: Path, clip) -> torch.Tensor:
-    from core.envmap import resize_envmap, rotate_envmap
     from core.sim.panorama_room import load_panorama
+    from core.sim.room_scan import scan_truth
 
-    R0 = clip.poses[0][:3, :3]
-    return rotate_envmap(resize_envmap(load_panorama(pano_path, 256), GT_HEIGHT), R0.T)  # gt(d) = pano(R0 d)
+    return scan_truth(load_panorama(pano_path, 256), clip, GT_HEIGHT)
 
 
 def constant_map(clip) -> torch.Tensor:
-    from core.conventions import equirect_width, inverse_tonemap
+    from core.sim.room_scan import scan_constant_map
 
-    mean = inverse_tonemap(clip.ldr).reshape(-1, 3).mean(0)
-    return mean.expand(GT_HEIGHT, equirect_width(GT_HEIGHT), 3).clone()
+    return scan_constant_map(clip, GT_HEIGHT)
 
 
 def run_mode(video: Path, clip, mode: str, workdir: Path, overrides: dict | None):

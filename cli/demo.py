@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cli import choices
+from cli.demo_scan import format_scan, room_scan_demo
 
 HELP = "Simulate a room, estimate its light field through the embedded service, and compare with the truth."
 SUITE = "spatial"
@@ -40,6 +41,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-service", action="store_true",
                    help="run the job in this process instead of through the embedded service (no subprocesses)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.add_argument("--no-scan", action="store_true",
+                   help="skip the second job: a room scan of the bundled panorama (assets/sample_panorama.hdr)")
 
 
 @dataclass(frozen=True)
@@ -47,8 +50,9 @@ class Upload:
     """What a user sends to POST /jobs."""
 
     file: Path  # frame (PNG) or video (MP4)
-    depth: Path  # .npz with an array `depth`
+    depth: Path | None  # .npz with an array `depth`
     params: dict  # JobParams as JSON
+    name: str = "lightfield"  # --no-service: the artefact's directory under the output
 
 
 def run(args: argparse.Namespace) -> int:
@@ -58,31 +62,37 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
 
-    say(f"1/4 simulating the '{SUITE}' scene (core.sim) ...")
+    steps = 4 if args.no_scan else 5
+    say(f"1/{steps} simulating the '{SUITE}' scene (core.sim) ...")
     doc, upload = _simulate(out / "capture", args.preset)
     backend = _LocalRun(out, args) if args.no_service else _ServiceRun(out, args)
     try:
         with backend:
-            say(f"2/4 estimating the light field ({args.preset} preset, reprojection prior) {backend.where} ...")
+            say(f"2/{steps} estimating the light field ({args.preset} preset, reprojection prior) {backend.where} ...")
             backend.estimate(upload)
-            say("3/4 fetching env maps at the held-out probes and the insertion preview ...")
+            say(f"3/{steps} fetching env maps at the held-out probes and the insertion preview ...")
             env_dir = out / "envmaps"
             env_dir.mkdir(exist_ok=True)
             flags = [backend.save_envmap(p["x"], p["t"], env_dir / f"probe{k}_estimate.exr") for k, p in enumerate(doc["probes"])]
             preview = backend.save_preview(out / "preview.png")
             meta = backend.metadata()
+            job_id, artefact_dir = backend.job_id, backend.artefact_dir
+            if not args.no_scan:
+                say(f"4/{steps} a room scan (46 frames turning about one spot, auto-exposure on, no poses) of "
+                    "the bundled panorama: tracking, HDR recovery, distillation ...")
+                scan = room_scan_demo(out / "scan", backend, args.preset)
     except EmbeddedServiceError as exc:
         print(f"demo: the service failed: {exc}", file=sys.stderr)
         return 1
-    say("4/4 comparing with the ground truth ...")
+    say(f"{steps}/{steps} comparing with the ground truth ...")
     rows = compare_probes(out / "capture", doc, env_dir)
     for row, flag in zip(rows, flags):
         row["extrapolated"] = flag
     _write_side_by_side(out / "capture", doc, env_dir)
     summary = {
         "mode": "in-process" if args.no_service else "embedded service",
-        "job": backend.job_id,
-        "artefact": str(backend.artefact_dir) if backend.artefact_dir else None,
+        "job": job_id,
+        "artefact": str(artefact_dir) if artefact_dir else None,
         "service_data_dir": None if args.no_service else str(out / "service"),
         "envmaps": str(env_dir),
         "preview": str(preview),
@@ -91,8 +101,12 @@ def run(args: argparse.Namespace) -> int:
         "wall_time_s": meta.get("training", {}).get("wall_time_s"),
         "device": meta.get("training", {}).get("device"),
     }
+    if not args.no_scan:
+        summary["room_scan"] = scan
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(format_table(rows))
+    if not args.no_scan:
+        print("\n" + format_scan(scan))
     print(f"\ndemo outputs in {out.resolve()}:\n"
           f"  light field  {summary['artefact'] or '(in the service data dir)'}\n"
           f"  env maps     {env_dir}  (probeK_estimate.exr; probeK_estimate_vs_truth.png: top estimate, bottom truth)\n"
@@ -100,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
           f"  summary      {out / 'summary.json'}")
     if not args.no_service:  # the job record persists with the data dir
         print(f"query it again: LIGHTFIELD_DATA_DIR={out / 'service'} lightfield serve, then\n"
-              f"  curl 'http://127.0.0.1:8000/lightfield/{backend.job_id}/envmap?x=1.6,0.3,2.0&format=png' -o env.png")
+              f"  curl 'http://127.0.0.1:8000/lightfield/{job_id}/envmap?x=1.6,0.3,2.0&format=png' -o env.png")
     return 0
 
 
@@ -225,9 +239,9 @@ class _LocalRun:
         config = preset(params.preset).with_overrides({"distill": overrides}) if overrides else None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the service path does not show them either
-            result = run_job(upload.file, upload.depth, params, self.out / "lightfield", config=config,
+            result = run_job(upload.file, upload.depth, params, self.out / upload.name, config=config,
                              progress=None if self.args.quiet else ProgressBar(),
-                             checkpoint_dir=self.out / "lightfield.checkpoint")
+                             checkpoint_dir=self.out / f"{upload.name}.checkpoint")
         self.upload = upload
         self.artefact_dir, self._art = result.path, result.artefact
 

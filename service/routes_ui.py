@@ -9,6 +9,9 @@ core.insertion. Included by service.app.create_app.
 from __future__ import annotations
 
 import logging
+import tempfile
+import threading
+from pathlib import Path
 
 import numpy as np
 from fastapi import APIRouter, Depends, Query, Response
@@ -245,3 +248,29 @@ async def get_insertion(job_id: str, t: float = TQuery,
     data = await run_in_threadpool(_render_insertion, preview, cf, index, points, env_height)
     return Response(data, media_type="image/png", headers={
         CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, "X-Lightfield-Frame-Index": str(index)})
+
+
+_sample_scan: bytes | None = None
+_sample_lock = threading.Lock()
+
+
+def _render_sample_scan() -> bytes:
+    """The bundled panorama's room scan as an MP4 (core.sim.room_scan.write_sample_scan),
+    rendered once per process (about a second) and kept: the same bytes for every caller."""
+    global _sample_scan
+    from core.sim.room_scan import write_sample_scan
+
+    with _sample_lock:
+        if _sample_scan is None:
+            with tempfile.TemporaryDirectory() as tmp:
+                video, _, _ = write_sample_scan(Path(tmp))
+                _sample_scan = video.read_bytes()
+        return _sample_scan
+
+
+@router.get("/samples/room_scan.mp4", response_class=Response, include_in_schema=False)
+async def get_sample_scan():
+    """The web page's sample: a phone turned around a room (46 frames, auto-exposure on, no
+    poses), simulated from the bundled CC0 panorama; not tenant data, so no key is needed."""
+    return Response(await run_in_threadpool(_render_sample_scan), media_type="video/mp4",
+                    headers={"Cache-Control": "public, max-age=86400"})

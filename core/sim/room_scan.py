@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import random
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
@@ -126,3 +127,36 @@ def render_scan(panorama: torch.Tensor, yaw0: float = 0.0, seed: int = 0, span_s
     evs = lagging_auto_exposure(hdr, span_stops)
     ldr = torch.stack([torch.round(tonemap(h, ev) * 255.0) / 255.0 for h, ev in zip(hdr, evs)])
     return ScanClip(ldr, hdr, evs, poses, intr, max(evs) - min(evs))
+
+
+def scan_truth(panorama: torch.Tensor, clip: ScanClip, height: int) -> torch.Tensor:
+    """The panorama [h, 2h, 3] as seen from the scan's first camera (world = first camera, as a
+    tracked scan's world is): truth(d) = panorama(R0 d), `height` rows."""
+    from core.envmap import resize_envmap, rotate_envmap
+
+    return rotate_envmap(resize_envmap(panorama, height), clip.poses[0][:3, :3].T)
+
+
+def scan_constant_map(clip: ScanClip, height: int) -> torch.Tensor:
+    """The baseline to beat: a constant map of the clip's mean linearised colour."""
+    from core.conventions import equirect_width, inverse_tonemap
+
+    mean = inverse_tonemap(clip.ldr).reshape(-1, 3).mean(0)
+    return mean.expand(height, equirect_width(height), 3).clone()
+
+
+SAMPLE_PANORAMA = Path(__file__).resolve().parents[2] / "assets" / "sample_panorama.hdr"  # bundled (CC0)
+SAMPLE_SEED = 7
+
+
+def write_sample_scan(out_dir) -> tuple[Path, ScanClip, torch.Tensor]:
+    """(MP4 path, ScanClip, panorama) of the bundled panorama's room scan, written as a phone
+    would upload it (8-bit H.264, no poses): the demo's and the web page's sample."""
+    from core.io.video import write_video
+    from core.sim.panorama_room import load_panorama
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    pano = load_panorama(SAMPLE_PANORAMA, 256)
+    clip = render_scan(pano, yaw0=0.0, seed=SAMPLE_SEED)
+    return write_video(out_dir / "room_scan.mp4", clip.ldr.numpy(), SCAN_FPS), clip, pano

@@ -337,6 +337,24 @@
     }
   }
 
+  /** The bundled sample: a room scan rendered by the service (GET /samples/room_scan.mp4),
+   * uploaded as a user's own video would be, with no poses or exposures. */
+  async function submitSampleScan() {
+    const error = $("upload-error");
+    const button = $("sample-scan-button");
+    error.hidden = true;
+    button.disabled = true;
+    try {
+      const blob = await (await api("/samples/room_scan.mp4")).blob();
+      await submitJob(new File([blob], "room_scan.mp4", { type: "video/mp4" }), null, {});
+    } catch (e) {
+      error.textContent = e instanceof ApiError ? e.message : `Sample failed: ${e.message}`;
+      error.hidden = false;
+    } finally {
+      button.disabled = false;
+    }
+  }
+
   async function submitJob(file, depth, params) {
     const form = new FormData();
     form.append("file", file, file.name);
@@ -829,6 +847,7 @@
     $("api-key").value = auth.key;
     $("key-form").addEventListener("submit", useKey);
     $("upload-form").addEventListener("submit", submitUpload);
+    $("sample-scan-button").addEventListener("click", submitSampleScan);
     $("fov-form").addEventListener("submit", (e) => correctFov(e).catch(reportError));
     $("cancel-button").addEventListener("click", cancelJob);
     $("jobs-refresh").addEventListener("click", refreshJobs);
