@@ -70,7 +70,7 @@ def test_table_counts_wins_and_averages_absolute_stops():
 
 
 def _args(out, **kw):
-    base = dict(output=str(out), preset="draft", iterations=30, no_service=False, quiet=True)
+    base = dict(output=str(out), preset="draft", iterations=30, no_service=False, quiet=True, no_scan=True)
     base.update(kw)
     return argparse.Namespace(**base)
 
@@ -115,3 +115,17 @@ def test_demo_through_the_embedded_service_matches_the_in_process_run(tmp_path):
         a = load_envmap(svc_out / "envmaps" / f"probe{k}_estimate.exr")
         b = load_envmap(local_out / "envmaps" / f"probe{k}_estimate.exr")
         np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-6)
+
+
+@pytest.mark.slow  # tracks a 46-frame scan (rotation, exposure) and distils it
+def test_demo_room_scan_is_tracked_and_beats_the_constant_map(tmp_path, capsys):
+    """`make demo`'s second job: the bundled panorama's scan, uploaded as a plain MP4 (no poses,
+    no exposures), comes back as a rotation and closer to the panorama than a constant map."""
+    out = tmp_path / "demo"
+    assert demo.run(_args(out, no_service=True, no_scan=False)) == 0
+    scan = json.loads((out / "summary.json").read_text())["room_scan"]
+    assert scan["frames"] == 46 and Path(scan["video"]).stat().st_size > 0
+    assert scan["tracking"] == "rotation"
+    assert scan["field"]["si_rmse"] < scan["constant"]["si_rmse"]
+    assert scan["field"]["angular_deg"] < scan["constant"]["angular_deg"]
+    assert "Room scan (46 frames" in capsys.readouterr().out

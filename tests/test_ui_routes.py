@@ -250,3 +250,18 @@ def test_auth_tenancy_and_job_state_rules(app_env, job):
     bare = add_job(ctx, with_preview=False)
     resp = get(client, f"/lightfield/{bare}/probe", u=0.5, v=0.5)
     assert resp.status_code == 404 and resp.json()["error"]["code"] == "frames_unavailable"
+
+
+def test_the_sample_room_scan_is_a_video_the_upload_accepts(app_env, tmp_path):
+    """The page's 'Try a sample room scan' downloads this and uploads it as a user's video: an
+    MP4 of the 46-frame scan, the same bytes on every call, with no key needed (not tenant data)."""
+    from core.io.video import read_video
+
+    client = app_env[0]
+    first, second = client.get("/samples/room_scan.mp4"), get(client, "/samples/room_scan.mp4")
+    assert first.status_code == 200 and first.headers["content-type"] == "video/mp4"
+    assert first.content == second.content
+    path = tmp_path / "scan.mp4"
+    path.write_bytes(first.content)
+    frames = read_video(path).frames
+    assert frames.shape[:3] == (46, 144, 192)
