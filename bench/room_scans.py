@@ -63,17 +63,18 @@ def make_scan(pano_path: Path, workdir: Path):
     return video, clip
 
 
-def relative_poses(clip) -> list[torch.Tensor]:
-    """The scan's c2w poses with the first camera as the world (core.conventions)."""
-    inv0 = torch.linalg.inv(clip.poses[0])
+def relative_poses(clip, first: int = 0) -> list[torch.Tensor]:
+    """The scan's c2w poses with camera `first` (the first the track kept) as the world
+    (core.conventions)."""
+    inv0 = torch.linalg.inv(clip.poses[first])
     return [inv0 @ p for p in clip.poses]
 
 
-def ground_truth(pano_path: Path, clip) -> torch.Tensor:
+def ground_truth(pano_path: Path, clip, first: int = 0) -> torch.Tensor:
     from core.sim.panorama_room import load_panorama
     from core.sim.room_scan import scan_truth
 
-    return scan_truth(load_panorama(pano_path, 256), clip, GT_HEIGHT)
+    return scan_truth(load_panorama(pano_path, 256), clip, GT_HEIGHT, first)
 
 
 def constant_map(clip) -> torch.Tensor:
@@ -102,7 +103,7 @@ def run_mode(video: Path, clip, mode: str, workdir: Path, overrides: dict | None
     return result.artefact, time.process_time() - t0
 
 
-def seen_correlation(env: torch.Tensor, clip) -> float:
+def seen_correlation(env: torch.Tensor, clip, first: int = 0) -> float:
     """Mean over the frames of the map re-projected into the frame (true rotation relative to the
     first camera) against the linearised frame (core.metrics.observed_region_correlation)."""
     from core.camera import Camera
@@ -110,7 +111,7 @@ def seen_correlation(env: torch.Tensor, clip) -> float:
     from core.metrics import observed_region_correlation
 
     vals = []
-    for c2w, ldr in zip(relative_poses(clip), clip.ldr):
+    for c2w, ldr in zip(relative_poses(clip, first), clip.ldr):
         rays = Camera(clip.intrinsics, c2w).pixel_rays(dtype=torch.float64)[1]
         unclipped = ldr.amax(-1) < 0.99
         if int(unclipped.sum()) < 16:
@@ -126,6 +127,14 @@ def relative_l1(a: torch.Tensor, b: torch.Tensor) -> float:
     w = solid_angles(a.shape[0], dtype=torch.float64)[..., None]
     a, b = a.double(), b.double()
     return float(((a - b).abs() * w).sum() / (a.abs() * w).sum().clamp_min(1e-30))
+
+
+def first_kept(artefact) -> int:
+    """The scan frame the job's world is the camera of (the first frame tracking kept)."""
+    cap = artefact.meta.get("capture", {})
+    meta = cap.get("metadata", cap)
+    tracking = meta.get("tracking", {}) if isinstance(meta, dict) else {}
+    return int((tracking.get("frames_kept") or [0])[0])
 
 
 def tracking_summary(artefact, clip) -> dict:
@@ -156,6 +165,7 @@ def evaluate_room(pano_path: Path, modes, workdir: Path, sphere_size: int, overr
     gt = ground_truth(pano_path, clip)
     preds = {CONSTANT: constant_map(clip)}
     extra: dict = {}
+    extra_scores: dict = {}
     for mode in modes:
         overrides = overrides_for(pano_path.name) if overrides_for else None
         art, cpu = run_mode(video, clip, mode, workdir, overrides)
@@ -163,11 +173,17 @@ def evaluate_room(pano_path: Path, modes, workdir: Path, sphere_size: int, overr
         first, _ = art.envmap(torch.zeros(3), 0.0, GT_HEIGHT)
         last, _ = art.envmap(torch.zeros(3), t_last, GT_HEIGHT)
         preds[mode] = first
-        extra[mode] = {"cpu_s": round(cpu, 2), "seen_corr": round(seen_correlation(first, clip), 4),
+        start = first_kept(art)
+        if start:  # the track dropped the scan's first frames: its world is the first kept camera's
+            extra_scores[mode] = score_probe({mode: first, CONSTANT: preds[CONSTANT]},
+                                             ground_truth(pano_path, clip, start), sphere_size)
+        extra[mode] = {"cpu_s": round(cpu, 2), "seen_corr": round(seen_correlation(first, clip, start), 4),
                        "drift": round(relative_l1(first, last), 4), "uses_time": bool(art.meta["time"]["uses_time"]),
                        "tracking": tracking_summary(art, clip),
                        "exposure": art.meta.get("capture", {}).get("metadata", {}).get("exposure_source")}
     scores = score_probe(preds, gt, sphere_size)
+    for mode, own in extra_scores.items():  # scored at the first kept camera, against the constant map there
+        scores[mode], scores[f"{CONSTANT}@{mode}"] = own[mode], own[CONSTANT]
     return {"file": pano_path.name, "span_stops": round(clip.span_stops, 2), "scores": scores, "modes": extra,
             "truth_seen_corr": round(seen_correlation(gt, clip), 4)}
 
@@ -182,7 +198,8 @@ def summarise(rows: list[dict], modes) -> dict:
         m: dict = {}
         for material, metric in (("diffuse", "si_rmse_rel"), ("diffuse", "angular_deg"), ("mirror", "si_rmse_rel"),
                                  ("matte", "si_rmse_rel")):
-            pairs = [(r["scores"][mode][material][metric], r["scores"][CONSTANT][material][metric]) for r in rows
+            pairs = [(r["scores"][mode][material][metric],
+                      r["scores"].get(f"{CONSTANT}@{mode}", r["scores"][CONSTANT])[material][metric]) for r in rows
                      if "non_finite" not in r["scores"].get(mode, {"non_finite": 1})]
             if not pairs:
                 continue

@@ -29,19 +29,21 @@ def room_scan_demo(out_dir: Path, backend, preset: str) -> dict:
     backend.estimate(Upload(file=video, depth=None, params={"preset": preset}, name="lightfield-scan"))
     path = out_dir / "first_camera_estimate.exr"
     backend.save_envmap((0.0, 0.0, 0.0), 0.0, path)
+    meta = backend.metadata()
+    capture = meta.get("capture", {})
+    tracking = capture.get("metadata", capture).get("tracking", {}) if isinstance(capture, dict) else {}
+    first = int((tracking.get("frames_kept") or [0])[0])  # the job's world: the first kept camera's axes
     est = torch.from_numpy(load_envmap(path))
-    truth = scan_truth(pano, clip, est.shape[0])
+    truth = scan_truth(pano, clip, est.shape[0], first)
     constant = scan_constant_map(clip, est.shape[0])
     (se, sc, sg), mask = render_probe_spheres([est, constant, truth], "diffuse", SPHERE_SIZE)
-    meta = backend.metadata()
-    tracking = meta.get("capture", {}).get("tracking", {}) if isinstance(meta.get("capture"), dict) else {}
     return {
         "video": str(video), "job": backend.job_id, "frames": len(clip.poses),
         "exposure_span_stops": round(float(clip.span_stops), 2),
         "envmap": str(path),
         "field": {"si_rmse": si_rmse(se, sg, mask), "angular_deg": angular_error_deg(se, sg, mask)},
         "constant": {"si_rmse": si_rmse(sc, sg, mask), "angular_deg": angular_error_deg(sc, sg, mask)},
-        "tracking": tracking.get("method"),
+        "tracking": tracking.get("method"), "frames_kept": len(tracking.get("frames_kept") or []),
         "wall_time_s": meta.get("training", {}).get("wall_time_s"),
     }
 

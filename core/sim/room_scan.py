@@ -129,12 +129,12 @@ def render_scan(panorama: torch.Tensor, yaw0: float = 0.0, seed: int = 0, span_s
     return ScanClip(ldr, hdr, evs, poses, intr, max(evs) - min(evs))
 
 
-def scan_truth(panorama: torch.Tensor, clip: ScanClip, height: int) -> torch.Tensor:
-    """The panorama [h, 2h, 3] as seen from the scan's first camera (world = first camera, as a
-    tracked scan's world is): truth(d) = panorama(R0 d), `height` rows."""
+def scan_truth(panorama: torch.Tensor, clip: ScanClip, height: int, first: int = 0) -> torch.Tensor:
+    """The panorama [h, 2h, 3] in the axes of the scan's camera `first` (a tracked scan's world is
+    its first kept camera's): truth(d) = panorama(R_first d), `height` rows."""
     from core.envmap import resize_envmap, rotate_envmap
 
-    return rotate_envmap(resize_envmap(panorama, height), clip.poses[0][:3, :3].T)
+    return rotate_envmap(resize_envmap(panorama, height), clip.poses[first][:3, :3].T)
 
 
 def scan_constant_map(clip: ScanClip, height: int) -> torch.Tensor:

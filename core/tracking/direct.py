@@ -28,7 +28,7 @@ no accepted pair reaches is dropped.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -68,6 +68,8 @@ DARK_LDR, BRIGHT_LDR = 0.03, 0.97  # usable pixels: neither sunk into the black 
 LOOP_MAX_AXIS_DEG = 40.0  # frames whose optical axes are this close are tried as loop closures
 LOOP_MIN_GAP = 3  # ... when at least this many frames apart (neighbours are already paired)
 LOOP_SPAN_DEG = 10.0  # a loop closure searches this far around what the chain says
+NEAR_SPAN_DEG = 10.0  # a consecutive pair first searches this far around its guesses
+NEAR_CANDIDATES = 4  # ... and refines this many of that grid's distinct best (loop closures too)
 MAX_LOOP_PAIRS = 120
 
 
@@ -177,12 +179,12 @@ def _masked_median(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 def _gain_estimate(lev: "_Level", R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per candidate rotation [S, 3, 3]: the log gain it implies (median of log(Y_j / Y_i) over its
-    overlap), and its residuals and weights under that gain."""
+    overlap), and its residuals and weights under that gain (one lookup: r = Y_j - e^g Y_i)."""
     r, w = lev.residuals(R, torch.zeros(R.shape[0], dtype=torch.float64))
-    ratio = torch.log((r + lev.li[None]).clamp_min(1e-3) / lev.li[None].clamp_min(1e-3))
+    lj = r + lev.li[None]
+    ratio = torch.log(lj.clamp_min(1e-3) / lev.li[None].clamp_min(1e-3))
     g = _masked_median(ratio, w).nan_to_num(0.0)
-    r, w = lev.residuals(R, g)
-    return g, r, w
+    return g, lj - torch.exp(g)[:, None] * lev.li[None], w
 
 
 def _search_grid(start: np.ndarray, span: float = SEARCH_SPAN_DEG, step: float = SEARCH_STEP_DEG,
@@ -199,7 +201,7 @@ def _search_grid(start: np.ndarray, span: float = SEARCH_SPAN_DEG, step: float =
 
 def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.Tensor, k: Intrinsics,
                starts: list[np.ndarray], i: int = 0, j: int = 1, search: bool = True,
-               span: float = SEARCH_SPAN_DEG) -> DirectPair:
+               span: float = SEARCH_SPAN_DEG, candidates: int = COARSE_CANDIDATES) -> DirectPair:
     """Register frame j against frame i (luma and masks [H, W] from `frame_luma`) from
     the starting rotations `starts` (bearing i -> bearing j); see the module docstring."""
     starts = [_nearest_rotation(s) for s in starts]
@@ -225,11 +227,11 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
     for idx in torch.argsort(cost).tolist():
         if all(rotation_angle_deg(cands[idx].numpy().T @ cands[q].numpy()) > SEARCH_STEP_DEG + 1e-6 for q in picked):
             picked.append(idx)
-        if len(picked) == COARSE_CANDIDATES:
+        if len(picked) == candidates:
             break
     # successive halving: refine the survivors on each level, keep the best by the score
     R, g = cands[picked], g[picked]
-    keep_counts = SURVIVORS[: len(levels)] + [1] * max(0, len(levels) - len(SURVIVORS))
+    keep_counts = [min(n, candidates) for n in SURVIVORS[: len(levels)]] + [1] * max(0, len(levels) - len(SURVIVORS))
     with torch.no_grad():
         for n, (lev, keep) in enumerate(zip(levels, keep_counts)):
             if n == 1 and search:  # a finer grid around each survivor: the coarse level's minima can sit a few degrees off
@@ -378,7 +380,11 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
             starts.insert(0, c)
         if (f - 1, f) in feature_pairs:
             starts.insert(0, feature_pairs[(f - 1, f)])
-        p = align_pair(l[f - 1], v[f - 1], l[f], v[f], k, starts, f - 1, f)
+        # near the guesses first (a hand-held turn is smooth: the coast is rarely far off), the
+        # full grid only when that does not pin the rotation down (a direction change, a jolt)
+        p = align_pair(l[f - 1], v[f - 1], l[f], v[f], k, starts, f - 1, f, span=NEAR_SPAN_DEG, candidates=NEAR_CANDIDATES)
+        if not p.trusted:
+            p = align_pair(l[f - 1], v[f - 1], l[f], v[f], k, starts, f - 1, f)
         pairs.append(p)
         # a pair that fixes the rotation places the frame; else the camera coasts on (a blank
         # wall fixes nothing: the averaging below weighs what each pair does fix)
@@ -389,16 +395,25 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
     loops = [(a, b) for a in range(T) for b in range(a + LOOP_MIN_GAP, T)
              if math.degrees(math.acos(float(np.clip(axes[a] @ axes[b], -1, 1)))) <= LOOP_MAX_AXIS_DEG][:MAX_LOOP_PAIRS]
     for a, b in loops:
-        pairs.append(align_pair(l[a], v[a], l[b], v[b], k, [R[b].T @ R[a]], a, b, span=LOOP_SPAN_DEG))
+        pairs.append(align_pair(l[a], v[a], l[b], v[b], k, [R[b].T @ R[a]], a, b, span=LOOP_SPAN_DEG,
+                                candidates=NEAR_CANDIDATES))
     matched = [p for p in pairs if p.matched]
-    rots = _average_rotations(T, matched, _spanning_tree(T, matched, R))
-    placed = _placed(T, [p for p in matched if p.trusted])
+    # the track starts at the first frame of the largest set that trusted pairs connect: a first
+    # frame no trusted pair reaches (a blank wall, a pair matched 45 deg off) would otherwise set
+    # every frame's axes wrong; the frames before that start are dropped
+    start = min(max((_placed(T, [p for p in matched if p.trusted], root) for root in range(T)), key=len))
+    sub = [replace(p, i=p.i - start, j=p.j - start) for p in matched if p.i >= start and p.j >= start]
+    chain = {f - start: R[f] for f in range(start, T)}
+    Tk = T - start
+    rots = _average_rotations(Tk, sub, _spanning_tree(Tk, sub, chain))
+    placed = {f + start for f in _placed(Tk, [p for p in sub if p.trusted])}
+    kept = list(range(start, T))
     stats = {"pairs": len(pairs), "matched_pairs": len(matched), "trusted_pairs": sum(p.trusted for p in pairs),
              "loop_pairs": len(loops), "loop_pairs_trusted": sum(p.trusted for p in pairs[T - 1:]),
-             "chain_fixed": len(chained), "frames_fixed_by_pairs": len(placed),
-             "frames_from_motion_prior": sorted(set(range(T)) - placed),
+             "chain_fixed": len(chained), "frames_fixed_by_pairs": len(placed), "first_frame": start,
+             "frames_from_motion_prior": sorted(set(kept) - placed),
              "median_cost": float(np.median([p.cost for p in matched])) if matched else None}
-    return DirectTrack(rots, list(range(T)), [], pairs, stats)
+    return DirectTrack(rots, kept, list(range(start)), pairs, stats)
 
 
 def _spanning_tree(T: int, pairs: list[DirectPair], chain: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
@@ -435,13 +450,13 @@ def _spanning_tree(T: int, pairs: list[DirectPair], chain: dict[int, np.ndarray]
     return R
 
 
-def _placed(T: int, pairs: list[DirectPair]) -> set[int]:
-    """Frames connected to frame 0 by pairs that fix the rotation."""
+def _placed(T: int, pairs: list[DirectPair], root: int = 0) -> set[int]:
+    """Frames connected to frame `root` by pairs that fix the rotation."""
     nbrs: dict[int, set[int]] = {}
     for p in pairs:
         nbrs.setdefault(p.i, set()).add(p.j)
         nbrs.setdefault(p.j, set()).add(p.i)
-    seen, todo = {0}, [0]
+    seen, todo = {root}, [root]
     while todo:
         f = todo.pop()
         for g in nbrs.get(f, ()):

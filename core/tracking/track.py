@@ -221,7 +221,8 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
                           warnings=[warning], stats={**stats, "failures": failures})
 
 
-DIRECT_MAX_DISAGREEMENT_DEG = 2.0  # the photometric track must agree with the features' rotations this well
+DIRECT_MAX_DISAGREEMENT_DEG = 5.0  # the photometric track must agree with the features' rotations this well (their own
+# error reaches 2-2.5 deg on a scan's tilts; a photometric track that went wrong is off by tens of degrees)
 
 
 def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, rot, refine_focal: bool,
@@ -239,23 +240,25 @@ def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, ro
                      for f in range(1, T) if f in pos and f - 1 in pos}
     track = track_rotation_direct(frames, intr, feature_pairs)
     placed = track.stats["frames_fixed_by_pairs"]
-    common = [f for f in rot.kept if f in set(track.kept)]
+    at = {f: n for n, f in enumerate(track.kept)}
+    common = [f for f in rot.kept if f in at]
     if common:  # both tracks in the first common frame's axes
-        a, b = rot.rotations[pos[common[0]]], track.rotations[common[0]]
-        disagree = max(rotation_angle_deg((a.T @ rot.rotations[pos[f]]).T @ (b.T @ track.rotations[f])) for f in common)
+        a, b = rot.rotations[pos[common[0]]], track.rotations[at[common[0]]]
+        disagree = max(rotation_angle_deg((a.T @ rot.rotations[pos[f]]).T @ (b.T @ track.rotations[at[f]])) for f in common)
     else:
         disagree = 0.0
     stats["direct"] = {**track.stats, "max_disagreement_with_features_deg": round(disagree, 3)}
     if placed <= len(rot.kept) or disagree > DIRECT_MAX_DISAGREEMENT_DEG or placed < MIN_KEPT_FRACTION * T:
         return None
-    rots = track.rotations[0].T[None] @ track.rotations  # world = frame 0's camera
-    warn = []
+    rots = track.rotations[0].T[None] @ track.rotations  # world = the first kept frame's camera
+    warn = _dropped_warning(track.dropped)
     if track.stats["frames_from_motion_prior"]:
         warn.append(f"camera tracking placed {len(track.stats['frames_from_motion_prior'])} frame(s) "
                     f"{track.stats['frames_from_motion_prior'][:20]} from the camera's motion alone (too little "
                     "texture to register them)")
-    return TrackingResult(_poses_from_rotations(rots), list(range(T)), [], "rotation", None, None, (0, 0), None, None,
-                          focal, warn, stats={**stats, "rotation_source": "photometric (core.tracking.direct)"})
+    return TrackingResult(_poses_from_rotations(rots), list(track.kept), list(track.dropped), "rotation", None, None,
+                          (0, 0), None, None, focal, warn,
+                          stats={**stats, "rotation_source": "photometric (core.tracking.direct)"})
 
 
 def rotation_fallback_ok(rot, T: int, noise_px: float = 0.0, alone: bool = False) -> bool:
