@@ -48,29 +48,32 @@ SOURCE_CAP = 2.0  # x the seen median luminance: what pull-push may extrapolate 
 UNSEEN_WHITENING = 0.5  # 0: the seen mean colour; 1: grey (chosen on dev: bench/indoor_fill.py)
 
 
-def elevation_gain(height: int, dtype=torch.float64) -> torch.Tensor:
-    """ELEVATION_GAIN resampled to `height` rows (linear in log-gain over the polar angle)."""
-    g = torch.log(torch.tensor(ELEVATION_GAIN, dtype=torch.float64))[None, None]
-    if height != GAIN_ROWS:
+def elevation_gain(height: int, dtype=torch.float64, profile: tuple[float, ...] | None = None) -> torch.Tensor:
+    """`profile` (None: ELEVATION_GAIN; rows from up to down) resampled to `height` rows
+    (linear in log-gain over the polar angle)."""
+    g = torch.log(torch.tensor(ELEVATION_GAIN if profile is None else profile, dtype=torch.float64))[None, None]
+    if height != g.shape[-1]:
         g = torch.nn.functional.interpolate(g, size=height, mode="linear", align_corners=False)
     return g[0, 0].exp().to(dtype)
 
 
-def fill_unseen(filled: torch.Tensor, env: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+def fill_unseen(filled: torch.Tensor, env: torch.Tensor, weight: torch.Tensor,
+                gain_profile: tuple[float, ...] | None = None, whitening: float = UNSEEN_WHITENING) -> torch.Tensor:
     """filled: pull-push result [N, h, w, 3]; env, weight: its inputs (weight > 0 = seen; the
-    reprojection prior passes env after cap_sources). Unseen pixels get the elevation gain and
-    the whitened mean colour of env's seen pixels; seen ones are kept."""
+    reprojection prior passes env after cap_sources). Unseen pixels get the elevation gain
+    (`gain_profile`, None: ELEVATION_GAIN) and the mean colour of env's seen pixels moved
+    towards grey by `whitening`; seen ones are kept."""
     n, h = filled.shape[:2]
     seen = weight.to(filled.dtype)  # [N, h, w]
     count = seen.sum((1, 2))
     if not bool((count > 0).any()):
         return filled
-    gain = elevation_gain(h, filled.dtype)[None, :, None]  # [1, h, 1]
+    gain = elevation_gain(h, filled.dtype, gain_profile)[None, :, None]  # [1, h, 1]
     seen_gain = (seen * gain).sum((1, 2)) / count.clamp_min(1e-12)  # [N]
     scaled = filled * (gain / seen_gain.clamp_min(1e-12)[:, None, None])[..., None]
     mean = (env * seen[..., None]).sum((1, 2)) / count.clamp_min(1e-12)[:, None]  # [N, 3]
     chroma = mean / luminance(mean).clamp_min(1e-12)[:, None]
-    chroma = (1.0 - UNSEEN_WHITENING) * chroma + UNSEEN_WHITENING
+    chroma = (1.0 - whitening) * chroma + whitening
     recoloured = luminance(scaled).clamp_min(0.0)[..., None] * chroma[:, None, None, :]
     ok = (count > 0)[:, None, None, None] & (luminance(mean) > 0)[:, None, None, None]
     out = torch.where(ok, recoloured, filled)
