@@ -423,6 +423,45 @@ CV_VARIANTS: dict[str, dict] = {
 }
 
 
+# Values chosen from panoramas other than the elevation profile: refitted per fold (`run_cv`,
+# refit=True) by the prior shortcut's mean score over the fold's other rooms, among a grid.
+# setting -> (grid, material, metric minimised).
+CV_REFIT: dict[str, tuple[tuple, str, str]] = {
+    "fill_source_cap": ((1.0, 2.0, 4.0, 8.0, None), "diffuse", "si_rmse_rel"),
+}
+
+
+def cv_select(rooms: list[Path], folds: dict[str, list[float]], overrides: dict, sphere_size: int, workdir: Path,
+              log=None) -> dict:
+    """Per CV_REFIT setting not fixed by `overrides`: every room's prior-shortcut score (its
+    fold's elevation profile) at every grid value, then per fold the value with the lowest
+    mean over the OTHER rooms (`chosen[room]`) and over all rooms (`all_rooms`: what a user
+    gets; control rooms use it). The scored room never takes part in its own choice. (The
+    other rooms are scored with their own folds' profiles, which include the held-out room's
+    row means: a second-order leak through the profile, not through the choice's score.)"""
+    out: dict = {}
+    for key, (grid, material, metric) in CV_REFIT.items():
+        full = f"priors.reprojection.{key}"
+        if full in overrides:
+            continue
+        scores = {}  # room -> [score per grid value]
+        for path in rooms:
+            ov = overrides if GAIN_KEY in overrides else {**overrides, GAIN_KEY: folds[path.name]}
+            scores[path.name] = [evaluate_panorama(path, sphere_size, workdir, methods=(PRIOR,), overrides={**ov, full: v})
+                                 ["scores"][PRIOR][material][metric] for v in grid]
+            if log:
+                log(f"refit {key} {path.name}: " + ", ".join(f"{v}: {x:.3f}" for v, x in zip(grid, scores[path.name])))
+
+        def best(names):
+            totals = [sum(scores[n][i] for n in names) for i in range(len(grid))]
+            return grid[min(range(len(grid)), key=totals.__getitem__)]
+
+        names = list(scores)
+        out[key] = {"grid": list(grid), "criterion": f"prior (shortcut) {material} {metric}", "scores": scores,
+                    "chosen": {n: best([m for m in names if m != n]) for n in names}, "all_rooms": best(names)}
+    return out
+
+
 def indoor_rooms(hdri_dir: Path, limit: int | None = None) -> list[Path]:
     """Every indoor panorama of MANIFEST.tsv (splits INDOOR_SPLITS together), sorted by name."""
     rows = read_manifest(hdri_dir)
@@ -479,14 +518,15 @@ def cv_summary(images: list[dict], methods) -> dict:
 
 
 def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: dict | None = None, control: bool = True,
-           limit: int | None = None, log=None, workdir: Path | None = None) -> dict:
+           limit: int | None = None, log=None, workdir: Path | None = None, refit: bool = True) -> dict:
     """Leave-one-room-out: every indoor room (INDOOR_SPLITS together) scored with everything
     fitted from panoramas refitted without it. Today that is the elevation profile of the
     unseen fill (bench.indoor_fill, row means of the other rooms' panoramas), passed to the job
-    as the reprojection prior's `elevation_gain`; an override that sets `elevation_gain` itself
-    (an ablation) wins. Nothing else the job runs is chosen on these panoramas (the draft's
-    field settings were chosen on the simulator). `control` rooms (not indoor) get the profile
-    fitted on all indoor rooms and are summarised apart."""
+    as the reprojection prior's `elevation_gain`, and (`refit`) the CV_REFIT settings chosen
+    per fold by `cv_select`; an override that sets one itself (an ablation) wins. Nothing else
+    the job runs is chosen on these panoramas (the draft's field settings were chosen on the
+    simulator). `control` rooms (not indoor) get the profile and choices fitted on all indoor
+    rooms and are summarised apart."""
     hdri_dir = Path(hdri_dir)
     if not (hdri_dir / "MANIFEST.tsv").is_file():
         return {"skipped": f"no MANIFEST.tsv in {hdri_dir} (pass --hdri-dir)"}
@@ -496,7 +536,9 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
     folds, all_rooms_gain = cv_gains(rooms)
     protocol = PROTOCOL + (
         f" Leave-one-room-out over the {len(rooms)} indoor rooms ({', '.join(INDOOR_SPLITS)} together, one photo each): "
-        "each room's job gets the unseen fill's elevation profile refitted on the other rooms (bench.indoor_fill); "
+        "each room's job gets the unseen fill's elevation profile refitted on the other rooms (bench.indoor_fill)"
+        + (f" and {', '.join(CV_REFIT)} chosen per fold on the other rooms (the prior shortcut, `refit` in the JSON); "
+           if refit else "; ") +
         f"intervals: {round(CV_LEVEL * 100)} % bootstrap over rooms (seed {CV_SEED}, {2000} draws) of the ratio of means. "
         f"Rooms failing: diffuse angular error > {ANGLE_FAILURE:g}x the constant map's.")
     if overrides:
@@ -507,6 +549,15 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
     workdir = Path(tempfile.mkdtemp(prefix="lightfield-cv-")) if own_tmp else Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     split_of = {r["filename"]: r["split"] for r in read_manifest(hdri_dir)}
+    selected = cv_select(rooms, folds, overrides, sphere_size, workdir, log) if refit else {}
+    out["refit"] = selected
+
+    def fold_overrides(name: str | None, gain) -> dict:
+        ov = overrides if GAIN_KEY in overrides else {**overrides, GAIN_KEY: gain}
+        for key, sel in selected.items():
+            ov = {**ov, f"priors.reprojection.{key}": sel["all_rooms"] if name is None else sel["chosen"][name]}
+        return ov
+
     groups = {"indoor (leave-one-room-out)": [(p, folds[p.name]) for p in rooms]}
     if control:
         ctrl = sorted(r["filename"] for r in read_manifest(hdri_dir)
@@ -516,10 +567,10 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
         images = []
         for path, gain in items:
             t0 = time.perf_counter()
-            ov = overrides if GAIN_KEY in overrides else {**overrides, GAIN_KEY: gain}
+            ov = fold_overrides(path.name if path.name in folds else None, gain)
             im = evaluate_panorama(path, sphere_size, workdir, methods=methods, overrides=ov)
             im["split"] = split_of.get(path.name)
-            im["elevation_gain"] = None if GAIN_KEY in overrides else gain
+            im["fold_overrides"] = {k: v for k, v in ov.items() if k not in overrides}
             images.append(im)
             if log:
                 log(f"{group} {path.name}: {time.perf_counter() - t0:.0f}s " + ", ".join(
@@ -621,6 +672,8 @@ def main(argv=None) -> int:
     p.add_argument("--variant", default=None, choices=tuple(CV_VARIANTS),
                    help="with --cv: one accuracy mechanism switched off (CV_VARIANTS; adds to --overrides)")
     p.add_argument("--no-control", action="store_true", help="with --cv: skip the control (not indoor) rooms")
+    p.add_argument("--no-refit", action="store_true", help="with --cv: keep the CV_REFIT settings at their defaults "
+                   "instead of choosing them per fold (only the elevation profile is refitted)")
     p.add_argument("--cv-table", nargs="+", default=None, metavar="CV_JSON",
                    help="the ablation table of saved --cv reports (nothing is estimated); with --table-method")
     p.add_argument("--table-method", default="field", help="with --cv-table: field or prior")
@@ -643,7 +696,7 @@ def main(argv=None) -> int:
         if CONSTANT not in methods:
             methods += (CONSTANT,)
         res = run_cv(Path(args.hdri_dir), args.sphere_size, methods, overrides, control=not args.no_control,
-                     limit=args.limit or None, log=lambda m: print(m, file=sys.stderr, flush=True))
+                     refit=not args.no_refit, limit=args.limit or None, log=lambda m: print(m, file=sys.stderr, flush=True))
         res["variant"] = args.variant or ("shipped" if not args.overrides else "overrides")
         res["command"] = "python -m bench.real_panoramas " + " ".join(sys.argv[1:] if argv is None else argv)
         if args.out:
