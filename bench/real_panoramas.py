@@ -426,8 +426,10 @@ CV_VARIANTS: dict[str, dict] = {
 # Values chosen from panoramas other than the elevation profile: refitted per fold (`run_cv`,
 # refit=True) by the prior shortcut's mean score over the fold's other rooms, among a grid.
 # setting -> (grid, material, metric minimised).
+# One setting at a time, the others at their defaults.
 CV_REFIT: dict[str, tuple[tuple, str, str]] = {
     "fill_source_cap": ((1.0, 2.0, 4.0, 8.0, None), "diffuse", "si_rmse_rel"),
+    "unseen_whitening": ((0.0, 0.25, 0.5, 0.75, 1.0), "diffuse", "angular_deg"),
 }
 
 
@@ -484,6 +486,8 @@ def cv_summary(images: list[dict], methods) -> dict:
     the mean to the constant map's with its CV_LEVEL bootstrap interval over rooms (seed
     CV_SEED) and the rooms it beats the constant map on; the rooms whose diffuse angular error
     is > ANGLE_FAILURE x the constant map's; mean observed correlation."""
+    import statistics
+
     from bench.suite.evaluation import mean_scores, ratio_interval
 
     out: dict = {}
@@ -494,7 +498,7 @@ def cv_summary(images: list[dict], methods) -> dict:
              "metrics": mean_scores([im["scores"][name] for im in images]),
              "observed_corr": sum(im["observed_corr"][name] for im in images) / max(1, len(images))}
         if name != CONSTANT and CONSTANT in methods:
-            ratios, intervals, wins = {}, {}, {}
+            ratios, intervals, wins, medians = {}, {}, {}, {}
             for mat in CV_MATERIALS:
                 for metric in CV_METRICS:
                     pairs = [(im["scores"][name][mat][metric], im["scores"][CONSTANT][mat][metric]) for im in scored
@@ -506,9 +510,11 @@ def cv_summary(images: list[dict], methods) -> dict:
                     ratios[key] = round(sum(a) / max(sum(b), 1e-30), 4)
                     intervals[key] = ratio_interval(list(a), list(b), seed=CV_SEED, level=CV_LEVEL)
                     wins[key] = [sum(x < y for x, y in pairs), len(pairs)]
+                    medians[key] = round(statistics.median(x / y for x, y in pairs if y > 0), 4)
             m["vs_constant"] = ratios
             m[f"interval_{round(CV_LEVEL * 100)}"] = intervals
             m["rooms_beating_constant"] = wins
+            m["median_room_ratio"] = medians  # the typical room, not swayed by the rooms with the largest errors
             fails = [im["file"] for im in scored if im["scores"][name]["diffuse"]["angular_deg"]
                      > ANGLE_FAILURE * im["scores"][CONSTANT]["diffuse"]["angular_deg"]]
             m["rooms_diffuse_angle_over_1.5x_constant"] = {"count": len(fails), "of": len(scored), "rooms": fails}
@@ -595,7 +601,7 @@ def cv_markdown(res: dict, rows: bool = True) -> list[str]:
     keys = [f"{mat}_{metric}" for mat in CV_MATERIALS for metric in ("si_rmse_rel", "angular_deg")] + ["matte_nrmse"]
     out = [res.get("protocol", ""), ""]
     head = ["group", "method", "rooms", "s / photo"] + [k.replace("_rel", "").replace("_", " ") + " vs const" for k in keys] \
-        + [f"rooms diffuse ang > {ANGLE_FAILURE:g}x const", "observed corr."]
+        + ["median room ratio diffuse si / ang", f"rooms diffuse ang > {ANGLE_FAILURE:g}x const", "observed corr."]
     out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for group, g in res.get("splits", {}).items():
         for name, m in g["methods"].items():
@@ -603,7 +609,7 @@ def cv_markdown(res: dict, rows: bool = True) -> list[str]:
                 continue
             fails = m.get("rooms_diffuse_angle_over_1.5x_constant")
             out.append("| " + " | ".join([group, name, str(m["images"]), f"{m['seconds_per_image']:.1f}"]
-                                         + [cell(m, k) for k in keys]
+                                         + [cell(m, k) for k in keys] + [_medians(m)]
                                          + ["–" if not fails else f"{fails['count']} / {fails['of']}", f"{m['observed_corr']:.3f}"]) + " |")
     if rows:
         for group, g in res.get("splits", {}).items():
@@ -622,6 +628,11 @@ def cv_markdown(res: dict, rows: bool = True) -> list[str]:
     return out
 
 
+def _medians(m: dict) -> str:
+    med = m.get("median_room_ratio")
+    return "–" if not med else f"{med['diffuse_si_rmse_rel']:.3f} / {med['diffuse_angular_deg']:.3f}"
+
+
 def cv_ablation_table(reports: dict[str, dict], method: str) -> list[str]:
     """reports: variant name -> CV report (indoor group). One row per variant: its `method`'s
     ratios to the constant map, the change from the `shipped` row, and the rooms failing on angle."""
@@ -629,7 +640,7 @@ def cv_ablation_table(reports: dict[str, dict], method: str) -> list[str]:
     group = "indoor (leave-one-room-out)"
     base = reports.get("shipped", {}).get("splits", {}).get(group, {}).get("methods", {}).get(method)
     head = ["variant (one mechanism off)", "overrides"] + [k.replace("_rel", "").replace("_", " ") + " vs const [95 %]" for k in keys] \
-        + ["Δ diffuse si / Δ diffuse ang vs shipped", f"rooms diffuse ang > {ANGLE_FAILURE:g}x"]
+        + ["Δ diffuse si / Δ diffuse ang vs shipped", "median room ratio diffuse si / ang", f"rooms diffuse ang > {ANGLE_FAILURE:g}x"]
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, rep in reports.items():
         m = rep.get("splits", {}).get(group, {}).get("methods", {}).get(method)
@@ -640,7 +651,7 @@ def cv_ablation_table(reports: dict[str, dict], method: str) -> list[str]:
         delta = "–" if base is None or name == "shipped" else " / ".join(
             f"{m['vs_constant'][k] - base['vs_constant'][k]:+.3f}" for k in keys[:2])
         fails = m["rooms_diffuse_angle_over_1.5x_constant"]
-        out.append("| " + " | ".join([name, f"`{json.dumps(rep.get('overrides', {}))}`", *cells, delta,
+        out.append("| " + " | ".join([name, f"`{json.dumps(rep.get('overrides', {}))}`", *cells, delta, _medians(m),
                                       f"{fails['count']} / {fails['of']}"]) + " |")
     return out
 
@@ -683,6 +694,8 @@ def main(argv=None) -> int:
         reports = {}
         for f in args.cv_table:
             rep = json.loads(Path(f).read_text())
+            for g in rep.get("splits", {}).values():  # summaries re-made from the per-room results (this code's statistics)
+                g["methods"] = cv_summary(g["images"], tuple(rep["methods"]))
             reports[rep.get("variant") or Path(f).stem] = rep
         lines = cv_ablation_table(reports, METHOD_ALIASES.get(args.table_method, args.table_method))
         if args.md:
