@@ -29,8 +29,8 @@ It answers "what would a chrome ball at c show?" from the frame itself:
 4. Fill directions the frame never observed by pull-push (push_pull_fill): weight-average the
    observed pixels down a pyramid to one pixel, then blend each level with the upsampled
    coarser one by its weight (columns wrap at the seam). With unseen_fill "indoor" (default)
-   the unseen directions then get an elevation gain and a whiter colour, both fitted on dev
-   panoramas (core.priors.indoor_fill). This is a smooth
+   the unseen directions then get an elevation gain and a whiter colour, both fitted on the
+   indoor panoramas and scored leave-one-room-out (core.priors.indoor_fill). This is a smooth
    extrapolation of what was seen (e.g. the room behind the camera gets the average colour
    of the nearby walls, floor and ceiling). No light source is invented.
 5. Render the balls under those env maps (core.chrome_ball, probe-centre lookup) and tone
