@@ -410,8 +410,7 @@ GAIN_KEY = "priors.reprojection.elevation_gain"
 CV_VARIANTS: dict[str, dict] = {
     "shipped": {},
     "no elevation gain": {GAIN_KEY: [1.0, 1.0]},  # flat profile: the unseen fill at pull-push's level
-    "whitening 0.5": {"priors.reprojection.unseen_whitening": 0.5},
-    "whitening 0": {"priors.reprojection.unseen_whitening": 0.0},
+    "whitening 0": {"priors.reprojection.unseen_whitening": 0.0},  # the seen mean colour (the colour floor)
     "no source cap": {"priors.reprojection.fill_source_cap": None},
     "clip rule fixed": {"priors.reprojection.clip_rule": "fixed"},
     "unseen fill push-pull": {"priors.reprojection.unseen_fill": "push-pull"},
