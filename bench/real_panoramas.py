@@ -393,6 +393,267 @@ def run_panoramas(hdri_dir: Path, limit: int | None, sphere_size: int, quick: bo
         shutil.rmtree(workdir, ignore_errors=True)
     return out
 
+# ---------------------------------------------------------------------------------------
+# Leave-one-room-out cross-validation (`--cv`)
+# ---------------------------------------------------------------------------------------
+INDOOR_SPLITS = ("dev", "test", "extra")  # every indoor room; `control` is scored apart
+CV_LEVEL = 0.95  # bootstrap interval over rooms
+CV_SEED = 0
+ANGLE_FAILURE = 1.5  # a room "fails" where its diffuse angular error is > this x its constant map's
+CV_MATERIALS = ("diffuse", "matte", "mirror")
+CV_METRICS = ("si_rmse_rel", "angular_deg", "nrmse")
+METHOD_ALIASES = {"field": FIELD, "prior": PRIOR, "constant": CONSTANT, "mean-colour": CONSTANT}
+GAIN_KEY = "priors.reprojection.elevation_gain"
+
+# Switches of the accuracy mechanisms (preset overrides), each turned off alone under CV
+# (`--variant NAME`; docs/engine.md "Accuracy mechanisms under cross-validation").
+CV_VARIANTS: dict[str, dict] = {
+    "shipped": {},
+    "no elevation gain": {GAIN_KEY: [1.0, 1.0]},  # flat profile: the unseen fill at pull-push's level
+    "whitening 0": {"priors.reprojection.unseen_whitening": 0.0},  # the seen mean colour (the colour floor)
+    "no source cap": {"priors.reprojection.fill_source_cap": None},
+    "clip rule fixed": {"priors.reprojection.clip_rule": "fixed"},
+    "unseen fill push-pull": {"priors.reprojection.unseen_fill": "push-pull"},
+    "no emitters": {"distill.emitters": 0},
+    "no observed surfaces": {"distill.observed_surfaces": 0},
+    "no room lattice": {"field.room_lattice": []},
+    "no view fit": {"distill.envmap_view_directions": 0, "field.view_detail_heights": []},
+    "no free-space probes": {"distill.envmap_free_probes": 0},
+}
+
+
+# Values chosen from panoramas other than the elevation profile: refitted per fold (`run_cv`,
+# refit=True) by the prior shortcut's mean score over the fold's other rooms, among a grid.
+# setting -> (grid, material, metric minimised).
+# One setting at a time, the others at their defaults.
+CV_REFIT: dict[str, tuple[tuple, str, str]] = {
+    "fill_source_cap": ((1.0, 2.0, 4.0, 8.0, None), "diffuse", "si_rmse_rel"),
+    "unseen_whitening": ((0.0, 0.25, 0.5, 0.75, 1.0), "diffuse", "angular_deg"),
+}
+
+
+def cv_select(rooms: list[Path], folds: dict[str, list[float]], overrides: dict, sphere_size: int, workdir: Path,
+              log=None) -> dict:
+    """Per CV_REFIT setting not fixed by `overrides`: every room's prior-shortcut score (its
+    fold's elevation profile) at every grid value, then per fold the value with the lowest
+    mean over the OTHER rooms (`chosen[room]`) and over all rooms (`all_rooms`: what a user
+    gets; control rooms use it). The scored room never takes part in its own choice. (The
+    other rooms are scored with their own folds' profiles, which include the held-out room's
+    row means: a second-order leak through the profile, not through the choice's score.)"""
+    out: dict = {}
+    for key, (grid, material, metric) in CV_REFIT.items():
+        full = f"priors.reprojection.{key}"
+        if full in overrides:
+            continue
+        scores = {}  # room -> [score per grid value]
+        for path in rooms:
+            ov = overrides if GAIN_KEY in overrides else {**overrides, GAIN_KEY: folds[path.name]}
+            scores[path.name] = [evaluate_panorama(path, sphere_size, workdir, methods=(PRIOR,), overrides={**ov, full: v})
+                                 ["scores"][PRIOR][material][metric] for v in grid]
+            if log:
+                log(f"refit {key} {path.name}: " + ", ".join(f"{v}: {x:.3f}" for v, x in zip(grid, scores[path.name])))
+
+        def best(names):
+            totals = [sum(scores[n][i] for n in names) for i in range(len(grid))]
+            return grid[min(range(len(grid)), key=totals.__getitem__)]
+
+        names = list(scores)
+        out[key] = {"grid": list(grid), "criterion": f"prior (shortcut) {material} {metric}", "scores": scores,
+                    "chosen": {n: best([m for m in names if m != n]) for n in names}, "all_rooms": best(names)}
+    return out
+
+
+def indoor_rooms(hdri_dir: Path, limit: int | None = None) -> list[Path]:
+    """Every indoor panorama of MANIFEST.tsv (splits INDOOR_SPLITS together), sorted by name."""
+    rows = read_manifest(hdri_dir)
+    names = sorted(r["filename"] for r in rows if r.get("split") in INDOOR_SPLITS and (hdri_dir / r["filename"]).is_file())
+    return [hdri_dir / n for n in names][:limit]
+
+
+def cv_gains(rooms: list[Path]) -> tuple[dict[str, list[float]], list[float]]:
+    """The elevation profile of each fold (bench.indoor_fill's fit on every room but that one)
+    and the one fitted on all of them (what a user gets: core.priors.indoor_fill.ELEVATION_GAIN)."""
+    from bench.indoor_fill import gain_from_profiles, panorama_profiles
+
+    profiles = panorama_profiles(rooms)
+    folds = {p.name: gain_from_profiles(torch.cat([profiles[:i], profiles[i + 1:]])) for i, p in enumerate(rooms)}
+    return folds, gain_from_profiles(profiles)
+
+
+def cv_summary(images: list[dict], methods) -> dict:
+    """Per method (one photo per room): mean scores; for every material and metric the ratio of
+    the mean to the constant map's with its CV_LEVEL bootstrap interval over rooms (seed
+    CV_SEED) and the rooms it beats the constant map on; the rooms whose diffuse angular error
+    is > ANGLE_FAILURE x the constant map's; mean observed correlation."""
+    import statistics
+
+    from bench.suite.evaluation import mean_scores, ratio_interval
+
+    out: dict = {}
+    for name in methods:
+        scored = [im for im in images if "non_finite" not in im["scores"][name]]
+        m = {"images": len(images), "non_finite": len(images) - len(scored),
+             "seconds_per_image": sum(im["seconds"][name] for im in images) / max(1, len(images)),
+             "metrics": mean_scores([im["scores"][name] for im in images]),
+             "observed_corr": sum(im["observed_corr"][name] for im in images) / max(1, len(images))}
+        if name != CONSTANT and CONSTANT in methods:
+            ratios, intervals, wins, medians = {}, {}, {}, {}
+            for mat in CV_MATERIALS:
+                for metric in CV_METRICS:
+                    pairs = [(im["scores"][name][mat][metric], im["scores"][CONSTANT][mat][metric]) for im in scored
+                             if _scored(im, name, mat, metric) and _scored(im, CONSTANT, mat, metric)]
+                    if not pairs:
+                        continue
+                    key = f"{mat}_{metric}"
+                    a, b = zip(*pairs)
+                    ratios[key] = round(sum(a) / max(sum(b), 1e-30), 4)
+                    intervals[key] = ratio_interval(list(a), list(b), seed=CV_SEED, level=CV_LEVEL)
+                    wins[key] = [sum(x < y for x, y in pairs), len(pairs)]
+                    medians[key] = round(statistics.median(x / y for x, y in pairs if y > 0), 4)
+            m["vs_constant"] = ratios
+            m[f"interval_{round(CV_LEVEL * 100)}"] = intervals
+            m["rooms_beating_constant"] = wins
+            m["median_room_ratio"] = medians  # the typical room, not swayed by the rooms with the largest errors
+            fails = [im["file"] for im in scored if im["scores"][name]["diffuse"]["angular_deg"]
+                     > ANGLE_FAILURE * im["scores"][CONSTANT]["diffuse"]["angular_deg"]]
+            m["rooms_diffuse_angle_over_1.5x_constant"] = {"count": len(fails), "of": len(scored), "rooms": fails}
+        out[name] = m
+    out["truth"] = {"observed_corr": sum(im["observed_corr"]["truth"] for im in images) / max(1, len(images))}
+    return out
+
+
+def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: dict | None = None, control: bool = True,
+           limit: int | None = None, log=None, workdir: Path | None = None, refit: bool = True) -> dict:
+    """Leave-one-room-out: every indoor room (INDOOR_SPLITS together) scored with everything
+    fitted from panoramas refitted without it. Today that is the elevation profile of the
+    unseen fill (bench.indoor_fill, row means of the other rooms' panoramas), passed to the job
+    as the reprojection prior's `elevation_gain`, and (`refit`) the CV_REFIT settings chosen
+    per fold by `cv_select`; an override that sets one itself (an ablation) wins. Nothing else
+    the job runs is chosen on these panoramas (the draft's field settings were chosen on the
+    simulator). `control` rooms (not indoor) get the profile and choices fitted on all indoor
+    rooms and are summarised apart."""
+    hdri_dir = Path(hdri_dir)
+    if not (hdri_dir / "MANIFEST.tsv").is_file():
+        return {"skipped": f"no MANIFEST.tsv in {hdri_dir} (pass --hdri-dir)"}
+    overrides = dict(overrides or {})
+    methods = tuple(methods)
+    rooms = indoor_rooms(hdri_dir, limit)
+    folds, all_rooms_gain = cv_gains(rooms)
+    protocol = PROTOCOL + (
+        f" Leave-one-room-out over the {len(rooms)} indoor rooms ({', '.join(INDOOR_SPLITS)} together, one photo each): "
+        "each room's job gets the unseen fill's elevation profile refitted on the other rooms (bench.indoor_fill)"
+        + (f" and {', '.join(CV_REFIT)} chosen per fold on the other rooms (the prior shortcut, `refit` in the JSON); "
+           if refit else "; ") +
+        f"intervals: {round(CV_LEVEL * 100)} % bootstrap over rooms (seed {CV_SEED}, {2000} draws) of the ratio of means. "
+        f"Rooms failing: diffuse angular error > {ANGLE_FAILURE:g}x the constant map's.")
+    if overrides:
+        protocol += f" VARIANT, not the shipped preset: {PRESET} with {json.dumps(overrides)}."
+    out: dict = {"protocol": protocol, "hdri_dir": str(hdri_dir), "preset": PRESET, "methods": list(methods),
+                 "overrides": overrides, "all_rooms_elevation_gain": all_rooms_gain, "splits": {}}
+    own_tmp = workdir is None
+    workdir = Path(tempfile.mkdtemp(prefix="lightfield-cv-")) if own_tmp else Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    split_of = {r["filename"]: r["split"] for r in read_manifest(hdri_dir)}
+    selected = cv_select(rooms, folds, overrides, sphere_size, workdir, log) if refit else {}
+    out["refit"] = selected
+
+    def fold_overrides(name: str | None, gain) -> dict:
+        ov = overrides if GAIN_KEY in overrides else {**overrides, GAIN_KEY: gain}
+        for key, sel in selected.items():
+            ov = {**ov, f"priors.reprojection.{key}": sel["all_rooms"] if name is None else sel["chosen"][name]}
+        return ov
+
+    groups = {"indoor (leave-one-room-out)": [(p, folds[p.name]) for p in rooms]}
+    if control:
+        ctrl = sorted(r["filename"] for r in read_manifest(hdri_dir)
+                      if r.get("split") == "control" and (hdri_dir / r["filename"]).is_file())
+        groups["control (not indoor)"] = [(hdri_dir / f, all_rooms_gain) for f in ctrl]
+    for group, items in groups.items():
+        images = []
+        for path, gain in items:
+            t0 = time.perf_counter()
+            ov = fold_overrides(path.name if path.name in folds else None, gain)
+            im = evaluate_panorama(path, sphere_size, workdir, methods=methods, overrides=ov)
+            im["split"] = split_of.get(path.name)
+            im["fold_overrides"] = {k: v for k, v in ov.items() if k not in overrides}
+            images.append(im)
+            if log:
+                log(f"{group} {path.name}: {time.perf_counter() - t0:.0f}s " + ", ".join(
+                    f"{k} diffuse si {v['diffuse']['si_rmse_rel']:.3f} ang {v['diffuse']['angular_deg']:.1f}"
+                    for k, v in im["scores"].items() if "non_finite" not in v))
+        out["splits"][group] = {"files": [p.name for p, _ in items], "methods": cv_summary(images, methods),
+                                "images": images}
+    if own_tmp:
+        import shutil
+
+        shutil.rmtree(workdir, ignore_errors=True)
+    return out
+
+
+def cv_markdown(res: dict, rows: bool = True) -> list[str]:
+    """A CV report as markdown: per group and method the ratios to the constant map with their
+    intervals, the rooms failing on angle, then (rows) each room's ratios."""
+    def cell(m, key):
+        r, iv = m.get("vs_constant", {}).get(key), m.get(f"interval_{round(CV_LEVEL * 100)}", {}).get(key)
+        return "–" if r is None else f"{r:.3f} [{iv[0]:.2f}, {iv[1]:.2f}]"
+
+    keys = [f"{mat}_{metric}" for mat in CV_MATERIALS for metric in ("si_rmse_rel", "angular_deg")] + ["matte_nrmse"]
+    out = [res.get("protocol", ""), ""]
+    head = ["group", "method", "rooms", "s / photo"] + [k.replace("_rel", "").replace("_", " ") + " vs const" for k in keys] \
+        + ["median room ratio diffuse si / ang", f"rooms diffuse ang > {ANGLE_FAILURE:g}x const", "observed corr."]
+    out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for group, g in res.get("splits", {}).items():
+        for name, m in g["methods"].items():
+            if name == "truth":
+                continue
+            fails = m.get("rooms_diffuse_angle_over_1.5x_constant")
+            out.append("| " + " | ".join([group, name, str(m["images"]), f"{m['seconds_per_image']:.1f}"]
+                                         + [cell(m, k) for k in keys] + [_medians(m)]
+                                         + ["–" if not fails else f"{fails['count']} / {fails['of']}", f"{m['observed_corr']:.3f}"]) + " |")
+    if rows:
+        for group, g in res.get("splits", {}).items():
+            methods = [k for k in g["methods"] if k not in ("truth", CONSTANT)]
+            out += ["", f"Per room, {group} (ratio to the room's constant map: diffuse si-RMSE / diffuse angle):", "",
+                    "| room | split | " + " | ".join(methods) + " | constant diffuse ang (°) |",
+                    "|---|---|" + "---|" * (len(methods) + 1)]
+            for im in g["images"]:
+                c = im["scores"][CONSTANT]["diffuse"]
+                cells = []
+                for name in methods:
+                    s = im["scores"][name]
+                    cells.append("non-finite" if "non_finite" in s else
+                                 f"{s['diffuse']['si_rmse_rel'] / c['si_rmse_rel']:.2f} / {s['diffuse']['angular_deg'] / c['angular_deg']:.2f}")
+                out.append(f"| {im['file']} | {im.get('split')} | " + " | ".join(cells) + f" | {c['angular_deg']:.1f} |")
+    return out
+
+
+def _medians(m: dict) -> str:
+    med = m.get("median_room_ratio")
+    return "–" if not med else f"{med['diffuse_si_rmse_rel']:.3f} / {med['diffuse_angular_deg']:.3f}"
+
+
+def cv_ablation_table(reports: dict[str, dict], method: str) -> list[str]:
+    """reports: variant name -> CV report (indoor group). One row per variant: its `method`'s
+    ratios to the constant map, the change from the `shipped` row, and the rooms failing on angle."""
+    keys = ("diffuse_si_rmse_rel", "diffuse_angular_deg", "matte_si_rmse_rel", "matte_angular_deg", "mirror_angular_deg")
+    group = "indoor (leave-one-room-out)"
+    base = reports.get("shipped", {}).get("splits", {}).get(group, {}).get("methods", {}).get(method)
+    head = ["variant (one mechanism off)", "overrides"] + [k.replace("_rel", "").replace("_", " ") + " vs const [95 %]" for k in keys] \
+        + ["Δ diffuse si / Δ diffuse ang vs shipped", "median room ratio diffuse si / ang", f"rooms diffuse ang > {ANGLE_FAILURE:g}x"]
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, rep in reports.items():
+        m = rep.get("splits", {}).get(group, {}).get("methods", {}).get(method)
+        if not m:
+            continue
+        iv = m.get(f"interval_{round(CV_LEVEL * 100)}", {})
+        cells = [f"{m['vs_constant'][k]:.3f} [{iv[k][0]:.2f}, {iv[k][1]:.2f}]" for k in keys]
+        delta = "–" if base is None or name == "shipped" else " / ".join(
+            f"{m['vs_constant'][k] - base['vs_constant'][k]:+.3f}" for k in keys[:2])
+        fails = m["rooms_diffuse_angle_over_1.5x_constant"]
+        out.append("| " + " | ".join([name, f"`{json.dumps(rep.get('overrides', {}))}`", *cells, delta, _medians(m),
+                                      f"{fails['count']} / {fails['of']}"]) + " |")
+    return out
+
 
 def main(argv=None) -> int:
     """`python -m bench.real_panoramas --splits dev --limit 3 -o dev.json`: this section alone."""
@@ -404,7 +665,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--hdri-dir", default=str(DEFAULT_HDRI_DIR))
     p.add_argument("--splits", default="dev", help="comma-separated subset of dev,test,control (tune on dev only)")
-    p.add_argument("--limit", type=int, default=3, help="panoramas per split (0: all)")
+    p.add_argument("--limit", type=int, default=None, help="panoramas per split (default 3; 0: all); with --cv: the first indoor rooms "
+                   "(default all)")
     p.add_argument("--sphere-size", type=int, default=64)
     p.add_argument("--views", type=int, default=1, help="photos per panorama (view_for): more photos, tighter intervals")
     p.add_argument("-o", "--out", default=None, help="JSON file to write")
@@ -414,7 +676,48 @@ def main(argv=None) -> int:
                    "per-image results (nothing is estimated again); with -o, write the result")
     p.add_argument("--compare", nargs=2, default=None, metavar=("BEFORE_JSON", "AFTER_JSON"),
                    help="photo by photo, how the field's scores moved between two saved reports; nothing is estimated")
+    p.add_argument("--cv", action="store_true", help="leave-one-room-out over every indoor room (dev, test, extra "
+                   "together; control apart): anything fitted from panoramas is refitted without the scored room")
+    p.add_argument("--methods", default="field,prior,constant", help="with --cv: of field, prior (shortcut), constant")
+    p.add_argument("--variant", default=None, choices=tuple(CV_VARIANTS),
+                   help="with --cv: one accuracy mechanism switched off (CV_VARIANTS; adds to --overrides)")
+    p.add_argument("--no-control", action="store_true", help="with --cv: skip the control (not indoor) rooms")
+    p.add_argument("--no-refit", action="store_true", help="with --cv: keep the CV_REFIT settings at their defaults "
+                   "instead of choosing them per fold (only the elevation profile is refitted)")
+    p.add_argument("--cv-table", nargs="+", default=None, metavar="CV_JSON",
+                   help="the ablation table of saved --cv reports (nothing is estimated); with --table-method")
+    p.add_argument("--table-method", default="field", help="with --cv-table: field or prior")
+    p.add_argument("--md", default=None, help="with --cv / --cv-table: also write the markdown here")
     args = p.parse_args(argv)
+    if args.cv_table:
+        reports = {}
+        for f in args.cv_table:
+            rep = json.loads(Path(f).read_text())
+            for g in rep.get("splits", {}).values():  # summaries re-made from the per-room results (this code's statistics)
+                g["methods"] = cv_summary(g["images"], tuple(rep["methods"]))
+            reports[rep.get("variant") or Path(f).stem] = rep
+        lines = cv_ablation_table(reports, METHOD_ALIASES.get(args.table_method, args.table_method))
+        if args.md:
+            Path(args.md).write_text("\n".join(lines) + "\n")
+        print("\n".join(lines))
+        return 0
+    if args.cv:
+        torch.set_num_threads(1)
+        overrides = {**(json.loads(args.overrides) if args.overrides else {}), **CV_VARIANTS.get(args.variant or "shipped", {})}
+        methods = tuple(dict.fromkeys(METHOD_ALIASES[m.strip()] for m in args.methods.split(",")) )
+        if CONSTANT not in methods:
+            methods += (CONSTANT,)
+        res = run_cv(Path(args.hdri_dir), args.sphere_size, methods, overrides, control=not args.no_control,
+                     refit=not args.no_refit, limit=args.limit or None, log=lambda m: print(m, file=sys.stderr, flush=True))
+        res["variant"] = args.variant or ("shipped" if not args.overrides else "overrides")
+        res["command"] = "python -m bench.real_panoramas " + " ".join(sys.argv[1:] if argv is None else argv)
+        if args.out:
+            Path(args.out).write_text(json.dumps(sanitize(res), indent=1))
+        lines = cv_markdown(res)
+        if args.md:
+            Path(args.md).write_text("\n".join(lines) + "\n")
+        print("\n".join(lines))
+        return 0
     if args.compare:
         before, after = (json.loads(Path(f).read_text()) for f in args.compare)
         print("\n".join(compare_reports(before, after)))
@@ -426,7 +729,7 @@ def main(argv=None) -> int:
         print("\n".join(panorama_markdown(res)))
         return 0
     torch.set_num_threads(1)
-    res = run_panoramas(Path(args.hdri_dir), args.limit or None, args.sphere_size, splits=tuple(args.splits.split(",")),
+    res = run_panoramas(Path(args.hdri_dir), 3 if args.limit is None else (args.limit or None), args.sphere_size, splits=tuple(args.splits.split(",")),
                         log=lambda m: print(m, file=sys.stderr, flush=True),
                         overrides=json.loads(args.overrides) if args.overrides else None, views=max(1, args.views))
     if args.out:

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from bench.indoor_fill import elevation_gain_as, gain_from_profiles, mean_log_profile, row_profile
+from bench.indoor_fill import gain_from_profiles, mean_log_profile, row_profile
 from bench.run import DEFAULT_HDRI_DIR
 
 
@@ -37,27 +37,16 @@ def test_row_profile_is_relative_to_the_horizon_band():
     assert float(prof[0]) == pytest.approx(10.0) and float(prof[h // 2]) == pytest.approx(1.0)
 
 
-def test_elevation_gain_as_restores_the_module_constant_even_on_error():
-    import core.priors.indoor_fill as fill
-
-    kept = fill.ELEVATION_GAIN
-    with pytest.raises(RuntimeError):
-        with elevation_gain_as((1.0,) * 24):
-            assert fill.ELEVATION_GAIN == (1.0,) * 24
-            raise RuntimeError("boom")
-    assert fill.ELEVATION_GAIN == kept
-    with elevation_gain_as(None):
-        assert fill.ELEVATION_GAIN == kept
-
-
 DEV = Path(DEFAULT_HDRI_DIR)
 
 
 @pytest.mark.skipif(not (DEV / "MANIFEST.tsv").is_file(), reason="the dev panoramas (../shared/hdri) are not on this machine")
-def test_the_stored_gain_is_the_fit_on_dev():
+def test_the_stored_gain_is_the_fit_on_every_indoor_room():
     from bench.indoor_fill import fit_gain
-    from bench.real_panoramas import read_manifest
+    from bench.real_panoramas import indoor_rooms, read_manifest
     from core.priors.indoor_fill import ELEVATION_GAIN
 
-    dev = sorted(DEV / r["filename"] for r in read_manifest(DEV) if r.get("split") == "dev" and (DEV / r["filename"]).is_file())
-    assert tuple(fit_gain(dev)) == pytest.approx(ELEVATION_GAIN, abs=2e-3)
+    rooms = indoor_rooms(DEV)
+    split = {r["filename"]: r["split"] for r in read_manifest(DEV)}
+    assert len(rooms) == 24 and {split[p.name] for p in rooms} == {"dev", "test", "extra"}
+    assert tuple(fit_gain(rooms)) == pytest.approx(ELEVATION_GAIN, abs=2e-3)

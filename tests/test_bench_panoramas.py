@@ -146,3 +146,110 @@ def test_compare_counts_photos_that_moved_each_way_not_the_mean():
     # one better (0.9 -> 0.3), two worse by 0.02, one unchanged; median ratio of 0.33, 1.04, 1.04, 1.0
     assert diffuse == "| dev | diffuse si_rmse_rel | 4 | 1 | 2 | 1.020 |"
     assert next(r for r in rows if "matte si_rmse_rel" in r) == "| dev | matte si_rmse_rel | 4 | 0 | 0 | 1.000 |"
+
+
+# ----------------------------------------------------------------- leave-one-room-out (--cv)
+def _cv_photo(file, field, const, angle=None):
+    from bench.real_panoramas import CONSTANT, FIELD
+
+    def mats(v, a):
+        return {mat: {"si_rmse_rel": v, "angular_deg": a, "si_rmse": v, "nrmse": v} for mat in ("diffuse", "matte", "mirror")}
+
+    return {"file": file, "split": "dev", "scores": {FIELD: mats(field, angle if angle is not None else field),
+                                                    CONSTANT: mats(const, const)},
+            "seconds": {FIELD: 1.0, CONSTANT: 0.0}, "observed_corr": {FIELD: 0.9, CONSTANT: 0.0, "truth": 0.95}}
+
+
+def test_cv_summary_ratios_95_interval_and_rooms_failing_on_angle():
+    from bench.real_panoramas import CONSTANT, FIELD, cv_markdown, cv_summary
+    from bench.suite.evaluation import ratio_interval
+
+    images = [_cv_photo("a", 0.5, 1.0), _cv_photo("b", 0.9, 1.0), _cv_photo("c", 0.7, 1.0), _cv_photo("d", 1.1, 1.0, angle=1.6)]
+    s = cv_summary(images, (FIELD, CONSTANT))
+    f = s[FIELD]
+    assert f["vs_constant"]["diffuse_si_rmse_rel"] == pytest.approx(0.8)
+    lo, hi = f["interval_95"]["diffuse_si_rmse_rel"]
+    assert lo < 0.8 < hi
+    lo90, hi90 = ratio_interval([0.5, 0.9, 0.7, 1.1], [1.0] * 4)
+    assert lo <= lo90 and hi >= hi90  # 95 % is at least as wide as 90 %
+    assert f["rooms_diffuse_angle_over_1.5x_constant"] == {"count": 1, "of": 4, "rooms": ["d"]}
+    assert f["rooms_beating_constant"]["diffuse_si_rmse_rel"] == [3, 4]
+    assert "vs_constant" not in s[CONSTANT]
+    report = {"protocol": "p", "splits": {"indoor (leave-one-room-out)": {"methods": s, "images": images}}}
+    text = "\n".join(cv_markdown(report))
+    assert "1 / 4" in text and "| d | dev |" in text
+
+
+def test_cv_refits_the_elevation_profile_without_the_scored_room(tmp_path):
+    from bench.indoor_fill import gain_from_profiles, panorama_profiles
+    from bench.real_panoramas import cv_gains, indoor_rooms
+    from core.io.hdr import write_hdr
+
+    h = 32
+    rows = []
+    for k, (name, split) in enumerate((("a.hdr", "dev"), ("b.hdr", "test"), ("c.hdr", "extra"), ("d.hdr", "control"))):
+        pano = torch.ones(h, 2 * h, 3)
+        pano[: 4 + 2 * k] = 3.0 + 4 * k  # a different bright ceiling per room
+        write_hdr(tmp_path / name, pano.numpy())
+        rows.append(f"{name}\t{split}")
+    (tmp_path / "MANIFEST.tsv").write_text("filename\tsplit\n" + "\n".join(rows) + "\n")
+    rooms = indoor_rooms(tmp_path)
+    assert [p.name for p in rooms] == ["a.hdr", "b.hdr", "c.hdr"]  # control is not an indoor room
+    folds, everything = cv_gains(rooms)
+    profiles = panorama_profiles(rooms)
+    assert folds["a.hdr"] == gain_from_profiles(profiles[1:])
+    assert folds["b.hdr"] == gain_from_profiles(profiles[[0, 2]])
+    assert everything == gain_from_profiles(profiles)
+    assert len({tuple(g) for g in folds.values()}) == 3
+
+
+def test_cv_select_never_lets_the_scored_room_vote(monkeypatch, tmp_path):
+    """Per fold, the grid value with the lowest score summed over the OTHER rooms: a room whose
+    own score would flip the choice does not flip its own."""
+    import bench.real_panoramas as rp
+
+    monkeypatch.setattr(rp, "CV_REFIT", {"fill_source_cap": ((1.0, 2.0), "diffuse", "si_rmse_rel")})
+    table = {"a": (1.0, 2.0), "b": (1.0, 2.0), "c": (9.0, 1.0)}  # a, b prefer 1.0; c strongly prefers 2.0
+
+    def fake(path, sphere_size, workdir, methods, overrides):
+        v = table[path.name][(1.0, 2.0).index(overrides["priors.reprojection.fill_source_cap"])]
+        return {"scores": {rp.PRIOR: {"diffuse": {"si_rmse_rel": v}}}}
+
+    monkeypatch.setattr(rp, "evaluate_panorama", fake)
+    rooms = [tmp_path / n for n in table]
+    sel = rp.cv_select(rooms, {n: [1.0, 1.0] for n in table}, {}, 16, tmp_path)["fill_source_cap"]
+    # all rooms: 11 vs 5 -> 2.0; without a: 10 vs 3 -> 2.0; without c: 2 vs 4 -> 1.0
+    assert sel["all_rooms"] == 2.0
+    assert sel["chosen"] == {"a": 2.0, "b": 2.0, "c": 1.0}
+    # an ablation that fixes the setting is not refitted
+    assert rp.cv_select(rooms, {}, {"priors.reprojection.fill_source_cap": None}, 16, tmp_path) == {}
+
+
+def test_cv_runs_the_prior_and_the_constant_map_on_a_tiny_manifest(tmp_path):
+    """run_cv on three indoor rooms (one per split) and a control: the folds' profiles and
+    choices reach the jobs, control is summarised apart, every ratio is finite."""
+    import math
+
+    from bench.real_panoramas import CONSTANT, PRIOR, run_cv
+    from core.io.hdr import write_hdr
+
+    h = 32
+    d = equirect_directions(h)
+    rows = []
+    for k, (name, split) in enumerate((("a.hdr", "dev"), ("b.hdr", "test"), ("c.hdr", "extra"), ("d.hdr", "control"))):
+        pano = 0.2 + 0.1 * (d + 1.0) * (1 + k)
+        pano[2 + k : 4 + k, 10:14] = 30.0
+        write_hdr(tmp_path / name, pano.numpy())
+        rows.append(f"{name}\t{split}")
+    (tmp_path / "MANIFEST.tsv").write_text("filename\tsplit\n" + "\n".join(rows) + "\n")
+    out = run_cv(tmp_path, 16, (PRIOR, CONSTANT), workdir=tmp_path / "work")
+    indoor, control = out["splits"]["indoor (leave-one-room-out)"], out["splits"]["control (not indoor)"]
+    assert indoor["files"] == ["a.hdr", "b.hdr", "c.hdr"] and control["files"] == ["d.hdr"]
+    for im in indoor["images"]:
+        ov = im["fold_overrides"]
+        assert ov["priors.reprojection.fill_source_cap"] == out["refit"]["fill_source_cap"]["chosen"][im["file"]]
+        assert len(ov["priors.reprojection.elevation_gain"]) == 24
+    assert control["images"][0]["fold_overrides"]["priors.reprojection.elevation_gain"] == out["all_rooms_elevation_gain"]
+    m = indoor["methods"][PRIOR]
+    assert all(math.isfinite(v) for v in m["vs_constant"].values())
+    assert m["rooms_diffuse_angle_over_1.5x_constant"]["of"] == 3

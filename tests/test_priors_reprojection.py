@@ -402,3 +402,24 @@ def test_a_probe_behind_a_seen_surface_sees_its_back_dark_not_its_front():
         assert torch.allclose(sample_envmap(env[mode]["behind"], to_wall)[0], green, rtol=0.05)
     # in front of the panel nothing changes: the frame saw the side the probe sees
     assert torch.equal(env["dark"]["in_front"], env["front"]["in_front"])
+
+
+def test_the_elevation_profile_is_a_setting():
+    """`elevation_gain` replaces ELEVATION_GAIN for one prior (a bench's fold refits it without
+    the scored room): a flat profile leaves the unseen fill at pull-push's luminance."""
+    from core.exposure import luminance
+    from core.priors.indoor_fill import ELEVATION_GAIN
+
+    frames = torch.full((1, H, W, 3), 0.5)
+    envs = {}
+    for gain in (None, tuple(ELEVATION_GAIN), (1.0, 1.0)):
+        prior = ReprojectionPrior(env_height=16, elevation_gain=gain)
+        prior.bind(_capture(frames))
+        envs[gain] = prior.envmaps(torch.zeros(1, 3), 0.0, 16)[0]
+    assert torch.equal(envs[None], envs[tuple(ELEVATION_GAIN)])
+    plain = ReprojectionPrior(env_height=16, unseen_fill="push-pull")
+    plain.bind(_capture(frames))
+    assert torch.allclose(luminance(envs[(1.0, 1.0)]), luminance(plain.envmaps(torch.zeros(1, 3), 0.0, 16)[0]), rtol=1e-4)
+    assert not torch.allclose(envs[None], envs[(1.0, 1.0)])
+    with pytest.raises(PriorError):
+        ReprojectionPrior(elevation_gain=(1.0, 0.0))

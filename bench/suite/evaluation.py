@@ -63,14 +63,15 @@ def mean_scores(per_probe: list[dict]) -> dict:
 BOOTSTRAP_DRAWS = 2000
 
 
-def ratio_interval(num: list[float], den: list[float], seed: int = 0) -> list[float]:
-    """90 % bootstrap interval of mean(num) / mean(den), resampling the PAIRS (probes or
-    images) with replacement: a target is missed (or met) for sure only when the whole
-    interval is past (or inside) it."""
+def ratio_interval(num: list[float], den: list[float], seed: int = 0, level: float = 0.90) -> list[float]:
+    """`level` (default 90 %) bootstrap interval of mean(num) / mean(den), resampling the PAIRS
+    (probes, images or rooms) with replacement: a target is missed (or met) for sure only when
+    the whole interval is past (or inside) it."""
     a, b = torch.tensor(num, dtype=torch.float64), torch.tensor(den, dtype=torch.float64)
     idx = torch.randint(0, len(a), (BOOTSTRAP_DRAWS, len(a)), generator=torch.Generator().manual_seed(seed))
     r = a[idx].mean(1) / b[idx].mean(1).clamp_min(1e-30)
-    return [round(float(v), 3) for v in torch.quantile(r, torch.tensor([0.05, 0.95], dtype=torch.float64))]
+    tail = (1.0 - level) / 2.0
+    return [round(float(v), 3) for v in torch.quantile(r, torch.tensor([tail, 1.0 - tail], dtype=torch.float64))]
 
 
 # ---------------------------------------------------------------------------------------

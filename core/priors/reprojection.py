@@ -29,8 +29,8 @@ It answers "what would a chrome ball at c show?" from the frame itself:
 4. Fill directions the frame never observed by pull-push (push_pull_fill): weight-average the
    observed pixels down a pyramid to one pixel, then blend each level with the upsampled
    coarser one by its weight (columns wrap at the seam). With unseen_fill "indoor" (default)
-   the unseen directions then get an elevation gain and a whiter colour, both fitted on dev
-   panoramas (core.priors.indoor_fill). This is a smooth
+   the unseen directions then get an elevation gain and a whiter colour, both fitted on the
+   indoor panoramas and scored leave-one-room-out (core.priors.indoor_fill). This is a smooth
    extrapolation of what was seen (e.g. the room behind the camera gets the average colour
    of the nearby walls, floor and ceiling). No light source is invented.
 5. Render the balls under those env maps (core.chrome_ball, probe-centre lookup) and tone
@@ -48,14 +48,14 @@ from typing import Literal
 
 import torch
 import torch.nn.functional as F
-from pydantic import Field
+from pydantic import Field, PositiveFloat
 
 from core.conventions import expose, inverse_tonemap
 from core.capture.depth import surface_normals
 from core.capture.hdr_merge import capture_reading_weights, merge_frames
 from core.capture.highlights import CLIP_LDR, linearise_highlights
 from core.envmap import SPLAT_Z_TOLERANCE, resize_envmap, splat_points, voxel_merge
-from core.priors.indoor_fill import SOURCE_CAP, cap_sources, fill_unseen
+from core.priors.indoor_fill import SOURCE_CAP, UNSEEN_WHITENING, cap_sources, fill_unseen
 from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
 from core.priors.known import ball_target
 from core.priors.registry import prior_settings, register_prior
@@ -168,6 +168,11 @@ class ReprojectionSettings(PriorConfig):
     fill_source_cap: float | None = Field(SOURCE_CAP, gt=0, description=(
         "with unseen_fill 'indoor': seen radiance above this multiple of the seen median luminance is capped "
         "before it is extrapolated into unseen directions (core.priors.indoor_fill.cap_sources); null: not capped"))
+    elevation_gain: tuple[PositiveFloat, ...] | None = Field(None, min_length=2, description=(
+        "with unseen_fill 'indoor': the unseen directions' brightness profile from up to down (any number of rows, "
+        "each > 0); null: core.priors.indoor_fill.ELEVATION_GAIN (benches pass a profile refitted without the scored room)"))
+    unseen_whitening: float = Field(UNSEEN_WHITENING, ge=0, le=1, description=(
+        "with unseen_fill 'indoor': the unseen directions' colour, from the seen mean colour (0) towards grey (1)"))
     back_faces: Literal["dark", "front"] = Field("front", description=(
         "points whose observed side faces away from the probe: occluders of radiance 0 ('dark') or with the "
         "radiance of their observed side ('front')"))
@@ -189,6 +194,8 @@ class ReprojectionPrior(Prior):
         self.clip_rule = s.clip_rule
         self.unseen_fill = s.unseen_fill
         self.fill_source_cap = s.fill_source_cap
+        self.elevation_gain = None if s.elevation_gain is None else tuple(float(g) for g in s.elevation_gain)
+        self.unseen_whitening = float(s.unseen_whitening)
         self.back_faces = s.back_faces
         self.configured_merge_views = s.merge_views
         self.merge_views = s.merge_views or 1
@@ -318,7 +325,8 @@ class ReprojectionPrior(Prior):
             return push_pull_fill(env, seen)
         source = cap_sources(env, seen, self.fill_source_cap)  # the walls, not the lamps, set the fill's level and colour
         extrapolated = push_pull_fill(source, seen)
-        return fill_unseen(torch.where(seen[..., None], env, extrapolated), source, seen)
+        return fill_unseen(torch.where(seen[..., None], env, extrapolated), source, seen, self.elevation_gain,
+                           self.unseen_whitening)
 
     def _splat_seen(self, centers: torch.Tensor, frame_index: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Splatted radiance [N, h, w, 3] and its seen mask [N, h, w] (no fill)."""
