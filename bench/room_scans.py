@@ -22,8 +22,10 @@ linearised frame, over the frames (does what was seen reappear where it was seen
 relative L1 between the maps at the first and the last time (static light: 0); the job's CPU
 seconds; and for tracking, the method, frames kept and the largest rotation error.
 No setting of the product is fitted here; what the product itself fitted on panoramas (the
-indoor fill's elevation profile, the clip rule) is refitted per held-out room by bench.cv where
-it exists (`--cv`), so no room is scored by a rule it helped fit.
+indoor fill's elevation profile, its source cap and whitening) is refitted without the room
+scored (the default; `--no-cv` uses the shipped values): the profile on the other indoor rooms,
+the two settings as the photo cross-validation (bench.real_panoramas --cv) chose them in that
+room's fold.
 """
 from __future__ import annotations
 
@@ -217,6 +219,28 @@ def summarise(rows: list[dict], modes) -> dict:
     return out
 
 
+DEFAULT_REFIT = Path(__file__).resolve().parent / "results" / "cv" / "shortcut" / "shipped_refit.json"
+
+
+def cv_overrides(hdri: Path, refit_json: Path):
+    """room -> the draft's overrides for scoring that room: the elevation profile refitted on
+    every other indoor room (bench.real_panoramas.cv_gains) and the fill settings the photo CV
+    chose without it (its `refit` section); control rooms get the shipped profile (fitted on
+    indoor rooms only) and the all-rooms choices."""
+    from bench.real_panoramas import GAIN_KEY, cv_gains, indoor_rooms
+
+    folds, _ = cv_gains(indoor_rooms(hdri))
+    refit = json.loads(refit_json.read_text()).get("refit", {}) if refit_json.exists() else {}
+
+    def overrides_for(name: str) -> dict:
+        ov = {GAIN_KEY: folds[name]} if name in folds else {}
+        for key, sel in refit.items():
+            ov[f"priors.reprojection.{key}"] = sel["chosen"].get(name, sel["all_rooms"])
+        return ov
+
+    return overrides_for
+
+
 def main(argv=None) -> int:
     from bench.real_panoramas import read_manifest
     from bench.report import sanitize
@@ -228,24 +252,31 @@ def main(argv=None) -> int:
     p.add_argument("--modes", default="product", help=f"comma-separated subset of {','.join(MODES)}")
     p.add_argument("--sphere-size", type=int, default=64)
     p.add_argument("--workdir", default=None)
-    p.add_argument("-o", "--out", default=None)
+    p.add_argument("-o", "--out", default=None, help="JSON report (rewritten after every room)")
+    p.add_argument("--no-cv", action="store_true", help="the shipped fill settings for every room (not cross-validated)")
+    p.add_argument("--refit", default=str(DEFAULT_REFIT), help="the per-fold choices of the photo CV "
+                   "(bench.real_panoramas --cv: fill_source_cap, unseen_whitening) to apply to each held-out room")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     hdri = Path(args.hdri_dir)
     rows = read_manifest(hdri)
     names = args.rooms.split(",") if args.rooms else [r["filename"] for r in rows if r["split"] in args.splits.split(",")]
     modes = tuple(args.modes.split(","))
-    out: dict = {"protocol": __doc__, "modes": modes, "rooms": {}, "targets": TARGETS}
+    overrides_for = None if args.no_cv else cv_overrides(hdri, Path(args.refit))
+    out: dict = {"protocol": __doc__, "modes": modes, "rooms": {}, "targets": TARGETS, "cross_validated": not args.no_cv,
+                 "command": "python -m bench.room_scans " + " ".join(argv if argv is not None else sys.argv[1:])}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.workdir or tmp)
         work.mkdir(parents=True, exist_ok=True)
         results = []
         for name in names:
             t0 = time.perf_counter()
-            row = evaluate_room(hdri / name, modes, work, args.sphere_size)
+            row = evaluate_room(hdri / name, modes, work, args.sphere_size, overrides_for)
             row["split"] = next((r["split"] for r in rows if r["filename"] == name), None)
             results.append(row)
             print(json.dumps(sanitize(row)), flush=True)
+            if args.out:
+                Path(args.out).write_text(json.dumps(sanitize({**out, "rooms": results, "partial": True}), indent=1))
             print(f"{name}: {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
     indoor = [r for r in results if r["split"] != "control"]
     out["summary"] = summarise(indoor, modes)
