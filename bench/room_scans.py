@@ -53,15 +53,16 @@ def room_seed(name: str) -> int:
     return zlib.crc32(name.encode()) % 1000
 
 
-def make_scan(pano_path: Path, workdir: Path):
-    """(video path, ScanClip) of the room's scan, seeded by its file name."""
+def make_scan(pano_path: Path, workdir: Path, path: str = "scan"):
+    """(video path, ScanClip) of the room's scan (or pan: core.sim.room_scan.scan_angles), seeded
+    by its file name."""
     from core.io.video import write_video
     from core.sim.panorama_room import load_panorama
     from core.sim.room_scan import SCAN_FPS, render_scan
 
     seed = room_seed(pano_path.name)
-    clip = render_scan(load_panorama(pano_path, 256), yaw0=float(seed % 360), seed=seed)
-    video = write_video(workdir / f"{pano_path.stem}.mp4", clip.ldr.numpy(), SCAN_FPS)
+    clip = render_scan(load_panorama(pano_path, 256), yaw0=float(seed % 360), seed=seed, path=path)
+    video = write_video(workdir / f"{pano_path.stem}-{path}.mp4", clip.ldr.numpy(), SCAN_FPS)
     return video, clip
 
 
@@ -160,10 +161,10 @@ def tracking_summary(artefact, clip) -> dict:
     return out
 
 
-def evaluate_room(pano_path: Path, modes, workdir: Path, sphere_size: int, overrides_for=None) -> dict:
+def evaluate_room(pano_path: Path, modes, workdir: Path, sphere_size: int, overrides_for=None, path: str = "scan") -> dict:
     from bench.suite.evaluation import score_probe
 
-    video, clip = make_scan(pano_path, workdir)
+    video, clip = make_scan(pano_path, workdir, path)
     gt = ground_truth(pano_path, clip)
     preds = {CONSTANT: constant_map(clip)}
     extra: dict = {}
@@ -253,6 +254,8 @@ def main(argv=None) -> int:
     p.add_argument("--sphere-size", type=int, default=64)
     p.add_argument("--workdir", default=None)
     p.add_argument("-o", "--out", default=None, help="JSON report (rewritten after every room)")
+    p.add_argument("--path", default="scan", choices=("scan", "pan"), help="scan: the three-ring room scan; pan: a "
+                   "20-frame half-turn at the horizon (with --modes true-poses: the posed pan of issue 44)")
     p.add_argument("--no-cv", action="store_true", help="the shipped fill settings for every room (not cross-validated)")
     p.add_argument("--refit", default=str(DEFAULT_REFIT), help="the per-fold choices of the photo CV "
                    "(bench.real_panoramas --cv: fill_source_cap, unseen_whitening) to apply to each held-out room")
@@ -263,7 +266,8 @@ def main(argv=None) -> int:
     names = args.rooms.split(",") if args.rooms else [r["filename"] for r in rows if r["split"] in args.splits.split(",")]
     modes = tuple(args.modes.split(","))
     overrides_for = None if args.no_cv else cv_overrides(hdri, Path(args.refit))
-    out: dict = {"protocol": __doc__, "modes": modes, "rooms": {}, "targets": TARGETS, "cross_validated": not args.no_cv,
+    out: dict = {"protocol": __doc__, "modes": modes, "path": args.path, "rooms": {}, "targets": TARGETS,
+                 "cross_validated": not args.no_cv,
                  "command": "python -m bench.room_scans " + " ".join(argv if argv is not None else sys.argv[1:])}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.workdir or tmp)
@@ -271,7 +275,7 @@ def main(argv=None) -> int:
         results = []
         for name in names:
             t0 = time.perf_counter()
-            row = evaluate_room(hdri / name, modes, work, args.sphere_size, overrides_for)
+            row = evaluate_room(hdri / name, modes, work, args.sphere_size, overrides_for, args.path)
             row["split"] = next((r["split"] for r in rows if r["filename"] == name), None)
             results.append(row)
             print(json.dumps(sanitize(row)), flush=True)

@@ -39,6 +39,7 @@ SCAN_HFOV_DEG = 60.0
 RINGS = ((10.0, 16), (55.0, 12), (-40.0, 13))
 TILTS = ((25.0, 40.0), (30.0, 5.0, -20.0))
 SCAN_FRAMES = sum(n for _, n in RINGS) + sum(len(t) for t in TILTS)  # 46
+PAN_FRAMES, PAN_STEP_DEG = 20, 9.0  # a pan: a half-turn at the horizon
 HAND_JITTER_DEG = 1.5
 AE_SPEED = 0.5  # of the way to the metered goal per frame
 METER_CAP = 64.0  # metered pixels are capped at this many times the scan's median luminance
@@ -64,8 +65,12 @@ def _rotation(yaw_deg: float, pitch_deg: float, roll_deg: float) -> torch.Tensor
     return ry @ rx @ rz
 
 
-def scan_angles(yaw0: float = 0.0) -> list[tuple[float, float]]:
-    """(yaw, pitch) in degrees of each frame of the scan path, without the hand's jitter."""
+def scan_angles(yaw0: float = 0.0, path: str = "scan") -> list[tuple[float, float]]:
+    """(yaw, pitch) in degrees of each frame of the path, without the hand's jitter: "scan" (the
+    three rings and their tilts) or "pan" (PAN_FRAMES frames at the horizon, PAN_STEP_DEG apart:
+    the half-turn a user makes when asked to pan)."""
+    if path == "pan":
+        return [(yaw0 + PAN_STEP_DEG * n, 0.0) for n in range(PAN_FRAMES)]
     out: list[tuple[float, float]] = []
     yaw = yaw0
     for k, (pitch, frames) in enumerate(RINGS):
@@ -79,11 +84,11 @@ def scan_angles(yaw0: float = 0.0) -> list[tuple[float, float]]:
     return out
 
 
-def scan_poses(yaw0: float = 0.0, seed: int = 0, jitter_deg: float = HAND_JITTER_DEG) -> list[torch.Tensor]:
-    """c2w poses [4, 4] float64 at the origin along the scan path, with a seeded hand jitter."""
+def scan_poses(yaw0: float = 0.0, seed: int = 0, jitter_deg: float = HAND_JITTER_DEG, path: str = "scan") -> list[torch.Tensor]:
+    """c2w poses [4, 4] float64 at the origin along the path (scan_angles), with a seeded hand jitter."""
     rng = random.Random(f"scan:{seed}")
     poses = []
-    for yaw, pitch in scan_angles(yaw0):
+    for yaw, pitch in scan_angles(yaw0, path):
         c2w = torch.eye(4, dtype=torch.float64)
         c2w[:3, :3] = _rotation(yaw + rng.gauss(0, jitter_deg), pitch + rng.gauss(0, jitter_deg), rng.gauss(0, jitter_deg))
         poses.append(c2w)
@@ -110,13 +115,15 @@ def lagging_auto_exposure(hdr: torch.Tensor, span_stops: float | None = None, sp
 
 
 def render_scan(panorama: torch.Tensor, yaw0: float = 0.0, seed: int = 0, span_stops: float | None = None,
-                size: tuple[int, int] = SCAN_SIZE, hfov_deg: float = SCAN_HFOV_DEG, supersample: int = 2) -> ScanClip:
-    """A room scan of `panorama` [h, 2h, 3] (linear HDR, the camera at its centre)."""
+                size: tuple[int, int] = SCAN_SIZE, hfov_deg: float = SCAN_HFOV_DEG, supersample: int = 2,
+                path: str = "scan") -> ScanClip:
+    """A room scan (or, path "pan", a pan: scan_angles) of `panorama` [h, 2h, 3] (linear HDR, the
+    camera at its centre)."""
     from core.envmap import sample_envmap
 
     intr = Intrinsics.from_hfov(size[0], size[1], hfov_deg)
     big = intr.scaled(size[0] * supersample, size[1] * supersample)
-    poses = scan_poses(yaw0, seed)
+    poses = scan_poses(yaw0, seed, path=path)
     pano = panorama.to(torch.float64)
     frames = []
     for c2w in poses:
