@@ -70,6 +70,7 @@ LOOP_MIN_GAP = 3  # ... when at least this many frames apart (neighbours are alr
 LOOP_SPAN_DEG = 10.0  # a loop closure searches this far around what the chain says
 NEAR_SPAN_DEG = 10.0  # a consecutive pair first searches this far around its guesses
 NEAR_CANDIDATES = 4  # ... and refines this many of that grid's distinct best (loop closures too)
+NEAR_ROLL_SPAN_DEG = 5.0  # ... and this far in roll
 MAX_LOOP_PAIRS = 120
 
 
@@ -201,7 +202,8 @@ def _search_grid(start: np.ndarray, span: float = SEARCH_SPAN_DEG, step: float =
 
 def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.Tensor, k: Intrinsics,
                starts: list[np.ndarray], i: int = 0, j: int = 1, search: bool = True,
-               span: float = SEARCH_SPAN_DEG, candidates: int = COARSE_CANDIDATES) -> DirectPair:
+               span: float = SEARCH_SPAN_DEG, candidates: int = COARSE_CANDIDATES,
+               roll_span: float | None = None) -> DirectPair:
     """Register frame j against frame i (luma and masks [H, W] from `frame_luma`) from
     the starting rotations `starts` (bearing i -> bearing j); see the module docstring."""
     starts = [_nearest_rotation(s) for s in starts]
@@ -211,7 +213,8 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
     coarse = levels[0]
     if coarse.li.numel() < 8:
         return DirectPair(i, j, np.asarray(starts[0]), 0.0, math.inf, 0.0)
-    cands = torch.cat([_search_grid(s, span) if search else torch.from_numpy(np.asarray(s)[None]) for s in starts])
+    cands = torch.cat([_search_grid(s, span, roll_span=roll_span) if search else torch.from_numpy(np.asarray(s)[None])
+                       for s in starts])
     with torch.no_grad():
         # every grid rotation a few Gauss-Newton steps on the coarse level (each falls into the
         # basin it is in), then scored one level up (18 rows blur what tells candidates apart)
@@ -375,14 +378,14 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
     R: dict[int, np.ndarray] = {0: np.eye(3)}
     pairs: list[DirectPair] = []
     for f in range(1, T):
-        starts = [np.eye(3)]
-        if (c := _coast(R, f)) is not None:
-            starts.insert(0, c)
-        if (f - 1, f) in feature_pairs:
-            starts.insert(0, feature_pairs[(f - 1, f)])
-        # near the guesses first (a hand-held turn is smooth: the coast is rarely far off), the
-        # full grid only when that does not pin the rotation down (a direction change, a jolt)
-        p = align_pair(l[f - 1], v[f - 1], l[f], v[f], k, starts, f - 1, f, span=NEAR_SPAN_DEG, candidates=NEAR_CANDIDATES)
+        c = _coast(R, f)
+        guesses = ([feature_pairs[(f - 1, f)]] if (f - 1, f) in feature_pairs else []) + [np.eye(3) if c is None else c]
+        starts = guesses + ([np.eye(3)] if c is not None else [])
+        # near the guesses first (a hand-held turn is smooth: the coast is rarely far off, and a
+        # hand rolls little), the full grid from every start only when that does not pin the
+        # rotation down (a direction change, a jolt)
+        p = align_pair(l[f - 1], v[f - 1], l[f], v[f], k, guesses, f - 1, f, span=NEAR_SPAN_DEG,
+                       candidates=NEAR_CANDIDATES, roll_span=NEAR_ROLL_SPAN_DEG)
         if not p.trusted:
             p = align_pair(l[f - 1], v[f - 1], l[f], v[f], k, starts, f - 1, f)
         pairs.append(p)
@@ -396,7 +399,7 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
              if math.degrees(math.acos(float(np.clip(axes[a] @ axes[b], -1, 1)))) <= LOOP_MAX_AXIS_DEG][:MAX_LOOP_PAIRS]
     for a, b in loops:
         pairs.append(align_pair(l[a], v[a], l[b], v[b], k, [R[b].T @ R[a]], a, b, span=LOOP_SPAN_DEG,
-                                candidates=NEAR_CANDIDATES))
+                                candidates=NEAR_CANDIDATES, roll_span=NEAR_ROLL_SPAN_DEG))
     matched = [p for p in pairs if p.matched]
     # the track starts at the first frame of the largest set that trusted pairs connect: a first
     # frame no trusted pair reaches (a blank wall, a pair matched 45 deg off) would otherwise set
