@@ -1,0 +1,54 @@
+"""bench.room_scans: what each held-out room is scored with, and the scan's ground truth."""
+from __future__ import annotations
+
+import json
+
+import torch
+
+from core.io.hdr import write_hdr
+
+
+def _manifest(tmp_path):
+    h = 32
+    rows = []
+    for k, (name, split) in enumerate((("a.hdr", "dev"), ("b.hdr", "test"), ("c.hdr", "extra"), ("d.hdr", "control"))):
+        pano = torch.ones(h, 2 * h, 3)
+        pano[: 4 + 2 * k] = 3.0 + 4 * k  # a different bright ceiling per room
+        write_hdr(tmp_path / name, pano.numpy())
+        rows.append(f"{name}\t{split}")
+    (tmp_path / "MANIFEST.tsv").write_text("filename\tsplit\n" + "\n".join(rows) + "\n")
+
+
+def test_each_room_is_scored_with_a_profile_and_choices_made_without_it(tmp_path):
+    """The elevation profile of the room's fold (fitted on the other indoor rooms) and the fill
+    settings the photo CV chose in that fold; a control room gets the all-rooms choices."""
+    from bench.real_panoramas import GAIN_KEY, cv_gains, indoor_rooms
+    from bench.room_scans import cv_overrides
+
+    _manifest(tmp_path)
+    refit = {"refit": {"fill_source_cap": {"chosen": {"a.hdr": 2.0, "b.hdr": 4.0, "c.hdr": 2.0}, "all_rooms": 8.0}}}
+    (tmp_path / "refit.json").write_text(json.dumps(refit))
+    overrides_for = cv_overrides(tmp_path, tmp_path / "refit.json")
+    folds, _ = cv_gains(indoor_rooms(tmp_path))
+    assert overrides_for("b.hdr") == {GAIN_KEY: folds["b.hdr"], "priors.reprojection.fill_source_cap": 4.0}
+    assert overrides_for("a.hdr")[GAIN_KEY] != overrides_for("b.hdr")[GAIN_KEY]
+    assert overrides_for("d.hdr") == {"priors.reprojection.fill_source_cap": 8.0}
+
+
+def test_the_truth_is_the_panorama_in_the_first_kept_cameras_axes():
+    """scan_truth(d) = panorama(R_first d): the first kept camera's forward (-z) sees the
+    panorama's colour in that camera's viewing direction."""
+    from core.envmap import sample_envmap
+    from core.sim.room_scan import render_scan, scan_truth
+
+    h = 32
+    coarse = torch.rand(1, 3, 4, 8, generator=torch.Generator().manual_seed(0)) + 0.1
+    pano = torch.nn.functional.interpolate(coarse, size=(h, 2 * h), mode="bilinear")[0].permute(1, 2, 0)  # smooth
+    clip = render_scan(pano, yaw0=40.0, seed=1, size=(32, 24))
+    for first in (0, 5):
+        truth = scan_truth(pano, clip, h, first)
+        forward = torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64)
+        world = (clip.poses[first][:3, :3] @ forward.T).T
+        a = sample_envmap(truth.double(), forward)
+        b = sample_envmap(pano.double(), world)
+        torch.testing.assert_close(a, b, rtol=0.05, atol=0.02)
