@@ -208,7 +208,8 @@ def summarise(rows: list[dict], modes) -> dict:
                 continue
             num, den = zip(*pairs)
             key = f"{material}_{metric}"
-            m[key] = {"ratio": round(sum(num) / sum(den), 4), "interval_90": ratio_interval(list(num), list(den)),
+            m[key] = {"ratio": round(sum(num) / sum(den), 4),
+                      "interval_95": ratio_interval(list(num), list(den), level=0.95),
                       "worst_room_ratio": round(max(a / b for a, b in pairs if b > 0), 3)}
         for key in ("seen_corr", "drift", "cpu_s"):
             vals = [r["modes"][mode][key] for r in rows if mode in r["modes"]]
@@ -216,6 +217,9 @@ def summarise(rows: list[dict], modes) -> dict:
             m[key + "_worst"] = (min(vals) if key == "seen_corr" else max(vals)) if vals else None
         m["tracked_as_rotation"] = sum(r["modes"][mode]["tracking"].get("method") == "rotation" for r in rows
                                        if mode in r["modes"])
+        errors = [r["modes"][mode]["tracking"].get("max_rotation_error_deg") for r in rows if mode in r["modes"]]
+        m["tracked_within_2deg"] = sum(e is not None and e <= 2.0 for e in errors)
+        m["uses_time"] = sum(bool(r["modes"][mode].get("uses_time")) for r in rows if mode in r["modes"])
         out[mode] = m
     return out
 
@@ -242,6 +246,38 @@ def cv_overrides(hdri: Path, refit_json: Path):
     return overrides_for
 
 
+def markdown(report: dict) -> list[str]:
+    """The report's summary as a table (one row per mode), then one row per room."""
+    head = ("| capture | mode | rooms | diffuse si-RMSE vs const [95 %] | diffuse angle vs const [95 %] | "
+            "mirror si-RMSE vs const [95 %] | seen corr. (truth) | drift | CPU s | tracked as rotation (≤ 2°) | "
+            "read as changing light |")
+    lines = [head, "|" + "---|" * 11]
+    rows = [r for r in report["rooms"] if r.get("split") != "control"]
+    truth = sum(r["truth_seen_corr"] for r in rows) / max(len(rows), 1)
+    for mode in report["modes"]:
+        m = summarise(rows, (mode,))[mode]
+
+        def cell(key):
+            v = m.get(key)
+            return f"{v['ratio']:.2f} [{v['interval_95'][0]:.2f}, {v['interval_95'][1]:.2f}]" if v else "–"
+
+        lines.append(f"| {report.get('path', 'scan')} | {mode} | {len(rows)} | {cell('diffuse_si_rmse_rel')} | "
+                     f"{cell('diffuse_angular_deg')} | {cell('mirror_si_rmse_rel')} | {m['seen_corr']:.2f} ({truth:.2f}) | "
+                     f"{m['drift']:.3f} | {m['cpu_s']:.0f} | {m['tracked_as_rotation']} ({m['tracked_within_2deg']}) | "
+                     f"{m['uses_time']} |")
+    lines += ["", "| room | split | mode | diffuse si-RMSE / angle / mirror vs const | seen corr. | drift | CPU s | "
+              "largest rotation error (°) | exposure span (stops) |", "|" + "---|" * 9]
+    for r in rows:
+        for mode, ex in r["modes"].items():
+            sc, c = r["scores"][mode], r["scores"].get(f"{CONSTANT}@{mode}", r["scores"][CONSTANT])
+            ratio = [sc[a]["si_rmse" if b == "s" else "angular_deg"] / max(c[a]["si_rmse" if b == "s" else "angular_deg"], 1e-12)
+                     for a, b in (("diffuse", "s"), ("diffuse", "a"), ("mirror", "s"))]
+            lines.append(f"| {r['file']} | {r.get('split')} | {mode} | {ratio[0]:.2f} / {ratio[1]:.2f} / {ratio[2]:.2f} | "
+                         f"{ex['seen_corr']:.2f} | {ex['drift']:.3f} | {ex['cpu_s']:.0f} | "
+                         f"{ex['tracking'].get('max_rotation_error_deg', '–')} | {r['span_stops']} |")
+    return lines
+
+
 def main(argv=None) -> int:
     from bench.real_panoramas import read_manifest
     from bench.report import sanitize
@@ -259,7 +295,18 @@ def main(argv=None) -> int:
     p.add_argument("--no-cv", action="store_true", help="the shipped fill settings for every room (not cross-validated)")
     p.add_argument("--refit", default=str(DEFAULT_REFIT), help="the per-fold choices of the photo CV "
                    "(bench.real_panoramas --cv: fill_source_cap, unseen_whitening) to apply to each held-out room")
+    p.add_argument("--rescore", default=None, metavar="REPORT_JSON",
+                   help="re-summarise a saved report (its rooms as they are) and write its table beside it (.md)")
     args = p.parse_args(argv)
+    if args.rescore:
+        report = json.loads(Path(args.rescore).read_text())
+        indoor = [r for r in report["rooms"] if r.get("split") != "control"]
+        report["summary"] = summarise(indoor, report["modes"])
+        Path(args.rescore).write_text(json.dumps(report, indent=1))
+        table = "\n".join(markdown(report)) + "\n"
+        Path(args.rescore).with_suffix(".md").write_text(table)
+        print(table)
+        return 0
     torch.set_num_threads(1)
     hdri = Path(args.hdri_dir)
     rows = read_manifest(hdri)
