@@ -12,18 +12,21 @@ it grows without bound in the dark). `align_pair` minimises a robust (pseudo-Hub
 that residual over R_ij (3 numbers) and g_ij (1),
 coarse to fine over an image pyramid: at the coarsest level a grid of rotations around each
 starting guess is scored at once (the basin of a direct method is a few pixels; a scan turns
-20-35 deg between frames), the best few are refined (L-BFGS on every level), and the one with
-the lowest cost that keeps MIN_OVERLAP of the frame in view wins. The offsets g_ij are the
+20-35 deg between frames), the best few are refined (Gauss-Newton on every level), and the one
+with the lowest cost that keeps MIN_OVERLAP of the frame in view wins. The offsets g_ij are the
 exposure steps a panorama stitcher estimates from the overlaps; `exposure_from_offsets` solves
 them for every frame.
 
-`track_rotation_direct(frames, intrinsics)` places every frame: consecutive pairs, started
-from the camera coasting at its last angular velocity (a camera has inertia) and from any
-rotation the features offer; then pairs the first pass says overlap but are far apart in time
-(a scan's rings see each other's edges: loop closures), and rotation averaging over all
-accepted pairs (robust least squares on the rotation vectors of the pair residuals), so the
-chain's drift is shared out. A pair is accepted when its cost is within MAX_PAIR_COST; a frame
-no accepted pair reaches is dropped.
+`track_rotation_direct(frames, intrinsics)` places every frame: consecutive pairs, searched
+first within NEAR_SPAN_DEG of the camera coasting at its last angular velocity (a camera has
+inertia) and of any rotation the features offer, over the full grid only when that does not
+fix the rotation; then pairs the first pass says overlap but are far apart in time (a scan's
+rings see each other's edges: loop closures), and rotation averaging over all accepted pairs
+(robust least squares on the rotation vectors of the pair residuals, weighted by what each pair
+fixes), so the chain's drift is shared out. A pair is accepted when its cost is within
+MAX_PAIR_COST; the track starts at the first frame of the largest set the trusted pairs connect
+(frames before it are dropped), and a frame after it that no trusted pair fixes is placed by the
+motion prior and named in the stats.
 """
 from __future__ import annotations
 

@@ -21,7 +21,12 @@
    residual shear for one and loses frames): method "rotation", with a warning. Where COLMAP
    registered too few frames, that test comes before OpenCV's chained two-view geometry,
    which registers a pan with a translation it invents.
-5. If every method fails: identity poses, method "failed:static-fallback", and a warning.
+5. A room scan (a camera turning about one spot through tilts, where the ceiling, floor and
+   smooth walls leave features for few frames): when the features' rotations fit but leave
+   frames out, or as the last resort before a static camera, the frames are registered by
+   their pixels (core.tracking.direct, `_direct_completion`): kept if that places more frames
+   than the features did and agrees with their rotations within DIRECT_MAX_DISAGREEMENT_DEG.
+6. If every method fails: identity poses, method "failed:static-fallback", and a warning.
    The caller still succeeds (a capture is never refused for being hard to track).
 World = the first kept frame's camera frame (core.conventions). Frames that could not be
 registered are listed in `dropped`; the caller removes them from the capture.
