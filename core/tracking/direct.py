@@ -46,7 +46,7 @@ from core.tracking.geometry import matrix_to_rotvec, rotation_angle_deg, rotvec_
 PYRAMID_HEIGHTS = (18, 36, 72)  # rows per level, coarse to fine (capped at the frame's own)
 SEARCH_STEP_DEG = 5.0  # the coarse grid's spacing around a starting guess
 SEARCH_SPAN_DEG = 30.0  # ... and its half-width in yaw and pitch (roll: +-ROLL_SPAN_DEG)
-ROLL_SPAN_DEG = 15.0
+ROLL_SPAN_DEG = 30.0  # a ring looking 40 deg down turns 0.64 of its yaw as roll
 LOCAL_SPAN_DEG, LOCAL_STEP_DEG = 4.0, 2.0  # the finer grid around each coarse survivor, on the second level
 LOCAL_CANDIDATES = 6  # ... of which the best are refined there
 COARSE_CANDIDATES = 24  # distinct best grid rotations refined on the coarse level
@@ -74,6 +74,7 @@ LOOP_SPAN_DEG = 10.0  # a loop closure searches this far around what the chain s
 NEAR_SPAN_DEG = 10.0  # a consecutive pair first searches this far around its guesses
 NEAR_CANDIDATES = 4  # ... and refines this many of that grid's distinct best (loop closures too)
 NEAR_ROLL_SPAN_DEG = 5.0  # ... and this far in roll
+NEAR_COST_RATIO = 3.0  # a near answer costing more than this x the clip's median pair cost is checked on the full grid
 MAX_LOOP_PAIRS = 120
 
 
@@ -225,17 +226,23 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
         cands, g = _refine(coarse, cands, g, GRID_ITERATIONS)
         scorer = levels[min(1, len(levels) - 1)]
         r, w = scorer.residuals(cands, g)
-        cost = _score(r, w, scorer.texture)
+        score = _score(r, w, scorer.texture)
+        mean_cost = (_robust(r) * w).sum(1) / w.sum(1).clamp_min(1.0)
+        mean_cost = torch.where(w.mean(1) >= MIN_OVERLAP, mean_cost, torch.full_like(mean_cost, math.inf))
     # the coarse grid is a few degrees apart, where a right answer scores little better than a
-    # wrong one: refine the best distinct candidates on the coarse level, then the best of those
-    # through the pyramid
+    # wrong one: refine the best distinct candidates on the coarse level (by the score, and the
+    # cheapest few), then the best of those through the pyramid
     picked: list[int] = []
-    for idx in torch.argsort(cost).tolist():
-        if all(rotation_angle_deg(cands[idx].numpy().T @ cands[q].numpy()) > SEARCH_STEP_DEG + 1e-6 for q in picked):
-            picked.append(idx)
-        if len(picked) == candidates:
-            break
-    # successive halving: refine the survivors on each level, keep the best by the score
+    for ranking, quota in ((score, candidates), (mean_cost, candidates + max(1, candidates // 4))):
+        for idx in torch.argsort(ranking).tolist():
+            if len(picked) >= quota or not math.isfinite(float(ranking[idx])):
+                break
+            if all(rotation_angle_deg(cands[idx].numpy().T @ cands[q].numpy()) > SEARCH_STEP_DEG + 1e-6 for q in picked):
+                picked.append(idx)
+    # successive halving: refine the survivors on each level, keep the best by the score and the
+    # cheapest: the score (evidence over frame i's texture) favours a larger overlap, where a
+    # smooth floor half-agrees with a wrong turn; the cost (the mean residual over the overlap)
+    # is what the right turn brings down to the noise
     R, g = cands[picked], g[picked]
     keep_counts = [min(n, candidates) for n in SURVIVORS[: len(levels)]] + [1] * max(0, len(levels) - len(SURVIVORS))
     with torch.no_grad():
@@ -243,23 +250,33 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
             if n == 1 and search:  # a finer grid around each survivor: the coarse level's minima can sit a few degrees off
                 R = torch.cat([_search_grid(x.numpy(), LOCAL_SPAN_DEG, LOCAL_STEP_DEG) for x in R])
                 g, r, w = _gain_estimate(lev, R)
-                best = torch.argsort(_score(r, w, lev.texture))[:LOCAL_CANDIDATES]
+                best = _survivors(r, w, lev.texture, LOCAL_CANDIDATES)
                 R, g = R[best], g[best]
             R, g = _refine(lev, R, g, GN_ITERATIONS[min(n, len(GN_ITERATIONS) - 1)])
             r, w = lev.residuals(R, g)
-            order = torch.argsort(_score(r, w, lev.texture))[:keep]
+            order = _survivors(r, w, lev.texture, keep)
             R, g, r, w = R[order], g[order], r[order], w[order]
     overlap = w.mean(1)
     cost = (_robust(r) * w).sum(1) / w.sum(1).clamp_min(1.0)
-    # the best-scored survivor that fits (MAX_PAIR_COST), else the best-scored
-    order = sorted(range(R.shape[0]), key=lambda c: (bool(cost[c] > MAX_PAIR_COST), c))
-    for c in order:
+    # the cheapest survivor that keeps MIN_OVERLAP of the frame in view
+    for c in sorted(range(R.shape[0]), key=lambda c: float(cost[c])):
         if float(overlap[c]) >= MIN_OVERLAP:
             Rc = R[c]
-            mean = float((_robust(r[c]) * w[c]).sum() / w[c].sum())
-            return DirectPair(i, j, _nearest_rotation(Rc.numpy()), GAMMA * float(g[c]), mean, float(overlap[c]),
+            return DirectPair(i, j, _nearest_rotation(Rc.numpy()), GAMMA * float(g[c]), float(cost[c]), float(overlap[c]),
                               _information(levels[-1], Rc, float(g[c])))
     return DirectPair(i, j, _nearest_rotation(R[0].numpy()), GAMMA * float(g[0]), math.inf, 0.0)
+
+
+def _survivors(r: torch.Tensor, w: torch.Tensor, texture: torch.Tensor, keep: int) -> torch.Tensor:
+    """Indices of the `keep` best-scored candidates (`_score`), plus the cheapest one (mean robust
+    residual over an overlap of at least MIN_OVERLAP) when it is not among them."""
+    order = torch.argsort(_score(r, w, texture))[:keep]
+    cost = (_robust(r) * w).sum(1) / w.sum(1).clamp_min(1.0)
+    cost = torch.where(w.mean(1) >= MIN_OVERLAP, cost, torch.full_like(cost, math.inf))
+    cheapest = int(torch.argmin(cost))
+    if math.isfinite(float(cost[cheapest])) and cheapest not in order.tolist():
+        order = torch.cat([order, torch.tensor([cheapest])])
+    return order
 
 
 def _information(lev: _Level, R: torch.Tensor, gain: float) -> np.ndarray:
@@ -380,6 +397,7 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
     feature_pairs = feature_pairs or {}
     R: dict[int, np.ndarray] = {0: np.eye(3)}
     pairs: list[DirectPair] = []
+    costs: list[float] = []  # of the trusted consecutive pairs so far
     for f in range(1, T):
         c = _coast(R, f)
         guesses = ([feature_pairs[(f - 1, f)]] if (f - 1, f) in feature_pairs else []) + [np.eye(3) if c is None else c]
@@ -389,8 +407,16 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
         # rotation down (a direction change, a jolt)
         p = align_pair(l[f - 1], v[f - 1], l[f], v[f], k, guesses, f - 1, f, span=NEAR_SPAN_DEG,
                        candidates=NEAR_CANDIDATES, roll_span=NEAR_ROLL_SPAN_DEG)
-        if not p.trusted:
-            p = align_pair(l[f - 1], v[f - 1], l[f], v[f], k, starts, f - 1, f)
+        usual = float(np.median(costs)) if len(costs) >= 3 else math.inf
+        if not p.trusted or p.cost > NEAR_COST_RATIO * usual:
+            # a smooth floor can agree with a wrong turn near a wrong guess (where the scan turns
+            # from a tilt into a ring), at a cost well above the clip's usual: the full grid, and
+            # the cheaper answer of the two
+            full = align_pair(l[f - 1], v[f - 1], l[f], v[f], k, starts, f - 1, f)
+            if not p.trusted or (full.trusted and full.cost < p.cost):
+                p = full
+        if p.trusted:
+            costs.append(p.cost)
         pairs.append(p)
         # a pair that fixes the rotation places the frame; else the camera coasts on (a blank
         # wall fixes nothing: the averaging below weighs what each pair does fix)
