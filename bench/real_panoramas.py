@@ -687,6 +687,8 @@ def main(argv=None) -> int:
     p.add_argument("--cv-table", nargs="+", default=None, metavar="CV_JSON",
                    help="the ablation table of saved --cv reports (nothing is estimated); with --table-method")
     p.add_argument("--table-method", default="field", help="with --cv-table: field or prior")
+    p.add_argument("--table-splits", default=None, help="with --cv-table: only the rooms of these MANIFEST splits, e.g. "
+                   "test,extra (the rooms no value was ever chosen on before the CV)")
     p.add_argument("--md", default=None, help="with --cv / --cv-table: also write the markdown here")
     args = p.parse_args(argv)
     if args.cv_table:
@@ -694,6 +696,8 @@ def main(argv=None) -> int:
         for f in args.cv_table:
             rep = json.loads(Path(f).read_text())
             for g in rep.get("splits", {}).values():  # summaries re-made from the per-room results (this code's statistics)
+                if args.table_splits:
+                    g["images"] = [im for im in g["images"] if im.get("split") in args.table_splits.split(",")]
                 g["methods"] = cv_summary(g["images"], tuple(rep["methods"]))
             reports[rep.get("variant") or Path(f).stem] = rep
         lines = cv_ablation_table(reports, METHOD_ALIASES.get(args.table_method, args.table_method))
