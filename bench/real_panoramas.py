@@ -632,12 +632,12 @@ def _medians(m: dict) -> str:
     return "–" if not med else f"{med['diffuse_si_rmse_rel']:.3f} / {med['diffuse_angular_deg']:.3f}"
 
 
-def cv_ablation_table(reports: dict[str, dict], method: str) -> list[str]:
+def cv_ablation_table(reports: dict[str, dict], method: str, base_name: str = "shipped") -> list[str]:
     """reports: variant name -> CV report (indoor group). One row per variant: its `method`'s
-    ratios to the constant map, the change from the `shipped` row, and the rooms failing on angle."""
+    ratios to the constant map, the change from the `base_name` row, and the rooms failing on angle."""
     keys = ("diffuse_si_rmse_rel", "diffuse_angular_deg", "matte_si_rmse_rel", "matte_angular_deg", "mirror_angular_deg")
     group = "indoor (leave-one-room-out)"
-    base = reports.get("shipped", {}).get("splits", {}).get(group, {}).get("methods", {}).get(method)
+    base = reports.get(base_name, {}).get("splits", {}).get(group, {}).get("methods", {}).get(method)
     head = ["variant (one mechanism off)", "overrides"] + [k.replace("_rel", "").replace("_", " ") + " vs const [95 %]" for k in keys] \
         + ["Δ diffuse si / Δ diffuse ang vs shipped", "median room ratio diffuse si / ang", f"rooms diffuse ang > {ANGLE_FAILURE:g}x"]
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -647,7 +647,7 @@ def cv_ablation_table(reports: dict[str, dict], method: str) -> list[str]:
             continue
         iv = m.get(f"interval_{round(CV_LEVEL * 100)}", {})
         cells = [f"{m['vs_constant'][k]:.3f} [{iv[k][0]:.2f}, {iv[k][1]:.2f}]" for k in keys]
-        delta = "–" if base is None or name == "shipped" else " / ".join(
+        delta = "–" if base is None or name == base_name else " / ".join(
             f"{m['vs_constant'][k] - base['vs_constant'][k]:+.3f}" for k in keys[:2])
         fails = m["rooms_diffuse_angle_over_1.5x_constant"]
         out.append("| " + " | ".join([name, f"`{json.dumps(rep.get('overrides', {}))}`", *cells, delta, _medians(m),
@@ -699,7 +699,10 @@ def main(argv=None) -> int:
                 if args.table_splits:
                     g["images"] = [im for im in g["images"] if im.get("split") in args.table_splits.split(",")]
                 g["methods"] = cv_summary(g["images"], tuple(rep["methods"]))
-            reports[rep.get("variant") or Path(f).stem] = rep
+            name = rep.get("variant") or Path(f).stem
+            if rep.get("refit"):
+                name += f" ({', '.join(rep['refit'])} chosen per fold)"
+            reports[name] = rep
         lines = cv_ablation_table(reports, METHOD_ALIASES.get(args.table_method, args.table_method))
         if args.md:
             Path(args.md).write_text("\n".join(lines) + "\n")
