@@ -410,7 +410,6 @@ GAIN_KEY = "priors.reprojection.elevation_gain"
 CV_VARIANTS: dict[str, dict] = {
     "shipped": {},
     "no elevation gain": {GAIN_KEY: [1.0, 1.0]},  # flat profile: the unseen fill at pull-push's level
-    "whitening 0": {"priors.reprojection.unseen_whitening": 0.0},  # the seen mean colour (the colour floor)
     "no source cap": {"priors.reprojection.fill_source_cap": None},
     "clip rule fixed": {"priors.reprojection.clip_rule": "fixed"},
     "unseen fill push-pull": {"priors.reprojection.unseen_fill": "push-pull"},
@@ -428,7 +427,6 @@ CV_VARIANTS: dict[str, dict] = {
 # One setting at a time, the others at their defaults.
 CV_REFIT: dict[str, tuple[tuple, str, str]] = {
     "fill_source_cap": ((1.0, 2.0, 4.0, 8.0, None), "diffuse", "si_rmse_rel"),
-    "unseen_whitening": ((0.0, 0.25, 0.5, 0.75, 1.0), "diffuse", "angular_deg"),
 }
 
 
