@@ -410,7 +410,6 @@ GAIN_KEY = "priors.reprojection.elevation_gain"
 CV_VARIANTS: dict[str, dict] = {
     "shipped": {},
     "no elevation gain": {GAIN_KEY: [1.0, 1.0]},  # flat profile: the unseen fill at pull-push's level
-    "whitening 0": {"priors.reprojection.unseen_whitening": 0.0},  # the seen mean colour (the colour floor)
     "no source cap": {"priors.reprojection.fill_source_cap": None},
     "clip rule fixed": {"priors.reprojection.clip_rule": "fixed"},
     "unseen fill push-pull": {"priors.reprojection.unseen_fill": "push-pull"},
@@ -428,7 +427,6 @@ CV_VARIANTS: dict[str, dict] = {
 # One setting at a time, the others at their defaults.
 CV_REFIT: dict[str, tuple[tuple, str, str]] = {
     "fill_source_cap": ((1.0, 2.0, 4.0, 8.0, None), "diffuse", "si_rmse_rel"),
-    "unseen_whitening": ((0.0, 0.25, 0.5, 0.75, 1.0), "diffuse", "angular_deg"),
 }
 
 
@@ -632,12 +630,12 @@ def _medians(m: dict) -> str:
     return "–" if not med else f"{med['diffuse_si_rmse_rel']:.3f} / {med['diffuse_angular_deg']:.3f}"
 
 
-def cv_ablation_table(reports: dict[str, dict], method: str) -> list[str]:
+def cv_ablation_table(reports: dict[str, dict], method: str, base_name: str = "shipped") -> list[str]:
     """reports: variant name -> CV report (indoor group). One row per variant: its `method`'s
-    ratios to the constant map, the change from the `shipped` row, and the rooms failing on angle."""
+    ratios to the constant map, the change from the `base_name` row, and the rooms failing on angle."""
     keys = ("diffuse_si_rmse_rel", "diffuse_angular_deg", "matte_si_rmse_rel", "matte_angular_deg", "mirror_angular_deg")
     group = "indoor (leave-one-room-out)"
-    base = reports.get("shipped", {}).get("splits", {}).get(group, {}).get("methods", {}).get(method)
+    base = reports.get(base_name, {}).get("splits", {}).get(group, {}).get("methods", {}).get(method)
     head = ["variant (one mechanism off)", "overrides"] + [k.replace("_rel", "").replace("_", " ") + " vs const [95 %]" for k in keys] \
         + ["Δ diffuse si / Δ diffuse ang vs shipped", "median room ratio diffuse si / ang", f"rooms diffuse ang > {ANGLE_FAILURE:g}x"]
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -647,7 +645,7 @@ def cv_ablation_table(reports: dict[str, dict], method: str) -> list[str]:
             continue
         iv = m.get(f"interval_{round(CV_LEVEL * 100)}", {})
         cells = [f"{m['vs_constant'][k]:.3f} [{iv[k][0]:.2f}, {iv[k][1]:.2f}]" for k in keys]
-        delta = "–" if base is None or name == "shipped" else " / ".join(
+        delta = "–" if base is None or name == base_name else " / ".join(
             f"{m['vs_constant'][k] - base['vs_constant'][k]:+.3f}" for k in keys[:2])
         fails = m["rooms_diffuse_angle_over_1.5x_constant"]
         out.append("| " + " | ".join([name, f"`{json.dumps(rep.get('overrides', {}))}`", *cells, delta, _medians(m),
@@ -687,6 +685,8 @@ def main(argv=None) -> int:
     p.add_argument("--cv-table", nargs="+", default=None, metavar="CV_JSON",
                    help="the ablation table of saved --cv reports (nothing is estimated); with --table-method")
     p.add_argument("--table-method", default="field", help="with --cv-table: field or prior")
+    p.add_argument("--table-splits", default=None, help="with --cv-table: only the rooms of these MANIFEST splits, e.g. "
+                   "test,extra (the rooms no value was ever chosen on before the CV)")
     p.add_argument("--md", default=None, help="with --cv / --cv-table: also write the markdown here")
     args = p.parse_args(argv)
     if args.cv_table:
@@ -694,8 +694,13 @@ def main(argv=None) -> int:
         for f in args.cv_table:
             rep = json.loads(Path(f).read_text())
             for g in rep.get("splits", {}).values():  # summaries re-made from the per-room results (this code's statistics)
+                if args.table_splits:
+                    g["images"] = [im for im in g["images"] if im.get("split") in args.table_splits.split(",")]
                 g["methods"] = cv_summary(g["images"], tuple(rep["methods"]))
-            reports[rep.get("variant") or Path(f).stem] = rep
+            name = rep.get("variant") or Path(f).stem
+            if rep.get("refit"):
+                name += f" ({', '.join(rep['refit'])} chosen per fold)"
+            reports[name] = rep
         lines = cv_ablation_table(reports, METHOD_ALIASES.get(args.table_method, args.table_method))
         if args.md:
             Path(args.md).write_text("\n".join(lines) + "\n")

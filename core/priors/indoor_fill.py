@@ -7,9 +7,9 @@ photo happened to show. Three regularities of indoor light that a plain extrapol
 misses. Each value below is what a user gets: fitted or chosen on ALL 24 indoor panoramas
 of MANIFEST.tsv (dev, test and extra). None of them is scored on the rooms it was fitted
 on: `python -m bench.real_panoramas --cv` refits each of them per fold without the scored
-room (the profile from the other 23 rooms' row means; SOURCE_CAP and UNSEEN_WHITENING
-chosen on the other 23 by the same rule as here), and each rule's held-out effect is in
-docs/engine.md, "Accuracy mechanisms under cross-validation" (bench/results/cv/).
+room (the profile from the other 23 rooms' row means; SOURCE_CAP chosen on the other 23 by
+the same rule as here), and each rule's held-out effect is in docs/engine.md, "Accuracy
+mechanisms under cross-validation" (bench/results/cv/).
 
 1. Brightness depends on elevation: ELEVATION_GAIN[k] is the mean over the indoor panoramas
    of row-mean luminance / the panorama's mean luminance within +-HORIZON_BAND_DEG of the
@@ -19,13 +19,12 @@ docs/engine.md, "Accuracy mechanisms under cross-validation" (bench/results/cv/)
    diffuse or matte render integrates. Unseen pixels get the pull-push value x gain(row) /
    the mean gain over the seen pixels, so the seen rows set the level and the profile its
    shape. Under CV it is the largest gain of the three (diffuse si-RMSE).
-2. Light is whiter than the surfaces it lights: walls are tinted by their albedo, the
-   sources that dominate the unseen irradiance much less. Unseen pixels keep the pull-push
-   luminance, with the seen region's mean chromaticity (of the capped radiance of rule 3: the
-   walls', not a seen lamp's) moved towards grey by UNSEEN_WHITENING (0: the seen mean
-   colour, the constant map's; 1: grey), chosen among 0, 0.25, 0.5, 0.75, 1 by the prior's
-   mean diffuse angular error. Under CV it beats the seen mean colour on the diffuse angle
-   and loses to it on the matte and mirror angles (docs/engine.md).
+2. Where nothing was seen, the colour is what was seen: unseen pixels keep the pull-push
+   luminance with the seen region's mean chromaticity (of the capped radiance of rule 3: the
+   walls', not a seen lamp's): the constant map's colour, the floor to beat. A rule that
+   moved it towards grey ("light is whiter than the walls", UNSEEN_WHITENING = 0.5, chosen
+   on dev) was removed: under leave-one-room-out it gained on the diffuse angle and lost on
+   the matte and mirror angles, where it fell below the constant map (docs/engine.md).
 3. Compact bright sources do not continue where the camera did not look: pull-push spreads
    every seen pixel's radiance into the holes around it, so a lamp or a window in view would
    become a glowing halo across the unseen sphere, brighter the brighter the source (its
@@ -55,9 +54,8 @@ ELEVATION_GAIN = (
     0.85, 0.691, 0.572, 0.487, 0.429, 0.388, 0.361, 0.344, 0.335, 0.33, 0.327, 0.327,
 )
 # Chosen on all 24 indoor panoramas by bench.real_panoramas.CV_REFIT's rule (the prior's mean
-# score over the rooms; `refit` -> `all_rooms` in bench/results/cv/product/final.json).
+# diffuse si-RMSE over the rooms; `refit` -> `all_rooms` in bench/results/cv/product/final.json).
 SOURCE_CAP = 2.0  # x the seen median luminance: what pull-push may extrapolate
-UNSEEN_WHITENING = 0.5  # 0: the seen mean colour; 1: grey
 
 
 def elevation_gain(height: int, dtype=torch.float64, profile: tuple[float, ...] | None = None) -> torch.Tensor:
@@ -70,11 +68,11 @@ def elevation_gain(height: int, dtype=torch.float64, profile: tuple[float, ...] 
 
 
 def fill_unseen(filled: torch.Tensor, env: torch.Tensor, weight: torch.Tensor,
-                gain_profile: tuple[float, ...] | None = None, whitening: float = UNSEEN_WHITENING) -> torch.Tensor:
+                gain_profile: tuple[float, ...] | None = None) -> torch.Tensor:
     """filled: pull-push result [N, h, w, 3]; env, weight: its inputs (weight > 0 = seen; the
     reprojection prior passes env after cap_sources). Unseen pixels get the elevation gain
-    (`gain_profile`, None: ELEVATION_GAIN) and the mean colour of env's seen pixels moved
-    towards grey by `whitening`; seen ones are kept."""
+    (`gain_profile`, None: ELEVATION_GAIN) and the mean colour of env's seen pixels; seen
+    ones are kept."""
     n, h = filled.shape[:2]
     seen = weight.to(filled.dtype)  # [N, h, w]
     count = seen.sum((1, 2))
@@ -85,7 +83,6 @@ def fill_unseen(filled: torch.Tensor, env: torch.Tensor, weight: torch.Tensor,
     scaled = filled * (gain / seen_gain.clamp_min(1e-12)[:, None, None])[..., None]
     mean = (env * seen[..., None]).sum((1, 2)) / count.clamp_min(1e-12)[:, None]  # [N, 3]
     chroma = mean / luminance(mean).clamp_min(1e-12)[:, None]
-    chroma = (1.0 - whitening) * chroma + whitening
     recoloured = luminance(scaled).clamp_min(0.0)[..., None] * chroma[:, None, None, :]
     ok = (count > 0)[:, None, None, None] & (luminance(mean) > 0)[:, None, None, None]
     out = torch.where(ok, recoloured, filled)

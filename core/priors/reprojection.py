@@ -29,8 +29,8 @@ It answers "what would a chrome ball at c show?" from the frame itself:
 4. Fill directions the frame never observed by pull-push (push_pull_fill): weight-average the
    observed pixels down a pyramid to one pixel, then blend each level with the upsampled
    coarser one by its weight (columns wrap at the seam). With unseen_fill "indoor" (default)
-   the unseen directions then get an elevation gain and a whiter colour, both fitted on the
-   indoor panoramas and scored leave-one-room-out (core.priors.indoor_fill). This is a smooth
+   the unseen directions then get an elevation gain fitted on the indoor panoramas (scored
+   leave-one-room-out) and the seen mean colour (core.priors.indoor_fill). This is a smooth
    extrapolation of what was seen (e.g. the room behind the camera gets the average colour
    of the nearby walls, floor and ceiling). No light source is invented.
 5. Render the balls under those env maps (core.chrome_ball, probe-centre lookup) and tone
@@ -55,7 +55,7 @@ from core.capture.depth import surface_normals
 from core.capture.hdr_merge import capture_reading_weights, merge_frames
 from core.capture.highlights import CLIP_LDR, linearise_highlights
 from core.envmap import SPLAT_Z_TOLERANCE, resize_envmap, splat_points, voxel_merge
-from core.priors.indoor_fill import SOURCE_CAP, UNSEEN_WHITENING, cap_sources, fill_unseen
+from core.priors.indoor_fill import SOURCE_CAP, cap_sources, fill_unseen
 from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
 from core.priors.known import ball_target
 from core.priors.registry import prior_settings, register_prior
@@ -163,7 +163,7 @@ class ReprojectionSettings(PriorConfig):
         "clipped pixels: 'estimate' their radiance per blob (core.capture.highlights) or multiply by clip_boost ('fixed')"))
     clip_boost: float = Field(CLIP_BOOST, gt=0, description="radiance factor of clipped (>= CLIP_LDR) pixels with clip_rule 'fixed'")
     unseen_fill: Literal["indoor", "push-pull"] = Field("indoor", description=(
-        "unobserved directions: pull-push with the indoor elevation gain and whitened colour (core.priors.indoor_fill), "
+        "unobserved directions: pull-push with the indoor elevation gain and the seen mean colour (core.priors.indoor_fill), "
         "or plain pull-push"))
     fill_source_cap: float | None = Field(SOURCE_CAP, gt=0, description=(
         "with unseen_fill 'indoor': seen radiance above this multiple of the seen median luminance is capped "
@@ -171,8 +171,6 @@ class ReprojectionSettings(PriorConfig):
     elevation_gain: tuple[PositiveFloat, ...] | None = Field(None, min_length=2, description=(
         "with unseen_fill 'indoor': the unseen directions' brightness profile from up to down (any number of rows, "
         "each > 0); null: core.priors.indoor_fill.ELEVATION_GAIN (benches pass a profile refitted without the scored room)"))
-    unseen_whitening: float = Field(UNSEEN_WHITENING, ge=0, le=1, description=(
-        "with unseen_fill 'indoor': the unseen directions' colour, from the seen mean colour (0) towards grey (1)"))
     back_faces: Literal["dark", "front"] = Field("front", description=(
         "points whose observed side faces away from the probe: occluders of radiance 0 ('dark') or with the "
         "radiance of their observed side ('front')"))
@@ -195,7 +193,6 @@ class ReprojectionPrior(Prior):
         self.unseen_fill = s.unseen_fill
         self.fill_source_cap = s.fill_source_cap
         self.elevation_gain = None if s.elevation_gain is None else tuple(float(g) for g in s.elevation_gain)
-        self.unseen_whitening = float(s.unseen_whitening)
         self.back_faces = s.back_faces
         self.configured_merge_views = s.merge_views
         self.merge_views = s.merge_views or 1
@@ -325,8 +322,7 @@ class ReprojectionPrior(Prior):
             return push_pull_fill(env, seen)
         source = cap_sources(env, seen, self.fill_source_cap)  # the walls, not the lamps, set the fill's level and colour
         extrapolated = push_pull_fill(source, seen)
-        return fill_unseen(torch.where(seen[..., None], env, extrapolated), source, seen, self.elevation_gain,
-                           self.unseen_whitening)
+        return fill_unseen(torch.where(seen[..., None], env, extrapolated), source, seen, self.elevation_gain)
 
     def _splat_seen(self, centers: torch.Tensor, frame_index: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Splatted radiance [N, h, w, 3] and its seen mask [N, h, w] (no fill)."""
@@ -365,7 +361,7 @@ class ReprojectionPrior(Prior):
             "clip_boost": self.clip_boost if self.clip_rule == "fixed" else None,
             "z_tolerance": Z_TOLERANCE,
             "hole_fill": "pull-push pyramid in the equirect domain" + (
-                " + indoor elevation gain and whitened colour" if self.unseen_fill == "indoor" else ""),
+                " + indoor elevation gain and the seen mean colour" if self.unseen_fill == "indoor" else ""),
             "fill_source_cap": self.fill_source_cap if self.unseen_fill == "indoor" else None,
             "back_faces": self.back_faces,
             "merge_views": self.merge_views,
