@@ -224,7 +224,7 @@ def summarise(rows: list[dict], modes) -> dict:
     return out
 
 
-DEFAULT_REFIT = Path(__file__).resolve().parent / "results" / "cv" / "shortcut" / "shipped_refit.json"
+DEFAULT_REFIT = Path(__file__).resolve().parent / "results" / "cv" / "product" / "final.json"
 
 
 def cv_overrides(hdri: Path, refit_json: Path):
@@ -233,9 +233,11 @@ def cv_overrides(hdri: Path, refit_json: Path):
     chose without it (its `refit` section); control rooms get the shipped profile (fitted on
     indoor rooms only) and the all-rooms choices."""
     from bench.real_panoramas import GAIN_KEY, cv_gains, indoor_rooms
+    from core.priors.reprojection import ReprojectionSettings
 
     folds, _ = cv_gains(indoor_rooms(hdri))
     refit = json.loads(refit_json.read_text()).get("refit", {}) if refit_json.exists() else {}
+    refit = {k: v for k, v in refit.items() if k in ReprojectionSettings.model_fields}  # settings that still exist
 
     def overrides_for(name: str) -> dict:
         ov = {GAIN_KEY: folds[name]} if name in folds else {}
@@ -294,7 +296,7 @@ def main(argv=None) -> int:
                    "20-frame half-turn at the horizon (with --modes true-poses: the posed pan of issue 44)")
     p.add_argument("--no-cv", action="store_true", help="the shipped fill settings for every room (not cross-validated)")
     p.add_argument("--refit", default=str(DEFAULT_REFIT), help="the per-fold choices of the photo CV "
-                   "(bench.real_panoramas --cv: fill_source_cap, unseen_whitening) to apply to each held-out room")
+                   "(bench.real_panoramas --cv: its `refit` section, e.g. fill_source_cap) to apply to each held-out room")
     p.add_argument("--rescore", default=None, metavar="REPORT_JSON",
                    help="re-summarise a saved report (its rooms as they are) and write its table beside it (.md)")
     args = p.parse_args(argv)

@@ -26,7 +26,8 @@ def test_each_room_is_scored_with_a_profile_and_choices_made_without_it(tmp_path
     from bench.room_scans import cv_overrides
 
     _manifest(tmp_path)
-    refit = {"refit": {"fill_source_cap": {"chosen": {"a.hdr": 2.0, "b.hdr": 4.0, "c.hdr": 2.0}, "all_rooms": 8.0}}}
+    refit = {"refit": {"fill_source_cap": {"chosen": {"a.hdr": 2.0, "b.hdr": 4.0, "c.hdr": 2.0}, "all_rooms": 8.0},
+                       "a_removed_setting": {"chosen": {"a.hdr": 1.0}, "all_rooms": 1.0}}}
     (tmp_path / "refit.json").write_text(json.dumps(refit))
     overrides_for = cv_overrides(tmp_path, tmp_path / "refit.json")
     folds, _ = cv_gains(indoor_rooms(tmp_path))
