@@ -263,9 +263,10 @@ def markdown(report: dict) -> list[str]:
             v = m.get(key)
             return f"{v['ratio']:.2f} [{v['interval_95'][0]:.2f}, {v['interval_95'][1]:.2f}]" if v else "–"
 
+        tracked = (f"{m['tracked_as_rotation']} ({m['tracked_within_2deg']})" if mode == "product" else "poses given")
         lines.append(f"| {report.get('path', 'scan')} | {mode} | {len(rows)} | {cell('diffuse_si_rmse_rel')} | "
                      f"{cell('diffuse_angular_deg')} | {cell('mirror_si_rmse_rel')} | {m['seen_corr']:.2f} ({truth:.2f}) | "
-                     f"{m['drift']:.3f} | {m['cpu_s']:.0f} | {m['tracked_as_rotation']} ({m['tracked_within_2deg']}) | "
+                     f"{m['drift']:.3f} | {m['cpu_s']:.0f} | {tracked} | "
                      f"{m['uses_time']} |")
     lines += ["", "| room | split | mode | diffuse si-RMSE / angle / mirror vs const | seen corr. | drift | CPU s | "
               "largest rotation error (°) | exposure span (stops) |", "|" + "---|" * 9]
