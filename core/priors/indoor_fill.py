@@ -54,7 +54,7 @@ ELEVATION_GAIN = (
     0.85, 0.691, 0.572, 0.487, 0.429, 0.388, 0.361, 0.344, 0.335, 0.33, 0.327, 0.327,
 )
 # Chosen on all 24 indoor panoramas by bench.real_panoramas.CV_REFIT's rule (the prior's mean
-# diffuse si-RMSE over the rooms; `refit` -> `all_rooms` in bench/results/cv/product/final.json).
+# diffuse si-RMSE over the rooms; `refit` -> `all_rooms` in bench/results/cv/shortcut/shipped_refit.json).
 SOURCE_CAP = 2.0  # x the seen median luminance: what pull-push may extrapolate
 
 
