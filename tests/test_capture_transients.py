@@ -261,3 +261,23 @@ def test_a_moving_camera_without_passers_by_is_left_alone(change):
     capture = capture_from_arrays(frames_of(lin), depth, intrinsics=intr, poses=poses, fps=4.0)
     mask, evidence = transient_mask(capture)
     assert evidence["looked"] and float(mask.float().mean()) < 0.002, (change, evidence)
+
+
+def test_a_still_camera_taken_for_moving_is_not_given_a_turn_from_its_pixels(monkeypatch):
+    """Where the motion test is fooled (someone walking through a still view: the features say
+    'moving'), neither the features nor the pixels must invent a turn: the photometric track of
+    such a clip does not agree with itself (core.tracking.track.DIRECT_MIN_MATCHED_SHARE), so the
+    camera stays static instead of a garbage rotation that drops frames."""
+    from core.camera import Intrinsics
+    from core.tracking import track as tracking
+    from core.tracking.motion import MotionDecision
+
+    walked, _ = walk_through(lit(lambda t: 1.0), 0.003)
+    frames = frames_of(walked)
+    monkeypatch.setattr(tracking, "detect_motion", lambda features, width: MotionDecision(True, 1.0, 0.01, "forced", {}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = tracking.track_camera(frames, Intrinsics.from_hfov(frames.shape[2], frames.shape[1], 60.0))
+    assert result.method in ("failed:static-fallback", "static") or (
+        result.method == "rotation" and len(result.kept) == frames.shape[0]
+        and float(result.poses[:, :3, :3].diagonal(dim1=1, dim2=2).sum(-1).min()) > 2.99)  # no turn invented

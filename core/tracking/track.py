@@ -228,6 +228,8 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
 
 DIRECT_MAX_DISAGREEMENT_DEG = 5.0  # the photometric track must agree with the features' rotations this well (their own
 # error reaches 2-2.5 deg on a scan's tilts; a photometric track that went wrong is off by tens of degrees)
+DIRECT_MIN_MATCHED_SHARE = 0.7  # of the pairs tried (consecutive and loop closures) that must agree: a room scan's
+# 81-100 %; a still camera's frames with someone walking through, forced into a turn, 57 %
 
 
 def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, rot, refine_focal: bool,
@@ -253,7 +255,9 @@ def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, ro
     else:
         disagree = 0.0
     stats["direct"] = {**track.stats, "max_disagreement_with_features_deg": round(disagree, 3)}
-    if placed <= len(rot.kept) or disagree > DIRECT_MAX_DISAGREEMENT_DEG or placed < MIN_KEPT_FRACTION * T:
+    consistent = track.stats["matched_pairs"] >= DIRECT_MIN_MATCHED_SHARE * max(track.stats["pairs"], 1)
+    if (placed <= len(rot.kept) or disagree > DIRECT_MAX_DISAGREEMENT_DEG or placed < MIN_KEPT_FRACTION * T
+            or not consistent):
         return None
     rots = track.rotations[0].T[None] @ track.rotations  # world = the first kept frame's camera
     warn = _dropped_warning(track.dropped)
