@@ -10,7 +10,8 @@ MP4: no poses, no exposures, no intrinsics. Then `run_job` (the draft preset, as
 estimate scan.mp4` runs it) and the env map at the first camera (the origin) at t = 0 and at
 the last frame's time.
 
-Modes: `product` (THE PRODUCT: the video alone); `true-poses` (a diagnostic shortcut, labelled:
+Modes: `product` (THE PRODUCT: the video alone); `product+estimate` (the video and
+`"frame_ev": "estimate"`: the user says the exposure moved, as the README advises); `true-poses` (a diagnostic shortcut, labelled:
 the scan's true rotations given as params.poses, exposures still unknown); `true-poses+ev` (the
 true exposures given too: what tracking and exposure recovery could reach at best).
 
@@ -42,7 +43,7 @@ from pathlib import Path
 import torch
 
 GT_HEIGHT = 128
-MODES = ("product", "true-poses", "true-poses+ev")
+MODES = ("product", "product+estimate", "true-poses", "true-poses+ev")
 CONSTANT = "mean-colour"
 DEFAULT_HDRI_DIR = Path(__file__).resolve().parents[2] / "shared" / "hdri"
 TARGETS = {"diffuse_si_rmse_rel": 0.5, "diffuse_angular_deg": 0.5, "mirror_si_rmse_rel": 0.7, "seen_corr": 0.8,
@@ -93,7 +94,9 @@ def run_mode(video: Path, clip, mode: str, workdir: Path, overrides: dict | None
     from core.engine.presets import preset
 
     params: dict = {"preset": "draft"}
-    if mode != "product":
+    if mode == "product+estimate":  # the user says the camera's exposure moved (docs/captures.md, "Exposure")
+        params["frame_ev"] = "estimate"
+    elif mode != "product":
         params["poses"] = [p.reshape(-1).tolist() for p in relative_poses(clip)]
         params["intrinsics"] = {"hfov_deg": clip.intrinsics.hfov_deg}
     if mode == "true-poses+ev":
@@ -263,7 +266,7 @@ def markdown(report: dict) -> list[str]:
             v = m.get(key)
             return f"{v['ratio']:.2f} [{v['interval_95'][0]:.2f}, {v['interval_95'][1]:.2f}]" if v else "–"
 
-        tracked = (f"{m['tracked_as_rotation']} ({m['tracked_within_2deg']})" if mode == "product" else "poses given")
+        tracked = (f"{m['tracked_as_rotation']} ({m['tracked_within_2deg']})" if mode.startswith("product") else "poses given")
         lines.append(f"| {report.get('path', 'scan')} | {mode} | {len(rows)} | {cell('diffuse_si_rmse_rel')} | "
                      f"{cell('diffuse_angular_deg')} | {cell('mirror_si_rmse_rel')} | {m['seen_corr']:.2f} ({truth:.2f}) | "
                      f"{m['drift']:.3f} | {m['cpu_s']:.0f} | {tracked} | "
