@@ -69,3 +69,12 @@ def test_a_first_frame_nothing_registers_is_dropped_not_trusted():
     track = track_rotation_direct(frames, clip.intrinsics)
     assert track.dropped == [0] and track.kept[0] == 1
     assert max(_rotation_errors(track, clip)) < 1.0
+
+
+def test_a_pair_with_nothing_in_common_near_its_guess_is_unmatched_not_an_error(scan):
+    """Guessing the camera turned half-way round: no rotation the search tries keeps the
+    frames overlapping, and the pair comes back unmatched (cost inf), as a blank frame does."""
+    l, v = frame_luma(scan.ldr[3:5])
+    half_turn = np.diag([-1.0, 1.0, -1.0])  # 180 deg about y
+    pair = align_pair(l[0], v[0], l[1], v[1], scan.intrinsics, [half_turn], 3, 4, span=10.0, candidates=4)
+    assert not pair.matched and not pair.trusted and pair.cost == float("inf")

@@ -239,6 +239,8 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
                 break
             if all(rotation_angle_deg(cands[idx].numpy().T @ cands[q].numpy()) > SEARCH_STEP_DEG + 1e-6 for q in picked):
                 picked.append(idx)
+    if not picked:  # no rotation near the guesses keeps MIN_OVERLAP of the frame in view: the pair does not match
+        return DirectPair(i, j, np.asarray(starts[0]), 0.0, math.inf, 0.0)
     # successive halving: refine the survivors on each level, keep the best by the score and the
     # cheapest: the score (evidence over frame i's texture) favours a larger overlap, where a
     # smooth floor half-agrees with a wrong turn; the cost (the mean residual over the overlap)
