@@ -63,3 +63,23 @@ def walk_poses(n: int):
 
     return [pose_from_yaw_pitch((-0.6 + 1.2 * i / (n - 1), 0.1 * math.sin(i / 4), -0.5 * i / (n - 1)),
                                 20 - 40 * i / (n - 1), 0) for i in range(n)]
+
+
+MANIFEST_ROOMS = (("a.hdr", "dev"), ("b.hdr", "test"), ("c.hdr", "extra"), ("d.hdr", "control"))
+
+
+def write_manifest_rooms(root: Path, panorama_for) -> None:
+    """A tiny ../shared/hdri: MANIFEST_ROOMS (three indoor splits and a control), panorama k
+    from `panorama_for(k)` ([h, 2h, 3] linear), and their MANIFEST.tsv."""
+    from core.io.hdr import write_hdr
+
+    for k, (name, _) in enumerate(MANIFEST_ROOMS):
+        write_hdr(root / name, panorama_for(k).numpy())
+    (root / "MANIFEST.tsv").write_text("filename\tsplit\n" + "".join(f"{n}\t{s}\n" for n, s in MANIFEST_ROOMS))
+
+
+def bright_ceiling_room(k: int, h: int = 32) -> torch.Tensor:
+    """A flat room with a bright ceiling band of its own height and level per room k."""
+    pano = torch.ones(h, 2 * h, 3)
+    pano[: 4 + 2 * k] = 3.0 + 4 * k
+    return pano

@@ -183,16 +183,9 @@ def test_cv_summary_ratios_95_interval_and_rooms_failing_on_angle():
 def test_cv_refits_the_elevation_profile_without_the_scored_room(tmp_path):
     from bench.indoor_fill import gain_from_profiles, panorama_profiles
     from bench.real_panoramas import cv_gains, indoor_rooms
-    from core.io.hdr import write_hdr
+    from capture_fixtures import bright_ceiling_room, write_manifest_rooms
 
-    h = 32
-    rows = []
-    for k, (name, split) in enumerate((("a.hdr", "dev"), ("b.hdr", "test"), ("c.hdr", "extra"), ("d.hdr", "control"))):
-        pano = torch.ones(h, 2 * h, 3)
-        pano[: 4 + 2 * k] = 3.0 + 4 * k  # a different bright ceiling per room
-        write_hdr(tmp_path / name, pano.numpy())
-        rows.append(f"{name}\t{split}")
-    (tmp_path / "MANIFEST.tsv").write_text("filename\tsplit\n" + "\n".join(rows) + "\n")
+    write_manifest_rooms(tmp_path, bright_ceiling_room)  # a different bright ceiling per room
     rooms = indoor_rooms(tmp_path)
     assert [p.name for p in rooms] == ["a.hdr", "b.hdr", "c.hdr"]  # control is not an indoor room
     folds, everything = cv_gains(rooms)
@@ -231,17 +224,16 @@ def test_cv_runs_the_prior_and_the_constant_map_on_a_tiny_manifest(tmp_path):
     import math
 
     from bench.real_panoramas import CONSTANT, PRIOR, run_cv
-    from core.io.hdr import write_hdr
+    from capture_fixtures import write_manifest_rooms
 
-    h = 32
-    d = equirect_directions(h)
-    rows = []
-    for k, (name, split) in enumerate((("a.hdr", "dev"), ("b.hdr", "test"), ("c.hdr", "extra"), ("d.hdr", "control"))):
+    d = equirect_directions(32)
+
+    def room(k):
         pano = 0.2 + 0.1 * (d + 1.0) * (1 + k)
         pano[2 + k : 4 + k, 10:14] = 30.0
-        write_hdr(tmp_path / name, pano.numpy())
-        rows.append(f"{name}\t{split}")
-    (tmp_path / "MANIFEST.tsv").write_text("filename\tsplit\n" + "\n".join(rows) + "\n")
+        return pano
+
+    write_manifest_rooms(tmp_path, room)
     out = run_cv(tmp_path, 16, (PRIOR, CONSTANT), workdir=tmp_path / "work")
     indoor, control = out["splits"]["indoor (leave-one-room-out)"], out["splits"]["control (not indoor)"]
     assert indoor["files"] == ["a.hdr", "b.hdr", "c.hdr"] and control["files"] == ["d.hdr"]

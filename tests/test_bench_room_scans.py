@@ -5,18 +5,7 @@ import json
 
 import torch
 
-from core.io.hdr import write_hdr
-
-
-def _manifest(tmp_path):
-    h = 32
-    rows = []
-    for k, (name, split) in enumerate((("a.hdr", "dev"), ("b.hdr", "test"), ("c.hdr", "extra"), ("d.hdr", "control"))):
-        pano = torch.ones(h, 2 * h, 3)
-        pano[: 4 + 2 * k] = 3.0 + 4 * k  # a different bright ceiling per room
-        write_hdr(tmp_path / name, pano.numpy())
-        rows.append(f"{name}\t{split}")
-    (tmp_path / "MANIFEST.tsv").write_text("filename\tsplit\n" + "\n".join(rows) + "\n")
+from capture_fixtures import bright_ceiling_room, write_manifest_rooms
 
 
 def test_each_room_is_scored_with_a_profile_and_choices_made_without_it(tmp_path):
@@ -25,7 +14,7 @@ def test_each_room_is_scored_with_a_profile_and_choices_made_without_it(tmp_path
     from bench.real_panoramas import GAIN_KEY, cv_gains, indoor_rooms
     from bench.room_scans import cv_overrides
 
-    _manifest(tmp_path)
+    write_manifest_rooms(tmp_path, bright_ceiling_room)
     refit = {"refit": {"fill_source_cap": {"chosen": {"a.hdr": 2.0, "b.hdr": 4.0, "c.hdr": 2.0}, "all_rooms": 8.0},
                        "a_removed_setting": {"chosen": {"a.hdr": 1.0}, "all_rooms": 1.0}}}
     (tmp_path / "refit.json").write_text(json.dumps(refit))
