@@ -11,8 +11,9 @@ mapped (core.conventions.tonemap), 8-bit, H.264 at 10 fps: a plain video with no
 intrinsics, no exposures, as a user uploads it. Then:
 * `decision`: the temporal decision of the capture as loaded and tracked with `frame_ev`
   unset (`auto`: the product's default, which looks for a moving camera's auto-exposure),
-  `"locked"` (no exposure handling: what the product did before) and `"estimate"` (static
-  light is the truth); `auto_detected`, `frame_mean_ratio`: what the default found;
+  `"locked"` (no exposure handling) and `"estimate"` (static light is the truth);
+  `auto_detected`: whether the default applied an estimated exposure (it does for a moving
+  camera whose course spans more than the temporal floor; `tracked`: the camera was followed);
 * `estimate_error_stops`: the largest |estimated - true| exposure over the frames tracking
   kept, both relative to the first kept frame;
 * `auto` / `locked` / `estimate` / `stated` (the true exposures given): run_job (draft at `--iterations`
@@ -25,16 +26,9 @@ intrinsics, no exposures, as a user uploads it. Then:
   auto-exposure keeps each frame's mean near mid-grey, so the level alone barely moves while
   what was seen brighter or darker does);
 * `locked_dimming`, the control: the same pan under ONE exposure with the light halved from
-  the middle frame on (a real change the default must not take for exposure): whether the
-  default detected an auto-exposure, and whether the decision reads changing light.
-
-`--detection-only` runs no job: per panorama, the same pan under auto-exposures of other
-speeds (DETECTION_VARIANTS: a quarter, half or all the way to the metered ev per frame, and
-half way metered on the frame before) and under one locked exposure with the light halved
-at the middle frame, dimmed by a stop over the clip, or steady; per clip what the default
-found (`auto_detected`, `frame_mean_ratio`, `frame_step_ratio`, `step_mean_correlation`) and, per variant, how
-many clips it took for an auto-exposure. An auto-exposure should be found; a locked exposure
-never.
+  the middle frame on (a real change of the whole view): the default takes it for exposure
+  (`auto_detected`: the frames alone cannot tell it from one), `frame_ev="locked"` must read
+  it as changing light (`read_as_changing_light`).
 """
 from __future__ import annotations
 
@@ -55,16 +49,6 @@ FPS = 10.0
 WORK_HEIGHT = 72
 GT_HEIGHT = 64
 DIMMING = 0.5  # the locked-exposure control: the light halved from the middle frame on
-# --detection-only: (name, auto-exposure speed or None for one locked exposure, metering delay
-# in frames, the light's factor per frame as a function of (i, FRAMES))
-DETECTION_VARIANTS = (
-    ("ae-0.25", 0.25, 0, None), ("ae-0.5", 0.5, 0, None), ("ae-1", 1.0, 0, None), ("ae-0.5-delay1", 0.5, 1, None),
-    ("locked-halved", None, 0, lambda i, n: 1.0 if i < n // 2 else DIMMING),
-    ("locked-ramp", None, 0, lambda i, n: 2.0 ** (-i / (n - 1))),
-    ("locked-steady", None, 0, lambda i, n: 1.0),
-)
-
-
 def ae_clip(pano: torch.Tensor, yaw: float, pitch: float, dimming: float | None = None, *, speed: float = 0.5,
             delay: int = 0, light=None):
     """(LDR [T, H, W, 3] at each frame's exposure, the exposures, poses) of one pan, exposed by
@@ -98,52 +82,6 @@ def ae_clip(pano: torch.Tensor, yaw: float, pitch: float, dimming: float | None 
         evs = [metered[max(i - delay, 0)] for i in range(FRAMES)]
     ldr = torch.stack([torch.round(tonemap(h, ev) * 255) / 255 for h, ev in zip(hdr, evs)])
     return ldr, evs, poses
-
-
-def detection(path: Path, workdir: Path) -> dict:
-    """What the default finds in each of DETECTION_VARIANTS' clips of one panorama (no job)."""
-    from bench.tracking import _view
-    from core.capture.load import load_capture
-    from core.capture.params import CaptureParams
-    from core.io.video import write_video
-    from core.sim.panorama_room import load_panorama
-
-    pano = load_panorama(path, 256)
-    yaw, pitch = _view(path.name)
-    out = {"file": path.name, "clips": {}}
-    for name, speed, delay, light in DETECTION_VARIANTS:
-        ldr, evs, _ = ae_clip(pano, yaw, pitch, speed=speed or 0.5, delay=delay, light=light)
-        video = write_video(workdir / f"{path.stem}-{name}.mp4", ldr.numpy(), FPS)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            cap = load_capture(video, params=CaptureParams(fps=FPS))
-        found = cap.metadata.get("exposure_estimate", {})
-        out["clips"][name] = {"auto_exposure": speed is not None, "ae_range_stops": round(max(evs) - min(evs), 3),
-                              "static_camera": cap.static_camera, "auto_detected": bool(found.get("applied")),
-                              "course_range_stops": found.get("course_range_stops"),
-                              "frame_mean_ratio": found.get("frame_mean_ratio"),
-                              "frame_step_ratio": found.get("frame_step_ratio"),
-                              "step_mean_correlation": found.get("step_mean_correlation")}
-    return out
-
-
-def summarise_detection(rows: list[dict]) -> dict:
-    """Per variant: clips taken for an auto-exposure, of those tracking followed (a clip taken
-    for a static camera is not looked at, and is counted apart); `level_ratio_only`: what the
-    first rule, the frames' means' spread alone (AUTO_RATIO), would have taken."""
-    from core.capture.autoexposure import AUTO_MIN_RANGE, AUTO_RATIO
-
-    def level_only(c: dict) -> bool:
-        return c["course_range_stops"] * math.log(2.0) > AUTO_MIN_RANGE and c["frame_mean_ratio"] < AUTO_RATIO
-
-    out = {}
-    for name, speed, _, _ in DETECTION_VARIANTS:
-        clips = [r["clips"][name] for r in rows]
-        moving = [c for c in clips if not c["static_camera"]]
-        out[name] = {"auto_exposure": speed is not None, "clips": len(clips), "tracked": len(moving),
-                     "auto_detected": sum(c["auto_detected"] for c in moving),
-                     "level_ratio_only": sum(level_only(c) for c in moving)}
-    return out
 
 
 def map_change_stops(first: torch.Tensor, last: torch.Tensor) -> float:
@@ -184,7 +122,7 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
     est = loaded["estimate"]
     out["decision"] = {"auto" if mode is None else mode: decide_temporal(c).uses_time for mode, c in loaded.items()}
     out["auto_detected"] = bool(loaded[None].metadata.get("exposure_estimate", {}).get("applied"))
-    out["frame_mean_ratio"] = loaded[None].metadata.get("exposure_estimate", {}).get("frame_mean_ratio")
+    out["tracked"] = not loaded[None].static_camera
     out["frames_tracked"] = est.num_frames
     kept = (est.times.double() * FPS).round().long()  # the source frames tracking kept
     truth = torch.tensor(true)[kept]
@@ -194,9 +132,9 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         dim = load_capture(dim_video, params=CaptureParams(fps=FPS))
+        dim_locked = load_capture(dim_video, params=CaptureParams(fps=FPS, frame_ev="locked"))
     out["locked_dimming"] = {"auto_detected": bool(dim.metadata.get("exposure_estimate", {}).get("applied")),
-                             "frame_mean_ratio": dim.metadata.get("exposure_estimate", {}).get("frame_mean_ratio"),
-                             "read_as_changing_light": decide_temporal(dim).uses_time}
+                             "read_as_changing_light": decide_temporal(dim_locked).uses_time}
     gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), poses[0][:3, :3].T)
     cfg = preset("draft").with_overrides({"distill.iterations": iterations, "distill.work_height": WORK_HEIGHT})
     preds, runs = {}, {}
@@ -238,12 +176,12 @@ def score_runs(runs: dict, preds: dict, gt: torch.Tensor, frame_ldr: torch.Tenso
 
 def summarise(rows: list[dict]) -> dict:
     """Counts over every panorama; the means over the pans tracking followed (a pan it did not
-    follow is taken for a static camera, and then nothing about exposure is meaningful: its
-    default has no `frame_mean_ratio`), with the others listed."""
+    follow is taken for a static camera, and then nothing about exposure is meaningful), with
+    the others listed."""
     n = len(rows)
-    failed = [r["file"] for r in rows if r.get("frame_mean_ratio") is None]
+    failed = [r["file"] for r in rows if not r.get("tracked")]
     out = {"tracking_failed": failed}
-    rows = [r for r in rows if r.get("frame_mean_ratio") is not None]
+    rows = [r for r in rows if r.get("tracked")]
     runs = ("auto", "locked", "estimate", "stated")
     errs = [r["estimate_error_stops"] for r in rows if "estimate_error_stops" in r]
     mean = lambda xs: round(sum(xs) / len(xs), 4) if xs else None  # noqa: E731
@@ -269,15 +207,13 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_split_arguments(p, iterations=200)
-    p.add_argument("--detection-only", action="store_true",
-                   help="no job: what the default detects over DETECTION_VARIANTS' auto-exposures and locked controls")
     p.add_argument("--rescore", default=None, metavar="REPORT_JSON",
                    help="recompute a saved report's summary from its per-panorama rows (no estimation) and exit")
     args = p.parse_args(argv)
     if args.rescore:
         report = json.loads(Path(args.rescore).read_text())
         rows = report["panoramas"]
-        report["summary"] = summarise_detection(rows) if rows and "clips" in rows[0] else summarise(rows)
+        report["summary"] = summarise(rows)
         Path(args.rescore).write_text(json.dumps(report, indent=1))
         print(json.dumps(report["summary"], indent=1))
         return 0
@@ -285,13 +221,9 @@ def main(argv: list[str] | None = None) -> int:
     from bench.real_panoramas import rows_over, split_files
 
     rows = rows_over(split_files(args.hdri_dir, args.split, args.limit),
-                     lambda f, work: detection(f, work) if args.detection_only else evaluate(f, args.iterations, work),
-                     args.workdir)
-    report = {"split": args.split, "frames": FRAMES, "pan_deg": PAN_DEG, "size": list(SIZE)}
-    if args.detection_only:
-        report.update(summary=summarise_detection(rows), panoramas=rows)
-    else:
-        report.update(iterations=args.iterations, summary=summarise(rows), panoramas=rows)
+                     lambda f, work: evaluate(f, args.iterations, work), args.workdir)
+    report = {"split": args.split, "frames": FRAMES, "pan_deg": PAN_DEG, "size": list(SIZE),
+              "iterations": args.iterations, "summary": summarise(rows), "panoramas": rows}
     from bench.report import show_and_write
 
     show_and_write(report["summary"], report, args.output)

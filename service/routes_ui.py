@@ -63,8 +63,8 @@ class CaptureView(BaseModel):
     tracking: dict | None = Field(None, description="camera tracking: method, reprojection error, frames dropped, "
                                                     "scale source (null: not run)")
     exposure_source: str | None = Field(None, description="where each frame's exposure came from: params, the capture "
-                                                          "file, or estimated (asked for, or a moving camera's "
-                                                          "auto-exposure detected); null: one locked exposure")
+                                                          "file, or estimated (asked for, or a moving camera "
+                                                          "taken to auto-expose); null: one locked exposure")
     frame_ev: list[float] | None = Field(None, description="the stored frames' exposures in stops (null: none)")
     notes: list[str] = Field(default_factory=list, description="what was taken from the file's metadata and applied")
     warnings: list[str] = Field(default_factory=list, description="the capture's warnings (assumptions, fallbacks)")

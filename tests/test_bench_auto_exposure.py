@@ -29,16 +29,16 @@ def test_a_pan_of_the_bundled_panorama_changes_its_exposure():
 
 
 def test_summary_counts_decisions_and_errors():
-    row = {"file": "a.hdr", "frame_mean_ratio": 0.2, "ae_range_stops": 1.0, "decision": {"auto": False, "locked": True, "estimate": False}, "auto_detected": True,
+    row = {"file": "a.hdr", "tracked": True, "ae_range_stops": 1.0, "decision": {"auto": False, "locked": True, "estimate": False}, "auto_detected": True,
            "estimate_error_stops": 0.1, "mean_colour_diffuse_si_rmse_rel": 0.6,
-           "locked_dimming": {"auto_detected": False, "read_as_changing_light": True},
+           "locked_dimming": {"auto_detected": True, "read_as_changing_light": True},
            "runs": {k: {"drift_stops": d, "map_change_stops": d, "diffuse_si_rmse_rel": 0.5}
                     for k, d in (("auto", 0.0), ("locked", 0.4), ("estimate", 0.0), ("stated", 0.0))}}
     s = summarise([row, {**row, "auto_detected": False, "decision": {"auto": True, "locked": False, "estimate": False}}])
     assert s["read_as_changing_light"] == {"auto": 1, "locked": 1, "estimate": 0} and s["auto_exposure_detected"] == 1
     assert s["drift_stops_mean"]["locked"] == 0.4 and s["estimate_error_stops"]["max"] == 0.1
-    assert s["locked_dimming"] == {"auto_detected": 0, "read_as_changing_light": 2}
-    s = summarise([row, {**row, "file": "b.hdr", "frame_mean_ratio": None, "estimate_error_stops": 6.0}])
+    assert s["locked_dimming"] == {"auto_detected": 2, "read_as_changing_light": 2}
+    s = summarise([row, {**row, "file": "b.hdr", "tracked": False, "estimate_error_stops": 6.0}])
     assert s["tracking_failed"] == ["b.hdr"] and s["panoramas_tracked"] == 1 and s["estimate_error_stops"]["max"] == 0.1
 
 

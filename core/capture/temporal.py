@@ -66,7 +66,7 @@ class TemporalDecision:
 
 AUTO_EXPOSURE_HINT = ("the whole view changed alike, as a camera's auto-exposure does: if it did, give the "
                       "frames' exposures (params.frame_ev) or frame_ev='estimate' (docs/captures.md, Exposure)")
-# (shown only when no exposures are known: the default's detection did not find an auto-exposure, or 'locked')
+# (shown only when no exposures are known: a moving camera said to be locked, or a static one)
 
 
 def _luminance(rgb: torch.Tensor) -> torch.Tensor:
