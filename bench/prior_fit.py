@@ -56,7 +56,7 @@ def suite_fit(name: str, base, seed: int, draws: int, cache: Path) -> dict:
     from core.engine.params import JobParams
     from core.engine.radiance import supervision_probes
     from core.engine.scene import scene_bounds
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
     from core.priors.registry import build_prior
 
     suite = with_extra_probes(load_suite(name, cache, None, 64), 8, 0)

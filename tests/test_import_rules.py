@@ -20,6 +20,9 @@ FORBIDDEN = {
     "core": ("service", "worker", "jobs", "cli", "bench"),
     "core.priors": ("core.engine",),
     "core.fields": ("core.engine", "core.priors", "core.capture"),
+    # inside core.fields: components <- kinds <- stored (docs/architecture.md)
+    "core.fields.components": ("core.fields.kinds", "core.fields.stored"),
+    "core.fields.kinds": ("core.fields.stored",),
     "core.capture": ("core.engine", "core.priors", "core.fields"),
     "core.io": ("core.engine", "core.priors", "core.fields", "core.capture"),
 }

@@ -27,7 +27,7 @@ from core.engine.surfaces import SurfacePoints, observed_surfaces
 from core.engine.trainer import Trainer
 from core.engine.radiance import frame_floors
 from core.fields import FieldConfig, LightField, SceneBounds, build_field
-from core.fields.base import EMITTER_PIXEL_SIGMA
+from core.fields.kinds.base import EMITTER_PIXEL_SIGMA
 from core.priors.base import Prior
 
 

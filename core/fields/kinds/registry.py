@@ -6,9 +6,9 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Callable, TypeVar
 
 if TYPE_CHECKING:
-    from core.fields.base import LightField
-    from core.fields.config import FieldConfig
-    from core.fields.normalization import SceneBounds
+    from core.fields.kinds.base import LightField
+    from core.fields.kinds.config import FieldConfig
+    from core.fields.components.normalization import SceneBounds
 
 FIELDS: dict[str, type["LightField"]] = {}  # kind -> class, in registration order
 F = TypeVar("F", bound=type)

@@ -24,12 +24,12 @@ from pydantic import BaseModel
 from torch import nn
 
 from core.conventions import equirect_directions, equirect_width
-from core.fields.config import FieldConfig
-from core.fields.emitters import Emitters
-from core.fields.lattice import RoomLattice
-from core.fields.encodings import EquirectGridEncoding, TimeCodes, TimeGain
-from core.fields.normalization import SceneBounds
-from core.fields.surfaces import ObservedSurfaces
+from core.fields.components.emitters import Emitters
+from core.fields.components.encodings import EquirectGridEncoding, TimeCodes, TimeGain
+from core.fields.components.lattice import RoomLattice
+from core.fields.components.normalization import SceneBounds
+from core.fields.components.surfaces import ObservedSurfaces
+from core.fields.kinds.config import FieldConfig
 
 # Rows per forward call in `envmaps`: bounds peak memory (the paper MLP keeps ~7 activations
 # of width 256 per row: 2^16 rows ~ 0.5 GB in training mode, far less under inference_mode).
