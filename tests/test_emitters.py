@@ -1,4 +1,4 @@
-"""Emitters: small bright sources as explicit spheres (core.fields.components.emitters, core.engine.emitters)."""
+"""Emitters: small bright sources as explicit spheres (core.fields.components.emitters, core.engine.emitter_detection)."""
 from __future__ import annotations
 
 import math
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from core.capture.load import capture_from_arrays
-from core.engine.emitters import find_emitters
+from core.engine.emitter_detection import find_emitters
 from core.envmap import integrate
 from core.exposure import luminance
 from core.fields import FieldConfig, SceneBounds, build_field

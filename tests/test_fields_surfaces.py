@@ -1,5 +1,5 @@
 """The observed-surfaces layer (core.fields.components.surfaces) and the points the engine gives it
-(core.engine.surfaces): parallax from the points, the network where nothing was seen, the photo
+(core.engine.surface_extraction): parallax from the points, the network where nothing was seen, the photo
 fit at the cameras, time knots, hard inputs, and every evaluation path answering the same."""
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 
 from core.capture.load import capture_from_arrays
 from core.conventions import equirect_directions
-from core.engine.surfaces import observed_surfaces
+from core.engine.surface_extraction import observed_surfaces
 from core.envmap import voxel_merge
 from core.envmap import SPLAT_MIN_DISTANCE
 from core.fields import FieldConfig, SceneBounds, build_field

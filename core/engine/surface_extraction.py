@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 
 from core.capture.base import Capture
-from core.engine.emitters import EmitterSources
+from core.engine.emitter_detection import EmitterSources
 from core.fields.kinds.config import MAX_SURFACE_VALUES
 from core.envmap import voxel_merge
 from core.fields.components.normalization import SceneBounds
