@@ -11,9 +11,9 @@ trunk+head, registered by kind) and stored (the artefact on disk and its baked f
 from __future__ import annotations
 
 from core.fields.components.normalization import BoundsError, SceneBounds
-from core.fields.kinds.base import LightField
+from core.fields.kinds.base import LightField, build_field
 from core.fields.kinds.config import FieldConfig
-from core.fields.kinds.registry import build_field, field_kinds, register_field
+from core.fields.kinds.registry import field_kinds, register_field
 
 # the built-in kinds register on import, in this order (the order of FieldConfig's sections)
 from core.fields.kinds.mlp import MLPField
