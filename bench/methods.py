@@ -10,7 +10,7 @@ Families (all read the same capture directory through the engine's `load_capture
              oracle it would be the ground truth itself, so it is not run.
 * field      a light field distilled by the engine's `run_job` (mlp = the paper's, grid = the
              paper's "w/o MLP" 3x3x3 ablation, trunk = the engine's faster field), queried
-             exactly (`LightFieldArtefact.envmaps`) or through the baked lattice (`core.fields.bake`).
+             exactly (`LightFieldArtefact.envmaps`) or through the baked lattice (`core.fields.stored.bake`).
 
 With DiffusionLight's weights (`--diffusionlight-weights`, imported by `lightfield prior
 import`; the diffusion prior with the card's `diffusionlight` profile): "diffusionlight"
@@ -167,7 +167,7 @@ def sweep_methods(budget: Budget) -> list[Method]:
                       field="mlp", exposure="uniform", overrides=_BALLS))
     # The draft's own choices on the radiance path (issue 12), each turned off: what each costs
     # and buys at the draft's budget
-    out.append(Method("abl-no-lattice", "field", "ablation", "MLP, draft without its room lattice (core.fields.lattice)",
+    out.append(Method("abl-no-lattice", "field", "ablation", "MLP, draft without its room lattice (core.fields.components.lattice)",
                       field="mlp", overrides=(("field.room_lattice", ()),)))
     out.append(Method("abl-no-free-probes", "field", "ablation",
                       "MLP, draft without free-space probes (a second surface probe per frame instead)",
@@ -327,12 +327,12 @@ def distill_artefact(method: Method, suite: SuiteData, base: EngineConfig, out_d
 
 def query_field(run: MethodRun, artefact_dir: Path, suite: SuiteData) -> None:
     """Fill run.envmaps / series / query_ms from an artefact, exactly or through a bake."""
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
 
     art = LightFieldArtefact.load(artefact_dir)
     source = art
     if run.method.query == "baked":
-        from core.fields.bake import bake
+        from core.fields.stored.bake import bake
 
         with measured() as mb:
             source = bake(art)

@@ -8,7 +8,7 @@ than its positional resolution allows. This asks how much the prior itself loses
 made that smooth: for each held-out probe of the accuracy probe (same suites, extra probes and
 seeds) it asks the job's prior (bench.methods._bound_prior) at the 8 corner nodes of the probe's
 cell on a lattice over the field's box (core.engine.scene.scene_bounds, nodes as the room
-lattice's, core.fields.encodings.lattice_corners) at the probe's time, blends those maps
+lattice's, core.fields.components.encodings.lattice_corners) at the probe's time, blends those maps
 trilinearly in log radiance (as the room lattice adds its maps to the field's logits) and
 scores the blend on the three-sphere metrics, beside the prior asked at the probe itself and,
 with `--field-json`, the field. A blend that scores worse than the prior says the prior's
@@ -43,7 +43,7 @@ def parse_lattices(text: str) -> list[tuple[int, int, int]]:
 def blended_prior(prior, x: torch.Tensor, t: float, bounds, dims: tuple[int, int, int], height: int) -> torch.Tensor:
     """The prior's maps at the 8 lattice nodes around world point x [3] (lattice over the
     SceneBounds `bounds`), blended trilinearly in log radiance -> [height, 2 height, 3]."""
-    from core.fields.encodings import lattice_corners
+    from core.fields.components.encodings import lattice_corners
 
     index, weight = lattice_corners(bounds.normalize_x(x).clamp(-1.0, 1.0)[None], dims)
     node = torch.stack(torch.unravel_index(index[0], dims), dim=-1).float()  # [8, 3] lattice coordinates

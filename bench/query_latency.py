@@ -35,8 +35,8 @@ import torch  # noqa: E402
 
 from core.envmap import integrate  # noqa: E402
 from core.fields import FieldConfig, SceneBounds, build_field  # noqa: E402
-from core.fields.artefact import LightFieldArtefact, save_artefact  # noqa: E402
-from core.fields.bake import bake  # noqa: E402
+from core.fields.stored.artefact import LightFieldArtefact, save_artefact  # noqa: E402
+from core.fields.stored.bake import bake  # noqa: E402
 from core.metrics import si_rmse  # noqa: E402
 
 ROOM = SceneBounds((-2.0, 0.0, -4.0), (2.0, 2.5, 0.0), t0=0.0, t1=4.0)

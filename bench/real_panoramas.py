@@ -159,7 +159,7 @@ def estimate_field(photo_path: Path, workdir: Path, overrides: dict | None = Non
     import warnings
 
     from core.engine import run_job
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
 
     out = workdir / (photo_path.stem + ".lightfield")
     with warnings.catch_warnings():

@@ -106,8 +106,8 @@ def query_latency(heights: list[int], repeats: int = 3) -> dict:
 
     from core.engine.presets import preset
     from core.fields import SceneBounds, build_field
-    from core.fields.artefact import save_artefact
-    from core.fields.bake import bake
+    from core.fields.stored.artefact import save_artefact
+    from core.fields.stored.bake import bake
 
     bounds = SceneBounds(lo=(-2.5, -1.5, -4.0), hi=(2.5, 1.5, 0.0), t0=0.0, t1=2.0)
     field = build_field(preset("draft").field.with_kind("mlp"), bounds)

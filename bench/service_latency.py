@@ -49,7 +49,7 @@ def timed(fn, probes: list[str], reps: int) -> dict:
 
 def make_artefact(kind: str, out: Path) -> Path:
     from core.fields import FieldConfig, SceneBounds, build_field
-    from core.fields.artefact import save_artefact
+    from core.fields.stored.artefact import save_artefact
 
     bounds = SceneBounds((-2.5, -1.5, -4.0), (2.5, 1.5, 0.5), 0.0, 0.0)
     field = build_field(FieldConfig(kind=kind, uses_time=False), bounds)
@@ -83,7 +83,7 @@ def main(argv=None) -> int:
     import httpx
     import torch
 
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
     from jobs.store import JobStore, connect
     from service.processes import free_port, spawn, start_redis, stop
 

@@ -140,7 +140,7 @@ def main(argv=None) -> int:
             query_field(run, path, suite)
             room = None
             if positions:
-                from core.fields.artefact import LightFieldArtefact
+                from core.fields.stored.artefact import LightFieldArtefact
 
                 art = LightFieldArtefact.load(path)
                 changes = stretch_changes(suite, positions, lambda x, t: art.envmaps(torch.tensor([x]), [t], ROOM_HEIGHT)[0][0])

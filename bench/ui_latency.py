@@ -26,7 +26,7 @@ def _job(ctx, height: int) -> str:
     from core.camera import Intrinsics
     from core.engine.presets import preset
     from core.fields import SceneBounds, build_field
-    from core.fields.artefact import save_artefact
+    from core.fields.stored.artefact import save_artefact
     from jobs.capture_preview import CapturePreview, save_preview
     from jobs.storage import JobPaths, new_job_id
     from jobs.store import JobRecord

@@ -25,7 +25,7 @@ def render_preview(artefact_dir, input_path, output, depth=None, points=None, fr
     import numpy as np
 
     from core.capture.reload import reload_capture
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
     from core.insertion import insert_objects, parse_points
     from core.io import write_png, write_video
 
@@ -57,7 +57,7 @@ def render_preview(artefact_dir, input_path, output, depth=None, points=None, fr
 
 def run(args: argparse.Namespace) -> int:
     from core.capture.base import CaptureError
-    from core.fields.artefact import ArtefactError
+    from core.fields.stored.artefact import ArtefactError
     from core.insertion import InsertionError
     from core.io import MediaError
 

@@ -43,7 +43,7 @@ class Probe:
     """A loaded artefact answering env map queries, exact or from its baked grid."""
 
     def __init__(self, artefact_dir, fast: bool = False):
-        from core.fields.artefact import LightFieldArtefact
+        from core.fields.stored.artefact import LightFieldArtefact
 
         self.artefact = LightFieldArtefact.load(artefact_dir)
         self.fast = fast
@@ -51,7 +51,7 @@ class Probe:
 
     def envmap(self, x, t, height: int):
         if self.fast:
-            from core.fields.bake import load_or_bake
+            from core.fields.stored.bake import load_or_bake
 
             self._baked = self._baked or load_or_bake(self.artefact)
             return self._baked.envmap(x, t, height)
@@ -84,7 +84,7 @@ def warn_extrapolated(flags: dict) -> None:
 
 def run_guarded(body) -> int:
     """Run `body()`; artefact, query and media errors print `error: ...` and exit 2."""
-    from core.fields.artefact import ArtefactError, QueryError
+    from core.fields.stored.artefact import ArtefactError, QueryError
     from core.io.limits import MediaError
 
     try:

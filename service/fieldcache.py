@@ -17,9 +17,9 @@ from typing import Any, Callable
 
 @dataclass
 class CachedField:
-    artefact: Any  # core.fields.artefact.LightFieldArtefact
+    artefact: Any  # core.fields.stored.artefact.LightFieldArtefact
     lock: threading.Lock = field(default_factory=threading.Lock)
-    baked: Any = None  # core.fields.bake.BakedField, loaded (or baked) on the first fast query
+    baked: Any = None  # core.fields.stored.bake.BakedField, loaded (or baked) on the first fast query
     batcher: Any = None  # service.evaluator.FieldBatcher, created on the first query
     # long exports (service.exports) evaluate a copy of their own, one at a time, so they never
     # hold `lock` (the batcher's small queries) for seconds
@@ -78,6 +78,6 @@ class FieldCache:
 
 
 def _load_artefact(directory: Path):
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
 
     return LightFieldArtefact.load(directory)

@@ -1,6 +1,6 @@
 """A succeeded job's light field for the query routes, or the error that says why not.
 
-Loading verifies every file of the artefact (core.fields.artefact: the checksums recorded
+Loading verifies every file of the artefact (core.fields.stored.artefact: the checksums recorded
 when it was written). A file that fails is never served and never retried: the job is
 marked `failed` with error `artefact_corrupt` (the one transition out of `succeeded`), its
 files are left for an operator to inspect, and every later query answers 410 at once from
@@ -38,7 +38,7 @@ def load_field(record: JobRecord, ctx: AppContext) -> CachedField:
     """The job's loaded field. With a shared store the artefact is first fetched into this host's
     cache (jobs.jobfiles; verified against the SHA-256 of every object), and a cached copy that
     fails verification is fetched once more before the job is marked corrupt."""
-    from core.fields.artefact import ArtefactError
+    from core.fields.stored.artefact import ArtefactError
     from jobs.jobfiles import ObjectCorrupt
     from jobs.storage import JobPaths
 

@@ -10,7 +10,7 @@ Quality (docs/api.md, "Query speed", gives the cost and the error of each):
 * `fast` (the default) evaluates the field exactly at the query's (x, t), at a quarter of the
   requested rows (at least FAST_MIN_ROWS), and upsamples bilinearly: 1/16 of the pixels, the
   angular detail of a 4x smaller map, no error in position or time;
-* `baked` interpolates the lattice of env maps the worker baked (core.fields.bake) in x and t:
+* `baked` interpolates the lattice of env maps the worker baked (core.fields.stored.bake) in x and t:
   the cheapest, but between lattice nodes it is wrong wherever the light changes quickly
   with position (near lamps), so it is never the default.
 """
@@ -110,7 +110,7 @@ def _numpy(hdr) -> np.ndarray:
 @contextmanager
 def _as_invalid_input():
     """The engine's QueryError (a query it refuses) becomes the API's 422 invalid_query."""
-    from core.fields.artefact import QueryError
+    from core.fields.stored.artefact import QueryError
 
     try:
         yield
@@ -138,7 +138,7 @@ def _evaluate(cf: CachedField, quality: str, xs, ts, height: int):
 def _baked(cf: CachedField):
     """The worker's bake (verified; a missing, stale or corrupt one is baked again here once
     and saved beside the artefact, atomically). Call with cf.lock held."""
-    from core.fields.bake import load_or_bake
+    from core.fields.stored.bake import load_or_bake
 
     if cf.baked is None:
         cf.baked = load_or_bake(cf.artefact, save=True)

@@ -7,8 +7,8 @@ import torch
 
 from cli.main import main
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.artefact import LightFieldArtefact, save_artefact
-from core.fields.mlp import MLPSettings
+from core.fields.stored.artefact import LightFieldArtefact, save_artefact
+from core.fields.kinds.mlp import MLPSettings
 from core.io.envmap_io import load_envmap
 
 BOUNDS = SceneBounds((-1.0, -1.0, -3.0), (1.0, 1.0, 0.0), t0=0.0, t1=2.0)
@@ -51,7 +51,7 @@ def test_extrapolated_query_warns(artefact_dir, tmp_path, capsys):
 
 
 def test_fast_path_answers_from_the_stored_bake(artefact_dir, tmp_path):
-    from core.fields.bake import load_or_bake
+    from core.fields.stored.bake import load_or_bake
 
     art = LightFieldArtefact.load(artefact_dir)
     baked = load_or_bake(art, grid=(2, 2, 2), times=2, height=4)  # small, so the test stays fast

@@ -2,7 +2,7 @@
 import torch
 
 from bench.prior_smoothness import blended_prior, parse_lattices
-from core.fields.normalization import SceneBounds
+from core.fields.components.normalization import SceneBounds
 
 LO, HI = torch.tensor([0.0, 0.0, 0.0]), torch.tensor([4.0, 2.0, 3.0])
 BOX = SceneBounds((0.0, 0.0, 0.0), (4.0, 2.0, 3.0))

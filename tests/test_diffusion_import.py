@@ -58,7 +58,7 @@ def _distil(weights, tmp_path, preset_name="draft", profile=None):
     from core.engine import run_job
     from core.engine.params import JobParams
     from core.engine.presets import preset
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
     from core.io import write_png
 
     write_png(tmp_path / "in.png", torch.rand(24, 32, 3, generator=torch.Generator().manual_seed(0)).numpy())

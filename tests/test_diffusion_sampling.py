@@ -71,7 +71,7 @@ def test_distillation_with_the_tiny_prior_completes_and_stays_finite(tiny_dir, t
     from core.engine import run_job
     from core.engine.config import DistillConfig, EngineConfig
     from core.engine.params import JobParams
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
     from core.io import write_png
 
     write_png(tmp_path / "in.png", torch.rand(24, 32, 3, generator=torch.Generator().manual_seed(0)).numpy())

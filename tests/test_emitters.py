@@ -1,4 +1,4 @@
-"""Emitters: small bright sources as explicit spheres (core.fields.emitters, core.engine.emitters)."""
+"""Emitters: small bright sources as explicit spheres (core.fields.components.emitters, core.engine.emitter_detection)."""
 from __future__ import annotations
 
 import math
@@ -7,11 +7,11 @@ import pytest
 import torch
 
 from core.capture.load import capture_from_arrays
-from core.engine.emitters import find_emitters
+from core.engine.emitter_detection import find_emitters
 from core.envmap import integrate
 from core.exposure import luminance
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.artefact import LightFieldArtefact, save_artefact
+from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 
 BOX = SceneBounds((-3.0, -3.0, -3.0), (3.0, 3.0, 3.0), 0.0, 2.0)
 

@@ -233,7 +233,7 @@ def test_sample_probes_are_spread_and_in_front_of_the_surface():
 
 
 def test_run_job_writes_a_loadable_artefact(tmp_path):
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
     from core.io import write_png
 
     img = torch.rand(H, W, 3, generator=torch.Generator().manual_seed(0)).numpy()
@@ -322,7 +322,7 @@ def test_cuda_without_cuda_is_a_clear_error(monkeypatch, tmp_path):
 def test_away_from_the_camera_the_field_shows_what_its_prior_saw_with_parallax():
     """A photo of a red / blue wall 2 m away: after even 5 steps the field at probes 1.3 m or more
     from the camera (beyond the view detail's reach) answers every direction its prior saw as the prior does (the observed
-    surfaces, core.fields.surfaces), and the red-blue edge moves with the probe."""
+    surfaces, core.fields.components.surfaces), and the red-blue edge moves with the probe."""
     frame = torch.zeros(H, W, 3)
     frame[:, : W // 2] = torch.tensor([0.8, 0.1, 0.1])
     frame[:, W // 2:] = torch.tensor([0.1, 0.1, 0.8])
@@ -351,7 +351,7 @@ def test_run_job_records_a_lamp_in_the_photo_as_an_emitter(tmp_path):
     from core.capture.load import load_capture
     from core.conventions import equirect_directions
     from core.exposure import luminance
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
     from core.io import write_png
 
     img = torch.full((H, W, 3), 0.15)

@@ -358,7 +358,7 @@ def test_unity_row_is_the_z_mirrored_maps_projection():
 
 def test_covered_region_undoes_the_fields_margin_and_the_default_grid_stays_inside():
     from core.export.coverage import cell_centre_grid, covered_region, inside
-    from core.fields.normalization import SceneBounds
+    from core.fields.components.normalization import SceneBounds
 
     points = torch.tensor([[0.0, 0.0, -4.0], [5.0, 2.8, 0.0]] * 50, dtype=torch.float64)
     bounds = SceneBounds.from_points(points)  # the room [0, 5] x [0, 2.8] x [-4, 0], padded 10 % per side

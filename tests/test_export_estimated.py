@@ -31,7 +31,7 @@ def panorama_field(tmp_path_factory):
 
 
 def test_main_light_on_a_field_estimated_from_a_panorama_capture(panorama_field):
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
     from core.lights import extract_dominant_light
     from core.sim.panorama_room import PanoramaRoom, load_panorama
     from core.tracking.room import assumed_room

@@ -10,10 +10,10 @@ from hypothesis import strategies as st
 from core.conventions import equirect_directions
 from core.envmap import equirect_stencil, pad_poles, sample_envmap
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.encodings import PositionalEncoding, lattice_corners, multilinear_lookup
-from core.fields.grid import GridSettings
-from core.fields.mlp import MLPSettings
-from core.fields.trunk import TrunkSettings
+from core.fields.components.encodings import PositionalEncoding, lattice_corners, multilinear_lookup
+from core.fields.kinds.grid import GridSettings
+from core.fields.kinds.mlp import MLPSettings
+from core.fields.kinds.trunk import TrunkSettings
 
 KINDS = ["mlp", "grid", "trunk", "trunk+grid"]
 BOUNDS = SceneBounds((-2.0, -1.0, -4.0), (2.0, 2.0, 0.5), t0=0.0, t1=3.0)
@@ -293,7 +293,7 @@ def test_time_code_fields_agree_on_every_evaluation_path_and_reload(kind, tmp_pa
 def assert_paths_agree_and_reload(field, xs, ts, h: int, tmp_path) -> torch.Tensor:
     """envmaps == per-ray forward == probe_radiance, and the saved artefact answers the same;
     returns the maps [P, h * 2h, 3]."""
-    from core.fields.artefact import LightFieldArtefact, save_artefact
+    from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 
     n = xs.shape[0]
     dirs = equirect_directions(h).reshape(-1, 3)
@@ -310,7 +310,7 @@ def assert_paths_agree_and_reload(field, xs, ts, h: int, tmp_path) -> torch.Tens
 
 
 def test_direction_grid_starts_at_zero_and_changes_only_near_what_the_loss_reaches():
-    from core.fields.encodings import EquirectGridEncoding
+    from core.fields.components.encodings import EquirectGridEncoding
 
     grid = EquirectGridEncoding((8, 16), 2)
     d = equirect_directions(16).reshape(-1, 3)
@@ -325,7 +325,7 @@ def test_direction_grid_starts_at_zero_and_changes_only_near_what_the_loss_reach
 
 
 def test_direction_grid_is_continuous_across_the_seam_and_at_the_poles():
-    from core.fields.encodings import EquirectGridEncoding
+    from core.fields.components.encodings import EquirectGridEncoding
 
     grid = EquirectGridEncoding((6,), 3)
     with torch.no_grad():

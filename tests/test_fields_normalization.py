@@ -7,7 +7,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.fields.normalization import (
+from core.fields.components.normalization import (
     FALLBACK_HALF_EXTENT_M,
     MIN_EXTENT_M,
     BoundsError,

@@ -1,5 +1,5 @@
-"""The observed-surfaces layer (core.fields.surfaces) and the points the engine gives it
-(core.engine.surfaces): parallax from the points, the network where nothing was seen, the photo
+"""The observed-surfaces layer (core.fields.components.surfaces) and the points the engine gives it
+(core.engine.surface_extraction): parallax from the points, the network where nothing was seen, the photo
 fit at the cameras, time knots, hard inputs, and every evaluation path answering the same."""
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ import torch
 
 from core.capture.load import capture_from_arrays
 from core.conventions import equirect_directions
-from core.engine.surfaces import observed_surfaces
+from core.engine.surface_extraction import observed_surfaces
 from core.envmap import voxel_merge
 from core.envmap import SPLAT_MIN_DISTANCE
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.base import EMITTER_PIXEL_SIGMA
+from core.fields.kinds.base import EMITTER_PIXEL_SIGMA
 from tests.test_fields import assert_paths_agree_and_reload
 
 BOX = SceneBounds((-3.0, -2.0, -3.0), (3.0, 2.0, 3.0), 0.0, 3.0)
@@ -105,7 +105,7 @@ def test_every_path_answers_the_same_and_the_artefact_reloads(tmp_path):
 
 def test_the_layer_costs_16_bytes_per_point_plus_12_per_knot_in_the_artefact(tmp_path):
     """docs/engine.md's artefact-size figure ("Observed surfaces"): points (12) + used flag (4) + colours (12 per knot)."""
-    from core.fields.artefact import save_artefact
+    from core.fields.stored.artefact import save_artefact
 
     sizes = {}
     for points, knots in ((0, 1), (4096, 1), (4096, 3)):
@@ -136,7 +136,7 @@ def test_black_blinding_and_coincident_points_stay_finite_within_the_field_range
 
 
 def test_a_config_cannot_ask_for_more_surface_values_than_the_cap():
-    from core.fields.config import MAX_SURFACE_VALUES
+    from core.fields.kinds.config import MAX_SURFACE_VALUES
 
     FieldConfig(surface_points=1 << 16, surface_knots=MAX_SURFACE_VALUES >> 16)
     with pytest.raises(ValueError, match="surface_points x surface_knots"):

@@ -1,4 +1,4 @@
-"""The time gain (core.fields.encodings.TimeGain): a log gain per knot (one, or one per colour
+"""The time gain (core.fields.components.encodings.TimeGain): a log gain per knot (one, or one per colour
 channel) multiplying a field's network, not its emitters, on every evaluation path."""
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.base import EMITTER_PIXEL_SIGMA
-from core.fields.encodings import LOG_GAIN_LIMIT, TimeGain
+from core.fields.kinds.base import EMITTER_PIXEL_SIGMA
+from core.fields.components.encodings import LOG_GAIN_LIMIT, TimeGain
 from tests.test_fields import assert_paths_agree_and_reload
 
 BOX = SceneBounds((-3.0, -2.0, -3.0), (3.0, 2.0, 3.0), 0.0, 3.0)

@@ -24,7 +24,7 @@ def engine_ok(input_path, depth_path, params, out_dir, on_capture=None, **kw):
     from core.capture.load import capture_from_arrays
     from core.engine import JobResult
     from core.fields import FieldConfig, SceneBounds, build_field
-    from core.fields.artefact import save_artefact
+    from core.fields.stored.artefact import save_artefact
 
     CALLS.append("ok")
     on_capture(capture_from_arrays(torch.full((2, 12, 16, 3), 0.5)))
@@ -87,7 +87,7 @@ def _job(r: JobRunner) -> tuple[str, JobPaths]:
 
 
 def test_success_records_a_relative_artefact_and_removes_uploads(runner, monkeypatch):
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
     from jobs.capture_preview import META_FILE, preview_dir
 
     r = runner(engine_ok)
@@ -115,7 +115,7 @@ def test_a_saved_artefact_is_not_recomputed_on_redelivery(runner):
 
 def test_a_saved_artefact_that_fails_verification_is_estimated_again(runner):
     """Never served, never retried forever: removed, and the engine runs once more."""
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
 
     r = runner(engine_ok)
     job, paths = _job(r)
@@ -256,7 +256,7 @@ def test_one_job_decodes_its_upload_once(redis_url, tmp_path, tiny_video, monkey
     the engine's capture) and the artefact is baked from memory."""
     import core.io
     from core.engine import run_job
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
 
     decodes = []
     real_read_video = core.io.read_video
@@ -321,7 +321,7 @@ def test_a_resumed_run_records_the_checkpoints_iteration_then_the_final_one(runn
 
     from core.engine import JobResult
     from core.fields import FieldConfig, SceneBounds, build_field
-    from core.fields.artefact import save_artefact
+    from core.fields.stored.artefact import save_artefact
 
     seen = []
 

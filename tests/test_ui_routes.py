@@ -12,8 +12,8 @@ from PIL import Image
 
 from core.camera import Intrinsics
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.artefact import save_artefact
-from core.fields.grid import GridSettings
+from core.fields.stored.artefact import save_artefact
+from core.fields.kinds.grid import GridSettings
 from jobs.capture_preview import CapturePreview, save_preview
 from jobs.storage import JobPaths, new_job_id
 from jobs.store import JobRecord

@@ -24,7 +24,7 @@ from jobs.store import JobStore
 
 if TYPE_CHECKING:
     from core.engine import JobResult
-    from core.fields.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact
 
 log = logging.getLogger("lightfield.worker")
 
@@ -201,7 +201,7 @@ class JobRunner:
         """The artefact a previous run saved before dying (the engine renames a complete
         directory into place): finish it, don't redo it. One that fails verification is
         removed and the engine runs again (from its checkpoint), so it is never served."""
-        from core.fields.artefact import META_FILE, ArtefactError, LightFieldArtefact
+        from core.fields.stored.artefact import META_FILE, ArtefactError, LightFieldArtefact
 
         self.files.pull_dir(paths.artefact_dir, first=META_FILE)  # a shared store's copy, if one was pushed
         if not (paths.artefact_dir / META_FILE).is_file():
@@ -224,7 +224,7 @@ class JobRunner:
         a previous run saved), so no API request pays for it. Optional: a failure here only
         means the API bakes on the first fast query."""
         try:
-            from core.fields.bake import load_or_bake
+            from core.fields.stored.bake import load_or_bake
 
             self.store.update(job_id, allowed=("running",), stage="baking", message="precomputing quality=baked")
             load_or_bake(artefact, save=True)

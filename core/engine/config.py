@@ -65,11 +65,11 @@ class DistillConfig(BaseModel):
         "per frame and step: pixel rays of the frame fitted at the camera-centre probe to the prior's view radiance "
         "(the photo at its own resolution; priors with capabilities.view_radiance, needs envmap_camera_probe)"))
     emitters: int = Field(0, ge=0, le=16, description=(
-        "small bright sources the radiance loop models as explicit spheres (core.engine.emitters; priors with "
+        "small bright sources the radiance loop models as explicit spheres (core.engine.emitter_detection; priors with "
         "view_radiance); 0: none"))
     observed_surfaces: int = Field(0, ge=0, le=1 << 16, description=(
         "points of the frames (with their radiance) the field keeps and looks up along each direction away from "
-        "the cameras (core.engine.surfaces; priors with view_radiance); 0: none"))
+        "the cameras (core.engine.surface_extraction; priors with view_radiance); 0: none"))
     observed_surfaces_height: int = Field(0, ge=0, le=128, description=(
         "rows of the map the observed surfaces are splatted into per probe; 0: envmap_height (the prior's maps)"))
     emitter_contrast: float = Field(50.0, gt=1, description="an emitter's pixels are this many times the frame's median luminance")

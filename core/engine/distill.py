@@ -18,16 +18,16 @@ from core.capture.base import Capture
 from core.device import resolve_device
 from core.engine.checkpoints import fingerprint, load_checkpoint, save_checkpoint
 from core.engine.config import EngineConfig
-from core.engine.emitters import EmitterSources, find_emitters
+from core.engine.emitter_detection import EmitterSources, find_emitters
 from core.engine.losses import PerceptualLoss, perceptual_description
 from core.engine.progress import Reporter, StageTimer
 from core.engine.free_space import FreeSpaceSampler
 from core.engine.scene import scene_bounds
-from core.engine.surfaces import SurfacePoints, observed_surfaces
+from core.engine.surface_extraction import SurfacePoints, observed_surfaces
 from core.engine.trainer import Trainer
 from core.engine.radiance import frame_floors
 from core.fields import FieldConfig, LightField, SceneBounds, build_field
-from core.fields.base import EMITTER_PIXEL_SIGMA
+from core.fields.kinds.base import EMITTER_PIXEL_SIGMA
 from core.priors.base import Prior
 
 
@@ -129,7 +129,7 @@ def distill(
 
 
 def emitter_sources(capture: Capture, prior: Prior, cfg, bounds: SceneBounds, uses_time: bool) -> EmitterSources | None:
-    """The capture's small bright sources (core.engine.emitters) when the config asks for
+    """The capture's small bright sources (core.engine.emitter_detection) when the config asks for
     emitters and the prior gives its linear view radiance (clip rule applied), else None; one
     intensity knot per frame (MAX_TIME_KNOTS at most) for a field with a time input."""
     if cfg.emitters == 0 or not prior.capabilities.view_radiance:
@@ -141,7 +141,7 @@ def emitter_sources(capture: Capture, prior: Prior, cfg, bounds: SceneBounds, us
 
 def surface_points(capture: Capture, prior: Prior, cfg, bounds: SceneBounds, uses_time: bool,
                    emitters: EmitterSources | None) -> SurfacePoints | None:
-    """The observed surfaces the field keeps (core.engine.surfaces; without the emitters' lamps)
+    """The observed surfaces the field keeps (core.engine.surface_extraction; without the emitters' lamps)
     when the config asks for them and the prior gives its linear view radiance, else None."""
     if cfg.observed_surfaces == 0 or not prior.capabilities.view_radiance:
         return None

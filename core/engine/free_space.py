@@ -4,7 +4,7 @@ The radiance loop's other probes all lie on camera rays (in front of the depth, 
 at the camera centre), so a field is only supervised inside the frusta. Users also query
 beside and behind the camera, where the field would otherwise extrapolate while the prior
 still answers (a reprojection of everything the frames saw). A free-space probe is drawn
-uniformly in the scene box without its padding (core.fields.normalization) and kept unless a
+uniformly in the scene box without its padding (core.fields.components.normalization) and kept unless a
 frame sees it at or behind the depth there (inside a wall or furniture, or out of a window);
 points no frame sees are kept: a room's free space is the likely guess there.
 
@@ -19,7 +19,7 @@ import torch
 
 from core.capture.base import Capture
 from core.conventions import camera_point_to_pixel, valid_depth_mask
-from core.fields.normalization import MARGIN_FRACTION, SceneBounds
+from core.fields.components.normalization import MARGIN_FRACTION, SceneBounds
 
 SURFACE_CLEARANCE = 0.95  # a kept probe is in front of 95 % of the planar depth where a frame sees it
 MAX_FRAMES_CHECKED = 32  # evenly spaced frames a candidate is tested against (a long clip repeats itself)

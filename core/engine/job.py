@@ -28,7 +28,7 @@ from core.engine.params import JobParams
 from core.engine.presets import preset
 from core.engine.progress import CancelCheck, Progress, ProgressCallback, Reporter, StageTimer
 from core.engine.scene import distinct_geometry, scene_bounds
-from core.fields.artefact import LightFieldArtefact, save_artefact
+from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 from core.priors.base import Prior
 from core.priors.registry import build_prior, prior_class
 

@@ -17,12 +17,12 @@ scene box no frame shows inside a surface (core.engine.free_space) and the camer
 fitted along 256 of the frame's pixel rays to the prior's view radiance, through the field's
 view detail (32- and 128-row residual maps anchored at the camera centres, with a rank-4
 time part when the lighting changes); small bright sources in view (up to 4 lamps) are explicit
-spheres with per-frame intensities (core.engine.emitters); its fields encode time with
-learned per-frame codes; and an 8 x 4 x 8 room lattice of 16-row maps (core.fields.lattice)
+spheres with per-frame intensities (core.engine.emitter_detection); its fields encode time with
+learned per-frame codes; and an 8 x 4 x 8 room lattice of 16-row maps (core.fields.components.lattice)
 fits the slowly varying colour across the room, which the network alone fits slowly (when the
 lighting changes, trained only in the second half of the steps:
 core.engine.distill.lattice_start_step). After the distillation the field keeps up to 16384
-points of the frames with their radiance (core.engine.surfaces, core.fields.surfaces) and,
+points of the frames with their radiance (core.engine.surface_extraction, core.fields.components.surfaces) and,
 away from the cameras, answers what they cover by splatting them from the probe: parallax
 exact, which the network learns slowly. Why and the measurements: docs/engine.md, "Radiance
 supervision" (`python -m bench.accuracy_probe`).

@@ -3,7 +3,7 @@ default probe grids.
 
 A field's box (`SceneBounds`) is the 1st..99th percentile box of the captures' depth points and
 camera positions, grown to a minimum extent and then padded by `MARGIN_FRACTION` per side
-(core.fields.normalization), so that a probe just in front of a wall still evaluates. The
+(core.fields.components.normalization), so that a probe just in front of a wall still evaluates. The
 padding is outside the room: walls, floor and ceiling sit at the unpadded box's faces, and the
 field is only constrained inside it. `covered_region` undoes the padding; a probe outside it is
 extrapolated even where the field's own flag (the padded box) says it is not. A box built without
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.fields.normalization import MARGIN_FRACTION
+from core.fields.components.normalization import MARGIN_FRACTION
 
 
 def covered_region(bounds) -> tuple[np.ndarray, np.ndarray, str]:

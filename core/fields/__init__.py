@@ -1,6 +1,7 @@
-"""Light fields L(x, t, d): the paper's MLP, the 3x3x3 env-map grid ablation, a fast trunk+head,
-registered by kind (core.fields.registry); the stored artefact (artefact) and its baked
-fast path (bake) are submodules.
+"""Light fields L(x, t, d) in three parts: components (building blocks every kind shares:
+settings, normalization, encodings, lattice, emitters, surfaces), kinds (the LightField shell,
+FieldConfig, the registry, and the paper's MLP, the 3x3x3 env-map grid ablation, a fast
+trunk+head, registered by kind) and stored (the artefact on disk and its baked fast path).
 
     from core.fields import FieldConfig, SceneBounds, build_field
     field = build_field(FieldConfig(kind="mlp", uses_time=False), SceneBounds.from_points(points))
@@ -9,15 +10,15 @@ fast path (bake) are submodules.
 """
 from __future__ import annotations
 
-from core.fields.base import LightField
-from core.fields.config import FieldConfig
-from core.fields.normalization import BoundsError, SceneBounds
-from core.fields.registry import build_field, field_kinds, register_field
+from core.fields.components.normalization import BoundsError, SceneBounds
+from core.fields.kinds.base import LightField, build_field
+from core.fields.kinds.config import FieldConfig
+from core.fields.kinds.registry import field_kinds, register_field
 
 # the built-in kinds register on import, in this order (the order of FieldConfig's sections)
-from core.fields.mlp import MLPField
-from core.fields.grid import GridField
-from core.fields.trunk import TrunkField
+from core.fields.kinds.mlp import MLPField
+from core.fields.kinds.grid import GridField
+from core.fields.kinds.trunk import TrunkField
 
 __all__ = [
     "BoundsError",

@@ -20,7 +20,7 @@ from torch import nn
 
 from core.conventions import equirect_width
 from core.envmap import equirect_stencil, pad_poles
-from core.fields.encodings import blend_lattice_maps, lattice_corners, lattice_maps_lookup
+from core.fields.components.encodings import blend_lattice_maps, lattice_corners, lattice_maps_lookup
 
 
 class RoomLattice(nn.Module):

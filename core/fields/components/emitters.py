@@ -5,7 +5,7 @@ direction moves with x: measured on the simulator, a lamp the prior showed at a 
 (peak 6, 64-row map) came out of the distilled field at 0.4, and the probe's matte-sphere
 error was 4.5x the prior's (docs/engine.md, "Small bright sources"). Here each such source is
 an explicit sphere: centre p, radius R and an intensity I(t) (radiance x projected area, RGB,
-per time knot, measured in the frames by core.engine.emitters). Seen from x it adds a
+per time knot, measured in the frames by core.engine.emitter_detection). Seen from x it adds a
 spherical-Gaussian lobe towards p whose integral over the sphere is I(t) / |p - x|^2 (energy
 exact at any distance), whose width is the sphere's angular radius or, where that is finer,
 `sigma_floor` (half a pixel or so of the map asked for: a lamp narrower than a pixel is

@@ -20,11 +20,12 @@ from torch import nn
 
 from core.conventions import equirect_directions, equirect_width
 from core.envmap import equirect_stencil, pad_poles
-from core.fields.base import INITIAL_RADIANCE, LightField, direction_blocks, probe_chunks
-from core.fields.config import FieldConfig, FieldSettings
-from core.fields.encodings import blend_lattice_maps, lattice_corners, lattice_maps_lookup
-from core.fields.normalization import SceneBounds
-from core.fields.registry import register_field
+from core.fields.components.encodings import blend_lattice_maps, lattice_corners, lattice_maps_lookup
+from core.fields.components.normalization import SceneBounds
+from core.fields.components.settings import FieldSettings
+from core.fields.kinds.base import INITIAL_RADIANCE, LightField, direction_blocks, probe_chunks
+from core.fields.kinds.config import FieldConfig
+from core.fields.kinds.registry import register_field
 
 
 class GridSettings(FieldSettings):

@@ -12,11 +12,11 @@ import torch
 from pydantic import Field, model_validator
 from torch import nn
 
-from core.fields.base import LightField, direction_blocks, probe_chunks
-from core.fields.config import FieldConfig
-from core.fields.encodings import DenseGridEncoding, EncodingSettings, nerf_encodings
-from core.fields.normalization import SceneBounds
-from core.fields.registry import register_field
+from core.fields.components.encodings import DenseGridEncoding, EncodingSettings, nerf_encodings
+from core.fields.components.normalization import SceneBounds
+from core.fields.kinds.base import LightField, direction_blocks, probe_chunks
+from core.fields.kinds.config import FieldConfig
+from core.fields.kinds.registry import register_field
 
 
 class TrunkSettings(EncodingSettings):

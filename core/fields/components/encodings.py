@@ -12,7 +12,7 @@ from pydantic import Field
 
 from core.conventions import direction_to_theta_phi, theta_phi_to_equirect_pixel
 from core.envmap import equirect_stencil, pad_poles, pixel_taps, taps_stencil
-from core.fields.config import FieldSettings
+from core.fields.components.settings import FieldSettings
 
 
 class EncodingSettings(FieldSettings):
@@ -132,7 +132,7 @@ LOG_GAIN_LIMIT = 23.0  # 10 decades either way: beyond it a "dimming" is a camer
 class EquirectGridEncoding(nn.Module):
     """Learnable feature maps over the sphere, one equirect [h, 2h, F] per height, read
     bilinearly with the env maps' own taps (seam wrapped, poles continuous: core.envmap); the
-    fields' view detail (core.fields.base). They start at zero, so an untrained grid adds
+    fields' view detail (core.fields.kinds.base). They start at zero, so an untrained grid adds
     nothing, and a cell changes only where the loss reaches its taps: unlike more PE(d)
     frequencies, nothing of it extends (rings) into directions no loss reached."""
 

@@ -1,7 +1,7 @@
 """Field configuration (pydantic, JSON round-trip).
 
 One `FieldConfig` names the field kind and carries a settings section per registered kind
-(each kind's `Config`, core.fields.registry); only the section of the chosen kind is used.
+(each kind's `Config`, core.fields.kinds.registry); only the section of the chosen kind is used.
 Keeping every section (with defaults) makes configs trivially editable (`with_kind("grid")`),
 lets a preset carry settings for every kind a job may pick, and keeps the artefact JSON
 self-describing. JSON layout: {"kind", "uses_time", "log_radiance_min", "log_radiance_max",
@@ -15,10 +15,11 @@ from __future__ import annotations
 import math
 from typing import Any, Literal, Mapping
 
-from pydantic import (BaseModel, ConfigDict, Field, SerializeAsAny, ValidationError, field_validator, model_serializer,
+from pydantic import (BaseModel, Field, SerializeAsAny, ValidationError, field_validator, model_serializer,
                       model_validator)
 
-from core.fields.registry import FIELDS, field_class
+from core.fields.components.settings import FieldSettings
+from core.fields.kinds.registry import FIELDS, field_class
 
 # Output range of every field: radiance = exp(lo + (hi - lo) * sigmoid(z)). 12 decades cover a
 # dim corner (1e-6) up to a bare bulb seen at ev 0 (1e6) in relative units; outputs can never
@@ -30,18 +31,12 @@ DEFAULT_LOG_RADIANCE_MAX = math.log(1e6)
 MAX_SURFACE_VALUES = 1 << 20
 
 
-class FieldSettings(BaseModel):
-    """Base of every kind's settings section (strict: a misspelt key is an error)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
 class FieldConfig(FieldSettings):
     kind: str = "mlp"
     uses_time: bool = True  # False: single image, or lighting the engine decided is static
     log_radiance_min: float = DEFAULT_LOG_RADIANCE_MIN
     log_radiance_max: float = DEFAULT_LOG_RADIANCE_MAX
-    # View detail (core.fields.base, docs/engine.md): learnable equirect log-radiance residuals,
+    # View detail (core.fields.kinds.base, docs/engine.md): learnable equirect log-radiance residuals,
     # one per height, added to every kind's output with a weight exp(-r^2 / 2 radius^2), r the
     # distance to the nearest anchor (the engine sets the capture's camera centres). () = off.
     view_detail_heights: tuple[int, ...] = Field((), max_length=6)
@@ -53,7 +48,7 @@ class FieldConfig(FieldSettings):
     # for a field with a time input.
     view_detail_time_rank: int = Field(4, ge=0, le=16)
     view_detail_time_knots: int = Field(2, ge=2, le=4096)
-    # Emitters (core.fields.emitters, docs/engine.md): small bright sources as explicit spheres
+    # Emitters (core.fields.components.emitters, docs/engine.md): small bright sources as explicit spheres
     # whose positions and per-knot intensities the engine measures in the frames (in the saved
     # weights: positions and radii as buffers, intensities and visibility gates as parameters the
     # distillation refines). 0: none, the field as before.
@@ -63,19 +58,19 @@ class FieldConfig(FieldSettings):
     emitter_sigma_floor: float = Field(0.05, gt=0, le=1.0, description=(
         "radians: narrowest lobe of `forward` / `probe_radiance` (the engine sets 0.6 pixel of the prior's maps); "
         "`envmaps` uses 0.6 pixel of the map asked for"))
-    # Room lattice (core.fields.lattice, docs/engine.md): a (nx, ny, nz) lattice of learnable
+    # Room lattice (core.fields.components.lattice, docs/engine.md): a (nx, ny, nz) lattice of learnable
     # `room_lattice_height`-row log-radiance maps over the box, added to every kind's output; it
     # fits the slowly varying colour and brightness across the room fast. () = off.
     room_lattice: tuple[int, ...] = Field((), max_length=3)
     room_lattice_height: int = Field(8, ge=2, le=64)
-    # Observed surfaces (core.fields.surfaces, docs/engine.md): up to `surface_points` points of
+    # Observed surfaces (core.fields.components.surfaces, docs/engine.md): up to `surface_points` points of
     # the frames with their radiance at `surface_knots` times, splatted at `surface_height` rows
     # and answering, away from the cameras, the directions they cover (the engine fills them
     # after the distillation). 0: none.
     surface_points: int = Field(0, ge=0, le=1 << 16)
     surface_knots: int = Field(1, ge=1, le=256)
     surface_height: int = Field(24, ge=4, le=128)
-    # Time gain (core.fields.encodings.TimeGain, docs/engine.md "Time gain"): a learned log gain
+    # Time gain (core.fields.components.encodings.TimeGain, docs/engine.md "Time gain"): a learned log gain
     # per knot (the engine sets one knot per frame) and colour channel (or one for all three),
     # multiplying the network's radiance (not the emitters' or the observed surfaces', which have
     # their own time curves): a light that dims the whole room is one number per frame instead

@@ -1,4 +1,4 @@
-"""The observed surfaces a field carries (core.fields.surfaces): the frames' points with the
+"""The observed surfaces a field carries (core.fields.components.surfaces): the frames' points with the
 prior's linear view radiance (its clip rule applied), merged to at most `observed_surfaces`
 points on a voxel grid.
 
@@ -18,10 +18,10 @@ from dataclasses import dataclass
 import torch
 
 from core.capture.base import Capture
-from core.engine.emitters import EmitterSources
-from core.fields.config import MAX_SURFACE_VALUES
+from core.engine.emitter_detection import EmitterSources
+from core.fields.kinds.config import MAX_SURFACE_VALUES
 from core.envmap import voxel_merge
-from core.fields.normalization import SceneBounds
+from core.fields.components.normalization import SceneBounds
 
 MAX_SURFACE_VIEWS = 16  # viewpoints of a moving camera merged into the layer
 EMITTER_CLEARANCE = 2.0  # radii around an emitter's centre whose points the layer leaves to it

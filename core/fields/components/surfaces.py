@@ -13,7 +13,7 @@ linearly (energy kept) by s = c (1 - w), w the view-detail weight: near a captur
 fit at full resolution answers, away from the cameras the observed surfaces do, and the network
 (with its lattice and emitters) answers every direction nothing observed.
 
-The engine fills the layer after the distillation (core.engine.surfaces): during training it is
+The engine fills the layer after the distillation (core.engine.surface_extraction): during training it is
 empty, so the network still learns every direction. Time: each knot holds the frame nearest to
 its time; a probe reads the nearest knot (a switch stays a step, as in the frames).
 """

@@ -24,12 +24,13 @@ from pydantic import BaseModel
 from torch import nn
 
 from core.conventions import equirect_directions, equirect_width
-from core.fields.config import FieldConfig
-from core.fields.emitters import Emitters
-from core.fields.lattice import RoomLattice
-from core.fields.encodings import EquirectGridEncoding, TimeCodes, TimeGain
-from core.fields.normalization import SceneBounds
-from core.fields.surfaces import ObservedSurfaces
+from core.fields.components.emitters import Emitters
+from core.fields.components.encodings import EquirectGridEncoding, TimeCodes, TimeGain
+from core.fields.components.lattice import RoomLattice
+from core.fields.components.normalization import SceneBounds
+from core.fields.components.surfaces import ObservedSurfaces
+from core.fields.kinds.config import FieldConfig
+from core.fields.kinds.registry import field_class
 
 # Rows per forward call in `envmaps`: bounds peak memory (the paper MLP keeps ~7 activations
 # of width 256 per row: 2^16 rows ~ 0.5 GB in training mode, far less under inference_mode).
@@ -329,6 +330,11 @@ class LightField(nn.Module):
                 d_rows = dirs[None, k0:k1].expand(n_p, n_k, 3).reshape(-1, 3)
                 out[p0:p1, k0:k1] = self.logits(x_rows, t_rows, d_rows).reshape(n_p, n_k, 3)
         return out
+
+
+def build_field(config: FieldConfig, bounds: SceneBounds) -> LightField:
+    """A freshly initialised field of `config.kind` normalised to `bounds` (float32, CPU)."""
+    return field_class(config.kind)(config, bounds)
 
 
 def probe_chunks(n_probes: int, n_dirs: int, chunk_rows: int) -> Iterator[slice]:

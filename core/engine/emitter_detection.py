@@ -1,4 +1,4 @@
-"""Find the small bright sources of a capture: the field's emitters (core.fields.emitters).
+"""Find the small bright sources of a capture: the field's emitters (core.fields.components.emitters).
 
 Per frame, pixels brighter than `emitter_contrast` x the frame's median luminance (the prior's
 linear radiance, clip rule applied) with valid depth form connected blobs, each cut to its core

@@ -1,16 +1,13 @@
 """Field kinds by name: `@register_field("name")` on a LightField subclass with a `Config`
-(its settings section in FieldConfig); FieldConfig, build_field and the CLI's and the job
-schema's choices read this table, so a new kind is one module plus its registration."""
+(its settings section in FieldConfig); FieldConfig, build_field (core.fields.kinds.base) and the
+CLI's and the job schema's choices read this table, so a new kind is one module plus its
+registration. It imports nothing of core.fields (config and base import it), so no import,
+not even a type-checking one, closes a loop through it."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Callable, TypeVar
+from typing import Callable, TypeVar
 
-if TYPE_CHECKING:
-    from core.fields.base import LightField
-    from core.fields.config import FieldConfig
-    from core.fields.normalization import SceneBounds
-
-FIELDS: dict[str, type["LightField"]] = {}  # kind -> class, in registration order
+FIELDS: dict[str, type] = {}  # kind -> its LightField subclass, in registration order
 F = TypeVar("F", bound=type)
 
 
@@ -36,12 +33,9 @@ def field_kinds() -> tuple[str, ...]:
     return tuple(FIELDS)
 
 
-def field_class(kind: str) -> type["LightField"]:
+def field_class(kind: str) -> type:
+    """The LightField subclass registered as `kind`."""
     if kind not in FIELDS:
         raise ValueError(f"unknown field kind {kind!r}; choose one of {', '.join(FIELDS)}")
     return FIELDS[kind]
 
-
-def build_field(config: "FieldConfig", bounds: "SceneBounds") -> "LightField":
-    """A freshly initialised field of `config.kind` normalised to `bounds` (float32, CPU)."""
-    return field_class(config.kind)(config, bounds)

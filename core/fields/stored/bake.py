@@ -30,10 +30,10 @@ from safetensors.torch import save_file
 
 from core.conventions import equirect_width
 from core.envmap import resize_envmap, upsample_envmaps
-from core.fields.artefact import (ArtefactError, LightFieldArtefact, QueryError, check_height, extrapolation_flags,
-                                  query_positions, query_times)
-from core.fields.encodings import lattice_corners
-from core.fields.normalization import SceneBounds
+from core.fields.components.encodings import lattice_corners
+from core.fields.components.normalization import SceneBounds
+from core.fields.stored.artefact import (ArtefactError, LightFieldArtefact, QueryError, check_height, extrapolation_flags,
+                                         query_positions, query_times)
 from core.integrity import sha256_bytes
 
 log = logging.getLogger("lightfield.fields")
