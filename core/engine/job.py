@@ -10,7 +10,7 @@ import time
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, Mapping
 
 import torch
 
@@ -24,13 +24,12 @@ from core.device import resolve_device
 from core.engine.checkpoints import clear_checkpoint
 from core.engine.config import EngineConfig
 from core.engine.distill import distill
-from core.engine.params import JobParams
-from core.engine.presets import preset
+from core.engine.params import JobParams, job_prior_settings, resolve_job  # job_prior_settings: re-exported
 from core.engine.progress import CancelCheck, Progress, ProgressCallback, Reporter, StageTimer
 from core.engine.scene import distinct_geometry, scene_bounds
 from core.fields.artefact import LightFieldArtefact, save_artefact
 from core.priors.base import Prior
-from core.priors.registry import build_prior, prior_class
+from core.priors.registry import build_prior
 
 LOSS_CURVE_MAX_POINTS = 1000
 PriorFactory = Callable[[str, dict, torch.device], Prior]
@@ -43,19 +42,6 @@ class JobResult:
     @property
     def path(self) -> Path:
         return self.artefact.path
-
-
-def job_prior_settings(config: EngineConfig, params: JobParams) -> dict:
-    """The settings the job's prior is built with: the config's defaults for it, then the job's
-    prior_weights and prior_profile as the `weights` and `profile` settings of the priors that
-    have them. So the diffusion prior's profile is the job's, else the preset's (`seed` for the
-    seed preset), else (None) its model card's."""
-    settings = config.prior_settings(params.prior)
-    fields = prior_class(params.prior).Config.model_fields
-    for key, value in (("weights", params.prior_weights), ("profile", params.prior_profile)):
-        if value is not None and key in fields:
-            settings[key] = value
-    return settings
 
 
 def _decimate(values: list[float], n: int) -> list[float]:
@@ -76,19 +62,21 @@ def run_job(
     prior: Prior | None = None,
     limits=None,
     config: EngineConfig | None = None,
+    overrides: Mapping[str, Any] | None = None,
     prior_factory: PriorFactory = build_prior,
     on_capture: Callable[[Capture], None] | None = None,
 ) -> JobResult:
     """Load the capture, decide time, distil, save the artefact to `out_dir`.
 
     `prior` overrides params.prior (tests, the oracle); `config` overrides the preset
-    params.preset; `prior_factory(name, settings, device)` builds the job's prior (the
+    params.preset, `overrides` changes it (core.engine.params.resolve_job); `prior_factory(name, settings, device)` builds the job's prior (the
     worker's keeps weight-loading priors across jobs); `on_capture(capture)` receives the
     decoded capture at full resolution after loading and tracking (the worker's UI preview)."""
     t_start = time.perf_counter()
     timings = StageTimer()
     reporter = Reporter(progress, should_cancel)
-    config = (config or preset(params.preset)).with_field_kind(params.field)
+    job = resolve_job(params, overrides, config)
+    config = job.config
     cfg = config.distill
     device = resolve_device(cfg.device)  # an unavailable device fails before any work
 
@@ -118,7 +106,7 @@ def run_job(
     reporter.stage("point_cloud", 0.07, "building the prior")
     with timings("point_cloud"):
         if prior is None:
-            prior = prior_factory(params.prior, job_prior_settings(config, params), device)
+            prior = prior_factory(params.prior, job.prior_settings, device)
         prior.bind(work, lighting_changes=decision.uses_time)
         bounds = scene_bounds(work, cfg.time_normalisation_frames)
         if prior.capabilities.frame_geometry:  # build the geometry now so its cost is reported here
