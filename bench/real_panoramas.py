@@ -40,6 +40,7 @@ from pathlib import Path
 
 import torch
 
+DEFAULT_HDRI_DIR = Path(__file__).resolve().parents[2] / "shared" / "hdri"  # ../shared/hdri from the repo
 SEED = 7
 CROP_HFOV_DEG = 60.0
 CROP_SIZE = (192, 144)  # width, height (the issue's protocol)
@@ -657,7 +658,6 @@ def main(argv=None) -> int:
     """`python -m bench.real_panoramas --splits dev --limit 3 -o dev.json`: this section alone."""
     import argparse
 
-    from bench.run import DEFAULT_HDRI_DIR
     from bench.report import panorama_markdown, sanitize
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -42,10 +42,11 @@ from pathlib import Path
 
 import torch
 
+from bench.real_panoramas import DEFAULT_HDRI_DIR
+
 GT_HEIGHT = 128
 MODES = ("product", "product+estimate", "true-poses", "true-poses+ev")
 CONSTANT = "mean-colour"
-DEFAULT_HDRI_DIR = Path(__file__).resolve().parents[2] / "shared" / "hdri"
 TARGETS = {"diffuse_si_rmse_rel": 0.5, "diffuse_angular_deg": 0.5, "mirror_si_rmse_rel": 0.7, "seen_corr": 0.8,
            "drift": 0.1, "cpu_s": 60.0}
 

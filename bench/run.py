@@ -17,11 +17,11 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from bench.methods import Budget, config_summary, core_methods, sweep_methods
+from bench.real_panoramas import DEFAULT_HDRI_DIR
 from bench.suite.measure import machine_info
 
 SUITE_NAMES = ("spatial", "temporal", "moving-camera", "hard")
 SECTIONS = ("simulated", "panoramas", "scaling", "stability", "tracking")
-DEFAULT_HDRI_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "hdri"  # ../shared/hdri from the repo
 DEFAULT_OUT_DIR = Path(__file__).resolve().parent / "results"
 
 

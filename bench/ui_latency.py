@@ -1,4 +1,4 @@
-"""Latency of the web page's own endpoints (service.routes_ui) at the largest preview size.
+"""Latency of the web page's own endpoints (service.routes.ui) at the largest preview size.
 
     python -m bench.ui_latency [--probes 4] [--repeats 10]
 

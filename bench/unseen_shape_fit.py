@@ -126,7 +126,7 @@ def leave_one_out(train, evaluate, Xtr, Ttr, Xev, lam: float) -> torch.Tensor:
 
 
 def main(argv=None) -> int:
-    from bench.run import DEFAULT_HDRI_DIR
+    from bench.real_panoramas import DEFAULT_HDRI_DIR
     from bench.suite.evaluation import score_probe
     from core.exposure import luminance
 

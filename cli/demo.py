@@ -232,14 +232,13 @@ class _LocalRun:
         from cli.estimate import ProgressBar
         from core.engine import run_job
         from core.engine.params import JobParams
-        from core.engine.presets import preset
 
         params = JobParams.model_validate(upload.params)
-        overrides = _distill_overrides(self.args)
-        config = preset(params.preset).with_overrides({"distill": overrides}) if overrides else None
+        distill = _distill_overrides(self.args)  # as the service's worker gets them (LIGHTFIELD_DISTILL_OVERRIDES)
+        overrides = {"distill": distill} if distill else None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the service path does not show them either
-            result = run_job(upload.file, upload.depth, params, self.out / upload.name, config=config,
+            result = run_job(upload.file, upload.depth, params, self.out / upload.name, overrides=overrides,
                              progress=None if self.args.quiet else ProgressBar(),
                              checkpoint_dir=self.out / f"{upload.name}.checkpoint")
         self.upload = upload

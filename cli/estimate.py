@@ -96,7 +96,6 @@ def run(args: argparse.Namespace) -> int:
     from core.capture.base import CaptureError
     from core.engine import run_job
     from core.engine.params import parse_job_params
-    from core.engine.presets import preset
     from core.engine.progress import Cancelled
     from core.io import MediaError
     from core.priors.base import PriorError
@@ -109,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     except (ValidationError, ValueError) as exc:
         print(f"error: invalid parameters: {exc}", file=sys.stderr)
         return 2
-    config = preset(params.preset).with_overrides({"distill.iterations": args.iterations}) if args.iterations else None
+    overrides = {"distill.iterations": args.iterations} if args.iterations else None
     ckpt = checkpoint_dir_for(out)
     if not args.resume:
         shutil.rmtree(ckpt, ignore_errors=True)
@@ -118,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
         with warnings.catch_warnings():  # restores showwarning afterwards
             warnings.simplefilter("always")
             warnings.showwarning = lambda message, *_a, **_k: print(f"warning: {message}", file=sys.stderr)
-            result = run_job(args.input, args.depth, params, out, progress=bar, checkpoint_dir=ckpt, config=config)
+            result = run_job(args.input, args.depth, params, out, progress=bar, checkpoint_dir=ckpt, overrides=overrides)
     except (CaptureError, MediaError, PriorError, ValidationError) as exc:
         print(f"\nerror: {exc}", file=sys.stderr)
         return 2

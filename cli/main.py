@@ -25,7 +25,6 @@ COMMANDS = [
     "bench",
     "train-prior",
     "prior",
-    "render-previews",
 ]
 
 

@@ -14,7 +14,7 @@ from fastapi.staticfiles import StaticFiles
 from jobs.jobfiles import job_files
 from jobs.queue import make_celery
 from jobs.store import JobStore, connect
-from service import openapi, routes_ui
+from service import openapi
 from service.auth import KeyRing
 from service.bodylimits import BodyLimits
 from service.config import ServiceSettings
@@ -23,7 +23,7 @@ from service.errors import install_error_handlers
 from service.fieldcache import FieldCache
 from service.metrics import Metrics, MetricsMiddleware
 from service.origin import OriginGuard
-from service.routes import health, jobs, lightfield
+from service.routes import health, jobs, lightfield, ui
 from service.uploadcheck import UploadChecks
 
 log = logging.getLogger("lightfield.service")
@@ -64,7 +64,7 @@ def create_app(settings: ServiceSettings | None = None,
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     install_error_handlers(app)
     openapi.install(app, settings)
-    for module in (jobs, lightfield, routes_ui, health):
+    for module in (jobs, lightfield, ui, health):
         app.include_router(module.router)
     if UI_DIR.is_dir():
         app.mount("/ui", StaticFiles(directory=UI_DIR, html=True), name="ui")

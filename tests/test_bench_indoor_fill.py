@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from bench.indoor_fill import gain_from_profiles, mean_log_profile, row_profile
-from bench.run import DEFAULT_HDRI_DIR
+from bench.real_panoramas import DEFAULT_HDRI_DIR
 
 
 def test_arithmetic_mean_keeps_the_energy_a_few_bright_panoramas_carry():

@@ -1,4 +1,4 @@
-"""The page's HTTP routes (service.routes_ui) in-process: a real Redis job store, an artefact and
+"""The page's HTTP routes (service.routes.ui) in-process: a real Redis job store, an artefact and
 a capture preview written to disk, no worker. Auth, tenancy and error codes as in the API."""
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from jobs.capture_preview import CapturePreview, save_preview
 from jobs.storage import JobPaths, new_job_id
 from jobs.store import JobRecord
 from service.auth import tenant_hash
-from service.routes_ui import MAX_INSERTED_PROBES
+from service.routes.ui import MAX_INSERTED_PROBES
 
 KEYS = {"alice": "alice-key-0001", "bob": "bob-key-00002"}
 W, H, T, FPS = 40, 30, 4, 2.0
@@ -207,7 +207,7 @@ def test_insertion_renders_each_frame_at_its_own_exposure(app_env):
 
 
 def test_insertion_of_a_large_frame_is_rendered_at_the_capped_height(app_env, job, monkeypatch):
-    import service.routes_ui as routes_ui
+    import service.routes.ui as routes_ui
 
     client, _ = app_env
     monkeypatch.setattr(routes_ui, "INSERTION_MAX_HEIGHT", H // 2)

@@ -46,7 +46,7 @@ class JobRunner:
     store: JobStore
     settings: JobSettings
     # core.engine.run_job(input, depth, params, out_dir, *, progress, should_cancel, checkpoint_dir,
-    #                    limits, on_capture, config=None, prior_factory=None) -> JobResult
+    #                    limits, on_capture, overrides=None, prior_factory=None) -> JobResult
     engine: Callable[..., "JobResult"]
     # how the engine builds the job's prior (worker.prior_cache keeps weight-loading ones); None: the engine's own
     prior_factory: Callable[..., object] | None = None
@@ -188,10 +188,8 @@ class JobRunner:
             limits=MediaLimits.from_env(),
             on_capture=lambda capture: self._save_ui_preview(record.id, capture, paths),
         )
-        if self.settings.distill_overrides:
-            from core.engine.presets import preset
-
-            kwargs["config"] = preset(params.preset).with_overrides({"distill": self.settings.distill_overrides})
+        if self.settings.distill_overrides:  # applied to the job's preset by the engine (resolve_job)
+            kwargs["overrides"] = {"distill": self.settings.distill_overrides}
         if self.prior_factory is not None:
             kwargs["prior_factory"] = self.prior_factory
         depth = paths.upload_dir / record.depth_file if record.depth_file else None

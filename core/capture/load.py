@@ -246,18 +246,57 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
     etc.), so the CLI honours the same variables as the service. `params.max_frames` lowers
     `limits.max_frames`; longer videos are subsampled evenly by core.io and each kept frame
     keeps its source time (source index / fps). Poses given for every source frame are
-    subsampled the same way. `track=False` stops before camera tracking (run_job tracks in a
-    stage of its own: core.capture.track.track_capture). (The service's upload check reads
-    headers only: core.capture.probe.probe_capture.)
+    subsampled the same way. `track=True` also prepares the capture as a job does (tracking,
+    transients, exposure: core.capture.prepare.prepare_capture) and shows its warnings;
+    `track=False` stops before camera tracking (run_job prepares the capture in stages of its
+    own). (The service's upload check reads headers only: core.capture.probe.probe_capture.)
     """
-    from core.io import read_video
-
     params = params or CaptureParams()
+    if track:
+        from core.capture.prepare import prepare_capture
+
+        capture = prepare_capture(input_path, depth_path, params, limits).capture
+        for w in capture.warnings:
+            _warnings.warn(w, stacklevel=2)
+        return capture
     limits = effective_limits(params, limits)
     path = Path(input_path)
+    warn: list[str] = []
+    loaded = read_capture_input(path, limits, warn)
+    metadata = dict(loaded.get("metadata", {}))
+    frames = _checked_frames(loaded["frames"])
+    T, H, W, _ = frames.shape
+    source_idx = loaded.get("source_indices") or list(range(T))
+    fps = params.fps or loaded.get("fps") or 1.0
+    if not (math.isfinite(fps) and fps > 0):
+        raise CaptureError("fps", f"must be finite and > 0, got {fps}")
+    if loaded.get("intrinsics_source"):
+        metadata["intrinsics_source"] = loaded["intrinsics_source"]
+    intr = resolve_intrinsics(params, loaded.get("intrinsics_dict"), W, H, warn, loaded.get("exif_intrinsics"), metadata)
+    poses, frame_ev = _per_frame_values(params, loaded, T, source_idx, metadata)
+    depth, depth_src = _capture_depth(depth_path, loaded, frames, intr, source_idx, limits, warn, metadata)
+    return Capture(
+        frames=frames.clamp(0, 1).contiguous(),
+        depth=depth.contiguous(),
+        intrinsics=intr,
+        poses=poses,
+        times=_frame_times(params, loaded, source_idx, fps),
+        fps=float(fps),
+        depth_source=depth_src,
+        source=path.name,
+        warnings=warn,
+        metadata=metadata,
+        stated_ev=frame_ev,
+    )
+
+
+def read_capture_input(path: Path, limits: MediaLimits, warn: list[str]) -> dict:
+    """What the reader of `path`'s kind returned (a directory: nerfstudio or simulator capture;
+    a file: sniffed video, image or nerfstudio zip); their warnings appended to `warn`."""
+    from core.io import read_video
+
     if not path.exists():
         raise CaptureError("input", f"{path} does not exist")
-    warn: list[str] = []
     if path.is_dir():
         loaded = _read_nerfstudio(path, limits) if (path / "transforms.json").is_file() else _read_capture_dir(path, limits)
     else:
@@ -278,22 +317,23 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
         else:
             raise CaptureError("input", f"{path.name} is neither an image, a video nor a capture directory or zip")
     warn.extend(loaded.get("warnings", []))
-    metadata = dict(loaded.get("metadata", {}))
+    return loaded
 
-    frames = loaded["frames"].float()
+
+def _checked_frames(frames: torch.Tensor) -> torch.Tensor:
+    """The decoded frames as float [T, H, W, 3], finite (CaptureError otherwise)."""
+    frames = frames.float()
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] < 1:
         raise CaptureError("input", f"decoded frames have shape {tuple(frames.shape)}, expected [T, H, W, 3]")
-    T, H, W, _ = frames.shape
     if not torch.isfinite(frames).all():
         raise CaptureError("input", "frames contain non-finite values")
-    source_idx = loaded.get("source_indices") or list(range(T))
+    return frames
 
-    fps = params.fps or loaded.get("fps") or 1.0
-    if not (math.isfinite(fps) and fps > 0):
-        raise CaptureError("fps", f"must be finite and > 0, got {fps}")
-    if loaded.get("intrinsics_source"):
-        metadata["intrinsics_source"] = loaded["intrinsics_source"]
-    intr = resolve_intrinsics(params, loaded.get("intrinsics_dict"), W, H, warn, loaded.get("exif_intrinsics"), metadata)
+
+def _per_frame_values(params: CaptureParams, loaded: dict, T: int, source_idx: list[int],
+                      metadata: dict) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The poses and stated exposures (params' over the capture file's), and where they came
+    from in `metadata` (poses_source, exposure_source)."""
     source_count = loaded.get("original_count", T)
     given_poses = loaded.get("poses") if params.poses is None else kept_per_frame(params.poses, T, source_count, source_idx)
     poses = resolve_poses(given_poses, T)
@@ -305,6 +345,14 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
     frame_ev = resolve_exposures(given_ev, T)
     if given_ev is not None:
         metadata["exposure_source"] = "params" if params.frame_ev is not None else loaded.get("exposure_source", "capture.json")
+    return poses, frame_ev
+
+
+def _capture_depth(depth_path, loaded: dict, frames: torch.Tensor, intr: Intrinsics, source_idx: list[int],
+                   limits: MediaLimits, warn: list[str], metadata: dict) -> tuple[torch.Tensor, str]:
+    """Depth [T, H, W] and its source: the given file (subsampled as the frames), else the
+    capture's, else the depth model's (DEPTH_MODEL_ENV), else the assumption (resolve_depth)."""
+    T, H, W, _ = frames.shape
     depth_arg = _read_depth(Path(depth_path), limits) if depth_path is not None else loaded.get("depth")
     if depth_path is not None and depth_arg.ndim == 3 and depth_arg.shape[0] == loaded.get("original_count", T) != T:
         depth_arg = depth_arg[source_idx]
@@ -312,31 +360,14 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
     metadata["depth_given"] = depth_arg is not None
     if depth_arg is None and os.environ.get(DEPTH_MODEL_ENV):
         depth_arg, depth_src = _estimate_depth(frames, intr, os.environ[DEPTH_MODEL_ENV], warn)
-    depth, depth_src = resolve_depth(depth_arg, T, H, W, intr, depth_src, warn)
-    capture = Capture(
-        frames=frames.clamp(0, 1).contiguous(),
-        depth=depth.contiguous(),
-        intrinsics=intr,
-        poses=poses,
-        times=(torch.as_tensor(loaded["times"], dtype=torch.float32) if loaded.get("times") is not None
-               and params.fps is None else frame_time(torch.tensor(source_idx, dtype=torch.float32), fps)),
-        fps=float(fps),
-        depth_source=depth_src,
-        source=path.name,
-        warnings=warn,
-        metadata=metadata,
-        stated_ev=frame_ev,
-    )
-    if not track:  # the caller tracks, and reports the warnings that are left
-        return capture
-    from core.capture.autoexposure import with_estimated_exposure
-    from core.capture.track import track_capture
-    from core.capture.transients import without_transients
+    return resolve_depth(depth_arg, T, H, W, intr, depth_src, warn)
 
-    capture = with_estimated_exposure(without_transients(track_capture(capture, params), params), params)
-    for w in capture.warnings:
-        _warnings.warn(w, stacklevel=2)
-    return capture
+
+def _frame_times(params: CaptureParams, loaded: dict, source_idx: list[int], fps: float) -> torch.Tensor:
+    """A video's presentation timestamps unless params.fps is given, else source index / fps."""
+    if loaded.get("times") is not None and params.fps is None:
+        return torch.as_tensor(loaded["times"], dtype=torch.float32)
+    return frame_time(torch.tensor(source_idx, dtype=torch.float32), fps)
 
 
 def capture_from_arrays(frames: torch.Tensor, depth: torch.Tensor | None = None, *, intrinsics: Intrinsics | None = None,

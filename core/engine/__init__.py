@@ -4,7 +4,7 @@
     trainer.py      one optimisation step                   distill.py   the loop (checkpoints, progress)
     checkpoints.py  resumable state                         job.py       run_job: capture -> artefact
     config.py       EngineConfig / DistillConfig            presets.py   draft / standard / paper
-    params.py       JobParams (the user's job schema)       losses.py, progress.py
+    params.py       JobParams, resolve_job (its config)     losses.py, progress.py
 """
 from core.engine.job import JobResult, run_job
 

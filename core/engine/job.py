@@ -1,36 +1,34 @@
-"""The job entry point, `run_job`, used by the CLI and the Celery worker: load the capture
-(the one decode of the job; `on_capture` lets the caller reuse it), track the camera when
-several frames came without poses (its own `tracking` stage and cost), decide whether the
-lighting changes over time, build and bind the prior, distil the field (core.engine.distill)
-and save the artefact with what the job simulated and what it cost; the result carries the
-saved artefact in memory, so callers query or bake it without reading it back."""
+"""The job entry point, `run_job`, used by the CLI and the Celery worker, in three stages:
+capture preparation (core.capture.prepare: load, the one decode of the job, which `on_capture`
+lets the caller reuse; track the camera when several frames came without poses, in a
+`tracking` stage of its own; paint out transients; estimate exposure), distillation (decide
+whether the lighting changes over time, build and bind the prior, distil the field:
+core.engine.distill) and the artefact (saved with what the job simulated and what it cost,
+`job_metadata`). The result carries the saved artefact in memory, so callers query or bake it
+without reading it back."""
 from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, Mapping
 
 import torch
 
 from core.capture.base import Capture
-from core.capture.load import load_capture
-from core.capture.autoexposure import with_estimated_exposure
-from core.capture.track import track_capture
-from core.capture.transients import without_transients
+from core.capture.prepare import prepare_capture
 from core.capture.temporal import TemporalDecision, decide_temporal
 from core.device import resolve_device
 from core.engine.checkpoints import clear_checkpoint
 from core.engine.config import EngineConfig
-from core.engine.distill import distill
-from core.engine.params import JobParams
-from core.engine.presets import preset
+from core.engine.distill import DistillResult, distill
+from core.engine.params import JobParams, ResolvedJob, job_prior_settings, resolve_job  # noqa: F401 (job_prior_settings: re-exported)
 from core.engine.progress import CancelCheck, Progress, ProgressCallback, Reporter, StageTimer
 from core.engine.scene import distinct_geometry, scene_bounds
 from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 from core.priors.base import Prior
-from core.priors.registry import build_prior, prior_class
+from core.priors.registry import build_prior
 
 LOSS_CURVE_MAX_POINTS = 1000
 PriorFactory = Callable[[str, dict, torch.device], Prior]
@@ -43,19 +41,6 @@ class JobResult:
     @property
     def path(self) -> Path:
         return self.artefact.path
-
-
-def job_prior_settings(config: EngineConfig, params: JobParams) -> dict:
-    """The settings the job's prior is built with: the config's defaults for it, then the job's
-    prior_weights and prior_profile as the `weights` and `profile` settings of the priors that
-    have them. So the diffusion prior's profile is the job's, else the preset's (`seed` for the
-    seed preset), else (None) its model card's."""
-    settings = config.prior_settings(params.prior)
-    fields = prior_class(params.prior).Config.model_fields
-    for key, value in (("weights", params.prior_weights), ("profile", params.prior_profile)):
-        if value is not None and key in fields:
-            settings[key] = value
-    return settings
 
 
 def _decimate(values: list[float], n: int) -> list[float]:
@@ -76,39 +61,71 @@ def run_job(
     prior: Prior | None = None,
     limits=None,
     config: EngineConfig | None = None,
+    overrides: Mapping[str, Any] | None = None,
     prior_factory: PriorFactory = build_prior,
     on_capture: Callable[[Capture], None] | None = None,
 ) -> JobResult:
-    """Load the capture, decide time, distil, save the artefact to `out_dir`.
+    """Prepare the capture, decide time, distil, save the artefact to `out_dir`.
 
     `prior` overrides params.prior (tests, the oracle); `config` overrides the preset
-    params.preset; `prior_factory(name, settings, device)` builds the job's prior (the
-    worker's keeps weight-loading priors across jobs); `on_capture(capture)` receives the
-    decoded capture at full resolution after loading and tracking (the worker's UI preview)."""
+    params.preset, `overrides` changes it (core.engine.params.resolve_job);
+    `prior_factory(name, settings, device)` builds the job's prior (the worker's keeps
+    weight-loading priors across jobs); `on_capture(capture)` receives the decoded capture at
+    full resolution after loading and tracking (the worker's UI preview)."""
     t_start = time.perf_counter()
     timings = StageTimer()
     reporter = Reporter(progress, should_cancel)
-    config = (config or preset(params.preset)).with_field_kind(params.field)
-    cfg = config.distill
-    device = resolve_device(cfg.device)  # an unavailable device fails before any work
+    job = resolve_job(params, overrides, config)
+    device = resolve_device(job.config.distill.device)  # an unavailable device fails before any work
 
-    reporter.stage("loading", 0.0, "reading input")
-    with timings("loading"):
-        capture = load_capture(input_path, depth_path, params, limits, track=False)
-    if capture.num_frames > 1:  # tracked, or given poses placed in a world-fixed room (track_capture)
-        tracks = not capture.metadata.get("poses_source")
-        if tracks:
-            reporter.stage("tracking", 0.02, "finding the camera's motion")
-        with timings("tracking" if tracks else "loading"):
-            capture = track_capture(capture, params)
-    as_uploaded = capture
-    with timings("transients"):  # after tracking: a moving camera's frames are compared through its poses
-        capture = without_transients(capture, params)
-    capture = with_estimated_exposure(capture, params)  # after tracking: a pan is compared through its poses
+    capture = _capture_stage(input_path, depth_path, params, limits, reporter, timings, on_capture)
+    run = _distillation_stage(capture, job, prior, prior_factory, device, reporter, timings, checkpoint_dir)
+
+    reporter.stage("saving", 0.98, "writing artefact")
+    meta = job_metadata(capture, run, params, job.config, timings, wall_time_s=time.perf_counter() - t_start)
+    with timings("saving"):
+        artefact = save_artefact(out_dir, run.result.field, meta)
+    if checkpoint_dir is not None:
+        clear_checkpoint(Path(checkpoint_dir))
+    if progress is not None:
+        progress(Progress("done", run.result.iterations, run.result.iterations, meta["training"]["final_loss"], 1.0,
+                          0.0, str(artefact.path)))
+    return JobResult(artefact)
+
+
+# progress fraction at which each capture preparation stage starts
+CAPTURE_STAGE_PROGRESS = {"loading": 0.0, "tracking": 0.02}
+
+
+def _capture_stage(input_path, depth_path, params: JobParams, limits, reporter: Reporter, timings: StageTimer,
+                   on_capture: Callable[[Capture], None] | None) -> Capture:
+    """Capture preparation (core.capture.prepare), its warnings shown to run_job's caller."""
+    prepared = prepare_capture(input_path, depth_path, params, limits, timed=timings,
+                               on_stage=lambda name, message: reporter.stage(name, CAPTURE_STAGE_PROGRESS[name], message))
+    capture = prepared.capture
     for w in capture.warnings:  # after tracking, which may replace assumptions (FOV, room)
-        warnings.warn(w, stacklevel=2)
+        warnings.warn(w, stacklevel=3)
     if on_capture is not None:  # the preview shows the frames as the user took them, passers-by and all
-        on_capture(replace(capture, frames=as_uploaded.frames, depth=as_uploaded.depth))
+        on_capture(prepared.preview())
+    return capture
+
+
+@dataclass(frozen=True)
+class Distillation:
+    """What the distillation stage decided and produced."""
+
+    decision: TemporalDecision  # does the lighting change over time
+    work: Capture  # the capture at the working resolution
+    prior: Prior  # bound to `work`
+    result: DistillResult
+
+
+def _distillation_stage(capture: Capture, job: ResolvedJob, prior: Prior | None, prior_factory: PriorFactory,
+                        device: torch.device, reporter: Reporter, timings: StageTimer, checkpoint_dir) -> Distillation:
+    """Decide time, build and bind the prior (its geometry built here, so its cost is reported
+    as point_cloud), distil the field."""
+    params, config = job.params, job.config
+    cfg = config.distill
     reporter.stage("temporal", 0.04, "detecting lighting changes")
     with timings("temporal"):
         decision: TemporalDecision = decide_temporal(capture, params.temporal)
@@ -118,7 +135,7 @@ def run_job(
     reporter.stage("point_cloud", 0.07, "building the prior")
     with timings("point_cloud"):
         if prior is None:
-            prior = prior_factory(params.prior, job_prior_settings(config, params), device)
+            prior = prior_factory(params.prior, job.prior_settings, device)
         prior.bind(work, lighting_changes=decision.uses_time)
         bounds = scene_bounds(work, cfg.time_normalisation_frames)
         if prior.capabilities.frame_geometry:  # build the geometry now so its cost is reported here
@@ -126,13 +143,19 @@ def run_job(
                 prior.prepare_frame(i)
 
     reporter.stage("distill", 0.1, f"{cfg.iterations} steps")
-    result = distill(work, prior, config, decision.uses_time, seed=params.seed, reporter=reporter, checkpoint_dir=Path(checkpoint_dir) if checkpoint_dir else None,
-                     timings=timings, bounds=bounds)
+    result = distill(work, prior, config, decision.uses_time, seed=params.seed, reporter=reporter,
+                     checkpoint_dir=Path(checkpoint_dir) if checkpoint_dir else None, timings=timings, bounds=bounds)
+    return Distillation(decision, work, prior, result)
 
-    reporter.stage("saving", 0.98, "writing artefact")
-    wall = time.perf_counter() - t_start
-    prior_description = prior.describe()
-    meta = {
+
+def job_metadata(capture: Capture, run: Distillation, params: JobParams, config: EngineConfig, timings: StageTimer,
+                 wall_time_s: float) -> dict:
+    """The artefact's lightfield.json metadata: the capture, the working resolution, the prior,
+    the temporal decision, the job's parameters and config, the training's record and cost
+    (`wall_time_s` up to saving) and what the job simulated."""
+    decision, work, result = run.decision, run.work, run.result
+    prior_description = run.prior.describe()
+    return {
         "time": {"t0": float(capture.times[0]), "t1": float(capture.times[-1]), "fps": capture.fps, "uses_time": decision.uses_time},
         "capture": capture.summary(),
         "working_resolution": {"width": work.width, "height": work.height, "intrinsics": work.intrinsics.as_dict()},
@@ -145,9 +168,9 @@ def run_job(
             "resumed_from": result.resumed_from,
             "loss_curve": _decimate(result.losses, LOSS_CURVE_MAX_POINTS),
             "final_loss": result.losses[-1] if result.losses else None,
-            "wall_time_s": round(wall, 3),
+            "wall_time_s": round(wall_time_s, 3),
             "device": result.stats["device"],
-            "threads": cfg.threads or torch.get_num_threads(),
+            "threads": config.distill.threads or torch.get_num_threads(),
             "perceptual": result.stats["perceptual"],
             "supervision": result.stats["supervision"],
             "emitters": result.stats.get("emitters", []),
@@ -163,11 +186,3 @@ def run_job(
                          else "no balls: the prior's HDR env maps at probe centres, random directions (radiance supervision)"),
         },
     }
-    with timings("saving"):
-        artefact = save_artefact(out_dir, result.field, meta)
-    if checkpoint_dir is not None:
-        clear_checkpoint(Path(checkpoint_dir))
-    if progress is not None:
-        progress(Progress("done", result.iterations, result.iterations, meta["training"]["final_loss"], 1.0, 0.0,
-                          str(artefact.path)))
-    return JobResult(artefact)

@@ -9,6 +9,7 @@ a user asks for by name, so they are job choices before their module is loaded.
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 from typing import Callable, Mapping, TypeVar
 
 from pydantic import BaseModel, ValidationError
@@ -69,6 +70,25 @@ def prior_settings(name: str, settings: BaseModel | Mapping | None = None) -> Ba
         raise PriorError(f"prior {name!r}: {detail}") from None
 
 
+WEIGHTS_WHERE = "a local model directory, --prior-weights DIR"
+
+
+def require_weights(name: str, settings: BaseModel | Mapping | None, where: str = WEIGHTS_WHERE) -> None:
+    """The rule of priors that load weights (their Config has `weights`): the settings name an
+    existing directory. PriorError saying what is wrong (`where` tells the user where weights
+    go); priors without weights pass. The engine (build_prior) and the service's submission
+    check both apply it."""
+    if "weights" not in prior_class(name).Config.model_fields:
+        return
+    weights = settings.get("weights") if isinstance(settings, Mapping) else getattr(settings, "weights", None)
+    if not weights:
+        raise PriorError(f"the {name!r} prior needs model weights ({where}); none was given")
+    if not Path(weights).is_dir():
+        raise PriorError(f"{str(weights)!r} is not a directory")
+
+
 def build_prior(name: str, settings: BaseModel | Mapping | None = None, device=None) -> Prior:
     """The prior `name` built from its settings (a dict or its Config); `device`: see Prior.from_config."""
-    return prior_class(name).from_config(prior_settings(name, settings), device)
+    config = prior_settings(name, settings)
+    require_weights(name, config)
+    return prior_class(name).from_config(config, device)

@@ -72,29 +72,24 @@ def parse_params(text: str | None, ctx: AppContext):
 
 def check_prior(params) -> None:
     """What the worker would refuse about the job's prior, refused now: its settings, and the
-    weights of a prior that loads weights (the engine's rule: its Config has `weights`)."""
-    from core.engine.job import job_prior_settings
-    from core.engine.presets import preset
+    weights of a prior that loads weights (the registry's rule, require_weights)."""
+    from core.engine.params import resolve_job
     from core.priors.base import PriorError
-    from core.priors.registry import prior_class
+    from core.priors.registry import prior_class, require_weights
 
     try:
         cls = prior_class(params.prior)
-        settings = job_prior_settings(preset(params.preset), params)
+        settings = resolve_job(params).prior_settings
         cls.Config.model_validate(settings)
     except PriorError as exc:
         raise InvalidInput(f"params.prior: {exc}", code="prior_unavailable") from None
     except ValidationError as exc:
         raise InvalidInput(f"params.prior: settings of the {params.prior!r} prior: "
                            + describe_validation_errors(exc.errors()), code="invalid_params") from None
-    if "weights" in cls.Config.model_fields:
-        weights = settings.get("weights")
-        if not weights:
-            raise InvalidInput(f"params.prior_weights: the {params.prior!r} prior needs model weights (a directory "
-                               "inside LIGHTFIELD_MODEL_DIRS); none was given", code="prior_unavailable")
-        if not Path(weights).is_dir():
-            raise InvalidInput(f"params.prior_weights: {params.prior_weights!r} is not a directory",
-                               code="prior_unavailable")
+    try:
+        require_weights(params.prior, settings, where="a directory inside LIGHTFIELD_MODEL_DIRS")
+    except PriorError as exc:
+        raise InvalidInput(f"params.prior_weights: {exc}", code="prior_unavailable") from None
 
 
 def _finalise_upload(path: Path, suffix: str, stem: str) -> str:
