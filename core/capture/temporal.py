@@ -4,8 +4,12 @@ Statistic (documented in docs/engine.md):
 1. Linearise frames (inverse tone map) and take luminance, then area-downsample (linear
    values are resampled, never gamma-encoded ones, whose averaging biases linear means when
    there is noise). (A moving camera: see below.)
-2. Drop clipped (LDR >= 0.99) and near-black (LDR < 0.02) pixels, which carry no ratio;
-   a pixel is used only if it is usable in EVERY frame (same pixel set for all frames).
+2. Drop clipped (LDR >= 0.99) and near-black (LDR < 0.02) pixels, which carry no ratio, and
+   pixels within CLIP_MARGIN of a clipped one: around a saturated source an 8-bit video's codec
+   rings and a lens glares, by amounts that follow the exposure, not the light (on room scans
+   rendered from panoramas, with true poses and exposures, that ring read as a local change
+   of light in 3 of 4 rooms checked); a pixel is used only if it is usable in EVERY frame
+   (same pixel set for all frames).
 3. Average linear luminance in a coarse grid of blocks (BLOCKS_Y x BLOCKS_X) per frame and take
    logs: l[t, b]. Block averaging suppresses sensor noise and block-compression artefacts.
 4. Deviation e[t] = mean over blocks of |l[t, b] - median_t l[t, b]|: how far frame t's
@@ -46,6 +50,7 @@ BLOCKS_Y, BLOCKS_X = 6, 8
 ABS_FLOOR = math.log(1.08)  # an 8 % mean change over the image is the smallest we call "lighting"
 K_SIGMA = 4.0
 CLIP_HI, DARK_LO = 0.99, 0.02
+CLIP_MARGIN = 2  # source pixels around a clipped one left out (the codec's ringing, the lens's glare)
 ANALYSIS_HEIGHT = 72  # frames are area-downsampled to this height first (speed, noise)
 MIN_BLOCK_FRACTION = 0.2
 OVERLAP_PAIRS_PER_FRAME = 6  # a moving camera's frames are compared with at most this many later ones that overlap
@@ -74,12 +79,14 @@ def _luminance(rgb: torch.Tensor) -> torch.Tensor:
 
 
 def _analysis_planes(capture, h: int, w: int) -> torch.Tensor:
-    """[T, h, w, 2]: linear luminance and a 0/1 'usable' plane, linearised BEFORE any
-    resampling (averaging gamma-encoded noise would bias linear means downwards)."""
+    """[T, h, w, 2]: linear luminance and a 0/1 'usable' plane (neither clipped, nor within
+    CLIP_MARGIN of a clipped pixel, nor near black), linearised BEFORE any resampling
+    (averaging gamma-encoded noise would bias linear means downwards)."""
     out = []
     for f, ev in zip(capture.frames, capture.frame_ev):
         peak = f.amax(-1)
-        usable = ((peak < CLIP_HI) & (peak >= DARK_LO)).float()
+        clipped = F.max_pool2d((peak >= CLIP_HI).float()[None, None], 2 * CLIP_MARGIN + 1, 1, CLIP_MARGIN)[0, 0] > 0
+        usable = (~clipped & (peak >= DARK_LO)).float()
         planes = torch.stack((_luminance(inverse_tonemap(f, ev)), usable), 0)[None]  # a stated exposure removed
         out.append(F.interpolate(planes, size=(h, w), mode="area")[0].permute(1, 2, 0))
     return torch.stack(out)
