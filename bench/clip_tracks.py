@@ -74,9 +74,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     report = track_report(args.suite)
     for i, tr in enumerate(report["tracks"]):
-        print(f"track {i}: {tr['frames']} frames; first -> last: true {tr['true_first_to_last_stops']:+.2f} stops, "
-              f"rule {tr['rule']['first_to_last_stops']:+.2f}, over time {tr['over_time']['first_to_last_stops']:+.2f}; "
-              f"mean |error| rule {tr['rule']['mean_abs_error_stops']:.2f}, over time {tr['over_time']['mean_abs_error_stops']:.2f} stops")
+        print(
+            f"track {i}: {tr['frames']} frames; first -> last: true {tr['true_first_to_last_stops']:+.2f} stops, "
+            f"rule {tr['rule']['first_to_last_stops']:+.2f}, over time {tr['over_time']['first_to_last_stops']:+.2f}; "
+            f"mean |error| rule {tr['rule']['mean_abs_error_stops']:.2f}, over time "
+            f"{tr['over_time']['mean_abs_error_stops']:.2f} stops"
+        )
     if args.out:
         Path(args.out).write_text(json.dumps(report, indent=1))
     return 0

@@ -62,7 +62,9 @@ def panorama_profiles(paths: list[Path]) -> torch.Tensor:
     return torch.stack([row_profile(load_panorama(p), GAIN_ROWS, HORIZON_BAND_DEG) for p in paths])
 
 
-def gain_from_profiles(profiles: torch.Tensor, average: str = "arithmetic", sigma_rows: float | None = None) -> list[float]:
+def gain_from_profiles(
+    profiles: torch.Tensor, average: str = "arithmetic", sigma_rows: float | None = None
+) -> list[float]:
     from core.priors.indoor_fill import GAIN_SMOOTHING_ROWS
 
     mean = smooth(mean_log_profile(profiles, average), GAIN_SMOOTHING_ROWS if sigma_rows is None else sigma_rows)

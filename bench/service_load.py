@@ -220,7 +220,8 @@ class EnvmapPaths:
     def __call__(self, rng) -> str:
         b = self.bounds
         x = ",".join(f"{rng.uniform(lo, hi):.4f}" for lo, hi in zip(b["lo"], b["hi"]))
-        return f"/lightfield/{self.job}/envmap?x={x}&t={rng.uniform(b['t0'], b['t1']):.4f}&height={self.height}{self.extra}"
+        t = rng.uniform(b["t0"], b["t1"])
+        return f"/lightfield/{self.job}/envmap?x={x}&t={t:.4f}&height={self.height}{self.extra}"
 
 
 def timed_get(client, path: str, params: dict, reps: int) -> dict:

@@ -244,7 +244,9 @@ class S3Store(BlobStore):
     def delete(self, keys: list[str]) -> None:
         for start in range(0, len(keys), 1000):
             batch = [{"Key": self._key(k)} for k in keys[start:start + 1000]]
-            self._call("DELETE", self.client.delete_objects, Bucket=self.bucket, Delete={"Objects": batch, "Quiet": True})
+            self._call(
+                "DELETE", self.client.delete_objects, Bucket=self.bucket, Delete={"Objects": batch, "Quiet": True}
+            )
 
 
 def store_for(storage_url: str | None, data_dir: Path) -> BlobStore:

@@ -16,7 +16,8 @@ the surface. So, before the uploads go, the worker stores a preview beside the a
                                             SHA-256 of capture.safetensors and of itself
 
 It is made from the capture the engine decoded for the job (run_job's `on_capture`), so its
-cameras, times and fallback depth are exactly the ones the light field was estimated with. At most PREVIEW_MAX_HEIGHT rows
+cameras, times and fallback depth are exactly the ones the light field was estimated with. At most PREVIEW_MAX_HEIGHT
+rows
 and PREVIEW_MAX_FRAMES frames (evenly spaced) are kept, which bounds it to a few tens of MB.
 Written to a temporary sibling and renamed, like the artefact; never unpickled. The reader
 (service.stored_preview) verifies both checksums before serving a byte (version 1 previews,
@@ -99,7 +100,9 @@ def _evenly_spaced(count: int, keep: int) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, count - 1, keep)).astype(np.int64))
 
 
-def preview_from_capture(capture, max_height: int = PREVIEW_MAX_HEIGHT, max_frames: int = PREVIEW_MAX_FRAMES) -> CapturePreview:
+def preview_from_capture(
+    capture, max_height: int = PREVIEW_MAX_HEIGHT, max_frames: int = PREVIEW_MAX_FRAMES
+) -> CapturePreview:
     """Downsample a core.capture.base.Capture: pick frames first (cheap), then the engine's own
     resize (area-averaged frames, nearest-surface depth)."""
     import dataclasses

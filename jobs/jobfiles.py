@@ -105,7 +105,9 @@ class JobFiles:
         prefix = self.key(paths.checkpoint_dir)
         self.store.put_file(f"{prefix}/{step}.safetensors", paths.checkpoint_dir / CHECKPOINT_STATE)
         self.store.put_file(f"{prefix}/{CHECKPOINT_POINTER}", pointer)
-        stale = [k for k in self.store.list(prefix) if k.endswith(".safetensors") and k != f"{prefix}/{step}.safetensors"]
+        stale = [
+            k for k in self.store.list(prefix) if k.endswith(".safetensors") and k != f"{prefix}/{step}.safetensors"
+        ]
         if stale:
             self.store.delete(stale)
         return step

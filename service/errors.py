@@ -184,8 +184,16 @@ def body_parse_message(exc: BaseException) -> str:
 _HTTP_CODES = {404: "not_found", 405: "method_not_allowed", 401: "unauthorized", 413: "too_large",
                408: "body_timeout"}
 # query/body fields whose invalid values have their own code (docs/api.md, "Errors")
-_FIELD_CODES = {"x": "invalid_x", "t": "invalid_t", "ev": "invalid_ev", "offset": "invalid_offset",
-                "limit": "invalid_limit", "height": "invalid_height", "size": "invalid_size", "queries": "invalid_query"}
+_FIELD_CODES = {
+    "x": "invalid_x",
+    "t": "invalid_t",
+    "ev": "invalid_ev",
+    "offset": "invalid_offset",
+    "limit": "invalid_limit",
+    "height": "invalid_height",
+    "size": "invalid_size",
+    "queries": "invalid_query",
+}
 
 
 def validation_code(errors) -> str:

@@ -51,7 +51,9 @@ def _verify_tensors(path: Path, expected: str) -> None:
             while len(_verified) > _VERIFIED_MAX:
                 _verified.popitem(last=False)
     if known != expected:
-        raise PreviewCorrupt(f"{TENSORS_FILE}: checksum mismatch (the file was modified or corrupted after it was written)")
+        raise PreviewCorrupt(
+            f"{TENSORS_FILE}: checksum mismatch (the file was modified or corrupted after it was written)"
+        )
 
 
 class StoredPreview(PreviewCameras):

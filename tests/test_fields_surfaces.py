@@ -104,7 +104,8 @@ def test_every_path_answers_the_same_and_the_artefact_reloads(tmp_path):
 
 
 def test_the_layer_costs_16_bytes_per_point_plus_12_per_knot_in_the_artefact(tmp_path):
-    """docs/engine.md's artefact-size figure ("Observed surfaces"): points (12) + used flag (4) + colours (12 per knot)."""
+    """docs/engine.md's artefact-size figure ("Observed surfaces"): points (12) + used flag (4) + colours
+    (12 per knot)."""
     from core.fields.stored.artefact import save_artefact
 
     sizes = {}

@@ -28,7 +28,9 @@ BOUNDS = SceneBounds((-3.0, -2.0, -4.0), (3.0, 2.0, 0.5), t0=0.0, t1=(T - 1) / F
 
 def bright_field(uses_time: bool = True):
     """A 2x2x2 grid field that is the same, fairly bright, everywhere (so balls are visible)."""
-    cfg = FieldConfig(kind="grid", uses_time=uses_time, grid=GridSettings(resolution=(2, 2, 2), env_height=4, time_keyframes=2))
+    cfg = FieldConfig(
+        kind="grid", uses_time=uses_time, grid=GridSettings(resolution=(2, 2, 2), env_height=4, time_keyframes=2)
+    )
     field = build_field(cfg, BOUNDS)
     with torch.no_grad():
         for p in field.parameters():
@@ -39,10 +41,16 @@ def bright_field(uses_time: bool = True):
 def preview() -> CapturePreview:
     yy = np.linspace(0, 1, H, dtype=np.float32)[None, :, None, None]
     frames = np.broadcast_to(yy * np.array([60, 50, 40], np.float32) + 20, (T, H, W, 3)).round().astype(np.uint8)
-    return CapturePreview(frames=np.ascontiguousarray(frames + np.arange(T, dtype=np.uint8)[:, None, None, None]),
-                          depth=np.full((T, H, W), WALL, np.float32), poses=np.repeat(np.eye(4)[None], T, 0),
-                          times=(np.arange(T) / FPS).astype(np.float32), intrinsics=Intrinsics.from_hfov(W, H).as_dict(),
-                          fps=FPS, depth_source="test", source_frames=T)
+    return CapturePreview(
+        frames=np.ascontiguousarray(frames + np.arange(T, dtype=np.uint8)[:, None, None, None]),
+        depth=np.full((T, H, W), WALL, np.float32),
+        poses=np.repeat(np.eye(4)[None], T, 0),
+        times=(np.arange(T) / FPS).astype(np.float32),
+        intrinsics=Intrinsics.from_hfov(W, H).as_dict(),
+        fps=FPS,
+        depth_source="test",
+        source_frames=T,
+    )
 
 
 @pytest.fixture(scope="module")

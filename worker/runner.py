@@ -170,9 +170,15 @@ class JobRunner:
             return Outcome.FAILED
         self.retry_delay_s = self.settings.storage_retry_delay_s(retry)
         applied = self.store.update(
-            job_id, allowed=("running", "queued"), state="queued", stage="waiting_for_storage", eta_s=None,
-            storage_retries=retry, message=f"storage error ({kind}) during {record.stage or 'the run'}: resuming from "
-                                           f"the last checkpoint in {self.retry_delay_s:g} s (retry {retry} of {limit})")
+            job_id,
+            allowed=("running", "queued"),
+            state="queued",
+            stage="waiting_for_storage",
+            eta_s=None,
+            storage_retries=retry,
+            message=f"storage error ({kind}) during {record.stage or 'the run'}: resuming from "
+            f"the last checkpoint in {self.retry_delay_s:g} s (retry {retry} of {limit})",
+        )
         return Outcome.STORAGE_RETRY if applied else Outcome.SKIPPED
 
     def _call_engine(self, record, paths: JobPaths, lease: RunLease) -> "JobResult":

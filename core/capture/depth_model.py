@@ -43,7 +43,11 @@ def check_depth_model_dir(model_dir: str | os.PathLike) -> Path:
     path = Path(model_dir).expanduser()
     if not path.is_dir():
         looks_like_hub_id = "/" in str(model_dir) and not path.is_absolute() and not path.exists()
-        hint = " It looks like a Hugging Face hub id: download it yourself and give the directory." if looks_like_hub_id else ""
+        hint = (
+            " It looks like a Hugging Face hub id: download it yourself and give the directory."
+            if looks_like_hub_id
+            else ""
+        )
         raise _fail(f"{str(model_dir)!r} is not an existing local directory.{hint}")
     missing = [n for n in ("config.json", "preprocessor_config.json") if not (path / n).is_file()]
     if not any(path.glob("*.safetensors")):

@@ -76,7 +76,9 @@ def merge_frames(capture: Capture, linear: torch.Tensor, weight: torch.Tensor) -
             grid = torch.stack([2.0 * u / W - 1.0, 2.0 * v / H - 1.0], -1).reshape(1, 1, -1, 2)
             inside = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H) & torch.isfinite(z)
             grid = torch.where(inside.reshape(1, 1, -1, 1), grid, torch.zeros_like(grid))
-            d_j = F.grid_sample(depth[j][None, None].nan_to_num(0.0), grid, mode="nearest", align_corners=False)[0, 0, 0]
+            d_j = F.grid_sample(depth[j][None, None].nan_to_num(0.0), grid, mode="nearest", align_corners=False)[
+                0, 0, 0
+            ]
             same = inside & (d_j > 0) & ((d_j - z).abs() <= DEPTH_TOLERANCE * z.abs())
             if not bool(same.any()):
                 continue

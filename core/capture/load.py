@@ -228,7 +228,9 @@ def resolve_exposures(frame_ev, T: int) -> torch.Tensor | None:
     return e
 
 
-def _estimate_depth(frames: torch.Tensor, intr: Intrinsics, model_dir: str, warn: list[str]) -> tuple[torch.Tensor, str]:
+def _estimate_depth(
+    frames: torch.Tensor, intr: Intrinsics, model_dir: str, warn: list[str]
+) -> tuple[torch.Tensor, str]:
     from core.capture.depth_model import load_depth_estimator
 
     estimator = load_depth_estimator(model_dir)
@@ -272,7 +274,9 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
         raise CaptureError("fps", f"must be finite and > 0, got {fps}")
     if loaded.get("intrinsics_source"):
         metadata["intrinsics_source"] = loaded["intrinsics_source"]
-    intr = resolve_intrinsics(params, loaded.get("intrinsics_dict"), W, H, warn, loaded.get("exif_intrinsics"), metadata)
+    intr = resolve_intrinsics(
+        params, loaded.get("intrinsics_dict"), W, H, warn, loaded.get("exif_intrinsics"), metadata
+    )
     poses, frame_ev = _per_frame_values(params, loaded, T, source_idx, metadata)
     depth, depth_src = _capture_depth(depth_path, loaded, frames, intr, source_idx, limits, warn, metadata)
     return Capture(
@@ -298,18 +302,27 @@ def read_capture_input(path: Path, limits: MediaLimits, warn: list[str]) -> dict
     if not path.exists():
         raise CaptureError("input", f"{path} does not exist")
     if path.is_dir():
-        loaded = _read_nerfstudio(path, limits) if (path / "transforms.json").is_file() else _read_capture_dir(path, limits)
+        loaded = (
+            _read_nerfstudio(path, limits) if (path / "transforms.json").is_file() else _read_capture_dir(path, limits)
+        )
     else:
         kind = sniff_capture_file(path)
         if kind == "video":
             vf = read_video(path, limits)
             warn.extend(vf.warnings)
-            loaded = {"frames": torch.from_numpy(np.ascontiguousarray(vf.frames)), "fps": vf.fps,
-                      "source_indices": [int(i) for i in vf.source_frame_indices], "original_count": vf.original_frame_count,
-                      "times": vf.times}  # presentation timestamps (variable frame rate), else index / fps
+            loaded = {
+                "frames": torch.from_numpy(np.ascontiguousarray(vf.frames)),
+                "fps": vf.fps,
+                "source_indices": [int(i) for i in vf.source_frame_indices],
+                "original_count": vf.original_frame_count,
+                "times": vf.times,
+            }  # presentation timestamps (variable frame rate), else index / fps
             if vf.rotation_ccw_deg:
-                loaded["metadata"] = {"applied": [f"video display rotation {vf.rotation_ccw_deg} deg counter-clockwise: "
-                                                  "frames turned upright"]}
+                loaded["metadata"] = {
+                    "applied": [
+                        f"video display rotation {vf.rotation_ccw_deg} deg counter-clockwise: frames turned upright"
+                    ]
+                }
         elif kind == "image":
             loaded = _read_image_file(path, limits)
         elif kind == "archive":
@@ -335,16 +348,24 @@ def _per_frame_values(params: CaptureParams, loaded: dict, T: int, source_idx: l
     """The poses and stated exposures (params' over the capture file's), and where they came
     from in `metadata` (poses_source, exposure_source)."""
     source_count = loaded.get("original_count", T)
-    given_poses = loaded.get("poses") if params.poses is None else kept_per_frame(params.poses, T, source_count, source_idx)
+    given_poses = (
+        loaded.get("poses") if params.poses is None else kept_per_frame(params.poses, T, source_count, source_idx)
+    )
     poses = resolve_poses(given_poses, T)
     if given_poses is not None:
         metadata["poses_source"] = "params" if params.poses is not None else loaded.get("poses_source", "capture file")
-    given_ev = loaded.get("frame_ev") if params.frame_ev is None else kept_per_frame(params.frame_ev, T, source_count, source_idx)
+    given_ev = (
+        loaded.get("frame_ev")
+        if params.frame_ev is None
+        else kept_per_frame(params.frame_ev, T, source_count, source_idx)
+    )
     if isinstance(params.frame_ev, str):  # "estimate" / "locked": after tracking (core.capture.autoexposure)
         given_ev = None
     frame_ev = resolve_exposures(given_ev, T)
     if given_ev is not None:
-        metadata["exposure_source"] = "params" if params.frame_ev is not None else loaded.get("exposure_source", "capture.json")
+        metadata["exposure_source"] = (
+            "params" if params.frame_ev is not None else loaded.get("exposure_source", "capture.json")
+        )
     return poses, frame_ev
 
 
@@ -370,9 +391,16 @@ def _frame_times(params: CaptureParams, loaded: dict, source_idx: list[int], fps
     return frame_time(torch.tensor(source_idx, dtype=torch.float32), fps)
 
 
-def capture_from_arrays(frames: torch.Tensor, depth: torch.Tensor | None = None, *, intrinsics: Intrinsics | None = None,
-                        poses: torch.Tensor | None = None, fps: float = 1.0, source: str = "arrays",
-                        frame_ev=None) -> Capture:
+def capture_from_arrays(
+    frames: torch.Tensor,
+    depth: torch.Tensor | None = None,
+    *,
+    intrinsics: Intrinsics | None = None,
+    poses: torch.Tensor | None = None,
+    fps: float = 1.0,
+    source: str = "arrays",
+    frame_ev=None,
+) -> Capture:
     """Build a validated Capture from in-memory tensors (tests, the demo, the simulator);
     `frame_ev`: each frame's stated exposure in stops (as CaptureParams.frame_ev)."""
     frames = torch.as_tensor(frames, dtype=torch.float32)

@@ -139,7 +139,9 @@ def _consecutive_changes(capture):
     depth = torch.where(valid_depth_mask(small.depth), small.depth, torch.nan)
     steps, local, diffs, blind = [], [], [], []
     for t in range(1, T):
-        warped, ok = _warp_into(planes[t], depth[t - 1], depth[t], small.intrinsics, capture.poses[t - 1], capture.poses[t])
+        warped, ok = _warp_into(
+            planes[t], depth[t - 1], depth[t], small.intrinsics, capture.poses[t - 1], capture.poses[t]
+        )
         usable = ok & (planes[t - 1][..., 1] > 0.999) & (warped[..., 1] > 0.999)
         pair = torch.stack((planes[t - 1][..., 0], warped[..., 0])), usable[None].expand(2, -1, -1)
         logs = _block_logs(*pair)
@@ -273,8 +275,12 @@ def detect_temporal(capture) -> TemporalDecision:
     l = block_log_luminance(capture)  # [T, B]
     keep = torch.isfinite(l).all(0)  # blocks usable in every frame
     if int(keep.sum()) == 0:
-        return TemporalDecision(False, float("nan"), float("nan"),
-                                "no image block is usable in every frame (saturated/dark/occluded): assuming static lighting")
+        return TemporalDecision(
+            False,
+            float("nan"),
+            float("nan"),
+            "no image block is usable in every frame (saturated/dark/occluded): assuming static lighting",
+        )
     l = l[:, keep].double()
     dev = (l - l.median(dim=0).values).abs().mean(dim=1)  # [T]
     stat = float(dev.max())
@@ -297,4 +303,6 @@ def decide_temporal(capture, mode: str = "auto") -> TemporalDecision:
     if mode == "auto" or capture.num_frames < 2:
         return TemporalDecision(auto.uses_time, auto.statistic, auto.threshold, auto.reason, mode)
     forced = mode == "on"
-    return TemporalDecision(forced, auto.statistic, auto.threshold, f"forced {mode} by user; auto would say: {auto.reason}", mode)
+    return TemporalDecision(
+        forced, auto.statistic, auto.threshold, f"forced {mode} by user; auto would say: {auto.reason}", mode
+    )

@@ -65,6 +65,15 @@ def track_capture(capture: Capture, params: CaptureParams | None = None) -> Capt
     for w in geo.warnings:
         if w not in warnings:
             warnings.append(w)
-    return replace(capture, frames=capture.frames[keep].contiguous(), depth=depth.contiguous(), intrinsics=geo.intrinsics,
-                   poses=geo.poses.clone(), times=capture.times[keep], depth_source=depth_source, warnings=warnings,
-                   metadata=meta, stated_ev=None if capture.stated_ev is None else capture.stated_ev[keep])
+    return replace(
+        capture,
+        frames=capture.frames[keep].contiguous(),
+        depth=depth.contiguous(),
+        intrinsics=geo.intrinsics,
+        poses=geo.poses.clone(),
+        times=capture.times[keep],
+        depth_source=depth_source,
+        warnings=warnings,
+        metadata=meta,
+        stated_ev=None if capture.stated_ev is None else capture.stated_ev[keep],
+    )

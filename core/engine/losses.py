@@ -36,7 +36,9 @@ def _gaussian_window(size: int = 7, sigma: float = 1.5, dtype=torch.float32) -> 
     return (g[:, None] * g[None, :])[None, None].expand(3, 1, size, size).contiguous()
 
 
-def masked_ssim_loss(pred_ldr: torch.Tensor, target_ldr: torch.Tensor, mask: torch.Tensor, size: int = 7) -> torch.Tensor:
+def masked_ssim_loss(
+    pred_ldr: torch.Tensor, target_ldr: torch.Tensor, mask: torch.Tensor, size: int = 7
+) -> torch.Tensor:
     """1 - SSIM averaged over masked pixels (local statistics with a Gaussian window)."""
     win = _gaussian_window(size, dtype=pred_ldr.dtype).to(pred_ldr.device)
     x, y = pred_ldr.clamp(0, 1)[None], target_ldr.clamp(0, 1)[None]
@@ -95,5 +97,6 @@ class PerceptualLoss:
         if self._lpips is None:
             return masked_ssim_loss(pred, target, mask)
         self._lpips.to(pred.device)  # pragma: no cover - no-op once there
-        d = self._lpips(pred[None] * 2 - 1, target[None] * 2 - 1, retPerLayer=False, normalize=False)  # pragma: no cover
+        d = self._lpips(pred[None] * 2 - 1, target[None] * 2 - 1,  # pragma: no cover
+                        retPerLayer=False, normalize=False)
         return d.mean()  # pragma: no cover

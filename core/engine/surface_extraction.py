@@ -67,7 +67,9 @@ def observed_surfaces(capture: Capture, view_radiance, bounds: SceneBounds, *, m
         colors = torch.cat([_frame_colors(view_radiance, f) for f in frames])[:, None]
     ok = torch.isfinite(points).all(-1) & torch.isfinite(colors).all((-1, -2))
     if emitters is not None and emitters.count:
-        gap = torch.cdist(points.double(), emitters.centres.double()) - EMITTER_CLEARANCE * emitters.radii.double()[None]
+        gap = (
+            torch.cdist(points.double(), emitters.centres.double()) - EMITTER_CLEARANCE * emitters.radii.double()[None]
+        )
         ok &= ~(gap < 0).any(-1)
     if not bool(ok.any()):
         return None

@@ -25,7 +25,8 @@ def _srgb_encode(linear: np.ndarray) -> np.ndarray:
 def metal_cube_slices(faces: np.ndarray, pixel_format: str = "rgba16Float", exposure_ev: float = 0.0) -> list[bytes]:
     """Per-slice bytes of cube faces [6, S, S, 3] (ours) for a Metal cube texture.
 
-    `rgba16Float`: linear radiance clipped to the half range (+-65504), alpha 1 (bytesPerRow = 8 S). `rgba8Unorm_srgb`: 2^ev scaled,
+    `rgba16Float`: linear radiance clipped to the half range (+-65504), alpha 1 (bytesPerRow = 8 S). `rgba8Unorm_srgb`:
+    2^ev scaled,
     clipped to [0, 1], sRGB-encoded, alpha 255 (bytesPerRow = 4 S)."""
     f = np.asarray(faces, np.float32)
     if f.ndim != 4 or f.shape[0] != 6 or f.shape[1] != f.shape[2] or f.shape[3] != 3:

@@ -31,7 +31,8 @@ from core.envmap import check_envmap, resize_envmap, sample_envmap, solid_angles
 DEFAULT_SAMPLES = 64
 LOD_BIAS = 0.0
 QUADRATURE_MAX_FACE = 32  # levels this small (rough, wide lobes) are integrated directly, larger ones sampled
-QUADRATURE_SOURCE_RATIO = 2  # source rows per face texel; 64 cube on 2 CPUs: 2 -> 1.1 % error, ~1 s; 1 -> 2.9 %, 0.23 s (bench/export_latency.py)
+# source rows per face texel; 64 cube on 2 CPUs: 2 -> 1.1 % error, ~1 s; 1 -> 2.9 %, 0.23 s (bench/export_latency.py)
+QUADRATURE_SOURCE_RATIO = 2
 MIN_FACE = 4  # default mip chains stop at faces of this size or above (glTF: the last mip must hold roughness 1)
 
 
@@ -96,8 +97,11 @@ def _prefilter_level(pyramid: list[torch.Tensor], n: torch.Tensor, roughness: fl
     lod = (0.5 * torch.log2(omega_s / omega_p) + LOD_BIAS).clamp(0.0, len(pyramid) - 1.0)
     tangent, bitangent = _tangent_frame(n)
     # all samples at once: h [K, M, 3], l = reflect(-n, h)
-    h = (tangent[:, None] * (sin_h * torch.cos(phi))[None, :, None] + bitangent[:, None] * (sin_h * torch.sin(phi))[None, :, None]
-         + n[:, None] * cos_h[None, :, None])
+    h = (
+        tangent[:, None] * (sin_h * torch.cos(phi))[None, :, None]
+        + bitangent[:, None] * (sin_h * torch.sin(phi))[None, :, None]
+        + n[:, None] * cos_h[None, :, None]
+    )
     nh = (n[:, None] * h).sum(-1, keepdim=True)
     l = 2.0 * nh * h - n[:, None]
     nl = (n[:, None] * l).sum(-1, keepdim=True).clamp_min(0.0)  # [K, M, 1]

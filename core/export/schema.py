@@ -27,12 +27,16 @@ class Flags(BaseModel):
 class DominantLight(BaseModel):
     direction: tuple[float, float, float] = Field(description="unit vector the light arrives from (world); "
                                                   "the best guess even when found is false")
-    intensity: tuple[float, float, float] = Field(description="RGB intensity of a directional light (radiance x sr, "
-                                                  "relative units): ambient SH + this light reproduce the map's irradiance")
+    intensity: tuple[float, float, float] = Field(
+        description="RGB intensity of a directional light (radiance x sr, "
+        "relative units): ambient SH + this light reproduce the map's irradiance"
+    )
     solid_angle: float = Field(description="effective steradians of the light's lobe")
     found: bool = Field(description="confidence >= the threshold: the light is real; when false, use the ambient SH "
                         "alone (coefficients_with_light) or the light at your own risk")
-    confidence: float = Field(description="0..1: share of the irradiance facing the light that it gives x (1 - 1/contrast)")
+    confidence: float = Field(
+        description="0..1: share of the irradiance facing the light that it gives x (1 - 1/contrast)"
+    )
     reason: str = Field(description="why it was or was not found, in words")
     sharpness: float = Field(0.0, description="von Mises-Fisher kappa of the lobe (large = compact)")
     contrast: float = Field(1.0, description="mean radiance of the light's cap over its surroundings")
@@ -41,11 +45,17 @@ class DominantLight(BaseModel):
     @classmethod
     def of(cls, light) -> "DominantLight":
         """From a core.lights.DominantLight."""
-        return cls(direction=tuple(float(v) for v in light.direction), intensity=tuple(float(v) for v in light.intensity_rgb),
-                   solid_angle=float(light.solid_angle), found=bool(light.found), confidence=float(light.confidence),
-                   reason=light.reason, sharpness=float(light.sharpness),
-                   contrast=float(light.contrast) if light.contrast != float("inf") else 1e30,
-                   irradiance_error=float(light.irradiance_error))
+        return cls(
+            direction=tuple(float(v) for v in light.direction),
+            intensity=tuple(float(v) for v in light.intensity_rgb),
+            solid_angle=float(light.solid_angle),
+            found=bool(light.found),
+            confidence=float(light.confidence),
+            reason=light.reason,
+            sharpness=float(light.sharpness),
+            contrast=float(light.contrast) if light.contrast != float("inf") else 1e30,
+            irradiance_error=float(light.irradiance_error),
+        )
 
 
 class SphericalHarmonics(BaseModel):

@@ -5,7 +5,8 @@ pattern Nuke / Houdini / Blender read as a sequence), each with `core.export.met
 attributes (probe position, time, units, colour space, artefact id, and the standard
 `timeCode` / `framesPerSecond` of evenly spaced frames), plus `sequence.json` listing
 frame -> t. `colour="acescg"` writes ACEScg pixels (AP1 chromaticities). Members are regular
-files with mode 0644 (what unzip restores), not Python's default of no permissions. The zip is produced incrementally: `zip_stream` yields its bytes as each
+files with mode 0644 (what unzip restores), not Python's default of no permissions. The zip is produced incrementally:
+`zip_stream` yields its bytes as each
 member is written, so a caller can send frames while later ones are still being evaluated.
 """
 from __future__ import annotations

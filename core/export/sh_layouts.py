@@ -65,10 +65,13 @@ class SHLayout:
 
     def describe(self) -> str:
         flipped = [k for k, s in enumerate(self.signs) if s < 0]
-        return (f"{self.name}: {self.quantity} for {self.reads_it}; "
-                f"{'entries k = ' + ', '.join(map(str, flipped)) + ' negated' if flipped else 'no sign change'}"
-                f"{'' if set(self.scale) == {1.0} else ', scaled per band'}; "
-                f"{'27 floats, coefficient-major, RGB interleaved' if self.packing == 'rgb_interleaved' else '27 floats, three planes of 9 (R, G, B)'}")
+        return (
+            f"{self.name}: {self.quantity} for {self.reads_it}; "
+            f"{'entries k = ' + ', '.join(map(str, flipped)) + ' negated' if flipped else 'no sign change'}"
+            f"{'' if set(self.scale) == {1.0} else ', scaled per band'}; "
+            + ("27 floats, coefficient-major, RGB interleaved" if self.packing == "rgb_interleaved"
+               else "27 floats, three planes of 9 (R, G, B)")
+        )
 
 
 LAYOUTS: dict[str, SHLayout] = {layout.name: layout for layout in (

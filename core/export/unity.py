@@ -69,9 +69,14 @@ def unity_probe_grid(evaluate, bounds, counts, t, artefact: str = "", lo=None, h
     probes = []
     for x, ok in zip(positions, covered):
         env, flags = evaluate(tuple(float(v) for v in x))
-        probes.append(UnityProbe(position=tuple(float(v) for v in x), position_unity=tuple(float(v) for v in to_unity(x)),
-                                 sh=unity_sh(np.asarray(env, np.float64)),
-                                 extrapolated=Flags(x=bool(flags["x"] or not ok), t=bool(flags["t"]))))
+        probes.append(
+            UnityProbe(
+                position=tuple(float(v) for v in x),
+                position_unity=tuple(float(v) for v in to_unity(x)),
+                sh=unity_sh(np.asarray(env, np.float64)),
+                extrapolated=Flags(x=bool(flags["x"] or not ok), t=bool(flags["t"])),
+            )
+        )
     return UnityProbeGrid(t=t, grid=tuple(int(n) for n in counts),
                           covered=Region(lo=tuple(c_lo.tolist()), hi=tuple(c_hi.tolist()), source=source),
                           extrapolated_probes=sum(p.extrapolated.x or p.extrapolated.t for p in probes),

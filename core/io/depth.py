@@ -135,7 +135,9 @@ def _load_png(data: bytes, limits: MediaLimits) -> np.ndarray:
             raise MediaError("wrong_bit_depth", f"depth PNG must be 16-bit millimetres; {exc}") from None
         raise
     if millimetres.ndim != 2:
-        raise MediaError("invalid_depth", f"depth PNG must be single-channel (greyscale), got {millimetres.shape[2]} channels")
+        raise MediaError(
+            "invalid_depth", f"depth PNG must be single-channel (greyscale), got {millimetres.shape[2]} channels"
+        )
     return millimetres.astype(np.float32) / np.float32(MM_PER_METRE)  # 0 mm -> 0 -> NaN below
 
 
@@ -239,7 +241,9 @@ def encode_depth_png16(depth_m: np.ndarray) -> bytes:
         raise MediaError("invalid_depth", f"depth PNG holds one [H, W] map, got shape {d.shape}")
     mm = np.round(np.nan_to_num(d, nan=0.0) * MM_PER_METRE)
     if mm.max(initial=0.0) > 65535:
-        raise MediaError("invalid_depth", f"depth {float(np.nanmax(d)):.3f} m exceeds the 16-bit millimetre range (65.535 m)")
+        raise MediaError(
+            "invalid_depth", f"depth {float(np.nanmax(d)):.3f} m exceeds the 16-bit millimetre range (65.535 m)"
+        )
     return encode_png16(mm.astype(np.uint16))
 
 

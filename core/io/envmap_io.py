@@ -70,8 +70,14 @@ def encode_envmap(hdr: np.ndarray, fmt: EnvmapFormat, ev: float = 0.0, half: boo
     return data, MEDIA_TYPES[fmt]
 
 
-def save_envmap(path: str | os.PathLike, hdr: np.ndarray, fmt: EnvmapFormat | None = None, ev: float = 0.0, half: bool = False,
-                attributes: dict | None = None) -> Path:
+def save_envmap(
+    path: str | os.PathLike,
+    hdr: np.ndarray,
+    fmt: EnvmapFormat | None = None,
+    ev: float = 0.0,
+    half: bool = False,
+    attributes: dict | None = None,
+) -> Path:
     """Write an env map atomically; `fmt` defaults to the path's suffix."""
     path = Path(path)
     fmt = fmt or path.suffix.lower().lstrip(".")

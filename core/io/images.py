@@ -50,7 +50,9 @@ def _open_checked(data: bytes, limits: MediaLimits) -> Image.Image:
         raise MediaError("too_many_pixels", f"image declares too many pixels ({exc})") from None
     except Exception as exc:  # UnidentifiedImageError, SyntaxError from broken headers, ...
         if fmt == "heif":
-            raise MediaError("unsupported_codec", "HEIF/AVIF images are not supported; convert to PNG or JPEG") from None
+            raise MediaError(
+                "unsupported_codec", "HEIF/AVIF images are not supported; convert to PNG or JPEG"
+            ) from None
         raise MediaError("truncated", f"{fmt.upper()} header is corrupt or truncated") from exc
     width, height = image.size
     limits.check_pixels(width, height, f"{fmt.upper()} image")
@@ -110,7 +112,10 @@ def check_complete(data: bytes) -> None:
 def _check_sample_format(image: Image.Image, data: bytes) -> None:
     if image.mode in ("I", "F") and not (image.format == "PNG" and _png_bit_depth(data) == 16):
         # 32-bit integer / float samples: no defined white level
-        raise MediaError("unsupported_codec", f"{image.format} with 32-bit {image.mode!r} samples is not an LDR image; send HDR as EXR or .hdr")
+        raise MediaError(
+            "unsupported_codec",
+            f"{image.format} with 32-bit {image.mode!r} samples is not an LDR image; send HDR as EXR or .hdr",
+        )
 
 
 def _decode_png16(data: bytes) -> np.ndarray:

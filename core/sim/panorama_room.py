@@ -64,7 +64,9 @@ def ldr_clip(hdr_frames: torch.Tensor, percentile: float = 99.0) -> torch.Tensor
     return torch.round(ldr * 255.0) / 255.0
 
 
-def render_clip(room: PanoramaRoom, cameras: list[Camera], supersample: int = 2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def render_clip(
+    room: PanoramaRoom, cameras: list[Camera], supersample: int = 2
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(LDR frames [T, H, W, 3] 8-bit-quantised at one exposure, planar depth [T, H, W], HDR frames)."""
     out = [room.render(c, supersample) for c in cameras]
     hdr = torch.stack([o[0] for o in out])

@@ -84,13 +84,17 @@ def scan_angles(yaw0: float = 0.0, path: str = "scan") -> list[tuple[float, floa
     return out
 
 
-def scan_poses(yaw0: float = 0.0, seed: int = 0, jitter_deg: float = HAND_JITTER_DEG, path: str = "scan") -> list[torch.Tensor]:
+def scan_poses(
+    yaw0: float = 0.0, seed: int = 0, jitter_deg: float = HAND_JITTER_DEG, path: str = "scan"
+) -> list[torch.Tensor]:
     """c2w poses [4, 4] float64 at the origin along the path (scan_angles), with a seeded hand jitter."""
     rng = random.Random(f"scan:{seed}")
     poses = []
     for yaw, pitch in scan_angles(yaw0, path):
         c2w = torch.eye(4, dtype=torch.float64)
-        c2w[:3, :3] = _rotation(yaw + rng.gauss(0, jitter_deg), pitch + rng.gauss(0, jitter_deg), rng.gauss(0, jitter_deg))
+        c2w[:3, :3] = _rotation(
+            yaw + rng.gauss(0, jitter_deg), pitch + rng.gauss(0, jitter_deg), rng.gauss(0, jitter_deg)
+        )
         poses.append(c2w)
     return poses
 

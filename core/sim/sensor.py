@@ -84,7 +84,9 @@ def sensor_sequence(scene: SceneSpec, hdr_frames: list[torch.Tensor], cost: Cost
     """LDR frames [T, H, W, 3] float32 in [0, 1] of a whole sequence (with compression if set)."""
     cost = cost if cost is not None else CostReport()
     evs = frame_evs(scene, hdr_frames)
-    ldr = np.stack([sensor_frame(scene, h, i, cost, ev).numpy() for i, (h, ev) in enumerate(zip(hdr_frames, evs))]).astype(np.float32)
+    ldr = np.stack(
+        [sensor_frame(scene, h, i, cost, ev).numpy() for i, (h, ev) in enumerate(zip(hdr_frames, evs))]
+    ).astype(np.float32)
     if scene.has("sensor") and scene.sensor.video_compression:
         with cost.track("sensor"):
             ldr = video_round_trip(ldr, scene.fps, scene.sensor.crf)

@@ -190,19 +190,36 @@ def _counts(text: str) -> tuple[int, int, int]:
     return values  # type: ignore[return-value]
 
 
-@router.get("/lightfield/{job_id}/unity", response_model=UnityProbeGrid, responses=_ERRORS,
-            summary="Unity light-probe grid: positions (ours and Unity's) + SphericalHarmonicsL2, extrapolated probes flagged")
-async def get_unity(job_id: str, response: Response,
-                    grid: str = Query("3,2,3", description="probes per axis 'NX,NY,NZ' (each 1..64, at most "
-                                      f"{MAX_UNITY_PROBES} in all)", max_length=40),
-                    lo: str | None = Query(None, description="grid corner 'X,Y,Z' (our metres); default: the probes "
-                                           "sit at the cell centres of the region the captures cover", pattern=X_PATTERN,
-                                           max_length=200),
-                    hi: str | None = Query(None, description="opposite corner; default: that region's", pattern=X_PATTERN,
-                                           max_length=200),
-                    t: float | None = Query(None, description=T_HELP + " (required when the field varies over time)",
-                                            ge=-MAX_ABS_T_S, le=MAX_ABS_T_S),
-                    tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+@router.get(
+    "/lightfield/{job_id}/unity",
+    response_model=UnityProbeGrid,
+    responses=_ERRORS,
+    summary="Unity light-probe grid: positions (ours and Unity's) + SphericalHarmonicsL2, extrapolated probes flagged",
+)
+async def get_unity(
+    job_id: str,
+    response: Response,
+    grid: str = Query(
+        "3,2,3",
+        description=f"probes per axis 'NX,NY,NZ' (each 1..64, at most {MAX_UNITY_PROBES} in all)",
+        max_length=40,
+    ),
+    lo: str | None = Query(
+        None,
+        description="grid corner 'X,Y,Z' (our metres); default: the probes "
+        "sit at the cell centres of the region the captures cover",
+        pattern=X_PATTERN,
+        max_length=200,
+    ),
+    hi: str | None = Query(
+        None, description="opposite corner; default: that region's", pattern=X_PATTERN, max_length=200
+    ),
+    t: float | None = Query(
+        None, description=T_HELP + " (required when the field varies over time)", ge=-MAX_ABS_T_S, le=MAX_ABS_T_S
+    ),
+    tenant: Tenant = Depends(get_tenant),
+    ctx: AppContext = Depends(get_ctx),
+):
     from core.export.unity import unity_probe_grid
 
     counts = _counts(grid)
@@ -214,7 +231,9 @@ async def get_unity(job_id: str, response: Response,
         hdr, flags = queries.envmap(cf, point, t, UNITY_SH_HEIGHT)
         return hdr, {"x": flags.x, "t": flags.t}
 
-    doc = await run_in_threadpool(unity_probe_grid, evaluate, cf.artefact.bounds, counts, t, job_id, corner_lo, corner_hi)
+    doc = await run_in_threadpool(
+        unity_probe_grid, evaluate, cf.artefact.bounds, counts, t, job_id, corner_lo, corner_hi
+    )
     response.headers[CONVENTIONS_HEADER] = CONVENTIONS_SUMMARY
     response.headers[EXTRAPOLATED_HEADER] = "x" if doc.extrapolated_probes else "none"
     return doc
@@ -222,13 +241,21 @@ async def get_unity(job_id: str, response: Response,
 
 @router.get("/lightfield/{job_id}/arkit", response_model=ArkitProbe, responses=_ERRORS,
             summary="ARKit / RealityKit / SceneKit: Metal cube slices + SH planes + main light at (x, t)")
-async def get_arkit(job_id: str, response: Response, x: str = XQuery, t: float = TQuery,
-                    size: int = Query(64, ge=1, description="cube face edge in texels (at most LIGHTFIELD_MAX_CUBEMAP_SIZE)"),
-                    pixel_format: Literal["rgba16Float", "rgba8Unorm_srgb"] = Query(
-                        "rgba16Float", description="rgba16Float: linear HDR (EnvironmentResource, lightingEnvironment); "
-                        "rgba8Unorm_srgb: what AREnvironmentProbeAnchor.environmentTexture holds (tone-mapped at ev)"),
-                    ev: float = Query(0.0, ge=-MAX_ABS_EV, le=MAX_ABS_EV, description="exposure of the sRGB slices"),
-                    tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+async def get_arkit(
+    job_id: str,
+    response: Response,
+    x: str = XQuery,
+    t: float = TQuery,
+    size: int = Query(64, ge=1, description="cube face edge in texels (at most LIGHTFIELD_MAX_CUBEMAP_SIZE)"),
+    pixel_format: Literal["rgba16Float", "rgba8Unorm_srgb"] = Query(
+        "rgba16Float",
+        description="rgba16Float: linear HDR (EnvironmentResource, lightingEnvironment); "
+        "rgba8Unorm_srgb: what AREnvironmentProbeAnchor.environmentTexture holds (tone-mapped at ev)",
+    ),
+    ev: float = Query(0.0, ge=-MAX_ABS_EV, le=MAX_ABS_EV, description="exposure of the sRGB slices"),
+    tenant: Tenant = Depends(get_tenant),
+    ctx: AppContext = Depends(get_ctx),
+):
     from core.export.arkit import arkit_probe
     from core.export.products import cube_source_height
 
@@ -247,17 +274,32 @@ async def get_arkit(job_id: str, response: Response, x: str = XQuery, t: float =
           "description": "format=ktx2: one KTX2 file (RGBA16F cube, GGX roughness mips); format=npy: float32 array "
                          "[6, size, size, 3]; format=json: one EXR per face, base64 (kept for compatibility)"},
     **_ERRORS}, summary="Cube map faces +X, -X, +Y, -Y, +Z, -Z at (x, t); prefiltered mips as KTX2")
-async def get_cubemap(job_id: str, request: Request, x: str = XQuery, t: float = TQuery,
-                      size: int = Query(64, ge=1, description="face edge in texels (a power of two for ktx2; at "
-                                        "most LIGHTFIELD_MAX_CUBEMAP_SIZE)"),
-                      format: Literal["json", "npy", "ktx2"] = "json", quality: Quality = QualityQuery,
-                      levels: int | None = Query(None, ge=1, le=16, description="ktx2 only: mip levels, roughness "
-                                                 "i / (levels - 1); default: down to size/32 (6 for 128); 1 = mirror only"),
-                      layout: Literal["gl", "threejs"] = Query(
-                          "gl", description="gl: the OpenGL/Vulkan/Metal face table (Babylon, Filament, ARCore, "
-                          "engines reading KTX2 cubes); threejs: mirrored in x for a three.js CubeTexture, which "
-                          "three samples at (-x, y, z) (docs/integrations.md has the recipe)"),
-                      tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+async def get_cubemap(
+    job_id: str,
+    request: Request,
+    x: str = XQuery,
+    t: float = TQuery,
+    size: int = Query(
+        64, ge=1, description="face edge in texels (a power of two for ktx2; at most LIGHTFIELD_MAX_CUBEMAP_SIZE)"
+    ),
+    format: Literal["json", "npy", "ktx2"] = "json",
+    quality: Quality = QualityQuery,
+    levels: int | None = Query(
+        None,
+        ge=1,
+        le=16,
+        description="ktx2 only: mip levels, roughness "
+        "i / (levels - 1); default: down to size/32 (6 for 128); 1 = mirror only",
+    ),
+    layout: Literal["gl", "threejs"] = Query(
+        "gl",
+        description="gl: the OpenGL/Vulkan/Metal face table (Babylon, Filament, ARCore, "
+        "engines reading KTX2 cubes); threejs: mirrored in x for a three.js CubeTexture, which "
+        "three samples at (-x, y, z) (docs/integrations.md has the recipe)",
+    ),
+    tenant: Tenant = Depends(get_tenant),
+    ctx: AppContext = Depends(get_ctx),
+):
     point, t = queries.parse_x(x), queries.check_t(t)
     queries.check_size(size, ctx.settings.limits.max_cubemap_size, "size")
     if format == "ktx2":
@@ -306,13 +348,22 @@ def _check_cube_size(size: int, levels: int | None) -> None:
     200: {"content": {"model/gltf-binary": {}}, "description": "glTF 2.0 binary with EXT_lights_image_based"},
     **_ERRORS}, summary="glTF (.glb) image-based light at (x, t): irradiance SH + prefiltered specular cube mips "
                          "(+ the main light as KHR_lights_punctual)")
-async def get_gltf(job_id: str, request: Request, x: str = XQuery, t: float = TQuery,
-                   size: int = Query(64, ge=1, description="specular cube face edge (a power of two)"),
-                   levels: int | None = Query(None, ge=1, le=16, description="specular mips (roughness 0..1)"),
-                   main_light: bool = Query(True, description="add the main light (when found) as a KHR_lights_punctual "
-                                            "directional light, with the ambient SH as irradiance; false: the whole "
-                                            "map's SH and no punctual light"),
-                   tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+async def get_gltf(
+    job_id: str,
+    request: Request,
+    x: str = XQuery,
+    t: float = TQuery,
+    size: int = Query(64, ge=1, description="specular cube face edge (a power of two)"),
+    levels: int | None = Query(None, ge=1, le=16, description="specular mips (roughness 0..1)"),
+    main_light: bool = Query(
+        True,
+        description="add the main light (when found) as a KHR_lights_punctual "
+        "directional light, with the ambient SH as irradiance; false: the whole "
+        "map's SH and no punctual light",
+    ),
+    tenant: Tenant = Depends(get_tenant),
+    ctx: AppContext = Depends(get_ctx),
+):
     from core.export.products import cube_source_height, probe_glb
 
     point, t = queries.parse_x(x), queries.check_t(t)
@@ -378,8 +429,15 @@ async def get_sequence(job_id: str, x: str = XQuery,
     cancellation = Cancellation()
     on_map = (lambda q: metrics.export_maps.labels(q).inc()) if metrics is not None else None
     maps = ((t, hdr) for t, hdr, _ in queries.envmap_sequence(cf, point, times, height, quality, cancellation, on_map))
-    members = sequence_members(maps, point, job_id, first_frame=first_frame, extra={"height": height, "quality": quality},
-                               fps=sequence_fps(times), colour=colour)
+    members = sequence_members(
+        maps,
+        point,
+        job_id,
+        first_frame=first_frame,
+        extra={"height": height, "quality": quality},
+        fps=sequence_fps(times),
+        colour=colour,
+    )
     stream = stream_export(zip_stream(members), cancellation,
                            on_cancel=metrics.exports_cancelled.inc if metrics is not None else None)
     return StreamingResponse(stream, media_type="application/zip", headers={

@@ -71,7 +71,9 @@ class CaptureView(BaseModel):
 
 
 class ProbeView(BaseModel):
-    u: float | None = Field(description="fraction of the frame width (outside [0, 1]: off the frame; null: behind the camera)")
+    u: float | None = Field(
+        description="fraction of the frame width (outside [0, 1]: off the frame; null: behind the camera)"
+    )
     v: float | None = Field(description="fraction of the frame height")
     t: float
     frame_index: int
@@ -137,17 +139,32 @@ def get_capture(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppConte
     meta = summary.get("metadata", {})
     tracking = meta.get("tracking")
     notes = list(meta.get("applied", [])) + list((meta.get("nerfstudio") or {}).get("notes", []))
-    return CaptureView(id=job_id, width=preview.width, height=preview.height, frames=preview.num_frames,
-                       source_frames=preview.source_frames, times=[round(float(t), 6) for t in preview.times],
-                       fps=preview.fps, intrinsics=preview.intrinsics, depth_source=preview.depth_source,
-                       uses_time=bool(cf.artefact.uses_time), bounds=cf.artefact.bounds.to_dict(),
-                       static_camera=bool(summary.get("static_camera", True)),
-                       intrinsics_source=meta.get("intrinsics_source"), poses_source=meta.get("poses_source"),
-                       tracking={k: tracking.get(k) for k in ("method", "reprojection_error_px", "frames_dropped",
-                                                              "scale_source", "camera_moves", "reason")} if tracking else None,
-                       exposure_source=meta.get("exposure_source"),
-                       frame_ev=None if preview.stated_ev is None else [round(float(e), 4) for e in preview.stated_ev],
-                       notes=notes, warnings=list(summary.get("warnings", [])))
+    return CaptureView(
+        id=job_id,
+        width=preview.width,
+        height=preview.height,
+        frames=preview.num_frames,
+        source_frames=preview.source_frames,
+        times=[round(float(t), 6) for t in preview.times],
+        fps=preview.fps,
+        intrinsics=preview.intrinsics,
+        depth_source=preview.depth_source,
+        uses_time=bool(cf.artefact.uses_time),
+        bounds=cf.artefact.bounds.to_dict(),
+        static_camera=bool(summary.get("static_camera", True)),
+        intrinsics_source=meta.get("intrinsics_source"),
+        poses_source=meta.get("poses_source"),
+        tracking={
+            k: tracking.get(k)
+            for k in ("method", "reprojection_error_px", "frames_dropped", "scale_source", "camera_moves", "reason")
+        }
+        if tracking
+        else None,
+        exposure_source=meta.get("exposure_source"),
+        frame_ev=None if preview.stated_ev is None else [round(float(e), 4) for e in preview.stated_ev],
+        notes=notes,
+        warnings=list(summary.get("warnings", [])),
+    )
 
 
 @router.get("/lightfield/{job_id}/frame", response_class=Response, responses={

@@ -26,7 +26,8 @@ class InpaintCondition:
     """Everything the UNet and ControlNet see besides the noisy latent (batch B)."""
 
     mask: torch.Tensor  # [B, 1, h, w] latent-resolution binary ball mask
-    masked_image_latents: torch.Tensor | None  # [B, C, h, w] latent of the image with the balls blanked out (None: base UNet)
+    # [B, C, h, w] latent of the image with the balls blanked out (None: base UNet)
+    masked_image_latents: torch.Tensor | None
     control: torch.Tensor  # [B, 3, H, W] depth ControlNet image in [0, 1]
     embedding: ExposureEmbedding  # zeta(ev), batch B
     null_embedding: ExposureEmbedding  # empty prompt, batch B (used when guidance != 1)
@@ -37,7 +38,9 @@ class InpaintDenoiser:
         from diffusers import DDIMScheduler
 
         self.c = components
-        self._scheduler_config = DDIMScheduler.from_config(components.scheduler.config, timestep_spacing="trailing").config
+        self._scheduler_config = DDIMScheduler.from_config(
+            components.scheduler.config, timestep_spacing="trailing"
+        ).config
 
     @property
     def latent_scale(self) -> float:

@@ -246,7 +246,9 @@ def _check_compatible(c: PriorComponents) -> None:
     latent = c.vae.config.latent_channels
     in_ch, card = c.unet.config.in_channels, c.card
     if in_ch != card.unet_in_channels:
-        raise PriorError(f"unet.in_channels is {in_ch} but the model card declares unet_in_channels={card.unet_in_channels}")
+        raise PriorError(
+            f"unet.in_channels is {in_ch} but the model card declares unet_in_channels={card.unet_in_channels}"
+        )
     if in_ch not in (2 * latent + 1, latent):
         raise PriorError(
             f"unet.in_channels is {in_ch}, expected {2 * latent + 1} (inpainting UNet: noisy latent + mask + "

@@ -157,7 +157,9 @@ class SeedDenoiser:
         for i in range(k):
             t, prev = steps[i], steps[i + 1]
             masked = self._sample(posteriors[b:], generator)
-            eps = self._guided(x, t, latent_mask, masked, control, embedding, null_embedding, guidance_scale, cfg_rescale)
+            eps = self._guided(
+                x, t, latent_mask, masked, control, embedding, null_embedding, guidance_scale, cfg_rescale
+            )
             x = ddim_step_to(sch, eps, t, x, prev)
             if i < k - 1:  # no blending after the last sub-step
                 background = sch.add_noise(z0, noise, torch.tensor([prev]))

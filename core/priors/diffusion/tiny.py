@@ -31,7 +31,9 @@ class TinyConfig:
 
 def _byte_symbols() -> list[str]:
     """GPT-2 / CLIP byte -> printable unicode table (each of the 256 bytes gets one symbol)."""
-    printable = list(range(ord("!"), ord("~") + 1)) + list(range(ord("¡"), ord("¬") + 1)) + list(range(ord("®"), ord("ÿ") + 1))
+    printable = (
+        list(range(ord("!"), ord("~") + 1)) + list(range(ord("¡"), ord("¬") + 1)) + list(range(ord("®"), ord("ÿ") + 1))
+    )
     codes = printable[:]
     n = 0
     for b in range(256):

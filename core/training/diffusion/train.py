@@ -180,7 +180,9 @@ def train_prior(data_dir: str | Path, base_dir: str | Path, out_dir: str | Path,
     comps = load_components(base_dir, device=accelerator.device, dtype=torch.float32)
     card = comps.card
     size = model_size(*info.resolution, card.resolution, comps.size_multiple)
-    conditioner = ExposureConditioner(comps.text_encoder, comps.tokenizer, card.prompts.max, card.prompts.min, card.ev_min)
+    conditioner = ExposureConditioner(
+        comps.text_encoder, comps.tokenizer, card.prompts.max, card.prompts.min, card.ev_min
+    )
     network = InpaintNetwork(comps.unet, comps.controlnet, card.controlnet_conditioning_scale)
     network.requires_grad_(True).train()
     if cfg.gradient_checkpointing:
@@ -198,7 +200,11 @@ def train_prior(data_dir: str | Path, base_dir: str | Path, out_dir: str | Path,
     dataset = BallDataset(data_dir, size)
     order = StepOrder(len(dataset), cfg.seed, start=start * accum * cfg.micro_batch, rank=rank, world=world)
     batches = iter(DataLoader(dataset, batch_size=cfg.micro_batch, sampler=order, num_workers=cfg.num_workers))
-    latent_shape = (comps.vae.config.latent_channels, size[0] // comps.vae_scale_factor, size[1] // comps.vae_scale_factor)
+    latent_shape = (
+        comps.vae.config.latent_channels,
+        size[0] // comps.vae_scale_factor,
+        size[1] // comps.vae_scale_factor,
+    )
     log_path = out / LOG_FILE
     if accelerator.is_main_process:
         out.mkdir(parents=True, exist_ok=True)

@@ -51,7 +51,9 @@ def find_weight_files(folder: Path, transformers: bool, variant: str | None) -> 
                     return _shards(index), v
     present = sorted(p.name for p in folder.iterdir() if p.is_file()) if folder.is_dir() else []
     want = f" (variant {variant!r})" if variant else ""
-    raise PriorError(f"{folder}: no weights{want}: expected {stems[0]}[.fp16].safetensors or .bin; found {present or 'nothing'}")
+    raise PriorError(
+        f"{folder}: no weights{want}: expected {stems[0]}[.fp16].safetensors or .bin; found {present or 'nothing'}"
+    )
 
 
 def _present_variants(folder: Path, stems) -> list[str]:
