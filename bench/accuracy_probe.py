@@ -35,11 +35,15 @@ import tempfile
 import time
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
 from bench.overrides import parse_set
 from bench.suite.evaluation import ratio_interval
+
+if TYPE_CHECKING:
+    from bench.methods import Method
 
 METRICS = ("si_rmse", "angular_deg", "nrmse")
 MATERIALS = ("diffuse", "matte", "mirror")
@@ -252,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         print(level_table(args.level_table))
         return 0
 
-    from bench.methods import Method, query_field, run_per_probe, MethodRun
+    from bench.methods import Method, MethodRun, query_field, run_per_probe
     from bench.run import default_cache_dir
     from bench.suite.evaluation import mean_scores, score_probe
     from bench.suite.simulated import load_suite, with_extra_probes

@@ -292,8 +292,7 @@ def leave_one_panorama_out(samples: list[dict]) -> dict:
 
 
 def main(argv=None) -> int:
-    from bench.real_panoramas import read_manifest
-    from bench.real_panoramas import DEFAULT_HDRI_DIR
+    from bench.real_panoramas import DEFAULT_HDRI_DIR, read_manifest
     from core.capture import highlights
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -28,7 +28,13 @@ def track_report(suite_name: str) -> dict:
     from bench.run import default_cache_dir
     from bench.suite.simulated import load_suite
     from core.capture.highlights import (
-        blob_boost, clipped_mask, find_blobs, pixel_solid_angle, source_tracks, stops_over_time)
+        blob_boost,
+        clipped_mask,
+        find_blobs,
+        pixel_solid_angle,
+        source_tracks,
+        stops_over_time,
+    )
     from core.capture.load import load_capture
     from core.conventions import expose, inverse_tonemap
     from core.exposure import LUMINANCE_WEIGHTS

@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 
 
-
 def room_frames(t: int = 1, h: int = 48, w: int = 64) -> np.ndarray:
     """Float frames [T, H, W, 3]: a lit wall gradient with a bright window."""
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)

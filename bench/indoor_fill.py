@@ -19,7 +19,6 @@ from pathlib import Path
 
 import torch
 
-
 AVERAGES = ("arithmetic", "geometric")
 
 
@@ -76,8 +75,7 @@ def fit_gain(paths: list[Path], sigma_rows: float | None = None, average: str = 
 
 
 def main(argv=None) -> int:
-    from bench.real_panoramas import indoor_rooms
-    from bench.real_panoramas import DEFAULT_HDRI_DIR
+    from bench.real_panoramas import DEFAULT_HDRI_DIR, indoor_rooms
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--hdri-dir", default=str(DEFAULT_HDRI_DIR))

@@ -152,9 +152,9 @@ def run_simulated(mode: Mode, opts: BenchOptions, workdir: Path) -> dict:
 
 def run_bench(opts: BenchOptions) -> dict:
     """Run the selected sections and write results.json, results.md and the plots."""
-    from bench import report
-
     import torch
+
+    from bench import report
 
     mode = resolve_mode(opts)
     started = time.perf_counter()

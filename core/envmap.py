@@ -13,8 +13,13 @@ from typing import Callable, NamedTuple
 
 import torch
 
-from core.conventions import (direction_to_equirect_pixel, equirect_directions, equirect_pixel_centres, equirect_width,
-                              theta_phi_to_direction)
+from core.conventions import (
+    direction_to_equirect_pixel,
+    equirect_directions,
+    equirect_pixel_centres,
+    equirect_width,
+    theta_phi_to_direction,
+)
 
 
 class EnvmapError(ValueError):

@@ -29,8 +29,8 @@ from typing import Literal
 
 import torch
 
-from core.envmap import check_envmap, resize_envmap, sample_envmap, solid_angles
 from core.conventions import equirect_directions
+from core.envmap import check_envmap, resize_envmap, sample_envmap, solid_angles
 from core.exposure import luminance
 
 Material = Literal["diffuse", "matte", "mirror"]

@@ -178,7 +178,7 @@ class JobFiles:
             entries.append((used, size, job_dir))
         total = sum(size for _, size, _ in entries)
         removed = 0
-        for used, size, job_dir in sorted(entries, key=lambda e: e[0]):
+        for _used, size, job_dir in sorted(entries, key=lambda e: e[0]):
             if total <= self.cache_bytes:
                 break
             if keep is not None and job_dir.resolve() == keep.resolve():

@@ -20,7 +20,6 @@ from typing import Callable
 from jobs.store import TERMINAL_STATES
 
 
-
 class EmbeddedServiceError(RuntimeError):
     """The server did not start, or a request or job failed (the message says which)."""
 

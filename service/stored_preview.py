@@ -18,8 +18,15 @@ import numpy as np
 
 from core.capture.params import MAX_EXPOSURE_STOPS
 from core.integrity import IntegrityError, verify_document
-from jobs.capture_preview import (FORMAT, META_FILE, READABLE_VERSIONS, TENSORS_FILE, PreviewCameras, file_sha256,
-                                  preview_dir)
+from jobs.capture_preview import (
+    FORMAT,
+    META_FILE,
+    READABLE_VERSIONS,
+    TENSORS_FILE,
+    PreviewCameras,
+    file_sha256,
+    preview_dir,
+)
 
 
 class PreviewError(ValueError):

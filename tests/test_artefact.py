@@ -8,17 +8,17 @@ import torch
 import core.fields.stored.artefact as artefact_mod
 from core.conventions import CONVENTIONS_VERSION
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.stored.artefact import (
-    ArtefactError,
-    LightFieldArtefact,
-    META_FILE,
-    QueryError,
-    WEIGHTS_FILE,
-    save_artefact,
-)
 from core.fields.kinds.grid import GridSettings
 from core.fields.kinds.mlp import MLPSettings
 from core.fields.kinds.trunk import TrunkSettings
+from core.fields.stored.artefact import (
+    META_FILE,
+    WEIGHTS_FILE,
+    ArtefactError,
+    LightFieldArtefact,
+    QueryError,
+    save_artefact,
+)
 
 BOUNDS = SceneBounds((-2.0, -1.0, -4.0), (2.0, 2.0, 0.5), t0=0.0, t1=3.0)
 

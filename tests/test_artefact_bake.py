@@ -4,9 +4,9 @@ import torch
 
 from core.envmap import resize_envmap
 from core.fields import FieldConfig, SceneBounds, build_field
+from core.fields.kinds.trunk import TrunkSettings
 from core.fields.stored.artefact import ArtefactError, LightFieldArtefact, QueryError, save_artefact
 from core.fields.stored.bake import BAKED_FILE, BakedField, bake, load_or_bake
-from core.fields.kinds.trunk import TrunkSettings
 
 BOUNDS = SceneBounds((-2.0, -1.0, -4.0), (2.0, 2.0, 0.5), t0=0.0, t1=3.0)
 

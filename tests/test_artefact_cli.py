@@ -7,8 +7,8 @@ import torch
 
 from cli.main import main
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 from core.fields.kinds.mlp import MLPSettings
+from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 from core.io.envmap_io import load_envmap
 
 BOUNDS = SceneBounds((-1.0, -1.0, -3.0), (1.0, 1.0, 0.0), t0=0.0, t1=2.0)

@@ -3,8 +3,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from bench.real_panoramas import PITCH_DEG, camera_rotation, estimate_mean_colour, perspective_crop, view_for
 from core.conventions import equirect_directions, inverse_tonemap

@@ -8,8 +8,7 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from bench.report import markdown, pareto_front, sanitize, time_to_answer
 from bench.scaling import loglog_exponent

@@ -12,8 +12,8 @@ import torch
 
 from cli.main import build_parser, main
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 from core.fields.kinds.mlp import MLPSettings
+from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 from core.lights import extract_dominant_light
 
 BOUNDS = SceneBounds((-1.0, -1.0, -3.0), (1.0, 1.0, 0.0), t0=0.0, t1=2.0)

@@ -8,8 +8,7 @@ import torch
 from core.capture.load import capture_from_arrays
 from core.chrome_ball import place_probe
 from core.conventions import equirect_directions
-from core.engine import run_job
-from core.engine import trainer as trainer_module
+from core.engine import run_job, trainer as trainer_module
 from core.engine.distill import distill
 from core.engine.params import JobParams
 from core.engine.presets import preset

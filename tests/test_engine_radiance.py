@@ -9,13 +9,13 @@ import pytest
 import torch
 
 from core.capture.load import capture_from_arrays, load_capture
+from core.conventions import inverse_tonemap
 from core.engine.distill import distill, view_rays, with_view_detail
 from core.engine.extrapolation import log_total_variation, observed_directions, ring_ratio
 from core.engine.presets import preset
 from core.engine.radiance import bright_directions, radiance_loss, supervision_probes
 from core.envmap import integrate
 from core.exposure import luminance
-from core.conventions import inverse_tonemap
 from core.metrics import observed_region_correlation, three_sphere_metrics
 from core.priors.known import KnownRadiancePrior
 from core.priors.reprojection import ReprojectionPrior

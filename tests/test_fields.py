@@ -4,8 +4,7 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.conventions import equirect_directions
 from core.envmap import equirect_stencil, pad_poles, sample_envmap
@@ -425,7 +424,6 @@ def test_room_lattice_is_local_in_position_and_direction_and_validated():
     """One texel of one node moves the field only near that node and near that direction: the
     lattice cannot ring or reach across the room."""
     field = build_field(lattice_config("mlp").with_time(False), BOUNDS)
-    dirs = equirect_directions(4).reshape(-1, 3)
     at_node = torch.tensor([[-2.0, -1.0, -4.0]])  # the lattice's first node (the box corner)
     far = torch.tensor([[2.0, 2.0, 0.5]])  # the opposite corner
     with torch.no_grad():

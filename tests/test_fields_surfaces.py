@@ -11,8 +11,7 @@ import torch
 from core.capture.load import capture_from_arrays
 from core.conventions import equirect_directions
 from core.engine.surface_extraction import observed_surfaces
-from core.envmap import voxel_merge
-from core.envmap import SPLAT_MIN_DISTANCE
+from core.envmap import SPLAT_MIN_DISTANCE, voxel_merge
 from core.fields import FieldConfig, SceneBounds, build_field
 from core.fields.kinds.base import EMITTER_PIXEL_SIGMA
 from tests.test_fields import assert_paths_agree_and_reload

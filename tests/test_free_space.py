@@ -7,9 +7,9 @@ import torch
 from core.capture.load import capture_from_arrays
 from core.engine.distill import distill, free_space_sampler
 from core.engine.free_space import FreeSpaceSampler
+from core.engine.presets import preset
 from core.engine.radiance import supervision_probes
 from core.engine.scene import scene_bounds
-from core.engine.presets import preset
 from core.priors.base import PriorCapabilities
 from core.priors.known import KnownRadiancePrior
 from core.priors.reprojection import ReprojectionPrior

@@ -7,7 +7,6 @@ Chromium: `chromium` on PATH (.ci/run installs it) or LIGHTFIELD_CHROMIUM; three
 (npm ci). Skipped, with the reason, without Chromium."""
 from __future__ import annotations
 
-import functools
 import html
 import http.server
 import json

@@ -4,8 +4,7 @@ import io
 import av
 import numpy as np
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
+from hypothesis import given, strategies as st
 
 from core.io import MediaError, MediaLimits, read_video, select_frame_indices, write_video
 from core.io.video import video_codec

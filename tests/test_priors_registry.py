@@ -7,8 +7,18 @@ import torch
 from core.capture.load import capture_from_arrays
 from core.conventions import equirect_directions
 from core.envmap import resize_envmap, sample_envmap
-from core.priors import (KnownRadiancePrior, Prior, PriorCapabilities, PriorConfig, PriorError, ReprojectionPrior,
-                         build_prior, job_prior_names, prior_names, register_prior)
+from core.priors import (
+    KnownRadiancePrior,
+    Prior,
+    PriorCapabilities,
+    PriorConfig,
+    PriorError,
+    ReprojectionPrior,
+    build_prior,
+    job_prior_names,
+    prior_names,
+    register_prior,
+)
 from core.priors.registry import LAZY_PRIORS, PRIORS, prior_class
 
 

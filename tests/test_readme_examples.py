@@ -94,8 +94,8 @@ def test_readme_lists_the_commands_it_promises():
 
 
 def test_readme_command_line_block_runs_and_answers_inside_the_room(cli_run, workdir):
-    from core.fields.stored.artefact import LightFieldArtefact
     from core.export.ktx2 import decode_ktx2_cubemap
+    from core.fields.stored.artefact import LightFieldArtefact
     from core.io.envmap_io import load_envmap
     from core.lights import extract_dominant_light
 

@@ -321,7 +321,6 @@ def test_an_engine_error_while_storage_is_unwritable_is_a_storage_fault(runner, 
 
 def test_a_resumed_run_records_the_checkpoints_iteration_then_the_final_one(runner):
     """Issue: after a restart the job was succeeded but its record still said iteration 177/600."""
-    import torch
 
     from core.engine import JobResult
     from core.fields import FieldConfig, SceneBounds, build_field

@@ -164,7 +164,7 @@ def test_oracle_prior_keeps_pixels_outside_masks_and_matches_ground_truth():
     from core.camera import Camera
     from core.chrome_ball import ball_reflection_rays
     from core.conventions import tonemap
-    from core.priors.base import ProbeGeometry, PriorRequest
+    from core.priors.base import PriorRequest, ProbeGeometry
     from core.sim.oracle import OracleSimPrior
     from core.sim.render import radiance
 

@@ -5,11 +5,11 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.conventions import direction_to_equirect_pixel, equirect_directions
 from core.sim.render import radiance, render_envmap, render_frame
+from core.sim.shading import SURFACE_OFFSET
 from core.sim.spec import (
     AreaEmitter,
     Box,
@@ -20,10 +20,9 @@ from core.sim.spec import (
     RenderQuality,
     Room,
     RoomAlbedo,
-    Schedule,
     SceneSpec,
+    Schedule,
 )
-from core.sim.shading import SURFACE_OFFSET
 from core.sim.state import light_state, schedule_value
 
 ROOM = Box(lo=(0.0, 0.0, 0.0), hi=(5.0, 3.0, 4.0))
@@ -182,7 +181,10 @@ def test_schedule_switch_in_rendered_envmap_and_linear_dimming():
         schedule=Schedule(interpolation="linear", keyframes=[Keyframe(frame=0), Keyframe(frame=8, intensity=0.0)]),
     )
     s = scene(emitters=[panel, lamp], frames=10, fps=fps, effects=frozenset({"emission", "schedules"}))
-    up = lambda t: render_envmap(s, (2.5, 1.5, 2.0), t, height=8)[0].max()  # top row looks at the panel
+
+    def up(t):  # top row looks at the panel
+        return render_envmap(s, (2.5, 1.5, 2.0), t, height=8)[0].max()
+
     assert float(up((k - 1) / fps)) == pytest.approx(4.0)
     assert float(up(k / fps)) == 0.0
     torch.testing.assert_close(light_state(s, 4.0).lamp_radiance, torch.full((1, 3), 50.0))

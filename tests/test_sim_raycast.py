@@ -4,8 +4,7 @@ from __future__ import annotations
 import math
 
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.sim.raycast import FURNITURE, MISS, ROOM, SceneGeometry, cast, filler_boxes, occluded, sphere_hits
 from core.sim.spec import Box, CameraSpec, Furniture, Room, SceneSpec

@@ -4,10 +4,9 @@ from __future__ import annotations
 import math
 
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
-from core.sim.spec import AreaEmitter, Box, CameraSpec, DollyPath, Keyframe, Lamp, PanPath, Room, Schedule, SceneSpec
+from core.sim.spec import AreaEmitter, Box, CameraSpec, DollyPath, Keyframe, Lamp, PanPath, Room, SceneSpec, Schedule
 from core.sim.state import camera_at, light_state, pose_from_yaw_pitch
 
 ROOM = Room(boxes=[Box(lo=(0, 0, 0), hi=(5, 3, 4))])

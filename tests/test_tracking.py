@@ -16,17 +16,16 @@ import pytest
 import torch
 
 from core.camera import Camera, Intrinsics
+from core.conventions import tonemap
+from core.exposure import luminance
 from core.sim.panorama_room import PanoramaRoom, load_panorama, render_clip
 from core.sim.state import pose_from_yaw_pitch
+from core.tracking.capture_geometry import pose_errors, resolve_geometry
 from core.tracking.features import analysis_frames, extract
 from core.tracking.geometry import relative_to_first, rotation_angle_deg
 from core.tracking.motion import detect_motion
 from core.tracking.room import RoomBox, RoomFitError, assumed_room, fit_room
-from core.tracking.capture_geometry import resolve_geometry
 from core.tracking.track import track_camera
-from core.tracking.capture_geometry import pose_errors
-from core.conventions import tonemap
-from core.exposure import luminance
 
 PANORAMA = Path(__file__).resolve().parents[1] / "assets" / "sample_panorama.hdr"
 SCENE_SCALE_M = 5.0  # the room's largest dimension

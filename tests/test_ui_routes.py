@@ -12,8 +12,8 @@ from PIL import Image
 
 from core.camera import Intrinsics
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.stored.artefact import save_artefact
 from core.fields.kinds.grid import GridSettings
+from core.fields.stored.artefact import save_artefact
 from jobs.capture_preview import CapturePreview, save_preview
 from jobs.storage import JobPaths, new_job_id
 from jobs.store import JobRecord
@@ -175,7 +175,7 @@ def test_insertion_draws_balls_at_the_probe_and_leaves_the_rest_of_the_frame(app
     ball_px = (int(0.5 * H), int(0.3 * W))
     assert diff[ball_px] > 20, "no ball at the probe"
     assert diff[:, -8:].max() <= 1 and diff[:4].max() <= 1, "pixels far from the balls changed"
-    two = png(get(client, f"/lightfield/{job}/insertion", t=0.5, points=f"0.3,0.5,2.5;0.8,0.2,2.5"))
+    two = png(get(client, f"/lightfield/{job}/insertion", t=0.5, points="0.3,0.5,2.5;0.8,0.2,2.5"))
     assert np.abs(two.astype(int) - frame.astype(int)).max(-1)[int(0.2 * H), int(0.8 * W)] > 20
 
 

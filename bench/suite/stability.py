@@ -39,10 +39,10 @@ def _gradient(frames: int = 1) -> np.ndarray:
 
 def _extreme_range(d: Path, quick: bool):
     """HDR scene spanning 1e-6..1e6 tone mapped at ev 0: near-black walls, clipped bulb."""
+    import torch
+
     from core.conventions import tonemap
     from core.io.images import write_png
-
-    import torch
 
     w, h = SIZE
     y, x = np.mgrid[0:h, 0:w].astype(np.float32)

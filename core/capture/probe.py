@@ -20,8 +20,14 @@ import torch
 
 from core.capture.base import CaptureError
 from core.capture.depth import check_depth_shape
-from core.capture.load import (effective_limits, kept_per_frame, resolve_exposures, resolve_intrinsics, resolve_poses,
-                               sniff_capture_file)
+from core.capture.load import (
+    effective_limits,
+    kept_per_frame,
+    resolve_exposures,
+    resolve_intrinsics,
+    resolve_poses,
+    sniff_capture_file,
+)
 from core.capture.params import CaptureParams
 from core.conventions import valid_depth_mask
 from core.io.limits import MediaLimits

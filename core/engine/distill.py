@@ -19,17 +19,16 @@ from core.device import resolve_device
 from core.engine.checkpoints import fingerprint, load_checkpoint, save_checkpoint
 from core.engine.config import EngineConfig
 from core.engine.emitter_detection import EmitterSources, find_emitters
+from core.engine.free_space import FreeSpaceSampler
 from core.engine.losses import PerceptualLoss, perceptual_description
 from core.engine.progress import Reporter, StageTimer
-from core.engine.free_space import FreeSpaceSampler
+from core.engine.radiance import frame_floors
 from core.engine.scene import scene_bounds
 from core.engine.surface_extraction import SurfacePoints, observed_surfaces
 from core.engine.trainer import Trainer
-from core.engine.radiance import frame_floors
 from core.fields import FieldConfig, LightField, SceneBounds, build_field
 from core.fields.kinds.base import EMITTER_PIXEL_SIGMA
 from core.priors.base import Prior
-
 
 MAX_TIME_KNOTS = 256
 MAX_VIEW_ANCHORS = 64  # camera centres kept as view-detail anchors (evenly over the frames)

@@ -22,15 +22,15 @@ import math
 import torch
 
 from core.capture.base import Capture
-from core.engine.config import DistillConfig
-from core.engine.free_space import FreeSpaceSampler
-from core.engine.probes import sample_probes
 from core.conventions import (
     equirect_pixel_centres,
     equirect_pixel_to_theta_phi,
     pixel_to_camera_ray,
     theta_phi_to_direction,
 )
+from core.engine.config import DistillConfig
+from core.engine.free_space import FreeSpaceSampler
+from core.engine.probes import sample_probes
 from core.envmap import equirect_stencil, pad_poles
 from core.exposure import luminance
 

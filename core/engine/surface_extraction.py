@@ -19,9 +19,9 @@ import torch
 
 from core.capture.base import Capture
 from core.engine.emitter_detection import EmitterSources
-from core.fields.kinds.config import MAX_SURFACE_VALUES
 from core.envmap import voxel_merge
 from core.fields.components.normalization import SceneBounds
+from core.fields.kinds.config import MAX_SURFACE_VALUES
 
 MAX_SURFACE_VIEWS = 16  # viewpoints of a moving camera merged into the layer
 EMITTER_CLEARANCE = 2.0  # radii around an emitter's centre whose points the layer leaves to it

@@ -24,8 +24,8 @@ import math
 
 import torch
 
-from core.cubemap import cubemap_directions, equirect_to_cubemap
 from core.conventions import equirect_directions
+from core.cubemap import cubemap_directions, equirect_to_cubemap
 from core.envmap import check_envmap, resize_envmap, sample_envmap, solid_angles
 
 DEFAULT_SAMPLES = 64
@@ -137,7 +137,7 @@ def _quadrature_level(pyramid: list[torch.Tensor], n: torch.Tensor, roughness: f
 def prefiltered_cubemap(envmap: torch.Tensor, size: int, levels: int | None = None,
                         samples: int = DEFAULT_SAMPLES) -> list[torch.Tensor]:
     """GGX-prefiltered cube mip chain: `levels` tensors [6, size >> i, size >> i, 3] (float32)."""
-    h = check_envmap(envmap)
+    check_envmap(envmap)
     if size < 1 or size & (size - 1):
         raise ValueError(f"cube face size must be a power of two, got {size}")
     levels = levels or default_levels(size)

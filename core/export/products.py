@@ -10,7 +10,6 @@ import numpy as np
 import torch
 
 
-
 def cube_source_height(size: int) -> int:
     """Env map height that gives about one map pixel per cube texel at the face centres."""
     return max(2 * int(size), 8)

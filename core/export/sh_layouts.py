@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.sh import COSINE_LOBE_BY_BAND, SH_BANDS, SH_COUNT, SH_ORDERS, C0, C1, C2, C2_0, C2_2
+from core.sh import C0, C1, C2, C2_0, C2_2, COSINE_LOBE_BY_BAND, SH_BANDS, SH_COUNT, SH_ORDERS
 
 _BASIS_CONSTANTS = (C0, C1, C1, C1, C2, C2, C2_0, C2, C2_2)
 _LOBE = tuple(COSINE_LOBE_BY_BAND[l] for l in SH_BANDS)

@@ -22,8 +22,15 @@ from PIL import Image
 
 from core.io.exr import atomic_write
 from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source, read_source
-from core.io.metadata import (ImageMetadata, describe_orientation, image_metadata, orient_array, orient_image,
-                              orientation_swaps_axes, to_srgb)
+from core.io.metadata import (
+    ImageMetadata,
+    describe_orientation,
+    image_metadata,
+    orient_array,
+    orient_image,
+    orientation_swaps_axes,
+    to_srgb,
+)
 from core.io.sniff import PNG_MAGIC, sniff_image
 
 try:

@@ -50,13 +50,13 @@ import torch
 import torch.nn.functional as F
 from pydantic import Field, PositiveFloat
 
-from core.conventions import expose, inverse_tonemap
 from core.capture.depth import surface_normals
 from core.capture.hdr_merge import capture_reading_weights, merge_frames
 from core.capture.highlights import CLIP_LDR, linearise_highlights
+from core.conventions import expose, inverse_tonemap
 from core.envmap import SPLAT_Z_TOLERANCE, resize_envmap, splat_points, voxel_merge
-from core.priors.indoor_fill import SOURCE_CAP, cap_sources, fill_unseen
 from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
+from core.priors.indoor_fill import SOURCE_CAP, cap_sources, fill_unseen
 from core.priors.known import ball_target
 from core.priors.registry import prior_settings, register_prior
 

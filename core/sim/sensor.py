@@ -20,7 +20,6 @@ from core.exposure import luminance
 from core.sim.cost import CostReport
 from core.sim.spec import SceneSpec
 
-
 AE_MID_GREY = 0.18  # auto-exposure meters the frame's mean linear luminance to this
 AE_PIXEL_CAP = 4.0  # metered pixels are capped here (2^ev units): a tiny lamp must not set the exposure
 AE_RANGE_STOPS = 4.0  # the metered offset stays within this many stops of `sensor.ev`

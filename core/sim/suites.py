@@ -19,9 +19,9 @@ from core.sim.spec import (
     ProbePoint,
     Room,
     RoomAlbedo,
-    Schedule,
     SceneSpec,
     SceneSpecError,
+    Schedule,
     SensorSpec,
 )
 

@@ -17,8 +17,17 @@ from jobs.queue import TASK_NAME
 from jobs.storage import JobPaths, new_job_id
 from jobs.store import JobLimitReached, JobRecord
 from service.context import AppContext, Tenant, get_ctx, get_tenant, owned_job
-from service.errors import (BROKER_DOWN, RETRY_AFTER_STORAGE_S, ErrorBody, InvalidInput, ServiceUnavailable,
-                            TooManyJobs, broker_errors, describe_validation_errors, storage_errors)
+from service.errors import (
+    BROKER_DOWN,
+    RETRY_AFTER_STORAGE_S,
+    ErrorBody,
+    InvalidInput,
+    ServiceUnavailable,
+    TooManyJobs,
+    broker_errors,
+    describe_validation_errors,
+    storage_errors,
+)
 from service.lightfields import forget
 from service.models import JobList, JobView
 from service.upload import FormReader

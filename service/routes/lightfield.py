@@ -18,11 +18,22 @@ from service.errors import ErrorBody, InvalidInput, PayloadTooLarge, ServiceUnav
 from service.exports import Cancellation, run_export, stream_export
 from service.fieldcache import CachedField
 from service.lightfields import job_field, recent_field
-from service.queries import DEFAULT_QUALITY, MAX_ABS_EV, MAX_ABS_T_S, X_PATTERN
 from service.models import (
-    ArkitProbe, CubemapFace, CubemapResponse, EncodedEnvmap, EnvmapBatchRequest, EnvmapBatchResponse,
-    EnvmapFormat, Flags, LightfieldInfo, Quality, SHLayout, SphericalHarmonics, UnityProbeGrid,
+    ArkitProbe,
+    CubemapFace,
+    CubemapResponse,
+    EncodedEnvmap,
+    EnvmapBatchRequest,
+    EnvmapBatchResponse,
+    EnvmapFormat,
+    Flags,
+    LightfieldInfo,
+    Quality,
+    SHLayout,
+    SphericalHarmonics,
+    UnityProbeGrid,
 )
+from service.queries import DEFAULT_QUALITY, MAX_ABS_EV, MAX_ABS_T_S, X_PATTERN
 
 router = APIRouter(tags=["lightfield"])
 _ERRORS = {s: {"model": ErrorBody} for s in (401, 404, 409, 410, 413, 422, 503)}
@@ -158,7 +169,7 @@ def _layout_help() -> str:
 @router.get("/lightfield/{job_id}/sh", response_model=SphericalHarmonics, responses=_ERRORS,
             summary="ARCore-style lighting: main light + ambient SH, in a consumer's SH layout")
 async def get_sh(job_id: str, response: Response, x: str = XQuery, t: float = TQuery,
-                 layout: SHLayout = Query("arcore", description=_layout_help()),
+                 layout: SHLayout = Query("arcore", description=_layout_help()),  # noqa: B008 — a help string
                  quality: Quality = QualityQuery,
                  tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     point, t = queries.parse_x(x), queries.check_t(t)
@@ -406,7 +417,7 @@ async def get_sequence(job_id: str, x: str = XQuery,
                        frames: int = Query(..., ge=1, description="evenly spaced frames from t0 to t1"),
                        height: int = Query(64, ge=1, description="rows (width = 2 x height)"),
                        first_frame: int = Query(1, ge=0, description="number of the first file (envmap.0001.exr)"),
-                       quality: Quality = Query("exact", description=QUALITY_HELP.replace(" (default)", "") +
+                       quality: Quality = Query("exact", description=QUALITY_HELP.replace(" (default)", "") +  # noqa: B008 — a help string
                                                 "; this route's default is exact"),
                        colour: Literal["rec709", "acescg"] = Query(
                            "rec709", description="pixel colour space: linear Rec. 709 (as estimated) or ACEScg (AP1 "

@@ -2,13 +2,11 @@
 from __future__ import annotations
 
 import math
-
-import torch
-from torch import nn
-
 from typing import Literal
 
+import torch
 from pydantic import Field
+from torch import nn
 
 from core.conventions import direction_to_theta_phi, theta_phi_to_equirect_pixel
 from core.envmap import equirect_stencil, pad_poles, pixel_taps, taps_stencil

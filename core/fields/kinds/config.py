@@ -15,8 +15,15 @@ from __future__ import annotations
 import math
 from typing import Any, Literal, Mapping
 
-from pydantic import (BaseModel, Field, SerializeAsAny, ValidationError, field_validator, model_serializer,
-                      model_validator)
+from pydantic import (
+    BaseModel,
+    Field,
+    SerializeAsAny,
+    ValidationError,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 from core.fields.components.settings import FieldSettings
 from core.fields.kinds.registry import FIELDS, field_class

@@ -26,8 +26,7 @@ from typing import Any
 import torch
 from pydantic import ValidationError
 from safetensors import SafetensorError
-from safetensors.torch import load as load_safetensors_bytes
-from safetensors.torch import save_file
+from safetensors.torch import load as load_safetensors_bytes, save_file
 
 from core.conventions import CONVENTIONS_SUMMARY, CONVENTIONS_VERSION
 from core.fields import BoundsError, FieldConfig, LightField, SceneBounds, build_field

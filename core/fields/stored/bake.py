@@ -25,8 +25,7 @@ from pathlib import Path
 
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load as load_safetensors_bytes
-from safetensors.torch import save_file
+from safetensors.torch import load as load_safetensors_bytes, save_file
 
 from core.conventions import equirect_width
 from core.envmap import resize_envmap, upsample_envmaps

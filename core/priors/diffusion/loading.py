@@ -28,7 +28,6 @@ from typing import Any
 import torch
 
 from core.device import DeviceError, resolve_device as core_resolve_device
-
 from core.priors.base import PriorError
 from core.priors.diffusion.card import ModelCard
 

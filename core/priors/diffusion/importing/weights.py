@@ -111,7 +111,7 @@ def convert_weights(files: list[Path], used_variant: str | None, converted: dict
     """Write `out_file` (one safetensors) from a sub-model's weight files after checking them against
     `expected`; pickled files are read from their `converted` safetensors."""
     pickled = files[0].suffix == ".bin"
-    with tempfile.TemporaryDirectory(dir=out_file.parent) as tmp:
+    with tempfile.TemporaryDirectory(dir=out_file.parent):
         parts = [converted[f] if f.suffix == ".bin" else f for f in files]
         shapes: dict[str, tuple[tuple[int, ...], str]] = {}
         for part in parts:
