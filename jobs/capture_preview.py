@@ -25,6 +25,8 @@ written before checksums existed, are read without).
 """
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import os
 import shutil
@@ -54,7 +56,7 @@ class PreviewCameras:
         return int(np.argmin(np.abs(self.times.astype(np.float64) - float(t))))
 
     def camera(self, index: int):
-        from core.camera import Camera, Intrinsics
+        from core.camera import Camera, Intrinsics  # noqa: PLC0415 — core.camera pulls in torch: imported when used
 
         return Camera(Intrinsics(**self.intrinsics), self.poses[index])
 
@@ -105,11 +107,9 @@ def preview_from_capture(
 ) -> CapturePreview:
     """Downsample a core.capture.base.Capture: pick frames first (cheap), then the engine's own
     resize (area-averaged frames, nearest-surface depth)."""
-    import dataclasses
+    import torch  # noqa: PLC0415 — torch is heavy: imported when used
 
-    import torch
-
-    from core.conventions import valid_depth_mask
+    from core.conventions import valid_depth_mask  # noqa: PLC0415 — core.conventions pulls in torch: imported when used
 
     keep = torch.from_numpy(_evenly_spaced(capture.num_frames, max_frames))
     picked = dataclasses.replace(capture, frames=capture.frames[keep], depth=capture.depth[keep],
@@ -133,7 +133,7 @@ def preview_from_capture(
 
 def save_preview(preview: CapturePreview, job_dir: Path) -> Path:
     """Write the preview under job_dir atomically (temp sibling + rename); return its directory."""
-    from safetensors.numpy import save_file
+    from safetensors.numpy import save_file  # noqa: PLC0415 — safetensors is heavy: imported when used
 
     job_dir = Path(job_dir)
     job_dir.mkdir(parents=True, exist_ok=True)
@@ -164,8 +164,6 @@ def save_preview(preview: CapturePreview, job_dir: Path) -> Path:
 
 def file_sha256(path: Path) -> str:
     """SHA-256 of a file, read in 1 MiB blocks (previews reach tens of MB)."""
-    import hashlib
-
     digest = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):

@@ -26,7 +26,7 @@ import threading
 import uuid
 from pathlib import Path
 
-from jobs.blobstore import BlobStore, ObjectCorrupt
+from jobs.blobstore import BlobStore, ObjectCorrupt, store_for
 from jobs.storage import JobPaths, remove_tree
 
 log = logging.getLogger("lightfield.storage")
@@ -223,8 +223,6 @@ class JobFiles:
 
 def job_files(settings) -> JobFiles:
     """The JobFiles of a JobSettings (LIGHTFIELD_STORAGE_URL, LIGHTFIELD_DATA_DIR, LIGHTFIELD_CACHE_BYTES)."""
-    from jobs.blobstore import store_for
-
     return JobFiles(store_for(settings.storage_url, settings.data_dir), settings.data_dir, settings.cache_bytes)
 
 

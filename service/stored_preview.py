@@ -84,7 +84,7 @@ class StoredPreview(PreviewCameras):
         return 0.0 if self.stated_ev is None else float(self.stated_ev[index])
 
     def _slice(self, name: str, index: int) -> np.ndarray:
-        from safetensors import safe_open
+        from safetensors import safe_open  # noqa: PLC0415 — safetensors is heavy: imported when used
 
         if not 0 <= index < self.num_frames:
             raise IndexError(f"frame {index} out of range [0, {self.num_frames})")
@@ -106,7 +106,7 @@ _OPTIONAL_DTYPES = {"frame_ev": "F32"}  # only in previews of captures that stat
 
 def load_preview(job_dir: Path) -> StoredPreview:
     """Open and validate a stored preview; raises PreviewError (FileNotFoundError if absent)."""
-    from safetensors import SafetensorError, safe_open
+    from safetensors import SafetensorError, safe_open  # noqa: PLC0415 — safetensors is heavy: imported when used
 
     root = preview_dir(job_dir)
     if not (root / META_FILE).is_file():

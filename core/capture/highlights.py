@@ -143,7 +143,7 @@ def find_blobs(linear: np.ndarray, clipped: np.ndarray, pixel_sr: float) -> tupl
     """Label the clipped blobs of one frame (linear [H, W, 3] of the LDR frame, clipped [H, W]);
     labels [H, W] (0 = not clipped, k = blobs[k - 1]) and each blob's area, halo rings and
     white fraction."""
-    from scipy import ndimage
+    from scipy import ndimage  # noqa: PLC0415 — scipy is heavy: imported when used
 
     labels, n = ndimage.label(clipped, structure=np.ones((3, 3), dtype=bool))
     if n == 0:
@@ -263,7 +263,7 @@ def stops_over_time(found: list[tuple[np.ndarray, list[Blob]]], linear: torch.Te
     surface next to a source is lit mostly by it (and glare spills in proportion to it), so
     it brightens and dims with it; fixed pixels, because a blob that dims also shrinks and
     its own rings would move. A track without such pixels keeps the rule's stops."""
-    from scipy import ndimage
+    from scipy import ndimage  # noqa: PLC0415 — scipy is heavy: imported when used
 
     stops = [[math.log2(blob_boost(b, coefficients)) for b in blobs] for _, blobs in found]
     H, W = found[0][0].shape

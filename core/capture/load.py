@@ -33,9 +33,15 @@ import torch
 from core.camera import CameraError, Intrinsics, check_rigid_pose
 from core.capture.base import Capture, CaptureError
 from core.capture.depth import resolve_depth
+from core.capture.depth_model import load_depth_estimator
 from core.capture.params import MAX_EXPOSURE_STOPS, CaptureParams
 from core.conventions import DEFAULT_HFOV_DEG, frame_time
+from core.io import read_depth, read_image, select_frame_indices, sniff_media
+from core.io.images import decode_image
 from core.io.limits import MediaLimits
+from core.io.metadata import exif_intrinsics
+from core.io.nerfstudio import load_nerfstudio
+from core.io.sniff import ZIP_MAGIC, sniff_image
 
 DEPTH_MODEL_ENV = "LIGHTFIELD_DEPTH_MODEL"
 
@@ -44,15 +50,11 @@ DEPTH_MODEL_ENV = "LIGHTFIELD_DEPTH_MODEL"
 # Readers (core.io: limits, magic-byte sniffing; MediaError propagates with its .code)
 # ---------------------------------------------------------------------------------------
 def _read_image(path: Path, limits: MediaLimits) -> torch.Tensor:
-    from core.io import read_image
-
     return torch.from_numpy(np.ascontiguousarray(read_image(path, limits=limits), dtype=np.float32))
 
 
 def _read_depth(path: Path, limits: MediaLimits) -> torch.Tensor:
     """Depth file (.npz 'depth' / .npy / .exr / 16-bit PNG mm) -> float32 [T,H,W] or [H,W], NaN invalid."""
-    from core.io import read_depth
-
     return torch.from_numpy(np.ascontiguousarray(read_depth(path, limits=limits), dtype=np.float32))
 
 
@@ -60,9 +62,6 @@ def sniff_capture_file(path: Path) -> str | None:
     """'image', 'video', 'archive' (a zip: a nerfstudio capture) or None from magic bytes. A GIF
     is a 'video' (possibly animated), as the service's upload validation classifies it, so
     every frame is decoded under the limits."""
-    from core.io import sniff_media
-    from core.io.sniff import ZIP_MAGIC, sniff_image
-
     with open(path, "rb") as f:
         head = f.read(64)
     if head.startswith(ZIP_MAGIC):
@@ -75,8 +74,6 @@ EXIF_EXPOSURE_SOURCE = "the images' EXIF: log2(exposure time x ISO / f-number^2)
 
 def _read_nerfstudio(source: Path, limits: MediaLimits) -> dict:
     """A nerfstudio capture (directory or zip with transforms.json; core.io.nerfstudio)."""
-    from core.io.nerfstudio import load_nerfstudio
-
     cap = load_nerfstudio(source, limits)
     out = {"frames": torch.from_numpy(cap.frames), "intrinsics_dict": cap.intrinsics, "poses": cap.poses,
            "poses_source": "nerfstudio transforms.json", "intrinsics_source": "nerfstudio transforms.json",
@@ -93,9 +90,6 @@ def _read_nerfstudio(source: Path, limits: MediaLimits) -> dict:
 
 def _read_image_file(path: Path, limits: MediaLimits) -> dict:
     """One image, upright and sRGB, with what its metadata says (EXIF focal length -> intrinsics)."""
-    from core.io.images import decode_image
-    from core.io.metadata import exif_intrinsics
-
     img = decode_image(path, limits)
     h, w = img.pixels.shape[:2]
     out = {"frames": torch.from_numpy(np.ascontiguousarray(img.pixels, dtype=np.float32))[None],
@@ -120,8 +114,6 @@ def _read_capture_dir(root: Path, limits: MediaLimits) -> dict:
     names = index.get("frames") or []
     if not names:
         raise CaptureError("frames", "capture.json lists no frames")
-    from core.io import select_frame_indices
-
     h, w = int(index.get("intrinsics", {}).get("height", 1)), int(index.get("intrinsics", {}).get("width", 1))
     keep = [int(i) for i in select_frame_indices(len(names), h * w, limits)]
     frames = torch.stack([_read_image(root / names[i], limits) for i in keep])
@@ -231,8 +223,6 @@ def resolve_exposures(frame_ev, T: int) -> torch.Tensor | None:
 def _estimate_depth(
     frames: torch.Tensor, intr: Intrinsics, model_dir: str, warn: list[str]
 ) -> tuple[torch.Tensor, str]:
-    from core.capture.depth_model import load_depth_estimator
-
     estimator = load_depth_estimator(model_dir)
     warn.append(f"no depth given: estimated by the model in {DEPTH_MODEL_ENV} ({estimator.depth_source}); "
                 "probe placement and reprojection are approximate")
@@ -255,7 +245,7 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
     """
     params = params or CaptureParams()
     if track:
-        from core.capture.prepare import prepare_capture
+        from core.capture.prepare import prepare_capture  # noqa: PLC0415 — import cycle through core.capture.prepare
 
         capture = prepare_capture(input_path, depth_path, params, limits).capture
         for w in capture.warnings:
@@ -297,7 +287,7 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
 def read_capture_input(path: Path, limits: MediaLimits, warn: list[str]) -> dict:
     """What the reader of `path`'s kind returned (a directory: nerfstudio or simulator capture;
     a file: sniffed video, image or nerfstudio zip); their warnings appended to `warn`."""
-    from core.io import read_video
+    from core.io import read_video  # noqa: PLC0415 — looked up at call time: tests patch core.io.read_video
 
     if not path.exists():
         raise CaptureError("input", f"{path} does not exist")

@@ -17,6 +17,7 @@ import torch
 from core.capture.base import Capture, CaptureError
 from core.capture.depth import ASSUMED_DEPTH_SOURCE
 from core.capture.params import CaptureParams
+from core.tracking.room import RoomFitError, box_depth, room_from_dict
 
 DURATION_TOLERANCE_S = 1e-3
 
@@ -40,8 +41,7 @@ def recorded_params(record: dict) -> CaptureParams:
 def reload_capture(input_path, depth_path, record: dict) -> Capture:
     """The capture of `record` (an artefact's meta["capture"]) from its input file; raises
     CaptureError naming what does not match."""
-    from core.capture.load import load_capture
-    from core.tracking.room import RoomFitError, box_depth, room_from_dict
+    from core.capture.load import load_capture  # noqa: PLC0415 — core.capture.load pulls in av, cv2, OpenEXR, PIL: imported when used
 
     raw = load_capture(input_path, depth_path, recorded_params(record), track=False)
     meta = record.get("metadata") or {}

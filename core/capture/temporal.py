@@ -38,6 +38,7 @@ from typing import Literal, get_args
 import torch
 import torch.nn.functional as F
 
+from core.camera import Camera
 from core.conventions import inverse_tonemap, valid_depth_mask
 
 TemporalMode = Literal["auto", "on", "off"]  # the user's choice: detect, or force a time input on / off
@@ -114,8 +115,6 @@ def _block_logs(lum: torch.Tensor, usable: torch.Tensor, neighbourhood: bool = F
 
 def _warp_into(planes_src: torch.Tensor, depth_ref: torch.Tensor, depth_src: torch.Tensor, intr, pose_ref, pose_src):
     """Planes [h, w, C] of a source view warped into a reference view; (warped, valid [h, w])."""
-    from core.camera import Camera
-
     h, w, _ = planes_src.shape
     pts = Camera(intr, pose_ref).unproject(depth_ref.double())
     ok = torch.isfinite(pts).all(-1)

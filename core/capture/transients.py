@@ -34,8 +34,13 @@ import torch
 import torch.nn.functional as F
 
 from core.capture.base import Capture
-from core.capture.temporal import CLIP_HI, DARK_LO  # LDR: clipped, and too dark for a ratio
-from core.conventions import GAMMA, inverse_tonemap, tonemap  # the tone curve: d(log linear)/d(LDR) = GAMMA/LDR
+from core.capture.temporal import CLIP_HI, DARK_LO, _warp_into  # LDR: clipped, and too dark for a ratio
+from core.conventions import (  # the tone curve: d(log linear)/d(LDR) = GAMMA/LDR
+    GAMMA,
+    inverse_tonemap,
+    tonemap,
+    valid_depth_mask,
+)
 
 MIN_FRAMES = 8  # fewer frames cannot separate a course of light from a passer-by
 RANK = 3  # what stays + up to two lights changing on their own courses (12+ frames; 8-11: 2)
@@ -206,9 +211,6 @@ def _moving_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
     there see it and no light switched within the window (SWITCH_SHARE of the points judged
     both ways agree with one side only); else not judged. Painted from the median of all the
     neighbours."""
-    from core.capture.temporal import _warp_into
-    from core.conventions import valid_depth_mask
-
     T = capture.num_frames
     small = capture.resized(min(MOVING_HEIGHT, capture.height))
     lin, usable = _analysis(capture, small.height)

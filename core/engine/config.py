@@ -16,6 +16,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from core.conventions import DEFAULT_EV_MIN
 from core.device import DEVICE_PATTERN
 from core.fields import FieldConfig
+from core.priors.base import PriorError
+from core.priors.registry import prior_settings
 
 
 class DistillConfig(BaseModel):
@@ -189,9 +191,6 @@ class EngineConfig(BaseModel):
     @field_validator("priors")
     @classmethod
     def _valid_prior_settings(cls, priors: dict) -> dict:
-        from core.priors.base import PriorError
-        from core.priors.registry import prior_settings
-
         try:
             return {name: prior_settings(name, settings).model_dump() for name, settings in priors.items()}
         except PriorError as exc:  # a validation error of this config, naming the prior and the key

@@ -16,6 +16,7 @@ import os
 
 import torch
 import torch.nn.functional as F
+from safetensors.torch import load_file
 
 SATURATED = 0.999
 SSIM_C1, SSIM_C2 = 0.01**2, 0.03**2
@@ -65,7 +66,7 @@ def perceptual_kind(net: str = "alex") -> str:
     if not path or not os.path.exists(path):
         return "ssim"
     try:
-        import lpips  # noqa: F401
+        import lpips  # noqa: F401, PLC0415 — optional: probed here
     except Exception:
         return "ssim"
     return "lpips"
@@ -86,8 +87,7 @@ class PerceptualLoss:
         self.kind = perceptual_kind(net)
         self._lpips = None
         if self.kind == "lpips":  # pragma: no cover - needs weights that CI never has
-            import lpips
-            from safetensors.torch import load_file
+            import lpips  # noqa: PLC0415 — lpips is heavy: imported when used
 
             model = lpips.LPIPS(pretrained=False, net=net, pnet_rand=True, verbose=False)
             model.load_state_dict(load_file(os.environ[LPIPS_WEIGHTS_ENV[net]]))  # strict: no silently random layers

@@ -9,7 +9,7 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
-from core.export.sh_layouts import LAYOUT_NAMES
+from core.export.sh_layouts import LAYOUT_NAMES, pack
 
 SHLayoutName = Literal["arcore", "threejs", "babylon", "unity", "arkit"]
 assert set(SHLayoutName.__args__) == set(LAYOUT_NAMES)  # the table in core.export.sh_layouts is the source
@@ -74,8 +74,6 @@ class SphericalHarmonics(BaseModel):
     @classmethod
     def of(cls, x, t, flags: Flags, layout: str, light, full_sh) -> "SphericalHarmonics":
         """From a core.lights.DominantLight (its ambient SH) and the whole map's SH [9, 3]."""
-        from core.export.sh_layouts import pack
-
         return cls(x=tuple(float(v) for v in x), t=None if t is None else float(t), extrapolated=flags, layout=layout,
                    coefficients=pack(light.ambient_sh, layout), coefficients_with_light=pack(full_sh, layout),
                    arcore_27=pack(light.ambient_sh, "arcore"), dominant_light=DominantLight.of(light))

@@ -12,6 +12,7 @@ it is refused.
 """
 from __future__ import annotations
 
+import io
 import os
 import posixpath
 import stat
@@ -151,8 +152,6 @@ class ZipFiles(CaptureFiles):
     def __init__(self, source: Source, limits: MediaLimits = DEFAULT_LIMITS, max_members: int = MAX_MEMBERS,
                  max_total_bytes: int | None = None, max_ratio: float = MAX_RATIO):
         super().__init__(limits)
-        import io
-
         if isinstance(source, (bytes, bytearray, memoryview)):
             limits.check_bytes(len(source), "capture archive")
             target = io.BytesIO(bytes(source))

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.io.archive import check_zip_directory
 from core.io.exr import atomic_write, read_exr_channels
 from core.io.images import encode_png16, read_png16
 from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source, read_source
@@ -63,8 +64,6 @@ def check_depth_range(depth: np.ndarray, what: str = "depth") -> None:
 def _open_npz(target, size: int, limits: MediaLimits) -> zipfile.ZipFile:
     """The .npz (a zip) with its directory walked within bounds (core.io.archive) before zipfile
     parses it, and exactly one member `depth.npy`."""
-    from core.io.archive import check_zip_directory
-
     check_zip_directory(target, size, _NPZ_MAX_MEMBERS, "depth .npz")
     target.seek(0)
     archive = zipfile.ZipFile(target)

@@ -29,6 +29,7 @@ Every problem is an `ArchiveError` whose `.field` names the offending key, e.g.
 """
 from __future__ import annotations
 
+import io
 import json
 import math
 from dataclasses import dataclass, field
@@ -36,6 +37,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from PIL import Image
 
 from core.camera import MAX_FOV_DEG, MAX_POSE_TRANSLATION_M, MIN_FOV_DEG
 from core.io.archive import ArchiveError, CaptureFiles, ZipFiles, member_name, open_capture_files
@@ -300,9 +302,6 @@ def _image_size(files: CaptureFiles, name: str, key: str, limits: MediaLimits = 
 
 
 def _stored_size(data: bytes) -> tuple[int, int]:
-    import io
-
-    from PIL import Image
 
     with Image.open(io.BytesIO(data)) as im:
         return im.size

@@ -67,7 +67,7 @@ def sensor_frame(scene: SceneSpec, hdr: torch.Tensor, frame_index: int, cost: Co
 
 def video_round_trip(ldr: np.ndarray, fps: float, crf: int) -> np.ndarray:
     """Encode [T, H, W, 3] LDR frames as mp4 and decode them back (lossy), same shape."""
-    from core.io.video import read_video, write_video
+    from core.io.video import read_video, write_video  # noqa: PLC0415 — core.io.video pulls in av, cv2, OpenEXR, PIL: imported when used
 
     t, h, w, _ = ldr.shape
     with tempfile.TemporaryDirectory() as tmp:

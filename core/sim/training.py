@@ -173,9 +173,9 @@ def _antialiased_balls(ctx, camera: Camera, centers, radii, background: torch.Te
 
 
 def write_sample(sample: BallSample, out: Path, scene_name: str, fps: float) -> None:
-    from core.io.depth import write_depth_npz
-    from core.io.exr import write_exr
-    from core.io.images import write_png
+    from core.io.depth import write_depth_npz  # noqa: PLC0415 — core.io.depth pulls in av, cv2, OpenEXR, PIL: imported when used
+    from core.io.exr import write_exr  # noqa: PLC0415 — core.io.exr pulls in av, cv2, OpenEXR, PIL: imported when used
+    from core.io.images import write_png  # noqa: PLC0415 — core.io.images pulls in av, cv2, OpenEXR, PIL: imported when used
 
     out.mkdir(parents=True, exist_ok=True)
     write_exr(out / "image_with_balls.exr", sample.image_with_balls.numpy())

@@ -30,6 +30,7 @@ motion prior and named in the stats.
 """
 from __future__ import annotations
 
+import heapq
 import math
 from dataclasses import dataclass, field, replace
 
@@ -469,8 +470,6 @@ def _spanning_tree(T: int, pairs: list[DirectPair], chain: dict[int, np.ndarray]
     with the most information (its least certain direction) first (a maximum spanning tree), so
     a frame the chain only coasted past is placed by a loop closure where one reaches it; frames
     no pair reaches keep the chain's rotation relative to the last placed frame before them."""
-    import heapq
-
     def strength(p: DirectPair) -> float:
         return float(np.linalg.eigvalsh(p.info)[0])
 

@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix, lil_matrix
@@ -445,8 +446,6 @@ class EssentialFit:
 def essential_evidence(pairs: list[PairMatches], k: Intrinsics) -> list[EssentialFit]:
     """Per pair with enough matches, the essential matrix's inliers (fitted once per clip: the
     global and the rolling-shutter track are both compared with them)."""
-    import cv2
-
     out = []
     for m in pairs:
         if len(m) < ESSENTIAL_MIN_INLIERS:

@@ -71,7 +71,7 @@ class SfMTrack:
 
 def _pycolmap():
     try:
-        import pycolmap
+        import pycolmap  # noqa: PLC0415 — optional: an ImportError is handled here
     except ImportError as exc:  # a dependency; only a broken install lands here
         raise SfMUnavailable(f"pycolmap is not importable ({exc})") from None
     return pycolmap

@@ -48,6 +48,8 @@ from core.tracking.geometry import rotation_angle_deg
 from core.tracking.motion import MotionDecision, detect_motion
 from core.tracking.rotation import estimate_rotations
 from core.tracking.scale import ScaleEstimate, apply_scale, scale_from_depth, scale_from_room
+from core.tracking.sfm import run_sfm
+from core.tracking.twoview import run_two_view
 
 MIN_KEPT_FRACTION = 0.5  # a track that registers fewer frames than this is a failure
 # The rotation track stands in when structure from motion fails (rotation_fallback_ok): it must
@@ -326,12 +328,8 @@ def _dropped_warning(dropped: list[int]) -> list[str]:
 
 
 def _pycolmap_track(images, features, k):
-    from core.tracking.sfm import run_sfm
-
     return run_sfm(images, k)
 
 
 def _opencv_track(images, features, k):
-    from core.tracking.twoview import run_two_view
-
     return run_two_view(features, k)

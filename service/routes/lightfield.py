@@ -12,6 +12,12 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, StreamingResponse
 
 from core.conventions import CONVENTIONS_SUMMARY
+from core.export.arkit import arkit_probe
+from core.export.products import cube_for, cube_ktx2, cube_source_height, envmap_exr_attributes, probe_glb, probe_usdz
+from core.export.sequence import sequence_fps, sequence_members, sequence_times, zip_stream
+from core.export.sh_layouts import LAYOUTS
+from core.export.unity import unity_probe_grid
+from core.export.usd import USDUnavailable
 from service import queries
 from service.context import AppContext, Tenant, get_ctx, get_tenant
 from service.errors import ErrorBody, InvalidInput, PayloadTooLarge, ServiceUnavailable
@@ -66,15 +72,13 @@ def _npy(array: np.ndarray) -> bytes:
 
 
 def _encode(hdr: np.ndarray, fmt: str, ev: float, attributes: dict | None = None) -> tuple[bytes, str]:
-    from core.io.envmap_io import encode_envmap
+    from core.io.envmap_io import encode_envmap  # noqa: PLC0415 — core.io.envmap_io pulls in av, cv2, OpenEXR, PIL: imported when used
 
     # uncompressed EXR: ZIP saves 2-11 % on float32 radiance for 5-15x the encoding time
     return encode_envmap(hdr, fmt, ev, attributes=attributes, compress=False)
 
 
 def _attributes(point, t: float, job_id: str, flags: queries.EvalFlags) -> dict:
-    from core.export.products import envmap_exr_attributes
-
     return envmap_exr_attributes(point, t, job_id, flags.header())
 
 
@@ -161,8 +165,6 @@ async def post_envmaps(job_id: str, body: EnvmapBatchRequest, response: Response
 
 
 def _layout_help() -> str:
-    from core.export.sh_layouts import LAYOUTS
-
     return "; ".join(layout.describe() for layout in LAYOUTS.values())
 
 
@@ -231,8 +233,6 @@ async def get_unity(
     tenant: Tenant = Depends(get_tenant),
     ctx: AppContext = Depends(get_ctx),
 ):
-    from core.export.unity import unity_probe_grid
-
     counts = _counts(grid)
     corner_lo, corner_hi = (None if v is None else queries.parse_x(v) for v in (lo, hi))
     t = None if t is None else queries.check_t(t)
@@ -267,9 +267,6 @@ async def get_arkit(
     tenant: Tenant = Depends(get_tenant),
     ctx: AppContext = Depends(get_ctx),
 ):
-    from core.export.arkit import arkit_probe
-    from core.export.products import cube_source_height
-
     point, t, ev = queries.parse_x(x), queries.check_t(t), queries.check_ev(ev)
     queries.check_size(size, ctx.settings.limits.max_cubemap_size, "size")
     cf = await _field_async(job_id, tenant, ctx)
@@ -317,20 +314,16 @@ async def get_cubemap(
         _check_cube_size(size, levels)
     cf = await _field_async(job_id, tenant, ctx)
     if format == "ktx2":
-        from core.export.products import cube_ktx2, cube_source_height
-
         hdr, flags, used = await _export(request, ctx, queries.envmap_with_quality, cf, point, t,
                                          cube_source_height(size), quality)
         data = await run_in_threadpool(cube_ktx2, hdr, size, levels, layout)
         return _download(data, "image/ktx2", "cubemap.ktx2", flags)
 
     def finish(hdr: np.ndarray, _flags):  # in the batch's thread
-        from core.export.products import cube_for
-
         faces = queries.cube_faces(cube_for(hdr, layout).numpy(), size)
         if format == "npy":
             return _npy(faces)
-        from core.io.exr import encode_exr
+        from core.io.exr import encode_exr  # noqa: PLC0415 — core.io.exr pulls in av, cv2, OpenEXR, PIL: imported when used
 
         return [base64.b64encode(encode_exr(face, compress=False)).decode() for face in faces]
 
@@ -375,8 +368,6 @@ async def get_gltf(
     tenant: Tenant = Depends(get_tenant),
     ctx: AppContext = Depends(get_ctx),
 ):
-    from core.export.products import cube_source_height, probe_glb
-
     point, t = queries.parse_x(x), queries.check_t(t)
     queries.check_size(size, ctx.settings.limits.max_cubemap_size, "size")
     _check_cube_size(size, levels)
@@ -393,9 +384,6 @@ async def get_gltf(
 async def get_usdz(job_id: str, request: Request, x: str = XQuery, t: float = TQuery,
                    height: int = Query(256, ge=1, description="rows of the dome's latlong EXR (width = 2 x height)"),
                                   tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
-    from core.export.products import probe_usdz
-    from core.export.usd import USDUnavailable
-
     point, t = queries.parse_x(x), queries.check_t(t)
     queries.check_size(height, ctx.settings.limits.max_envmap_height, "height")
     cf = await _field_async(job_id, tenant, ctx)
@@ -423,8 +411,6 @@ async def get_sequence(job_id: str, x: str = XQuery,
                            "rec709", description="pixel colour space: linear Rec. 709 (as estimated) or ACEScg (AP1 "
                            "primaries, ACES white, Bradford-adapted; the EXR chromaticities say which)"),
                        tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
-    from core.export.sequence import sequence_fps, sequence_members, sequence_times, zip_stream
-
     point, t0, t1 = queries.parse_x(x), queries.check_t(t0), queries.check_t(t1)
     queries.check_size(height, ctx.settings.limits.max_envmap_height, "height")
     queries.check_size(frames, ctx.settings.limits.max_sequence_frames, "frames")

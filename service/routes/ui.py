@@ -14,11 +14,16 @@ import threading
 from pathlib import Path
 
 import numpy as np
+import torch
 from fastapi import APIRouter, Depends, Query, Response
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 
+from core.capture.base import Capture
+from core.chrome_ball import BallPlacementError
 from core.conventions import CONVENTIONS_SUMMARY
+from core.insertion import InsertionError, insert_objects, parse_points
+from core.sim.room_scan import write_sample_scan
 from jobs.storage import JobPaths
 from service.context import AppContext, Tenant, get_ctx, get_tenant
 from service.errors import ErrorBody, Gone, InvalidInput, NotFound, storage_errors
@@ -124,8 +129,6 @@ def _field_time(cf: CachedField, preview: StoredPreview, index: int) -> float | 
 
 
 def _flags(cf: CachedField, x, t: float | None) -> Flags:
-    import torch
-
     ts = None if t is None else torch.tensor([t], dtype=torch.float32)
     flags = cf.artefact.flags(torch.tensor([x], dtype=torch.float32), ts)[0]
     return Flags(x=bool(flags["extrapolated_x"]), t=bool(flags["extrapolated_t"]))
@@ -172,7 +175,7 @@ def get_capture(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppConte
     summary="A frame of the capture as PNG (preview resolution)")
 def get_frame(job_id: str, t: float = TQuery,
               tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
-    from core.io.images import encode_png
+    from core.io.images import encode_png  # noqa: PLC0415 — core.io.images pulls in av, cv2, OpenEXR, PIL: imported when used
 
     preview = _preview(job_id, tenant, ctx)
     index = preview.nearest_frame(check_t(t))
@@ -210,9 +213,6 @@ def get_probe(job_id: str,
 def _insertion_frame(preview: StoredPreview, index: int):
     """Frame [h,w,3] float in [0,1], depth [h,w] and camera of stored frame `index`, at most
     INSERTION_MAX_HEIGHT rows (the engine's own resize: area-averaged colour, nearest depth)."""
-    import torch
-
-    from core.capture.base import Capture
 
     capture = Capture(frames=torch.from_numpy(preview.frame(index).astype(np.float32) / 255.0)[None],
                       depth=torch.from_numpy(preview.depth_map(index))[None],
@@ -224,11 +224,7 @@ def _insertion_frame(preview: StoredPreview, index: int):
 
 
 def _render_insertion(preview: StoredPreview, cf: CachedField, index: int, points_text: str, env_height: int) -> bytes:
-    import torch
-
-    from core.chrome_ball import BallPlacementError
-    from core.insertion import InsertionError, insert_objects, parse_points
-    from core.io.images import encode_png
+    from core.io.images import encode_png  # noqa: PLC0415 — core.io.images pulls in av, cv2, OpenEXR, PIL: imported when used
 
     try:
         points = parse_points(points_text)
@@ -275,8 +271,6 @@ def _render_sample_scan() -> bytes:
     """The bundled panorama's room scan as an MP4 (core.sim.room_scan.write_sample_scan),
     rendered once per process (about a second) and kept: the same bytes for every caller."""
     global _sample_scan
-    from core.sim.room_scan import write_sample_scan
-
     with _sample_lock:
         if _sample_scan is None:
             with tempfile.TemporaryDirectory() as tmp:

@@ -35,7 +35,7 @@ class InpaintCondition:
 
 class InpaintDenoiser:
     def __init__(self, components: PriorComponents):
-        from diffusers import DDIMScheduler
+        from diffusers import DDIMScheduler  # noqa: PLC0415 — diffusers is heavy: imported when used
 
         self.c = components
         self._scheduler_config = DDIMScheduler.from_config(
@@ -66,7 +66,7 @@ class InpaintDenoiser:
         Fresh per call because set_timesteps mutates the scheduler, and a worker may share
         one prior between threads.
         """
-        from diffusers import DDIMScheduler
+        from diffusers import DDIMScheduler  # noqa: PLC0415 — diffusers is heavy: imported when used
 
         if not (0.0 < tau <= 1.0):
             raise PriorError(f"tau must be in (0, 1] to denoise, got {tau}")
@@ -118,7 +118,7 @@ class InpaintDenoiser:
         generator: torch.Generator | None = None,
     ) -> torch.Tensor:
         """Noise `image_latents` to ~tau*T and denoise in `steps` DDIM steps, keeping the background."""
-        from diffusers.utils.torch_utils import randn_tensor
+        from diffusers.utils.torch_utils import randn_tensor  # noqa: PLC0415 — diffusers is heavy: imported when used
 
         scheduler, timesteps = self.schedule(tau, steps)
         x0 = image_latents.float()

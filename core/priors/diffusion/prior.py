@@ -34,6 +34,8 @@ from core.priors.diffusion.denoise import InpaintCondition, InpaintDenoiser
 from core.priors.diffusion.exposure import ExposureConditioner
 from core.priors.diffusion.loading import PriorComponents, load_components
 from core.priors.diffusion.profiles import ProfileName, get_profile
+from core.priors.diffusion.sampling import sample_balls
+from core.priors.diffusion.seed import SeedDenoiser
 from core.priors.registry import register_prior
 
 if TYPE_CHECKING:
@@ -91,8 +93,6 @@ class DiffusionPrior(Prior):
     @property
     def seed_denoiser(self):
         if self._seed is None:
-            from core.priors.diffusion.seed import SeedDenoiser
-
             self._seed = SeedDenoiser(self.components)
         return self._seed
 
@@ -177,8 +177,6 @@ class DiffusionPrior(Prior):
         background_depth: torch.Tensor | None = None,
     ) -> "BallSamples":
         """Direct sampling: inpaint from pure noise at each EV, unwrap, merge to HDR (see sampling.py)."""
-        from core.priors.diffusion.sampling import sample_balls
-
         return sample_balls(self, image, masks, depth, probes, evs=evs, seed=seed, median_over=median_over,
                             steps=steps, guidance_scale=guidance_scale, env_height=env_height,
                             background_depth=background_depth)

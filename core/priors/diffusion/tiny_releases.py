@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from core.priors.diffusion.loading import quiet_loading
 from core.priors.diffusion.tiny import (
     TinyConfig,
     tiny_controlnet,
@@ -53,7 +54,7 @@ def _save_diffusers(model, folder: Path, fmt: str) -> None:
 
 
 def _save_transformers(model, folder: Path, fmt: str) -> None:
-    from safetensors.torch import load_file, save_file
+    from safetensors.torch import load_file, save_file  # noqa: PLC0415 — safetensors is heavy: imported when used
 
     model.save_pretrained(folder)
     st = folder / "model.safetensors"
@@ -123,7 +124,7 @@ def write_authors_release(root: str | Path, config: TinyConfig = TinyConfig(reso
 
 def tiny_sdxl_unet(config: TinyConfig, text_hidden: int = 32, projection: int = 32, time_embed: int = 8):
     """An SDXL-shaped UNet: 4 input channels, 'text_time' added conditioning, two encoders' width."""
-    from diffusers import UNet2DConditionModel
+    from diffusers import UNet2DConditionModel  # noqa: PLC0415 — diffusers is heavy: imported when used
 
     return UNet2DConditionModel(
         sample_size=config.resolution[0] // 8, in_channels=4, out_channels=4,
@@ -136,7 +137,7 @@ def tiny_sdxl_unet(config: TinyConfig, text_hidden: int = 32, projection: int = 
 
 
 def tiny_text_encoder_2(config: TinyConfig, vocab_size: int, projection: int = 32):
-    from transformers import CLIPTextConfig, CLIPTextModelWithProjection
+    from transformers import CLIPTextConfig, CLIPTextModelWithProjection  # noqa: PLC0415 — transformers is heavy: imported when used
 
     return CLIPTextModelWithProjection(CLIPTextConfig(
         vocab_size=vocab_size, hidden_size=config.text_hidden, intermediate_size=2 * config.text_hidden,
@@ -162,8 +163,8 @@ def tiny_lora_state(unet, rank: int = 4, seed: int = 1) -> dict[str, torch.Tenso
 
 def write_diffusionlight_sdxl_release(root: str | Path, config: TinyConfig = TinyConfig(resolution=(64, 64))):
     """(SDXL folder, ControlNet folder, VAE folder, LoRA folder) in DiffusionLight's layout."""
-    from diffusers import ControlNetModel
-    from safetensors.torch import save_file
+    from diffusers import ControlNetModel  # noqa: PLC0415 — diffusers is heavy: imported when used
+    from safetensors.torch import save_file  # noqa: PLC0415 — safetensors is heavy: imported when used
 
     root = Path(root)
     sdxl, cn, vae_dir = (
@@ -232,8 +233,6 @@ def write_diffusionlight_sd2_release(root: str | Path, config: TinyConfig = Tiny
 
 
 def _quiet():
-    from core.priors.diffusion.loading import quiet_loading
-
     return quiet_loading()
 
 

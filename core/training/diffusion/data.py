@@ -78,9 +78,9 @@ class BallDataset(Dataset):
         return self.info.count
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        from core.io.depth import read_depth
-        from core.io.exr import read_exr
-        from core.io.images import read_image
+        from core.io.depth import read_depth  # noqa: PLC0415 — core.io.depth pulls in av, cv2, OpenEXR, PIL: imported when used
+        from core.io.exr import read_exr  # noqa: PLC0415 — core.io.exr pulls in av, cv2, OpenEXR, PIL: imported when used
+        from core.io.images import read_image  # noqa: PLC0415 — core.io.images pulls in av, cv2, OpenEXR, PIL: imported when used
 
         d = self.info.samples[index]
         hdr = _chw(read_exr(d / "image_with_balls.exr"))

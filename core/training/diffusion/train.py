@@ -24,6 +24,7 @@ from typing import Literal
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
+from torch.utils.data import DataLoader
 
 from core.conventions import tonemap
 from core.priors.diffusion.card import ModelCard
@@ -168,8 +169,7 @@ class TrainResult:
 def train_prior(data_dir: str | Path, base_dir: str | Path, out_dir: str | Path, cfg: TrainConfig,
                 resume: bool = False) -> TrainResult:
     """Fine-tune `base_dir` on `data_dir`; write checkpoints and the final model directory to `out_dir`."""
-    from accelerate import Accelerator
-    from torch.utils.data import DataLoader
+    from accelerate import Accelerator  # noqa: PLC0415 — accelerate is heavy: imported when used
 
     accelerator = Accelerator(mixed_precision=cfg.mixed_precision)
     world, rank = accelerator.num_processes, accelerator.process_index

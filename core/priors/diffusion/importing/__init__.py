@@ -33,7 +33,14 @@ from pathlib import Path
 from core.priors.base import PriorError
 from core.priors.diffusion.card import CARD_FILENAME, ExposurePrompts, LoraSpec, ModelCard
 from core.priors.diffusion.importing.safe_convert import ConvertLimits
-from core.priors.diffusion.importing.weights import convert_pickles, convert_weights, expected_shapes, find_weight_files
+from core.priors.diffusion.importing.weights import (
+    convert_pickles,
+    convert_weights,
+    expected_shapes,
+    find_weight_files,
+    header_shapes,
+)
+from core.priors.diffusion.loading import load_components
 from core.priors.diffusion.profiles import get_profile
 
 LAYOUTS = ("authors", "diffusionlight-sdxl", "diffusionlight-sd2")
@@ -311,8 +318,6 @@ def _write(dirs, configs, out: Path, card: ModelCard, variant, limits, lora_file
 
 
 def _import_lora(lora_file: Path, converted: dict[Path, Path], out: Path, report: ImportReport) -> dict:
-    from core.priors.diffusion.importing.weights import header_shapes
-
     (out / "lora").mkdir()
     target = out / "lora" / "pytorch_lora_weights.safetensors"
     if lora_file.suffix == ".bin":
@@ -336,8 +341,6 @@ def _check_variant_dtypes(record: dict) -> None:
 
 def _verify_loads(out: Path, report: ImportReport) -> None:
     """Load the result the way run time does (local, safetensors only): a directory that imports runs."""
-    from core.priors.diffusion.loading import load_components
-
     comps = load_components(out, device="cpu", dtype="bfloat16")  # half the memory; nothing is computed
     del comps
     report.notes.append("verified: loads with the run-time loader (local files, safetensors only)")

@@ -24,6 +24,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import torch
+
 EXIT_BAD_CONTENT = 2
 GIB = 1 << 30
 
@@ -111,8 +113,6 @@ def _remove(paths) -> None:
 
 
 def _tensors_only(obj) -> dict:
-    import torch
-
     if isinstance(obj, dict) and "state_dict" in obj and isinstance(obj["state_dict"], dict) and len(obj) <= 4:
         obj = obj["state_dict"]  # some trainers wrap the weights; everything else in the wrapper is dropped
     if not isinstance(obj, dict) or not obj:
@@ -124,8 +124,7 @@ def _tensors_only(obj) -> dict:
 
 
 def _child(src: str, dst: str) -> int:
-    import torch
-    from safetensors.torch import save_file
+    from safetensors.torch import save_file  # noqa: PLC0415 — safetensors is heavy: imported when used
 
     try:
         try:
