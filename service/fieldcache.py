@@ -77,6 +77,6 @@ class FieldCache:
 
 
 def _load_artefact(directory: Path):
-    from core.fields.stored.artefact import LightFieldArtefact  # noqa: PLC0415 — core.fields.stored.artefact pulls in pydantic, safetensors, torch: imported when used
+    from core.fields.stored.artefact import LightFieldArtefact  # noqa: PLC0415 — core.fields.stored.artefact pulls in safetensors: imported when used
 
     return LightFieldArtefact.load(directory)

@@ -22,7 +22,12 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
+import torch
 
+from core.cubemap import equirect_to_cubemap
+from core.envmap import upsample_envmaps
+from core.lights import extract_dominant_light
+from core.sh import project_sh
 from service.errors import InvalidInput, PayloadTooLarge
 from service.evaluator import EnvmapAnswer, EnvmapRequest, FieldBatcher, group_requests
 from service.fieldcache import CachedField
@@ -110,7 +115,7 @@ def _numpy(hdr) -> np.ndarray:
 @contextmanager
 def _as_invalid_input():
     """The engine's QueryError (a query it refuses) becomes the API's 422 invalid_query."""
-    from core.fields.stored.artefact import QueryError  # noqa: PLC0415 — core.fields.stored.artefact pulls in safetensors, torch: imported when used
+    from core.fields.stored.artefact import QueryError  # noqa: PLC0415 — core.fields.stored.artefact pulls in safetensors: imported when used
 
     try:
         yield
@@ -128,8 +133,6 @@ def _evaluate(cf: CachedField, quality: str, xs, ts, height: int):
     if quality == "baked":
         return _baked(cf).envmaps(xs, ts, height)
     if quality == "fast":
-        from core.envmap import upsample_envmaps  # noqa: PLC0415 — core.envmap pulls in torch: imported when used
-
         low, flags = cf.artefact.envmaps(xs, ts, fast_rows(height))
         return upsample_envmaps(low, height), flags
     return cf.artefact.envmaps(xs, ts, height)
@@ -138,7 +141,7 @@ def _evaluate(cf: CachedField, quality: str, xs, ts, height: int):
 def _baked(cf: CachedField):
     """The worker's bake (verified; a missing, stale or corrupt one is baked again here once
     and saved beside the artefact, atomically). Call with cf.lock held."""
-    from core.fields.stored.bake import load_or_bake  # noqa: PLC0415 — core.fields.stored.bake pulls in safetensors, torch: imported when used
+    from core.fields.stored.bake import load_or_bake  # noqa: PLC0415 — core.fields.stored.bake pulls in safetensors: imported when used
 
     if cf.baked is None:
         cf.baked = load_or_bake(cf.artefact, save=True)
@@ -178,11 +181,6 @@ async def envmap_answer(ctx, cf: CachedField, x, t: float, height: int, quality:
 
 def sh_from_envmap(hdr: np.ndarray):
     """(dominant light with ambient SH, SH of the whole map) of an env map: ARCore Environmental HDR split."""
-    import torch  # noqa: PLC0415 — torch is heavy: imported when used
-
-    from core.lights import extract_dominant_light  # noqa: PLC0415 — core.lights pulls in torch: imported when used
-    from core.sh import project_sh  # noqa: PLC0415 — core.sh pulls in torch: imported when used
-
     env = torch.from_numpy(hdr)
     return extract_dominant_light(env), project_sh(env.double())
 
@@ -213,8 +211,6 @@ def envmap_with_quality(cf: CachedField, x, t: float, height: int, quality: str,
         with _as_invalid_input(), cf.export_lock:
             artefact = cf.export_artefact()
             if quality == "fast":
-                from core.envmap import upsample_envmaps  # noqa: PLC0415 — core.envmap pulls in torch: imported when used
-
                 low, flags = artefact.envmaps([list(x)], times, fast_rows(height))
                 hdrs = upsample_envmaps(low, height)
             else:
@@ -236,10 +232,6 @@ def envmap_sequence(cf: CachedField, x, times, height: int, quality: str = "exac
 def cube_faces(hdr: np.ndarray, size: int) -> np.ndarray:
     """Faces [6, size, size, 3] (+X, -X, +Y, -Y, +Z, -Z) sampled from an env map of 2*size rows
     (one map pixel per texel at the face centres)."""
-    import torch  # noqa: PLC0415 — torch is heavy: imported when used
-
-    from core.cubemap import equirect_to_cubemap  # noqa: PLC0415 — core.cubemap pulls in torch: imported when used
-
     return _numpy(equirect_to_cubemap(torch.from_numpy(hdr), size))
 
 

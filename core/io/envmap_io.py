@@ -41,7 +41,6 @@ def _check_envmap(hdr: np.ndarray) -> np.ndarray:
 
 def tonemapped_preview(hdr: np.ndarray, ev: float = 0.0) -> np.ndarray:
     """uint8 [H, W, 3] preview: the paper's tone map at exposure `ev`, rounded."""
-
     return to_uint8(tonemap(torch.from_numpy(np.ascontiguousarray(hdr)), float(ev))).numpy()
 
 

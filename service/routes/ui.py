@@ -213,7 +213,6 @@ def get_probe(job_id: str,
 def _insertion_frame(preview: StoredPreview, index: int):
     """Frame [h,w,3] float in [0,1], depth [h,w] and camera of stored frame `index`, at most
     INSERTION_MAX_HEIGHT rows (the engine's own resize: area-averaged colour, nearest depth)."""
-
     capture = Capture(frames=torch.from_numpy(preview.frame(index).astype(np.float32) / 255.0)[None],
                       depth=torch.from_numpy(preview.depth_map(index))[None],
                       intrinsics=preview.camera(index).intrinsics,
