@@ -35,11 +35,15 @@ import tempfile
 import time
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
 from bench.overrides import parse_set
 from bench.suite.evaluation import ratio_interval
+
+if TYPE_CHECKING:
+    from bench.methods import Method
 
 METRICS = ("si_rmse", "angular_deg", "nrmse")
 MATERIALS = ("diffuse", "matte", "mirror")
@@ -70,7 +74,11 @@ def constant_maps(suite, height: int) -> torch.Tensor:
     return torch.stack(out)
 
 
-METHOD_LABELS = {"field": "radiance + view (draft)", "field-balls": "ball loop", "field-oracle": "from the oracle (bound)"}
+METHOD_LABELS = {
+    "field": "radiance + view (draft)",
+    "field-balls": "ball loop",
+    "field-oracle": "from the oracle (bound)",
+}
 
 
 def observed_hybrid(prior, suite, field_maps: torch.Tensor) -> torch.Tensor:
@@ -93,14 +101,20 @@ def observed_hybrid(prior, suite, field_maps: torch.Tensor) -> torch.Tensor:
 def markdown_table(report: dict) -> str:
     """The docs' table of a saved report (`--table report.json`): per suite and method the worst
     field/prior ratio with its 90 % interval, si-RMSE / prior per material and / constant."""
-    rows = ["| suite | method | probes | worst metric / prior [90 % interval] | diffuse si / prior | matte si / prior "
-            "| mirror si / prior | diffuse si / const | matte si / const | CPU s |", "|---|---|---|---|---|---|---|---|---|---|"]
+    rows = [
+        "| suite | method | probes | worst metric / prior [90 % interval] | diffuse si / prior | matte si / prior "
+        "| mirror si / prior | diffuse si / const | matte si / const | CPU s |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for name, entry in report["suites"].items():
         n = len(entry.get("probes", [])) or "?"
         for method, r in entry["ratios"].items():
             if method == "prior":
                 c = r["vs_constant"]
-                rows.append(f"| {name} | prior (shortcut) | {n} | 1 | 1 | 1 | 1 | {c['diffuse.si_rmse']:.2f} | {c['matte.si_rmse']:.2f} | |")
+                rows.append(
+                    f"| {name} | prior (shortcut) | {n} | 1 | 1 | 1 | 1 | {c['diffuse.si_rmse']:.2f} | "
+                    f"{c['matte.si_rmse']:.2f} | |"
+                )
                 continue
             vp, vc = r["vs_prior"], r["vs_constant"]
             worst = max(vp, key=vp.get)
@@ -108,9 +122,11 @@ def markdown_table(report: dict) -> str:
             span = f" [{interval[0]:.2f}, {interval[1]:.2f}]" if interval else ""
             label = METHOD_LABELS.get(method.removesuffix("+observed"), method)
             label += " + prior's splat where seen (shortcut)" if method.endswith("+observed") else ""
-            rows.append(f"| {name} | {label} | {n} | {vp[worst]:.2f} ({worst}){span} "
-                        f"| {vp['diffuse.si_rmse']:.2f} | {vp['matte.si_rmse']:.2f} | {vp['mirror.si_rmse']:.2f} "
-                        f"| {vc['diffuse.si_rmse']:.2f} | {vc['matte.si_rmse']:.2f} | {entry['cpu_s'].get(method, '')} |")
+            rows.append(
+                f"| {name} | {label} | {n} | {vp[worst]:.2f} ({worst}){span} "
+                f"| {vp['diffuse.si_rmse']:.2f} | {vp['matte.si_rmse']:.2f} | {vp['mirror.si_rmse']:.2f} "
+                f"| {vc['diffuse.si_rmse']:.2f} | {vc['matte.si_rmse']:.2f} | {entry['cpu_s'].get(method, '')} |"
+            )
     return "\n".join(rows)
 
 
@@ -118,8 +134,11 @@ def level_table(paths: list[str]) -> str:
     """`--level-table R1.json R2.json ...`: one row per report and suite (its job settings, the
     jobs' temporal decision, si-RMSE of the field / the constant map, the field's level against
     the truth in stops: mean and spread over probes, the largest static-stretch deviation)."""
-    rows = ["| report | suite | frame_ev | temporal | time input | diffuse si / const | matte si / const "
-            "| level, stops: mean (sd over probes) | static stretches, max dev |", "|---|---|---|---|---|---|---|---|---|"]
+    rows = [
+        "| report | suite | frame_ev | temporal | time input | diffuse si / const | matte si / const "
+        "| level, stops: mean (sd over probes) | static stretches, max dev |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for path in paths:
         report = json.loads(Path(path).read_text())
         given = ("withheld" if report.get("withhold_frame_ev") else "as captured") + (
@@ -143,8 +162,15 @@ def series_checks(suite, series_preds: list[torch.Tensor]) -> dict:
         bp, bg = envmap_brightness(pred), envmap_brightness(s.gt)
         if s.kind == "switch":
             rp, rg = float(bp[-1] / bp[0]), float(bg[-1] / bg[0])
-            switches.append({"x": list(s.x), "frame": s.switch_frame, "after_before": round(rp, 3), "truth": round(rg, 3),
-                             "abs_diff": round(abs(rp - rg), 3)})
+            switches.append(
+                {
+                    "x": list(s.x),
+                    "frame": s.switch_frame,
+                    "after_before": round(rp, 3),
+                    "truth": round(rg, 3),
+                    "abs_diff": round(abs(rp - rg), 3),
+                }
+            )
         else:
             # the deviation of pred/truth from its mean: on a static stretch the pred's own flatness
             dev = float((relative_course(bp, bg) - 1.0).abs().max())
@@ -201,7 +227,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--gt-height", type=int, default=64)
     p.add_argument("--sphere-size", type=int, default=64)
     p.add_argument("--seed", type=int, default=0, help="distillation seed (run a few to see run-to-run noise)")
-    p.add_argument("--extra-probes", type=int, default=8, help="held-out probes drawn in free space besides the suite's own")
+    p.add_argument(
+        "--extra-probes", type=int, default=8, help="held-out probes drawn in free space besides the suite's own"
+    )
     p.add_argument("--probe-seed", type=int, default=0, help="seed of the extra probes' draw")
     p.add_argument("--observed-hybrid", action="store_true",
                    help="also score each method with the prior's splat where it saw (SHORTCUT, see observed_hybrid)")
@@ -215,7 +243,9 @@ def main(argv: list[str] | None = None) -> int:
                         "the camera's exposure; 'locked' turns off the default's auto-exposure detection")
     p.add_argument("--cache-dir", default=None)
     p.add_argument("-o", "--output", default=None)
-    p.add_argument("--table", default=None, metavar="REPORT_JSON", help="print the markdown table of a saved report and exit")
+    p.add_argument(
+        "--table", default=None, metavar="REPORT_JSON", help="print the markdown table of a saved report and exit"
+    )
     p.add_argument("--level-table", nargs="+", default=None, metavar="REPORT_JSON",
                    help="print the exposure / level comparison of saved reports and exit")
     args = p.parse_args(argv)
@@ -226,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         print(level_table(args.level_table))
         return 0
 
-    from bench.methods import Method, query_field, run_per_probe, MethodRun
+    from bench.methods import Method, MethodRun, query_field, run_per_probe
     from bench.run import default_cache_dir
     from bench.suite.evaluation import mean_scores, score_probe
     from bench.suite.simulated import load_suite, with_extra_probes
@@ -243,7 +273,9 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.suites.split(","):
         suite = with_extra_probes(load_suite(name, cache, None, args.gt_height), args.extra_probes, args.probe_seed)
         if args.withhold_frame_ev:
-            suite = dataclasses.replace(suite, capture_dir=without_frame_ev(suite.capture_dir, Path(scratch.name) / name))
+            suite = dataclasses.replace(
+                suite, capture_dir=without_frame_ev(suite.capture_dir, Path(scratch.name) / name)
+            )
         suite.params = {"temporal": args.temporal, **({"frame_ev": args.frame_ev} if args.frame_ev else {})}
         preds: dict[str, torch.Tensor] = {}
         series: dict[str, list] = {}
@@ -271,14 +303,24 @@ def main(argv: list[str] | None = None) -> int:
             for method in list(scored):
                 preds[f"{method}+observed"] = observed_hybrid(bound, suite, preds[method])
                 scored.append(f"{method}+observed")
-        per_probe = [score_probe({k: v[i] for k, v in preds.items()}, suite.gt[i], args.sphere_size) for i in range(len(suite.probes))]
+        per_probe = [
+            score_probe({k: v[i] for k, v in preds.items()}, suite.gt[i], args.sphere_size)
+            for i in range(len(suite.probes))
+        ]
         for i, pp in enumerate(per_probe):  # where the brightest direction stands: a lamp no frame shows reads here
             pp["peak_luminance"] = {"truth": round(float(luminance(suite.gt[i]).max()), 3),
                                     **{k: round(float(luminance(v[i]).max()), 3) for k, v in preds.items()}}
         scores = {k: mean_scores([pp[k] for pp in per_probe]) for k in preds}
-        entry: dict = {"probes": [{"x": list(p.x), "t": p.t} for p in suite.probes], "scores": scores, "cpu_s": seconds, "uses_time": uses_time,
-                       "ratios": {}, "interval_90": {}, "scale_stops": {k: scale_stops(v, suite.gt) for k, v in preds.items()},
-                       "per_probe": per_probe}
+        entry: dict = {
+            "probes": [{"x": list(p.x), "t": p.t} for p in suite.probes],
+            "scores": scores,
+            "cpu_s": seconds,
+            "uses_time": uses_time,
+            "ratios": {},
+            "interval_90": {},
+            "scale_stops": {k: scale_stops(v, suite.gt) for k, v in preds.items()},
+            "per_probe": per_probe,
+        }
 
         def paired(method, ref, mat, metric):  # per-probe values of both, where both were scored
             both = [pp for pp in per_probe if "non_finite" not in pp[method] and "non_finite" not in pp[ref]]
@@ -286,9 +328,15 @@ def main(argv: list[str] | None = None) -> int:
 
         for method in scored:
             entry["ratios"][method] = {
-                "vs_prior": {f"{mat}.{m}": round(scores[method][mat][m] / scores["prior"][mat][m], 3) for mat in MATERIALS for m in METRICS},
-                "vs_constant": {f"{mat}.si_rmse": round(scores[method][mat]["si_rmse"] / scores["constant"][mat]["si_rmse"], 3)
-                                for mat in ("diffuse", "matte")},
+                "vs_prior": {
+                    f"{mat}.{m}": round(scores[method][mat][m] / scores["prior"][mat][m], 3)
+                    for mat in MATERIALS
+                    for m in METRICS
+                },
+                "vs_constant": {
+                    f"{mat}.si_rmse": round(scores[method][mat]["si_rmse"] / scores["constant"][mat]["si_rmse"], 3)
+                    for mat in ("diffuse", "matte")
+                },
             }
             entry["interval_90"][method] = {
                 "vs_prior": {f"{mat}.{m}": ratio_interval(*paired(method, "prior", mat, m))
@@ -298,13 +346,30 @@ def main(argv: list[str] | None = None) -> int:
             }
             if suite.series and method in series:
                 entry.setdefault("series", {})[method] = series_checks(suite, series[method])
-        entry["ratios"]["prior"] = {"vs_constant": {f"{mat}.si_rmse": round(scores["prior"][mat]["si_rmse"] / scores["constant"][mat]["si_rmse"], 3)
-                                                    for mat in ("diffuse", "matte")}}
+        entry["ratios"]["prior"] = {
+            "vs_constant": {
+                f"{mat}.si_rmse": round(scores["prior"][mat]["si_rmse"] / scores["constant"][mat]["si_rmse"], 3)
+                for mat in ("diffuse", "matte")
+            }
+        }
         if suite.series:
             entry.setdefault("series", {})["prior"] = series_checks(suite, series["prior"])
         report["suites"][name] = entry
-        print(json.dumps({name: {"probes": len(suite.probes), "ratios": entry["ratios"], "interval_90": entry["interval_90"],
-                                 "cpu_s": seconds, "series": entry.get("series")}}, indent=1), flush=True)
+        print(
+            json.dumps(
+                {
+                    name: {
+                        "probes": len(suite.probes),
+                        "ratios": entry["ratios"],
+                        "interval_90": entry["interval_90"],
+                        "cpu_s": seconds,
+                        "series": entry.get("series"),
+                    }
+                },
+                indent=1,
+            ),
+            flush=True,
+        )
     if args.output:
         Path(args.output).write_text(json.dumps(report, indent=1))
     return 0

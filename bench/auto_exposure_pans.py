@@ -65,8 +65,10 @@ def ae_clip(pano: torch.Tensor, yaw: float, pitch: float, dimming: float | None 
     from core.sim.state import pose_from_yaw_pitch
     from core.tracking.room import assumed_room
 
-    poses = [pose_from_yaw_pitch((0, 0, 0), yaw + PAN_DEG * i / (FRAMES - 1), pitch + PITCH_WOBBLE_DEG * math.sin(i / 3))
-             for i in range(FRAMES)]
+    poses = [
+        pose_from_yaw_pitch((0, 0, 0), yaw + PAN_DEG * i / (FRAMES - 1), pitch + PITCH_WOBBLE_DEG * math.sin(i / 3))
+        for i in range(FRAMES)
+    ]
     intr = Intrinsics.from_hfov(SIZE[0], SIZE[1], HFOV_DEG)
     room = PanoramaRoom(pano, assumed_room(), torch.zeros(3))
     hdr = torch.stack([room.render(Camera(intr, p), 2)[0] for p in poses])

@@ -50,8 +50,14 @@ def photo_views(filename: str) -> list[tuple[float, float, float]]:
     """(yaw, pitch, extra exposure in stops): even views use the protocol's exposure, odd ones
     are over-exposed by U(0, MAX_EXTRA_EV) (a camera metering a dark room clips more)."""
     rng = random.Random(f"clip-rule:{filename}")
-    return [(rng.uniform(-180.0, 180.0), rng.uniform(-VIEW_PITCH_DEG, VIEW_PITCH_DEG), rng.uniform(0.0, MAX_EXTRA_EV) * (i % 2))
-            for i in range(VIEWS_PER_PANORAMA)]
+    return [
+        (
+            rng.uniform(-180.0, 180.0),
+            rng.uniform(-VIEW_PITCH_DEG, VIEW_PITCH_DEG),
+            rng.uniform(0.0, MAX_EXTRA_EV) * (i % 2),
+        )
+        for i in range(VIEWS_PER_PANORAMA)
+    ]
 
 
 def exposure_scale(hdr: torch.Tensor) -> float:
@@ -82,10 +88,19 @@ def blob_samples(path: Path) -> list[dict]:
         for k, blob in enumerate(blobs, start=1):
             sel = labels == k
             true = float(y_true[sel].mean()) / max(float(y_lin[sel].mean()), 1e-9)
-            out.append({"file": path.name, "features": list(blob.features()), "area_px": blob.area_px,
-                        "halo": list(blob.halo), "ring_pixels": list(blob.ring_pixels), "white_fraction": blob.white_fraction,
-                        "true_stops": math.log2(max(true, 1e-9)), "energy": float(y_true[sel].sum()),
-                        **colour_sample(hdr.numpy(), lin, sel, blob)})
+            out.append(
+                {
+                    "file": path.name,
+                    "features": list(blob.features()),
+                    "area_px": blob.area_px,
+                    "halo": list(blob.halo),
+                    "ring_pixels": list(blob.ring_pixels),
+                    "white_fraction": blob.white_fraction,
+                    "true_stops": math.log2(max(true, 1e-9)),
+                    "energy": float(y_true[sel].sum()),
+                    **colour_sample(hdr.numpy(), lin, sel, blob),
+                }
+            )
     return out
 
 
@@ -97,8 +112,12 @@ def colour_sample(true_rgb: np.ndarray, lin: np.ndarray, sel: np.ndarray, blob) 
     hot = sel & white_hot_mask(lin)
     if not hot.any():
         return {"hot_true_rgb": None, "spill_colour": None}
-    return {"hot_true_rgb": [float(v) for v in true_rgb[hot].mean(0)], "hot_energy": float(true_rgb[hot].sum()),
-            "spill_colour": blob.spill_colour(), "halo_rgb": [list(c) if c is not None else None for c in blob.halo_rgb]}
+    return {
+        "hot_true_rgb": [float(v) for v in true_rgb[hot].mean(0)],
+        "hot_energy": float(true_rgb[hot].sum()),
+        "spill_colour": blob.spill_colour(),
+        "halo_rgb": [list(c) if c is not None else None for c in blob.halo_rgb],
+    }
 
 
 COLOUR_SWEEP_EXCESS = (0.01, 0.02, 0.05, 0.1, 0.2)
@@ -145,10 +164,21 @@ def colour_errors(samples: list[dict]) -> dict:
     used = np.array([s["spill_colour"] is not None for s in hot])
 
     def summary(e, w):
-        return {"mean_deg": float(e.mean()), "median_deg": float(np.median(e)), "energy_weighted_deg": float((e * w).sum() / w.sum())}
+        return {
+            "mean_deg": float(e.mean()),
+            "median_deg": float(np.median(e)),
+            "energy_weighted_deg": float((e * w).sum() / w.sum()),
+        }
 
-    return {"blobs": len(hot), "recoloured": int(used.sum()), "white": summary(white, w), "spill_colour": summary(spill, w),
-            "recoloured_only": {"white": summary(white[used], w[used]), "spill_colour": summary(spill[used], w[used])} if used.any() else None}
+    return {
+        "blobs": len(hot),
+        "recoloured": int(used.sum()),
+        "white": summary(white, w),
+        "spill_colour": summary(spill, w),
+        "recoloured_only": {"white": summary(white[used], w[used]), "spill_colour": summary(spill[used], w[used])}
+        if used.any()
+        else None,
+    }
 
 
 def lens_psf(sigma: float, glare: float, tail_px: float = 4.0, half: int = 15) -> torch.Tensor:
@@ -157,7 +187,9 @@ def lens_psf(sigma: float, glare: float, tail_px: float = 4.0, half: int = 15) -
     k = torch.arange(-half, half + 1, dtype=torch.float64)
     ky, kx = torch.meshgrid(k, k, indexing="ij")
     r = (ky**2 + kx**2).sqrt()
-    psf = (1 - glare) * torch.exp(-(r**2) / (2 * sigma**2)) / (2 * math.pi * sigma**2) + glare * torch.exp(-r / tail_px) / (2 * math.pi * tail_px**2)
+    psf = (1 - glare) * torch.exp(-(r**2) / (2 * sigma**2)) / (2 * math.pi * sigma**2) + glare * torch.exp(
+        -r / tail_px
+    ) / (2 * math.pi * tail_px**2)
     return psf / psf.sum()
 
 
@@ -173,11 +205,15 @@ def synthetic_lamp_samples(path: Path) -> list[dict]:
     pano = load_panorama(path)
     out = []
     for _ in range(SYNTHETIC_LAMPS_PER_PANORAMA):
-        hdr, intr = perspective_crop(pano, camera_rotation(rng.uniform(-180, 180), rng.uniform(-VIEW_PITCH_DEG, VIEW_PITCH_DEG)))
+        hdr, intr = perspective_crop(
+            pano, camera_rotation(rng.uniform(-180, 180), rng.uniform(-VIEW_PITCH_DEG, VIEW_PITCH_DEG))
+        )
         scale = exposure_scale(hdr)
         H, W = hdr.shape[:2]
         cy, cx, radius = rng.uniform(20, H - 20), rng.uniform(20, W - 20), rng.uniform(1.0, 6.0)
-        yy, xx = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+        yy, xx = torch.meshgrid(
+            torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij"
+        )
         disc = (((yy - cy) ** 2 + (xx - cx) ** 2).sqrt() <= radius).double()
         lamp = disc * 2.0 ** rng.uniform(1.0, 8.0) / scale  # radiance in the panorama's units
         psf = lens_psf(rng.uniform(0.5, 1.5), rng.uniform(0.0, 0.05))
@@ -212,8 +248,13 @@ def errors(samples: list[dict], stops: np.ndarray) -> dict:
     true = np.array([s["true_stops"] for s in samples])
     e = np.abs(stops - true)
     w = np.array([s["energy"] for s in samples])
-    return {"blobs": len(samples), "mean_abs_stops": float(e.mean()), "median_abs_stops": float(np.median(e)),
-            "energy_weighted_abs_stops": float((e * w).sum() / w.sum()), "mean_signed_stops": float((stops - true).mean())}
+    return {
+        "blobs": len(samples),
+        "mean_abs_stops": float(e.mean()),
+        "median_abs_stops": float(np.median(e)),
+        "energy_weighted_abs_stops": float((e * w).sum() / w.sum()),
+        "mean_signed_stops": float((stops - true).mean()),
+    }
 
 
 def fit(samples: list[dict], constant_only: bool = False) -> list[float]:
@@ -251,8 +292,7 @@ def leave_one_panorama_out(samples: list[dict]) -> dict:
 
 
 def main(argv=None) -> int:
-    from bench.real_panoramas import read_manifest
-    from bench.real_panoramas import DEFAULT_HDRI_DIR
+    from bench.real_panoramas import DEFAULT_HDRI_DIR, read_manifest
     from core.capture import highlights
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -271,8 +311,11 @@ def main(argv=None) -> int:
         files = sorted(r["filename"] for r in rows if r.get("split") == split and (hdri / r["filename"]).is_file())
         by_split[split] = [s for f in files for s in blob_samples(hdri / f)]
         print(f"[clip_rule] {split}: {len(files)} panoramas, {len(by_split[split])} blobs", file=sys.stderr)
-    lamps = [s for f in sorted(r["filename"] for r in rows if r.get("split") == "dev" and (hdri / r["filename"]).is_file())
-             for s in synthetic_lamp_samples(hdri / f)]
+    lamps = [
+        s
+        for f in sorted(r["filename"] for r in rows if r.get("split") == "dev" and (hdri / r["filename"]).is_file())
+        for s in synthetic_lamp_samples(hdri / f)
+    ]
     print(f"[clip_rule] dev: {len(lamps)} synthetic lamps", file=sys.stderr)
     dev = by_split["dev"]
     # fitted on the real dev blobs only: fitted to the synthetic lamps too, the linear rule got
@@ -289,7 +332,9 @@ def main(argv=None) -> int:
     if args.colour_sweep:
         report["dev_colour_sweep"] = {"real": colour_sweep(dev), "synthetic_lamps": colour_sweep(lamps)}
     if args.samples_out:
-        Path(args.samples_out).write_text(json.dumps({"dev": dev, "lamps": lamps, **{k: v for k, v in by_split.items() if k != "dev"}}))
+        Path(args.samples_out).write_text(
+            json.dumps({"dev": dev, "lamps": lamps, **{k: v for k, v in by_split.items() if k != "dev"}})
+        )
     text = json.dumps(report, indent=1)
     if args.out:
         Path(args.out).write_text(text)

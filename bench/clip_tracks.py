@@ -28,7 +28,13 @@ def track_report(suite_name: str) -> dict:
     from bench.run import default_cache_dir
     from bench.suite.simulated import load_suite
     from core.capture.highlights import (
-        blob_boost, clipped_mask, find_blobs, pixel_solid_angle, source_tracks, stops_over_time)
+        blob_boost,
+        clipped_mask,
+        find_blobs,
+        pixel_solid_angle,
+        source_tracks,
+        stops_over_time,
+    )
     from core.capture.load import load_capture
     from core.conventions import expose, inverse_tonemap
     from core.exposure import LUMINANCE_WEIGHTS
@@ -74,9 +80,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     report = track_report(args.suite)
     for i, tr in enumerate(report["tracks"]):
-        print(f"track {i}: {tr['frames']} frames; first -> last: true {tr['true_first_to_last_stops']:+.2f} stops, "
-              f"rule {tr['rule']['first_to_last_stops']:+.2f}, over time {tr['over_time']['first_to_last_stops']:+.2f}; "
-              f"mean |error| rule {tr['rule']['mean_abs_error_stops']:.2f}, over time {tr['over_time']['mean_abs_error_stops']:.2f} stops")
+        print(
+            f"track {i}: {tr['frames']} frames; first -> last: true {tr['true_first_to_last_stops']:+.2f} stops, "
+            f"rule {tr['rule']['first_to_last_stops']:+.2f}, over time {tr['over_time']['first_to_last_stops']:+.2f}; "
+            f"mean |error| rule {tr['rule']['mean_abs_error_stops']:.2f}, over time "
+            f"{tr['over_time']['mean_abs_error_stops']:.2f} stops"
+        )
     if args.out:
         Path(args.out).write_text(json.dumps(report, indent=1))
     return 0

@@ -44,7 +44,9 @@ def build(tiny: bool, tmp: Path, device: str, dtype: torch.dtype):
     from core.priors.diffusion.tiny import TinyConfig, build_tiny_model
 
     if tiny:
-        comps = load_components(build_tiny_model(tmp, TinyConfig(resolution=(64, 64))), device="cpu", dtype=torch.float32)
+        comps = load_components(
+            build_tiny_model(tmp, TinyConfig(resolution=(64, 64))), device="cpu", dtype=torch.float32
+        )
     else:
         from bench.diffusion_step import sd2_components
 

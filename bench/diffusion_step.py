@@ -61,7 +61,9 @@ def sd2_components(tmp: Path, resolution: int) -> PriorComponents:
     for m in (unet, controlnet, vae, text):
         m.eval().requires_grad_(False)
     card = ModelCard(resolution=(resolution, resolution))
-    return PriorComponents(unet, controlnet, vae, text, tokenizer, tiny_scheduler(), card, tmp, torch.device("cpu"), torch.float32)
+    return PriorComponents(
+        unet, controlnet, vae, text, tokenizer, tiny_scheduler(), card, tmp, torch.device("cpu"), torch.float32
+    )
 
 
 def request(height: int, width: int, tau: float, seed: int) -> PriorRequest:
@@ -104,7 +106,9 @@ def train_step_seconds(comps: PriorComponents, size: tuple[int, int], repeats: i
     for _ in range(repeats):
         x = torch.randn(1, 4, h, w)
         t0 = time.perf_counter()
-        out = net(x, torch.tensor([500]), torch.randn(1, 77, hidden), torch.ones(1, 1, h, w), x, torch.rand(1, 3, *size))
+        out = net(
+            x, torch.tensor([500]), torch.randn(1, 77, hidden), torch.ones(1, 1, h, w), x, torch.rand(1, 3, *size)
+        )
         out.square().mean().backward()
         times.append(time.perf_counter() - t0)
     net.zero_grad(set_to_none=True)

@@ -48,7 +48,12 @@ def main() -> int:
     big = render_envmap(scene, x, 0.0, height=256)
     env = {h: resize_envmap(big, h) for h in (64, 128)}
     env[256] = big
-    env_2k = torch.nn.functional.interpolate(big.permute(2, 0, 1)[None], size=(1024, 2048), mode="bilinear")[0].permute(1, 2, 0).contiguous().numpy()
+    env_2k = (
+        torch.nn.functional.interpolate(big.permute(2, 0, 1)[None], size=(1024, 2048), mode="bilinear")[0]
+        .permute(1, 2, 0)
+        .contiguous()
+        .numpy()
+    )
     cases = {
         "main light fit, 128x256 map": lambda: extract_dominant_light(env[128]),
         "prefiltered cube 64 (5 mips)": lambda: products.prefiltered(env[128], 64),
@@ -61,7 +66,10 @@ def main() -> int:
     for name, fn in cases.items():
         print(json.dumps({"product": name, **timed(fn, args.reps), "threads": torch.get_num_threads()}), flush=True)
     for ratio in (1, 2):  # what the prefilter's source resolution costs and buys
-        print(json.dumps({"prefilter_source_ratio": ratio, **prefilter_accuracy(env[128], env[256], ratio, args.reps)}), flush=True)
+        print(
+            json.dumps({"prefilter_source_ratio": ratio, **prefilter_accuracy(env[128], env[256], ratio, args.reps)}),
+            flush=True,
+        )
     return 0
 
 

@@ -63,7 +63,8 @@ VARIANTS = {  # name: (exposure seconds, readout seconds, noise sigma, portrait)
 VARIANT_EV = {"dim": DIM_EV}  # the tone map's exposure where not 0
 # Walks, which a rotation explains only in part: how many the tracker takes for a pan anyway
 # (`--variants walk-noisy,...`, not run by default): bench.tracking's walk (1.2 m across the
-# box room, 0.5 m forward, turning 40 deg), scaled, rendered at the frame instants, with noise. name: (scale, noise sigma, exposure ev)
+# box room, 0.5 m forward, turning 40 deg), scaled, rendered at the frame instants, with noise. name: (scale, noise
+# sigma, exposure ev)
 WALKS = {
     "walk-noisy": (1.0, NOISE_SIGMA, 0.0),
     "walk-short-noisy": (0.3, NOISE_SIGMA, 0.0),
@@ -78,7 +79,9 @@ def pose_at(t: float, yaw0: float, pitch0: float) -> torch.Tensor:
     from core.sim.state import pose_from_yaw_pitch
 
     i = t * FPS
-    return pose_from_yaw_pitch((0, 0, 0), yaw0 + PAN_DEG * i / (FRAMES - 1), pitch0 + PITCH_WOBBLE_DEG * math.sin(i / 3))
+    return pose_from_yaw_pitch(
+        (0, 0, 0), yaw0 + PAN_DEG * i / (FRAMES - 1), pitch0 + PITCH_WOBBLE_DEG * math.sin(i / 3)
+    )
 
 
 def render_frame(room, intr, index: int, yaw0: float, pitch0: float, exposure: float, readout: float,
@@ -132,7 +135,9 @@ def clips(path: Path, variants: dict = VARIANTS):
             (exposure, readout, sigma, portrait), ev, true = spec, VARIANT_EV.get(name, 0.0), pan_truth
             size = SIZE[::-1] if portrait else SIZE
             intr = Intrinsics.from_hfov(size[0], size[1], HFOV_DEG)
-            hdr = torch.stack([render_frame(room, intr, i, yaw, pitch, exposure, readout, portrait) for i in range(FRAMES)])
+            hdr = torch.stack(
+                [render_frame(room, intr, i, yaw, pitch, exposure, readout, portrait) for i in range(FRAMES)]
+            )
         hdr = hdr * (0.18 / float(luminance(hdr).mean().clamp_min(1e-12)))
         ldr = tonemap(hdr, ev)
         if sigma > 0:
@@ -161,7 +166,8 @@ def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
             clip["sfm_start_deg"] = r.stats.get("init_min_tri_angle_deg")
             clip["sfm_models"] = r.stats["models"]
         if r.method not in ("static", "failed:static-fallback") and len(r.kept) > 1:
-            rot, _ = pose_errors(r.poses, torch.from_numpy(relative_to_first(true[r.kept])[0]))  # world = the first kept frame
+            # world = the first kept frame
+            rot, _ = pose_errors(r.poses, torch.from_numpy(relative_to_first(true[r.kept])[0]))
             clip["max_rotation_error_deg"] = round(rot, 3)
             clip["reprojection_error_px"] = r.reprojection_error_px
             focal = r.summary().get("refined_focal_px")

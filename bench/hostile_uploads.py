@@ -42,25 +42,43 @@ def cases() -> dict[str, tuple[dict, str]]:
 
     root = Path(tempfile.mkdtemp(prefix="hostile-"))
     return {
-        "MP4, stts declaring 1e8 samples": ({"file": h.mp4_declaring(root / "b.mp4", 10**8).read_bytes()},
-                                            "202, API 517 -> 1276 MB"),
+        "MP4, stts declaring 1e8 samples": (
+            {"file": h.mp4_declaring(root / "b.mp4", 10**8).read_bytes()},
+            "202, API 517 -> 1276 MB",
+        ),
         "transforms.json nested 100k deep": ({"file": h.capture_zip(h.nested_index(100_000))}, "500 RecursionError"),
-        "transforms.json of 2M empty lists (6 MB)": ({"file": h.capture_zip(h.container_bomb_index(2_000_000))},
-                                                     "(60 MB variant: 202 after 33 s, +1.5 GB)"),
+        "transforms.json of 2M empty lists (6 MB)": (
+            {"file": h.capture_zip(h.container_bomb_index(2_000_000))},
+            "(60 MB variant: 202 after 33 s, +1.5 GB)",
+        ),
         "100k frames naming one image": ({"file": h.capture_zip(h.many_frames_index(100_000))}, "33 s"),
         "zip of 25k empty entries": ({"file": h.zip_with_entries(25_000)}, "(1M entries: 413 after 18 s, +565 MB)"),
         "zip lying about its entry count": ({"file": h.zip_lying_about_entries(25_000)}, "-"),
-        "npz depth, Fortran 40x500x500 float64 zeros": ({"file": h.png_bytes(), "depth": h.fortran_npz_bomb()},
-                                                        "(100x1000x1000: 422 after +1.5 GB)"),
-        "zip: translation 1e300": ({"file": h.capture_zip(h.capture_index() | {"frames": [
-            {"file_path": "images/0.png", "transform_matrix": [[1, 0, 0, 1e300], *h.EYE[1:]]}]})}, "accepted"),
+        "npz depth, Fortran 40x500x500 float64 zeros": (
+            {"file": h.png_bytes(), "depth": h.fortran_npz_bomb()},
+            "(100x1000x1000: 422 after +1.5 GB)",
+        ),
+        "zip: translation 1e300": (
+            {
+                "file": h.capture_zip(
+                    h.capture_index()
+                    | {"frames": [{"file_path": "images/0.png", "transform_matrix": [[1, 0, 0, 1e300], *h.EYE[1:]]}]}
+                )
+            },
+            "accepted",
+        ),
         "zip: fl_x 1e308": ({"file": h.capture_zip(h.capture_index(fl_x=1e308))}, "accepted"),
         "zip: k1 1e300": ({"file": h.capture_zip(h.capture_index(camera_model="OPENCV", k1=1e300))}, "accepted"),
         "truncated JPEG": ({"file": h.truncated_jpeg()}, "accepted, failed in the worker"),
         "depth of 3e38 m": ({"file": h.png_bytes(), "depth": depth(3e38)}, "accepted, IndexError in the worker"),
-        "PNG bomb 50k x 50k in a zip": ({"file": h.capture_zip({k: v for k, v in h.capture_index(1).items()
-                                                                if k not in ("w", "h")}, {"images/0.png": h.png_bomb()})},
-                                        "415 not_media"),
+        "PNG bomb 50k x 50k in a zip": (
+            {
+                "file": h.capture_zip(
+                    {k: v for k, v in h.capture_index(1).items() if k not in ("w", "h")}, {"images/0.png": h.png_bomb()}
+                )
+            },
+            "415 not_media",
+        ),
     }
 
 
@@ -93,10 +111,17 @@ def measure(stack, name: str, files: dict) -> dict:
     body = resp.json()
     if resp.status_code == 202:
         httpx.delete(f"{stack.url}/jobs/{body['id']}", timeout=30)
-    return {"case": name, "bytes": sum(len(v) for v in files.values()), "status": resp.status_code,
-            "code": (body.get("error") or {}).get("code", "accepted"), "message": (body.get("error") or {}).get("message", "")[:160],
-            "seconds": round(seconds, 3), "api_rss_before_mb": round(before, 1), "api_rss_peak_mb": round(peak[0], 1),
-            "api_growth_mb": round(peak[0] - before, 1)}
+    return {
+        "case": name,
+        "bytes": sum(len(v) for v in files.values()),
+        "status": resp.status_code,
+        "code": (body.get("error") or {}).get("code", "accepted"),
+        "message": (body.get("error") or {}).get("message", "")[:160],
+        "seconds": round(seconds, 3),
+        "api_rss_before_mb": round(before, 1),
+        "api_rss_peak_mb": round(peak[0], 1),
+        "api_growth_mb": round(peak[0] - before, 1),
+    }
 
 
 def fairness(stack, hostile: dict, small: bytes) -> dict:

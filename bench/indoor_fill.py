@@ -19,7 +19,6 @@ from pathlib import Path
 
 import torch
 
-
 AVERAGES = ("arithmetic", "geometric")
 
 
@@ -62,7 +61,9 @@ def panorama_profiles(paths: list[Path]) -> torch.Tensor:
     return torch.stack([row_profile(load_panorama(p), GAIN_ROWS, HORIZON_BAND_DEG) for p in paths])
 
 
-def gain_from_profiles(profiles: torch.Tensor, average: str = "arithmetic", sigma_rows: float | None = None) -> list[float]:
+def gain_from_profiles(
+    profiles: torch.Tensor, average: str = "arithmetic", sigma_rows: float | None = None
+) -> list[float]:
     from core.priors.indoor_fill import GAIN_SMOOTHING_ROWS
 
     mean = smooth(mean_log_profile(profiles, average), GAIN_SMOOTHING_ROWS if sigma_rows is None else sigma_rows)
@@ -74,8 +75,7 @@ def fit_gain(paths: list[Path], sigma_rows: float | None = None, average: str = 
 
 
 def main(argv=None) -> int:
-    from bench.real_panoramas import indoor_rooms
-    from bench.real_panoramas import DEFAULT_HDRI_DIR
+    from bench.real_panoramas import DEFAULT_HDRI_DIR, indoor_rooms
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--hdri-dir", default=str(DEFAULT_HDRI_DIR))

@@ -67,9 +67,18 @@ class Method:
         summary = config_summary(self.config(base))
         out = {"family": self.family, "group": self.group, "prior": self.prior, "description": self.description}
         if self.family == "field":
-            out.update({"field": summary["field_kind"], "iterations": summary["iterations"], "n_probes": summary["n_probes"],
-                        "work_height": summary["work_height"], "field_width": summary["field_width"],
-                        "field_layers": summary["field_layers"], "exposure": self.exposure, "query": self.query})
+            out.update(
+                {
+                    "field": summary["field_kind"],
+                    "iterations": summary["iterations"],
+                    "n_probes": summary["n_probes"],
+                    "work_height": summary["work_height"],
+                    "field_width": summary["field_width"],
+                    "field_layers": summary["field_layers"],
+                    "exposure": self.exposure,
+                    "query": self.query,
+                }
+            )
         else:
             out.update({"work_height": summary["work_height"], "prior_env_height": summary["prior_env_height"]})
         return out
@@ -83,11 +92,16 @@ def config_summary(cfg: EngineConfig) -> dict:
     """The flat facts reports show about a distillation config."""
     size = NETWORK_SIZE_KEYS.get(cfg.field.kind)
     section = cfg.field.section()
-    return {"name": cfg.name, "field_kind": cfg.field.kind,
-            "field_width": getattr(section, size[0]) if size else None,
-            "field_layers": getattr(section, size[1]) if size else None,
-            "iterations": cfg.distill.iterations, "n_probes": cfg.distill.n_probes, "work_height": cfg.distill.work_height,
-            "prior_env_height": cfg.prior_settings("reprojection").get("env_height")}
+    return {
+        "name": cfg.name,
+        "field_kind": cfg.field.kind,
+        "field_width": getattr(section, size[0]) if size else None,
+        "field_layers": getattr(section, size[1]) if size else None,
+        "iterations": cfg.distill.iterations,
+        "n_probes": cfg.distill.n_probes,
+        "work_height": cfg.distill.work_height,
+        "prior_env_height": cfg.prior_settings("reprojection").get("env_height"),
+    }
 
 
 @dataclass(frozen=True)
@@ -109,32 +123,104 @@ def core_methods(diffusion_weights: str | None = None, diffusionlight_weights: s
     """Run on every suite: baselines, the paper's field, its grid ablation, the trunk, the
     baked query mode and the oracle upper bounds of the key methods (plus the diffusion
     prior's distilled fields, and DiffusionLight's two rows, when local weights are given)."""
-    extra = [] if diffusion_weights is None else [
-        Method("mlp-diffusion", "field", "paper", "MLP distilled from the diffusion prior (the paper's full method)", field="mlp",
-               prior="diffusion", prior_weights=str(diffusion_weights)),
-        Method("grid-diffusion", "field", "paper", "grid distilled from the diffusion prior", field="grid",
-               prior="diffusion", prior_weights=str(diffusion_weights)),
-    ]
+    extra = (
+        []
+        if diffusion_weights is None
+        else [
+            Method(
+                "mlp-diffusion",
+                "field",
+                "paper",
+                "MLP distilled from the diffusion prior (the paper's full method)",
+                field="mlp",
+                prior="diffusion",
+                prior_weights=str(diffusion_weights),
+            ),
+            Method(
+                "grid-diffusion",
+                "field",
+                "paper",
+                "grid distilled from the diffusion prior",
+                field="grid",
+                prior="diffusion",
+                prior_weights=str(diffusion_weights),
+            ),
+        ]
+    )
     if diffusionlight_weights is not None:
         dl = str(diffusionlight_weights)
         extra += [
-            Method("diffusionlight", "global", "baseline", "DiffusionLight direct sampling: one centre ball, EVs 0/-2.5/-5 merged",
-                   prior="diffusion", prior_weights=dl),
-            Method("diffusionlight-distilled", "field", "baseline", "MLP distilled from DiffusionLight (DiffusionLight-Distilled)",
-                   field="mlp", prior="diffusion", prior_weights=dl),
+            Method(
+                "diffusionlight",
+                "global",
+                "baseline",
+                "DiffusionLight direct sampling: one centre ball, EVs 0/-2.5/-5 merged",
+                prior="diffusion",
+                prior_weights=dl,
+            ),
+            Method(
+                "diffusionlight-distilled",
+                "field",
+                "baseline",
+                "MLP distilled from DiffusionLight (DiffusionLight-Distilled)",
+                field="mlp",
+                prior="diffusion",
+                prior_weights=dl,
+            ),
         ]
     return [
-        Method("global", "global", "baseline", "one env map: reprojection prior at the scene centre (DiffusionLight-style)"),
-        Method("global-oracle", "global", "upper-bound", "one env map: the TRUE map at the scene centre (best single map)", prior="oracle"),
-        Method("per-probe", "per-probe", "baseline", "reprojection prior at each held-out probe, no distillation (Ours-sampling analogue)"),
+        Method(
+            "global", "global", "baseline", "one env map: reprojection prior at the scene centre (DiffusionLight-style)"
+        ),
+        Method(
+            "global-oracle",
+            "global",
+            "upper-bound",
+            "one env map: the TRUE map at the scene centre (best single map)",
+            prior="oracle",
+        ),
+        Method(
+            "per-probe",
+            "per-probe",
+            "baseline",
+            "reprojection prior at each held-out probe, no distillation (Ours-sampling analogue)",
+        ),
         Method("grid", "field", "paper", "3x3x3 grid of env maps distilled (paper's w/o-MLP ablation)", field="grid"),
-        Method("mlp", "field", "paper", "MLP field distilled (draft preset: radiance supervision from the prior's env maps)", field="mlp"),
-        Method("mlp-balls", "field", "paper", "MLP distilled through the paper's ball loop (the path of priors that only paint balls)",
-               field="mlp", overrides=_BALLS),
-        Method("mlp-baked", "field", "query", "same MLP, queried through the baked 5x5x5(x4) lattice", field="mlp", query="baked"),
+        Method(
+            "mlp",
+            "field",
+            "paper",
+            "MLP field distilled (draft preset: radiance supervision from the prior's env maps)",
+            field="mlp",
+        ),
+        Method(
+            "mlp-balls",
+            "field",
+            "paper",
+            "MLP distilled through the paper's ball loop (the path of priors that only paint balls)",
+            field="mlp",
+            overrides=_BALLS,
+        ),
+        Method(
+            "mlp-baked",
+            "field",
+            "query",
+            "same MLP, queried through the baked 5x5x5(x4) lattice",
+            field="mlp",
+            query="baked",
+        ),
         Method("trunk", "field", "paper", "trunk+head field distilled (engine's faster field)", field="trunk"),
-        Method("mlp-oracle", "field", "upper-bound", "MLP distilled from the oracle prior (upper bound of distillation)", field="mlp", prior="oracle"),
-        Method("grid-oracle", "field", "upper-bound", "grid distilled from the oracle prior", field="grid", prior="oracle"),
+        Method(
+            "mlp-oracle",
+            "field",
+            "upper-bound",
+            "MLP distilled from the oracle prior (upper bound of distillation)",
+            field="mlp",
+            prior="oracle",
+        ),
+        Method(
+            "grid-oracle", "field", "upper-bound", "grid distilled from the oracle prior", field="grid", prior="oracle"
+        ),
     ] + extra
 
 
@@ -149,32 +235,71 @@ def sweep_methods(budget: Budget) -> list[Method]:
                               overrides=(("distill.iterations", it),)))
     for width, layers in budget.widths:
         if (width, layers) != (mlp.width, mlp.layers):
-            out.append(Method(f"mlp-w{width}x{layers}", "field", "budget", f"MLP {width} wide x {layers} layers", field="mlp",
-                              overrides=(("field.mlp.width", width), ("field.mlp.layers", layers))))
+            out.append(
+                Method(
+                    f"mlp-w{width}x{layers}",
+                    "field",
+                    "budget",
+                    f"MLP {width} wide x {layers} layers",
+                    field="mlp",
+                    overrides=(("field.mlp.width", width), ("field.mlp.layers", layers)),
+                )
+            )
     for wh in budget.work_heights:
         if wh != b.distill.work_height:
-            out.append(Method(f"mlp-res{wh}", "field", "budget", f"MLP, frames at {wh} rows (ball ~{wh // 4} px)", field="mlp",
-                              overrides=(("distill.work_height", wh),)))
+            out.append(
+                Method(
+                    f"mlp-res{wh}",
+                    "field",
+                    "budget",
+                    f"MLP, frames at {wh} rows (ball ~{wh // 4} px)",
+                    field="mlp",
+                    overrides=(("distill.work_height", wh),),
+                )
+            )
     for n in budget.probes:
         if n != b.distill.n_probes and n != 1:
             out.append(Method(f"mlp-probes{n}", "field", "budget", f"MLP, ball loop, {n} probes per step", field="mlp",
                               overrides=(("distill.n_probes", n),) + _BALLS))
     # The paper's ablations change the ball loop only, so they (and the probe budget) run it
-    out.append(Method("abl-1probe", "field", "ablation", "MLP, ball loop, one probe per step instead of nine (paper's ablation)",
-                      field="mlp", overrides=(("distill.n_probes", 1),) + _BALLS))
+    out.append(
+        Method(
+            "abl-1probe",
+            "field",
+            "ablation",
+            "MLP, ball loop, one probe per step instead of nine (paper's ablation)",
+            field="mlp",
+            overrides=(("distill.n_probes", 1),) + _BALLS,
+        )
+    )
     out.append(Method("abl-uniform-ev", "field", "ablation",
                       "MLP, ball loop, uniform exposure sampling instead of the sweep (paper's ablation)",
                       field="mlp", exposure="uniform", overrides=_BALLS))
     # The draft's own choices on the radiance path (issue 12), each turned off: what each costs
     # and buys at the draft's budget
-    out.append(Method("abl-no-lattice", "field", "ablation", "MLP, draft without its room lattice (core.fields.components.lattice)",
-                      field="mlp", overrides=(("field.room_lattice", ()),)))
+    out.append(
+        Method(
+            "abl-no-lattice",
+            "field",
+            "ablation",
+            "MLP, draft without its room lattice (core.fields.components.lattice)",
+            field="mlp",
+            overrides=(("field.room_lattice", ()),),
+        )
+    )
     out.append(Method("abl-no-free-probes", "field", "ablation",
                       "MLP, draft without free-space probes (a second surface probe per frame instead)",
                       field="mlp", overrides=(("distill.envmap_free_probes", 0), ("distill.envmap_surface_probes", 2))))
-    out.append(Method("abl-no-view-fit", "field", "ablation",
-                      "MLP, draft without the fit to the photo's pixels at the camera (no view directions, no view detail)",
-                      field="mlp", overrides=(("distill.envmap_view_directions", 0), ("field.view_detail_heights", ()))))
+    out.append(
+        Method(
+            "abl-no-view-fit",
+            "field",
+            "ablation",
+            "MLP, draft without the fit to the photo's pixels at the camera (no view directions, no view detail)",
+            field="mlp",
+            overrides=(("distill.envmap_view_directions", 0), ("field.view_detail_heights", ())),
+        )
+    )
     return out
 
 
@@ -274,8 +399,14 @@ def diffusion_centre_envmap(method: Method, suite: SuiteData, cfg: EngineConfig,
     centres, radii = centre[None].float(), torch.tensor([radius], dtype=torch.float32)
     layer = render_balls(cam, centres, radii, lambda dirs, idx: torch.zeros(dirs.shape[0], 3))
     probes = ProbeGeometry(centres, radii, pixel[None].float(), cam, i, float(work.times[i]))
-    out = prior.sample_balls(work.frames[i].permute(2, 0, 1), layer.coverage, composite_depth(work.depth[i], layer), probes,
-                             env_height=height, background_depth=work.depth[i])
+    out = prior.sample_balls(
+        work.frames[i].permute(2, 0, 1),
+        layer.coverage,
+        composite_depth(work.depth[i], layer),
+        probes,
+        env_height=height,
+        background_depth=work.depth[i],
+    )
     return out.envmaps[0]
 
 
@@ -295,7 +426,9 @@ def run_per_probe(method: Method, suite: SuiteData, base: EngineConfig) -> Metho
     return run
 
 
-def distill_artefact(method: Method, suite: SuiteData, base: EngineConfig, out_dir: Path) -> tuple[Path, Measurement, dict]:
+def distill_artefact(
+    method: Method, suite: SuiteData, base: EngineConfig, out_dir: Path
+) -> tuple[Path, Measurement, dict]:
     """run_job on the suite's capture directory; returns (artefact dir, measurement, training info)."""
 
     from core.engine import run_job
@@ -308,7 +441,9 @@ def distill_artefact(method: Method, suite: SuiteData, base: EngineConfig, out_d
 
         prior = OracleSimPrior(suite.scene)
     if method.prior == "diffusion":
-        params = JobParams(preset="draft", prior="diffusion", prior_weights=method.prior_weights, field=cfg.field.kind, seed=0)
+        params = JobParams(
+            preset="draft", prior="diffusion", prior_weights=method.prior_weights, field=cfg.field.kind, seed=0
+        )
     else:
         params = JobParams(preset="draft", prior="reprojection", field=cfg.field.kind, seed=0)
     with measured() as m:

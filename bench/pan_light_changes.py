@@ -59,7 +59,11 @@ def _decide(cap) -> dict:
         for n in RULES:
             temporal.NEIGHBOURHOOD = n
             d = temporal.detect_temporal(cap)
-            out[str(n)] = {"changing": d.uses_time, "statistic": round(d.statistic, 4), "threshold": round(d.threshold, 4)}
+            out[str(n)] = {
+                "changing": d.uses_time,
+                "statistic": round(d.statistic, 4),
+                "threshold": round(d.threshold, 4),
+            }
     finally:
         temporal.NEIGHBOURHOOD = kept
     return out
@@ -89,9 +93,13 @@ def main(argv: list[str] | None = None) -> int:
              for g in (1.5, 2.0, 3.0) for wd in (10.0, 20.0, 40.0) for c in (-30.0, 0.0, 30.0)]
     drifts = [{"brightness": b, "deg_per_frame": s, **_decide(pan_capture(drift(b, s)))}
               for b in (0.2, 2.0, 4.0, 20.0) for s in (1.0, 2.0, 3.0)]
-    summary = {f"neighbourhood {n}": {"pools found": f"{sum(r[str(n)]['changing'] for r in pools)} of {len(pools)}",
-                                      "drifts read as changing": f"{sum(r[str(n)]['changing'] for r in drifts)} of {len(drifts)}"}
-               for n in RULES}
+    summary = {
+        f"neighbourhood {n}": {
+            "pools found": f"{sum(r[str(n)]['changing'] for r in pools)} of {len(pools)}",
+            "drifts read as changing": f"{sum(r[str(n)]['changing'] for r in drifts)} of {len(drifts)}",
+        }
+        for n in RULES
+    }
     show_and_write(summary, {"summary": summary, "pools": pools, "drifts": drifts}, args.output)
     return 0
 

@@ -70,14 +70,29 @@ def bench_preset(name: str, unique: int, workdir: Path, temporal: str = "auto", 
     meta = result.artefact.meta
     tr = meta["training"]
     return {
-        "preset": name, "frames": frames, "width": w, "height": h, **info, "temporal": temporal, "overrides": overrides or {},
+        "preset": name,
+        "frames": frames,
+        "width": w,
+        "height": h,
+        **info,
+        "temporal": temporal,
+        "overrides": overrides or {},
         # cpu_s ~ wall time on an idle machine: distillation runs one intra-op thread
-        "wall_s": round(wall, 2), "cpu_s": round(cpu, 2), "iterations": tr["iterations"],
-        "ms_per_step": round(1000 * tr["stage_timings"]["optimisation"]["seconds"] / tr["iterations"]
-                             + 1000 * sum(tr["stage_timings"][k]["seconds"] for k in ("prior", "field_render", "probe_geometry")) / tr["iterations"], 1),
-        "uses_time": meta["temporal"]["uses_time"], "final_loss": tr["final_loss"],
+        "wall_s": round(wall, 2),
+        "cpu_s": round(cpu, 2),
+        "iterations": tr["iterations"],
+        "ms_per_step": round(
+            1000 * tr["stage_timings"]["optimisation"]["seconds"] / tr["iterations"]
+            + 1000
+            * sum(tr["stage_timings"][k]["seconds"] for k in ("prior", "field_render", "probe_geometry"))
+            / tr["iterations"],
+            1,
+        ),
+        "uses_time": meta["temporal"]["uses_time"],
+        "final_loss": tr["final_loss"],
         "stage_timings": tr["stage_timings"],
-        "cpu_count": os.cpu_count(), "load_avg_1min": round(os.getloadavg()[0], 2),
+        "cpu_count": os.cpu_count(),
+        "load_avg_1min": round(os.getloadavg()[0], 2),
     }
 
 

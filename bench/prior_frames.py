@@ -59,7 +59,9 @@ def field_from_report(field_report: dict | None, suite_name: str, probe_xs: list
     if fs is None:
         return None
     if [list(q["x"]) for q in fs["probes"]] != [list(x) for x in probe_xs]:
-        raise SystemExit(f"{source}: the probes of {suite_name} differ from these (same --extra-probes / --probe-seed?)")
+        raise SystemExit(
+            f"{source}: the probes of {suite_name} differ from these (same --extra-probes / --probe-seed?)"
+        )
     return {mat: {m: fs["scores"]["field"][mat][m] for m in metrics} for mat in MATERIALS}
 
 
@@ -95,8 +97,12 @@ def main(argv: list[str] | None = None) -> int:
     field_report = json.loads(Path(args.field_json).read_text()) if args.field_json else None
     cache = Path(args.cache_dir) if args.cache_dir else default_cache_dir()
     cfg = preset("draft")
-    report: dict = {"extra_probes": args.extra_probes, "probe_seed": args.probe_seed, "bind_changing": args.bind_changing,
-                    "suites": {}}
+    report: dict = {
+        "extra_probes": args.extra_probes,
+        "probe_seed": args.probe_seed,
+        "bind_changing": args.bind_changing,
+        "suites": {},
+    }
     for name in args.suites.split(","):
         suite = with_extra_probes(load_suite(name, cache, None, args.gt_height), args.extra_probes, args.probe_seed)
         with warnings.catch_warnings():
@@ -114,7 +120,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name} ({len(probes)} probes): mean over probes")
         for mat in MATERIALS:
             for m in METRICS:
-                row = "  ".join(f"{k} {entry[k][mat][m]:.3f}" for k in ("own_frame", "best_frame", "worst_frame", "mean_of_frames", "field") if k in entry)
+                row = "  ".join(
+                    f"{k} {entry[k][mat][m]:.3f}"
+                    for k in ("own_frame", "best_frame", "worst_frame", "mean_of_frames", "field")
+                    if k in entry
+                )
                 print(f"  {mat}.{m}: {row}")
     write_report(report, args.output)
     return 0

@@ -57,7 +57,9 @@ def blended_prior(prior, x: torch.Tensor, t: float, bounds, dims: tuple[int, int
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--suites", default="spatial,temporal,moving-camera,hard")
-    p.add_argument("--lattices", default="4,2,4:8,4,8:16,8,16", help="colon-separated nx,ny,nz (the draft's lattice: 8,4,8)")
+    p.add_argument(
+        "--lattices", default="4,2,4:8,4,8:16,8,16", help="colon-separated nx,ny,nz (the draft's lattice: 8,4,8)"
+    )
     p.add_argument("--extra-probes", type=int, default=8, help="as the accuracy probe's (same draws for the same seed)")
     p.add_argument("--probe-seed", type=int, default=0)
     p.add_argument("--gt-height", type=int, default=64)
@@ -91,7 +93,9 @@ def main(argv: list[str] | None = None) -> int:
             for i, probe in enumerate(suite.probes):
                 x = torch.tensor(probe.x, dtype=torch.float32)
                 gt, h = suite.gt[i], suite.eval_height
-                per_probe["prior"].append(score_probe({"m": prior.envmaps(x[None], float(probe.t), h)[0]}, gt, args.sphere_size)["m"])
+                per_probe["prior"].append(
+                    score_probe({"m": prior.envmaps(x[None], float(probe.t), h)[0]}, gt, args.sphere_size)["m"]
+                )
                 for dims in lattices:
                     blend = blended_prior(prior, x, float(probe.t), bounds, dims, h)
                     per_probe["x".join(map(str, dims))].append(score_probe({"m": blend}, gt, args.sphere_size)["m"])
@@ -101,8 +105,11 @@ def main(argv: list[str] | None = None) -> int:
         if field is not None:
             entry["field"] = field
         report["suites"][name] = {"box_lo": bounds.lo, "box_hi": bounds.hi, "means": entry}
-        print(f"{name} ({len(suite.probes)} probes; box {[round(v, 2) for v in bounds.lo]} .. {[round(v, 2) for v in bounds.hi]}):"
-              " mean over probes, ratio to the prior at the probe in ()")
+        print(
+            f"{name} ({len(suite.probes)} probes; box {[round(v, 2) for v in bounds.lo]} .. "
+            f"{[round(v, 2) for v in bounds.hi]}):"
+            " mean over probes, ratio to the prior at the probe in ()"
+        )
         for mat in MATERIALS:
             for m in METRICS:
                 ref = entry["prior"][mat][m]

@@ -53,14 +53,19 @@ FIELD, PRIOR, CONSTANT = "field", "prior (shortcut)", "mean-colour"
 METHODS = (FIELD, PRIOR, CONSTANT)
 
 PROTOCOL = (
-    f"Photo: {CROP_SIZE[0]}x{CROP_SIZE[1]} px, {CROP_HFOV_DEG:g}° horizontal FOV, yaw U[-180°, 180°), pitch U[-{PITCH_DEG:g}°, {PITCH_DEG:g}°] "
+    f"Photo: {CROP_SIZE[0]}x{CROP_SIZE[1]} px, {CROP_HFOV_DEG:g}° horizontal FOV, yaw U[-180°, 180°), pitch "
+    f"U[-{PITCH_DEG:g}°, {PITCH_DEG:g}°] "
     f"(seed {SEED} + file name), DiffusionLight TonemapHDR (gamma 2.4, 99th percentile -> 0.9), 8-bit PNG. "
     f"Ground truth: the panorama rotated into the camera frame, {GT_HEIGHT}x{2 * GT_HEIGHT}. All at the camera centre: "
-    f"`field` = the product (`estimate` on the PNG with its FOV, no depth, preset {PRESET}; then the exact env map query at x=0,0,0); "
-    "`prior (shortcut)` = the job's reprojection prior queried directly (not the product); `mean-colour` = constant map of the "
-    "photo's mean linearised colour. Ratios: method's mean / mean-colour's mean over the split (< 1 beats a constant map). "
+    f"`field` = the product (`estimate` on the PNG with its FOV, no depth, preset {PRESET}; then the exact env map "
+    "query at x=0,0,0); "
+    "`prior (shortcut)` = the job's reprojection prior queried directly (not the product); `mean-colour` = constant "
+    "map of the "
+    "photo's mean linearised colour. Ratios: method's mean / mean-colour's mean over the split (< 1 beats a constant "
+    "map). "
     "Observed corr. = log-luminance correlation of the map re-projected into the camera with the linearised photo "
-    "(`truth` row: the ground-truth panorama's own, the protocol's ceiling). `control` panoramas are not indoor and are reported apart."
+    "(`truth` row: the ground-truth panorama's own, the protocol's ceiling). `control` panoramas are not indoor and "
+    "are reported apart."
 )
 
 
@@ -216,7 +221,11 @@ def protocol_photos(hdri_dir: Path, split: str, views: int, work_height: int):
     loaded from its PNG as the job loads it (in a temporary directory, gone after the loop)."""
     from core.capture.load import load_capture
 
-    files = sorted(r["filename"] for r in read_manifest(hdri_dir) if r.get("split") == split and (hdri_dir / r["filename"]).is_file())
+    files = sorted(
+        r["filename"]
+        for r in read_manifest(hdri_dir)
+        if r.get("split") == split and (hdri_dir / r["filename"]).is_file()
+    )
     with tempfile.TemporaryDirectory() as tmp:
         for f in files:
             pano = load_panorama(hdri_dir / f)
@@ -224,7 +233,9 @@ def protocol_photos(hdri_dir: Path, split: str, views: int, work_height: int):
                 R = camera_rotation(*view_for(f, view, views))
                 hdr, intr = perspective_crop(pano, R)
                 ldr = ldr_photo(hdr)
-                work = load_capture(write_photo(ldr, Path(tmp) / f"{f}_{view}.png"), None, job_params(), track=False).resized(work_height)
+                work = load_capture(
+                    write_photo(ldr, Path(tmp) / f"{f}_{view}.png"), None, job_params(), track=False
+                ).resized(work_height)
                 yield {"name": f, "pano": pano, "rotation": R, "intrinsics": intr, "ldr": ldr, "work": work}
 
 
@@ -286,7 +297,9 @@ def summarise(images: list[dict], methods=METHODS) -> dict:
                 if base and name != CONSTANT:
                     pairs = _panorama_pairs(images, name, mat, metric)
                     intervals[f"{mat}_{metric}"] = ratio_interval(*zip(*pairs)) if pairs else None
-                    both = [im for im in images if _scored(im, name, mat, metric) and _scored(im, CONSTANT, mat, metric)]
+                    both = [
+                        im for im in images if _scored(im, name, mat, metric) and _scored(im, CONSTANT, mat, metric)
+                    ]
                     wins[f"{mat}_{metric}"] = [sum(im["scores"][name][mat][metric] < im["scores"][CONSTANT][mat][metric]
                                                    for im in both), len(both)]
         out[name]["vs_constant"] = ratios
@@ -361,8 +374,10 @@ def run_panoramas(hdri_dir: Path, limit: int | None, sphere_size: int, quick: bo
     out: dict = {"protocol": PROTOCOL, "hdri_dir": str(hdri_dir), "limit_per_split": limit, "preset": PRESET,
                  "views_per_panorama": views, "splits": {}}
     if views > 1:
-        out["protocol"] += (f" {views} photos per panorama: the first as above, the others at its yaw turned by multiples "
-                            f"of {360.0 / views:g}° with pitches of their own; intervals resample panoramas.")
+        out["protocol"] += (
+            f" {views} photos per panorama: the first as above, the others at its yaw turned by multiples "
+            f"of {360.0 / views:g}° with pitches of their own; intervals resample panoramas."
+        )
     if overrides:
         out["protocol"] += f" VARIANT, not the shipped preset: {PRESET} with {json.dumps(overrides)}."
         out["overrides"] = overrides
@@ -447,8 +462,12 @@ def cv_select(rooms: list[Path], folds: dict[str, list[float]], overrides: dict,
         scores = {}  # room -> [score per grid value]
         for path in rooms:
             ov = overrides if GAIN_KEY in overrides else {**overrides, GAIN_KEY: folds[path.name]}
-            scores[path.name] = [evaluate_panorama(path, sphere_size, workdir, methods=(PRIOR,), overrides={**ov, full: v})
-                                 ["scores"][PRIOR][material][metric] for v in grid]
+            scores[path.name] = [
+                evaluate_panorama(path, sphere_size, workdir, methods=(PRIOR,), overrides={**ov, full: v})["scores"][
+                    PRIOR
+                ][material][metric]
+                for v in grid
+            ]
             if log:
                 log(f"refit {key} {path.name}: " + ", ".join(f"{v}: {x:.3f}" for v, x in zip(grid, scores[path.name])))
 
@@ -465,7 +484,9 @@ def cv_select(rooms: list[Path], folds: dict[str, list[float]], overrides: dict,
 def indoor_rooms(hdri_dir: Path, limit: int | None = None) -> list[Path]:
     """Every indoor panorama of MANIFEST.tsv (splits INDOOR_SPLITS together), sorted by name."""
     rows = read_manifest(hdri_dir)
-    names = sorted(r["filename"] for r in rows if r.get("split") in INDOOR_SPLITS and (hdri_dir / r["filename"]).is_file())
+    names = sorted(
+        r["filename"] for r in rows if r.get("split") in INDOOR_SPLITS and (hdri_dir / r["filename"]).is_file()
+    )
     return [hdri_dir / n for n in names][:limit]
 
 
@@ -539,12 +560,18 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
     rooms = indoor_rooms(hdri_dir, limit)
     folds, all_rooms_gain = cv_gains(rooms)
     protocol = PROTOCOL + (
-        f" Leave-one-room-out over the {len(rooms)} indoor rooms ({', '.join(INDOOR_SPLITS)} together, one photo each): "
+        f" Leave-one-room-out over the {len(rooms)} indoor rooms ({', '.join(INDOOR_SPLITS)} together, one photo "
+        "each): "
         "each room's job gets the unseen fill's elevation profile refitted on the other rooms (bench.indoor_fill)"
-        + (f" and {', '.join(CV_REFIT)} chosen per fold on the other rooms (the prior shortcut, `refit` in the JSON); "
-           if refit else "; ") +
-        f"intervals: {round(CV_LEVEL * 100)} % bootstrap over rooms (seed {CV_SEED}, {2000} draws) of the ratio of means. "
-        f"Rooms failing: diffuse angular error > {ANGLE_FAILURE:g}x the constant map's.")
+        + (
+            f" and {', '.join(CV_REFIT)} chosen per fold on the other rooms (the prior shortcut, `refit` in the JSON); "
+            if refit
+            else "; "
+        )
+        + f"intervals: {round(CV_LEVEL * 100)} % bootstrap over rooms (seed {CV_SEED}, {2000} draws) of the ratio of "
+          "means. "
+        f"Rooms failing: diffuse angular error > {ANGLE_FAILURE:g}x the constant map's."
+    )
     if overrides:
         protocol += f" VARIANT, not the shipped preset: {PRESET} with {json.dumps(overrides)}."
     out: dict = {"protocol": protocol, "hdri_dir": str(hdri_dir), "preset": PRESET, "methods": list(methods),
@@ -598,17 +625,27 @@ def cv_markdown(res: dict, rows: bool = True) -> list[str]:
 
     keys = [f"{mat}_{metric}" for mat in CV_MATERIALS for metric in ("si_rmse_rel", "angular_deg")] + ["matte_nrmse"]
     out = [res.get("protocol", ""), ""]
-    head = ["group", "method", "rooms", "s / photo"] + [k.replace("_rel", "").replace("_", " ") + " vs const" for k in keys] \
+    head = (
+        ["group", "method", "rooms", "s / photo"]
+        + [k.replace("_rel", "").replace("_", " ") + " vs const" for k in keys]
         + ["median room ratio diffuse si / ang", f"rooms diffuse ang > {ANGLE_FAILURE:g}x const", "observed corr."]
+    )
     out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for group, g in res.get("splits", {}).items():
         for name, m in g["methods"].items():
             if name == "truth":
                 continue
             fails = m.get("rooms_diffuse_angle_over_1.5x_constant")
-            out.append("| " + " | ".join([group, name, str(m["images"]), f"{m['seconds_per_image']:.1f}"]
-                                         + [cell(m, k) for k in keys] + [_medians(m)]
-                                         + ["–" if not fails else f"{fails['count']} / {fails['of']}", f"{m['observed_corr']:.3f}"]) + " |")
+            out.append(
+                "| "
+                + " | ".join(
+                    [group, name, str(m["images"]), f"{m['seconds_per_image']:.1f}"]
+                    + [cell(m, k) for k in keys]
+                    + [_medians(m)]
+                    + ["–" if not fails else f"{fails['count']} / {fails['of']}", f"{m['observed_corr']:.3f}"]
+                )
+                + " |"
+            )
     if rows:
         for group, g in res.get("splits", {}).items():
             methods = [k for k in g["methods"] if k not in ("truth", CONSTANT)]
@@ -620,9 +657,15 @@ def cv_markdown(res: dict, rows: bool = True) -> list[str]:
                 cells = []
                 for name in methods:
                     s = im["scores"][name]
-                    cells.append("non-finite" if "non_finite" in s else
-                                 f"{s['diffuse']['si_rmse_rel'] / c['si_rmse_rel']:.2f} / {s['diffuse']['angular_deg'] / c['angular_deg']:.2f}")
-                out.append(f"| {im['file']} | {im.get('split')} | " + " | ".join(cells) + f" | {c['angular_deg']:.1f} |")
+                    cells.append(
+                        "non-finite"
+                        if "non_finite" in s
+                        else f"{s['diffuse']['si_rmse_rel'] / c['si_rmse_rel']:.2f} / "
+                             f"{s['diffuse']['angular_deg'] / c['angular_deg']:.2f}"
+                    )
+                out.append(
+                    f"| {im['file']} | {im.get('split')} | " + " | ".join(cells) + f" | {c['angular_deg']:.1f} |"
+                )
     return out
 
 
@@ -634,11 +677,24 @@ def _medians(m: dict) -> str:
 def cv_ablation_table(reports: dict[str, dict], method: str, base_name: str = "shipped") -> list[str]:
     """reports: variant name -> CV report (indoor group). One row per variant: its `method`'s
     ratios to the constant map, the change from the `base_name` row, and the rooms failing on angle."""
-    keys = ("diffuse_si_rmse_rel", "diffuse_angular_deg", "matte_si_rmse_rel", "matte_angular_deg", "mirror_angular_deg")
+    keys = (
+        "diffuse_si_rmse_rel",
+        "diffuse_angular_deg",
+        "matte_si_rmse_rel",
+        "matte_angular_deg",
+        "mirror_angular_deg",
+    )
     group = "indoor (leave-one-room-out)"
     base = reports.get(base_name, {}).get("splits", {}).get(group, {}).get("methods", {}).get(method)
-    head = ["variant (one mechanism off)", "overrides"] + [k.replace("_rel", "").replace("_", " ") + " vs const [95 %]" for k in keys] \
-        + ["Δ diffuse si / Δ diffuse ang vs shipped", "median room ratio diffuse si / ang", f"rooms diffuse ang > {ANGLE_FAILURE:g}x"]
+    head = (
+        ["variant (one mechanism off)", "overrides"]
+        + [k.replace("_rel", "").replace("_", " ") + " vs const [95 %]" for k in keys]
+        + [
+            "Δ diffuse si / Δ diffuse ang vs shipped",
+            "median room ratio diffuse si / ang",
+            f"rooms diffuse ang > {ANGLE_FAILURE:g}x",
+        ]
+    )
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, rep in reports.items():
         m = rep.get("splits", {}).get(group, {}).get("methods", {}).get(method)
@@ -663,10 +719,16 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--hdri-dir", default=str(DEFAULT_HDRI_DIR))
     p.add_argument("--splits", default="dev", help="comma-separated subset of dev,test,control (tune on dev only)")
-    p.add_argument("--limit", type=int, default=None, help="panoramas per split (default 3; 0: all); with --cv: the first indoor rooms "
-                   "(default all)")
+    p.add_argument(
+        "--limit",
+        type=int,
+        default=None,
+        help="panoramas per split (default 3; 0: all); with --cv: the first indoor rooms (default all)",
+    )
     p.add_argument("--sphere-size", type=int, default=64)
-    p.add_argument("--views", type=int, default=1, help="photos per panorama (view_for): more photos, tighter intervals")
+    p.add_argument(
+        "--views", type=int, default=1, help="photos per panorama (view_for): more photos, tighter intervals"
+    )
     p.add_argument("-o", "--out", default=None, help="JSON file to write")
     p.add_argument("--overrides", default=None, help='explore a variant of the preset (labelled in the output), e.g. '
                    '\'{"priors.reprojection.env_height": 64}\'')
@@ -685,15 +747,20 @@ def main(argv=None) -> int:
     p.add_argument("--cv-table", nargs="+", default=None, metavar="CV_JSON",
                    help="the ablation table of saved --cv reports (nothing is estimated); with --table-method")
     p.add_argument("--table-method", default="field", help="with --cv-table: field or prior")
-    p.add_argument("--table-splits", default=None, help="with --cv-table: only the rooms of these MANIFEST splits, e.g. "
-                   "test,extra (the rooms no value was ever chosen on before the CV)")
+    p.add_argument(
+        "--table-splits",
+        default=None,
+        help="with --cv-table: only the rooms of these MANIFEST splits, e.g. "
+        "test,extra (the rooms no value was ever chosen on before the CV)",
+    )
     p.add_argument("--md", default=None, help="with --cv / --cv-table: also write the markdown here")
     args = p.parse_args(argv)
     if args.cv_table:
         reports = {}
         for f in args.cv_table:
             rep = json.loads(Path(f).read_text())
-            for g in rep.get("splits", {}).values():  # summaries re-made from the per-room results (this code's statistics)
+            # summaries re-made from the per-room results (this code's statistics)
+            for g in rep.get("splits", {}).values():
                 if args.table_splits:
                     g["images"] = [im for im in g["images"] if im.get("split") in args.table_splits.split(",")]
                 g["methods"] = cv_summary(g["images"], tuple(rep["methods"]))
@@ -708,12 +775,23 @@ def main(argv=None) -> int:
         return 0
     if args.cv:
         torch.set_num_threads(1)
-        overrides = {**(json.loads(args.overrides) if args.overrides else {}), **CV_VARIANTS.get(args.variant or "shipped", {})}
+        overrides = {
+            **(json.loads(args.overrides) if args.overrides else {}),
+            **CV_VARIANTS.get(args.variant or "shipped", {}),
+        }
         methods = tuple(dict.fromkeys(METHOD_ALIASES[m.strip()] for m in args.methods.split(",")) )
         if CONSTANT not in methods:
             methods += (CONSTANT,)
-        res = run_cv(Path(args.hdri_dir), args.sphere_size, methods, overrides, control=not args.no_control,
-                     refit=not args.no_refit, limit=args.limit or None, log=lambda m: print(m, file=sys.stderr, flush=True))
+        res = run_cv(
+            Path(args.hdri_dir),
+            args.sphere_size,
+            methods,
+            overrides,
+            control=not args.no_control,
+            refit=not args.no_refit,
+            limit=args.limit or None,
+            log=lambda m: print(m, file=sys.stderr, flush=True),
+        )
         res["variant"] = args.variant or ("shipped" if not args.overrides else "overrides")
         res["command"] = "python -m bench.real_panoramas " + " ".join(sys.argv[1:] if argv is None else argv)
         if args.out:
@@ -734,9 +812,15 @@ def main(argv=None) -> int:
         print("\n".join(panorama_markdown(res)))
         return 0
     torch.set_num_threads(1)
-    res = run_panoramas(Path(args.hdri_dir), 3 if args.limit is None else (args.limit or None), args.sphere_size, splits=tuple(args.splits.split(",")),
-                        log=lambda m: print(m, file=sys.stderr, flush=True),
-                        overrides=json.loads(args.overrides) if args.overrides else None, views=max(1, args.views))
+    res = run_panoramas(
+        Path(args.hdri_dir),
+        3 if args.limit is None else (args.limit or None),
+        args.sphere_size,
+        splits=tuple(args.splits.split(",")),
+        log=lambda m: print(m, file=sys.stderr, flush=True),
+        overrides=json.loads(args.overrides) if args.overrides else None,
+        views=max(1, args.views),
+    )
     if args.out:
         Path(args.out).write_text(json.dumps(sanitize(res), indent=1))
     print("\n".join(panorama_markdown(res)))

@@ -111,9 +111,27 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
 # ---------------------------------------------------------------------------------------
 # Markdown
 # ---------------------------------------------------------------------------------------
-SUITE_HEADERS = ["method", "group", "prior", "CPU s to answer", "wall s to answer", "query CPU (ms)", "peak RSS Δ (MB)",
-                 "diffuse rel si-RMSE", "matte rel si-RMSE", "mirror rel si-RMSE", "diffuse ang (°)", "matte ang (°)", "mirror ang (°)",
-                 "diffuse nRMSE", "matte nRMSE", "mirror nRMSE", "flicker (gt)", "switch lag (frames)", "switch captured"]
+SUITE_HEADERS = [
+    "method",
+    "group",
+    "prior",
+    "CPU s to answer",
+    "wall s to answer",
+    "query CPU (ms)",
+    "peak RSS Δ (MB)",
+    "diffuse rel si-RMSE",
+    "matte rel si-RMSE",
+    "mirror rel si-RMSE",
+    "diffuse ang (°)",
+    "matte ang (°)",
+    "mirror ang (°)",
+    "diffuse nRMSE",
+    "matte nRMSE",
+    "mirror nRMSE",
+    "flicker (gt)",
+    "switch lag (frames)",
+    "switch captured",
+]
 
 
 def suite_rows(suite: dict) -> list[list]:
@@ -122,20 +140,31 @@ def suite_rows(suite: dict) -> list[list]:
     for name, e in suite["methods"].items():
         m = e.get("method", {})
         if e.get("error"):
-            rows.append([name, m.get("group", ""), m.get("prior", ""), f"ERROR: {e['error'][:80]}"] + ["–"] * (len(SUITE_HEADERS) - 4))
+            rows.append(
+                [name, m.get("group", ""), m.get("prior", ""), f"ERROR: {e['error'][:80]}"]
+                + ["–"] * (len(SUITE_HEADERS) - 4)
+            )
             continue
         met, tmp = e.get("metrics", {}), e.get("temporal") or {}
         nonfinite = met.get("probes_non_finite") or 0
         fl = tmp.get("flicker")
-        rows.append([
-            name + (f" ({nonfinite} NON-FINITE)" if nonfinite else ""), m.get("group", ""), m.get("prior", ""),
-            time_to_answer(e, n, cpu=True), time_to_answer(e, n), _get(e, "time", "query_cpu_ms"), _get(e, "time", "peak_rss_delta_mb"),
-            *[_get(met, mat, "si_rmse_rel") for mat in MATERIALS],
-            *[_get(met, mat, "angular_deg") for mat in MATERIALS],
-            *[_get(met, mat, "nrmse") for mat in MATERIALS],
-            "–" if fl is None else f"{fmt(fl)} ({fmt(tmp.get('gt_flicker'))})",
-            tmp.get("lag_frames"), tmp.get("contrast_captured"),
-        ])
+        rows.append(
+            [
+                name + (f" ({nonfinite} NON-FINITE)" if nonfinite else ""),
+                m.get("group", ""),
+                m.get("prior", ""),
+                time_to_answer(e, n, cpu=True),
+                time_to_answer(e, n),
+                _get(e, "time", "query_cpu_ms"),
+                _get(e, "time", "peak_rss_delta_mb"),
+                *[_get(met, mat, "si_rmse_rel") for mat in MATERIALS],
+                *[_get(met, mat, "angular_deg") for mat in MATERIALS],
+                *[_get(met, mat, "nrmse") for mat in MATERIALS],
+                "–" if fl is None else f"{fmt(fl)} ({fmt(tmp.get('gt_flicker'))})",
+                tmp.get("lag_frames"),
+                tmp.get("contrast_captured"),
+            ]
+        )
     return rows
 
 
@@ -147,32 +176,53 @@ def headline_rows(sim: dict) -> tuple[list[str], list[list]]:
         ok = {k for k, e in s["methods"].items() if not e.get("error")}
         names = ok if names is None else names & ok
     order = [k for k in next(iter(suites.values()))["methods"]] if suites else []
-    headers = ["method", "prior", "CPU s to answer", "wall s to answer", "query CPU (ms)", "diffuse rel si-RMSE", "matte rel si-RMSE", "mirror rel si-RMSE",
-               "diffuse ang (°)", "mirror ang (°)", "excess flicker", "switch lag (frames)", "switch captured"]
+    headers = [
+        "method",
+        "prior",
+        "CPU s to answer",
+        "wall s to answer",
+        "query CPU (ms)",
+        "diffuse rel si-RMSE",
+        "matte rel si-RMSE",
+        "mirror rel si-RMSE",
+        "diffuse ang (°)",
+        "mirror ang (°)",
+        "excess flicker",
+        "switch lag (frames)",
+        "switch captured",
+    ]
     rows = []
     for name in order:
         if name not in (names or set()):
             continue
         es = [s["methods"][name] for s in suites.values()]
         ns = [len(_get(s, "suite", "held_out_probes") or []) for s in suites.values()]
-        rows.append([
-            name, es[0]["method"].get("prior", ""),
-            _mean([time_to_answer(e, n, cpu=True) for e, n in zip(es, ns)]), _mean([time_to_answer(e, n) for e, n in zip(es, ns)]),
-            _mean([_get(e, "time", "query_cpu_ms") for e in es]),
-            *[_mean([_get(e, "metrics", mat, "si_rmse_rel") for e in es]) for mat in MATERIALS],
-            _mean([_get(e, "metrics", "diffuse", "angular_deg") for e in es]), _mean([_get(e, "metrics", "mirror", "angular_deg") for e in es]),
-            _mean([_get(e, "temporal", "excess_flicker") for e in es]), _mean([_get(e, "temporal", "lag_frames") for e in es]),
-            _mean([_get(e, "temporal", "contrast_captured") for e in es]),
-        ])
+        rows.append(
+            [
+                name,
+                es[0]["method"].get("prior", ""),
+                _mean([time_to_answer(e, n, cpu=True) for e, n in zip(es, ns)]),
+                _mean([time_to_answer(e, n) for e, n in zip(es, ns)]),
+                _mean([_get(e, "time", "query_cpu_ms") for e in es]),
+                *[_mean([_get(e, "metrics", mat, "si_rmse_rel") for e in es]) for mat in MATERIALS],
+                _mean([_get(e, "metrics", "diffuse", "angular_deg") for e in es]),
+                _mean([_get(e, "metrics", "mirror", "angular_deg") for e in es]),
+                _mean([_get(e, "temporal", "excess_flicker") for e in es]),
+                _mean([_get(e, "temporal", "lag_frames") for e in es]),
+                _mean([_get(e, "temporal", "contrast_captured") for e in es]),
+            ]
+        )
     return headers, rows
 
 
 def machine_lines(machine: dict) -> list[str]:
     return [
-        f"- machine: {machine.get('cpu_model')}, {machine.get('cores')} cores, load average {machine.get('load_average_1_5_15min')} "
+        f"- machine: {machine.get('cpu_model')}, {machine.get('cores')} cores, load average "
+        f"{machine.get('load_average_1_5_15min')} "
         f"(wall times are inflated by other processes when the load exceeds the core count)",
         f"- torch {machine.get('torch_version')}, python {machine.get('python')}, {machine.get('date_utc')}, "
-        f"commit {str(machine.get('git_commit'))[:12]}{' (+ uncommitted changes)' if machine.get('git_tracked_files_modified') else ''}",
+        f"commit {str(machine.get('git_commit'))[:12]}"
+        f"{' (+ uncommitted changes)' if machine.get('git_tracked_files_modified') else ''}",
         f"- memory: {machine.get('memory_method')}",
     ]
 
@@ -184,12 +234,17 @@ def markdown(results: dict) -> str:
     sim = results.get("simulated")
     if sim:
         base = _get(sim, "budget", "base") or {}
-        out += ["## Simulated suites: accuracy vs time", "",
-                f"Reference distillation: {base.get('field_kind')} {base.get('field_width')}x{base.get('field_layers')}, "
-                f"{base.get('iterations')} steps, {base.get('n_probes')} probes/step, frames at {base.get('work_height')} rows, "
-                f"reprojection prior at {base.get('prior_env_height')} rows. Errors are means over the held-out probes; "
-                "lower is better. 'time to answer' = distillation (or prior set-up) + one query per held-out probe. "
-                "Oracle rows read the simulator's ground truth: upper bounds, not estimators.", ""]
+        out += [
+            "## Simulated suites: accuracy vs time",
+            "",
+            f"Reference distillation: {base.get('field_kind')} {base.get('field_width')}x{base.get('field_layers')}, "
+            f"{base.get('iterations')} steps, {base.get('n_probes')} probes/step, frames at {base.get('work_height')} "
+            "rows, "
+            f"reprojection prior at {base.get('prior_env_height')} rows. Errors are means over the held-out probes; "
+            "lower is better. 'time to answer' = distillation (or prior set-up) + one query per held-out probe. "
+            "Oracle rows read the simulator's ground truth: upper bounds, not estimators.",
+            "",
+        ]
         headers, rows = headline_rows(sim)
         out += ["### Headline: mean over all suites", "", table(headers, rows), ""]
         for name, suite in sim.get("suites", {}).items():
@@ -220,14 +275,38 @@ def panorama_markdown(pano: dict) -> list[str]:
     if pano.get("skipped"):
         return out + [f"Skipped: {pano['skipped']}", ""]
     out += [pano.get("protocol", ""), ""]
-    headers = ["split", "method", "images", "time (s)", "diffuse si-RMSE vs const [90 % interval]",
-               "diffuse ang vs const [90 %]", "matte si-RMSE vs const [90 %]", "observed corr.", "diffuse rel si-RMSE", "diffuse ang (°)", "mirror ang (°)"]
+    headers = [
+        "split",
+        "method",
+        "images",
+        "time (s)",
+        "diffuse si-RMSE vs const [90 % interval]",
+        "diffuse ang vs const [90 %]",
+        "matte si-RMSE vs const [90 %]",
+        "observed corr.",
+        "diffuse rel si-RMSE",
+        "diffuse ang (°)",
+        "mirror ang (°)",
+    ]
     rows = []
     for split, s in pano.get("splits", {}).items():
         for method, m in s.get("methods", {}).items():
             if method == "truth":
-                rows.append([split, "truth (protocol ceiling)", m.get("images"), "–", "–", "–", "–", m.get("observed_corr"),
-                             "–", "–", "–"])
+                rows.append(
+                    [
+                        split,
+                        "truth (protocol ceiling)",
+                        m.get("images"),
+                        "–",
+                        "–",
+                        "–",
+                        "–",
+                        m.get("observed_corr"),
+                        "–",
+                        "–",
+                        "–",
+                    ]
+                )
                 continue
             rows.append([split, method, m.get("images"), m.get("seconds_per_image"),
                          _with_interval(m, "diffuse_si_rmse_rel"), _with_interval(m, "diffuse_angular_deg"),
@@ -239,11 +318,26 @@ def panorama_markdown(pano: dict) -> list[str]:
 
 def scaling_markdown(scaling: dict) -> list[str]:
     out = ["## Scaling", "", scaling.get("note", ""), ""]
-    headers = ["sweep", "values", "CPU seconds", "peak RSS Δ (MB)", "log-log exponent (time)", "log-log exponent (memory)"]
+    headers = [
+        "sweep",
+        "values",
+        "CPU seconds",
+        "peak RSS Δ (MB)",
+        "log-log exponent (time)",
+        "log-log exponent (memory)",
+    ]
     rows = []
     for name, s in scaling.get("sweeps", {}).items():
-        rows.append([name, ", ".join(fmt(v) for v in s.get("values", [])), ", ".join(fmt(v) for v in s.get("seconds", [])),
-                     ", ".join(fmt(v) for v in s.get("peak_rss_delta_mb", [])), s.get("time_exponent"), s.get("memory_exponent")])
+        rows.append(
+            [
+                name,
+                ", ".join(fmt(v) for v in s.get("values", [])),
+                ", ".join(fmt(v) for v in s.get("seconds", [])),
+                ", ".join(fmt(v) for v in s.get("peak_rss_delta_mb", [])),
+                s.get("time_exponent"),
+                s.get("memory_exponent"),
+            ]
+        )
     return out + [table(headers, rows), ""]
 
 
@@ -257,10 +351,15 @@ def stability_markdown(stab: dict) -> list[str]:
 
 def tracking_markdown(tr: dict) -> list[str]:
     speed = tr.get("speed", {})
-    out = ["## Camera tracking (captures without poses)", "",
-           f"Speed: `track_camera` on {speed.get('frames')}-frame {'x'.join(str(v) for v in speed.get('size', []))} clips "
-           f"rendered from the bundled dev panorama (target: <= {fmt(speed.get('target_cpu_s'))} s CPU). CPU seconds count "
-           "every thread of the process.", ""]
+    out = [
+        "## Camera tracking (captures without poses)",
+        "",
+        f"Speed: `track_camera` on {speed.get('frames')}-frame {'x'.join(str(v) for v in speed.get('size', []))} clips "
+        f"rendered from the bundled dev panorama (target: <= {fmt(speed.get('target_cpu_s'))} s CPU). CPU seconds "
+        "count "
+        "every thread of the process.",
+        "",
+    ]
     headers = ["clip", "method", "CPU s", "wall s", "within target", "frames kept", "reprojection error (px)",
                "max rotation error (°)", "scale"]
     rows = [[name, c.get("method"), c.get("cpu_s"), c.get("wall_s"), c.get("within_target"), c.get("frames_kept"),
@@ -277,9 +376,19 @@ def tracking_markdown(tr: dict) -> list[str]:
     rows = []
     for split, s in tr.get("splits", {}).items():
         m = s.get("methods", {})
-        rows.append([split, len(s.get("files", [])),
-                     *[_get(m, name, "diffuse", "si_rmse_rel") for name in ("tracked", "true-poses", "static", "mean-colour")],
-                     s.get("tracked_vs_true_poses"), s.get("within_5_percent"), s.get("better_than_constant")])
+        rows.append(
+            [
+                split,
+                len(s.get("files", [])),
+                *[
+                    _get(m, name, "diffuse", "si_rmse_rel")
+                    for name in ("tracked", "true-poses", "static", "mean-colour")
+                ],
+                s.get("tracked_vs_true_poses"),
+                s.get("within_5_percent"),
+                s.get("better_than_constant"),
+            ]
+        )
     return out + [table(headers, rows), ""]
 
 
@@ -296,7 +405,9 @@ def pareto_plot(sim: dict, path: Path) -> Path | None:
     suites = sim.get("suites", {})
     if not suites:
         return None
-    fig, axes = plt.subplots(len(MATERIALS), len(suites), figsize=(4.6 * len(suites), 3.6 * len(MATERIALS)), squeeze=False)
+    fig, axes = plt.subplots(
+        len(MATERIALS), len(suites), figsize=(4.6 * len(suites), 3.6 * len(MATERIALS)), squeeze=False
+    )
     colors = {"baseline": "tab:gray", "paper": "tab:blue", "budget": "tab:cyan", "ablation": "tab:orange",
               "query": "tab:purple", "upper-bound": "tab:green"}
     for col, (sname, suite) in enumerate(suites.items()):
@@ -317,7 +428,14 @@ def pareto_plot(sim: dict, path: Path) -> Path | None:
             est = [i for i, name in enumerate(labels) if "oracle" not in name]
             front = [est[i] for i in pareto_front([pts[i] for i in est])]
             if front:
-                ax.step([pts[i][0] for i in front], [pts[i][1] for i in front], where="post", color="tab:red", lw=0.8, alpha=0.7)
+                ax.step(
+                    [pts[i][0] for i in front],
+                    [pts[i][1] for i in front],
+                    where="post",
+                    color="tab:red",
+                    lw=0.8,
+                    alpha=0.7,
+                )
             ax.set_xscale("log")
             ax.set_title(f"{sname}: {mat}", fontsize=9)
             ax.set_xlabel("CPU seconds to answer (log)", fontsize=8)
@@ -391,9 +509,15 @@ def readme_markers(block: str | None = None) -> tuple[str, str]:
 def readme_section(results: dict, command: str, block: str | None = None, prefix: str = "results/") -> str:
     """The README's results block: headline table, plot, and where every number came from."""
     start, end = readme_markers(block)
-    lines = [start, "", f"Generated by `{command}` on {_get(results, 'machine', 'date_utc')} "
-             f"(commit {str(_get(results, 'machine', 'git_commit'))[:12]}, total {results.get('total_wall_s')} s wall).", "",
-             f"> {results.get('note')}", ""]
+    lines = [
+        start,
+        "",
+        f"Generated by `{command}` on {_get(results, 'machine', 'date_utc')} "
+        f"(commit {str(_get(results, 'machine', 'git_commit'))[:12]}, total {results.get('total_wall_s')} s wall).",
+        "",
+        f"> {results.get('note')}",
+        "",
+    ]
     lines += machine_lines(results.get("machine", {}))
     sim = results.get("simulated")
     if sim:
@@ -405,8 +529,12 @@ def readme_section(results: dict, command: str, block: str | None = None, prefix
         lines += panorama_markdown(pano)
     stab = results.get("stability")
     if stab:
-        lines += [f"Stability: {len(stab.get('cases', [])) - stab.get('failures', 0)} of {len(stab.get('cases', []))} hard cases pass "
-                  "(table in results.md).", ""]
+        lines += [
+            f"Stability: {len(stab.get('cases', [])) - stab.get('failures', 0)} of {len(stab.get('cases', []))} hard "
+            "cases pass "
+            "(table in results.md).",
+            "",
+        ]
     tracking = results.get("tracking")
     if tracking:
         lines += tracking_markdown(tracking)
@@ -414,7 +542,9 @@ def readme_section(results: dict, command: str, block: str | None = None, prefix
     return "\n".join(lines)
 
 
-def update_readme(readme: Path, results: dict, command: str, block: str | None = None, prefix: str = "results/") -> bool:
+def update_readme(
+    readme: Path, results: dict, command: str, block: str | None = None, prefix: str = "results/"
+) -> bool:
     """Replace a generated block of `readme` (between its markers); False if absent."""
     if not readme.is_file():
         return False
@@ -441,7 +571,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     results = json.loads(args.results_json.read_text())
     write_all(results, args.results_json.parent)
-    prefix = str(args.results_json.parent.resolve().relative_to(args.readme.parent.resolve())) + "/" if args.readme else ""
+    prefix = (
+        str(args.results_json.parent.resolve().relative_to(args.readme.parent.resolve())) + "/" if args.readme else ""
+    )
     if args.readme is not None and not update_readme(args.readme, results, args.command, args.block, prefix):
         print(f"{args.readme}: no generated block markers", file=sys.stderr)
         return 1

@@ -11,7 +11,8 @@ estimate scan.mp4` runs it) and the env map at the first camera (the origin) at 
 the last frame's time.
 
 Modes: `product` (THE PRODUCT: the video alone); `product+estimate` (the video and
-`"frame_ev": "estimate"`: the user says the exposure moved, as the README advises); `true-poses` (a diagnostic shortcut, labelled:
+`"frame_ev": "estimate"`: the user says the exposure moved, as the README advises); `true-poses` (a diagnostic shortcut,
+labelled:
 the scan's true rotations given as params.poses, exposures still unknown); `true-poses+ev` (the
 true exposures given too: what tracking and exposure recovery could reach at best).
 
@@ -32,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import tempfile
 import time
@@ -159,13 +159,19 @@ def tracking_summary(artefact, clip) -> dict:
         true = relative_poses(clip)
         k0 = kept[0]
         base = torch.linalg.inv(true[k0])
-        errs = [rotation_angle_deg((base @ true[f])[:3, :3].numpy().T @ torch.tensor(p, dtype=torch.float64).reshape(4, 4)[:3, :3].numpy())
-                for f, p in zip(kept, poses)]
+        errs = [
+            rotation_angle_deg(
+                (base @ true[f])[:3, :3].numpy().T @ torch.tensor(p, dtype=torch.float64).reshape(4, 4)[:3, :3].numpy()
+            )
+            for f, p in zip(kept, poses)
+        ]
         out["max_rotation_error_deg"] = round(max(errs), 3)
     return out
 
 
-def evaluate_room(pano_path: Path, modes, workdir: Path, sphere_size: int, overrides_for=None, path: str = "scan") -> dict:
+def evaluate_room(
+    pano_path: Path, modes, workdir: Path, sphere_size: int, overrides_for=None, path: str = "scan"
+) -> dict:
     from bench.suite.evaluation import score_probe
 
     video, clip = make_scan(pano_path, workdir, path)
@@ -267,21 +273,30 @@ def markdown(report: dict) -> list[str]:
             v = m.get(key)
             return f"{v['ratio']:.2f} [{v['interval_95'][0]:.2f}, {v['interval_95'][1]:.2f}]" if v else "–"
 
-        tracked = (f"{m['tracked_as_rotation']} ({m['tracked_within_2deg']})" if mode.startswith("product") else "poses given")
-        lines.append(f"| {report.get('path', 'scan')} | {mode} | {len(rows)} | {cell('diffuse_si_rmse_rel')} | "
-                     f"{cell('diffuse_angular_deg')} | {cell('mirror_si_rmse_rel')} | {m['seen_corr']:.2f} ({truth:.2f}) | "
-                     f"{m['drift']:.3f} | {m['cpu_s']:.0f} | {tracked} | "
-                     f"{m['uses_time']} |")
+        tracked = (
+            f"{m['tracked_as_rotation']} ({m['tracked_within_2deg']})" if mode.startswith("product") else "poses given"
+        )
+        lines.append(
+            f"| {report.get('path', 'scan')} | {mode} | {len(rows)} | {cell('diffuse_si_rmse_rel')} | "
+            f"{cell('diffuse_angular_deg')} | {cell('mirror_si_rmse_rel')} | {m['seen_corr']:.2f} ({truth:.2f}) | "
+            f"{m['drift']:.3f} | {m['cpu_s']:.0f} | {tracked} | "
+            f"{m['uses_time']} |"
+        )
     lines += ["", "| room | split | mode | diffuse si-RMSE / angle / mirror vs const | seen corr. | drift | CPU s | "
               "largest rotation error (°) | exposure span (stops) |", "|" + "---|" * 9]
     for r in rows:
         for mode, ex in r["modes"].items():
             sc, c = r["scores"][mode], r["scores"].get(f"{CONSTANT}@{mode}", r["scores"][CONSTANT])
-            ratio = [sc[a]["si_rmse" if b == "s" else "angular_deg"] / max(c[a]["si_rmse" if b == "s" else "angular_deg"], 1e-12)
-                     for a, b in (("diffuse", "s"), ("diffuse", "a"), ("mirror", "s"))]
-            lines.append(f"| {r['file']} | {r.get('split')} | {mode} | {ratio[0]:.2f} / {ratio[1]:.2f} / {ratio[2]:.2f} | "
-                         f"{ex['seen_corr']:.2f} | {ex['drift']:.3f} | {ex['cpu_s']:.0f} | "
-                         f"{ex['tracking'].get('max_rotation_error_deg', '–')} | {r['span_stops']} |")
+            ratio = [
+                sc[a]["si_rmse" if b == "s" else "angular_deg"]
+                / max(c[a]["si_rmse" if b == "s" else "angular_deg"], 1e-12)
+                for a, b in (("diffuse", "s"), ("diffuse", "a"), ("mirror", "s"))
+            ]
+            lines.append(
+                f"| {r['file']} | {r.get('split')} | {mode} | {ratio[0]:.2f} / {ratio[1]:.2f} / {ratio[2]:.2f} | "
+                f"{ex['seen_corr']:.2f} | {ex['drift']:.3f} | {ex['cpu_s']:.0f} | "
+                f"{ex['tracking'].get('max_rotation_error_deg', '–')} | {r['span_stops']} |"
+            )
     return lines
 
 
@@ -299,9 +314,15 @@ def main(argv=None) -> int:
     p.add_argument("-o", "--out", default=None, help="JSON report (rewritten after every room)")
     p.add_argument("--path", default="scan", choices=("scan", "pan"), help="scan: the three-ring room scan; pan: a "
                    "20-frame half-turn at the horizon (with --modes true-poses: the posed pan of issue 44)")
-    p.add_argument("--no-cv", action="store_true", help="the shipped fill settings for every room (not cross-validated)")
-    p.add_argument("--refit", default=str(DEFAULT_REFIT), help="the per-fold choices of the photo CV "
-                   "(bench.real_panoramas --cv: its `refit` section, e.g. fill_source_cap) to apply to each held-out room")
+    p.add_argument(
+        "--no-cv", action="store_true", help="the shipped fill settings for every room (not cross-validated)"
+    )
+    p.add_argument(
+        "--refit",
+        default=str(DEFAULT_REFIT),
+        help="the per-fold choices of the photo CV "
+        "(bench.real_panoramas --cv: its `refit` section, e.g. fill_source_cap) to apply to each held-out room",
+    )
     p.add_argument("--rescore", default=None, metavar="REPORT_JSON",
                    help="re-summarise a saved report (its rooms as they are) and write its table beside it (.md)")
     args = p.parse_args(argv)
@@ -317,7 +338,9 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     hdri = Path(args.hdri_dir)
     rows = read_manifest(hdri)
-    names = args.rooms.split(",") if args.rooms else [r["filename"] for r in rows if r["split"] in args.splits.split(",")]
+    names = (
+        args.rooms.split(",") if args.rooms else [r["filename"] for r in rows if r["split"] in args.splits.split(",")]
+    )
     modes = tuple(args.modes.split(","))
     overrides_for = None if args.no_cv else cv_overrides(hdri, Path(args.refit))
     out: dict = {"protocol": __doc__, "modes": modes, "path": args.path, "rooms": {}, "targets": TARGETS,

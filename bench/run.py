@@ -58,10 +58,19 @@ QUICK = Mode(
           "3 panoramas per split. Small budgets show trends and costs, not converged accuracy."),
 )
 FULL = Mode(
-    name="full", resolution=None, gt_height=64, sphere_size=64, base_iterations=300,
-    iterations=(100, 300, 800), widths=((32, 3), (96, 4), (128, 6), (256, 6)), work_heights=(48, 72, 120), probes=(1, 4, 9, 16),
-    sweep_suites=SUITE_NAMES, panorama_limit=None,
-    note="FULL MODE: {it} steps for the reference MLP (the draft preset has {draft}), budget sweep and ablations on {sweep}.",
+    name="full",
+    resolution=None,
+    gt_height=64,
+    sphere_size=64,
+    base_iterations=300,
+    iterations=(100, 300, 800),
+    widths=((32, 3), (96, 4), (128, 6), (256, 6)),
+    work_heights=(48, 72, 120),
+    probes=(1, 4, 9, 16),
+    sweep_suites=SUITE_NAMES,
+    panorama_limit=None,
+    note="FULL MODE: {it} steps for the reference MLP (the draft preset has {draft}), budget sweep and ablations on "
+         "{sweep}.",
 )
 
 
@@ -114,24 +123,38 @@ def run_simulated(mode: Mode, opts: BenchOptions, workdir: Path) -> dict:
 
     budget = mode.budget()
     cache = opts.cache_dir or default_cache_dir()
-    out: dict = {"budget": {"base": config_summary(budget.base), "iterations": budget.iterations, "widths": budget.widths,
-                            "work_heights": budget.work_heights, "probes": budget.probes},
-                 "sweep_suites": list(mode.sweep_suites), "suites": {}}
+    out: dict = {
+        "budget": {
+            "base": config_summary(budget.base),
+            "iterations": budget.iterations,
+            "widths": budget.widths,
+            "work_heights": budget.work_heights,
+            "probes": budget.probes,
+        },
+        "sweep_suites": list(mode.sweep_suites),
+        "suites": {},
+    }
     for name in opts.suites:
         log(f"suite {name}: preparing capture")
         suite = load_suite(name, cache, mode.resolution, mode.gt_height)
-        methods = core_methods(opts.diffusion_weights, opts.diffusionlight_weights) + (sweep_methods(budget) if name in mode.sweep_suites else [])
+        methods = core_methods(opts.diffusion_weights, opts.diffusionlight_weights) + (
+            sweep_methods(budget) if name in mode.sweep_suites else []
+        )
         t0 = time.perf_counter()
         results = run_suite(suite, methods, budget, workdir, mode.sphere_size)
-        out["suites"][name] = {"suite": suite.describe(), "wall_s": round(time.perf_counter() - t0, 1), "methods": results}
+        out["suites"][name] = {
+            "suite": suite.describe(),
+            "wall_s": round(time.perf_counter() - t0, 1),
+            "methods": results,
+        }
     return out
 
 
 def run_bench(opts: BenchOptions) -> dict:
     """Run the selected sections and write results.json, results.md and the plots."""
-    from bench import report
-
     import torch
+
+    from bench import report
 
     mode = resolve_mode(opts)
     started = time.perf_counter()
@@ -148,8 +171,9 @@ def run_bench(opts: BenchOptions) -> dict:
         if "panoramas" in opts.sections:
             from bench.real_panoramas import run_panoramas
 
-            results["real_panoramas"] = run_panoramas(opts.hdri_dir, mode.panorama_limit, mode.sphere_size, quick=opts.quick,
-                                                      workdir=workdir, log=log)
+            results["real_panoramas"] = run_panoramas(
+                opts.hdri_dir, mode.panorama_limit, mode.sphere_size, quick=opts.quick, workdir=workdir, log=log
+            )
         if "scaling" in opts.sections:
             from bench.scaling import run_scaling
 
@@ -162,7 +186,9 @@ def run_bench(opts: BenchOptions) -> dict:
             from bench.tracking import run_tracking
 
             log("tracking: speed clips and panorama pans")
-            results["tracking"] = run_tracking(opts.hdri_dir, mode.panorama_limit, mode.sphere_size, opts.quick, workdir)
+            results["tracking"] = run_tracking(
+                opts.hdri_dir, mode.panorama_limit, mode.sphere_size, opts.quick, workdir
+            )
     finally:
         torch.set_num_threads(threads)
         if opts.keep_artefacts:
@@ -171,7 +197,12 @@ def run_bench(opts: BenchOptions) -> dict:
             shutil.rmtree(workdir, ignore_errors=True)
     results["total_wall_s"] = round(time.perf_counter() - started, 1)
     report.write_all(results, Path(opts.out_dir))
-    complete = opts.sections == SECTIONS and opts.suites == SUITE_NAMES and opts.iterations is None and opts.sweep_suites is None
+    complete = (
+        opts.sections == SECTIONS
+        and opts.suites == SUITE_NAMES
+        and opts.iterations is None
+        and opts.sweep_suites is None
+    )
     if Path(opts.out_dir).resolve() == DEFAULT_OUT_DIR.resolve() and complete:
         # only a complete run into the committed results directory refreshes the README
         command = "lightfield bench" + (" --quick" if opts.quick else "")

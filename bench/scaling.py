@@ -139,11 +139,18 @@ def run_scaling(quick: bool = False, workdir: Path | None = None) -> dict:
     base_rss = baseline.get("peak_rss_mb") or 0.0
     cache: dict = {}
     out: dict = {
-        "note": (f"Each point: {iterations} distillation steps of the draft MLP on a synthetic capture, reprojection prior, "
-                 f"one thread, in a fresh subprocess; other axes held at {CENTRE}. Seconds are CPU seconds (wall in the JSON) and include "
-                 f"per-job costs (prior set-up, bounds) besides the steps. Memory = child's peak RSS minus a child that only imports "
-                 f"({base_rss:.0f} MB), so it includes the capture. Exponent = log-log least-squares slope."),
-        "iterations": iterations, "centre": CENTRE, "baseline_peak_rss_mb": base_rss, "sweeps": {},
+        "note": (
+            f"Each point: {iterations} distillation steps of the draft MLP on a synthetic capture, reprojection prior, "
+            f"one thread, in a fresh subprocess; other axes held at {CENTRE}. Seconds are CPU seconds (wall in the "
+            "JSON) and include "
+            "per-job costs (prior set-up, bounds) besides the steps. Memory = child's peak RSS minus a child that "
+            "only imports "
+            f"({base_rss:.0f} MB), so it includes the capture. Exponent = log-log least-squares slope."
+        ),
+        "iterations": iterations,
+        "centre": CENTRE,
+        "baseline_peak_rss_mb": base_rss,
+        "sweeps": {},
     }
     for axis, values in sweeps.items():
         secs, cpus, mems, errors = [], [], [], []
@@ -158,16 +165,35 @@ def run_scaling(quick: bool = False, workdir: Path | None = None) -> dict:
             secs.append(r.get("seconds"))
             cpus.append(r.get("cpu_seconds"))
             mems.append(None if r.get("peak_rss_mb") is None else max(0.0, r["peak_rss_mb"] - base_rss))
-        out["sweeps"][axis] = {"unit": UNITS[axis], "values": values, "seconds": cpus, "wall_seconds": secs, "peak_rss_delta_mb": mems,
-                               "time_exponent": loglog_exponent(values, cpus), "wall_time_exponent": loglog_exponent(values, secs),
-                               "memory_exponent": loglog_exponent(values, mems),
-                               "errors": [e for e in errors if e]}
+        out["sweeps"][axis] = {
+            "unit": UNITS[axis],
+            "values": values,
+            "seconds": cpus,
+            "wall_seconds": secs,
+            "peak_rss_delta_mb": mems,
+            "time_exponent": loglog_exponent(values, cpus),
+            "wall_time_exponent": loglog_exponent(values, secs),
+            "memory_exponent": loglog_exponent(values, mems),
+            "errors": [e for e in errors if e],
+        }
     q = query_latency(QUERY_HEIGHTS["quick" if quick else "full"])
     out["query_latency"] = q
-    out["sweeps"]["query height (exact)"] = {"unit": "env map rows", "values": q["heights"], "seconds": [v / 1000 for v in q["exact_ms"]],
-                                             "peak_rss_delta_mb": [], "time_exponent": q["exact_exponent"], "memory_exponent": None}
-    out["sweeps"]["query height (baked)"] = {"unit": "env map rows", "values": q["heights"], "seconds": [v / 1000 for v in q["baked_ms"]],
-                                             "peak_rss_delta_mb": [], "time_exponent": q["baked_exponent"], "memory_exponent": None}
+    out["sweeps"]["query height (exact)"] = {
+        "unit": "env map rows",
+        "values": q["heights"],
+        "seconds": [v / 1000 for v in q["exact_ms"]],
+        "peak_rss_delta_mb": [],
+        "time_exponent": q["exact_exponent"],
+        "memory_exponent": None,
+    }
+    out["sweeps"]["query height (baked)"] = {
+        "unit": "env map rows",
+        "values": q["heights"],
+        "seconds": [v / 1000 for v in q["baked_ms"]],
+        "peak_rss_delta_mb": [],
+        "time_exponent": q["baked_exponent"],
+        "memory_exponent": None,
+    }
     return out
 
 

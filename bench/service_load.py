@@ -32,7 +32,6 @@ import math
 import os
 import platform
 import random
-import statistics
 import sys
 import tempfile
 import threading
@@ -220,7 +219,8 @@ class EnvmapPaths:
     def __call__(self, rng) -> str:
         b = self.bounds
         x = ",".join(f"{rng.uniform(lo, hi):.4f}" for lo, hi in zip(b["lo"], b["hi"]))
-        return f"/lightfield/{self.job}/envmap?x={x}&t={rng.uniform(b['t0'], b['t1']):.4f}&height={self.height}{self.extra}"
+        t = rng.uniform(b["t0"], b["t1"])
+        return f"/lightfield/{self.job}/envmap?x={x}&t={t:.4f}&height={self.height}{self.extra}"
 
 
 def timed_get(client, path: str, params: dict, reps: int) -> dict:

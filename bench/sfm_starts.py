@@ -99,7 +99,12 @@ def main(argv: list[str] | None = None) -> int:
     for f in split_files(args.hdri_dir, args.split, args.limit):
         rows.append(evaluate(f, variants, starts))
         print(json.dumps(rows[-1]), flush=True)
-    report = {"split": args.split, "starts": list(starts), "summary": summarise(rows, variants, starts), "panoramas": rows}
+    report = {
+        "split": args.split,
+        "starts": list(starts),
+        "summary": summarise(rows, variants, starts),
+        "panoramas": rows,
+    }
     from bench.report import show_and_write
 
     show_and_write(report["summary"], report, args.output)

@@ -33,7 +33,11 @@ def probe_grid(scene, count: int = 9) -> list[tuple[float, float, float]]:
     pts = []
     for i in range(64):
         fx, fz = ((i * 0.618034) % 1.0), ((i * 0.381966 + 0.2) % 1.0)
-        p = (box.lo[0] + 0.2 + fx * (box.hi[0] - box.lo[0] - 0.4), 1.0 + 0.5 * (i % 3) / 2, box.lo[2] + 0.2 + fz * (box.hi[2] - box.lo[2] - 0.4))
+        p = (
+            box.lo[0] + 0.2 + fx * (box.hi[0] - box.lo[0] - 0.4),
+            1.0 + 0.5 * (i % 3) / 2,
+            box.lo[2] + 0.2 + fz * (box.hi[2] - box.lo[2] - 0.4),
+        )
         t = torch.tensor([p])
         if bool(geom.inside_room(t)) and not bool(geom.inside_furniture(t)):
             pts.append(p)

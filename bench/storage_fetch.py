@@ -73,8 +73,11 @@ def main(argv=None) -> int:
             "LIGHTFIELD_BROKER_URL": redis.url, "LIGHTFIELD_STORAGE_URL": "s3://bench/jobs",
             "LIGHTFIELD_FIELD_CACHE_SIZE": "1",
             "LIGHTFIELD_DISTILL_OVERRIDES": json.dumps({"iterations": 8, "work_height": 24, "warmup_steps": 1})}
-    worker = spawn(worker_command("bench", loglevel="WARNING"), env={**base, "LIGHTFIELD_DATA_DIR": str(root / "worker")},
-                   log_path=root / "worker.log")
+    worker = spawn(
+        worker_command("bench", loglevel="WARNING"),
+        env={**base, "LIGHTFIELD_DATA_DIR": str(root / "worker")},
+        log_path=root / "worker.log",
+    )
     port = free_port()
     api = spawn([sys.executable, "-m", "cli", "serve", "--port", str(port), "--log-level", "warning"],
                 env={**base, "LIGHTFIELD_DATA_DIR": str(root / "api")}, log_path=root / "api.log")
@@ -96,7 +99,9 @@ def main(argv=None) -> int:
             image = h.png_bytes(160, 120)
             jobs = []
             for _ in range(args.jobs + 1):  # one at a time: the per-tenant limit is 4
-                job = c.post("/jobs", files={"file": ("room.png", image)}, data={"params": '{"preset": "draft"}'}).json()["id"]
+                job = c.post(
+                    "/jobs", files={"file": ("room.png", image)}, data={"params": '{"preset": "draft"}'}
+                ).json()["id"]
                 while (state := c.get(f"/jobs/{job}").json()["state"]) in ("queued", "running"):
                     time.sleep(0.3)
                 assert state == "succeeded", (state, (root / "worker.log").read_text()[-2000:])
@@ -133,17 +138,31 @@ def main(argv=None) -> int:
         "load_average_end": [round(v, 2) for v in os.getloadavg()],
     })
     met = max(first) <= TARGET_FIRST_FETCH_S
-    md = "\n".join([
-        "# First fetch from the object store vs warm queries (`bench/storage_fetch.py`)", "",
-        f"Generated {result['when']} on {result['machine']} ({result['cpu_count']} CPUs), commit {result['commit']}; "
-        f"load average at start {result['load_average_start']}, at end {result['load_average_end']}. moto's S3 "
-        "server on loopback; API and worker on separate directories sharing only Redis and the store.", "",
-        f"Artefact of a draft field in the store: {', '.join(f'{k} {v} B' for k, v in sorted(result['artefact_bytes'].items()))}.", "",
-        "| query (64x128 env map, default quality) | seconds |", "|---|---|",
-        f"| first fetch (not on the API's disk, not in memory), {len(first)} jobs | {', '.join(str(v) for v in result['first_fetch_s'])} |",
-        f"| disk-warm (in the API's local cache, not in memory) | {', '.join(str(v) for v in result['disk_warm_s'])} |",
-        f"| warm (in memory), p50 / max of {len(warm)} | {result['warm_s']['p50']} / {result['warm_s']['max']} |", "",
-        f"Target: first fetch <= {TARGET_FIRST_FETCH_S} s: {'met' if met else '**missed**'} (worst {max(first):.3f} s).", ""])
+    md = "\n".join(
+        [
+            "# First fetch from the object store vs warm queries (`bench/storage_fetch.py`)",
+            "",
+            f"Generated {result['when']} on {result['machine']} ({result['cpu_count']} CPUs), commit "
+            f"{result['commit']}; "
+            f"load average at start {result['load_average_start']}, at end {result['load_average_end']}. moto's S3 "
+            "server on loopback; API and worker on separate directories sharing only Redis and the store.",
+            "",
+            "Artefact of a draft field in the store: "
+            f"{', '.join(f'{k} {v} B' for k, v in sorted(result['artefact_bytes'].items()))}.",
+            "",
+            "| query (64x128 env map, default quality) | seconds |",
+            "|---|---|",
+            f"| first fetch (not on the API's disk, not in memory), {len(first)} jobs | "
+            f"{', '.join(str(v) for v in result['first_fetch_s'])} |",
+            "| disk-warm (in the API's local cache, not in memory) | "
+            f"{', '.join(str(v) for v in result['disk_warm_s'])} |",
+            f"| warm (in memory), p50 / max of {len(warm)} | {result['warm_s']['p50']} / {result['warm_s']['max']} |",
+            "",
+            f"Target: first fetch <= {TARGET_FIRST_FETCH_S} s: {'met' if met else '**missed**'} (worst "
+            f"{max(first):.3f} s).",
+            "",
+        ]
+    )
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "storage_fetch.json").write_text(json.dumps(result, indent=2) + "\n")
     (args.out / "storage_fetch.md").write_text(md)

@@ -75,8 +75,12 @@ def stretch_changes(suite, positions, envmaps) -> list[dict]:
     spans = sorted({(float(s.times[0]), float(s.times[-1])) for s in suite.series if s.kind == "stretch"})
     out = []
     for t0, t1 in spans:
-        ratios = [float(envmap_brightness(envmaps(x, t1)[None])[0] / envmap_brightness(envmaps(x, t0)[None])[0].clamp_min(1e-30))
-                  for x in positions]
+        ratios = [
+            float(
+                envmap_brightness(envmaps(x, t1)[None])[0] / envmap_brightness(envmaps(x, t0)[None])[0].clamp_min(1e-30)
+            )
+            for x in positions
+        ]
         out.append({"t": [round(t0, 4), round(t1, 4)], "ratios": [round(r, 4) for r in ratios]})
     return out
 
@@ -104,8 +108,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variant", action="append", default=[], help="NAME:key=value,key=value (draft overrides)")
-    p.add_argument("--room-positions", type=int, default=12,
-                   help="also compare each stretch's end-to-start brightness change at this many room positions (0: off)")
+    p.add_argument(
+        "--room-positions",
+        type=int,
+        default=12,
+        help="also compare each stretch's end-to-start brightness change at this many room positions (0: off)",
+    )
     p.add_argument("-o", "--output", default=None)
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -126,8 +134,12 @@ def main(argv=None) -> int:
         from core.sim.render import render_envmap
 
         prior = _bound_prior(suite, preset("draft"))
-        truth_changes = stretch_changes(suite, positions, lambda x, t: render_envmap(suite.scene, x, t, ROOM_HEIGHT).float())
-        prior_changes = stretch_changes(suite, positions, lambda x, t: prior.envmaps(torch.tensor([x]), t, ROOM_HEIGHT)[0])
+        truth_changes = stretch_changes(
+            suite, positions, lambda x, t: render_envmap(suite.scene, x, t, ROOM_HEIGHT).float()
+        )
+        prior_changes = stretch_changes(
+            suite, positions, lambda x, t: prior.envmaps(torch.tensor([x]), t, ROOM_HEIGHT)[0]
+        )
         report["room"] = {"positions": positions, "truth": room_summary(truth_changes, prior_changes),
                           "prior (shortcut)": room_summary(prior_changes, prior_changes)}
     for name, overrides in [("draft", {})] + [parse_variant(v) for v in args.variant]:
@@ -143,9 +155,15 @@ def main(argv=None) -> int:
                 from core.fields.stored.artefact import LightFieldArtefact
 
                 art = LightFieldArtefact.load(path)
-                changes = stretch_changes(suite, positions, lambda x, t: art.envmaps(torch.tensor([x]), [t], ROOM_HEIGHT)[0][0])
+                changes = stretch_changes(
+                    suite, positions, lambda x, t: art.envmaps(torch.tensor([x]), [t], ROOM_HEIGHT)[0][0]
+                )
                 room = room_summary(changes, prior_changes)
-        report["variants"][name] = {"overrides": overrides, "stretches": stretch_courses(suite, run.series), "room": room}
+        report["variants"][name] = {
+            "overrides": overrides,
+            "stretches": stretch_courses(suite, run.series),
+            "room": room,
+        }
         for s in room or []:
             print(f"{name:>16} t={s['t']} over the room: change {s['mean_change']:.3f}, over the prior's "
                   f"{s['over_prior_mean']:.3f} +- {s['over_prior_sd']:.3f}", file=sys.stderr, flush=True)
@@ -156,8 +174,11 @@ def main(argv=None) -> int:
         print(f"{'truth':>16} t={s['t']} over the room: change {s['mean_change']:.3f}, over the prior's "
               f"{s['over_prior_mean']:.3f} +- {s['over_prior_sd']:.3f}", file=sys.stderr)
     for s in report["prior (shortcut)"]:
-        print(f"{'prior (shortcut)':>16} x={s['x']} max dev {s['max_dev']:.3f}: " + " ".join(f"{v:.3f}" for v in s["course"]),
-              file=sys.stderr)
+        print(
+            f"{'prior (shortcut)':>16} x={s['x']} max dev {s['max_dev']:.3f}: "
+            + " ".join(f"{v:.3f}" for v in s["course"]),
+            file=sys.stderr,
+        )
     if args.output:
         Path(args.output).write_text(json.dumps(report, indent=1))
     return 0

@@ -49,8 +49,14 @@ def walk_poses(n: int, scale: float = 1.0) -> list[torch.Tensor]:
     """A 1.3 m walk (1.2 m across, 0.5 m forward) turning 40 deg; `scale` scales its translation."""
     from core.sim.state import pose_from_yaw_pitch
 
-    return [pose_from_yaw_pitch((scale * (-0.6 + 1.2 * i / (n - 1)), scale * 0.1 * math.sin(i / 4), scale * -0.5 * i / (n - 1)),
-                                20 - 40 * i / (n - 1), 0) for i in range(n)]
+    return [
+        pose_from_yaw_pitch(
+            (scale * (-0.6 + 1.2 * i / (n - 1)), scale * 0.1 * math.sin(i / 4), scale * -0.5 * i / (n - 1)),
+            20 - 40 * i / (n - 1),
+            0,
+        )
+        for i in range(n)
+    ]
 
 
 def _clip(pano: torch.Tensor, poses, size, centre=(0.0, 0.0, 0.0)):
@@ -81,12 +87,17 @@ def run_speed() -> dict:
         wall = time.perf_counter() - wall
         true, _ = relative_to_first(torch.stack(poses).numpy())
         rot, pos = pose_errors(r.poses, torch.from_numpy(relative_to_first(true[r.kept])[0]))
-        out["clips"][name] = {"method": r.method, "cpu_s": round(r.cpu_seconds, 3), "wall_s": round(wall, 3),
-                              "frames_kept": len(r.kept), "reprojection_error_px": r.reprojection_error_px,
-                              "max_rotation_error_deg": round(rot, 4),
-                              "max_position_error_m": round(pos, 4) if r.scale is None or r.scale.source == "depth" else None,
-                              "scale_source": r.summary()["scale_source"],
-                              "within_target": r.cpu_seconds <= SPEED_TARGET_CPU_S}
+        out["clips"][name] = {
+            "method": r.method,
+            "cpu_s": round(r.cpu_seconds, 3),
+            "wall_s": round(wall, 3),
+            "frames_kept": len(r.kept),
+            "reprojection_error_px": r.reprojection_error_px,
+            "max_rotation_error_deg": round(rot, 4),
+            "max_position_error_m": round(pos, 4) if r.scale is None or r.scale.source == "depth" else None,
+            "scale_source": r.summary()["scale_source"],
+            "within_target": r.cpu_seconds <= SPEED_TARGET_CPU_S,
+        }
     return out
 
 
@@ -102,7 +113,9 @@ def _estimate(video: Path, params: dict, workdir: Path, iterations: int, work_he
     from core.engine.presets import preset
 
     cfg = preset("draft").with_overrides({"distill.iterations": iterations, "distill.work_height": work_height})
-    result = run_job(video, None, JobParams.model_validate({"preset": "draft", "fps": FPS, **params}), workdir, config=cfg)
+    result = run_job(
+        video, None, JobParams.model_validate({"preset": "draft", "fps": FPS, **params}), workdir, config=cfg
+    )
     env, _ = result.artefact.envmap(torch.zeros(3), 0.0, GT_HEIGHT)
     return env
 
@@ -123,7 +136,11 @@ def evaluate_panorama(path: Path, frames: int, size, iterations: int, work_heigh
     R0 = poses[0][:3, :3]
     gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), R0.T)  # world = the first camera's frame
     rel = [torch.linalg.inv(poses[0]) @ p for p in poses]
-    runs = {"tracked": {}, "true-poses": {"poses": [p.reshape(-1).tolist() for p in rel]}, "static": {"tracking": "off"}}
+    runs = {
+        "tracked": {},
+        "true-poses": {"poses": [p.reshape(-1).tolist() for p in rel]},
+        "static": {"tracking": "off"},
+    }
     preds, seconds, meta = {}, {}, {}
     for name, params in runs.items():
         t0 = time.perf_counter()
@@ -142,11 +159,15 @@ def run_tracking(hdri_dir: Path, limit: int | None, sphere_size: int, quick: boo
 
     frames, size = (12, (160, 120)) if quick else (20, (320, 240))
     iterations, work_height = (60, 72) if quick else (300, 96)
-    out: dict = {"speed": run_speed(),
-                 "protocol": (f"pan of {PAN_DEG:g} deg yaw (+-{PITCH_WOBBLE_DEG:g} deg pitch wobble) from one spot, {frames} frames "
-                              f"{size[0]}x{size[1]}, {HFOV_DEG:g} deg FOV, locked exposure, H.264 at {FPS:g} fps; run_job "
-                              f"draft preset at {iterations} steps, work height {work_height}; env map at the first camera, t = 0"),
-                 "splits": {}}
+    out: dict = {
+        "speed": run_speed(),
+        "protocol": (
+            f"pan of {PAN_DEG:g} deg yaw (+-{PITCH_WOBBLE_DEG:g} deg pitch wobble) from one spot, {frames} frames "
+            f"{size[0]}x{size[1]}, {HFOV_DEG:g} deg FOV, locked exposure, H.264 at {FPS:g} fps; run_job "
+            f"draft preset at {iterations} steps, work height {work_height}; env map at the first camera, t = 0"
+        ),
+        "splits": {},
+    }
     hdri_dir = Path(hdri_dir)
     if not (hdri_dir / "MANIFEST.tsv").is_file():
         out["skipped"] = f"no MANIFEST.tsv in {hdri_dir}: the accuracy part was not run"

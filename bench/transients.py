@@ -68,7 +68,9 @@ def figure(h: int, w: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     return shape, level * colour * texture[..., None]
 
 
-def clip(pano: torch.Tensor, yaw: float, pitch: float, seed: int, *, walker: bool, light) -> tuple[torch.Tensor, torch.Tensor]:
+def clip(
+    pano: torch.Tensor, yaw: float, pitch: float, seed: int, *, walker: bool, light
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(8-bit LDR [T, H, W, 3], where the figure is [T, H, W]) of one static view; `light(i, hdr)`
     returns frame i's linear image from the steady one."""
     from bench.tracking import HFOV_DEG
@@ -210,14 +212,22 @@ def evaluate(path: Path, iterations: int, workdir: Path, pans_only: bool = False
         t0 = time.process_time()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            result = run_job(videos[clip_name], None, JobParams.model_validate({"preset": "draft", "fps": FPS, **extra}),
-                             workdir / f"{path.stem}-job-{name}", config=cfg)
+            result = run_job(
+                videos[clip_name],
+                None,
+                JobParams.model_validate({"preset": "draft", "fps": FPS, **extra}),
+                workdir / f"{path.stem}-job-{name}",
+                config=cfg,
+            )
         art = result.artefact
         first, _ = art.envmap(torch.zeros(3), 0.0, GT_HEIGHT)
         middle, _ = art.envmap(torch.zeros(3), t_mid, GT_HEIGHT)
         preds[name] = middle
-        runs[name] = {"uses_time": art.meta["temporal"]["uses_time"], "map_change_stops": round(map_change_stops(first, middle), 3),
-                      "cpu_s": round(time.process_time() - t0, 1)}
+        runs[name] = {
+            "uses_time": art.meta["temporal"]["uses_time"],
+            "map_change_stops": round(map_change_stops(first, middle), 3),
+            "cpu_s": round(time.process_time() - t0, 1),
+        }
     clean_ldr, _ = clip(pano, yaw, pitch, seed, walker=False, light=lights["clean"][1])
     score_runs(runs, preds, gt, clean_ldr[0], out)
     return out
@@ -231,10 +241,12 @@ def summarise(rows: list[dict]) -> dict:
     clips = {}
     for name in ("walk", "walk-halved", "pool-off", "clean"):
         cs = [r["clips"][name] for r in rows]
-        clips[name] = {"read_as_changing_light": {m: sum(c[f"changing_light_{m}"] for c in cs) for m in ("remove", "keep")},
-                       "painted": sum(c["frames_with_transients"] > 0 for c in cs),
-                       "painted_share_mean": mean([c["painted_share"] for c in cs]),
-                       "static_camera": sum(c["static_camera"] for c in cs)}
+        clips[name] = {
+            "read_as_changing_light": {m: sum(c[f"changing_light_{m}"] for c in cs) for m in ("remove", "keep")},
+            "painted": sum(c["frames_with_transients"] > 0 for c in cs),
+            "painted_share_mean": mean([c["painted_share"] for c in cs]),
+            "static_camera": sum(c["static_camera"] for c in cs),
+        }
         scored = [c for c in cs if "iou" in c]  # a clip tracking took for a moving camera has no mask to score
         if scored:
             clips[name].update(iou_mean=mean([c["iou"] for c in scored]), iou_min=min(c["iou"] for c in scored),
@@ -267,8 +279,11 @@ def main(argv: list[str] | None = None) -> int:
     add_split_arguments(p, iterations=200)
     p.add_argument("--rescore", default=None, metavar="LOG",
                    help="rebuild the report from a run's printed per-panorama lines (JSON, one per line) and exit")
-    p.add_argument("--pans-only", action="store_true",
-                   help="only the pans (pan, pan-walk, pan-ae, pan-halved: tracking and the temporal decision; no jobs)")
+    p.add_argument(
+        "--pans-only",
+        action="store_true",
+        help="only the pans (pan, pan-walk, pan-ae, pan-halved: tracking and the temporal decision; no jobs)",
+    )
     args = p.parse_args(argv)
     if args.rescore:
         return _write([json.loads(line) for line in Path(args.rescore).read_text().splitlines()
@@ -276,8 +291,11 @@ def main(argv: list[str] | None = None) -> int:
 
     from bench.real_panoramas import rows_over, split_files
 
-    rows = rows_over(split_files(args.hdri_dir, args.split, args.limit), lambda f, work: evaluate(f, args.iterations, work, args.pans_only),
-                     args.workdir)
+    rows = rows_over(
+        split_files(args.hdri_dir, args.split, args.limit),
+        lambda f, work: evaluate(f, args.iterations, work, args.pans_only),
+        args.workdir,
+    )
     return _write(rows, args)
 
 

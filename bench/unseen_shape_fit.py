@@ -56,10 +56,17 @@ def photos(hdri: Path, split: str, views: int) -> list[dict]:
     for photo in rp.protocol_photos(hdri, split, views, cfg.distill.work_height):
         prior = ReprojectionPrior(**base)
         prior.bind(photo["work"])
-        out.append({"name": photo["name"], "env": prior.envmaps(torch.zeros(1, 3), 0.0, rp.GT_HEIGHT)[0].double(),
-                    "gt": rotate_envmap(resize_envmap(photo["pano"], rp.GT_HEIGHT), photo["rotation"].T).double(),
-                    "seen": observed_directions(Camera(photo["intrinsics"], torch.eye(4, dtype=torch.float64)), rp.GT_HEIGHT),
-                    "const": rp.estimate_mean_colour(photo["ldr"]).double()})
+        out.append(
+            {
+                "name": photo["name"],
+                "env": prior.envmaps(torch.zeros(1, 3), 0.0, rp.GT_HEIGHT)[0].double(),
+                "gt": rotate_envmap(resize_envmap(photo["pano"], rp.GT_HEIGHT), photo["rotation"].T).double(),
+                "seen": observed_directions(
+                    Camera(photo["intrinsics"], torch.eye(4, dtype=torch.float64)), rp.GT_HEIGHT
+                ),
+                "const": rp.estimate_mean_colour(photo["ldr"]).double(),
+            }
+        )
     return out
 
 
@@ -79,7 +86,9 @@ class ShapeBasis:
         return (lum * self.area * region).sum() / (self.area * region).sum()
 
     def moments(self, lum: torch.Tensor, region: torch.Tensor) -> torch.Tensor:
-        return torch.einsum("hwk,hw->k", self.cells, lum * region) / (self.mean(lum, region) * (self.area * region).sum())
+        return torch.einsum("hwk,hw->k", self.cells, lum * region) / (
+            self.mean(lum, region) * (self.area * region).sum()
+        )
 
     def fit(self, lum: torch.Tensor, region: torch.Tensor, bands: int = 3) -> torch.Tensor:
         """Solid-angle-weighted least-squares SH coefficients [9] of `lum` over `region`, with
@@ -155,8 +164,12 @@ def main(argv=None) -> int:
             preds[key] = leave_one_out(train, evaluate, Xtr, Ttr, Xev, lam)
             r2[key] = round(float(1 - ((preds[key] - Tev) ** 2).sum() / ((Tev - Tev.mean(0)) ** 2).sum()), 4)
     preds["oracle"] = Tev
-    preds["oracle, band 1 only"] = torch.stack([basis.fit(luminance(q["gt"]) / basis.mean(luminance(q["gt"]), q["seen"]), ~q["seen"], bands=2)
-                                                for q in evaluate])
+    preds["oracle, band 1 only"] = torch.stack(
+        [
+            basis.fit(luminance(q["gt"]) / basis.mean(luminance(q["gt"]), q["seen"]), ~q["seen"], bands=2)
+            for q in evaluate
+        ]
+    )
     preds["fill-sh"] = torch.stack([basis.fit(luminance(q["env"]) / m, ~q["seen"]) for q, m in zip(evaluate, Mev)])
     scores: dict[str, list] = {}
     for i, photo in enumerate(evaluate):
@@ -168,21 +181,40 @@ def main(argv=None) -> int:
             maps[key] = torch.where(seen, env, lum[..., None] * colour)
         truth = luminance(photo["gt"]) / basis.mean(luminance(photo["gt"]), photo["seen"]) * Mev[i]
         unseen = (~photo["seen"]).double()
-        rows = (truth * unseen).sum(1, keepdim=True) / unseen.sum(1, keepdim=True).clamp_min(1)  # the unseen part of each row
+        # the unseen part of each row
+        rows = (truth * unseen).sum(1, keepdim=True) / unseen.sum(1, keepdim=True).clamp_min(1)
         maps["oracle, row means only"] = torch.where(seen, env, rows.expand_as(truth)[..., None] * colour)
         for key, s in score_probe(maps, photo["gt"], 64).items():
-            scores.setdefault(key, []).append([s["diffuse"]["si_rmse_rel"], s["diffuse"]["angular_deg"], s["matte"]["si_rmse_rel"]])
+            scores.setdefault(key, []).append(
+                [s["diffuse"]["si_rmse_rel"], s["diffuse"]["angular_deg"], s["matte"]["si_rmse_rel"]]
+            )
     const = torch.tensor(scores["mean-colour"]).mean(0)
     rows = {k: [round(float(v), 3) for v in torch.tensor(s).mean(0) / const] for k, s in scores.items()}
-    print(f"dev, {len(evaluate)} photos (leave one panorama out; fitted on {len(train)}), prior at the camera (shortcut):\n")
-    print("| variant | target R² | diffuse si-RMSE vs const | diffuse ang vs const | matte si-RMSE vs const |\n|---|---|---|---|---|")
+    print(
+        f"dev, {len(evaluate)} photos (leave one panorama out; fitted on {len(train)}), prior at the camera "
+        "(shortcut):\n"
+    )
+    print(
+        "| variant | target R² | diffuse si-RMSE vs const | diffuse ang vs const | matte si-RMSE vs const "
+        "|\n|---|---|---|---|---|"
+    )
     for k, v in rows.items():
         print(f"| {k} | {r2.get(k, '–')} | {v[0]:.3f} | {v[1]:.3f} | {v[2]:.3f} |")
     if args.output:
         Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.output).write_text(json.dumps({"train_photos": len(train), "photos": len(evaluate), "floor": FLOOR,
-                                                 "target_r2": r2, "vs_constant": rows,
-                                                 "columns": ["diffuse_si_rmse_rel", "diffuse_angular_deg", "matte_si_rmse_rel"]}, indent=1))
+        Path(args.output).write_text(
+            json.dumps(
+                {
+                    "train_photos": len(train),
+                    "photos": len(evaluate),
+                    "floor": FLOOR,
+                    "target_r2": r2,
+                    "vs_constant": rows,
+                    "columns": ["diffuse_si_rmse_rel", "diffuse_angular_deg", "matte_si_rmse_rel"],
+                },
+                indent=1,
+            )
+        )
     return 0
 
 

@@ -58,7 +58,8 @@ def _wrap(module, name):
 
 def _patch():
     io = sys.modules.get("core.io")
-    for name, sub in (("read_video", "core.io.video"), ("read_image", "core.io.images"), ("read_depth", "core.io.depth")):
+    readers = (("read_video", "core.io.video"), ("read_image", "core.io.images"), ("read_depth", "core.io.depth"))
+    for name, sub in readers:
         if io is not None:
             _wrap(io, name)
         if sub in sys.modules:
@@ -120,8 +121,10 @@ class Stack:
         self.root = root
         self.redis = start_redis(root / "redis")
         self.env = {**env, "LIGHTFIELD_BROKER_URL": self.redis.url, "LIGHTFIELD_DATA_DIR": str(root / "data")}
-        self.workers = [spawn(worker_command(f"w{i}", loglevel="WARNING"), env=self.env, log_path=root / f"worker{i}.log")
-                        for i in range(workers)]
+        self.workers = [
+            spawn(worker_command(f"w{i}", loglevel="WARNING"), env=self.env, log_path=root / f"worker{i}.log")
+            for i in range(workers)
+        ]
         self.port = free_port()
         self.api = spawn([sys.executable, "-m", "cli", "serve", "--port", str(self.port), "--log-level", "warning"],
                          env=self.env, log_path=root / "api.log")

@@ -7,7 +7,8 @@ from pathlib import Path
 
 from cli.probe_args import Probe, add_probe_arguments, flags_model, print_json, run_guarded, warn_extrapolated
 
-HELP = "Write the ARKit/RealityKit/SceneKit hand-off: Metal cube slices (rgba16Float or sRGB 8-bit), SH planes, main light."
+HELP = ("Write the ARKit/RealityKit/SceneKit hand-off: Metal cube slices (rgba16Float or sRGB 8-bit), SH planes, "
+        "main light.")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -33,7 +34,9 @@ def run(args: argparse.Namespace) -> int:
         doc = arkit_probe(hdr.cpu().numpy(), args.x, args.t, flags_model(flags), args.size, args.pixel_format, args.ev)
         atomic_write(Path(args.output), doc.model_dump_json().encode())
         warn_extrapolated(flags)
-        print_json({"output": args.output, "format": "arkit", "size": args.size, "x": list(args.x), "t": args.t, **flags})
+        print_json(
+            {"output": args.output, "format": "arkit", "size": args.size, "x": list(args.x), "t": args.t, **flags}
+        )
         return 0
 
     return run_guarded(body)

@@ -5,18 +5,51 @@ HELP = "benchmark accuracy vs time (simulated suites, real panoramas, scaling, s
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--quick", action="store_true", help="tiny budgets: a few minutes on 2 cores (trends, not converged numbers)")
-    p.add_argument("-o", "--out", default=None, help="output directory (default: bench/results in the repo; a complete run there also refreshes bench/README.md)")
-    p.add_argument("--hdri-dir", default=None, help="indoor HDR panoramas with MANIFEST.tsv (default: ../shared/hdri from the repo)")
-    p.add_argument("--cache-dir", default=None, help="where rendered suite captures are cached (default: ~/.cache/lightfield/bench)")
+    p.add_argument(
+        "--quick", action="store_true", help="tiny budgets: a few minutes on 2 cores (trends, not converged numbers)"
+    )
+    p.add_argument(
+        "-o",
+        "--out",
+        default=None,
+        help="output directory (default: bench/results in the repo; a complete run there also refreshes "
+             "bench/README.md)",
+    )
+    p.add_argument(
+        "--hdri-dir",
+        default=None,
+        help="indoor HDR panoramas with MANIFEST.tsv (default: ../shared/hdri from the repo)",
+    )
+    p.add_argument(
+        "--cache-dir",
+        default=None,
+        help="where rendered suite captures are cached (default: ~/.cache/lightfield/bench)",
+    )
     p.add_argument("--suites", default=None, help="comma-separated subset of spatial,temporal,moving-camera,hard")
-    p.add_argument("--sections", default=None, help="comma-separated subset of simulated,panoramas,scaling,stability,tracking")
+    p.add_argument(
+        "--sections", default=None, help="comma-separated subset of simulated,panoramas,scaling,stability,tracking"
+    )
     p.add_argument("--keep-artefacts", action="store_true", help="keep the distilled artefacts (printed path)")
-    p.add_argument("--iterations", type=int, default=None, help="override the reference distillation budget (steps); the iteration sweep uses half and double")
-    p.add_argument("--diffusion-weights", default=None, help="local diffusion prior model directory: also distil mlp/grid from it")
-    p.add_argument("--diffusionlight-weights", default=None,
-                   help="imported DiffusionLight prior directory (lightfield prior import): adds diffusionlight and diffusionlight-distilled")
-    p.add_argument("--sweep-suites", default=None, help="suites that get the budget sweep and ablations ('none' for core methods only)")
+    p.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="override the reference distillation budget (steps); the iteration sweep uses half and double",
+    )
+    p.add_argument(
+        "--diffusion-weights", default=None, help="local diffusion prior model directory: also distil mlp/grid from it"
+    )
+    p.add_argument(
+        "--diffusionlight-weights",
+        default=None,
+        help="imported DiffusionLight prior directory (lightfield prior import): adds diffusionlight and "
+             "diffusionlight-distilled",
+    )
+    p.add_argument(
+        "--sweep-suites",
+        default=None,
+        help="suites that get the budget sweep and ablations ('none' for core methods only)",
+    )
 
 
 def _subset(value: str | None, allowed: tuple[str, ...], flag: str) -> tuple[str, ...]:
@@ -25,7 +58,9 @@ def _subset(value: str | None, allowed: tuple[str, ...], flag: str) -> tuple[str
     items = tuple(v.strip() for v in value.split(",") if v.strip())
     bad = [v for v in items if v not in allowed]
     if bad or not items:
-        raise SystemExit(f"lightfield bench: {flag} must be a comma-separated subset of {','.join(allowed)}; got {value!r}")
+        raise SystemExit(
+            f"lightfield bench: {flag} must be a comma-separated subset of {','.join(allowed)}; got {value!r}"
+        )
     return items
 
 
@@ -51,7 +86,9 @@ def run(args) -> int:
         iterations=_positive(args.iterations, "--iterations"),
         diffusion_weights=Path(args.diffusion_weights) if args.diffusion_weights else None,
         diffusionlight_weights=Path(args.diffusionlight_weights) if args.diffusionlight_weights else None,
-        sweep_suites=None if args.sweep_suites is None else (() if args.sweep_suites.strip() == "none" else _subset(args.sweep_suites, SUITE_NAMES, "--sweep-suites")),
+        sweep_suites=None
+        if args.sweep_suites is None
+        else (() if args.sweep_suites.strip() == "none" else _subset(args.sweep_suites, SUITE_NAMES, "--sweep-suites")),
     )
     results = run_bench(opts)
     print(f"wrote {opts.out_dir / 'results.json'}, {opts.out_dir / 'results.md'} ({results['total_wall_s']} s)")

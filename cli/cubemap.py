@@ -52,7 +52,9 @@ def run(args: argparse.Namespace) -> int:
                 out.mkdir(parents=True, exist_ok=True)
                 attrs = envmap_exr_attributes(args.x, args.t, probe.id)
                 for name, face in zip(FACE_NAMES, faces):
-                    attrs["lightfield:layout"] = f"cube face {name}: OpenGL GL_TEXTURE_CUBE_MAP orientation (docs/conventions.md)"
+                    attrs["lightfield:layout"] = (
+                        f"cube face {name}: OpenGL GL_TEXTURE_CUBE_MAP orientation (docs/conventions.md)"
+                    )
                     atomic_write(out / f"{name}.exr", encode_exr(face, attributes=attrs))
         warn_extrapolated(flags)
         print_json({"output": str(out), "format": fmt, "size": args.size, "x": list(args.x), "t": args.t, **flags})

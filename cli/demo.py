@@ -73,7 +73,10 @@ def run(args: argparse.Namespace) -> int:
             say(f"3/{steps} fetching env maps at the held-out probes and the insertion preview ...")
             env_dir = out / "envmaps"
             env_dir.mkdir(exist_ok=True)
-            flags = [backend.save_envmap(p["x"], p["t"], env_dir / f"probe{k}_estimate.exr") for k, p in enumerate(doc["probes"])]
+            flags = [
+                backend.save_envmap(p["x"], p["t"], env_dir / f"probe{k}_estimate.exr")
+                for k, p in enumerate(doc["probes"])
+            ]
             preview = backend.save_preview(out / "preview.png")
             meta = backend.metadata()
             job_id, artefact_dir = backend.job_id, backend.artefact_dir
@@ -177,7 +180,9 @@ class _ServiceRun:
 
         self.job_id = self.service.submit(upload.file, upload.params, upload.depth)
         bar = None if self.quiet else ProgressBar()
-        self.service.wait(self.job_id, timeout_s=1800, on_update=None if bar is None else lambda body: bar(_progress_of(body)))
+        self.service.wait(
+            self.job_id, timeout_s=1800, on_update=None if bar is None else lambda body: bar(_progress_of(body))
+        )
         self.artefact_dir = _stored_artefact(self.service.data_dir, self.job_id)
 
     def save_envmap(self, x, t: float, path: Path) -> str:
@@ -249,7 +254,9 @@ class _LocalRun:
 
         from core.io import save_envmap
 
-        env, flags = self._art.envmap(torch.tensor(x, dtype=torch.float32), t if self._art.uses_time else None, ENV_HEIGHT)
+        env, flags = self._art.envmap(
+            torch.tensor(x, dtype=torch.float32), t if self._art.uses_time else None, ENV_HEIGHT
+        )
         save_envmap(path, env.numpy())
         return ",".join(k for k in ("x", "t") if flags[f"extrapolated_{k}"]) or "none"  # as the HTTP header
 

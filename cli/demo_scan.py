@@ -50,9 +50,12 @@ def room_scan_demo(out_dir: Path, backend, preset: str) -> dict:
 
 def format_scan(scan: dict) -> str:
     f, c = scan["field"], scan["constant"]
-    return (f"Room scan ({scan['frames']} frames, auto-exposure over {scan['exposure_span_stops']} stops, no poses) at the "
-            f"first camera, diffuse sphere vs the panorama:\n"
-            f"  si-RMSE  field {f['si_rmse']:.3f}   constant map {c['si_rmse']:.3f}   ({f['si_rmse'] / max(c['si_rmse'], 1e-12):.2f}x)\n"
-            f"  angle    field {f['angular_deg']:.2f} deg   constant map {c['angular_deg']:.2f} deg   "
-            f"({f['angular_deg'] / max(c['angular_deg'], 1e-12):.2f}x)\n"
-            f"  video {scan['video']}; env map {scan['envmap']}")
+    return (
+        f"Room scan ({scan['frames']} frames, auto-exposure over {scan['exposure_span_stops']} stops, no poses) at the "
+        f"first camera, diffuse sphere vs the panorama:\n"
+        f"  si-RMSE  field {f['si_rmse']:.3f}   constant map {c['si_rmse']:.3f}   "
+        f"({f['si_rmse'] / max(c['si_rmse'], 1e-12):.2f}x)\n"
+        f"  angle    field {f['angular_deg']:.2f} deg   constant map {c['angular_deg']:.2f} deg   "
+        f"({f['angular_deg'] / max(c['angular_deg'], 1e-12):.2f}x)\n"
+        f"  video {scan['video']}; env map {scan['envmap']}"
+    )

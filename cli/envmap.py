@@ -2,10 +2,17 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-from cli.probe_args import Probe, add_probe_arguments, check_output, parse_position, print_json, run_guarded, warn_extrapolated
+from cli.probe_args import (
+    Probe,
+    add_probe_arguments,
+    check_output,
+    parse_position,
+    print_json,
+    run_guarded,
+    warn_extrapolated,
+)
 
 HELP = "Write the HDR environment map seen from a world position (and time) of an estimated light field."
 FORMATS = ("exr", "hdr", "png", "npy")

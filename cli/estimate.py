@@ -18,15 +18,31 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", help="image, video, nerfstudio capture (directory or zip with transforms.json), "
                                  "or simulator capture directory (capture.json)")
     p.add_argument("-o", "--output", required=True, help="artefact directory to write")
-    p.add_argument("--depth", default=None, help="planar depth in metres: .npz ('depth' [T,H,W] or [H,W]), .exr, 16-bit PNG (mm)")
-    p.add_argument("--params", default=None, help="job parameters as a JSON string or file (same schema as the service)")
-    p.add_argument("--preset", choices=choices.PRESETS, metavar="PRESET", default=None,
-                   help="one of %(choices)s (seed = the authors' released loop, with the diffusion prior's seed profile)")
+    p.add_argument(
+        "--depth", default=None, help="planar depth in metres: .npz ('depth' [T,H,W] or [H,W]), .exr, 16-bit PNG (mm)"
+    )
+    p.add_argument(
+        "--params", default=None, help="job parameters as a JSON string or file (same schema as the service)"
+    )
+    p.add_argument(
+        "--preset",
+        choices=choices.PRESETS,
+        metavar="PRESET",
+        default=None,
+        help="one of %(choices)s (seed = the authors' released loop, with the diffusion prior's seed profile)",
+    )
     p.add_argument("--prior", choices=choices.PRIORS, metavar="PRIOR", default=None, help="one of %(choices)s")
     p.add_argument("--prior-weights", default=None, help="local model directory of the diffusion prior")
-    p.add_argument("--prior-profile", choices=choices.PRIOR_PROFILES, metavar="PROFILE", default=None,
-                   help="diffusion prior's inference profile, one of %(choices)s (default: the preset's, else the model card's)")
-    p.add_argument("--temporal", choices=choices.TEMPORAL_MODES, metavar="MODE", default=None, help="one of %(choices)s")
+    p.add_argument(
+        "--prior-profile",
+        choices=choices.PRIOR_PROFILES,
+        metavar="PROFILE",
+        default=None,
+        help="diffusion prior's inference profile, one of %(choices)s (default: the preset's, else the model card's)",
+    )
+    p.add_argument(
+        "--temporal", choices=choices.TEMPORAL_MODES, metavar="MODE", default=None, help="one of %(choices)s"
+    )
     p.add_argument("--frame-ev", default=None, metavar="EVS",
                    help="each frame's exposure in stops, comma-separated (an auto-exposure video's metadata); "
                         "'estimate' when the camera adjusted it without recording it; 'locked' when it did not "
@@ -102,9 +118,17 @@ def run(args: argparse.Namespace) -> int:
 
     out = Path(args.output)
     try:
-        params = parse_job_params(args.params, preset=args.preset, prior=args.prior, prior_weights=args.prior_weights,
-                                  prior_profile=args.prior_profile, temporal=args.temporal, field=args.field, seed=args.seed,
-                                  frame_ev=parse_frame_ev(args.frame_ev))
+        params = parse_job_params(
+            args.params,
+            preset=args.preset,
+            prior=args.prior,
+            prior_weights=args.prior_weights,
+            prior_profile=args.prior_profile,
+            temporal=args.temporal,
+            field=args.field,
+            seed=args.seed,
+            frame_ev=parse_frame_ev(args.frame_ev),
+        )
     except (ValidationError, ValueError) as exc:
         print(f"error: invalid parameters: {exc}", file=sys.stderr)
         return 2
@@ -117,7 +141,9 @@ def run(args: argparse.Namespace) -> int:
         with warnings.catch_warnings():  # restores showwarning afterwards
             warnings.simplefilter("always")
             warnings.showwarning = lambda message, *_a, **_k: print(f"warning: {message}", file=sys.stderr)
-            result = run_job(args.input, args.depth, params, out, progress=bar, checkpoint_dir=ckpt, overrides=overrides)
+            result = run_job(
+                args.input, args.depth, params, out, progress=bar, checkpoint_dir=ckpt, overrides=overrides
+            )
     except (CaptureError, MediaError, PriorError, ValidationError) as exc:
         print(f"\nerror: {exc}", file=sys.stderr)
         return 2
@@ -127,7 +153,16 @@ def run(args: argparse.Namespace) -> int:
     shutil.rmtree(ckpt, ignore_errors=True)
     meta = result.artefact.meta
     tr = meta.get("training", {})
-    print(json.dumps({"artefact": str(result.path), "uses_time": meta.get("temporal", {}).get("uses_time"),
-                      "iterations": tr.get("iterations"), "final_loss": tr.get("final_loss"),
-                      "wall_time_s": tr.get("wall_time_s"), "depth_source": meta.get("capture", {}).get("depth_source")}))
+    print(
+        json.dumps(
+            {
+                "artefact": str(result.path),
+                "uses_time": meta.get("temporal", {}).get("uses_time"),
+                "iterations": tr.get("iterations"),
+                "final_loss": tr.get("final_loss"),
+                "wall_time_s": tr.get("wall_time_s"),
+                "depth_source": meta.get("capture", {}).get("depth_source"),
+            }
+        )
+    )
     return 0

@@ -6,7 +6,9 @@ from pathlib import Path
 
 from cli.probe_args import Probe, add_probe_arguments, check_output, print_json, run_guarded, warn_extrapolated
 
-HELP = "Write a glTF binary (.glb) whose EXT_lights_image_based light is the probe's irradiance SH and prefiltered cube."
+HELP = (
+    "Write a glTF binary (.glb) whose EXT_lights_image_based light is the probe's irradiance SH and prefiltered cube."
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -10,10 +10,16 @@ HELP = "Composite chrome balls and diffuse spheres lit by an estimated light fie
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("artefact", help="artefact directory written by `lightfield estimate`")
-    p.add_argument("--input", required=True, help="the image, video or capture directory the artefact was estimated from")
+    p.add_argument(
+        "--input", required=True, help="the image, video or capture directory the artefact was estimated from"
+    )
     p.add_argument("--depth", default=None, help="the depth file given to `estimate`, if any")
-    p.add_argument("--points", default=None,
-                   help="'u,v[,depth];...': u, v fractions of width/height, depth planar metres (default: two points, lower third)")
+    p.add_argument(
+        "--points",
+        default=None,
+        help="'u,v[,depth];...': u, v fractions of width/height, depth planar metres (default: two points, lower "
+             "third)",
+    )
     p.add_argument("--frame", type=int, default=0, help="frame to render for PNG output")
     p.add_argument("--env-height", type=int, default=32, help="env map resolution used for lighting the objects")
     p.add_argument("-o", "--output", required=True, help="FILE.png (one frame) or FILE.mp4 (every frame)")
@@ -62,7 +68,9 @@ def run(args: argparse.Namespace) -> int:
     from core.io import MediaError
 
     try:
-        path = render_preview(args.artefact, args.input, args.output, args.depth, args.points, args.frame, args.env_height)
+        path = render_preview(
+            args.artefact, args.input, args.output, args.depth, args.points, args.frame, args.env_height
+        )
     except (ArtefactError, CaptureError, MediaError, InsertionError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -11,7 +11,9 @@ HELP = "manage diffusion prior weights (import released checkpoints into a local
 
 def add_arguments(p) -> None:
     sub = p.add_subparsers(dest="prior_command", required=True, metavar="ACTION")
-    imp = sub.add_parser("import", help="convert a released pipeline folder (+ ControlNet, VAE, LoRA) into a prior directory")
+    imp = sub.add_parser(
+        "import", help="convert a released pipeline folder (+ ControlNet, VAE, LoRA) into a prior directory"
+    )
     imp.add_argument("source", help="the released diffusers pipeline folder (e.g. checkpoints/Multi_Inpaint)")
     imp.add_argument("-o", "--out", required=True, help="new (or empty) output directory")
     imp.add_argument("--controlnet", default=None, help="ControlNet folder when the pipeline has none inside")
@@ -24,9 +26,18 @@ def add_arguments(p) -> None:
                      help="what the ControlNet expects, one of %(choices)s (default: from its folder name)")
     imp.add_argument("--profile", default=None, choices=choices.PRIOR_PROFILES, metavar="PROFILE",
                      help="inference profile recorded in the card, one of %(choices)s (default: the layout's)")
-    imp.add_argument("--variant", default=None, help="weights variant to take (e.g. fp16; default: full precision if present)")
-    imp.add_argument("--max-memory-gb", type=float, default=None, help="memory limit of the .bin converter (default: 3 + 2.5 x file size)")
-    imp.add_argument("--timeout-s", type=float, default=None, help="wall-clock limit of the .bin converter (default 1200)")
+    imp.add_argument(
+        "--variant", default=None, help="weights variant to take (e.g. fp16; default: full precision if present)"
+    )
+    imp.add_argument(
+        "--max-memory-gb",
+        type=float,
+        default=None,
+        help="memory limit of the .bin converter (default: 3 + 2.5 x file size)",
+    )
+    imp.add_argument(
+        "--timeout-s", type=float, default=None, help="wall-clock limit of the .bin converter (default 1200)"
+    )
 
 
 def run(args) -> int:
@@ -49,9 +60,12 @@ def run(args) -> int:
         print(f"lightfield prior import: {exc}", file=sys.stderr)
         return 2
     card = report.card
-    print(f"wrote {report.out_dir} (layout {report.layout}: {card.base_family}, UNet in_channels {card.unet_in_channels}, "
-          f"{card.controlnet_conditioning} ControlNet, profile {card.profile}, "
-          f"{'multi-ball' if card.multi_ball else 'single ball'}, resolution {list(card.resolution)})")
+    print(
+        f"wrote {report.out_dir} (layout {report.layout}: {card.base_family}, UNet in_channels "
+        f"{card.unet_in_channels}, "
+        f"{card.controlnet_conditioning} ControlNet, profile {card.profile}, "
+        f"{'multi-ball' if card.multi_ball else 'single ball'}, resolution {list(card.resolution)})"
+    )
     if report.converted:
         print(f"converted from pickled .bin (weights-only, bounded child): {', '.join(report.converted)}")
     for note in report.notes:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from cli.probe_args import Probe, print_json, parse_position, run_guarded
+from cli.probe_args import Probe, parse_position, print_json, run_guarded
 
 HELP = "Write env maps at one probe over a time range as an EXR sequence (envmap.0001.exr ...), a directory or a zip."
 

@@ -5,17 +5,28 @@ import argparse
 import json
 import sys
 
-HELP = "Render a simulated indoor scene (a spec JSON or a suite name) into a capture directory with ground-truth env maps."
+HELP = (
+    "Render a simulated indoor scene (a spec JSON or a suite name) into a capture directory with ground-truth env maps."
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("spec", help="scene spec JSON file, or a suite name: static, spatial, temporal, moving-camera, hard")
     p.add_argument("-o", "--output", required=True, help="capture directory to write")
-    p.add_argument("--probes", default=None, help='ground-truth probes "x,y,z@t;..." (metres, seconds); default: the scene\'s own')
+    p.add_argument(
+        "--probes", default=None, help='ground-truth probes "x,y,z@t;..." (metres, seconds); default: the scene\'s own'
+    )
     p.add_argument("--height", type=int, default=64, help="ground-truth env map height (width = 2 x height)")
     p.add_argument("--no-video", action="store_true", help="skip video.mp4")
-    p.add_argument("--training-export", metavar="DIR", default=None, help="also write diffusion-prior training samples (docs/training-data.md)")
-    p.add_argument("--views", type=int, default=8, help="training samples (viewpoints) to export with --training-export")
+    p.add_argument(
+        "--training-export",
+        metavar="DIR",
+        default=None,
+        help="also write diffusion-prior training samples (docs/training-data.md)",
+    )
+    p.add_argument(
+        "--views", type=int, default=8, help="training samples (viewpoints) to export with --training-export"
+    )
 
 
 def load_spec(text: str):
@@ -45,7 +56,13 @@ def run(args: argparse.Namespace) -> int:
         scene = load_spec(args.spec)
         probes = parse_probes(args.probes) if args.probes else None
         doc = write_capture(scene, args.output, probes=probes, envmap_height=args.height, video=not args.no_video)
-        summary = {"capture": args.output, "frames": doc["frame_count"], "probes": len(doc["probes"]), "effects": sorted(scene.effects), "cost": doc["cost"]}
+        summary = {
+            "capture": args.output,
+            "frames": doc["frame_count"],
+            "probes": len(doc["probes"]),
+            "effects": sorted(scene.effects),
+            "cost": doc["cost"],
+        }
         if args.training_export:
             ds = write_training_export(scene, args.training_export, args.views)
             summary["training_export"] = {"dir": args.training_export, "count": ds["count"]}

@@ -9,15 +9,26 @@ HELP = "Fine-tune the chrome-ball diffusion prior (UNet + depth ControlNet) on l
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", required=True, help="training data directory (dataset.json + samples/, docs/training-data.md)")
+    p.add_argument(
+        "--data", required=True, help="training data directory (dataset.json + samples/, docs/training-data.md)"
+    )
     p.add_argument("--base", required=True, help="local model directory to start from (docs/diffusion-prior.md)")
-    p.add_argument("-o", "--output", required=True, help="output directory: checkpoints/, train_log.jsonl and the final model")
+    p.add_argument(
+        "-o", "--output", required=True, help="output directory: checkpoints/, train_log.jsonl and the final model"
+    )
     p.add_argument("--iterations", type=int, default=15_000, help="optimizer steps (default 15000)")
     p.add_argument("--lr", type=float, default=1e-5, help="AdamW learning rate (default 1e-5)")
     p.add_argument("--batch", type=int, default=16, help="effective batch size (default 16)")
     p.add_argument("--micro-batch", type=int, default=1, help="samples per forward pass per process (default 1)")
-    p.add_argument("--grad-accum", type=int, default=None, help="gradient accumulation steps (default: batch / (micro-batch x processes))")
-    p.add_argument("--checkpoint-every", type=int, default=500, help="optimizer steps between checkpoints (default 500)")
+    p.add_argument(
+        "--grad-accum",
+        type=int,
+        default=None,
+        help="gradient accumulation steps (default: batch / (micro-batch x processes))",
+    )
+    p.add_argument(
+        "--checkpoint-every", type=int, default=500, help="optimizer steps between checkpoints (default 500)"
+    )
     p.add_argument("--keep-checkpoints", type=int, default=2)
     p.add_argument("--log-every", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)

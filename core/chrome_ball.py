@@ -122,10 +122,15 @@ def _check_balls(camera: Camera, centers, radii) -> tuple[torch.Tensor, torch.Te
     centers = torch.as_tensor(centers).to(torch.float64)
     radii = torch.as_tensor(radii).to(device=centers.device, dtype=torch.float64).reshape(-1)
     if centers.ndim != 2 or centers.shape[1] != 3 or centers.shape[0] != radii.shape[0]:
-        raise BallPlacementError(f"centers must be [N, 3] and radii [N], got {tuple(centers.shape)} and {tuple(radii.shape)}")
+        raise BallPlacementError(
+            f"centers must be [N, 3] and radii [N], got {tuple(centers.shape)} and {tuple(radii.shape)}"
+        )
     for i in range(centers.shape[0]):
         if not (torch.isfinite(centers[i]).all() and torch.isfinite(radii[i]) and radii[i] > 0):
-            raise BallPlacementError(f"ball {i}: centre and radius must be finite with radius > 0, got {centers[i].tolist()}, {float(radii[i])}")
+            raise BallPlacementError(
+                f"ball {i}: centre and radius must be finite with radius > 0, got {centers[i].tolist()}, "
+                f"{float(radii[i])}"
+            )
     z = _planar_depth(camera, centers)
     for i in range(centers.shape[0]):
         # z > R keeps the whole sphere in front of the camera plane: bounded projection
@@ -167,7 +172,9 @@ def _minor_diameter_px(camera: Camera, radii: torch.Tensor, z: torch.Tensor) -> 
     return 2.0 * _focal(camera) * radii / torch.sqrt(z * z - radii * radii)
 
 
-def _ball_samples(box: torch.Tensor, s: int, pad: int, height: int, width: int, device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _ball_samples(
+    box: torch.Tensor, s: int, pad: int, height: int, width: int, device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Flat pixel index, u and v of the s x s stratified samples of every pixel in a box."""
     c0 = max(int(math.floor(float(box[0]))) - pad, 0)
     c1 = min(int(math.ceil(float(box[1]))) + pad, width)
@@ -305,7 +312,11 @@ def render_balls(
     pix = rays.pixel_index.to(device)
     w = rays.sample_weight.to(device=device, dtype=dtype)
     premult = torch.zeros(HW, 3, dtype=dtype, device=device).index_add(0, pix, L * w[:, None])
-    coverage = torch.zeros(N * HW, dtype=dtype, device=device).index_add(0, rays.ball_index.to(device) * HW + pix, w).view(N, HW)
+    coverage = (
+        torch.zeros(N * HW, dtype=dtype, device=device)
+        .index_add(0, rays.ball_index.to(device) * HW + pix, w)
+        .view(N, HW)
+    )
     # balls with different sample grids can overshoot 1 by a sample at shared edges
     norm = 1.0 / coverage.sum(0).clamp_min(1.0)
     depth = torch.full((HW,), math.inf, dtype=torch.float32, device=device)

@@ -82,7 +82,9 @@ def equirect_pixel_centres(height: int, device=None, dtype=torch.float32) -> tup
     return theta[:, None].to(dtype), phi[None, :].to(dtype)
 
 
-def equirect_pixel_to_theta_phi(row_f: torch.Tensor, col_f: torch.Tensor, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+def equirect_pixel_to_theta_phi(
+    row_f: torch.Tensor, col_f: torch.Tensor, height: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Continuous pixel coordinates (row_f, col_f; pixel k spans [k, k + 1)) of an H x 2H map
     -> (theta, phi): the inverse of `direction_to_equirect_pixel`'s layout."""
     return math.pi * row_f / height, 2.0 * math.pi * col_f / equirect_width(height) - math.pi
@@ -104,7 +106,9 @@ def direction_to_equirect_pixel(d: torch.Tensor, height: int) -> tuple[torch.Ten
     return theta_phi_to_equirect_pixel(*direction_to_theta_phi(d), height)
 
 
-def theta_phi_to_equirect_pixel(theta: torch.Tensor, phi: torch.Tensor, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+def theta_phi_to_equirect_pixel(
+    theta: torch.Tensor, phi: torch.Tensor, height: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(theta, phi) -> continuous pixel coordinates (row_f, col_f) of an H x 2H map (see
     `direction_to_equirect_pixel`); lets a caller reading several resolutions take the angles once."""
     row = height * theta / math.pi - 0.5
@@ -148,7 +152,10 @@ def camera_point_to_pixel(p: torch.Tensor, fx, fy, cx, cy) -> tuple[torch.Tensor
 # ---------------------------------------------------------------------------------------
 def expose(radiance: torch.Tensor, ev: float | torch.Tensor) -> torch.Tensor:
     """Scale linear radiance by 2^ev."""
-    return radiance * torch.pow(torch.as_tensor(2.0, dtype=radiance.dtype, device=radiance.device), torch.as_tensor(ev, dtype=radiance.dtype, device=radiance.device))
+    return radiance * torch.pow(
+        torch.as_tensor(2.0, dtype=radiance.dtype, device=radiance.device),
+        torch.as_tensor(ev, dtype=radiance.dtype, device=radiance.device),
+    )
 
 
 def tonemap(radiance: torch.Tensor, ev: float | torch.Tensor = 0.0) -> torch.Tensor:

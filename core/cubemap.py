@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import torch
 
-from core.envmap import EnvmapError, check_envmap, resize_envmap, sample_envmap
 from core.conventions import equirect_directions
+from core.envmap import EnvmapError, check_envmap, resize_envmap, sample_envmap
 
 CUBE_FACES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
 
@@ -85,8 +85,9 @@ def direction_to_cube_texel(d: torch.Tensor, size: int) -> tuple[torch.Tensor, t
     ax, ay, az = x.abs(), y.abs(), z.abs()
     use_x = (ax >= ay) & (ax >= az)
     use_y = ~use_x & (ay >= az)
-    use_z = ~use_x & ~use_y
-    face = torch.where(use_x, torch.where(x >= 0, 0, 1), torch.where(use_y, torch.where(y >= 0, 2, 3), torch.where(z >= 0, 4, 5)))
+    face = torch.where(
+        use_x, torch.where(x >= 0, 0, 1), torch.where(use_y, torch.where(y >= 0, 2, 3), torch.where(z >= 0, 4, 5))
+    )
     major = torch.where(use_x, ax, torch.where(use_y, ay, az)).clamp_min(torch.finfo(d.dtype).tiny)
     # invert the table in the module docstring
     sc = torch.stack((-z, z, x, x, x, -x), dim=-1).gather(-1, face[..., None])[..., 0] / major

@@ -13,8 +13,13 @@ from typing import Callable, NamedTuple
 
 import torch
 
-from core.conventions import (direction_to_equirect_pixel, equirect_directions, equirect_pixel_centres, equirect_width,
-                              theta_phi_to_direction)
+from core.conventions import (
+    direction_to_equirect_pixel,
+    equirect_directions,
+    equirect_pixel_centres,
+    equirect_width,
+    theta_phi_to_direction,
+)
 
 
 class EnvmapError(ValueError):
@@ -249,7 +254,8 @@ def _area_downsample(envmap: torch.Tensor, height: int) -> torch.Tensor:
     rows = _overlap_matrix(1.0 - _row_cos_edges(height), 1.0 - _row_cos_edges(h_in))  # cos-measure overlaps
     rows = rows / rows.sum(dim=1, keepdim=True)
     cols = _overlap_matrix(
-        torch.linspace(0.0, 1.0, w_out + 1, dtype=torch.float64), torch.linspace(0.0, 1.0, w_in + 1, dtype=torch.float64)
+        torch.linspace(0.0, 1.0, w_out + 1, dtype=torch.float64),
+        torch.linspace(0.0, 1.0, w_in + 1, dtype=torch.float64),
     )
     cols = cols / cols.sum(dim=1, keepdim=True)
     rows, cols = rows.to(envmap.device), cols.to(envmap.device)
@@ -312,7 +318,9 @@ def rotate_envmap(envmap: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
     R = torch.as_tensor(R, dtype=torch.float64, device=envmap.device)
     if R.shape != (3, 3):
         raise EnvmapError(f"R must be 3x3, got {tuple(R.shape)}")
-    if not torch.isfinite(R).all() or not torch.allclose(R @ R.T, torch.eye(3, dtype=torch.float64, device=R.device), atol=1e-4):
+    if not torch.isfinite(R).all() or not torch.allclose(
+        R @ R.T, torch.eye(3, dtype=torch.float64, device=R.device), atol=1e-4
+    ):
         raise EnvmapError("R must be a finite orthonormal 3x3 matrix")
     d = equirect_directions(h, device=envmap.device, dtype=torch.float64)
     src = d @ R  # row-vector form of R^T d
@@ -353,7 +361,9 @@ def splat_points(points: torch.Tensor, colors: torch.Tensor, centers: torch.Tens
         0, key, dist, reduce="amin")
     key = torch.where(dist <= nearest[key] * (1.0 + SPLAT_Z_TOLERANCE), key, bins)
     acc = torch.zeros(bins + 1, col.shape[-1], dtype=col.dtype, device=points.device).index_add(0, key, col)[:bins]
-    cnt = torch.zeros(bins + 1, dtype=col.dtype, device=points.device).index_add(0, key, torch.ones_like(dist, dtype=col.dtype))[:bins]
+    cnt = torch.zeros(bins + 1, dtype=col.dtype, device=points.device).index_add(
+        0, key, torch.ones_like(dist, dtype=col.dtype)
+    )[:bins]
     env = (acc / cnt.clamp_min(1.0)[:, None]).reshape(n, h, w, -1)
     return env, (cnt > 0).reshape(n, h, w)
 

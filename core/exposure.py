@@ -82,7 +82,9 @@ def merge_brackets(ldr_list: Sequence[torch.Tensor], evs: Sequence[float] = DEFA
     return linear[0] * (merged / (lum[0] + _EPS))[..., None]
 
 
-def display_tonemap(hdr: torch.Tensor, percentile: float = 99.0, gamma: float = 2.2, max_mapping: float = 0.9) -> torch.Tensor:
+def display_tonemap(
+    hdr: torch.Tensor, percentile: float = 99.0, gamma: float = 2.2, max_mapping: float = 0.9
+) -> torch.Tensor:
     """HDR [..., 3] -> LDR in [0, 1] for previews (DiffusionLight's TonemapHDR rule).
 
     x = hdr^(1/gamma) is scaled so its `percentile`-th percentile maps to `max_mapping`,
@@ -90,7 +92,9 @@ def display_tonemap(hdr: torch.Tensor, percentile: float = 99.0, gamma: float = 
     all-zero, all-inf and mixed inputs give finite output.
     """
     if not (0.0 < percentile <= 100.0) or not gamma > 0 or not max_mapping > 0:
-        raise ExposureError(f"need 0 < percentile <= 100, gamma > 0, max_mapping > 0; got {percentile}, {gamma}, {max_mapping}")
+        raise ExposureError(
+            f"need 0 < percentile <= 100, gamma > 0, max_mapping > 0; got {percentile}, {gamma}, {max_mapping}"
+        )
     x = hdr.float()
     posinf = x == float("inf")
     x = torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0).pow(1.0 / gamma)

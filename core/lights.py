@@ -15,7 +15,8 @@ FITTED, and every answer carries a `confidence` and a `reason`:
    fill = the per-channel median of the annulus (robust to a second light nearby), kept
    only where the excess luminance is >= `CORE_FRACTION` of the cap's peak excess: a lamp is
    the lamp, not the lamp plus the patch of wall it lights (that patch stays in the ambient
-   SH), while a uniform window or a blurred lobe is kept whole. The cap is re-centred on the excess-weighted mean direction (twice). The lobe is summarised as a
+   SH), while a uniform window or a blurred lobe is kept whole. The cap is re-centred on the excess-weighted mean
+   direction (twice). The lobe is summarised as a
    von Mises-Fisher lobe: `direction` = mean direction, `sharpness` kappa from the mean
    resultant length, `solid_angle` = the excess's effective area.
 3. **Intensity**: `intensity_rgb` = integral of the excess (radiance x sr). The ambient SH is
@@ -56,7 +57,8 @@ SEPARATION_DEG = 45.0  # a rival source is a candidate at least this far (or two
 @dataclass(frozen=True)
 class DominantLightConfig:
     cap_radii_deg: tuple[float, ...] = (8.0, 16.0, 30.0)  # light scales searched (cap radius; annulus r..2r)
-    min_confidence: float = 0.1  # found = confidence >= this (maps without a light score < 0.005; estimated maps 20-50 deg off score 0.07-0.08)
+    # found = confidence >= this (maps without a light score < 0.005; estimated maps 20-50 deg off score 0.07-0.08)
+    min_confidence: float = 0.1
     refine_steps: int = 2  # re-centrings of the cap at full resolution
     irradiance_normals: int = 128  # normals on which irradiance_error is measured
 
@@ -182,8 +184,15 @@ def extract_dominant_light(envmap: torch.Tensor, config: DominantLightConfig | N
 
     total = float((luminance(L) * omega).sum())
     if not total > 0.0:
-        return out(torch.tensor([0.0, 1.0, 0.0]), torch.zeros(3), 0.0, project_sh(L), False,
-                   "no dominant light: the map is all zero", mask=torch.zeros(h, 2 * h, dtype=torch.bool, device=device))
+        return out(
+            torch.tensor([0.0, 1.0, 0.0]),
+            torch.zeros(3),
+            0.0,
+            project_sh(L),
+            False,
+            "no dominant light: the map is all zero",
+            mask=torch.zeros(h, 2 * h, dtype=torch.bool, device=device),
+        )
 
     centre, radius, rival = _search(L, tuple(cfg.cap_radii_deg))
     centre, cap, fill, excess, weights, mean = _fit(L, dirs, omega, centre, radius, cfg.refine_steps)

@@ -29,8 +29,8 @@ from typing import Literal
 
 import torch
 
-from core.envmap import check_envmap, resize_envmap, sample_envmap, solid_angles
 from core.conventions import equirect_directions
+from core.envmap import check_envmap, resize_envmap, sample_envmap, solid_angles
 from core.exposure import luminance
 
 Material = Literal["diffuse", "matte", "mirror"]
@@ -89,7 +89,9 @@ def _lobe_integral(envmaps: list[torch.Tensor], height: int, axes: torch.Tensor,
     return list(values.split(3, dim=-1))
 
 
-def render_probe_spheres(envmaps: list[torch.Tensor], material: Material, size: int = 128) -> tuple[list[torch.Tensor], torch.Tensor]:
+def render_probe_spheres(
+    envmaps: list[torch.Tensor], material: Material, size: int = 128
+) -> tuple[list[torch.Tensor], torch.Tensor]:
     """`render_probe_sphere` for several env maps sharing the filter weights."""
     if material not in MATERIALS:
         raise MetricsError(f"material must be one of {MATERIALS}, got {material!r}")
@@ -103,14 +105,20 @@ def render_probe_spheres(envmaps: list[torch.Tensor], material: Material, size: 
     normals = n[mask]
     if material == "mirror":
         d = _reflect_view(normals)
-        values = [MIRROR_REFLECTANCE * sample_envmap(resize_envmap(e, EVAL_HEIGHT).to(torch.float64), d) for e in envmaps]
+        values = [
+            MIRROR_REFLECTANCE * sample_envmap(resize_envmap(e, EVAL_HEIGHT).to(torch.float64), d) for e in envmaps
+        ]
     elif material == "diffuse":
         # normalised cosine filter = E(n) / pi; Lambertian radiance = albedo E / pi
-        values = [DIFFUSE_ALBEDO * v for v in _lobe_integral(envmaps, DIFFUSE_MAP_HEIGHT, normals, lambda c: c.clamp_min(0.0))]
+        values = [
+            DIFFUSE_ALBEDO * v for v in _lobe_integral(envmaps, DIFFUSE_MAP_HEIGHT, normals, lambda c: c.clamp_min(0.0))
+        ]
     else:
         k = MATTE_PHONG_EXPONENT
         lobe = lambda c: c.clamp_min(0.0) ** k  # noqa: E731
-        values = [MATTE_REFLECTANCE * v for v in _lobe_integral(envmaps, MATTE_MAP_HEIGHT, _reflect_view(normals), lobe)]
+        values = [
+            MATTE_REFLECTANCE * v for v in _lobe_integral(envmaps, MATTE_MAP_HEIGHT, _reflect_view(normals), lobe)
+        ]
     images = []
     for v in values:
         image = torch.zeros(size, size, 3, dtype=torch.float32, device=device)
@@ -134,7 +142,9 @@ def render_probe_sphere(envmap: torch.Tensor, material: Material, size: int = 12
 # ---------------------------------------------------------------------------------------
 def _masked(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
     if pred.shape != gt.shape or pred.shape[-1] != 3:
-        raise MetricsError(f"pred and gt must have the same shape [..., 3], got {tuple(pred.shape)} and {tuple(gt.shape)}")
+        raise MetricsError(
+            f"pred and gt must have the same shape [..., 3], got {tuple(pred.shape)} and {tuple(gt.shape)}"
+        )
     if mask is None:
         mask = torch.ones(pred.shape[:-1], dtype=torch.bool, device=pred.device)
     if tuple(mask.shape) != tuple(pred.shape[:-1]):
@@ -168,7 +178,9 @@ def angular_error_deg(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor |
     angle = torch.acos(cos.clamp(-1.0, 1.0))
     both_zero = (np_ == 0) & (ng == 0)
     one_zero = (np_ == 0) ^ (ng == 0)
-    angle = torch.where(both_zero, torch.zeros_like(angle), torch.where(one_zero, torch.full_like(angle, math.pi / 2), angle))
+    angle = torch.where(
+        both_zero, torch.zeros_like(angle), torch.where(one_zero, torch.full_like(angle, math.pi / 2), angle)
+    )
     return math.degrees(float(angle.mean()))
 
 
@@ -186,7 +198,9 @@ def normalized_rmse(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | N
     return float(torch.sqrt(((_percentile_normalise(p) - _percentile_normalise(g)) ** 2).sum(-1).mean()))
 
 
-def three_sphere_metrics(pred_envmap: torch.Tensor, gt_envmap: torch.Tensor, size: int = 128) -> dict[str, dict[str, float]]:
+def three_sphere_metrics(
+    pred_envmap: torch.Tensor, gt_envmap: torch.Tensor, size: int = 128
+) -> dict[str, dict[str, float]]:
     """{diffuse, matte, mirror} x {si_rmse, angular_deg, nrmse} for two env maps."""
     check_envmap(pred_envmap, "pred_envmap")
     check_envmap(gt_envmap, "gt_envmap")
@@ -223,7 +237,9 @@ def observed_region_correlation(envmap: torch.Tensor, photo_linear: torch.Tensor
     """
     check_envmap(envmap, "envmap")
     if photo_linear.ndim != 3 or photo_linear.shape[-1] != 3 or tuple(rays.shape) != tuple(photo_linear.shape):
-        raise MetricsError(f"photo_linear and rays must both be [H, W, 3], got {tuple(photo_linear.shape)} and {tuple(rays.shape)}")
+        raise MetricsError(
+            f"photo_linear and rays must both be [H, W, 3], got {tuple(photo_linear.shape)} and {tuple(rays.shape)}"
+        )
     pred = sample_envmap(envmap.to(torch.float64), rays.to(torch.float64))
     p, g = _masked(pred, photo_linear.to(torch.float64), mask)
     logs = []

@@ -162,7 +162,7 @@ def to_arcore_27(coeffs: torch.Tensor) -> list[float]:
     but with the Condon-Shortley phase, so entries with odd m (k = 1, 3, 5, 7) are negated.
     The signs live in core.export.sh_layouts, the one table of every consumer's layout.
     """
-    from core.export.sh_layouts import pack
+    from core.export.sh_layouts import pack  # noqa: PLC0415 — import cycle through core.export.sh_layouts
 
     _check_coeffs(coeffs)
     if tuple(coeffs.shape) != (SH_COUNT, 3):
@@ -172,7 +172,7 @@ def to_arcore_27(coeffs: torch.Tensor) -> list[float]:
 
 def from_arcore_27(values: Sequence[float] | torch.Tensor, dtype=torch.float32) -> torch.Tensor:
     """Inverse of `to_arcore_27`: 27 floats -> our [9, 3] coefficients."""
-    from core.export.sh_layouts import unpack
+    from core.export.sh_layouts import unpack  # noqa: PLC0415 — import cycle through core.export.sh_layouts
 
     t = torch.as_tensor(values, dtype=torch.float64).reshape(-1)
     if t.numel() != 27:

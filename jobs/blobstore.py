@@ -165,8 +165,8 @@ class S3Store(BlobStore):
     @property
     def client(self):
         if self._client is None:
-            import boto3
-            from botocore.config import Config
+            import boto3  # noqa: PLC0415 — boto3 is heavy: imported when used
+            from botocore.config import Config  # noqa: PLC0415 — botocore is heavy: imported when used
 
             # endpoint, credentials and region from the standard AWS variables (AWS_ENDPOINT_URL ...)
             self._client = boto3.client("s3", config=Config(
@@ -178,7 +178,7 @@ class S3Store(BlobStore):
         return f"{self.prefix}/{key}" if self.prefix else key
 
     def _call(self, what: str, fn, *args, **kwargs):
-        from botocore.exceptions import BotoCoreError, ClientError
+        from botocore.exceptions import BotoCoreError, ClientError  # noqa: PLC0415 — botocore is heavy: imported when used
 
         try:
             return fn(*args, **kwargs)
@@ -244,7 +244,9 @@ class S3Store(BlobStore):
     def delete(self, keys: list[str]) -> None:
         for start in range(0, len(keys), 1000):
             batch = [{"Key": self._key(k)} for k in keys[start:start + 1000]]
-            self._call("DELETE", self.client.delete_objects, Bucket=self.bucket, Delete={"Objects": batch, "Quiet": True})
+            self._call(
+                "DELETE", self.client.delete_objects, Bucket=self.bucket, Delete={"Objects": batch, "Quiet": True}
+            )
 
 
 def store_for(storage_url: str | None, data_dir: Path) -> BlobStore:

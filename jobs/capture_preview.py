@@ -16,7 +16,8 @@ the surface. So, before the uploads go, the worker stores a preview beside the a
                                             SHA-256 of capture.safetensors and of itself
 
 It is made from the capture the engine decoded for the job (run_job's `on_capture`), so its
-cameras, times and fallback depth are exactly the ones the light field was estimated with. At most PREVIEW_MAX_HEIGHT rows
+cameras, times and fallback depth are exactly the ones the light field was estimated with. At most PREVIEW_MAX_HEIGHT
+rows
 and PREVIEW_MAX_FRAMES frames (evenly spaced) are kept, which bounds it to a few tens of MB.
 Written to a temporary sibling and renamed, like the artefact; never unpickled. The reader
 (service.stored_preview) verifies both checksums before serving a byte (version 1 previews,
@@ -24,6 +25,8 @@ written before checksums existed, are read without).
 """
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import os
 import shutil
@@ -53,7 +56,7 @@ class PreviewCameras:
         return int(np.argmin(np.abs(self.times.astype(np.float64) - float(t))))
 
     def camera(self, index: int):
-        from core.camera import Camera, Intrinsics
+        from core.camera import Camera, Intrinsics  # noqa: PLC0415 — core.camera pulls in torch: imported when used
 
         return Camera(Intrinsics(**self.intrinsics), self.poses[index])
 
@@ -99,14 +102,14 @@ def _evenly_spaced(count: int, keep: int) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, count - 1, keep)).astype(np.int64))
 
 
-def preview_from_capture(capture, max_height: int = PREVIEW_MAX_HEIGHT, max_frames: int = PREVIEW_MAX_FRAMES) -> CapturePreview:
+def preview_from_capture(
+    capture, max_height: int = PREVIEW_MAX_HEIGHT, max_frames: int = PREVIEW_MAX_FRAMES
+) -> CapturePreview:
     """Downsample a core.capture.base.Capture: pick frames first (cheap), then the engine's own
     resize (area-averaged frames, nearest-surface depth)."""
-    import dataclasses
+    import torch  # noqa: PLC0415 — torch is heavy: imported when used
 
-    import torch
-
-    from core.conventions import valid_depth_mask
+    from core.conventions import valid_depth_mask  # noqa: PLC0415 — core.conventions pulls in torch: imported when used
 
     keep = torch.from_numpy(_evenly_spaced(capture.num_frames, max_frames))
     picked = dataclasses.replace(capture, frames=capture.frames[keep], depth=capture.depth[keep],
@@ -130,7 +133,7 @@ def preview_from_capture(capture, max_height: int = PREVIEW_MAX_HEIGHT, max_fram
 
 def save_preview(preview: CapturePreview, job_dir: Path) -> Path:
     """Write the preview under job_dir atomically (temp sibling + rename); return its directory."""
-    from safetensors.numpy import save_file
+    from safetensors.numpy import save_file  # noqa: PLC0415 — safetensors is heavy: imported when used
 
     job_dir = Path(job_dir)
     job_dir.mkdir(parents=True, exist_ok=True)
@@ -161,8 +164,6 @@ def save_preview(preview: CapturePreview, job_dir: Path) -> Path:
 
 def file_sha256(path: Path) -> str:
     """SHA-256 of a file, read in 1 MiB blocks (previews reach tens of MB)."""
-    import hashlib
-
     digest = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):

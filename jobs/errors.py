@@ -5,10 +5,10 @@ from __future__ import annotations
 
 def user_error_types() -> tuple[type[BaseException], ...]:
     """Errors caused by the job's input: recorded with their code, never retried."""
-    from core.camera import CameraError
-    from core.capture.base import CaptureError
-    from core.io.limits import MediaError
-    from core.priors.base import PriorError
+    from core.camera import CameraError  # noqa: PLC0415 — core.camera pulls in torch: imported when used
+    from core.capture.base import CaptureError  # noqa: PLC0415 — core.capture.base pulls in torch: imported when used
+    from core.io.limits import MediaError  # noqa: PLC0415 — core.io.limits pulls in av, cv2, OpenEXR, PIL, torch: imported when used
+    from core.priors.base import PriorError  # noqa: PLC0415 — core.priors.base pulls in pydantic, torch: imported when used
 
     return (MediaError, CaptureError, CameraError, PriorError)
 
@@ -27,7 +27,7 @@ def error_code_of(exc: BaseException) -> str:
 
 def broker_errors() -> tuple[type[BaseException], ...]:
     """Redis (broker and job store) unreachable: an outage to wait out, never the job's fault."""
-    import redis
-    from kombu.exceptions import OperationalError
+    import redis  # noqa: PLC0415 — redis is heavy: imported when used
+    from kombu.exceptions import OperationalError  # noqa: PLC0415 — kombu is heavy: imported when used
 
     return (redis.exceptions.ConnectionError, redis.exceptions.TimeoutError, OperationalError)

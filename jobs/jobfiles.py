@@ -26,7 +26,7 @@ import threading
 import uuid
 from pathlib import Path
 
-from jobs.blobstore import BlobStore, ObjectCorrupt
+from jobs.blobstore import BlobStore, ObjectCorrupt, store_for
 from jobs.storage import JobPaths, remove_tree
 
 log = logging.getLogger("lightfield.storage")
@@ -105,7 +105,9 @@ class JobFiles:
         prefix = self.key(paths.checkpoint_dir)
         self.store.put_file(f"{prefix}/{step}.safetensors", paths.checkpoint_dir / CHECKPOINT_STATE)
         self.store.put_file(f"{prefix}/{CHECKPOINT_POINTER}", pointer)
-        stale = [k for k in self.store.list(prefix) if k.endswith(".safetensors") and k != f"{prefix}/{step}.safetensors"]
+        stale = [
+            k for k in self.store.list(prefix) if k.endswith(".safetensors") and k != f"{prefix}/{step}.safetensors"
+        ]
         if stale:
             self.store.delete(stale)
         return step
@@ -176,7 +178,7 @@ class JobFiles:
             entries.append((used, size, job_dir))
         total = sum(size for _, size, _ in entries)
         removed = 0
-        for used, size, job_dir in sorted(entries, key=lambda e: e[0]):
+        for _used, size, job_dir in sorted(entries, key=lambda e: e[0]):
             if total <= self.cache_bytes:
                 break
             if keep is not None and job_dir.resolve() == keep.resolve():
@@ -221,8 +223,6 @@ class JobFiles:
 
 def job_files(settings) -> JobFiles:
     """The JobFiles of a JobSettings (LIGHTFIELD_STORAGE_URL, LIGHTFIELD_DATA_DIR, LIGHTFIELD_CACHE_BYTES)."""
-    from jobs.blobstore import store_for
-
     return JobFiles(store_for(settings.storage_url, settings.data_dir), settings.data_dir, settings.cache_bytes)
 
 

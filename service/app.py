@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Callable
 
 from fastapi import FastAPI
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
 from fastapi.responses import RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
@@ -79,8 +80,6 @@ def create_app(settings: ServiceSettings | None = None,
 def install_offline_docs(app: FastAPI) -> None:
     """/docs (Swagger UI) and /redoc served from the assets the `fastapi-offline` wheel ships,
     not from a CDN, so they work on machines without internet access."""
-    from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
-
     assets = Path(importlib.util.find_spec("fastapi_offline").origin).parent / "static"
     app.mount(DOCS_ASSETS, StaticFiles(directory=assets), name="docs-assets")
 

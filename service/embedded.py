@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
+import secrets
 import signal
 
 from service.auth import KeyRing, require_loopback
@@ -28,8 +29,8 @@ WORKER_GRACE_S = 20.0
 
 def recover_abandoned_jobs(settings: ServiceSettings) -> None:
     """Re-queue what a dead (only) worker held and drop its run leases, so its job resumes now."""
-    from jobs.queue import make_celery, requeue_unacknowledged
-    from jobs.store import JobStore, connect
+    from jobs.queue import make_celery, requeue_unacknowledged  # noqa: PLC0415 — jobs.queue pulls in celery: imported when used
+    from jobs.store import JobStore, connect  # noqa: PLC0415 — jobs.store pulls in redis: imported when used
 
     requeued = requeue_unacknowledged(make_celery(settings))
     leases = JobStore(connect(settings.broker_url)).clear_leases()
@@ -39,8 +40,6 @@ def recover_abandoned_jobs(settings: ServiceSettings) -> None:
 
 def embedded_children(settings: ServiceSettings) -> tuple[list[Child], str]:
     """Redis and the worker as supervised children, and the broker URL they share."""
-    import secrets
-
     redis_dir = settings.data_dir / "redis"
     port, password = free_port(), secrets.token_hex(16)
     url = f"redis://:{password}@127.0.0.1:{port}/0"
@@ -57,9 +56,9 @@ def embedded_children(settings: ServiceSettings) -> tuple[list[Child], str]:
 
 
 def serve(host: str, port: int, settings: ServiceSettings, log_level: str = "info") -> int:
-    from service.frontdoor import FrontDoorServer
-    from service.routes.health import health_probe
-    from service.server import server_config
+    from service.frontdoor import FrontDoorServer  # noqa: PLC0415 — service.frontdoor pulls in uvicorn: imported when used
+    from service.routes.health import health_probe  # noqa: PLC0415 — service.routes.health pulls in celery, prometheus_client, redis, torch: imported when used
+    from service.server import server_config  # noqa: PLC0415 — service.server pulls in uvicorn: imported when used
 
     require_loopback(host, KeyRing.parse(settings.api_keys))
     settings.data_dir.mkdir(parents=True, exist_ok=True)
@@ -84,7 +83,7 @@ def serve(host: str, port: int, settings: ServiceSettings, log_level: str = "inf
             worker.proc, worker.state = worker.start(), "running"
             supervisor.start_watching()
             log.info("embedded mode: Redis and one worker started (logs in %s)", settings.data_dir)
-        from service.app import create_app
+        from service.app import create_app  # noqa: PLC0415 — service.app pulls in celery, prometheus_client, redis, torch: imported when used
 
         if received:  # asked to stop while starting up
             return 0

@@ -9,6 +9,7 @@ Redis (broker and job store) is not unexpected: it is a 503 `broker_unavailable`
 """
 from __future__ import annotations
 
+import errno as errno_names
 import logging
 from contextlib import contextmanager
 
@@ -19,6 +20,7 @@ from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from jobs.errors import broker_errors
+from service.exports import ExportCancelled
 
 log = logging.getLogger("lightfield.service")
 
@@ -115,8 +117,6 @@ RETRY_AFTER_STORAGE_S = 30  # an operator frees or remounts a disk in minutes, n
 
 def storage_unavailable(exc: OSError, what: str) -> ServiceUnavailable:
     """503 storage_unavailable for an OSError of the storage root: the error's kind, never its path."""
-    import errno as errno_names
-
     kind = errno_names.errorcode.get(exc.errno or 0, type(exc).__name__)
     reason = {"ENOSPC": "storage is full", "EDQUOT": "storage quota exceeded", "EROFS": "storage is read-only",
               "EACCES": "storage is not writable", "EPERM": "storage is not writable"}.get(kind, "storage error")
@@ -144,7 +144,7 @@ def describe_validation_errors(errors) -> str:
     Query values with a rule of their own (service.queries.FIELD_RULES) are described by it and
     the value sent ("x: must be three finite numbers ..., got 'nan,0,0'"), not by the regular
     expression or the one bound that happened to fail."""
-    from service.queries import FIELD_RULES
+    from service.queries import FIELD_RULES  # noqa: PLC0415 — service.queries pulls in numpy: imported when used
 
     parts = []
     for err in errors:
@@ -184,8 +184,16 @@ def body_parse_message(exc: BaseException) -> str:
 _HTTP_CODES = {404: "not_found", 405: "method_not_allowed", 401: "unauthorized", 413: "too_large",
                408: "body_timeout"}
 # query/body fields whose invalid values have their own code (docs/api.md, "Errors")
-_FIELD_CODES = {"x": "invalid_x", "t": "invalid_t", "ev": "invalid_ev", "offset": "invalid_offset",
-                "limit": "invalid_limit", "height": "invalid_height", "size": "invalid_size", "queries": "invalid_query"}
+_FIELD_CODES = {
+    "x": "invalid_x",
+    "t": "invalid_t",
+    "ev": "invalid_ev",
+    "offset": "invalid_offset",
+    "limit": "invalid_limit",
+    "height": "invalid_height",
+    "size": "invalid_size",
+    "queries": "invalid_query",
+}
 
 
 def validation_code(errors) -> str:
@@ -224,8 +232,6 @@ def install_error_handlers(app: FastAPI) -> None:
             return error_response(400, "malformed_body", body_parse_message(exc))
         code = _HTTP_CODES.get(exc.status_code, "http_error")
         return error_response(exc.status_code, code, str(exc.detail), getattr(exc, "headers", None))
-
-    from service.exports import ExportCancelled
 
     @app.exception_handler(ExportCancelled)
     async def _client_gone(request: Request, _exc: ExportCancelled):

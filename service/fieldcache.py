@@ -8,6 +8,7 @@ only adds memory, and it keeps modules that cache buffers safe.
 """
 from __future__ import annotations
 
+import copy
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -29,8 +30,6 @@ class CachedField:
     def export_artefact(self):
         """The exports' copy of the artefact (made on first use). Call with export_lock held."""
         if self._export_copy is None:
-            import copy
-
             self._export_copy = copy.deepcopy(self.artefact)
         return self._export_copy
 
@@ -78,6 +77,6 @@ class FieldCache:
 
 
 def _load_artefact(directory: Path):
-    from core.fields.stored.artefact import LightFieldArtefact
+    from core.fields.stored.artefact import LightFieldArtefact  # noqa: PLC0415 — core.fields.stored.artefact pulls in safetensors: imported when used
 
     return LightFieldArtefact.load(directory)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import heapq
 import logging
+import os
 import selectors
 import socket
 import sys
@@ -215,8 +216,6 @@ def _raise_priority() -> None:
     """Ask the scheduler to prefer this thread (it needs microseconds per probe, and a probe
     must not queue behind the request threads when the cores are contended). Needs the right
     to lower a nice value (root, CAP_SYS_NICE); without it the thread keeps the process's."""
-    import os
-
     try:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), FRONT_DOOR_NICE)
     except (OSError, AttributeError):

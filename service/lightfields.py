@@ -16,6 +16,8 @@ from __future__ import annotations
 import logging
 import time
 
+from jobs.jobfiles import ObjectCorrupt
+from jobs.storage import JobPaths
 from jobs.store import JobRecord
 from service.context import AppContext, Tenant, owned_job
 from service.errors import Conflict, Gone, ServiceUnavailable
@@ -38,9 +40,7 @@ def load_field(record: JobRecord, ctx: AppContext) -> CachedField:
     """The job's loaded field. With a shared store the artefact is first fetched into this host's
     cache (jobs.jobfiles; verified against the SHA-256 of every object), and a cached copy that
     fails verification is fetched once more before the job is marked corrupt."""
-    from core.fields.stored.artefact import ArtefactError
-    from jobs.jobfiles import ObjectCorrupt
-    from jobs.storage import JobPaths
+    from core.fields.stored.artefact import ArtefactError  # noqa: PLC0415 — core.fields.stored.artefact pulls in safetensors: imported when used
 
     directory = ctx.settings.data_dir / record.artefact
     paths = JobPaths.for_job(ctx.settings.data_dir, record.tenant_hash, record.id)

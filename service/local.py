@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Callable
 
 from jobs.store import TERMINAL_STATES
-
+from service.processes import free_port
 
 
 class EmbeddedServiceError(RuntimeError):
@@ -28,8 +28,6 @@ class EmbeddedServiceError(RuntimeError):
 class EmbeddedService:
     def __init__(self, data_dir: Path, port: int | None = None, env: dict[str, str] | None = None,
                  startup_timeout_s: float = 120.0):
-        from service.processes import free_port
-
         self.data_dir = Path(data_dir)
         self.port = port or free_port()
         self.base_url = f"http://127.0.0.1:{self.port}"
@@ -41,7 +39,7 @@ class EmbeddedService:
 
     # -- lifecycle -------------------------------------------------------------------------
     def start(self) -> "EmbeddedService":
-        import httpx
+        import httpx  # noqa: PLC0415 — httpx is heavy: imported when used
 
         self.data_dir.mkdir(parents=True, exist_ok=True)
         env = {k: v for k, v in os.environ.items() if k not in ("LIGHTFIELD_BROKER_URL", "LIGHTFIELD_API_KEYS")}

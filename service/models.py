@@ -7,7 +7,12 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt
 
 from core.export.schema import (  # noqa: F401  (the hand-off products: one model each, shared with the CLI)
-    ArkitProbe, DominantLight, Flags, SHLayoutName as SHLayout, SphericalHarmonics, UnityProbeGrid,
+    ArkitProbe,
+    DominantLight,
+    Flags,
+    SHLayoutName as SHLayout,
+    SphericalHarmonics,
+    UnityProbeGrid,
 )
 from jobs.store import JobRecord, JobState
 from service.errors import ErrorDetail

@@ -57,10 +57,14 @@ def complete_schema(schema: dict, settings: ServiceSettings) -> dict:
         upload["encoding"] = {"file": {"contentType": f"{IMAGE_TYPES}, {VIDEO_TYPES}"},
                               "depth": {"contentType": DEPTH_TYPES}, "params": {"contentType": "application/json"}}
     schema.setdefault("info", {})["x-lightfield-limits"] = {
-        "json_body_bytes": limits.max_json_bytes, "upload_bytes": limits.max_upload_bytes,
-        "depth_bytes": limits.max_depth_bytes, "params_bytes": limits.max_params_bytes,
-        "jobs_in_flight_per_tenant": limits.max_jobs_in_flight, "header_timeout_s": settings.timeouts.header_s,
-        "body_idle_timeout_s": settings.timeouts.body_idle_s, "body_min_rate_bytes_per_s": settings.timeouts.body_min_rate,
+        "json_body_bytes": limits.max_json_bytes,
+        "upload_bytes": limits.max_upload_bytes,
+        "depth_bytes": limits.max_depth_bytes,
+        "params_bytes": limits.max_params_bytes,
+        "jobs_in_flight_per_tenant": limits.max_jobs_in_flight,
+        "header_timeout_s": settings.timeouts.header_s,
+        "body_idle_timeout_s": settings.timeouts.body_idle_s,
+        "body_min_rate_bytes_per_s": settings.timeouts.body_min_rate,
     }
     return schema
 

@@ -56,8 +56,11 @@ class OriginGuard:
         host = headers.get(b"host")
         refusal = None
         if self.check_host and host is not None and not self.host_allowed(host):
-            refusal = error_response(400, "host_not_allowed",
-                                     f"Host {host[:100]!r} is not served here (set LIGHTFIELD_ALLOWED_HOSTS to add names)")
+            refusal = error_response(
+                400,
+                "host_not_allowed",
+                f"Host {host[:100]!r} is not served here (set LIGHTFIELD_ALLOWED_HOSTS to add names)",
+            )
         elif self.check_origin and scope["method"] in STATE_CHANGING:
             origin = headers.get(b"origin")
             own = f"{scope.get('scheme', 'http')}://{host}".lower() if host else None

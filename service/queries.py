@@ -17,12 +17,17 @@ Quality (docs/api.md, "Query speed", gives the cost and the error of each):
 from __future__ import annotations
 
 import math
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
+import torch
 
+from core.cubemap import equirect_to_cubemap
+from core.envmap import upsample_envmaps
+from core.lights import extract_dominant_light
+from core.sh import project_sh
 from service.errors import InvalidInput, PayloadTooLarge
 from service.evaluator import EnvmapAnswer, EnvmapRequest, FieldBatcher, group_requests
 from service.fieldcache import CachedField
@@ -110,7 +115,7 @@ def _numpy(hdr) -> np.ndarray:
 @contextmanager
 def _as_invalid_input():
     """The engine's QueryError (a query it refuses) becomes the API's 422 invalid_query."""
-    from core.fields.stored.artefact import QueryError
+    from core.fields.stored.artefact import QueryError  # noqa: PLC0415 — core.fields.stored.artefact pulls in safetensors: imported when used
 
     try:
         yield
@@ -128,8 +133,6 @@ def _evaluate(cf: CachedField, quality: str, xs, ts, height: int):
     if quality == "baked":
         return _baked(cf).envmaps(xs, ts, height)
     if quality == "fast":
-        from core.envmap import upsample_envmaps
-
         low, flags = cf.artefact.envmaps(xs, ts, fast_rows(height))
         return upsample_envmaps(low, height), flags
     return cf.artefact.envmaps(xs, ts, height)
@@ -138,7 +141,7 @@ def _evaluate(cf: CachedField, quality: str, xs, ts, height: int):
 def _baked(cf: CachedField):
     """The worker's bake (verified; a missing, stale or corrupt one is baked again here once
     and saved beside the artefact, atomically). Call with cf.lock held."""
-    from core.fields.stored.bake import load_or_bake
+    from core.fields.stored.bake import load_or_bake  # noqa: PLC0415 — core.fields.stored.bake pulls in safetensors: imported when used
 
     if cf.baked is None:
         cf.baked = load_or_bake(cf.artefact, save=True)
@@ -178,11 +181,6 @@ async def envmap_answer(ctx, cf: CachedField, x, t: float, height: int, quality:
 
 def sh_from_envmap(hdr: np.ndarray):
     """(dominant light with ambient SH, SH of the whole map) of an env map: ARCore Environmental HDR split."""
-    import torch
-
-    from core.lights import extract_dominant_light
-    from core.sh import project_sh
-
     env = torch.from_numpy(hdr)
     return extract_dominant_light(env), project_sh(env.double())
 
@@ -213,8 +211,6 @@ def envmap_with_quality(cf: CachedField, x, t: float, height: int, quality: str,
         with _as_invalid_input(), cf.export_lock:
             artefact = cf.export_artefact()
             if quality == "fast":
-                from core.envmap import upsample_envmaps
-
                 low, flags = artefact.envmaps([list(x)], times, fast_rows(height))
                 hdrs = upsample_envmaps(low, height)
             else:
@@ -227,8 +223,6 @@ def envmap_with_quality(cf: CachedField, x, t: float, height: int, quality: str,
 def envmap_sequence(cf: CachedField, x, times, height: int, quality: str = "exact", cancellation=None, on_map=None):
     """Yield (t, hdr, flags) one time at a time, each frame inside `cancellation.running()`
     (service.exports) when given."""
-    from contextlib import nullcontext
-
     for t in times:
         with cancellation.running() if cancellation is not None else nullcontext():
             hdr, flags, _ = envmap_with_quality(cf, x, t, height, quality, on_map)
@@ -238,10 +232,6 @@ def envmap_sequence(cf: CachedField, x, times, height: int, quality: str = "exac
 def cube_faces(hdr: np.ndarray, size: int) -> np.ndarray:
     """Faces [6, size, size, 3] (+X, -X, +Y, -Y, +Z, -Z) sampled from an env map of 2*size rows
     (one map pixel per texel at the face centres)."""
-    import torch
-
-    from core.cubemap import equirect_to_cubemap
-
     return _numpy(equirect_to_cubemap(torch.from_numpy(hdr), size))
 
 

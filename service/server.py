@@ -15,6 +15,7 @@ import asyncio
 import logging
 
 import h11
+import uvicorn
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from service.config import HttpTimeouts
@@ -94,8 +95,6 @@ def server_config(app, host: str, port: int, timeouts: HttpTimeouts, log_level: 
                   health_probe=None):
     """A uvicorn.Config for the API with the guarded protocol and the connection limits;
     `health_probe() -> (status, body)` answers plain GET /healthz in the protocol."""
-    import uvicorn
-
     config = uvicorn.Config(app, host=host, port=port, log_level=log_level, http=GuardedH11Protocol,
                             timeout_keep_alive=timeouts.keep_alive_s,
                             limit_concurrency=timeouts.max_connections, timeout_graceful_shutdown=5,

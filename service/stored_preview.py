@@ -18,8 +18,15 @@ import numpy as np
 
 from core.capture.params import MAX_EXPOSURE_STOPS
 from core.integrity import IntegrityError, verify_document
-from jobs.capture_preview import (FORMAT, META_FILE, READABLE_VERSIONS, TENSORS_FILE, PreviewCameras, file_sha256,
-                                  preview_dir)
+from jobs.capture_preview import (
+    FORMAT,
+    META_FILE,
+    READABLE_VERSIONS,
+    TENSORS_FILE,
+    PreviewCameras,
+    file_sha256,
+    preview_dir,
+)
 
 
 class PreviewError(ValueError):
@@ -51,7 +58,9 @@ def _verify_tensors(path: Path, expected: str) -> None:
             while len(_verified) > _VERIFIED_MAX:
                 _verified.popitem(last=False)
     if known != expected:
-        raise PreviewCorrupt(f"{TENSORS_FILE}: checksum mismatch (the file was modified or corrupted after it was written)")
+        raise PreviewCorrupt(
+            f"{TENSORS_FILE}: checksum mismatch (the file was modified or corrupted after it was written)"
+        )
 
 
 class StoredPreview(PreviewCameras):
@@ -75,7 +84,7 @@ class StoredPreview(PreviewCameras):
         return 0.0 if self.stated_ev is None else float(self.stated_ev[index])
 
     def _slice(self, name: str, index: int) -> np.ndarray:
-        from safetensors import safe_open
+        from safetensors import safe_open  # noqa: PLC0415 — safetensors is heavy: imported when used
 
         if not 0 <= index < self.num_frames:
             raise IndexError(f"frame {index} out of range [0, {self.num_frames})")
@@ -97,7 +106,7 @@ _OPTIONAL_DTYPES = {"frame_ev": "F32"}  # only in previews of captures that stat
 
 def load_preview(job_dir: Path) -> StoredPreview:
     """Open and validate a stored preview; raises PreviewError (FileNotFoundError if absent)."""
-    from safetensors import SafetensorError, safe_open
+    from safetensors import SafetensorError, safe_open  # noqa: PLC0415 — safetensors is heavy: imported when used
 
     root = preview_dir(job_dir)
     if not (root / META_FILE).is_file():

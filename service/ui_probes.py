@@ -13,6 +13,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import torch
+
+from core.chrome_ball import BallPlacementError, place_probe
 
 # The ball size core.insertion draws (its place_objects default); the default
 # depth must leave room for a ball of this size.
@@ -72,8 +75,6 @@ def fallback_depth(depth: np.ndarray) -> float:
 
 def radius_ratio(camera, diameter_fraction: float = INSERTION_DIAMETER_FRACTION) -> float:
     """k = R / z of a ball drawn at `diameter_fraction` of the frame (independent of z)."""
-    from core.chrome_ball import place_probe
-
     k = camera.intrinsics
     _, r = place_probe(camera, (k.width / 2.0, k.height / 2.0), 1.0, diameter_fraction)
     return float(r)
@@ -86,8 +87,6 @@ def front_of_surface(surface: float, k: float) -> float:
 def place(preview, u: float, v: float, t: float, depth: float | None = None) -> ProbePlacement:
     """Probe at fractions (u, v) of the frame nearest t, at planar `depth` (default: just in
     front of the surface there)."""
-    from core.chrome_ball import BallPlacementError, place_probe
-
     u, v = check_fraction(u, "u"), check_fraction(v, "v")
     if depth is not None and not (math.isfinite(depth) and 0.0 < depth <= MAX_PROBE_DEPTH_M):
         raise ProbeError(f"depth must be a planar distance in (0, {MAX_PROBE_DEPTH_M:g}] metres, got {depth}")
@@ -110,8 +109,6 @@ def place(preview, u: float, v: float, t: float, depth: float | None = None) -> 
 def locate(preview, x, t: float) -> ProbePlacement:
     """Where a probe fixed in the world at x appears in the frame nearest t. The page keeps
     probes fixed in the world, so with a moving camera a probe stays put as time changes."""
-    import torch
-
     point = tuple(float(c) for c in x)
     if len(point) != 3 or not all(math.isfinite(c) for c in point):
         raise ProbeError(f"x must be three finite numbers (metres), got {x}")

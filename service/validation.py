@@ -10,6 +10,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from core.camera import CameraError
+from core.capture.base import CaptureError
+from jobs.errors import error_code_of
 from service.errors import ApiError, InvalidInput, PayloadTooLarge, UnsupportedMedia
 
 # sniffed format -> file suffix the engine's loader dispatches on (formats it cannot decode
@@ -29,7 +32,7 @@ def _head(path: Path) -> bytes:
 def classify_input(path: Path) -> tuple[str, str]:
     """(kind 'image'|'video'|'capture', suffix) from the file's magic bytes (a zip is a
     nerfstudio capture: transforms.json + images); raises a 4xx ApiError."""
-    from core.io.sniff import ZIP_MAGIC, sniff_image, sniff_video
+    from core.io.sniff import ZIP_MAGIC, sniff_image, sniff_video  # noqa: PLC0415 — core.io.sniff pulls in av, cv2, OpenEXR, PIL: imported when used
 
     head = _head(path)
     if not head:
@@ -51,7 +54,7 @@ def classify_input(path: Path) -> tuple[str, str]:
 
 
 def classify_depth(path: Path) -> str:
-    from core.io.sniff import sniff_depth
+    from core.io.sniff import sniff_depth  # noqa: PLC0415 — core.io.sniff pulls in av, cv2, OpenEXR, PIL: imported when used
 
     head = _head(path)
     if not head:
@@ -72,11 +75,8 @@ def media_error_to_api(exc) -> ApiError:
 def check_capture(input_path: Path, depth_path: Path | None, params) -> dict:
     """Check the capture as the worker will load it, from its headers; returns a short summary
     or raises a 4xx ApiError."""
-    from core.camera import CameraError
-    from core.capture.base import CaptureError
-    from core.capture.probe import probe_capture
-    from core.io.limits import MediaError, MediaLimits
-    from jobs.errors import error_code_of
+    from core.capture.probe import probe_capture  # noqa: PLC0415 — core.capture.probe pulls in av, cv2, OpenEXR, PIL: imported when used
+    from core.io.limits import MediaError, MediaLimits  # noqa: PLC0415 — core.io.limits pulls in av, cv2, OpenEXR, PIL: imported when used
 
     try:
         header = probe_capture(input_path, depth_path, params, MediaLimits.from_env())

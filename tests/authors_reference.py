@@ -45,7 +45,9 @@ def reference_control(pipe, disparity: torch.Tensor, ball_masks: list[np.ndarray
     final = None
     for mask, z in zip(ball_masks, ball_z):
         d = (depth_map - torch.amin(depth_map, dim=[1, 2, 3], keepdim=True))
-        d = d / (torch.amax(depth_map, dim=[1, 2, 3], keepdim=True) - torch.amin(depth_map, dim=[1, 2, 3], keepdim=True))
+        d = d / (
+            torch.amax(depth_map, dim=[1, 2, 3], keepdim=True) - torch.amin(depth_map, dim=[1, 2, 3], keepdim=True)
+        )
         d = d.squeeze(0).permute(1, 2, 0).repeat(1, 1, 3)
         fill = torch.full((h, w, 3), float(np.power(1.0 / z, 1 / 2.4)))
         mb = torch.tensor(mask.astype(bool))
@@ -76,7 +78,9 @@ def _ddim_sds_step(scheduler, model_output, timestep, sample, prev_timestep):
     beta_prod_t = 1 - alpha_prod_t
     pred_original_sample = (sample - beta_prod_t ** 0.5 * model_output) / alpha_prod_t ** 0.5  # epsilon
     if scheduler.config.clip_sample:
-        pred_original_sample = pred_original_sample.clamp(-scheduler.config.clip_sample_range, scheduler.config.clip_sample_range)
+        pred_original_sample = pred_original_sample.clamp(
+            -scheduler.config.clip_sample_range, scheduler.config.clip_sample_range
+        )
     variance = scheduler._get_variance(timestep, prev_timestep)
     std_dev_t = 0.0 * variance ** 0.5
     pred_sample_direction = (1 - alpha_prod_t_prev - std_dev_t ** 2) ** 0.5 * model_output
@@ -108,8 +112,14 @@ def _noise_predict(pipe, latents, mask, masked_image_latents, t, prompt_embeds, 
         mask = torch.cat([mask] * 2)
         masked_image_latents = torch.cat([masked_image_latents] * 2)
     latent_model_input = torch.cat([latent_model_input, mask, masked_image_latents], dim=1)
-    noise_pred = pipe.unet(latent_model_input, t, encoder_hidden_states=prompt_embeds,
-                           down_block_additional_residuals=down, mid_block_additional_residual=mid, return_dict=False)[0]
+    noise_pred = pipe.unet(
+        latent_model_input,
+        t,
+        encoder_hidden_states=prompt_embeds,
+        down_block_additional_residuals=down,
+        mid_block_additional_residual=mid,
+        return_dict=False,
+    )[0]
     if do_cfg:
         uncond, text = noise_pred.chunk(2)
         noise_pred = uncond + guidance_scale * (text - uncond)
@@ -152,7 +162,9 @@ def reference_target(pipe, image, mask, clean, control, prompt_embeds, negative_
     for i in range(multistep):
         t, prev = timestep_list[i], timestep_list[i + 1]
         cur_mask = cur_mask.squeeze(1)
-        cur_mask, masked_image_latents = _prepare_mask_latents(pipe, cur_mask.unsqueeze(0), clean, height, width, generator)
+        cur_mask, masked_image_latents = _prepare_mask_latents(
+            pipe, cur_mask.unsqueeze(0), clean, height, width, generator
+        )
         cur_mask = cur_mask[:, :1, :, :]
         noise_pred = _noise_predict(pipe, noisy_latents, cur_mask, masked_image_latents, t, prompt_embeds,
                                     negative_prompt_embeds, guidance_scale, ctrl, control_scale, log)

@@ -17,7 +17,8 @@ from core.io.images import encode_png
 PANORAMA = Path(__file__).resolve().parents[1] / "assets" / "sample_panorama.hdr"
 
 
-def write_nerfstudio(root: Path, ldr, depth, intr, poses, *, world=np.eye(4), extra=None, with_depth=True) -> Path:
+def write_nerfstudio(root: Path, ldr, depth, intr, poses, *, world=np.eye(4),  # noqa: B008 — only read
+                     extra=None, with_depth=True) -> Path:
     """A nerfstudio capture: images/, depth/ (16-bit mm PNG), transforms.json (OpenGL c2w)."""
     (root / "images").mkdir(parents=True, exist_ok=True)
     (root / "depth").mkdir(exist_ok=True)

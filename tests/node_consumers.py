@@ -41,7 +41,10 @@ def ensure_installed() -> Path:
         proc = None
     if proc is None or proc.returncode != 0:
         if not _registry_reachable():
-            pytest.skip("the npm registry is unreachable, so tests/node's consumers (three.js, gltf-validator) cannot be installed")
+            pytest.skip(
+                "the npm registry is unreachable, so tests/node's consumers (three.js, gltf-validator) cannot be "
+                "installed"
+            )
         pytest.fail(f"`{' '.join(cmd)}` in {NODE_DIR} failed:\n{(proc.stderr if proc else 'timed out')[-3000:]}")
     STAMP.write_text(_lock_sha())
     return NODE_DIR

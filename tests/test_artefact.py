@@ -8,10 +8,17 @@ import torch
 import core.fields.stored.artefact as artefact_mod
 from core.conventions import CONVENTIONS_VERSION
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.stored.artefact import ArtefactError, LightFieldArtefact, META_FILE, QueryError, WEIGHTS_FILE, save_artefact
 from core.fields.kinds.grid import GridSettings
 from core.fields.kinds.mlp import MLPSettings
 from core.fields.kinds.trunk import TrunkSettings
+from core.fields.stored.artefact import (
+    META_FILE,
+    WEIGHTS_FILE,
+    ArtefactError,
+    LightFieldArtefact,
+    QueryError,
+    save_artefact,
+)
 
 BOUNDS = SceneBounds((-2.0, -1.0, -4.0), (2.0, 2.0, 0.5), t0=0.0, t1=3.0)
 
@@ -35,7 +42,9 @@ def small_field(kind="mlp", uses_time=True, seed=0):
 @pytest.fixture
 def saved(tmp_path):
     field = small_field()
-    path = save_artefact(tmp_path / "art", field, {"capture": {"fps": 10.0}, "training": {"loss_curve": [1.0, float("nan")]}}).path
+    path = save_artefact(
+        tmp_path / "art", field, {"capture": {"fps": 10.0}, "training": {"loss_curve": [1.0, float("nan")]}}
+    ).path
     return field, path
 
 
@@ -68,7 +77,9 @@ def test_metadata_is_stored_and_nan_becomes_null(saved):
 def test_flags_for_time_and_space(saved):
     _, path = saved
     art = LightFieldArtefact.load(path)
-    _, flags = art.envmaps(torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [0.0, 5.0, -1.0]]), torch.tensor([1.0, 4.0, -1.0]), 2)
+    _, flags = art.envmaps(
+        torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [0.0, 5.0, -1.0]]), torch.tensor([1.0, 4.0, -1.0]), 2
+    )
     assert flags == [
         {"extrapolated_x": False, "extrapolated_t": False},
         {"extrapolated_x": False, "extrapolated_t": True},

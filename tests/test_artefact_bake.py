@@ -4,9 +4,9 @@ import torch
 
 from core.envmap import resize_envmap
 from core.fields import FieldConfig, SceneBounds, build_field
+from core.fields.kinds.trunk import TrunkSettings
 from core.fields.stored.artefact import ArtefactError, LightFieldArtefact, QueryError, save_artefact
 from core.fields.stored.bake import BAKED_FILE, BakedField, bake, load_or_bake
-from core.fields.kinds.trunk import TrunkSettings
 
 BOUNDS = SceneBounds((-2.0, -1.0, -4.0), (2.0, 2.0, 0.5), t0=0.0, t1=3.0)
 
@@ -17,7 +17,9 @@ def smooth_artefact(tmp_path, uses_time=True, seed=0, name="a"):
     cfg = FieldConfig(
         kind="trunk",
         uses_time=uses_time,
-        trunk=TrunkSettings(x_freqs=0, t_freqs=0, d_freqs=1, trunk_width=16, trunk_layers=1, feature_dim=8, head_width=16),
+        trunk=TrunkSettings(
+            x_freqs=0, t_freqs=0, d_freqs=1, trunk_width=16, trunk_layers=1, feature_dim=8, head_width=16
+        ),
     )
     field = build_field(cfg, BOUNDS)
     g = torch.Generator().manual_seed(seed)
@@ -33,7 +35,8 @@ def test_baked_equals_exact_at_lattice_nodes(tmp_path, uses_time):
     art = smooth_artefact(tmp_path, uses_time)
     baked = bake(art, grid=(3, 2, 4), times=3, height=8)
     b = art.bounds
-    node = torch.tensor([b.lo[0], b.hi[1], 0.5 * (b.lo[2] + b.hi[2]) + (b.hi[2] - b.lo[2]) / 6])  # (0, 1, 2) of (3, 2, 4)
+    # (0, 1, 2) of (3, 2, 4)
+    node = torch.tensor([b.lo[0], b.hi[1], 0.5 * (b.lo[2] + b.hi[2]) + (b.hi[2] - b.lo[2]) / 6])
     t = 1.5 if uses_time else None  # middle keyframe
     exact, _ = art.envmap(node, t, 8)
     fast, _ = baked.envmap(node, t, 8)

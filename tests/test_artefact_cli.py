@@ -7,8 +7,8 @@ import torch
 
 from cli.main import main
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 from core.fields.kinds.mlp import MLPSettings
+from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 from core.io.envmap_io import load_envmap
 
 BOUNDS = SceneBounds((-1.0, -1.0, -3.0), (1.0, 1.0, 0.0), t0=0.0, t1=2.0)
@@ -38,7 +38,10 @@ def test_exr_default_and_png_preview(artefact_dir, tmp_path, capsys):
     expected, _ = LightFieldArtefact.load(artefact_dir).envmap((0.0, 0.0, -1.0), 1.0, 4)
     np.testing.assert_allclose(load_envmap(exr), expected.numpy(), rtol=1e-6)  # float32 EXR by default
     png = tmp_path / "env.png"
-    assert main(["envmap", str(artefact_dir), "--x", "0,0,-1", "--t", "1", "--height", "4", "--ev", "-2", "-o", str(png)]) == 0
+    assert (
+        main(["envmap", str(artefact_dir), "--x", "0,0,-1", "--t", "1", "--height", "4", "--ev", "-2", "-o", str(png)])
+        == 0
+    )
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -56,7 +59,9 @@ def test_fast_path_answers_from_the_stored_bake(artefact_dir, tmp_path):
     art = LightFieldArtefact.load(artefact_dir)
     baked = load_or_bake(art, grid=(2, 2, 2), times=2, height=4)  # small, so the test stays fast
     out = tmp_path / "f.npy"
-    assert main(["envmap", str(artefact_dir), "--x", "0,0,-1", "--t", "1", "--height", "4", "--fast", "-o", str(out)]) == 0
+    assert (
+        main(["envmap", str(artefact_dir), "--x", "0,0,-1", "--t", "1", "--height", "4", "--fast", "-o", str(out)]) == 0
+    )
     np.testing.assert_array_equal(load_envmap(out), baked.envmap((0.0, 0.0, -1.0), 1.0, 4)[0].numpy())
 
 

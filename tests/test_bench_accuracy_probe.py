@@ -10,8 +10,15 @@ from core.sim.suites import spatial, temporal
 
 
 def _suite(scene, height=4):
-    return SuiteData(name=scene.name, scene=scene, capture_dir=None, probes=list(scene.probes),
-                     gt=torch.ones(len(scene.probes), height, 2 * height, 3), global_point=(0.0, 0.0, 0.0), global_time=0.0)
+    return SuiteData(
+        name=scene.name,
+        scene=scene,
+        capture_dir=None,
+        probes=list(scene.probes),
+        gt=torch.ones(len(scene.probes), height, 2 * height, 3),
+        global_point=(0.0, 0.0, 0.0),
+        global_time=0.0,
+    )
 
 
 @pytest.mark.parametrize("make_scene", [spatial, temporal])
@@ -41,14 +48,22 @@ def test_ratio_interval_brackets_the_ratio_of_means():
 
 
 def test_markdown_table_names_the_worst_metric_with_its_interval():
-    ratios = {"field": {"vs_prior": {"diffuse.si_rmse": 1.01, "matte.si_rmse": 0.98, "mirror.si_rmse": 1.0, "matte.nrmse": 1.2},
-                        "vs_constant": {"diffuse.si_rmse": 0.7, "matte.si_rmse": 0.9}},
-              "prior": {"vs_constant": {"diffuse.si_rmse": 0.75, "matte.si_rmse": 0.88}}}
+    ratios = {
+        "field": {
+            "vs_prior": {"diffuse.si_rmse": 1.01, "matte.si_rmse": 0.98, "mirror.si_rmse": 1.0, "matte.nrmse": 1.2},
+            "vs_constant": {"diffuse.si_rmse": 0.7, "matte.si_rmse": 0.9},
+        },
+        "prior": {"vs_constant": {"diffuse.si_rmse": 0.75, "matte.si_rmse": 0.88}},
+    }
     report = {"suites": {"temporal": {"probes": [{}] * 12, "ratios": ratios, "cpu_s": {"field": 30.0},
                                       "interval_90": {"field": {"vs_prior": {"matte.nrmse": [1.05, 1.4]}}}}}}
     lines = markdown_table(report).splitlines()
     assert len(lines) == 4
-    assert "| temporal | radiance + view (draft) | 12 | 1.20 (matte.nrmse) [1.05, 1.40] | 1.01 | 0.98 | 1.00 | 0.70 | 0.90 | 30.0 |" == lines[2]
+    assert (
+        "| temporal | radiance + view (draft) | 12 | 1.20 (matte.nrmse) [1.05, 1.40] | 1.01 | 0.98 | 1.00 | 0.70 | "
+        "0.90 | 30.0 |"
+        == lines[2]
+    )
     assert lines[3].startswith("| temporal | prior (shortcut) | 12 |")
 
 
@@ -115,5 +130,6 @@ def test_observed_hybrid_takes_the_splat_where_the_prior_saw_and_the_field_elsew
     out = observed_hybrid(prior, suite, field)
     assert prior.times == [0.1, 0.9]  # each probe asks at its own time
     assert out.shape == field.shape
-    assert torch.allclose(out[:, :4], torch.tensor([5.0, 3.0, 1.0]).expand(2, 4, 16, 3), rtol=1e-4)  # seen: the splat, not dimmed at the edge
+    # seen: the splat, not dimmed at the edge
+    assert torch.allclose(out[:, :4], torch.tensor([5.0, 3.0, 1.0]).expand(2, 4, 16, 3), rtol=1e-4)
     assert torch.equal(out[:, 5:], field[:, 5:])  # unseen: the field

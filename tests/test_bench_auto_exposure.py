@@ -29,12 +29,23 @@ def test_a_pan_of_the_bundled_panorama_changes_its_exposure():
 
 
 def test_summary_counts_decisions_and_errors():
-    row = {"file": "a.hdr", "tracked": True, "ae_range_stops": 1.0, "decision": {"auto": False, "locked": True, "estimate": False}, "auto_detected": True,
-           "estimate_error_stops": 0.1, "mean_colour_diffuse_si_rmse_rel": 0.6,
-           "locked_dimming": {"auto_detected": True, "read_as_changing_light": True},
-           "runs": {k: {"drift_stops": d, "map_change_stops": d, "diffuse_si_rmse_rel": 0.5}
-                    for k, d in (("auto", 0.0), ("locked", 0.4), ("estimate", 0.0), ("stated", 0.0))}}
-    s = summarise([row, {**row, "auto_detected": False, "decision": {"auto": True, "locked": False, "estimate": False}}])
+    row = {
+        "file": "a.hdr",
+        "tracked": True,
+        "ae_range_stops": 1.0,
+        "decision": {"auto": False, "locked": True, "estimate": False},
+        "auto_detected": True,
+        "estimate_error_stops": 0.1,
+        "mean_colour_diffuse_si_rmse_rel": 0.6,
+        "locked_dimming": {"auto_detected": True, "read_as_changing_light": True},
+        "runs": {
+            k: {"drift_stops": d, "map_change_stops": d, "diffuse_si_rmse_rel": 0.5}
+            for k, d in (("auto", 0.0), ("locked", 0.4), ("estimate", 0.0), ("stated", 0.0))
+        },
+    }
+    s = summarise(
+        [row, {**row, "auto_detected": False, "decision": {"auto": True, "locked": False, "estimate": False}}]
+    )
     assert s["read_as_changing_light"] == {"auto": 1, "locked": 1, "estimate": 0} and s["auto_exposure_detected"] == 1
     assert s["drift_stops_mean"]["locked"] == 0.4 and s["estimate_error_stops"]["max"] == 0.1
     assert s["locked_dimming"] == {"auto_detected": 2, "read_as_changing_light": 2}
@@ -59,7 +70,9 @@ def test_level_in_stops_and_a_capture_copy_without_exposures(tmp_path):
         "ratios": {"field": {"vs_constant": {"diffuse.si_rmse": 0.9, "matte.si_rmse": 0.5}}},
         "scale_stops": {"field": {"mean": 0.2, "sd": 0.3}}, "uses_time": {"field": False}}}}
     (tmp_path / "r.json").write_text(json.dumps(report))
-    assert "| r | s | withheld, estimate | auto | False | 0.90 | 0.50 | +0.20 (0.30) | - |" in level_table([str(tmp_path / "r.json")])
+    assert "| r | s | withheld, estimate | auto | False | 0.90 | 0.50 | +0.20 (0.30) | - |" in level_table(
+        [str(tmp_path / "r.json")]
+    )
 
 
 def test_map_change_is_zero_for_the_same_map_and_one_stop_for_twice_as_bright():

@@ -47,10 +47,13 @@ def test_sfm_starts_summary_compares_the_first_start_the_kept_model_and_the_best
     from bench.sfm_starts import summarise as summarise_starts
 
     def clip(kept, **starts):
-        return {**{a: {"frames": f, "max_rotation_error_deg": e, "pooled_median_px": 0.3} for a, (f, e) in starts.items()},
-                "kept": kept}
+        return {
+            **{a: {"frames": f, "max_rotation_error_deg": e, "pooled_median_px": 0.3} for a, (f, e) in starts.items()},
+            "kept": kept,
+        }
     rows = [{"clips": {"walk-noisy": clip(8.0, **{"4.0": (20, 17.0), "8.0": (20, 6.0), "16.0": (20, 5.0)})}},
-            {"clips": {"walk-noisy": clip(16.0, **{"4.0": (5, 11.0), "16.0": (20, 3.0)})}},  # the first start falls short
+            # the first start falls short
+            {"clips": {"walk-noisy": clip(16.0, **{"4.0": (5, 11.0), "16.0": (20, 3.0)})}},
             {"clips": {"walk-noisy": clip(4.0, **{"4.0": (20, 2.0), "8.0": (20, 1.0)})}},
             {"clips": {"walk-noisy": {}}}]  # no start registered half the frames: not counted
     s = summarise_starts(rows, {"walk-noisy": WALKS["walk-noisy"]}, (4.0, 8.0, 16.0))["walk-noisy"]

@@ -25,7 +25,9 @@ def test_arithmetic_mean_keeps_the_energy_a_few_bright_panoramas_carry():
 def test_gain_from_profiles_without_smoothing_is_the_mean():
     profiles = torch.tensor([[2.0, 1.0, 0.5], [4.0, 1.0, 0.5]], dtype=torch.float64)
     assert gain_from_profiles(profiles, "arithmetic", sigma_rows=0) == pytest.approx([3.0, 1.0, 0.5])
-    assert gain_from_profiles(profiles, "geometric", sigma_rows=0) == pytest.approx([math.sqrt(8.0), 1.0, 0.5], abs=1e-3)
+    assert gain_from_profiles(profiles, "geometric", sigma_rows=0) == pytest.approx(
+        [math.sqrt(8.0), 1.0, 0.5], abs=1e-3
+    )
 
 
 def test_row_profile_is_relative_to_the_horizon_band():
@@ -40,7 +42,9 @@ def test_row_profile_is_relative_to_the_horizon_band():
 DEV = Path(DEFAULT_HDRI_DIR)
 
 
-@pytest.mark.skipif(not (DEV / "MANIFEST.tsv").is_file(), reason="the dev panoramas (../shared/hdri) are not on this machine")
+@pytest.mark.skipif(
+    not (DEV / "MANIFEST.tsv").is_file(), reason="the dev panoramas (../shared/hdri) are not on this machine"
+)
 def test_the_stored_gain_is_the_fit_on_every_indoor_room():
     from bench.indoor_fill import fit_gain
     from bench.real_panoramas import indoor_rooms, read_manifest

@@ -3,8 +3,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from bench.real_panoramas import PITCH_DEG, camera_rotation, estimate_mean_colour, perspective_crop, view_for
 from core.conventions import equirect_directions, inverse_tonemap
@@ -110,8 +109,13 @@ def test_intervals_resample_panoramas_and_rescore_reproduces_the_summary():
     from bench.real_panoramas import CONSTANT, FIELD, rescore, summarise
 
     def photo(file, field, const):
-        scores = {m: {mat: {"si_rmse_rel": v, "angular_deg": v, "si_rmse": v, "nrmse": v} for mat in ("diffuse", "matte", "mirror")}
-                  for m, v in ((FIELD, field), (CONSTANT, const))}
+        scores = {
+            m: {
+                mat: {"si_rmse_rel": v, "angular_deg": v, "si_rmse": v, "nrmse": v}
+                for mat in ("diffuse", "matte", "mirror")
+            }
+            for m, v in ((FIELD, field), (CONSTANT, const))
+        }
         return {"file": file, "scores": scores, "seconds": {FIELD: 1.0, CONSTANT: 0.0},
                 "observed_corr": {FIELD: 0.9, CONSTANT: 0.0, "truth": 0.95}}
 
@@ -153,7 +157,10 @@ def _cv_photo(file, field, const, angle=None):
     from bench.real_panoramas import CONSTANT, FIELD
 
     def mats(v, a):
-        return {mat: {"si_rmse_rel": v, "angular_deg": a, "si_rmse": v, "nrmse": v} for mat in ("diffuse", "matte", "mirror")}
+        return {
+            mat: {"si_rmse_rel": v, "angular_deg": a, "si_rmse": v, "nrmse": v}
+            for mat in ("diffuse", "matte", "mirror")
+        }
 
     return {"file": file, "split": "dev", "scores": {FIELD: mats(field, angle if angle is not None else field),
                                                     CONSTANT: mats(const, const)},
@@ -164,7 +171,12 @@ def test_cv_summary_ratios_95_interval_and_rooms_failing_on_angle():
     from bench.real_panoramas import CONSTANT, FIELD, cv_markdown, cv_summary
     from bench.suite.evaluation import ratio_interval
 
-    images = [_cv_photo("a", 0.5, 1.0), _cv_photo("b", 0.9, 1.0), _cv_photo("c", 0.7, 1.0), _cv_photo("d", 1.1, 1.0, angle=1.6)]
+    images = [
+        _cv_photo("a", 0.5, 1.0),
+        _cv_photo("b", 0.9, 1.0),
+        _cv_photo("c", 0.7, 1.0),
+        _cv_photo("d", 1.1, 1.0, angle=1.6),
+    ]
     s = cv_summary(images, (FIELD, CONSTANT))
     f = s[FIELD]
     assert f["vs_constant"]["diffuse_si_rmse_rel"] == pytest.approx(0.8)
@@ -241,7 +253,9 @@ def test_cv_runs_the_prior_and_the_constant_map_on_a_tiny_manifest(tmp_path):
         ov = im["fold_overrides"]
         assert ov["priors.reprojection.fill_source_cap"] == out["refit"]["fill_source_cap"]["chosen"][im["file"]]
         assert len(ov["priors.reprojection.elevation_gain"]) == 24
-    assert control["images"][0]["fold_overrides"]["priors.reprojection.elevation_gain"] == out["all_rooms_elevation_gain"]
+    assert (
+        control["images"][0]["fold_overrides"]["priors.reprojection.elevation_gain"] == out["all_rooms_elevation_gain"]
+    )
     m = indoor["methods"][PRIOR]
     assert all(math.isfinite(v) for v in m["vs_constant"].values())
     assert m["rooms_diffuse_angle_over_1.5x_constant"]["of"] == 3

@@ -41,7 +41,9 @@ def test_a_log_linear_prior_is_reproduced_between_the_nodes():
     nodes = prior.asked[0]
     assert nodes.shape == (8, 3)
     # the corners of x's cell: spacing (1, 1, 1) m on this lattice, x inside their box
-    assert torch.allclose(nodes.amin(0), torch.tensor([1.0, 0.0, 2.0])) and torch.allclose(nodes.amax(0), torch.tensor([2.0, 1.0, 3.0]))
+    assert torch.allclose(nodes.amin(0), torch.tensor([1.0, 0.0, 2.0])) and torch.allclose(
+        nodes.amax(0), torch.tensor([2.0, 1.0, 3.0])
+    )
 
 
 def test_a_sharp_feature_between_the_nodes_is_lost_by_the_blend():

@@ -8,8 +8,7 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from bench.report import markdown, pareto_front, sanitize, time_to_answer
 from bench.scaling import loglog_exponent
@@ -120,9 +119,16 @@ def test_score_probe_scale_invariance_and_failures():
 def _entry(prep, cpu, q, err, group="paper", error=None):
     e = {"method": {"group": group, "prior": "reprojection"}, "error": error}
     if error is None:
-        e.update({"time": {"prepare_s": prep, "prepare_cpu_s": cpu, "query_ms": q, "query_cpu_ms": q},
-                  "metrics": {m: {"si_rmse_rel": err, "angular_deg": 1.0, "nrmse": 0.1} for m in ("diffuse", "matte", "mirror")},
-                  "temporal": None, "extra": {}})
+        e.update(
+            {
+                "time": {"prepare_s": prep, "prepare_cpu_s": cpu, "query_ms": q, "query_cpu_ms": q},
+                "metrics": {
+                    m: {"si_rmse_rel": err, "angular_deg": 1.0, "nrmse": 0.1} for m in ("diffuse", "matte", "mirror")
+                },
+                "temporal": None,
+                "extra": {},
+            }
+        )
     return e
 
 
@@ -150,8 +156,12 @@ def test_markdown_shows_given_numbers_errors_and_only_common_methods_in_headline
 def test_every_table_row_has_one_cell_per_header():
     from bench.report import SUITE_HEADERS, headline_rows, suite_rows
 
-    suites = {"a": {"suite": {"held_out_probes": [{}]}, "methods": {"m": _entry(1.0, 1.0, 1.0, 0.5),
-                                                                     "bad": _entry(0, 0, 0, 0, error="RuntimeError: x")}}}
+    suites = {
+        "a": {
+            "suite": {"held_out_probes": [{}]},
+            "methods": {"m": _entry(1.0, 1.0, 1.0, 0.5), "bad": _entry(0, 0, 0, 0, error="RuntimeError: x")},
+        }
+    }
     headers, rows = headline_rows({"suites": suites})
     assert rows and all(len(r) == len(headers) for r in rows)
     assert all(len(r) == len(SUITE_HEADERS) for r in suite_rows(suites["a"]))
@@ -184,7 +194,10 @@ def test_panorama_table_shows_ratios_correlation_and_the_truth_row():
     def image(field_si, corr):
         scores = {}
         for name, si in ((FIELD, field_si), (PRIOR, 0.5), (CONSTANT, 0.4)):
-            scores[name] = {m: {"si_rmse": si, "si_rmse_rel": si, "angular_deg": 10 * si, "nrmse": 0.1} for m in ("diffuse", "matte", "mirror")}
+            scores[name] = {
+                m: {"si_rmse": si, "si_rmse_rel": si, "angular_deg": 10 * si, "nrmse": 0.1}
+                for m in ("diffuse", "matte", "mirror")
+            }
         return {"seconds": {FIELD: 20.0, PRIOR: 0.1, CONSTANT: 0.0}, "scores": scores,
                 "observed_corr": {FIELD: corr, PRIOR: 0.8, CONSTANT: 0.0, "truth": 0.95}}
 

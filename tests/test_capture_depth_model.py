@@ -6,8 +6,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.camera import Intrinsics
 from core.capture.base import CaptureError
@@ -173,7 +172,9 @@ def test_estimated_depth_feeds_run_job(tiny_dir, image_path, monkeypatch, tmp_pa
     from core.engine.presets import preset
 
     monkeypatch.setenv(DEPTH_MODEL_ENV, str(tiny_dir))
-    cfg = preset("draft").with_overrides({"distill": dict(work_height=H, checkpoint_every=1000, warmup_steps=2, iterations=4)})
+    cfg = preset("draft").with_overrides(
+        {"distill": dict(work_height=H, checkpoint_every=1000, warmup_steps=2, iterations=4)}
+    )
     with pytest.warns(UserWarning):
         out = run_job(image_path, None, JobParams(seed=0), tmp_path / "art", config=cfg).path
     meta = json.loads((out / "lightfield.json").read_text())

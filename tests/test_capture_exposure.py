@@ -74,7 +74,9 @@ def test_auto_exposure_reads_as_static_light_only_when_stated():
     assert not decision.uses_time and decision.statistic < 0.3 * decision.threshold
 
 
-@pytest.mark.parametrize("bad, message", [([0.0, 1.0], "2 exposures for 4 frames"), ([0.0, 0.0, float("nan"), 0.0], "finite")])
+@pytest.mark.parametrize(
+    "bad, message", [([0.0, 1.0], "2 exposures for 4 frames"), ([0.0, 0.0, float("nan"), 0.0], "finite")]
+)
 def test_bad_exposures_name_their_input(bad, message):
     with pytest.raises(CaptureError, match=message) as info:
         capture_from_arrays(exposed_clip(), frame_ev=bad)
@@ -170,7 +172,9 @@ def test_an_estimated_exposure_follows_a_static_cameras_auto_exposure():
     cap = with_estimated_exposure(capture_from_arrays(exposed_clip(evs)), CaptureParams(frame_ev="estimate"))
     assert np.abs(cap.frame_ev.numpy() - np.array(evs)).max() < 0.05
     assert not decide_temporal(cap).uses_time
-    assert with_estimated_exposure(capture_from_arrays(exposed_clip([0.0])), CaptureParams(frame_ev="estimate")).frame_ev.tolist() == [0.0]
+    assert with_estimated_exposure(
+        capture_from_arrays(exposed_clip([0.0])), CaptureParams(frame_ev="estimate")
+    ).frame_ev.tolist() == [0.0]
     static = with_estimated_exposure(capture_from_arrays(exposed_clip(evs)), CaptureParams())
     assert static.stated_ev is None  # unset: a static camera's exposure moves only with the light, left alone
 
@@ -197,7 +201,9 @@ def test_a_moving_cameras_exposure_is_estimated_unless_said_to_be_locked():
         metered = metered_evs(list(hdr), speed=speed)
         evs = [metered[max(i - delay, 0)] for i in range(len(metered))]
         auto = torch.stack([torch.round(tonemap(h, ev) * 255) / 255 for h, ev in zip(hdr, evs)])
-        found = with_estimated_exposure(capture_from_arrays(auto, depth, intrinsics=k, poses=poses, fps=10), CaptureParams())
+        found = with_estimated_exposure(
+            capture_from_arrays(auto, depth, intrinsics=k, poses=poses, fps=10), CaptureParams()
+        )
         assert found.metadata["exposure_estimate"]["applied"], (speed, delay)
         assert np.abs(found.frame_ev.numpy() - (np.array(evs) - evs[0])).max() < 0.1, (speed, delay)
         assert not decide_temporal(found).uses_time
@@ -231,7 +237,9 @@ def _bundled_pan(frames: int = 20):
     pano = load_panorama(Path(__file__).resolve().parents[1] / "assets" / "sample_panorama.hdr", 128)
     k = Intrinsics.from_hfov(96, 72, 60.0)
     poses = torch.stack([pose_from_yaw_pitch((0, 0, 0), 60 * i / (frames - 1), 0) for i in range(frames)])
-    _, depth, hdr = render_clip(PanoramaRoom(pano, assumed_room(), torch.zeros(3)), [Camera(k, p) for p in poses], supersample=1)
+    _, depth, hdr = render_clip(
+        PanoramaRoom(pano, assumed_room(), torch.zeros(3)), [Camera(k, p) for p in poses], supersample=1
+    )
     return hdr * (0.18 / float(luminance(hdr).mean())), depth, k, poses
 
 
@@ -301,5 +309,8 @@ def test_exif_exposures_need_every_photo_to_state_them():
     assert frames_exposure_ev([a]) is None  # one photo: nothing to put on a scale
     no_aperture = [ImageMetadata(exposure_time_s=1 / 50, iso=100), ImageMetadata(exposure_time_s=1 / 25, iso=100)]
     assert frames_exposure_ev(no_aperture) == pytest.approx([0.0, 1.0])  # a phone's fixed aperture
-    wide = ImageMetadata(exposure_time_s=30.0, iso=100, f_number=2.0), ImageMetadata(exposure_time_s=1e-6, iso=50, f_number=22)
+    wide = (
+        ImageMetadata(exposure_time_s=30.0, iso=100, f_number=2.0),
+        ImageMetadata(exposure_time_s=1e-6, iso=50, f_number=22),
+    )
     assert frames_exposure_ev(list(wide)) is None  # a spread no camera shoots: a broken file

@@ -33,7 +33,9 @@ def _frames(yaws, evs, size=(48, 36), hfov=60.0):
     pano = _panorama()
     k = Intrinsics.from_hfov(size[0], size[1], hfov)
     poses = [pose_from_yaw_pitch((0.0, 0.0, 0.0), y, 0.0) for y in yaws]
-    hdr = torch.stack([sample_envmap(pano.double(), Camera(k, p).pixel_rays(dtype=torch.float64)[1]).float() for p in poses])
+    hdr = torch.stack(
+        [sample_envmap(pano.double(), Camera(k, p).pixel_rays(dtype=torch.float64)[1]).float() for p in poses]
+    )
     ldr = torch.stack([torch.round(tonemap(h, ev) * 255) / 255 for h, ev in zip(hdr, evs)])
     depth = box_depth(assumed_room(), [Camera(k, p) for p in poses])
     return hdr, ldr, depth, k, torch.stack(poses)

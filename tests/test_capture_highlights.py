@@ -22,7 +22,9 @@ INTR = Intrinsics.from_hfov(128, 96, 60.0)
 SYNTHETIC_LAMP_MAX_ERROR_STOPS = 1.25  # stated in docs/highlights.md (lamps up to 64x white, <= 3 px)
 
 
-def lamp_scene(radiance: float, radius: float, wall: float = 0.05, glare: float = 0.02, sigma: float = 1.0) -> torch.Tensor:
+def lamp_scene(
+    radiance: float, radius: float, wall: float = 0.05, glare: float = 0.02, sigma: float = 1.0
+) -> torch.Tensor:
     """Linear [96, 128] image: a disc lamp on a wall, through a lens PSF (Gaussian core of
     `sigma` px plus a `glare` share of energy in an exponential tail of 4 px)."""
     H, W = 96, 128
@@ -32,7 +34,9 @@ def lamp_scene(radiance: float, radius: float, wall: float = 0.05, glare: float 
     k = torch.arange(-15, 16, dtype=torch.float64)
     ky, kx = torch.meshgrid(k, k, indexing="ij")
     kr = (ky**2 + kx**2).sqrt()
-    psf = (1 - glare) * torch.exp(-(kr**2) / (2 * sigma**2)) / (2 * math.pi * sigma**2) + glare * torch.exp(-kr / 4.0) / (2 * math.pi * 16)
+    psf = (1 - glare) * torch.exp(-(kr**2) / (2 * sigma**2)) / (2 * math.pi * sigma**2) + glare * torch.exp(
+        -kr / 4.0
+    ) / (2 * math.pi * 16)
     psf = psf / psf.sum()
     padded = torch.nn.functional.pad(img[None, None], (15,) * 4, mode="replicate")
     return torch.nn.functional.conv2d(padded, psf[None, None])[0, 0]
@@ -178,7 +182,9 @@ def test_lamp_without_halo_stays_white():
 def dimming_lamp_clip(scales=(1.0, 0.8, 0.6, 0.4)) -> torch.Tensor:
     """LDR frames [T, 96, 128, 3] of a static camera: a 16x-white lamp dimming by `scales`, on a
     wall lit by it (an inverse-square pool around it) and by a fixed dim fill."""
-    yy, xx = torch.meshgrid(torch.arange(96, dtype=torch.float64), torch.arange(128, dtype=torch.float64), indexing="ij")
+    yy, xx = torch.meshgrid(
+        torch.arange(96, dtype=torch.float64), torch.arange(128, dtype=torch.float64), indexing="ij"
+    )
     pool = 0.6 / (1.0 + (((yy - 40) ** 2 + (xx - 60) ** 2) / 36.0))
     return torch.stack([to_ldr(lamp_scene(16.0 * s, 3.0, wall=0.05) + s * pool) for s in scales])
 

@@ -74,7 +74,10 @@ def test_the_same_walk_video_uploaded_twice_gets_the_same_answer(tmp_path):
     from run to run on two threads (core.tracking.sfm): a user resubmitting a video got other
     poses and another field. Now the poses and the env maps are identical."""
     ldr, _, _ = panorama_clip(walk_poses(10), 192, 144, centre=(0.0, 0.0, -1.0), pano_height=256, supersample=1)
-    noisy = torch.round((ldr + 0.02 * torch.randn(ldr.shape, generator=torch.Generator().manual_seed(7))).clamp(0, 1) * 255) / 255
+    noisy = (
+        torch.round((ldr + 0.02 * torch.randn(ldr.shape, generator=torch.Generator().manual_seed(7))).clamp(0, 1) * 255)
+        / 255
+    )
     video = write_video(tmp_path / "walk.mp4", noisy.numpy(), 10.0)
     a, b = (_run(video, {"fps": 10}, tmp_path / name).artefact for name in ("a", "b"))
     assert a.meta["capture"]["metadata"]["tracking"]["method"] == "sfm:pycolmap"

@@ -54,7 +54,9 @@ def test_given_intrinsics_fps_depth_npz_and_poses(tmp_path):
     np.savez(tmp_path / "d.npz", depth=depth)
     pose = np.eye(4)
     pose[:3, 3] = [1, 2, 3]
-    params = CaptureParams(intrinsics={"fx": 30, "fy": 31, "cx": 16, "cy": 12}, poses=[pose.reshape(-1).tolist()], fps=5)
+    params = CaptureParams(
+        intrinsics={"fx": 30, "fy": 31, "cx": 16, "cy": 12}, poses=[pose.reshape(-1).tolist()], fps=5
+    )
     cap = load_capture(path, tmp_path / "d.npz", params)
     assert (cap.intrinsics.fx, cap.intrinsics.fy) == (30, 31)
     assert torch.allclose(cap.depth, torch.full((1, 24, 32), 2.0))
@@ -172,7 +174,9 @@ def test_resized_keeps_nearest_depth_and_scales_intrinsics():
     d[0, 0, 0] = 1.0  # a thin near object
     cap = capture_from_arrays(torch.rand(1, 8, 8, 3), d).resized(4)
     assert cap.depth.shape == (1, 4, 4) and cap.depth[0, 0, 0] == 1.0 and cap.depth[0, 3, 3] == 4.0
-    assert cap.intrinsics.width == 4 and cap.intrinsics.fx == pytest.approx(capture_from_arrays(torch.rand(1, 8, 8, 3), d).intrinsics.fx / 2)
+    assert cap.intrinsics.width == 4 and cap.intrinsics.fx == pytest.approx(
+        capture_from_arrays(torch.rand(1, 8, 8, 3), d).intrinsics.fx / 2
+    )
 
 
 def test_capture_directory_with_bad_intrinsics(tmp_path):

@@ -21,7 +21,9 @@ def room_lights() -> tuple[torch.Tensor, torch.Tensor]:
     and what a lamp at the right adds (a broad blob); albedo with posters and a floor."""
     g = torch.Generator().manual_seed(3)
     yy, xx = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
-    albedo = 0.35 + 0.3 * torch.nn.functional.avg_pool2d(torch.rand(1, 3, H, W, generator=g), 5, 1, 2)[0].permute(1, 2, 0)
+    albedo = 0.35 + 0.3 * torch.nn.functional.avg_pool2d(torch.rand(1, 3, H, W, generator=g), 5, 1, 2)[0].permute(
+        1, 2, 0
+    )
     albedo[10:30, 15:40] = torch.tensor([0.7, 0.2, 0.15])  # a poster
     albedo[50:, :] *= 0.5  # the floor
     stay = albedo * (0.08 + 0.1 * (1 - yy))[..., None]
@@ -41,7 +43,9 @@ def lit(lamp_course) -> torch.Tensor:
     return torch.stack([stay + float(lamp_course(t)) * lamp for t in range(T)])
 
 
-def walk_through(linear: torch.Tensor, brightness: float, first: int = 3, last: int = 12) -> tuple[torch.Tensor, torch.Tensor]:
+def walk_through(
+    linear: torch.Tensor, brightness: float, first: int = 3, last: int = 12
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The clip with a textured figure (a sixth of the width, 70 % of the height) walking left to
     right over frames first..last; and where it is [T, H, W]."""
     g = torch.Generator().manual_seed(7)
@@ -274,7 +278,9 @@ def test_a_still_camera_taken_for_moving_is_not_given_a_turn_from_its_pixels(mon
 
     walked, _ = walk_through(lit(lambda t: 1.0), 0.003)
     frames = frames_of(walked)
-    monkeypatch.setattr(tracking, "detect_motion", lambda features, width: MotionDecision(True, 1.0, 0.01, "forced", {}))
+    monkeypatch.setattr(
+        tracking, "detect_motion", lambda features, width: MotionDecision(True, 1.0, 0.01, "forced", {})
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         result = tracking.track_camera(frames, Intrinsics.from_hfov(frames.shape[2], frames.shape[1], 60.0))

@@ -9,8 +9,7 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.camera import Camera, Intrinsics, identity_pose
 from core.chrome_ball import (
@@ -81,7 +80,9 @@ def test_ball_radius_gives_requested_projected_minor_diameter(uv):
     center, radius = place_probe(cam, uv, 2.5, diameter_fraction=0.25)
     poly = silhouette_polygon(cam, center, radius)
     radial = poly.mean(0) - torch.tensor([cam.intrinsics.cx, cam.intrinsics.cy], dtype=torch.float64)
-    perp = torch.tensor([-radial[1], radial[0]]) if radial.norm() > 1e-9 else torch.tensor([1.0, 0.0], dtype=torch.float64)
+    perp = (
+        torch.tensor([-radial[1], radial[0]]) if radial.norm() > 1e-9 else torch.tensor([1.0, 0.0], dtype=torch.float64)
+    )
     perp = perp / perp.norm()
     width = float((poly @ perp).max() - (poly @ perp).min())
     assert width == pytest.approx(0.25 * 48, rel=1e-3)
@@ -250,7 +251,9 @@ def test_gradient_flows_from_pixels_to_radiance():
     env = torch.rand(16, 32, 3, requires_grad=True)
     layer = render_balls(cam, center[None], torch.tensor([radius]), env[None])
     layer.radiance.sum().backward()
-    assert env.grad is not None and float(env.grad.sum()) == pytest.approx(3 * float(layer.total_coverage.sum()), rel=1e-4)
+    assert env.grad is not None and float(env.grad.sum()) == pytest.approx(
+        3 * float(layer.total_coverage.sum()), rel=1e-4
+    )
 
 
 @settings(max_examples=25, deadline=None)
@@ -327,7 +330,8 @@ def test_posed_camera_renders_the_same_image_with_rotated_directions():
     angle = 0.7
     pose = identity_pose()
     pose[:3, :3] = torch.tensor(
-        [[math.cos(angle), 0.0, math.sin(angle)], [0.0, 1.0, 0.0], [-math.sin(angle), 0.0, math.cos(angle)]], dtype=torch.float64
+        [[math.cos(angle), 0.0, math.sin(angle)], [0.0, 1.0, 0.0], [-math.sin(angle), 0.0, math.cos(angle)]],
+        dtype=torch.float64,
     )
     pose[:3, 3] = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
     moved = make_camera(pose=pose)

@@ -12,8 +12,8 @@ import torch
 
 from cli.main import build_parser, main
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 from core.fields.kinds.mlp import MLPSettings
+from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 from core.lights import extract_dominant_light
 
 BOUNDS = SceneBounds((-1.0, -1.0, -3.0), (1.0, 1.0, 0.0), t0=0.0, t1=2.0)
@@ -39,7 +39,10 @@ def envmap_at(artefact_dir, t, height):
     ("env", [], "cannot tell the format"),
 ])
 def test_envmap_refuses_a_file_name_that_disagrees_with_the_format(artefact_dir, tmp_path, capsys, name, argv, message):
-    assert main(["envmap", str(artefact_dir), "--x", X, "--t", "1", "--height", "4", *argv, "-o", str(tmp_path / name)]) == 2
+    assert (
+        main(["envmap", str(artefact_dir), "--x", X, "--t", "1", "--height", "4", *argv, "-o", str(tmp_path / name)])
+        == 2
+    )
     assert message in capsys.readouterr().err and not (tmp_path / name).exists()
     assert main(["envmap", str(artefact_dir), "--x", X, "--t", "1", "--height", "4", "--format", "png",
                  "-o", str(tmp_path / "ok.png")]) == 0
@@ -94,7 +97,9 @@ def test_sh_json_is_the_apis_model_in_every_layout(artefact_dir, capsys, layout)
     assert set(raw["dominant_light"]) == set(SphericalHarmonics.model_fields["dominant_light"].annotation.model_fields)
     assert doc.layout == layout and doc.extrapolated.x is False and doc.t == 0.5
     light = extract_dominant_light(envmap_at(artefact_dir, 0.5, 128))
-    np.testing.assert_allclose(unpack(doc.coefficients, layout), light.ambient_sh.double().numpy(), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(
+        unpack(doc.coefficients, layout), light.ambient_sh.double().numpy(), rtol=1e-5, atol=1e-7
+    )
     np.testing.assert_allclose(doc.dominant_light.intensity, light.intensity_rgb.tolist(), rtol=1e-5)
 
 
@@ -108,9 +113,13 @@ def test_cubemap_ktx2_holds_prefiltered_mips(artefact_dir, tmp_path):
     assert [lv.shape[1] for lv in levels] == [8, 4]  # default: down to the smallest face of 4 texels
     mirror = equirect_to_cubemap(envmap_at(artefact_dir, 1.0, 16), 8).numpy()
     np.testing.assert_allclose(levels[0][..., :3], mirror, rtol=2e-3, atol=1e-4)
-    assert main(["cubemap", str(artefact_dir), "--x", X, "--t", "1", "--size", "6", "-o", str(tmp_path / "c.ktx2")]) == 2
+    assert (
+        main(["cubemap", str(artefact_dir), "--x", X, "--t", "1", "--size", "6", "-o", str(tmp_path / "c.ktx2")]) == 2
+    )
     assert main(["cubemap", str(artefact_dir), "--x", X, "--t", "1", "--size", "4", "-o", str(tmp_path / "faces")]) == 0
-    assert sorted(p.name for p in (tmp_path / "faces").iterdir()) == sorted(f"{n}.exr" for n in ("px", "nx", "py", "ny", "pz", "nz"))
+    assert sorted(p.name for p in (tmp_path / "faces").iterdir()) == sorted(
+        f"{n}.exr" for n in ("px", "nx", "py", "ny", "pz", "nz")
+    )
 
 
 def test_gltf_command_writes_a_glb_the_khronos_validator_accepts(artefact_dir, tmp_path, node_consumers):
@@ -149,7 +158,25 @@ def test_sequence_command_writes_frames_over_time(artefact_dir, tmp_path):
             data = z.read(f["file"])
             np.testing.assert_allclose(read_exr(data), envmap_at(artefact_dir, f["t"], 4).numpy(), rtol=1e-6)
             assert read_exr_header(data)["lightfield:time"] == f["t"]
-    assert main(["sequence", str(artefact_dir), "--x", X, "--t0", "2", "--t1", "1", "--frames", "2", "-o", str(tmp_path / "d")]) == 2
+    assert (
+        main(
+            [
+                "sequence",
+                str(artefact_dir),
+                "--x",
+                X,
+                "--t0",
+                "2",
+                "--t1",
+                "1",
+                "--frames",
+                "2",
+                "-o",
+                str(tmp_path / "d"),
+            ]
+        )
+        == 2
+    )
 
 
 def test_unity_command_writes_a_probe_grid_in_unitys_convention(artefact_dir, tmp_path, capsys):

@@ -4,10 +4,8 @@ from __future__ import annotations
 import math
 
 import pytest
-
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.priors.diffusion.conditioning import (
     binary_mask_at,

@@ -30,7 +30,9 @@ def _plane_and_ball(h=24, w=32):
     centre, r = place_probe(cam, torch.tensor([w / 2, h / 2], dtype=torch.float64), 1.5, 0.25)
     yy, xx = torch.meshgrid(torch.arange(h) + 0.5, torch.arange(w) + 0.5, indexing="ij")
     mask = (((xx - w / 2) ** 2 + (yy - h / 2) ** 2) < 9.0).float()[None]
-    probes = ProbeGeometry(centre[None].float(), torch.tensor([r], dtype=torch.float32), torch.tensor([[w / 2, h / 2]]), cam, 0, 0.0)
+    probes = ProbeGeometry(
+        centre[None].float(), torch.tensor([r], dtype=torch.float32), torch.tensor([[w / 2, h / 2]]), cam, 0, 0.0
+    )
     return ControlInputs(depth, depth, mask, probes), cam
 
 

@@ -81,7 +81,11 @@ def test_authors_release_imports_and_distils_with_the_seed_profile(imported, tmp
     assert card["version"] == 2 and card["base_family"] == "sd2" and card["unet_in_channels"] == 9
     assert card["controlnet_conditioning"] == "depth" and card["profile"] == "seed" and card["multi_ball"] is True
     rec = card["imported"]["components"]
-    assert rec["unet"]["from_pickle"] and rec["vae"]["from_pickle"] and rec["text_encoder"]["files"] == ["pytorch_model.bin"]
+    assert (
+        rec["unet"]["from_pickle"]
+        and rec["vae"]["from_pickle"]
+        and rec["text_encoder"]["files"] == ["pytorch_model.bin"]
+    )
     assert not list(d.rglob("*.bin")) and not list(d.rglob("*.pkl"))  # safetensors only, no pickle copied
     assert not (d / "feature_extractor").exists()
     from safetensors import safe_open
@@ -139,7 +143,9 @@ def test_wrong_folders_are_named(releases, tmp_path, capsys):
     from cli.main import main
 
     pipe, cn = releases["authors"]
-    assert "not an existing local directory" in _import_error("stabilityai/stable-diffusion-2-inpainting", tmp_path / "o")
+    assert "not an existing local directory" in _import_error(
+        "stabilityai/stable-diffusion-2-inpainting", tmp_path / "o"
+    )
     assert "no ControlNet" in _import_error(pipe, tmp_path / "o1")
     assert "single model folder" in _import_error(cn, tmp_path / "o2")
     broken = tmp_path / "broken"
@@ -194,7 +200,9 @@ def test_bench_diffusionlight_methods_run_on_the_imported_weights(imported, tmp_
     suite = SimpleNamespace(capture_dir=tmp_path / "in.png", global_time=0.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        env = diffusion_centre_envmap(names["diffusionlight"], suite, preset("draft").with_overrides({"distill.work_height": 24}), 8)
+        env = diffusion_centre_envmap(
+            names["diffusionlight"], suite, preset("draft").with_overrides({"distill.work_height": 24}), 8
+        )
     assert env.shape == (8, 16, 3) and torch.isfinite(env).all() and float(env.max()) > 0
 
 

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 import torch
 
+from authors_reference import reference_control, reference_pipeline, reference_prompts, reference_target
 from core.camera import Camera, Intrinsics, identity_pose
 from core.conventions import tonemap
 from core.priors.base import PriorRequest, ProbeGeometry
 from core.priors.diffusion.loading import load_components
 from core.priors.diffusion.prior import DiffusionPrior, control_inputs
 from core.priors.diffusion.seed import SeedTrace, authors_substeps
-from authors_reference import reference_control, reference_pipeline, reference_prompts, reference_target
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 S = 32  # tiny model resolution = frame size

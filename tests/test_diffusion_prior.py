@@ -272,7 +272,10 @@ def test_registry_passes_the_profile_and_the_worker_keeps_one_prior_per_profile(
     from core.priors.registry import build_prior
     from worker.prior_cache import cached_prior
 
-    assert build_prior("diffusion", {"weights": str(tiny_dir), "profile": "diffusionlight"}).profile.name == "diffusionlight"
+    assert (
+        build_prior("diffusion", {"weights": str(tiny_dir), "profile": "diffusionlight"}).profile.name
+        == "diffusionlight"
+    )
     assert build_prior("diffusion", {"weights": str(tiny_dir)}).profile.name == "paper"  # the card's
     with pytest.raises(PriorError, match="profile"):
         build_prior("diffusion", {"weights": str(tiny_dir), "profile": "authors"})

@@ -53,7 +53,9 @@ def write_samples(root: Path, count: int = 3, res=RES, seed: int = 0) -> Path:
         write_png(d / "ball_mask.png", mask.astype(np.uint8) * 255)
         write_depth_npz(d / "depth_with_balls.npz", depth)
         (d / "meta.json").write_text(json.dumps({"balls": balls, "intrinsics": {}, "c2w": np.eye(4).ravel().tolist()}))
-    (root / "dataset.json").write_text(json.dumps({"format": "lightfield-balls", "version": 1, "count": count, "resolution": list(res)}))
+    (root / "dataset.json").write_text(
+        json.dumps({"format": "lightfield-balls", "version": 1, "count": count, "resolution": list(res)})
+    )
     return root
 
 
@@ -77,10 +79,14 @@ def test_dataset_reads_the_format(data_dir):
 def test_dataset_errors_name_the_problem(data_dir, tmp_path):
     with pytest.raises(TrainingDataError, match="dataset.json"):
         read_dataset_info(tmp_path)
-    (tmp_path / "dataset.json").write_text(json.dumps({"format": "other", "version": 1, "count": 1, "resolution": [4, 4]}))
+    (tmp_path / "dataset.json").write_text(
+        json.dumps({"format": "other", "version": 1, "count": 1, "resolution": [4, 4]})
+    )
     with pytest.raises(TrainingDataError, match="format"):
         read_dataset_info(tmp_path)
-    (tmp_path / "dataset.json").write_text(json.dumps({"format": "lightfield-balls", "version": 1, "count": 1, "resolution": [4, 4]}))
+    (tmp_path / "dataset.json").write_text(
+        json.dumps({"format": "lightfield-balls", "version": 1, "count": 1, "resolution": [4, 4]})
+    )
     with pytest.raises(TrainingDataError, match="000000: missing image_with_balls.exr"):
         read_dataset_info(tmp_path)
 
@@ -160,7 +166,9 @@ def test_a_few_steps_overfit_a_fixed_batch(tiny_dir, data_dir):
     from core.priors.diffusion.exposure import ExposureConditioner
     from core.priors.diffusion.network import InpaintNetwork
 
-    cond = ExposureConditioner(comps.text_encoder, comps.tokenizer, comps.card.prompts.max, comps.card.prompts.min, comps.card.ev_min)
+    cond = ExposureConditioner(
+        comps.text_encoder, comps.tokenizer, comps.card.prompts.max, comps.card.prompts.min, comps.card.ev_min
+    )
     net = InpaintNetwork(comps.unet, comps.controlnet).requires_grad_(True).train()
     batch = torch.utils.data.default_collate([BallDataset(data_dir, (32, 48))[i] for i in range(2)])
     draws = sample_draws(torch.Generator().manual_seed(1), 2, (4, 4, 6), -5.0, 1000, 0.1)

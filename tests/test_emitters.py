@@ -1,4 +1,6 @@
-"""Emitters: small bright sources as explicit spheres (core.fields.components.emitters, core.engine.emitter_detection)."""
+"""Emitters: small bright sources as explicit spheres (core.fields.components.emitters,
+core.engine.emitter_detection)."""
+
 from __future__ import annotations
 
 import math
@@ -47,14 +49,18 @@ def test_a_lamp_has_its_energy_at_every_map_resolution(height):
     from core.conventions import equirect_directions
 
     peak = luminance(lit).flatten().argmax()
-    assert float(equirect_directions(height).reshape(-1, 3)[peak] @ torch.tensor([1.0, 0.0, 0.0])) > math.cos(2.5 * math.pi / height)
+    assert float(equirect_directions(height).reshape(-1, 3)[peak] @ torch.tensor([1.0, 0.0, 0.0])) > math.cos(
+        2.5 * math.pi / height
+    )
 
 
 def test_inside_a_lamp_and_at_extreme_intensity_the_answer_stays_finite():
     field = field_with_lamp([1e30, 1e30, 1e30])
     with torch.no_grad():
         inside = field.envmaps(torch.tensor([[1.5, 0.0, 0.0]]), None, 16)[0]
-        rows = field(torch.tensor([[1.5, 0.0, 0.0], [0.0, 0.0, 0.0]]), None, torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
+        rows = field(
+            torch.tensor([[1.5, 0.0, 0.0], [0.0, 0.0, 0.0]]), None, torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+        )
     assert torch.isfinite(inside).all() and (inside > 0).all()
     with torch.no_grad():
         field.emitters.log_intensity.fill_(1e4)  # a corrupt or runaway intensity stays finite too

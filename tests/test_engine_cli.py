@@ -38,7 +38,9 @@ def test_estimate_bad_params_exit_2_naming_the_field(tmp_path, capsys):
     code = main(["estimate", str(tmp_path / "in.png"), "-o", str(tmp_path / "o"), "--params", '{"fps": -1}'])
     assert code == 2 and "fps" in capsys.readouterr().err
     np.savez(tmp_path / "d.npz", depth=np.ones((5, 5), np.float32))
-    code = main(["estimate", str(tmp_path / "in.png"), "-o", str(tmp_path / "o"), "--depth", str(tmp_path / "d.npz"), "--quiet"])
+    code = main(
+        ["estimate", str(tmp_path / "in.png"), "-o", str(tmp_path / "o"), "--depth", str(tmp_path / "d.npz"), "--quiet"]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "depth" in err and "5x5" in err
     assert not (tmp_path / "o").exists()
@@ -56,7 +58,18 @@ def test_preview_png_changes_only_the_objects(estimated, tmp_path):
 
 def test_preview_rejects_bad_points(estimated, tmp_path, capsys):
     tmp, _ = estimated
-    code = main(["preview", str(tmp / "out"), "--input", str(tmp / "in.png"), "--points", "2,0.5", "-o", str(tmp_path / "p.png")])
+    code = main(
+        [
+            "preview",
+            str(tmp / "out"),
+            "--input",
+            str(tmp / "in.png"),
+            "--points",
+            "2,0.5",
+            "-o",
+            str(tmp_path / "p.png"),
+        ]
+    )
     assert code == 2 and "points[0]" in capsys.readouterr().err
 
 

@@ -45,7 +45,9 @@ def test_exact_estimate_scores_zero_and_a_global_scale_is_only_stops(tmp_path):
     # the constant baseline (mean of the two estimates) has the light in two places: worse
     assert all(r["constant"]["si_rmse"] > r["field"]["si_rmse"] + 1e-3 for r in rows)
     # the AR main light of an exact estimate is found where the truth's is
-    assert rows[0]["main_light"]["found"] and rows[0]["main_light"]["angle_to_truth_deg"] == pytest.approx(0.0, abs=1e-3)
+    assert rows[0]["main_light"]["found"] and rows[0]["main_light"]["angle_to_truth_deg"] == pytest.approx(
+        0.0, abs=1e-3
+    )
     assert "Main light (AR: /sh) found at" in demo.format_table(rows)
 
 
@@ -60,8 +62,20 @@ def test_constant_baseline_equals_the_field_when_the_field_is_constant(tmp_path)
 
 def test_table_counts_wins_and_averages_absolute_stops():
     rows = [
-        {"probe": 0, "x": [0, 1, 2], "t": 0, "field": {"si_rmse": 0.1, "stops": -1.0}, "constant": {"si_rmse": 0.2, "stops": 2.0}},
-        {"probe": 1, "x": [1, 1, 2], "t": 0, "field": {"si_rmse": 0.4, "stops": 1.0}, "constant": {"si_rmse": 0.3, "stops": 0.0}},
+        {
+            "probe": 0,
+            "x": [0, 1, 2],
+            "t": 0,
+            "field": {"si_rmse": 0.1, "stops": -1.0},
+            "constant": {"si_rmse": 0.2, "stops": 2.0},
+        },
+        {
+            "probe": 1,
+            "x": [1, 1, 2],
+            "t": 0,
+            "field": {"si_rmse": 0.4, "stops": 1.0},
+            "constant": {"si_rmse": 0.3, "stops": 0.0},
+        },
     ]
     table = demo.format_table(rows)
     assert "at 1 of 2 probes" in table

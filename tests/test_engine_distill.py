@@ -8,8 +8,7 @@ import torch
 from core.capture.load import capture_from_arrays
 from core.chrome_ball import place_probe
 from core.conventions import equirect_directions
-from core.engine import run_job
-from core.engine import trainer as trainer_module
+from core.engine import run_job, trainer as trainer_module
 from core.engine.distill import distill
 from core.engine.params import JobParams
 from core.engine.presets import preset
@@ -134,7 +133,10 @@ def test_resume_from_checkpoint_equals_uninterrupted_run(tmp_path):
         prior = ReprojectionPrior(env_height=8)
         prior.bind(cap)
         done = []
-        rep = Reporter(lambda p: done.append(p.iteration), (lambda: bool(done) and done[-1] >= cancel_after) if cancel_after else None)
+        rep = Reporter(
+            lambda p: done.append(p.iteration),
+            (lambda: bool(done) and done[-1] >= cancel_after) if cancel_after else None,
+        )
         return distill(cap, prior, cfg, uses_time=True, seed=3, reporter=rep, checkpoint_dir=ckpt)
 
     full = run(None)
@@ -184,7 +186,10 @@ def test_hard_cases_stay_finite(case):
     prior = ReprojectionPrior(env_height=8)
     if case == "tiny_bright_light":
         def fn(x, t, d):  # 1e4 x the room in a ~1 degree lobe
-            return (0.1 + 1e3 * torch.exp(((d * torch.tensor([0.0, 1.0, 0.0])).sum(-1, keepdim=True) - 1) / 1e-4)).expand(-1, 3)
+            return (
+                0.1 + 1e3 * torch.exp(((d * torch.tensor([0.0, 1.0, 0.0])).sum(-1, keepdim=True) - 1) / 1e-4)
+            ).expand(-1, 3)
+
         prior = KnownRadiancePrior(fn)
     elif case == "all_dark":
         frames = torch.zeros(2, H, W, 3)
@@ -321,7 +326,8 @@ def test_cuda_without_cuda_is_a_clear_error(monkeypatch, tmp_path):
 
 def test_away_from_the_camera_the_field_shows_what_its_prior_saw_with_parallax():
     """A photo of a red / blue wall 2 m away: after even 5 steps the field at probes 1.3 m or more
-    from the camera (beyond the view detail's reach) answers every direction its prior saw as the prior does (the observed
+    from the camera (beyond the view detail's reach) answers every direction its prior saw as the prior does (the
+    observed
     surfaces, core.fields.components.surfaces), and the red-blue edge moves with the probe."""
     frame = torch.zeros(H, W, 3)
     frame[:, : W // 2] = torch.tensor([0.8, 0.1, 0.1])

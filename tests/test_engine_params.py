@@ -69,7 +69,7 @@ def test_uniform_exposure_ablation_covers_the_range_and_repeats_per_step():
 
 
 def test_presets_schedules():
-    for name, engine in PRESETS.items():
+    for engine in PRESETS.values():
         cfg = engine.distill
         assert cfg.ev_at(0) == 0.0
         assert cfg.ev_at(cfg.iterations - 1) == pytest.approx(cfg.ev_min)

@@ -3,8 +3,7 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.conventions import equirect_directions, theta_phi_to_direction
 from core.envmap import (
@@ -55,7 +54,8 @@ def test_integrate_constant_and_cosine():
 def test_irradiance_of_uniform_map_is_pi_L():
     c = torch.full((32, 64, 3), 0.5, dtype=torch.float64)
     n = torch.tensor([[0.0, 1.0, 0.0], [0.6, 0.0, -0.8]], dtype=torch.float64)
-    assert torch.allclose(irradiance(c, n), torch.full((2, 3), 0.5 * math.pi, dtype=torch.float64), rtol=3e-3)  # kink at the horizon: midpoint rule
+    # kink at the horizon: midpoint rule
+    assert torch.allclose(irradiance(c, n), torch.full((2, 3), 0.5 * math.pi, dtype=torch.float64), rtol=3e-3)
 
 
 def test_sample_at_pixel_centres_returns_the_pixels():
@@ -104,7 +104,9 @@ def test_sampling_is_continuous_across_the_seam(theta, dphi, height):
 
 
 @settings(max_examples=150, deadline=None)
-@given(st.floats(-math.pi, math.pi), st.floats(-math.pi, math.pi), st.sampled_from([0.0, 1e-12, 1e-7]), st.integers(1, 12))
+@given(
+    st.floats(-math.pi, math.pi), st.floats(-math.pi, math.pi), st.sampled_from([0.0, 1e-12, 1e-7]), st.integers(1, 12)
+)
 def test_sampling_at_and_near_poles_is_finite_and_phi_independent(phi_a, phi_b, eps, height):
     e = torch.rand(height, 2 * height, 3, dtype=torch.float64) + 0.1
     for pole_theta in (0.0, math.pi):
@@ -167,7 +169,9 @@ def test_rotation_by_90_degrees_about_y_moves_forward_content_to_minus_x():
     h = 32
     c, s = 0.0, 1.0
     R = torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=torch.float64)
-    assert torch.allclose(R @ torch.tensor([0, 0, -1.0], dtype=torch.float64), torch.tensor([-1.0, 0, 0], dtype=torch.float64))
+    assert torch.allclose(
+        R @ torch.tensor([0, 0, -1.0], dtype=torch.float64), torch.tensor([-1.0, 0, 0], dtype=torch.float64)
+    )
     e = envmap_from_function(lambda d: (-d[..., 2]).clamp_min(0) ** 8, h, dtype=torch.float64)  # lobe at -z
     rotated = rotate_envmap(e, R)
     expected = envmap_from_function(lambda d: (-d[..., 0]).clamp_min(0) ** 8, h, dtype=torch.float64)  # lobe at -x

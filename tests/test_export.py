@@ -12,7 +12,7 @@ import torch
 
 from core.conventions import equirect_directions
 from core.cubemap import cubemap_directions, sample_cubemap
-from core.envmap import irradiance, sample_envmap, solid_angles
+from core.envmap import sample_envmap, solid_angles
 from core.sh import eval_sh, project_sh, sh_irradiance
 
 H = 32
@@ -97,7 +97,6 @@ def test_ktx2_cube_round_trip_and_header():
 # ------------------------------------------------------------------------------ glTF
 def test_glb_structure_rgbd_round_trip_and_irradiance_sh():
     from core.export.gltf import build_glb, read_glb, rgbd_decode
-    from core.io.images import read_image
 
     env = lamp_map(32) * 10  # peak 800 > RGBD's 255: the intensity multiplier must carry it
     from core.export.prefilter import prefiltered_cubemap
@@ -153,7 +152,7 @@ def test_envmap_exr_carries_colour_space_probe_time_units_and_artefact():
 def test_usdz_opens_in_usd_core_with_a_dome_light_in_openexr_latlong():
     """The .usdz usd-core packaged (UsdUtils.CreateNewARKitUsdzPackage) opens in usd-core, passes all
     its validators, and its DomeLight's texture is our map in OpenEXR's latlong layout."""
-    pxr = pytest.importorskip("pxr", reason="usd-core is a dev dependency (pip install usd-core)")
+    pytest.importorskip("pxr", reason="usd-core is a dev dependency (pip install usd-core)")
     from pxr import Usd, UsdLux, UsdValidation
 
     from core.export.usd import openexr_latlong_direction, usdz

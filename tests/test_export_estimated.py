@@ -49,7 +49,10 @@ def test_main_light_on_a_field_estimated_from_a_panorama_capture(panorama_field)
               f"confidence {light.confidence:.2f}, found {light.found}")
     found_off = [off for off, found, _ in rows if found]
     broken = [off for off, found, _ in rows if found and off > 20.0]
-    print(f"found {len(found_off)} of {len(rows)}; found but > 20 deg off: {len(broken)} ({', '.join(f'{o:.0f}' for o in broken)})")
+    print(
+        f"found {len(found_off)} of {len(rows)}; found but > 20 deg off: {len(broken)} "
+        f"({', '.join(f'{o:.0f}' for o in broken)})"
+    )
     # What holds today (docs/integrations.md): most found lights are within 20 deg, the median is;
     # NOT the full contract: the estimated field's own lamp blob is 17-47 deg off at some probes and
     # the fit, which reads the map, follows it with confidence 0.11-0.21.

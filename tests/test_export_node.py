@@ -6,7 +6,6 @@ import json
 import math
 
 import numpy as np
-import pytest
 import torch
 
 from core.envmap import irradiance
@@ -81,7 +80,13 @@ def test_ktx2_cube_mips_parse_in_threes_ktx_parse(node_consumers, tmp_path):
         mips = [m.numpy() * scale for m in prefiltered_cubemap(lamp_map(16), 8, levels=3)]
         (tmp_path / "cube.ktx2").write_bytes(encode_ktx2_cubemap(mips))
         ktx = run_consumer("ktx2", tmp_path / "cube.ktx2")
-        assert (ktx["vkFormat"], ktx["typeSize"], ktx["pixelWidth"], ktx["faceCount"], ktx["levelCount"]) == (vk, type_size, 8, 6, 3)
+        assert (ktx["vkFormat"], ktx["typeSize"], ktx["pixelWidth"], ktx["faceCount"], ktx["levelCount"]) == (
+            vk,
+            type_size,
+            8,
+            6,
+            3,
+        )
         assert ktx["dfd"]["colorPrimaries"] == 1 and ktx["dfd"]["transferFunction"] == 1  # BT.709, linear
         assert ktx["dfd"]["bytesPlane"][0] == 4 * type_size
         for mine, theirs in zip(mips, ktx["levels"]):
@@ -112,8 +117,11 @@ def babylon_irradiance(tmp_path, glb: bytes, env: torch.Tensor, size: int = 64) 
     normals = list(AXES.values()) + random_dirs(32, seed=7).tolist()
     (tmp_path / "probe.glb").write_bytes(glb)
     equirect_to_cubemap(env, size).numpy().astype("<f4").tofile(tmp_path / "faces.f32")
-    (tmp_path / "req.json").write_text(json.dumps({"glb": str(tmp_path / "probe.glb"), "faces": str(tmp_path / "faces.f32"),
-                                                   "size": size, "normals": normals}))
+    (tmp_path / "req.json").write_text(
+        json.dumps(
+            {"glb": str(tmp_path / "probe.glb"), "faces": str(tmp_path / "faces.f32"), "size": size, "normals": normals}
+        )
+    )
     out = run_consumer("babylon", tmp_path / "req.json")
     out["normals"] = np.asarray(normals, np.float64)
     return out
@@ -154,7 +162,9 @@ def test_babylon_lights_the_glb_like_its_own_projection_of_the_map(node_consumer
         assert max(abs(e) for e in errors.values()) < 0.03, errors
         # what the writer did before (our signs, no phase): Babylon mirrors the light in x and y
         unphased = _rewrite_coefficients(glb, lambda c: c * np.array([1, -1, 1, -1, 1, -1, 1, -1, 1.0])[:, None])
-        wrong = axis_errors(np.asarray(babylon_irradiance(tmp_path, unphased, env)["glb"]) * scale, theirs, of_peak=True)
+        wrong = axis_errors(
+            np.asarray(babylon_irradiance(tmp_path, unphased, env)["glb"]) * scale, theirs, of_peak=True
+        )
         print(f"Babylon.js, {room}: the same without the Condon-Shortley phase (of the peak): {_fmt(wrong)}")
         assert max(abs(wrong[a]) for a in ("+x", "-x", "+y", "-y")) > 0.1
 
@@ -184,11 +194,14 @@ def test_babylon_main_light_plus_ambient_sh_give_the_maps_irradiance(node_consum
         (sun,) = out["lights"]
         assert sun["type"] == "DirectionalLight"
         np.testing.assert_allclose(sun["travels"], -light.direction.double().numpy(), atol=1e-6)
-        np.testing.assert_allclose(np.multiply(sun["diffuse"], sun["intensity"]) * scale, light.intensity_rgb.double().numpy(),
-                                   rtol=1e-5)
+        np.testing.assert_allclose(
+            np.multiply(sun["diffuse"], sun["intensity"]) * scale, light.intensity_rgb.double().numpy(), rtol=1e-5
+        )
         facing = np.clip(out["normals"] @ -np.asarray(sun["travels"]), 0, None)[:, None]
         # Babylon's diffuse IBL is E / pi; the directional light gives E = intensity x cos
-        split = np.asarray(out["glb"]) * scale * math.pi + facing * np.multiply(sun["diffuse"], sun["intensity"]) * scale
+        split = (
+            np.asarray(out["glb"]) * scale * math.pi + facing * np.multiply(sun["diffuse"], sun["intensity"]) * scale
+        )
         truth = irradiance(env.double(), torch.from_numpy(out["normals"])).numpy()  # the map's, by quadrature
         sh_only = np.asarray(out["cube"]) * math.pi  # Babylon's 9 coefficients of the whole map
         errors, sh_errors = axis_errors(split, truth, of_peak=True), axis_errors(sh_only, truth, of_peak=True)

@@ -4,8 +4,7 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.conventions import equirect_directions
 from core.envmap import equirect_stencil, pad_poles, sample_envmap
@@ -28,7 +27,14 @@ def tiny_config(kind: str, uses_time: bool = True) -> FieldConfig:
         mlp=MLPSettings(width=32, layers=3, skip_layer=2, x_freqs=2, t_freqs=1, d_freqs=3),
         grid=GridSettings(resolution=(2, 2, 2), env_height=8, time_keyframes=2),
         trunk=TrunkSettings(
-            trunk_width=32, trunk_layers=2, feature_dim=16, head_width=32, head_layers=2, x_freqs=2, d_freqs=3, x_grid=x_grid
+            trunk_width=32,
+            trunk_layers=2,
+            feature_dim=16,
+            head_width=32,
+            head_layers=2,
+            x_freqs=2,
+            d_freqs=3,
+            x_grid=x_grid,
         ),
     )
 
@@ -177,7 +183,9 @@ def smooth_log_radiance(x: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """A known smooth lighting: a warm lobe from +x/up, dimmer towards -z, varying with position;
     spans about e^-3 .. e^4 (3 decades)."""
     xn = BOUNDS.normalize_x(x)
-    lobe = 3.0 * torch.exp(4.0 * ((d * torch.nn.functional.normalize(torch.tensor([1.0, 1.0, 0.0]), dim=0)).sum(-1) - 1))
+    lobe = 3.0 * torch.exp(
+        4.0 * ((d * torch.nn.functional.normalize(torch.tensor([1.0, 1.0, 0.0]), dim=0)).sum(-1) - 1)
+    )
     base = 0.5 * d[:, 2:3] + 0.8 * xn[:, 0:1] - 0.4 * xn[:, 1:2] * d[:, 1:2]
     return base + lobe[:, None] * torch.tensor([1.0, 0.8, 0.6]) - 1.0
 
@@ -287,7 +295,9 @@ def test_time_codes_start_constant_in_time_and_interpolate_linearly(kind):
 @pytest.mark.parametrize("kind", ["mlp", "trunk"])
 def test_time_code_fields_agree_on_every_evaluation_path_and_reload(kind, tmp_path):
     field = randomise(build_field(codes_config(kind), BOUNDS), 0.3)
-    assert_paths_agree_and_reload(field, torch.tensor([[0.1, 0.2, -1.0], [1.0, 0.5, -3.0]]), torch.tensor([0.4, 2.9]), 4, tmp_path)
+    assert_paths_agree_and_reload(
+        field, torch.tensor([[0.1, 0.2, -1.0], [1.0, 0.5, -3.0]]), torch.tensor([0.4, 2.9]), 4, tmp_path
+    )
 
 
 def assert_paths_agree_and_reload(field, xs, ts, h: int, tmp_path) -> torch.Tensor:
@@ -336,7 +346,8 @@ def test_direction_grid_is_continuous_across_the_seam_and_at_the_poles():
     assert torch.allclose(a, b, atol=1e-3)
     pole = torch.tensor([[0.0, 1.0, 0.0], [eps, 1.0, 0.0], [0.0, 1.0, eps], [-eps, 1.0, -eps]])
     out = grid(pole / pole.norm(dim=-1, keepdim=True))
-    assert torch.isfinite(out).all() and (out - out[0]).abs().max() < 5e-3  # O(eps x slope): no jump with phi at the pole
+    # O(eps x slope): no jump with phi at the pole
+    assert torch.isfinite(out).all() and (out - out[0]).abs().max() < 5e-3
 
 
 def view_detail_config(kind: str, anchors=((0.0, 0.5, -1.0),)) -> FieldConfig:
@@ -356,7 +367,8 @@ def test_view_detail_is_full_at_an_anchor_fades_with_distance_and_agrees_on_ever
     maps = assert_paths_agree_and_reload(field, xs, ts, 6, tmp_path)
     with torch.no_grad():
         base = plain.envmaps(xs, ts, 6).reshape(3, -1, 3)
-    assert not torch.allclose(maps[0], base[0], rtol=1e-3) and torch.allclose(maps[2], base[2])  # detail only near the anchor
+    # detail only near the anchor
+    assert not torch.allclose(maps[0], base[0], rtol=1e-3) and torch.allclose(maps[2], base[2])
 
 
 def test_view_detail_without_anchors_is_inert_and_settings_are_validated():
@@ -412,7 +424,6 @@ def test_room_lattice_is_local_in_position_and_direction_and_validated():
     """One texel of one node moves the field only near that node and near that direction: the
     lattice cannot ring or reach across the room."""
     field = build_field(lattice_config("mlp").with_time(False), BOUNDS)
-    dirs = equirect_directions(4).reshape(-1, 3)
     at_node = torch.tensor([[-2.0, -1.0, -4.0]])  # the lattice's first node (the box corner)
     far = torch.tensor([[2.0, 2.0, 0.5]])  # the opposite corner
     with torch.no_grad():
@@ -435,7 +446,10 @@ def test_a_time_field_trains_its_lattice_late_or_drops_it():
     from core.engine.distill import lattice_for_time, lattice_start_step
 
     timed, static = lattice_config("mlp"), lattice_config("mlp").with_time(False)
-    half, never = DistillConfig(iterations=600, time_lattice_start=0.5), DistillConfig(iterations=600, time_lattice_start=1.0)
+    half, never = (
+        DistillConfig(iterations=600, time_lattice_start=0.5),
+        DistillConfig(iterations=600, time_lattice_start=1.0),
+    )
     assert lattice_for_time(timed, half).room_lattice == (3, 2, 3)
     assert lattice_for_time(timed, never).room_lattice == ()
     assert lattice_for_time(static, never).room_lattice == (3, 2, 3)

@@ -7,9 +7,9 @@ import torch
 from pydantic import Field
 
 from core.fields import FieldConfig, LightField, SceneBounds, build_field, field_kinds, register_field
-from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 from core.fields.components.settings import FieldSettings
 from core.fields.kinds.registry import FIELDS
+from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 
 LEGACY = Path(__file__).parent / "data" / "artefact-main-b8e0d65"
 BOUNDS = SceneBounds((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), 0.0, 0.0)

@@ -11,8 +11,7 @@ import torch
 from core.capture.load import capture_from_arrays
 from core.conventions import equirect_directions
 from core.engine.surface_extraction import observed_surfaces
-from core.envmap import voxel_merge
-from core.envmap import SPLAT_MIN_DISTANCE
+from core.envmap import SPLAT_MIN_DISTANCE, voxel_merge
 from core.fields import FieldConfig, SceneBounds, build_field
 from core.fields.kinds.base import EMITTER_PIXEL_SIGMA
 from tests.test_fields import assert_paths_agree_and_reload
@@ -104,7 +103,8 @@ def test_every_path_answers_the_same_and_the_artefact_reloads(tmp_path):
 
 
 def test_the_layer_costs_16_bytes_per_point_plus_12_per_knot_in_the_artefact(tmp_path):
-    """docs/engine.md's artefact-size figure ("Observed surfaces"): points (12) + used flag (4) + colours (12 per knot)."""
+    """docs/engine.md's artefact-size figure ("Observed surfaces"): points (12) + used flag (4) + colours
+    (12 per knot)."""
     from core.fields.stored.artefact import save_artefact
 
     sizes = {}

@@ -5,12 +5,11 @@ from __future__ import annotations
 import math
 
 import pytest
-
 import torch
 
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.kinds.base import EMITTER_PIXEL_SIGMA
 from core.fields.components.encodings import LOG_GAIN_LIMIT, TimeGain
+from core.fields.kinds.base import EMITTER_PIXEL_SIGMA
 from tests.test_fields import assert_paths_agree_and_reload
 
 BOX = SceneBounds((-3.0, -2.0, -3.0), (3.0, 2.0, 3.0), 0.0, 3.0)

@@ -7,9 +7,9 @@ import torch
 from core.capture.load import capture_from_arrays
 from core.engine.distill import distill, free_space_sampler
 from core.engine.free_space import FreeSpaceSampler
+from core.engine.presets import preset
 from core.engine.radiance import supervision_probes
 from core.engine.scene import scene_bounds
-from core.engine.presets import preset
 from core.priors.base import PriorCapabilities
 from core.priors.known import KnownRadiancePrior
 from core.priors.reprojection import ReprojectionPrior
@@ -37,7 +37,10 @@ def test_invalid_depth_refuses_what_lies_behind_it():
     depth[0, :, :24] = float("nan")  # the left half: a window, sky, a sensor hole
     cap = capture_from_arrays(torch.full((1, 36, 48, 3), 0.5), depth)
     sampler = FreeSpaceSampler.for_capture(cap, scene_bounds(cap))
-    left, right = torch.tensor([[-0.3, 0.0, -1.0]], dtype=torch.float64), torch.tensor([[0.3, 0.0, -1.0]], dtype=torch.float64)
+    left, right = (
+        torch.tensor([[-0.3, 0.0, -1.0]], dtype=torch.float64),
+        torch.tensor([[0.3, 0.0, -1.0]], dtype=torch.float64),
+    )
     assert not bool(sampler.free(left)) and bool(sampler.free(right))
 
 
@@ -49,7 +52,9 @@ def test_samples_lie_in_the_unpadded_box_and_in_front_of_every_frame():
     assert 0 < pts.shape[0] <= 200
     lo, hi = torch.tensor(bounds.lo, dtype=torch.float64), torch.tensor(bounds.hi, dtype=torch.float64)
     assert bool(((pts >= lo) & (pts <= hi)).all())
-    assert bool(((pts >= sampler.lo - 1e-6) & (pts <= sampler.hi + 1e-6)).all()) and bool((sampler.hi - sampler.lo < hi - lo).all())
+    assert bool(((pts >= sampler.lo - 1e-6) & (pts <= sampler.hi + 1e-6)).all()) and bool(
+        (sampler.hi - sampler.lo < hi - lo).all()
+    )
     assert bool(sampler.free(pts).all())
     assert sampler.sample(0, torch.Generator()).shape == (0, 3)
 
@@ -73,7 +78,9 @@ def out_of_view(cap, points):
 
 def test_free_probes_sit_before_the_camera_centre_and_reach_off_the_camera_rays():
     cap = wall_capture()
-    cfg = preset("draft").distill.model_copy(update={"envmap_free_probes": 3, "envmap_surface_probes": 1, "envmap_room_probes": 0})
+    cfg = preset("draft").distill.model_copy(
+        update={"envmap_free_probes": 3, "envmap_surface_probes": 1, "envmap_room_probes": 0}
+    )
     sampler = FreeSpaceSampler.for_capture(cap, scene_bounds(cap))
     off = 0
     for seed in range(20):

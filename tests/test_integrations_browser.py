@@ -7,7 +7,6 @@ Chromium: `chromium` on PATH (.ci/run installs it) or LIGHTFIELD_CHROMIUM; three
 (npm ci). Skipped, with the reason, without Chromium."""
 from __future__ import annotations
 
-import functools
 import html
 import http.server
 import json
@@ -29,8 +28,12 @@ from core.envmap import sample_envmap
 REPO = Path(__file__).resolve().parents[1]
 THREE_DIR = REPO / "tests" / "node" / "node_modules" / "three"
 CHROMIUM = os.environ.get("LIGHTFIELD_CHROMIUM") or shutil.which("chromium")
-pytestmark = [pytest.mark.browser,
-              pytest.mark.skipif(not CHROMIUM, reason="no chromium on PATH (apt-get install chromium; or set LIGHTFIELD_CHROMIUM)")]
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(
+        not CHROMIUM, reason="no chromium on PATH (apt-get install chromium; or set LIGHTFIELD_CHROMIUM)"
+    ),
+]
 
 LAMPS = (((0.6, 0.3, -0.74), (30.0, 8.0, 2.0)), ((-0.5, -0.2, 0.84), (2.0, 6.0, 20.0)))  # warm at +x, blue at -x/+z
 
@@ -53,7 +56,8 @@ def js_blocks(section: str) -> list[str]:
 
 
 HARNESS = """<!doctype html><html><body><pre id="out">pending</pre>
-<script type="importmap">{"imports": {"three": "/three/build/three.module.js", "three/addons/": "/three/examples/jsm/"}}</script>
+<script type="importmap">{"imports": {"three": "/three/build/three.module.js",
+                             "three/addons/": "/three/examples/jsm/"}}</script>
 <script type="module">
 import * as THREE from 'three';
 const out = document.getElementById('out');
@@ -129,7 +133,9 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             from core.export.products import cube_ktx2, cube_source_height
 
             size = int(q["size"])
-            data = cube_ktx2(room(cube_source_height(size)), size, int(q["levels"]), self.cube_layout or q.get("layout", "gl"))
+            data = cube_ktx2(
+                room(cube_source_height(size)), size, int(q["levels"]), self.cube_layout or q.get("layout", "gl")
+            )
             return self._send(data, "image/ktx2")
         self.send_error(404)
 
@@ -190,7 +196,10 @@ def test_threejs_ktx2_cube_recipe_builds_a_cube_three_samples_right(three_instal
     assert out["backgroundType"] in ("CubeTexture", "Texture")
     for name in ("background", "pmrem"):
         mean, worst = _errors(out[name], dirs)
-        print(f"\nthree.js KTX2 cube recipe (layout=threejs), {name}: error of the peak mean {mean:.2%}, worst {worst:.2%}")
+        print(
+            f"\nthree.js KTX2 cube recipe (layout=threejs), {name}: error of the peak mean {mean:.2%}, worst "
+            f"{worst:.2%}"
+        )
         assert mean < 0.02 and worst < 0.08, (name, mean, worst)
     # the GL-table cube three.js users were told to load before is mirrored in x there
     wrong = run_recipe(cube_block, dirs, tmp_path, cube_layout="gl")

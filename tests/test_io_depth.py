@@ -5,7 +5,16 @@ import zipfile
 import numpy as np
 import pytest
 
-from core.io import MediaError, MediaLimits, encode_depth_png16, encode_exr, encode_png, encode_png16, read_depth, write_depth_npz
+from core.io import (
+    MediaError,
+    MediaLimits,
+    encode_depth_png16,
+    encode_exr,
+    encode_png,
+    encode_png16,
+    read_depth,
+    write_depth_npz,
+)
 
 
 def _npz(**arrays) -> bytes:

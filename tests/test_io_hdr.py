@@ -4,8 +4,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.io import MediaError, MediaLimits, encode_hdr, read_hdr, write_hdr
 from core.io.hdr import float_to_rgbe, rgbe_to_float

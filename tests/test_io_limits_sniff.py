@@ -10,7 +10,9 @@ from core.io.sniff import sniff_hdr_image
 
 
 def test_limits_from_env_overrides_only_given_fields():
-    limits = MediaLimits.from_env({"LIGHTFIELD_MAX_BYTES": "1000", "LIGHTFIELD_MAX_FRAMES": "7", "LIGHTFIELD_MAX_PIXELS": ""})
+    limits = MediaLimits.from_env(
+        {"LIGHTFIELD_MAX_BYTES": "1000", "LIGHTFIELD_MAX_FRAMES": "7", "LIGHTFIELD_MAX_PIXELS": ""}
+    )
     assert limits.max_bytes == 1000 and limits.max_frames == 7
     assert limits.max_pixels == MediaLimits().max_pixels
 

@@ -115,20 +115,30 @@ def _broken(tmp_path, scene, edit):
     return exc.value
 
 
-@pytest.mark.parametrize("edit, field, code", [
-    (lambda m: m.update(frames=[]), "frames", "shape_mismatch"),
-    (lambda m: m.update(camera_model="EQUIRECTANGULAR"), "camera_model", "unsupported_codec"),
-    (lambda m: m.pop("fl_x"), "fl_x", "shape_mismatch"),
-    (lambda m: m.update(fl_x=-3), "fl_x", "shape_mismatch"),
-    (lambda m: m["frames"][1].update(file_path="images/missing.png"), "frames[1].file_path", "not_found"),
-    (lambda m: m["frames"][1].update(file_path="../../etc/passwd"), "frames[1].file_path", "not_found"),
-    (lambda m: m["frames"][1].update(file_path="/etc/passwd"), "frames[1].file_path", "not_found"),
-    (lambda m: m["frames"][2].pop("transform_matrix"), "frames[2].transform_matrix", "shape_mismatch"),
-    (lambda m: m["frames"][2].update(transform_matrix=[[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]]),
-     "frames[2].transform_matrix", "shape_mismatch"),
-    (lambda m: m["frames"][2].update(transform_matrix=[[1, 0, 0], [0, 1, 0]]), "frames[2].transform_matrix", "shape_mismatch"),
-    (lambda m: m["frames"][3].update(fl_x=200.0), "frames[3].fl_x", "shape_mismatch"),
-])
+@pytest.mark.parametrize(
+    "edit, field, code",
+    [
+        (lambda m: m.update(frames=[]), "frames", "shape_mismatch"),
+        (lambda m: m.update(camera_model="EQUIRECTANGULAR"), "camera_model", "unsupported_codec"),
+        (lambda m: m.pop("fl_x"), "fl_x", "shape_mismatch"),
+        (lambda m: m.update(fl_x=-3), "fl_x", "shape_mismatch"),
+        (lambda m: m["frames"][1].update(file_path="images/missing.png"), "frames[1].file_path", "not_found"),
+        (lambda m: m["frames"][1].update(file_path="../../etc/passwd"), "frames[1].file_path", "not_found"),
+        (lambda m: m["frames"][1].update(file_path="/etc/passwd"), "frames[1].file_path", "not_found"),
+        (lambda m: m["frames"][2].pop("transform_matrix"), "frames[2].transform_matrix", "shape_mismatch"),
+        (
+            lambda m: m["frames"][2].update(transform_matrix=[[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]]),
+            "frames[2].transform_matrix",
+            "shape_mismatch",
+        ),
+        (
+            lambda m: m["frames"][2].update(transform_matrix=[[1, 0, 0], [0, 1, 0]]),
+            "frames[2].transform_matrix",
+            "shape_mismatch",
+        ),
+        (lambda m: m["frames"][3].update(fl_x=200.0), "frames[3].fl_x", "shape_mismatch"),
+    ],
+)
 def test_bad_transforms_json_names_the_field(tmp_path, scene, edit, field, code):
     err = _broken(tmp_path, scene, edit)
     assert err.field == f"transforms.json: {field}", (err.field, str(err))

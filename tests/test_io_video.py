@@ -4,8 +4,7 @@ import io
 import av
 import numpy as np
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
+from hypothesis import given, strategies as st
 
 from core.io import MediaError, MediaLimits, read_video, select_frame_indices, write_video
 from core.io.video import video_codec
@@ -17,7 +16,9 @@ def smooth_clip() -> np.ndarray:
     """Frames whose brightness encodes the frame index (robust to chroma subsampling)."""
     y, x = np.mgrid[0:H, 0:W].astype(np.float32)
     base = 0.3 * x / W + 0.2 * y / H
-    return np.stack([np.stack([base + 0.05 * t, base + 0.04 * t, np.full_like(base, 0.1 + 0.06 * t)], -1) for t in range(T)]).astype(np.float32)
+    return np.stack(
+        [np.stack([base + 0.05 * t, base + 0.04 * t, np.full_like(base, 0.1 + 0.06 * t)], -1) for t in range(T)]
+    ).astype(np.float32)
 
 
 @pytest.fixture(scope="module")
@@ -88,7 +89,10 @@ def test_truncated_mp4(tmp_path):
     np.testing.assert_array_equal(partial.source_frame_indices, np.arange(partial.frames.shape[0]))
 
 
-@pytest.mark.parametrize("blob,code", [(b"", "empty"), (b"\x00" * 1000, "not_media"), (b"\x00\x00\x00\x20ftypisom" + bytes(200), "truncated")])
+@pytest.mark.parametrize(
+    "blob,code",
+    [(b"", "empty"), (b"\x00" * 1000, "not_media"), (b"\x00\x00\x00\x20ftypisom" + bytes(200), "truncated")],
+)
 def test_corrupt_inputs_have_specific_codes(blob, code):
     with pytest.raises(MediaError) as err:
         read_video(blob)
@@ -132,7 +136,9 @@ def _mkv(codec: str, fmt: str = "matroska", frames: int = 7) -> bytes:
         stream = container.add_stream(codec, rate=15)
         stream.width, stream.height, stream.pix_fmt = 32, 32, "yuv420p"
         for i in range(frames):
-            for packet in stream.encode(av.VideoFrame.from_ndarray(np.full((32, 32, 3), 30 * i, np.uint8), format="rgb24")):
+            for packet in stream.encode(
+                av.VideoFrame.from_ndarray(np.full((32, 32, 3), 30 * i, np.uint8), format="rgb24")
+            ):
                 container.mux(packet)
         for packet in stream.encode():
             container.mux(packet)

@@ -4,8 +4,7 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.conventions import equirect_directions
 from core.envmap import irradiance, solid_angles
@@ -83,8 +82,13 @@ def test_ambient_sh_excludes_the_light_and_split_reproduces_irradiance():
     background_sh = project_sh(BACKGROUND.expand(H, 2 * H, 3).contiguous())
     assert torch.allclose(light.ambient_sh.double(), background_sh, atol=1e-3 * float(BACKGROUND.max()))
     # a directional light of the reported intensity + ambient SH light a diffuse surface like the map
-    normals = torch.nn.functional.normalize(torch.randn(16, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64), dim=-1)
-    split = sh_irradiance(light.ambient_sh.double(), normals) + (normals @ light.direction.double()).clamp_min(0)[:, None] * light.intensity_rgb.double()
+    normals = torch.nn.functional.normalize(
+        torch.randn(16, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64), dim=-1
+    )
+    split = (
+        sh_irradiance(light.ambient_sh.double(), normals)
+        + (normals @ light.direction.double()).clamp_min(0)[:, None] * light.intensity_rgb.double()
+    )
     full = irradiance(e, normals)
     assert torch.allclose(split, full, rtol=0.03, atol=0.02 * float(full.max()))
 
@@ -152,7 +156,12 @@ def test_non_finite_and_negative_radiance_is_ignored():
 
 
 def test_huge_dynamic_range():
-    e = map_with_square(range(30, 32), range(60, 62), value=torch.full((3,), 1e6, dtype=torch.float64), background=torch.full((3,), 1e-6, dtype=torch.float64)).float()
+    e = map_with_square(
+        range(30, 32),
+        range(60, 62),
+        value=torch.full((3,), 1e6, dtype=torch.float64),
+        background=torch.full((3,), 1e-6, dtype=torch.float64),
+    ).float()
     light = extract_dominant_light(e)
     _, sr = square_truth(range(30, 32), range(60, 62))
     assert light.found and torch.isfinite(light.ambient_sh).all()
@@ -182,12 +191,25 @@ def lamp_room(lamp_center, radiance=400.0, radius=0.05):
     from core.sim.spec import AreaEmitter, Box, CameraSpec, Lamp, Room, SceneSpec
 
     return SceneSpec(
-        name="lamp-room", seed=11, room=Room(boxes=[Box(lo=(0.0, 0.0, 0.0), hi=(4.0, 2.6, 3.5))]),
-        emitters=[Lamp(name="lamp", center=lamp_center, radius=radius, radiance=(radiance, 0.8 * radiance, 0.6 * radiance)),
-                  AreaEmitter(kind="ceiling_panel", name="dim-panel", center=(2.0, 2.6, 1.7), facing="-y", size=(0.5, 0.5),
-                              radiance=(1.5, 1.5, 1.5))],
+        name="lamp-room",
+        seed=11,
+        room=Room(boxes=[Box(lo=(0.0, 0.0, 0.0), hi=(4.0, 2.6, 3.5))]),
+        emitters=[
+            Lamp(name="lamp", center=lamp_center, radius=radius, radiance=(radiance, 0.8 * radiance, 0.6 * radiance)),
+            AreaEmitter(
+                kind="ceiling_panel",
+                name="dim-panel",
+                center=(2.0, 2.6, 1.7),
+                facing="-y",
+                size=(0.5, 0.5),
+                radiance=(1.5, 1.5, 1.5),
+            ),
+        ],
         camera=CameraSpec(position=(2.0, 1.4, 3.3), yaw_deg=0.0, pitch_deg=0.0, hfov_deg=70.0),
-        frames=1, fps=10.0, resolution=(32, 24), effects=frozenset({"emission", "direct", "shadows"}),
+        frames=1,
+        fps=10.0,
+        resolution=(32, 24),
+        effects=frozenset({"emission", "direct", "shadows"}),
     )
 
 

@@ -5,8 +5,7 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.envmap import envmap_from_function
 from core.metrics import (
@@ -200,7 +199,9 @@ def _textured_map(h: int = 64, seed: int = 0) -> torch.Tensor:
     """Smooth random HDR texture over 4 stops plus a bright 'lamp'."""
     g = torch.Generator().manual_seed(seed)
     coarse = torch.randn(1, 3, h // 8, h // 4, generator=g, dtype=torch.float64)
-    log_y = torch.nn.functional.interpolate(coarse, size=(h, 2 * h), mode="bicubic", align_corners=False)[0].permute(1, 2, 0)
+    log_y = torch.nn.functional.interpolate(coarse, size=(h, 2 * h), mode="bicubic", align_corners=False)[0].permute(
+        1, 2, 0
+    )
     env = torch.exp(1.4 * log_y)
     env[h // 3 : h // 3 + 3, 10:13] = 500.0
     return env

@@ -7,14 +7,26 @@ import torch
 from core.capture.load import capture_from_arrays
 from core.conventions import equirect_directions
 from core.envmap import resize_envmap, sample_envmap
-from core.priors import (KnownRadiancePrior, Prior, PriorCapabilities, PriorConfig, PriorError, ReprojectionPrior,
-                         build_prior, job_prior_names, prior_names, register_prior)
+from core.priors import (
+    KnownRadiancePrior,
+    Prior,
+    PriorCapabilities,
+    PriorConfig,
+    PriorError,
+    ReprojectionPrior,
+    build_prior,
+    job_prior_names,
+    prior_names,
+    register_prior,
+)
 from core.priors.registry import LAZY_PRIORS, PRIORS, prior_class
 
 
 def sky(x, t, d):
     """Smooth radiance that depends on position, time and direction."""
-    return (1.0 + 0.5 * d[:, 1:2] + 0.1 * x[:, 0:1] + 0.2 * t[:, None]).clamp_min(0.05).expand(-1, 3) * torch.tensor([1.0, 0.8, 0.6])
+    return (1.0 + 0.5 * d[:, 1:2] + 0.1 * x[:, 0:1] + 0.2 * t[:, None]).clamp_min(0.05).expand(-1, 3) * torch.tensor(
+        [1.0, 0.8, 0.6]
+    )
 
 
 def test_names_come_from_the_registry():
@@ -27,7 +39,9 @@ def test_names_come_from_the_registry():
 def test_capabilities_are_declared_by_each_prior():
     from core.sim.oracle import OracleSimPrior
 
-    assert ReprojectionPrior.capabilities == PriorCapabilities(frame_geometry=True, envmaps=True, envmaps_anywhere=True, view_radiance=True)
+    assert ReprojectionPrior.capabilities == PriorCapabilities(
+        frame_geometry=True, envmaps=True, envmaps_anywhere=True, view_radiance=True
+    )
     assert not KnownRadiancePrior.capabilities.view_radiance
     assert KnownRadiancePrior.capabilities.envmaps and not KnownRadiancePrior.capabilities.frame_geometry
     assert OracleSimPrior.capabilities.envmaps and prior_class("oracle") is OracleSimPrior
@@ -67,7 +81,8 @@ def test_oracle_env_maps_are_the_simulators_truth_and_match_its_ball_radiance():
 def test_reprojection_env_maps_follow_time_and_height():
     frames = torch.stack([torch.full((24, 32, 3), 0.2), torch.full((24, 32, 3), 0.7)])
     cap = capture_from_arrays(frames, torch.full((2, 24, 32), 3.0), fps=1.0)  # t = 0 s, 1 s
-    prior = build_prior("reprojection", {"env_height": 8, "unseen_fill": "push-pull"})  # smooth maps: resizing is the subject
+    # smooth maps: resizing is the subject
+    prior = build_prior("reprojection", {"env_height": 8, "unseen_fill": "push-pull"})
     prior.bind(cap)
     c = torch.tensor([[0.0, 0.0, -1.0]])
     torch.testing.assert_close(prior.envmaps(c, 0.2, 8), prior.envmaps_at_frame(c, 0))
@@ -130,7 +145,10 @@ def test_a_new_prior_is_one_class_and_its_registration():
         assert "grey-test" in job_prior_names()
         prior = build_prior("grey-test", {"level": 0.25})
         assert prior.describe() == {"name": "grey-test", "level": 0.25}
-        assert float(sample_envmap(prior.envmaps(torch.zeros(1, 3), 0.0, 4)[0], torch.tensor([[0.0, 1.0, 0.0]]))[0, 0]) == 0.25
+        assert (
+            float(sample_envmap(prior.envmaps(torch.zeros(1, 3), 0.0, 4)[0], torch.tensor([[0.0, 1.0, 0.0]]))[0, 0])
+            == 0.25
+        )
         with pytest.raises(PriorError, match="levle"):
             build_prior("grey-test", {"levle": 1})
         with pytest.raises(ValueError, match="already registered"):

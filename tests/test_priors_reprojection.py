@@ -48,7 +48,9 @@ def test_known_prior_renders_the_function_and_keeps_background():
     # a fully covered pixel's value is the tone-mapped function averaged over its sample(s)
     full = layer.total_coverage > 0.999
     rays = req.extras["ball_rays"]
-    expect = torch.zeros(H * W, 3).index_add(0, rays.pixel_index, up(None, None, rays.direction) * rays.sample_weight[:, None])
+    expect = torch.zeros(H * W, 3).index_add(
+        0, rays.pixel_index, up(None, None, rays.direction) * rays.sample_weight[:, None]
+    )
     expect = tonemap(expect.view(H, W, 3), -1.0).permute(2, 0, 1)
     assert torch.allclose(target[:, full], expect[:, full], atol=1e-5)
 
@@ -235,7 +237,8 @@ def test_merged_views_let_a_moving_camera_see_what_other_frames_saw():
     frame 0 sees that wall in the +x direction, without merging it cannot."""
     frames = torch.full((2, H, W, 3), 0.3)
     frames[1] = 0.95
-    yaw = torch.tensor([[0.0, 0, -1, 0], [0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 0, 1]], dtype=torch.float64)  # looks along +x
+    # looks along +x
+    yaw = torch.tensor([[0.0, 0, -1, 0], [0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 0, 1]], dtype=torch.float64)
     poses = torch.stack([torch.eye(4, dtype=torch.float64), yaw])
     cap = capture_from_arrays(frames, torch.full((2, H, W), 3.0), poses=poses)
     right = torch.tensor([[1.0, 0.0, 0.0]])
@@ -421,7 +424,9 @@ def test_the_elevation_profile_is_a_setting():
     assert torch.equal(envs[None], envs[tuple(ELEVATION_GAIN)])
     plain = ReprojectionPrior(env_height=16, unseen_fill="push-pull")
     plain.bind(_capture(frames))
-    assert torch.allclose(luminance(envs[(1.0, 1.0)]), luminance(plain.envmaps(torch.zeros(1, 3), 0.0, 16)[0]), rtol=1e-4)
+    assert torch.allclose(
+        luminance(envs[(1.0, 1.0)]), luminance(plain.envmaps(torch.zeros(1, 3), 0.0, 16)[0]), rtol=1e-4
+    )
     assert not torch.allclose(envs[None], envs[(1.0, 1.0)])
     with pytest.raises(PriorError):
         ReprojectionPrior(elevation_gain=(1.0, 0.0))

@@ -77,13 +77,25 @@ def cli_run(workdir):
 
 def test_readme_lists_the_commands_it_promises():
     commands = [argv[0] for argv in cli_lines()]
-    for name in ("simulate", "estimate", "envmap", "sh", "cubemap", "gltf", "usd", "unity", "sequence", "preview", "serve"):
+    for name in (
+        "simulate",
+        "estimate",
+        "envmap",
+        "sh",
+        "cubemap",
+        "gltf",
+        "usd",
+        "unity",
+        "sequence",
+        "preview",
+        "serve",
+    ):
         assert name in commands
 
 
 def test_readme_command_line_block_runs_and_answers_inside_the_room(cli_run, workdir):
-    from core.fields.stored.artefact import LightFieldArtefact
     from core.export.ktx2 import decode_ktx2_cubemap
+    from core.fields.stored.artefact import LightFieldArtefact
     from core.io.envmap_io import load_envmap
     from core.lights import extract_dominant_light
 
@@ -174,7 +186,11 @@ def test_readme_curl_block_runs_against_lightfield_serve(cli_run, workdir, readm
 # ------------------------------------------------------------------ docs/integrations.md's recipes
 INTEGRATIONS = REPO / "docs" / "integrations.md"
 # languages whose consumer cannot run here; the page must say so next to each block
-NOT_RUNNABLE_HERE = {"python": "Not run in Blender", "csharp": "Not run in Unity", "swift": "Not run on an Apple device"}
+NOT_RUNNABLE_HERE = {
+    "python": "Not run in Blender",
+    "csharp": "Not run in Unity",
+    "swift": "Not run on an Apple device",
+}
 
 
 def integration_blocks(lang: str) -> list[str]:

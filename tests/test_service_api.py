@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 
 
-
 def _error(resp, status: int, code: str | None = None) -> dict:
     assert resp.status_code == status, resp.text
     body = resp.json()

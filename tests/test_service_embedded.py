@@ -11,7 +11,7 @@ import numpy as np
 import psutil
 import pytest
 
-from conftest import FAST_DISTILL, REPO, wait_until
+from conftest import FAST_DISTILL, REPO
 
 pytestmark = pytest.mark.slow
 

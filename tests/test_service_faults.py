@@ -12,10 +12,7 @@ from __future__ import annotations
 
 import json
 import shutil
-import os
 import signal
-import subprocess
-import sys
 import time
 
 import httpx
@@ -207,9 +204,9 @@ def test_a_crash_looping_child_is_restarted_a_bounded_number_of_times(tmp_path, 
 
 
 def test_healthz_is_503_when_a_supervised_dependency_is_down(tmp_path):
-    from service.processes import start_redis
     from service.app import create_app
     from service.config import ServiceSettings
+    from service.processes import start_redis
 
     redis = start_redis(tmp_path / "redis")
     states = {"redis": "running", "worker": "running"}

@@ -193,7 +193,9 @@ def test_nan_queries_and_malformed_bodies_get_plain_messages(alice, finished_job
 
 # -- fair queries -----------------------------------------------------------------------------------------
 def _counter(text: str, name: str) -> float:
-    return sum(float(line.split()[-1]) for line in text.splitlines() if line.startswith(name) and not line.startswith("#"))
+    return sum(
+        float(line.split()[-1]) for line in text.splitlines() if line.startswith(name) and not line.startswith("#")
+    )
 
 
 def _open_request(stack, path: str) -> socket.socket:
@@ -214,7 +216,9 @@ def test_a_long_sequence_neither_blocks_small_queries_nor_outlives_its_client(st
         waits = []
         for i in range(5):
             t0 = time.monotonic()
-            resp = alice.get(f"/lightfield/{job}/envmap", params={"x": f"0,{0.01 * i},-1", "height": 64, "format": "npy"})
+            resp = alice.get(
+                f"/lightfield/{job}/envmap", params={"x": f"0,{0.01 * i},-1", "height": 64, "format": "npy"}
+            )
             assert resp.status_code == 200
             waits.append(time.monotonic() - t0)
         assert max(waits) < 2.0, waits  # one 512-row exact frame alone takes longer than that here

@@ -67,7 +67,9 @@ def test_unity_and_arkit_endpoints_serve_the_clis_models(stack, job):
         openapi = c.get("/openapi.json").json()
     assert unity.status_code == 200, unity.text
     grid = UnityProbeGrid.model_validate(unity.json())
-    assert len(grid.probes) == 4 and grid.extrapolated_probes == 0 and unity.headers["X-Lightfield-Extrapolated"] == "none"
+    assert (
+        len(grid.probes) == 4 and grid.extrapolated_probes == 0 and unity.headers["X-Lightfield-Extrapolated"] == "none"
+    )
     far = UnityProbeGrid.model_validate(outside.json())
     assert far.extrapolated_probes == 2 and all(p.extrapolated.x for p in far.probes)
     assert outside.headers["X-Lightfield-Extrapolated"] == "x"
@@ -87,7 +89,9 @@ def test_prefiltered_cubemap_is_a_binary_ktx2(stack, job):
         resp = c.get(f"/lightfield/{job}/cubemap", params={"x": x, "size": 16, "format": "ktx2"})
         assert resp.status_code == 200 and resp.headers["content-type"] == "image/ktx2"
         levels = decode_ktx2_cubemap(resp.content)
-        npy = np.load(io.BytesIO(c.get(f"/lightfield/{job}/cubemap", params={"x": x, "size": 16, "format": "npy"}).content))
+        npy = np.load(
+            io.BytesIO(c.get(f"/lightfield/{job}/cubemap", params={"x": x, "size": 16, "format": "npy"}).content)
+        )
         assert [lv.shape[1] for lv in levels] == [16, 8, 4]
         np.testing.assert_allclose(levels[0][..., :3], npy, rtol=2e-3, atol=1e-4)
         bad = c.get(f"/lightfield/{job}/cubemap", params={"x": x, "size": 12, "format": "ktx2"})

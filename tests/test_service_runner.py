@@ -232,7 +232,9 @@ def test_a_real_celery_worker_runs_the_runner_with_an_injected_engine(redis_url,
 
     settings = JobSettings(data_dir=tmp_path, broker_url=redis_url, lease_ttl_s=2.0)
     store = JobStore(connect(redis_url))
-    rec = JobRecord(id=new_job_id(), tenant="t", tenant_hash=tenant_hash("t"), input_kind="image", input_file="input.png")
+    rec = JobRecord(
+        id=new_job_id(), tenant="t", tenant_hash=tenant_hash("t"), input_kind="image", input_file="input.png"
+    )
     store.create(rec, max_in_flight=100)
     paths = JobPaths.for_job(tmp_path, rec.tenant_hash, rec.id)
     paths.upload_dir.mkdir(parents=True)
@@ -265,7 +267,9 @@ def test_one_job_decodes_its_upload_once(redis_url, tmp_path, tiny_video, monkey
     settings = JobSettings(data_dir=tmp_path, broker_url=redis_url, lease_ttl_s=5.0,
                            distill_overrides={"iterations": 2, "work_height": 24, "warmup_steps": 1})
     r = JobRunner(JobStore(connect(redis_url)), settings, engine=run_job)
-    rec = JobRecord(id=new_job_id(), tenant="t", tenant_hash=tenant_hash("t"), input_kind="video", input_file="input.mp4")
+    rec = JobRecord(
+        id=new_job_id(), tenant="t", tenant_hash=tenant_hash("t"), input_kind="video", input_file="input.mp4"
+    )
     r.store.create(rec, max_in_flight=100)
     paths = JobPaths.for_job(tmp_path, rec.tenant_hash, rec.id)
     paths.upload_dir.mkdir(parents=True)
@@ -317,7 +321,6 @@ def test_an_engine_error_while_storage_is_unwritable_is_a_storage_fault(runner, 
 
 def test_a_resumed_run_records_the_checkpoints_iteration_then_the_final_one(runner):
     """Issue: after a restart the job was succeeded but its record still said iteration 177/600."""
-    import torch
 
     from core.engine import JobResult
     from core.fields import FieldConfig, SceneBounds, build_field

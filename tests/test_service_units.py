@@ -12,7 +12,7 @@ from hypothesis import given, settings, strategies as st
 from jobs.settings import SettingsError
 from jobs.storage import JobPaths, is_job_id, new_job_id
 from jobs.store import JobLimitReached, JobRecord, JobStore, connect
-from service.auth import AuthConfigError, KeyRing, LOCAL_TENANT, is_loopback, require_loopback, tenant_hash
+from service.auth import LOCAL_TENANT, AuthConfigError, KeyRing, is_loopback, require_loopback, tenant_hash
 from service.config import ServiceLimits, ServiceSettings
 from service.errors import BadRequest, InvalidInput, PayloadTooLarge, Unauthorized, UnsupportedMedia
 from service.queries import check_t, parse_x
@@ -115,7 +115,7 @@ def _multipart(parts: list[tuple[str, bytes]], close: bool = True) -> bytes:
     return out + (f"--{BOUNDARY}--\r\n".encode() if close else b"")
 
 
-def _read(body: bytes, tmp_path, limits=ServiceLimits(), chunk=7):
+def _read(body: bytes, tmp_path, limits=ServiceLimits(), chunk=7):  # noqa: B008 — only read
     async def chunks():
         for i in range(0, len(body), chunk):
             yield body[i:i + chunk]

@@ -3,8 +3,7 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.envmap import envmap_from_function, irradiance
 from core.sh import (
@@ -20,7 +19,9 @@ from core.sh import (
     to_arcore_27,
 )
 
-unit_vectors = st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)).filter(lambda v: sum(c * c for c in v) > 1e-4)
+unit_vectors = st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)).filter(
+    lambda v: sum(c * c for c in v) > 1e-4
+)
 
 
 def test_basis_constants_and_axes():
@@ -124,7 +125,10 @@ def test_arcore_layout_round_trip_and_interleaving():
 
 def test_arcore_coefficients_light_a_surface_like_the_arcore_sample():
     """ARCore's sample shader: irradiance/pi = sum_k sh[k] f_k P_k(n) with its published factors."""
-    factors = torch.tensor([0.282095, -0.325735, 0.325735, -0.325735, 0.273137, -0.273137, 0.078848, -0.273137, 0.136569], dtype=torch.float64)
+    factors = torch.tensor(
+        [0.282095, -0.325735, 0.325735, -0.325735, 0.273137, -0.273137, 0.078848, -0.273137, 0.136569],
+        dtype=torch.float64,
+    )
 
     def arcore_shader(sh27, n):
         x, y, z = n

@@ -67,7 +67,12 @@ def test_parse_probes():
 
 
 def test_planar_depth_of_a_wall_facing_camera_is_analytic():
-    s = SceneSpec(room=Room(boxes=[Box(lo=(0, 0, 0), hi=(4, 3, 5))]), camera=CameraSpec(position=(2.0, 1.5, 3.0), hfov_deg=60.0), resolution=(16, 12), effects=frozenset({"emission"}))
+    s = SceneSpec(
+        room=Room(boxes=[Box(lo=(0, 0, 0), hi=(4, 3, 5))]),
+        camera=CameraSpec(position=(2.0, 1.5, 3.0), hfov_deg=60.0),
+        resolution=(16, 12),
+        effects=frozenset({"emission"}),
+    )
     depth = render_frame(s, 0).depth
     # every pixel sees the wall z = 0 head-on: planar depth is the camera's z everywhere
     torch.testing.assert_close(depth, torch.full_like(depth, 3.0), rtol=1e-5, atol=1e-5)
@@ -159,7 +164,7 @@ def test_oracle_prior_keeps_pixels_outside_masks_and_matches_ground_truth():
     from core.camera import Camera
     from core.chrome_ball import ball_reflection_rays
     from core.conventions import tonemap
-    from core.priors.base import ProbeGeometry, PriorRequest
+    from core.priors.base import PriorRequest, ProbeGeometry
     from core.sim.oracle import OracleSimPrior
     from core.sim.render import radiance
 
@@ -170,12 +175,22 @@ def test_oracle_prior_keeps_pixels_outside_masks_and_matches_ground_truth():
     radii = torch.tensor([0.12, 0.1])
     u, v, _ = cam.project(centers.double())
     rays = ball_reflection_rays(cam, centers, radii, supersample=1)
-    masks = torch.zeros(2, SMALL[1] * SMALL[0]).index_put_((rays.ball_index, rays.pixel_index), rays.sample_weight, accumulate=True)
+    masks = torch.zeros(2, SMALL[1] * SMALL[0]).index_put_(
+        (rays.ball_index, rays.pixel_index), rays.sample_weight, accumulate=True
+    )
     masks = masks.reshape(2, SMALL[1], SMALL[0])
     image = torch.rand(3, SMALL[1], SMALL[0], generator=torch.Generator().manual_seed(0))
     req = PriorRequest(
-        image=image, ball_masks=masks, depth=frame.depth, ev=-1.0, tau=0.5, steps=5, guidance_scale=1.0,
-        probes=ProbeGeometry(centers=centers, radii=radii, pixels=torch.stack([u, v], -1).float(), camera=cam, frame_index=0, time=0.0),
+        image=image,
+        ball_masks=masks,
+        depth=frame.depth,
+        ev=-1.0,
+        tau=0.5,
+        steps=5,
+        guidance_scale=1.0,
+        probes=ProbeGeometry(
+            centers=centers, radii=radii, pixels=torch.stack([u, v], -1).float(), camera=cam, frame_index=0, time=0.0
+        ),
         extras={"ball_rays": rays, "frame_linear": frame.hdr},
     )
     prior = OracleSimPrior(s)
@@ -211,8 +226,12 @@ def test_envmap_conserves_a_tiny_lamps_energy_at_any_resolution():
     from core.envmap import solid_angles
 
     le, r, dist = 1e4, 0.01, 1.5
-    s = SceneSpec(room=Room(boxes=[Box(lo=(0, 0, 0), hi=(4, 3, 4))]), camera=CameraSpec(position=(2, 1.5, 3.5)),
-                  emitters=[Lamp(center=(2.0 + dist, 1.5, 2.0), radius=r, radiance=(le,) * 3)], effects=frozenset({"emission"}))
+    s = SceneSpec(
+        room=Room(boxes=[Box(lo=(0, 0, 0), hi=(4, 3, 4))]),
+        camera=CameraSpec(position=(2, 1.5, 3.5)),
+        emitters=[Lamp(center=(2.0 + dist, 1.5, 2.0), radius=r, radiance=(le,) * 3)],
+        effects=frozenset({"emission"}),
+    )
     expected = le * 2 * math.pi * (1 - math.sqrt(1 - (r / dist) ** 2))
     for height in (8, 32):
         env = render_envmap(s, (2.0, 1.5, 2.0), 0.0, height)
@@ -228,7 +247,9 @@ def test_hard_suite_has_what_it_promises():
     windows = [e for e in s.emitters if e.kind == "window"]
     assert windows and all(min(w.radiance) * 2.0 ** s.sensor.ev >= 1.0 for w in windows)  # saturate in LDR
     top = next(f.box for f in s.furniture if f.name.endswith("top"))
-    assert any(top.lo[0] < p.x[0] < top.hi[0] and top.lo[2] < p.x[2] < top.hi[2] and p.x[1] < top.lo[1] for p in s.probes)
+    assert any(
+        top.lo[0] < p.x[0] < top.hi[0] and top.lo[2] < p.x[2] < top.hi[2] and p.x[1] < top.lo[1] for p in s.probes
+    )
 
 
 def test_diffusion_trainer_reads_the_training_export(tmp_path):
@@ -252,4 +273,5 @@ def test_spec_refuses_lights_and_cameras_in_walls():
     with pytest.raises(ValidationError, match=r"emitters\[0\].*does not face into the room"):
         SceneSpec.model_validate({**base, "emitters": [window]})
     with pytest.raises(ValidationError, match="camera.position"):
-        SceneSpec.model_validate({**base, "camera": {**base["camera"], "position": [2.3, 0.73, 1.6]}})  # inside the table top
+        # inside the table top
+        SceneSpec.model_validate({**base, "camera": {**base["camera"], "position": [2.3, 0.73, 1.6]}})

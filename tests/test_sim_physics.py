@@ -5,11 +5,11 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.conventions import direction_to_equirect_pixel, equirect_directions
 from core.sim.render import radiance, render_envmap, render_frame
+from core.sim.shading import SURFACE_OFFSET
 from core.sim.spec import (
     AreaEmitter,
     Box,
@@ -20,10 +20,9 @@ from core.sim.spec import (
     RenderQuality,
     Room,
     RoomAlbedo,
-    Schedule,
     SceneSpec,
+    Schedule,
 )
-from core.sim.shading import SURFACE_OFFSET
 from core.sim.state import light_state, schedule_value
 
 ROOM = Box(lo=(0.0, 0.0, 0.0), hi=(5.0, 3.0, 4.0))
@@ -92,7 +91,11 @@ def test_small_area_emitter_matches_point_limit_and_cosines():
     a, le, side, h = 0.5, 10.0, 0.05, 3.0
     s = scene(
         room=Room(boxes=[ROOM], albedo=uniform_albedo(a)),
-        emitters=[AreaEmitter(kind="ceiling_panel", center=(2.5, 3.0, 2.0), facing="-y", size=(side, side), radiance=(le,) * 3)],
+        emitters=[
+            AreaEmitter(
+                kind="ceiling_panel", center=(2.5, 3.0, 2.0), facing="-y", size=(side, side), radiance=(le,) * 3
+            )
+        ],
         effects=frozenset({"direct"}),
     )
     v = floor_radiance_below(s, (2.5, 2.0))
@@ -102,7 +105,9 @@ def test_small_area_emitter_matches_point_limit_and_cosines():
     dx, hh = 2.0, h - 1e-3 - SURFACE_OFFSET
     off = floor_radiance_below(s, (2.5 + dx, 2.0))
     d2 = hh * hh + dx * dx
-    torch.testing.assert_close(off, torch.full((3,), a / math.pi * le * side * side * hh * hh / d2**2), rtol=5e-3, atol=0.0)
+    torch.testing.assert_close(
+        off, torch.full((3,), a / math.pi * le * side * side * hh * hh / d2**2), rtol=5e-3, atol=0.0
+    )
 
 
 def test_shadowed_point_gets_no_direct_light_from_occluded_lamp():
@@ -137,7 +142,9 @@ def _angle_between(a: torch.Tensor, b: torch.Tensor) -> float:
 def test_envmap_sees_lamp_where_geometry_says(lamp):
     probe = torch.tensor([2.0, 1.5, 2.0])
     height = 64
-    s = scene(emitters=[Lamp(center=lamp, radius=0.02, radiance=(1e4, 1e4, 1e4))], effects=frozenset({"emission", "direct"}))
+    s = scene(
+        emitters=[Lamp(center=lamp, radius=0.02, radiance=(1e4, 1e4, 1e4))], effects=frozenset({"emission", "direct"})
+    )
     env = render_envmap(s, probe.tolist(), 0.0, height=height)
     lum = env.sum(-1)
     i, j = divmod(int(lum.argmax()), 2 * height)
@@ -167,22 +174,33 @@ def test_schedule_switch_in_rendered_envmap_and_linear_dimming():
         kind="ceiling_panel", center=(2.5, 3.0, 2.0), facing="-y", size=(1.0, 1.0), radiance=(4.0,) * 3,
         schedule=Schedule(keyframes=[Keyframe(frame=k, on=False)]),
     )
-    lamp = Lamp(center=(4.0, 1.0, 1.0), radius=0.05, radiance=(100.0,) * 3,
-                schedule=Schedule(interpolation="linear", keyframes=[Keyframe(frame=0), Keyframe(frame=8, intensity=0.0)]))
+    lamp = Lamp(
+        center=(4.0, 1.0, 1.0),
+        radius=0.05,
+        radiance=(100.0,) * 3,
+        schedule=Schedule(interpolation="linear", keyframes=[Keyframe(frame=0), Keyframe(frame=8, intensity=0.0)]),
+    )
     s = scene(emitters=[panel, lamp], frames=10, fps=fps, effects=frozenset({"emission", "schedules"}))
-    up = lambda t: render_envmap(s, (2.5, 1.5, 2.0), t, height=8)[0].max()  # top row looks at the panel
+
+    def up(t):  # top row looks at the panel
+        return render_envmap(s, (2.5, 1.5, 2.0), t, height=8)[0].max()
+
     assert float(up((k - 1) / fps)) == pytest.approx(4.0)
     assert float(up(k / fps)) == 0.0
     torch.testing.assert_close(light_state(s, 4.0).lamp_radiance, torch.full((1, 3), 50.0))
     # without the 'schedules' effect, schedules are ignored
-    assert float(render_envmap(s.with_effects({"emission"}), (2.5, 1.5, 2.0), k / fps, height=8)[0].max()) == pytest.approx(4.0)
+    assert float(
+        render_envmap(s.with_effects({"emission"}), (2.5, 1.5, 2.0), k / fps, height=8)[0].max()
+    ) == pytest.approx(4.0)
 
 
 def test_fewer_effects_cast_fewer_rays():
     s = scene(
         room=Room(boxes=[ROOM]),
         furniture=[Furniture(box=Box(lo=(2.0, 0.7, 1.5), hi=(3.0, 0.75, 2.5)))],
-        emitters=[AreaEmitter(kind="ceiling_panel", center=(2.5, 3.0, 2.0), facing="-y", size=(1.0, 1.0), radiance=(4.0,) * 3)],
+        emitters=[
+            AreaEmitter(kind="ceiling_panel", center=(2.5, 3.0, 2.0), facing="-y", size=(1.0, 1.0), radiance=(4.0,) * 3)
+        ],
         effects=frozenset({"emission", "direct", "shadows", "indirect"}),
     )
     full = render_frame(s, 0).cost.rays
@@ -202,6 +220,11 @@ def test_extreme_radiance_stays_finite_and_linear(le):
         effects=frozenset({"emission", "direct", "shadows"}),
     )
     env = render_envmap(s, (2.0, 1.0, 2.0), 0.0, height=8)
-    ref = render_envmap(s.model_copy(update={"emitters": [Lamp(center=(2.5, 2.0, 2.0), radius=0.05, radiance=(1.0,) * 3)]}), (2.0, 1.0, 2.0), 0.0, height=8)
+    ref = render_envmap(
+        s.model_copy(update={"emitters": [Lamp(center=(2.5, 2.0, 2.0), radius=0.05, radiance=(1.0,) * 3)]}),
+        (2.0, 1.0, 2.0),
+        0.0,
+        height=8,
+    )
     assert bool(torch.isfinite(env).all())
     torch.testing.assert_close(env, ref * le, rtol=1e-5, atol=0.0)

@@ -4,8 +4,7 @@ from __future__ import annotations
 import math
 
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.sim.raycast import FURNITURE, MISS, ROOM, SceneGeometry, cast, filler_boxes, occluded, sphere_hits
 from core.sim.spec import Box, CameraSpec, Furniture, Room, SceneSpec
@@ -49,7 +48,9 @@ def test_ray_from_inside_a_box_room_hits_the_analytic_wall(o, d):
 
 
 def test_axis_parallel_rays_are_finite_and_exact():
-    geom, lights = geom_and_lights(Room(boxes=[Box(lo=(0, 0, 0), hi=(5, 3, 4))]), [Furniture(box=Box(lo=(2, 0, 1), hi=(3, 1, 2)))])
+    geom, lights = geom_and_lights(
+        Room(boxes=[Box(lo=(0, 0, 0), hi=(5, 3, 4))]), [Furniture(box=Box(lo=(2, 0, 1), hi=(3, 1, 2)))]
+    )
     o = torch.tensor([[2.5, 2.0, 1.5]] * 6)
     d = torch.tensor([[1.0, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
     hit = cast(geom, lights, o, d)

@@ -161,7 +161,9 @@ def test_a_burst_of_first_queries_fetches_a_field_once(store, tmp_path):
     with ThreadPoolExecutor(8) as pool:
         assert all(pool.map(lambda _: api.fetch_artefact(local), range(16)))
     assert len(fetched) == 2  # lightfield/ and preview/, once
-    assert (local.artefact_dir / "field.safetensors").read_bytes() == (paths.artefact_dir / "field.safetensors").read_bytes()
+    assert (local.artefact_dir / "field.safetensors").read_bytes() == (
+        paths.artefact_dir / "field.safetensors"
+    ).read_bytes()
 
 
 # -- several hosts: the service sharing only Redis and the object store -----------------------------------
@@ -216,8 +218,12 @@ def test_a_job_survives_its_worker_on_another_host_and_is_served_by_an_api_that_
         job = resp.json()["id"]
         assert not list(stack.host_dir("api").glob(f"uploads/*/{job}/*"))  # the API keeps no upload
         assert any(k.startswith(f"{prefix}/uploads/") for k in s3_server.keys(prefix))
-        pointer = wait_until(lambda: [k for k in s3_server.keys(prefix) if k.endswith(f"{job}/checkpoint/checkpoint.json")],
-                             120, interval_s=0.05, what="a checkpoint in the store")
+        pointer = wait_until(
+            lambda: [k for k in s3_server.keys(prefix) if k.endswith(f"{job}/checkpoint/checkpoint.json")],
+            120,
+            interval_s=0.05,
+            what="a checkpoint in the store",
+        )
         assert pointer
         runner = next(i for i in range(2) if list(stack.host_dir(f"w{i}").glob(f"artefacts/*/{job}")))
         stack.workers[runner].send_signal(signal.SIGKILL)  # the host running it dies

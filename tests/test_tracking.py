@@ -16,17 +16,16 @@ import pytest
 import torch
 
 from core.camera import Camera, Intrinsics
+from core.conventions import tonemap
+from core.exposure import luminance
 from core.sim.panorama_room import PanoramaRoom, load_panorama, render_clip
 from core.sim.state import pose_from_yaw_pitch
+from core.tracking.capture_geometry import pose_errors, resolve_geometry
 from core.tracking.features import analysis_frames, extract
 from core.tracking.geometry import relative_to_first, rotation_angle_deg
 from core.tracking.motion import detect_motion
 from core.tracking.room import RoomBox, RoomFitError, assumed_room, fit_room
-from core.tracking.capture_geometry import resolve_geometry
 from core.tracking.track import track_camera
-from core.tracking.capture_geometry import pose_errors
-from core.conventions import tonemap
-from core.exposure import luminance
 
 PANORAMA = Path(__file__).resolve().parents[1] / "assets" / "sample_panorama.hdr"
 SCENE_SCALE_M = 5.0  # the room's largest dimension
@@ -59,7 +58,10 @@ def pan(panorama):
 def walk(panorama):
     """A 1.3 m walk across the room while turning 40 deg: 12 frames, 320 x 240, 90 deg FOV."""
     intr = Intrinsics.from_hfov(320, 240, 90.0)
-    poses = [pose_from_yaw_pitch((-0.6 + 1.2 * i / 11, 0.1 * math.sin(i / 4), -0.5 * i / 11), 20 - 40 * i / 11, 0) for i in range(12)]
+    poses = [
+        pose_from_yaw_pitch((-0.6 + 1.2 * i / 11, 0.1 * math.sin(i / 4), -0.5 * i / 11), 20 - 40 * i / 11, 0)
+        for i in range(12)
+    ]
     room = PanoramaRoom(panorama, assumed_room(), torch.tensor([0.0, 0.0, -1.0]))
     ldr, depth, _ = render_clip(room, [Camera(intr, p) for p in poses])
     return ldr, depth, intr, poses
@@ -190,7 +192,9 @@ def _models_of_one_walk(drift_deg_per_frame: float, frames: int = 10, seed: int 
         observations.append((f, uv[seen] + rng.normal(0, 0.3, (len(seen), 2)), seen))
     drifted = true.copy()
     for f in range(frames):
-        drifted[f, :3, :3] = pose_from_yaw_pitch((0, 0, 0), drift_deg_per_frame * f, 0).numpy()[:3, :3] @ true[f, :3, :3]
+        drifted[f, :3, :3] = (
+            pose_from_yaw_pitch((0, 0, 0), drift_deg_per_frame * f, 0).numpy()[:3, :3] @ true[f, :3, :3]
+        )
 
     def model(poses, angle, kept=range(frames)):
         kept = list(kept)
@@ -235,7 +239,10 @@ def test_a_dim_walk_colmap_loses_from_its_first_start_is_registered_from_another
     room = PanoramaRoom(panorama.roll(panorama.shape[1] // 2, dims=1), assumed_room(), torch.zeros(3))
     hdr = torch.stack([room.render(Camera(intr, p), 1)[0] for p in poses])
     ldr = tonemap(hdr * (0.18 / float(luminance(hdr).mean())), -2.0)
-    ldr = torch.round((ldr + 0.03 * torch.randn(ldr.shape, generator=torch.Generator().manual_seed(7))).clamp(0, 1) * 255) / 255
+    ldr = (
+        torch.round((ldr + 0.03 * torch.randn(ldr.shape, generator=torch.Generator().manual_seed(7))).clamp(0, 1) * 255)
+        / 255
+    )
     images, k = analysis_frames(ldr, intr)
     track = run_sfm(images, k)
     assert [m["frames"] for m in track.stats["models"]][0] < 10  # the first start's model
@@ -250,7 +257,11 @@ def test_a_model_that_registers_more_frames_is_kept_over_a_smaller_one_that_fits
     k, model, true, drifted = _models_of_one_walk(0.3)
     fewer, more = model(true, 4.0, kept=range(8)), model(drifted, 8.0)
     chosen = choose_model([fewer, more], k)
-    assert chosen is more and chosen.stats["models"][0] == {"init_min_tri_angle_deg": 4.0, "frames": 8, "pooled_median_px": None}
+    assert chosen is more and chosen.stats["models"][0] == {
+        "init_min_tri_angle_deg": 4.0,
+        "frames": 8,
+        "pooled_median_px": None,
+    }
 
 
 def test_opencv_fallback_without_depth_tracks_fits_a_room_and_says_its_scale_is_assumed(walk):
@@ -329,7 +340,10 @@ def test_tracking_failure_falls_back_to_a_labelled_static_camera(panorama):
     """At 160 x 120 the OpenCV fallback cannot initialise this walk (too few inliers): the
     result is a labelled static camera with a warning, never an exception."""
     intr = Intrinsics.from_hfov(160, 120, 60.0)
-    poses = [pose_from_yaw_pitch((-0.6 + 1.2 * i / 11, 0.1 * math.sin(i / 4), -0.5 * i / 11), 20 - 40 * i / 11, 0) for i in range(12)]
+    poses = [
+        pose_from_yaw_pitch((-0.6 + 1.2 * i / 11, 0.1 * math.sin(i / 4), -0.5 * i / 11), 20 - 40 * i / 11, 0)
+        for i in range(12)
+    ]
     room = PanoramaRoom(panorama, assumed_room(), torch.tensor([0.0, 0.0, -1.0]))
     ldr, _, _ = render_clip(room, [Camera(intr, p) for p in poses])
     r = track_camera(ldr, intr, use_pycolmap=False)
@@ -559,7 +573,9 @@ def test_assumed_room_around_a_given_first_camera_stands_upright_in_front_of_it(
     first = pose_from_yaw_pitch((1.0, 0.4, -2.0), 70.0, 0.0)
     box = assumed_room(first_camera=first)
     # seen from that camera, it is exactly the documented room seen from the origin
-    assert torch.allclose(box.depth(Camera(intr, first)), assumed_room().depth(Camera(intr, torch.eye(4, dtype=torch.float64))))
+    assert torch.allclose(
+        box.depth(Camera(intr, first)), assumed_room().depth(Camera(intr, torch.eye(4, dtype=torch.float64)))
+    )
     # a pitched first camera does not tilt the room: the floor stays 1.5 m below it
     pitched = pose_from_yaw_pitch((1.0, 0.4, -2.0), 70.0, -20.0)
     b2 = assumed_room(first_camera=pitched)

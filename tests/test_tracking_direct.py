@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from core.sim.panorama_room import load_panorama
 from core.sim.room_scan import render_scan

@@ -25,10 +25,14 @@ KEY = TENANTS["alice"]
 pytestmark = [
     pytest.mark.browser,
     pytest.mark.slow,
-    pytest.mark.skipif(not CHROMIUM.exists(), reason="/usr/bin/chromium is absent (apt-get install chromium chromium-driver)"),
+    pytest.mark.skipif(
+        not CHROMIUM.exists(), reason="/usr/bin/chromium is absent (apt-get install chromium chromium-driver)"
+    ),
     # without a local driver selenium would try to download one
-    pytest.mark.skipif(not (CHROMEDRIVER.exists() or shutil.which("chromedriver")),
-                       reason="no chromedriver (apt-get install chromium-driver)"),
+    pytest.mark.skipif(
+        not (CHROMEDRIVER.exists() or shutil.which("chromedriver")),
+        reason="no chromedriver (apt-get install chromium-driver)",
+    ),
 ]
 
 # Enough steps for the draft field to learn the switch (24, the shared stack's setting, is not).
@@ -337,7 +341,9 @@ def test_a_bad_upload_shows_the_services_message(finished_page, browser, tmp_pat
     screenshot(browser, "7_bad_upload")
 
 
-def test_the_page_shows_the_fov_and_depth_it_used_and_re_estimates_with_a_corrected_fov(finished_page, browser, ui_stack):
+def test_the_page_shows_the_fov_and_depth_it_used_and_re_estimates_with_a_corrected_fov(
+    finished_page, browser, ui_stack
+):
     """Runs last: it submits a second job. The camera panel says which FOV and depth the light
     field was estimated with; "Re-estimate" sends the same file with the corrected FOV."""
     import httpx

@@ -7,12 +7,17 @@ import math
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from core.camera import Camera, Intrinsics
 from jobs.capture_preview import (
-    META_FILE, TENSORS_FILE, CapturePreview, preview_dir, preview_from_capture, save_preview, write_capture_preview,
+    META_FILE,
+    TENSORS_FILE,
+    CapturePreview,
+    preview_dir,
+    preview_from_capture,
+    save_preview,
+    write_capture_preview,
 )
 from service.stored_preview import PreviewError, load_preview
 from service.ui_probes import ProbeError, fallback_depth, locate, pixel_of, place, radius_ratio, surface_depth

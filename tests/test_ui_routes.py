@@ -12,8 +12,8 @@ from PIL import Image
 
 from core.camera import Intrinsics
 from core.fields import FieldConfig, SceneBounds, build_field
-from core.fields.stored.artefact import save_artefact
 from core.fields.kinds.grid import GridSettings
+from core.fields.stored.artefact import save_artefact
 from jobs.capture_preview import CapturePreview, save_preview
 from jobs.storage import JobPaths, new_job_id
 from jobs.store import JobRecord
@@ -28,7 +28,9 @@ BOUNDS = SceneBounds((-3.0, -2.0, -4.0), (3.0, 2.0, 0.5), t0=0.0, t1=(T - 1) / F
 
 def bright_field(uses_time: bool = True):
     """A 2x2x2 grid field that is the same, fairly bright, everywhere (so balls are visible)."""
-    cfg = FieldConfig(kind="grid", uses_time=uses_time, grid=GridSettings(resolution=(2, 2, 2), env_height=4, time_keyframes=2))
+    cfg = FieldConfig(
+        kind="grid", uses_time=uses_time, grid=GridSettings(resolution=(2, 2, 2), env_height=4, time_keyframes=2)
+    )
     field = build_field(cfg, BOUNDS)
     with torch.no_grad():
         for p in field.parameters():
@@ -39,10 +41,16 @@ def bright_field(uses_time: bool = True):
 def preview() -> CapturePreview:
     yy = np.linspace(0, 1, H, dtype=np.float32)[None, :, None, None]
     frames = np.broadcast_to(yy * np.array([60, 50, 40], np.float32) + 20, (T, H, W, 3)).round().astype(np.uint8)
-    return CapturePreview(frames=np.ascontiguousarray(frames + np.arange(T, dtype=np.uint8)[:, None, None, None]),
-                          depth=np.full((T, H, W), WALL, np.float32), poses=np.repeat(np.eye(4)[None], T, 0),
-                          times=(np.arange(T) / FPS).astype(np.float32), intrinsics=Intrinsics.from_hfov(W, H).as_dict(),
-                          fps=FPS, depth_source="test", source_frames=T)
+    return CapturePreview(
+        frames=np.ascontiguousarray(frames + np.arange(T, dtype=np.uint8)[:, None, None, None]),
+        depth=np.full((T, H, W), WALL, np.float32),
+        poses=np.repeat(np.eye(4)[None], T, 0),
+        times=(np.arange(T) / FPS).astype(np.float32),
+        intrinsics=Intrinsics.from_hfov(W, H).as_dict(),
+        fps=FPS,
+        depth_source="test",
+        source_frames=T,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -167,7 +175,7 @@ def test_insertion_draws_balls_at_the_probe_and_leaves_the_rest_of_the_frame(app
     ball_px = (int(0.5 * H), int(0.3 * W))
     assert diff[ball_px] > 20, "no ball at the probe"
     assert diff[:, -8:].max() <= 1 and diff[:4].max() <= 1, "pixels far from the balls changed"
-    two = png(get(client, f"/lightfield/{job}/insertion", t=0.5, points=f"0.3,0.5,2.5;0.8,0.2,2.5"))
+    two = png(get(client, f"/lightfield/{job}/insertion", t=0.5, points="0.3,0.5,2.5;0.8,0.2,2.5"))
     assert np.abs(two.astype(int) - frame.astype(int)).max(-1)[int(0.2 * H), int(0.8 * W)] > 20
 
 

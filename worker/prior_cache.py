@@ -12,7 +12,7 @@ _cache: dict[tuple[str, str, str], object] = {}
 
 def cached_prior(name: str, settings: dict, device=None):
     """`core.priors.registry.build_prior`, keeping priors whose settings name weights."""
-    from core.priors.registry import build_prior
+    from core.priors.registry import build_prior  # noqa: PLC0415 — core.priors.registry pulls in pydantic, torch: imported when used
 
     if not settings.get("weights"):
         return build_prior(name, settings, device)

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
 from jobs.errors import broker_errors, error_code_of, user_error_types
+from jobs.jobfiles import job_files
 from jobs.lease import RunLease
 from jobs.settings import JobSettings
 from jobs.storage import JobPaths, is_storage_error, remove_tree, storage_writable
@@ -57,8 +58,6 @@ class JobRunner:
     def files(self):
         """jobs.jobfiles.JobFiles: this host's directory and the shared store (a no-op by default)."""
         if self._files is None:
-            from jobs.jobfiles import job_files
-
             self._files = job_files(self.settings)
         return self._files
 
@@ -102,7 +101,7 @@ class JobRunner:
             return Outcome.SKIPPED
         log.info("job %s: run %d%s", job_id, record.attempts + 1, " (resuming)" if resumed else "")
 
-        from core.engine.progress import Cancelled
+        from core.engine.progress import Cancelled  # noqa: PLC0415 — core.engine.progress pulls in av, cv2, OpenEXR, PIL, safetensors, scipy, torch: imported when used
 
         user_errors = user_error_types()
         try:
@@ -170,14 +169,20 @@ class JobRunner:
             return Outcome.FAILED
         self.retry_delay_s = self.settings.storage_retry_delay_s(retry)
         applied = self.store.update(
-            job_id, allowed=("running", "queued"), state="queued", stage="waiting_for_storage", eta_s=None,
-            storage_retries=retry, message=f"storage error ({kind}) during {record.stage or 'the run'}: resuming from "
-                                           f"the last checkpoint in {self.retry_delay_s:g} s (retry {retry} of {limit})")
+            job_id,
+            allowed=("running", "queued"),
+            state="queued",
+            stage="waiting_for_storage",
+            eta_s=None,
+            storage_retries=retry,
+            message=f"storage error ({kind}) during {record.stage or 'the run'}: resuming from "
+            f"the last checkpoint in {self.retry_delay_s:g} s (retry {retry} of {limit})",
+        )
         return Outcome.STORAGE_RETRY if applied else Outcome.SKIPPED
 
     def _call_engine(self, record, paths: JobPaths, lease: RunLease) -> "JobResult":
-        from core.engine.params import JobParams
-        from core.io.limits import MediaLimits
+        from core.engine.params import JobParams  # noqa: PLC0415 — core.engine.params pulls in av, cv2, OpenEXR, PIL, safetensors, scipy, torch: imported when used
+        from core.io.limits import MediaLimits  # noqa: PLC0415 — core.io.limits pulls in av, cv2, OpenEXR, PIL, torch: imported when used
 
         params = JobParams.model_validate_json(record.params or "{}")
         paths.job_dir.mkdir(parents=True, exist_ok=True)
@@ -199,7 +204,7 @@ class JobRunner:
         """The artefact a previous run saved before dying (the engine renames a complete
         directory into place): finish it, don't redo it. One that fails verification is
         removed and the engine runs again (from its checkpoint), so it is never served."""
-        from core.fields.stored.artefact import META_FILE, ArtefactError, LightFieldArtefact
+        from core.fields.stored.artefact import META_FILE, ArtefactError, LightFieldArtefact  # noqa: PLC0415 — core.fields.stored.artefact pulls in safetensors, torch: imported when used
 
         self.files.pull_dir(paths.artefact_dir, first=META_FILE)  # a shared store's copy, if one was pushed
         if not (paths.artefact_dir / META_FILE).is_file():
@@ -222,7 +227,7 @@ class JobRunner:
         a previous run saved), so no API request pays for it. Optional: a failure here only
         means the API bakes on the first fast query."""
         try:
-            from core.fields.stored.bake import load_or_bake
+            from core.fields.stored.bake import load_or_bake  # noqa: PLC0415 — core.fields.stored.bake pulls in safetensors, torch: imported when used
 
             self.store.update(job_id, allowed=("running",), stage="baking", message="precomputing quality=baked")
             load_or_bake(artefact, save=True)
@@ -235,7 +240,7 @@ class JobRunner:
         (jobs.capture_preview), since the uploads are deleted when the job ends. Optional:
         without it the page cannot show frames."""
         try:
-            from jobs.capture_preview import write_capture_preview
+            from jobs.capture_preview import write_capture_preview  # noqa: PLC0415 — jobs.capture_preview pulls in numpy: imported when used
 
             write_capture_preview(capture, paths.job_dir)
         except Exception:
@@ -284,7 +289,7 @@ class JobRunner:
 
 def checkpoint_step(checkpoint_dir: Path) -> int | None:
     """The iteration a run restarting from `checkpoint_dir` resumes at (its checkpoint.json), or None."""
-    from core.engine.checkpoints import CHECKPOINT_META
+    from core.engine.checkpoints import CHECKPOINT_META  # noqa: PLC0415 — core.engine.checkpoints pulls in av, cv2, OpenEXR, PIL, safetensors, scipy, torch: imported when used
 
     try:
         step = json.loads((checkpoint_dir / CHECKPOINT_META).read_text()).get("step")

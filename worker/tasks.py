@@ -25,7 +25,7 @@ def register_distill_task(app: Celery, make_runner: Callable[[], JobRunner]):
             outcome = runner.run(job_id)
         except Exception as exc:  # e.g. Redis unreachable: keep the job, try again later
             log.exception("job %s: delivery failed, retrying", job_id)
-            raise self.retry(exc=exc, countdown=max(runner.settings.lease_ttl_s, 1.0))
+            raise self.retry(exc=exc, countdown=max(runner.settings.lease_ttl_s, 1.0))  # noqa: B904 — Celery's retry idiom
         if outcome is Outcome.STORAGE_RETRY:  # resumes from its checkpoint once the storage is back
             self.apply_async(args=[job_id], countdown=runner.retry_delay_s)
         elif outcome in (Outcome.REQUEUE, Outcome.ABANDONED):

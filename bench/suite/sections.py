@@ -42,7 +42,10 @@ def run_suite(suite: SuiteData, methods: list[Method], budget: Budget, workdir: 
     for method in methods:
         _log(f"{suite.name}: {method.name} ...")
         run = run_method(method, suite, budget.base, workdir, artefacts)
-        _log(f"{suite.name}: {method.name} prepare {run.prepare.seconds:.1f}s" + (f" ERROR {run.error}" if run.error else ""))
+        _log(
+            f"{suite.name}: {method.name} prepare {run.prepare.seconds:.1f}s"
+            + (f" ERROR {run.error}" if run.error else "")
+        )
         runs.append(run)
     per_probe = []
     for i in range(len(suite.probes)):

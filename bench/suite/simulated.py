@@ -60,7 +60,10 @@ class SuiteData:
             "effects": sorted(self.scene.effects),
             "held_out_probes": [{"x": list(p.x), "t": p.t} for p in self.probes],
             "global_probe": {"x": list(self.global_point), "t": self.global_time},
-            "series": [{"kind": s.kind, "x": list(s.x), "samples": len(s.times), "switch_frame": s.switch_frame} for s in self.series],
+            "series": [
+                {"kind": s.kind, "x": list(s.x), "samples": len(s.times), "switch_frame": s.switch_frame}
+                for s in self.series
+            ],
             "gt_height": self.eval_height,
             "render_seconds": round(self.render_seconds, 2),
         }
@@ -207,7 +210,9 @@ def load_suite(name: str, cache_dir: Path, resolution: tuple[int, int] | None, g
         scene = scene.model_copy(update={"resolution": tuple(resolution)})
     capture_dir, render_seconds = prepare_capture(scene, cache_dir, gt_height)
     doc = json.loads((capture_dir / "capture.json").read_text())
-    gt = torch.stack([torch.from_numpy(read_exr(capture_dir / p["envmap"])[..., :3].copy()).float() for p in doc["probes"]])
+    gt = torch.stack(
+        [torch.from_numpy(read_exr(capture_dir / p["envmap"])[..., :3].copy()).float() for p in doc["probes"]]
+    )
     capture = load_capture(capture_dir)
     mid = capture.num_frames // 2
     return SuiteData(

@@ -39,10 +39,10 @@ def _gradient(frames: int = 1) -> np.ndarray:
 
 def _extreme_range(d: Path, quick: bool):
     """HDR scene spanning 1e-6..1e6 tone mapped at ev 0: near-black walls, clipped bulb."""
+    import torch
+
     from core.conventions import tonemap
     from core.io.images import write_png
-
-    import torch
 
     w, h = SIZE
     y, x = np.mgrid[0:h, 0:w].astype(np.float32)
@@ -145,8 +145,16 @@ def run_case(case: Case, workdir: Path, iterations: int) -> dict:
             art = run_job(inp, depth, JobParams(preset="draft"), d / "artefact",
                           config=preset("draft").with_overrides({"distill.iterations": iterations})).artefact
             xs, ts = _queries(art)
-            hdr, flags = art.envmaps(torch.tensor(xs, dtype=torch.float32), torch.tensor(ts, dtype=torch.float32), QUERY_HEIGHT)
-        out.update({"seconds": round(m.seconds, 2), "cpu_seconds": round(m.cpu_seconds, 2), "peak_rss_delta_mb": round(m.peak_rss_delta_mb, 1)})
+            hdr, flags = art.envmaps(
+                torch.tensor(xs, dtype=torch.float32), torch.tensor(ts, dtype=torch.float32), QUERY_HEIGHT
+            )
+        out.update(
+            {
+                "seconds": round(m.seconds, 2),
+                "cpu_seconds": round(m.cpu_seconds, 2),
+                "peak_rss_delta_mb": round(m.peak_rss_delta_mb, 1),
+            }
+        )
         finite = bool(torch.isfinite(hdr).all())
         nonneg = bool((hdr >= 0).all()) if finite else False
         lo, hi = (float(hdr.min()), float(hdr.max())) if finite else (None, None)
@@ -169,7 +177,11 @@ def run_case(case: Case, workdir: Path, iterations: int) -> dict:
     except Exception as exc:  # noqa: BLE001 - a crash is a failed case, reported with its message
         out["detail"] = f"{type(exc).__name__}: {exc}"[:300]
         out["traceback"] = traceback.format_exc()[-2000:]
-    print(f"[bench] stability {case.name}: {'PASS' if out['passed'] else 'FAIL'} {out.get('detail', '')}", file=sys.stderr, flush=True)
+    print(
+        f"[bench] stability {case.name}: {'PASS' if out['passed'] else 'FAIL'} {out.get('detail', '')}",
+        file=sys.stderr,
+        flush=True,
+    )
     return out
 
 
@@ -180,11 +192,15 @@ def run_stability(quick: bool = False, workdir: Path | None = None) -> dict:
     workdir = Path(workdir or tempfile.mkdtemp(prefix="lightfield-stability-"))
     cases = [run_case(c, workdir, iterations) for c in CASES]
     return {
-        "note": (f"run_job (draft preset, {iterations} steps, reprojection prior) -> artefact -> env maps at the box centre, "
-                 f"a corner and 10 m outside, at t0, t1 and t1 + 100 s. FAIL = exception, non-finite or negative radiance, "
-                 f"unflagged extrapolation, or (long video) peak RSS increase > {LONG_VIDEO_MEMORY_LIMIT_MB:.0f} MB. "
-                 "The simulated `hard` suite (dark room, 1e4x lamp, saturated windows, compressed noisy video) runs end to end "
-                 "in the simulated section; non-finite predictions there are counted per method."),
+        "note": (
+            f"run_job (draft preset, {iterations} steps, reprojection prior) -> artefact -> env maps at the box "
+            "centre, "
+            f"a corner and 10 m outside, at t0, t1 and t1 + 100 s. FAIL = exception, non-finite or negative radiance, "
+            f"unflagged extrapolation, or (long video) peak RSS increase > {LONG_VIDEO_MEMORY_LIMIT_MB:.0f} MB. "
+            "The simulated `hard` suite (dark room, 1e4x lamp, saturated windows, compressed noisy video) runs end to "
+            "end "
+            "in the simulated section; non-finite predictions there are counted per method."
+        ),
         "cases": cases,
         "failures": sum(not c["passed"] for c in cases),
     }

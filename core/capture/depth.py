@@ -99,7 +99,10 @@ def resolve_depth(depth, T: int, H: int, W: int, intr: Intrinsics, source: str |
             filled.append(i)
             d[i] = fill_depth_holes(d[i])
     if filled:
-        warn.append(f"depth mostly invalid in {len(filled)} frame(s) (< {MIN_VALID_DEPTH_FRACTION:.0%} valid): holes filled by diffusion")
+        warn.append(
+            f"depth mostly invalid in {len(filled)} frame(s) (< {MIN_VALID_DEPTH_FRACTION:.0%} valid): holes filled by "
+            "diffusion"
+        )
     d = torch.where(valid_depth_mask(d), d, torch.full_like(d, float("nan")))
     return d, source or "file"
 

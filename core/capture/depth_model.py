@@ -27,6 +27,7 @@ import torch
 from core.camera import Intrinsics
 from core.capture.base import CaptureError
 from core.capture.depth import assumed_box_depth
+from core.conventions import DEFAULT_HFOV_DEG
 
 # Converted depth stays within this factor of the box room's median depth.
 CLAMP_RATIO = 20.0
@@ -43,7 +44,11 @@ def check_depth_model_dir(model_dir: str | os.PathLike) -> Path:
     path = Path(model_dir).expanduser()
     if not path.is_dir():
         looks_like_hub_id = "/" in str(model_dir) and not path.is_absolute() and not path.exists()
-        hint = " It looks like a Hugging Face hub id: download it yourself and give the directory." if looks_like_hub_id else ""
+        hint = (
+            " It looks like a Hugging Face hub id: download it yourself and give the directory."
+            if looks_like_hub_id
+            else ""
+        )
         raise _fail(f"{str(model_dir)!r} is not an existing local directory.{hint}")
     missing = [n for n in ("config.json", "preprocessor_config.json") if not (path / n).is_file()]
     if not any(path.glob("*.safetensors")):
@@ -109,8 +114,6 @@ class DepthEstimator:
         raw = self.predict_raw(frames)
         if self.metric:
             return torch.where(torch.isfinite(raw) & (raw > 0), raw, torch.full_like(raw, float("nan")))
-        from core.conventions import DEFAULT_HFOV_DEG
-
         intr = intrinsics or Intrinsics.from_hfov(W, H, DEFAULT_HFOV_DEG)
         return disparity_to_depth(raw, assumed_box_depth(intr))
 
@@ -125,8 +128,8 @@ def load_depth_estimator(model_dir: str | os.PathLike, batch_size: int = 4) -> D
     directories, pickled-only weights and anything transformers cannot load."""
     os.environ["HF_HUB_OFFLINE"] = "1"  # belt and braces: local_files_only below already forbids downloads
     path = check_depth_model_dir(model_dir)
-    from transformers import AutoImageProcessor, AutoModelForDepthEstimation
-    from transformers.utils import logging as tlog
+    from transformers import AutoImageProcessor, AutoModelForDepthEstimation  # noqa: PLC0415 — transformers is heavy: imported when used
+    from transformers.utils import logging as tlog  # noqa: PLC0415 — transformers is heavy: imported when used
 
     was_enabled = tlog.is_progress_bar_enabled()
     tlog.disable_progress_bar()

@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from core.capture.base import Capture
+from core.capture.highlights import CLIP_LDR
 
 DEPTH_TOLERANCE = 0.05  # relative: a reading from another frame belongs to the same surface within this
 DARK_LDR = 0.1  # LDR below which a reading's weight ramps down to 0 (8-bit quantisation and noise)
@@ -38,8 +39,6 @@ def reading_weight(ldr_luma: torch.Tensor, clipped_fraction: torch.Tensor) -> to
 def capture_reading_weights(capture: Capture) -> torch.Tensor:
     """`reading_weight` [T, H, W] of a (resized) capture's pixels: the clipped share from its full
     resolution (area-averaged LDR hides which pixels clipped), the luma from its own frames."""
-    from core.capture.highlights import CLIP_LDR
-
     src = capture.full_resolution or capture
     clipped = (src.frames.amax(-1) >= CLIP_LDR).float()
     if (src.height, src.width) != (capture.height, capture.width):
@@ -76,7 +75,9 @@ def merge_frames(capture: Capture, linear: torch.Tensor, weight: torch.Tensor) -
             grid = torch.stack([2.0 * u / W - 1.0, 2.0 * v / H - 1.0], -1).reshape(1, 1, -1, 2)
             inside = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H) & torch.isfinite(z)
             grid = torch.where(inside.reshape(1, 1, -1, 1), grid, torch.zeros_like(grid))
-            d_j = F.grid_sample(depth[j][None, None].nan_to_num(0.0), grid, mode="nearest", align_corners=False)[0, 0, 0]
+            d_j = F.grid_sample(depth[j][None, None].nan_to_num(0.0), grid, mode="nearest", align_corners=False)[
+                0, 0, 0
+            ]
             same = inside & (d_j > 0) & ((d_j - z).abs() <= DEPTH_TOLERANCE * z.abs())
             if not bool(same.any()):
                 continue

@@ -70,7 +70,8 @@ class Blob:
     area_sr: float
     halo: tuple[float | None, ...]  # mean linear luminance of rings 1..HALO_RINGS px outside (None: no pixels)
     ring_pixels: tuple[int, ...] = ()  # unclipped pixels in each ring
-    white_fraction: float = 1.0  # of its pixels, the share with ALL channels clipped (white-hot, not a coloured surface)
+    # of its pixels, the share with ALL channels clipped (white-hot, not a coloured surface)
+    white_fraction: float = 1.0
     halo_rgb: tuple[tuple[float, float, float] | None, ...] = ()  # mean linear RGB of the same rings
 
     def edge_stops(self) -> float:
@@ -142,7 +143,7 @@ def find_blobs(linear: np.ndarray, clipped: np.ndarray, pixel_sr: float) -> tupl
     """Label the clipped blobs of one frame (linear [H, W, 3] of the LDR frame, clipped [H, W]);
     labels [H, W] (0 = not clipped, k = blobs[k - 1]) and each blob's area, halo rings and
     white fraction."""
-    from scipy import ndimage
+    from scipy import ndimage  # noqa: PLC0415 — scipy is heavy: imported when used
 
     labels, n = ndimage.label(clipped, structure=np.ones((3, 3), dtype=bool))
     if n == 0:
@@ -179,8 +180,14 @@ def blob_boost(blob: Blob, coefficients=RULE_COEFFICIENTS) -> float:
     return 2.0 ** min(max(stops, 0.0), MAX_BOOST_STOPS)
 
 
-def estimate_clipped(linear: np.ndarray, clipped: np.ndarray, pixel_sr: float, coefficients=RULE_COEFFICIENTS,
-                     found: tuple[np.ndarray, list[Blob]] | None = None, stops: list[float] | None = None) -> np.ndarray:
+def estimate_clipped(
+    linear: np.ndarray,
+    clipped: np.ndarray,
+    pixel_sr: float,
+    coefficients=RULE_COEFFICIENTS,
+    found: tuple[np.ndarray, list[Blob]] | None = None,
+    stops: list[float] | None = None,
+) -> np.ndarray:
     """One frame's linear radiance [H, W, 3] with each clipped blob estimated: its pixels times
     the blob's boost, and its white-hot pixels (every channel clipped) in the spill's colour
     where the halo gives one (`Blob.spill_colour`), never below their linearised value.
@@ -203,7 +210,9 @@ def estimate_clipped(linear: np.ndarray, clipped: np.ndarray, pixel_sr: float, c
     return out
 
 
-def source_tracks(labels: list[np.ndarray], counts: list[int], min_overlap: float = TRACK_MIN_OVERLAP) -> list[list[tuple[int, int]]]:
+def source_tracks(
+    labels: list[np.ndarray], counts: list[int], min_overlap: float = TRACK_MIN_OVERLAP
+) -> list[list[tuple[int, int]]]:
     """Chains of (frame, blob index) that are one source seen by a static camera: a blob
     continues the track of the previous frame's blob it overlaps most, when that overlap is at
     least `min_overlap` of the smaller of the two and no other blob of its frame took that
@@ -247,13 +256,14 @@ def stops_over_time(found: list[tuple[np.ndarray, list[Blob]]], linear: torch.Te
     is more likely a lamp): within one source over time they point the wrong way, as a lamp
     that dims darkens its own halo and the rule then calls it brighter (the simulator's dimming
     lamp was estimated 2.1 stops brighter at the end of its clip than at its start, where its
-    luminance had fallen 2.2 stops; `python -m bench.clip_tracks`). So along a track (`source_tracks`) the level is the mean of the rule's stops, and
+    luminance had fallen 2.2 stops; `python -m bench.clip_tracks`). So along a track (`source_tracks`) the level is the
+    mean of the rule's stops, and
     the frame-to-frame changes are those of the mean luminance of a fixed ring of pixels
     (TRACK_RING_PX wide) around every frame's blob of the track, clipped in no frame: the
     surface next to a source is lit mostly by it (and glare spills in proportion to it), so
     it brightens and dims with it; fixed pixels, because a blob that dims also shrinks and
     its own rings would move. A track without such pixels keeps the rule's stops."""
-    from scipy import ndimage
+    from scipy import ndimage  # noqa: PLC0415 — scipy is heavy: imported when used
 
     stops = [[math.log2(blob_boost(b, coefficients)) for b in blobs] for _, blobs in found]
     H, W = found[0][0].shape
@@ -339,7 +349,8 @@ def linearise_highlights(frames: torch.Tensor, intrinsics, compare_frames: bool,
                          known_ratios: torch.Tensor | None = None) -> torch.Tensor:
     """LDR frames [T, H, W, 3] -> linear radiance in each frame's own units (ev 0: white = 1)
     with clipped sources estimated (`known_ratios` [T]: each frame's stated exposure relative
-    to frame 0, else estimated from the frames): exposure changes first, then the blob rule for what stays clipped. `compare_frames`: the
+    to frame 0, else estimated from the frames): exposure changes first, then the blob rule for what stays clipped.
+    `compare_frames`: the
     frames see the same radiance up to exposure (a static camera and static lighting), so
     one frame's unclipped reading may stand in for another's clipped one. `static_camera`
     (implied by `compare_frames`): a source stays at its pixels, so its blobs are followed

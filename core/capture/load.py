@@ -33,9 +33,15 @@ import torch
 from core.camera import CameraError, Intrinsics, check_rigid_pose
 from core.capture.base import Capture, CaptureError
 from core.capture.depth import resolve_depth
+from core.capture.depth_model import load_depth_estimator
 from core.capture.params import MAX_EXPOSURE_STOPS, CaptureParams
 from core.conventions import DEFAULT_HFOV_DEG, frame_time
+from core.io import read_depth, read_image, select_frame_indices, sniff_media
+from core.io.images import decode_image
 from core.io.limits import MediaLimits
+from core.io.metadata import exif_intrinsics
+from core.io.nerfstudio import load_nerfstudio
+from core.io.sniff import ZIP_MAGIC, sniff_image
 
 DEPTH_MODEL_ENV = "LIGHTFIELD_DEPTH_MODEL"
 
@@ -44,15 +50,11 @@ DEPTH_MODEL_ENV = "LIGHTFIELD_DEPTH_MODEL"
 # Readers (core.io: limits, magic-byte sniffing; MediaError propagates with its .code)
 # ---------------------------------------------------------------------------------------
 def _read_image(path: Path, limits: MediaLimits) -> torch.Tensor:
-    from core.io import read_image
-
     return torch.from_numpy(np.ascontiguousarray(read_image(path, limits=limits), dtype=np.float32))
 
 
 def _read_depth(path: Path, limits: MediaLimits) -> torch.Tensor:
     """Depth file (.npz 'depth' / .npy / .exr / 16-bit PNG mm) -> float32 [T,H,W] or [H,W], NaN invalid."""
-    from core.io import read_depth
-
     return torch.from_numpy(np.ascontiguousarray(read_depth(path, limits=limits), dtype=np.float32))
 
 
@@ -60,9 +62,6 @@ def sniff_capture_file(path: Path) -> str | None:
     """'image', 'video', 'archive' (a zip: a nerfstudio capture) or None from magic bytes. A GIF
     is a 'video' (possibly animated), as the service's upload validation classifies it, so
     every frame is decoded under the limits."""
-    from core.io import sniff_media
-    from core.io.sniff import ZIP_MAGIC, sniff_image
-
     with open(path, "rb") as f:
         head = f.read(64)
     if head.startswith(ZIP_MAGIC):
@@ -75,8 +74,6 @@ EXIF_EXPOSURE_SOURCE = "the images' EXIF: log2(exposure time x ISO / f-number^2)
 
 def _read_nerfstudio(source: Path, limits: MediaLimits) -> dict:
     """A nerfstudio capture (directory or zip with transforms.json; core.io.nerfstudio)."""
-    from core.io.nerfstudio import load_nerfstudio
-
     cap = load_nerfstudio(source, limits)
     out = {"frames": torch.from_numpy(cap.frames), "intrinsics_dict": cap.intrinsics, "poses": cap.poses,
            "poses_source": "nerfstudio transforms.json", "intrinsics_source": "nerfstudio transforms.json",
@@ -93,9 +90,6 @@ def _read_nerfstudio(source: Path, limits: MediaLimits) -> dict:
 
 def _read_image_file(path: Path, limits: MediaLimits) -> dict:
     """One image, upright and sRGB, with what its metadata says (EXIF focal length -> intrinsics)."""
-    from core.io.images import decode_image
-    from core.io.metadata import exif_intrinsics
-
     img = decode_image(path, limits)
     h, w = img.pixels.shape[:2]
     out = {"frames": torch.from_numpy(np.ascontiguousarray(img.pixels, dtype=np.float32))[None],
@@ -120,8 +114,6 @@ def _read_capture_dir(root: Path, limits: MediaLimits) -> dict:
     names = index.get("frames") or []
     if not names:
         raise CaptureError("frames", "capture.json lists no frames")
-    from core.io import select_frame_indices
-
     h, w = int(index.get("intrinsics", {}).get("height", 1)), int(index.get("intrinsics", {}).get("width", 1))
     keep = [int(i) for i in select_frame_indices(len(names), h * w, limits)]
     frames = torch.stack([_read_image(root / names[i], limits) for i in keep])
@@ -228,9 +220,9 @@ def resolve_exposures(frame_ev, T: int) -> torch.Tensor | None:
     return e
 
 
-def _estimate_depth(frames: torch.Tensor, intr: Intrinsics, model_dir: str, warn: list[str]) -> tuple[torch.Tensor, str]:
-    from core.capture.depth_model import load_depth_estimator
-
+def _estimate_depth(
+    frames: torch.Tensor, intr: Intrinsics, model_dir: str, warn: list[str]
+) -> tuple[torch.Tensor, str]:
     estimator = load_depth_estimator(model_dir)
     warn.append(f"no depth given: estimated by the model in {DEPTH_MODEL_ENV} ({estimator.depth_source}); "
                 "probe placement and reprojection are approximate")
@@ -253,7 +245,7 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
     """
     params = params or CaptureParams()
     if track:
-        from core.capture.prepare import prepare_capture
+        from core.capture.prepare import prepare_capture  # noqa: PLC0415 — import cycle through core.capture.prepare
 
         capture = prepare_capture(input_path, depth_path, params, limits).capture
         for w in capture.warnings:
@@ -272,7 +264,9 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
         raise CaptureError("fps", f"must be finite and > 0, got {fps}")
     if loaded.get("intrinsics_source"):
         metadata["intrinsics_source"] = loaded["intrinsics_source"]
-    intr = resolve_intrinsics(params, loaded.get("intrinsics_dict"), W, H, warn, loaded.get("exif_intrinsics"), metadata)
+    intr = resolve_intrinsics(
+        params, loaded.get("intrinsics_dict"), W, H, warn, loaded.get("exif_intrinsics"), metadata
+    )
     poses, frame_ev = _per_frame_values(params, loaded, T, source_idx, metadata)
     depth, depth_src = _capture_depth(depth_path, loaded, frames, intr, source_idx, limits, warn, metadata)
     return Capture(
@@ -293,23 +287,32 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
 def read_capture_input(path: Path, limits: MediaLimits, warn: list[str]) -> dict:
     """What the reader of `path`'s kind returned (a directory: nerfstudio or simulator capture;
     a file: sniffed video, image or nerfstudio zip); their warnings appended to `warn`."""
-    from core.io import read_video
+    from core.io import read_video  # noqa: PLC0415 — looked up at call time: tests patch core.io.read_video
 
     if not path.exists():
         raise CaptureError("input", f"{path} does not exist")
     if path.is_dir():
-        loaded = _read_nerfstudio(path, limits) if (path / "transforms.json").is_file() else _read_capture_dir(path, limits)
+        loaded = (
+            _read_nerfstudio(path, limits) if (path / "transforms.json").is_file() else _read_capture_dir(path, limits)
+        )
     else:
         kind = sniff_capture_file(path)
         if kind == "video":
             vf = read_video(path, limits)
             warn.extend(vf.warnings)
-            loaded = {"frames": torch.from_numpy(np.ascontiguousarray(vf.frames)), "fps": vf.fps,
-                      "source_indices": [int(i) for i in vf.source_frame_indices], "original_count": vf.original_frame_count,
-                      "times": vf.times}  # presentation timestamps (variable frame rate), else index / fps
+            loaded = {
+                "frames": torch.from_numpy(np.ascontiguousarray(vf.frames)),
+                "fps": vf.fps,
+                "source_indices": [int(i) for i in vf.source_frame_indices],
+                "original_count": vf.original_frame_count,
+                "times": vf.times,
+            }  # presentation timestamps (variable frame rate), else index / fps
             if vf.rotation_ccw_deg:
-                loaded["metadata"] = {"applied": [f"video display rotation {vf.rotation_ccw_deg} deg counter-clockwise: "
-                                                  "frames turned upright"]}
+                loaded["metadata"] = {
+                    "applied": [
+                        f"video display rotation {vf.rotation_ccw_deg} deg counter-clockwise: frames turned upright"
+                    ]
+                }
         elif kind == "image":
             loaded = _read_image_file(path, limits)
         elif kind == "archive":
@@ -335,16 +338,24 @@ def _per_frame_values(params: CaptureParams, loaded: dict, T: int, source_idx: l
     """The poses and stated exposures (params' over the capture file's), and where they came
     from in `metadata` (poses_source, exposure_source)."""
     source_count = loaded.get("original_count", T)
-    given_poses = loaded.get("poses") if params.poses is None else kept_per_frame(params.poses, T, source_count, source_idx)
+    given_poses = (
+        loaded.get("poses") if params.poses is None else kept_per_frame(params.poses, T, source_count, source_idx)
+    )
     poses = resolve_poses(given_poses, T)
     if given_poses is not None:
         metadata["poses_source"] = "params" if params.poses is not None else loaded.get("poses_source", "capture file")
-    given_ev = loaded.get("frame_ev") if params.frame_ev is None else kept_per_frame(params.frame_ev, T, source_count, source_idx)
+    given_ev = (
+        loaded.get("frame_ev")
+        if params.frame_ev is None
+        else kept_per_frame(params.frame_ev, T, source_count, source_idx)
+    )
     if isinstance(params.frame_ev, str):  # "estimate" / "locked": after tracking (core.capture.autoexposure)
         given_ev = None
     frame_ev = resolve_exposures(given_ev, T)
     if given_ev is not None:
-        metadata["exposure_source"] = "params" if params.frame_ev is not None else loaded.get("exposure_source", "capture.json")
+        metadata["exposure_source"] = (
+            "params" if params.frame_ev is not None else loaded.get("exposure_source", "capture.json")
+        )
     return poses, frame_ev
 
 
@@ -370,9 +381,16 @@ def _frame_times(params: CaptureParams, loaded: dict, source_idx: list[int], fps
     return frame_time(torch.tensor(source_idx, dtype=torch.float32), fps)
 
 
-def capture_from_arrays(frames: torch.Tensor, depth: torch.Tensor | None = None, *, intrinsics: Intrinsics | None = None,
-                        poses: torch.Tensor | None = None, fps: float = 1.0, source: str = "arrays",
-                        frame_ev=None) -> Capture:
+def capture_from_arrays(
+    frames: torch.Tensor,
+    depth: torch.Tensor | None = None,
+    *,
+    intrinsics: Intrinsics | None = None,
+    poses: torch.Tensor | None = None,
+    fps: float = 1.0,
+    source: str = "arrays",
+    frame_ev=None,
+) -> Capture:
     """Build a validated Capture from in-memory tensors (tests, the demo, the simulator);
     `frame_ev`: each frame's stated exposure in stops (as CaptureParams.frame_ev)."""
     frames = torch.as_tensor(frames, dtype=torch.float32)

@@ -20,11 +20,19 @@ import torch
 
 from core.capture.base import CaptureError
 from core.capture.depth import check_depth_shape
-from core.capture.load import (effective_limits, kept_per_frame, resolve_exposures, resolve_intrinsics, resolve_poses,
-                               sniff_capture_file)
+from core.capture.load import (
+    effective_limits,
+    kept_per_frame,
+    resolve_exposures,
+    resolve_intrinsics,
+    resolve_poses,
+    sniff_capture_file,
+)
 from core.capture.params import CaptureParams
 from core.conventions import valid_depth_mask
+from core.io import probe_depth, probe_image, probe_video
 from core.io.limits import MediaLimits
+from core.io.nerfstudio import inspect_nerfstudio
 
 
 @dataclass(frozen=True)
@@ -39,8 +47,6 @@ def probe_capture(input_path, depth_path=None, params: CaptureParams | None = No
                   limits: MediaLimits | None = None) -> CaptureHeader:
     """What load_capture(input_path, depth_path, params, limits) would load, checked from the
     headers (see module docstring). Only files: capture directories are not uploads."""
-    from core.io import probe_depth, probe_image, probe_video
-
     params = params or CaptureParams()
     limits = effective_limits(params, limits)
     path = Path(input_path)
@@ -55,8 +61,6 @@ def probe_capture(input_path, depth_path=None, params: CaptureParams | None = No
         (width, height), fps = probe_image(path, limits), None
         source_count, source_indices = 1, [0]
     elif kind == "archive":  # a nerfstudio capture: transforms.json and the files it names
-        from core.io.nerfstudio import inspect_nerfstudio
-
         info = inspect_nerfstudio(path, limits)
         width, height, fps = info["intrinsics"]["width"], info["intrinsics"]["height"], None
         source_count, source_indices = info["frames"], info["kept"]

@@ -17,6 +17,7 @@ import torch
 from core.capture.base import Capture, CaptureError
 from core.capture.depth import ASSUMED_DEPTH_SOURCE
 from core.capture.params import CaptureParams
+from core.tracking.room import RoomFitError, box_depth, room_from_dict
 
 DURATION_TOLERANCE_S = 1e-3
 
@@ -40,8 +41,7 @@ def recorded_params(record: dict) -> CaptureParams:
 def reload_capture(input_path, depth_path, record: dict) -> Capture:
     """The capture of `record` (an artefact's meta["capture"]) from its input file; raises
     CaptureError naming what does not match."""
-    from core.capture.load import load_capture
-    from core.tracking.room import RoomFitError, box_depth, room_from_dict
+    from core.capture.load import load_capture  # noqa: PLC0415 — core.capture.load pulls in av, cv2, OpenEXR, PIL: imported when used
 
     raw = load_capture(input_path, depth_path, recorded_params(record), track=False)
     meta = record.get("metadata") or {}
@@ -53,20 +53,32 @@ def reload_capture(input_path, depth_path, record: dict) -> Capture:
     elif raw.num_frames == count:
         keep = list(range(count))
     else:
-        raise CaptureError("input", f"it loads as {raw.num_frames} frames, but the artefact was estimated from {count}: "
-                           "is it the file the artefact was estimated from, with the same limits?")
+        raise CaptureError(
+            "input",
+            f"it loads as {raw.num_frames} frames, but the artefact was estimated from {count}: "
+            "is it the file the artefact was estimated from, with the same limits?",
+        )
     if len(keep) != count or max(keep, default=0) >= raw.num_frames:
         raise CaptureError("input", f"the artefact records {count} frames and tracking kept {len(keep)}")
     times = raw.times[keep]
     duration = float(times[-1] - times[0]) if count > 1 else 0.0
     if abs(duration - float(record.get("duration_s", duration))) > DURATION_TOLERANCE_S:
-        raise CaptureError("input", f"its kept frames span {duration:.3f} s, the artefact's {record['duration_s']:.3f} s: "
-                           "not the file (or the fps) the artefact was estimated from")
+        raise CaptureError(
+            "input",
+            f"its kept frames span {duration:.3f} s, the artefact's {record['duration_s']:.3f} s: "
+            "not the file (or the fps) the artefact was estimated from",
+        )
     try:
         poses = torch.as_tensor(record["poses"], dtype=torch.float64).reshape(count, 4, 4)
-        ev = None if record.get("frame_ev") is None else torch.tensor(record["frame_ev"], dtype=torch.float32).reshape(count)
+        ev = (
+            None
+            if record.get("frame_ev") is None
+            else torch.tensor(record["frame_ev"], dtype=torch.float32).reshape(count)
+        )
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
-        raise CaptureError("artefact", f"its recorded poses or exposures do not describe {count} frames: {exc}") from None
+        raise CaptureError(
+            "artefact", f"its recorded poses or exposures do not describe {count} frames: {exc}"
+        ) from None
     capture = dataclasses.replace(
         raw, frames=raw.frames[keep].contiguous(), depth=raw.depth[keep].contiguous(), poses=poses, times=times,
         stated_ev=ev, metadata=dict(meta))
@@ -77,5 +89,7 @@ def reload_capture(input_path, depth_path, record: dict) -> Capture:
         except RoomFitError as exc:
             raise CaptureError("artefact", f"its recorded room: {exc}") from None
         depth = box_depth(box, [capture.camera(i) for i in range(count)])
-        capture = dataclasses.replace(capture, depth=depth.float().contiguous(), depth_source=record.get("depth_source", ""))
+        capture = dataclasses.replace(
+            capture, depth=depth.float().contiguous(), depth_source=record.get("depth_source", "")
+        )
     return capture

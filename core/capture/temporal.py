@@ -42,6 +42,7 @@ from typing import Literal, get_args
 import torch
 import torch.nn.functional as F
 
+from core.camera import Camera
 from core.conventions import inverse_tonemap, valid_depth_mask
 
 TemporalMode = Literal["auto", "on", "off"]  # the user's choice: detect, or force a time input on / off
@@ -121,8 +122,6 @@ def _block_logs(lum: torch.Tensor, usable: torch.Tensor, neighbourhood: bool = F
 
 def _warp_into(planes_src: torch.Tensor, depth_ref: torch.Tensor, depth_src: torch.Tensor, intr, pose_ref, pose_src):
     """Planes [h, w, C] of a source view warped into a reference view; (warped, valid [h, w])."""
-    from core.camera import Camera
-
     h, w, _ = planes_src.shape
     pts = Camera(intr, pose_ref).unproject(depth_ref.double())
     ok = torch.isfinite(pts).all(-1)
@@ -146,7 +145,9 @@ def _consecutive_changes(capture):
     depth = torch.where(valid_depth_mask(small.depth), small.depth, torch.nan)
     steps, local, diffs, blind = [], [], [], []
     for t in range(1, T):
-        warped, ok = _warp_into(planes[t], depth[t - 1], depth[t], small.intrinsics, capture.poses[t - 1], capture.poses[t])
+        warped, ok = _warp_into(
+            planes[t], depth[t - 1], depth[t], small.intrinsics, capture.poses[t - 1], capture.poses[t]
+        )
         usable = ok & (planes[t - 1][..., 1] > 0.999) & (warped[..., 1] > 0.999)
         pair = torch.stack((planes[t - 1][..., 0], warped[..., 0])), usable[None].expand(2, -1, -1)
         logs = _block_logs(*pair)
@@ -280,8 +281,12 @@ def detect_temporal(capture) -> TemporalDecision:
     l = block_log_luminance(capture)  # [T, B]
     keep = torch.isfinite(l).all(0)  # blocks usable in every frame
     if int(keep.sum()) == 0:
-        return TemporalDecision(False, float("nan"), float("nan"),
-                                "no image block is usable in every frame (saturated/dark/occluded): assuming static lighting")
+        return TemporalDecision(
+            False,
+            float("nan"),
+            float("nan"),
+            "no image block is usable in every frame (saturated/dark/occluded): assuming static lighting",
+        )
     l = l[:, keep].double()
     dev = (l - l.median(dim=0).values).abs().mean(dim=1)  # [T]
     stat = float(dev.max())
@@ -304,4 +309,6 @@ def decide_temporal(capture, mode: str = "auto") -> TemporalDecision:
     if mode == "auto" or capture.num_frames < 2:
         return TemporalDecision(auto.uses_time, auto.statistic, auto.threshold, auto.reason, mode)
     forced = mode == "on"
-    return TemporalDecision(forced, auto.statistic, auto.threshold, f"forced {mode} by user; auto would say: {auto.reason}", mode)
+    return TemporalDecision(
+        forced, auto.statistic, auto.threshold, f"forced {mode} by user; auto would say: {auto.reason}", mode
+    )

@@ -16,6 +16,7 @@ from dataclasses import replace
 from core.capture.base import Capture
 from core.capture.depth import ASSUMED_DEPTH_SOURCE
 from core.capture.params import CaptureParams
+from core.tracking.room import assumed_room, box_depth
 
 _ASSUMED_DEPTH_WARNING = "no depth given: using the assumed box-room geometry"
 _ASSUMED_FOV_WARNING = "no intrinsics given: assuming"
@@ -24,8 +25,7 @@ _ASSUMED_FOV_WARNING = "no intrinsics given: assuming"
 def _world_fixed_room(capture: Capture, meta: dict) -> Capture:
     """Given poses of a moving camera but no depth: the assumed room stays put in the world
     (upright, in front of the first camera) instead of turning with every frame."""
-    from core.tracking.capture_geometry import ASSUMED_ROOM_SOURCE, WORLD_FIXED_ROOM_WARNING
-    from core.tracking.room import assumed_room, box_depth
+    from core.tracking.capture_geometry import ASSUMED_ROOM_SOURCE, WORLD_FIXED_ROOM_WARNING  # noqa: PLC0415 — core.tracking.capture_geometry pulls in cv2, scipy: imported when used
 
     box = assumed_room(first_camera=capture.poses[0])
     depth = box_depth(box, [capture.camera(i) for i in range(capture.num_frames)])
@@ -46,7 +46,7 @@ def track_capture(capture: Capture, params: CaptureParams | None = None) -> Capt
     if params.tracking == "off":
         meta["tracking"] = {"method": "off", "reason": "params.tracking = 'off': the camera is treated as static"}
         return replace(capture, metadata=meta)
-    from core.tracking.capture_geometry import resolve_geometry
+    from core.tracking.capture_geometry import resolve_geometry  # noqa: PLC0415 — core.tracking.capture_geometry pulls in cv2, scipy: imported when used
 
     depth_given = bool(meta.get("depth_given"))
     assumed_k = str(meta.get("intrinsics_source", "")).startswith("assumed")
@@ -65,6 +65,15 @@ def track_capture(capture: Capture, params: CaptureParams | None = None) -> Capt
     for w in geo.warnings:
         if w not in warnings:
             warnings.append(w)
-    return replace(capture, frames=capture.frames[keep].contiguous(), depth=depth.contiguous(), intrinsics=geo.intrinsics,
-                   poses=geo.poses.clone(), times=capture.times[keep], depth_source=depth_source, warnings=warnings,
-                   metadata=meta, stated_ev=None if capture.stated_ev is None else capture.stated_ev[keep])
+    return replace(
+        capture,
+        frames=capture.frames[keep].contiguous(),
+        depth=depth.contiguous(),
+        intrinsics=geo.intrinsics,
+        poses=geo.poses.clone(),
+        times=capture.times[keep],
+        depth_source=depth_source,
+        warnings=warnings,
+        metadata=meta,
+        stated_ev=None if capture.stated_ev is None else capture.stated_ev[keep],
+    )

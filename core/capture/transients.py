@@ -34,8 +34,13 @@ import torch
 import torch.nn.functional as F
 
 from core.capture.base import Capture
-from core.capture.temporal import CLIP_HI, DARK_LO  # LDR: clipped, and too dark for a ratio
-from core.conventions import GAMMA, inverse_tonemap, tonemap  # the tone curve: d(log linear)/d(LDR) = GAMMA/LDR
+from core.capture.temporal import CLIP_HI, DARK_LO, _warp_into  # LDR: clipped, and too dark for a ratio
+from core.conventions import (  # the tone curve: d(log linear)/d(LDR) = GAMMA/LDR
+    GAMMA,
+    inverse_tonemap,
+    tonemap,
+    valid_depth_mask,
+)
 
 MIN_FRAMES = 8  # fewer frames cannot separate a course of light from a passer-by
 RANK = 3  # what stays + up to two lights changing on their own courses (12+ frames; 8-11: 2)
@@ -59,13 +64,16 @@ def _rank(num_frames: int) -> int:
     return RANK if num_frames >= 12 else 2
 
 
-def low_rank_course(x: torch.Tensor, w: torch.Tensor, max_rank: int, iterations: int = ITERATIONS) -> tuple[torch.Tensor, int]:
+def low_rank_course(
+    x: torch.Tensor, w: torch.Tensor, max_rank: int, iterations: int = ITERATIONS
+) -> tuple[torch.Tensor, int]:
     """A robust low-rank model [T, P] of `x` [T, P] (each column near 1: values over their
     median) with `w` [T, P] 0/1 (usable entries), and its rank.
 
     The first course of light is the frames' median course (an exposure, a change of the whole
     room). Further candidate courses are the leading singular vectors over time of what that
-    leaves. Each pixel's mix of the courses is fitted robustly (`fit_courses`), so the few frames a passer-by covers it in do not pull its fit. A course
+    leaves. Each pixel's mix of the courses is fitted robustly (`fit_courses`), so the few frames a passer-by covers it
+    in do not pull its fit. A course
     is kept only if it explains most of what the courses before it left unexplained
     (`departures` fall by at least KEEP_COURSE): a light that changes moves all its pixels along
     one course, so one component takes all of it, where a passer-by moves each pixel in
@@ -203,9 +211,6 @@ def _moving_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
     there see it and no light switched within the window (SWITCH_SHARE of the points judged
     both ways agree with one side only); else not judged. Painted from the median of all the
     neighbours."""
-    from core.capture.temporal import _warp_into
-    from core.conventions import valid_depth_mask
-
     T = capture.num_frames
     small = capture.resized(min(MOVING_HEIGHT, capture.height))
     lin, usable = _analysis(capture, small.height)
@@ -256,8 +261,14 @@ def _moving_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
         # way and the nearer ones agree, and every neighbour of the other side agrees; something
         # that comes into view in the next frame or two and moves on is not that)
         near_b, near_a = before.flip(0), after  # nearest first
-        switched = two_sided & usable[t] & ((_switch_beyond(own, near_b, threshold) & _agrees(own, near_a, threshold))
-                                            | (_switch_beyond(own, near_a, threshold) & _agrees(own, near_b, threshold)))
+        switched = (
+            two_sided
+            & usable[t]
+            & (
+                (_switch_beyond(own, near_b, threshold) & _agrees(own, near_a, threshold))
+                | (_switch_beyond(own, near_a, threshold) & _agrees(own, near_b, threshold))
+            )
+        )
         if int(switched.sum()) >= SWITCH_SHARE * max(int((two_sided & usable[t]).sum()), 1):
             judged = judged & two_sided
         # a dark pixel's log is noisier: the frame's noise in 8-bit units (tone curve slope
@@ -367,7 +378,9 @@ def without_transients(capture: Capture, params=None) -> Capture:
     else:
         cleaned, source = paint_from_neighbours(capture, mask, neighbours), "the neighbouring frames"
     share = float(mask.float().mean())
-    warning = (f"something moved through the view in {evidence['frames_with_transients']} of {capture.num_frames} frames "
-               f"(a person walking through?): {100 * share:.1f} % of the clip's pixels were painted out from {source}, "
-               f"so it is not read as the light changing; params.transients='keep' keeps them")
+    warning = (
+        f"something moved through the view in {evidence['frames_with_transients']} of {capture.num_frames} frames "
+        f"(a person walking through?): {100 * share:.1f} % of the clip's pixels were painted out from {source}, "
+        f"so it is not read as the light changing; params.transients='keep' keeps them"
+    )
     return replace(cleaned, metadata=meta, warnings=[*capture.warnings, warning])

@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 
 import torch
+from safetensors.torch import load_file, save_file
 
 from core.capture.base import Capture
 from core.engine.config import DistillConfig
@@ -20,8 +21,6 @@ CHECKPOINT_META = "checkpoint.json"
 
 def save_checkpoint(ckpt_dir: Path, field: LightField, opt: torch.optim.Optimizer, gen: torch.Generator,
                      step: int, losses: list[float], fingerprint: str) -> None:
-    from safetensors.torch import save_file
-
     ckpt_dir.mkdir(parents=True, exist_ok=True)
     tensors = {f"field.{k}": v.detach().cpu().contiguous() for k, v in field.state_dict().items()}
     sd = opt.state_dict()
@@ -42,8 +41,6 @@ def save_checkpoint(ckpt_dir: Path, field: LightField, opt: torch.optim.Optimize
 def load_checkpoint(ckpt_dir: Path, field: LightField, opt: torch.optim.Optimizer, gen: torch.Generator,
                      fingerprint: str) -> tuple[int, list[float]] | None:
     """Restore a matching checkpoint; returns (step, losses) or None if absent/mismatched."""
-    from safetensors.torch import load_file
-
     f, m = ckpt_dir / CHECKPOINT_FILE, ckpt_dir / CHECKPOINT_META
     if not (f.is_file() and m.is_file()):
         return None

@@ -16,6 +16,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from core.conventions import DEFAULT_EV_MIN
 from core.device import DEVICE_PATTERN
 from core.fields import FieldConfig
+from core.priors.base import PriorError
+from core.priors.registry import prior_settings
 
 
 class DistillConfig(BaseModel):
@@ -32,11 +34,17 @@ class DistillConfig(BaseModel):
     ev_min: float = Field(DEFAULT_EV_MIN, le=0.0)
     ev_sweep_fraction: float = Field(1.0, gt=0, le=1.0, description="ev reaches ev_min after this fraction of steps")
     ev_schedule: Literal["sweep", "uniform"] = Field(
-        "sweep", description="'sweep' (paper): linear 0 -> ev_min; 'uniform' (the paper's ablation): ev ~ U[ev_min, 0] each step")
+        "sweep",
+        description="'sweep' (paper): linear 0 -> ev_min; 'uniform' (the paper's ablation): ev ~ U[ev_min, 0] each "
+                    "step",
+    )
     guidance_scale: float = 12.5
     tau_max: float = Field(1.0, gt=0.0, le=1.0)
     tau_schedule: Literal["anneal", "authors"] = Field(
-        "anneal", description="'anneal' (paper): tau_min 1 -> 0 over the run; 'authors': their decay_t_min (floor 0.02, half the run)")
+        "anneal",
+        description="'anneal' (paper): tau_min 1 -> 0 over the run; 'authors': their decay_t_min (floor 0.02, half the "
+                    "run)",
+    )
     lr: float = Field(5e-3, gt=0)
     lr_min_ratio: float = Field(0.05, ge=0, le=1)
     warmup_steps: int = Field(20, ge=0)
@@ -44,7 +52,9 @@ class DistillConfig(BaseModel):
     adam_betas: tuple[float, float] = (0.9, 0.99)
     l2_weight: float = Field(1.0, ge=0)
     perceptual_weight: float = Field(0.1, ge=0)
-    perceptual_net: Literal["alex", "vgg"] = Field("alex", description="LPIPS backbone when LPIPS weights are configured")
+    perceptual_net: Literal["alex", "vgg"] = Field(
+        "alex", description="LPIPS backbone when LPIPS weights are configured"
+    )
     # Radiance supervision (docs/engine.md "Radiance supervision"): priors that declare
     # PriorCapabilities.envmaps answer HDR env maps; the field is then fitted to them directly
     # in log radiance at many random directions per probe instead of through LDR balls.
@@ -52,14 +62,20 @@ class DistillConfig(BaseModel):
         "balls", description="'balls' (paper): the ball-render loop; 'envmaps': fit the prior's HDR env maps "
                              "(needs capabilities.envmaps); 'auto': envmaps when the prior answers them, else balls")
     envmap_frames_per_step: int = Field(1, ge=1, le=16, description="frames (each with its probes) per radiance step")
-    envmap_surface_probes: int = Field(4, ge=0, le=64, description="probes in front of the scene depth (probe_depth_fraction)")
-    envmap_room_probes: int = Field(4, ge=0, le=64, description="probes anywhere along camera rays (0.05-0.95 of the depth)")
+    envmap_surface_probes: int = Field(
+        4, ge=0, le=64, description="probes in front of the scene depth (probe_depth_fraction)"
+    )
+    envmap_room_probes: int = Field(
+        4, ge=0, le=64, description="probes anywhere along camera rays (0.05-0.95 of the depth)"
+    )
     envmap_free_probes: int = Field(0, ge=0, le=64, description=(
         "probes anywhere in the scene box that no frame shows inside a surface (core.engine.free_space; priors with "
         "capabilities.envmaps_anywhere): off the camera rays, beside and behind the camera"))
     envmap_camera_probe: bool = Field(True, description="also a probe at the camera centre (where users query)")
     envmap_directions: int = Field(640, ge=1, description="random directions per probe and step")
-    envmap_bright_fraction: float = Field(0.25, ge=0, le=1, description="share of the directions drawn ~ the target's luminance")
+    envmap_bright_fraction: float = Field(
+        0.25, ge=0, le=1, description="share of the directions drawn ~ the target's luminance"
+    )
     envmap_height: int = Field(24, ge=4, description="height of the env maps asked from the prior")
     envmap_view_directions: int = Field(0, ge=0, description=(
         "per frame and step: pixel rays of the frame fitted at the camera-centre probe to the prior's view radiance "
@@ -72,9 +88,15 @@ class DistillConfig(BaseModel):
         "the cameras (core.engine.surface_extraction; priors with view_radiance); 0: none"))
     observed_surfaces_height: int = Field(0, ge=0, le=128, description=(
         "rows of the map the observed surfaces are splatted into per probe; 0: envmap_height (the prior's maps)"))
-    emitter_contrast: float = Field(50.0, gt=1, description="an emitter's pixels are this many times the frame's median luminance")
-    emitter_max_radius: float = Field(0.3, gt=0, description="metres: brighter blobs wider than this are left to the network")
-    log_floor_fraction: float = Field(1e-3, gt=0, description="log(L + floor), floor = this x the frame's mean radiance")
+    emitter_contrast: float = Field(
+        50.0, gt=1, description="an emitter's pixels are this many times the frame's median luminance"
+    )
+    emitter_max_radius: float = Field(
+        0.3, gt=0, description="metres: brighter blobs wider than this are left to the network"
+    )
+    log_floor_fraction: float = Field(
+        1e-3, gt=0, description="log(L + floor), floor = this x the frame's mean radiance"
+    )
     linear_weight: float = Field(0.1, ge=0, description="weight of the relative linear (energy) term")
     chroma_weight: float = Field(0.0, ge=0, description="extra weight of the log error's colour part (radiance loss)")
     time_tv_weight: float = Field(0.01, ge=0, description=(
@@ -82,20 +104,35 @@ class DistillConfig(BaseModel):
     time_gain: bool = Field(False, description=(
         "with radiance supervision, a field with a time input gets a learned log gain per knot (and colour channel) "
         "multiplying its network (core.fields TimeGain): a light that dims the whole room is one number per frame"))
-    time_gain_start: float = Field(0.0, ge=0, le=1, description="the time gain trains from this fraction of the steps on")
+    time_gain_start: float = Field(
+        0.0, ge=0, le=1, description="the time gain trains from this fraction of the steps on"
+    )
     time_gain_lr_scale: float = Field(10.0, gt=0, description="the time gain's learning rate over the network's")
-    time_gain_channels: Literal[1, 3] = Field(3, description="the time gain's values per knot: 3 (RGB) or 1 (brightness)")
+    time_gain_channels: Literal[1, 3] = Field(
+        3, description="the time gain's values per knot: 3 (RGB) or 1 (brightness)"
+    )
     time_lattice_start: float = Field(
-        0.5, ge=0, le=1, description="a field with a time input trains its room lattice (if any) from this fraction of the "
-                                     "steps on, after its time codes have learnt the changes; 1: such a field gets no lattice")
+        0.5,
+        ge=0,
+        le=1,
+        description="a field with a time input trains its room lattice (if any) from this fraction of the "
+        "steps on, after its time codes have learnt the changes; 1: such a field gets no lattice",
+    )
     time_normalisation_frames: int | None = Field(
-        None, ge=2, description="normalise time as if the clip had this many frames (the authors' release: 30); None: over the capture")
+        None,
+        ge=2,
+        description="normalise time as if the clip had this many frames (the authors' release: 30); None: over the "
+                    "capture",
+    )
     # Per-step tensors are small (a few thousand ball samples): intra-op threads cost more in
     # synchronisation than they gain, and are disastrous on a shared, oversubscribed machine.
     threads: int | None = Field(1, ge=1, description="torch intra-op threads during distillation (None: leave as is)")
     checkpoint_every: int = Field(100, ge=1)
-    device: str = Field("auto", pattern=DEVICE_PATTERN,
-                        description="'auto' (CUDA if available, else CPU), 'cpu', 'cuda' or 'cuda:N'; env LIGHTFIELD_DEVICE overrides")
+    device: str = Field(
+        "auto",
+        pattern=DEVICE_PATTERN,
+        description="'auto' (CUDA if available, else CPU), 'cpu', 'cuda' or 'cuda:N'; env LIGHTFIELD_DEVICE overrides",
+    )
 
     # ------------------------------------------------------------------ schedules
     def ev_at(self, step: int) -> float:
@@ -120,7 +157,12 @@ class DistillConfig(BaseModel):
     @property
     def envmap_probe_count(self) -> int:
         """Probes per frame of a radiance step (at most: free-space draws can come back fewer)."""
-        return self.envmap_surface_probes + self.envmap_room_probes + self.envmap_free_probes + int(self.envmap_camera_probe)
+        return (
+            self.envmap_surface_probes
+            + self.envmap_room_probes
+            + self.envmap_free_probes
+            + int(self.envmap_camera_probe)
+        )
 
     def uses_envmaps(self, prior_answers_envmaps: bool) -> bool:
         """Whether the loop supervises in radiance (see `supervision`)."""
@@ -149,9 +191,6 @@ class EngineConfig(BaseModel):
     @field_validator("priors")
     @classmethod
     def _valid_prior_settings(cls, priors: dict) -> dict:
-        from core.priors.base import PriorError
-        from core.priors.registry import prior_settings
-
         try:
             return {name: prior_settings(name, settings).model_dump() for name, settings in priors.items()}
         except PriorError as exc:  # a validation error of this config, naming the prior and the key

@@ -19,17 +19,16 @@ from core.device import resolve_device
 from core.engine.checkpoints import fingerprint, load_checkpoint, save_checkpoint
 from core.engine.config import EngineConfig
 from core.engine.emitter_detection import EmitterSources, find_emitters
+from core.engine.free_space import FreeSpaceSampler
 from core.engine.losses import PerceptualLoss, perceptual_description
 from core.engine.progress import Reporter, StageTimer
-from core.engine.free_space import FreeSpaceSampler
+from core.engine.radiance import frame_floors
 from core.engine.scene import scene_bounds
 from core.engine.surface_extraction import SurfacePoints, observed_surfaces
 from core.engine.trainer import Trainer
-from core.engine.radiance import frame_floors
 from core.fields import FieldConfig, LightField, SceneBounds, build_field
 from core.fields.kinds.base import EMITTER_PIXEL_SIGMA
 from core.priors.base import Prior
-
 
 MAX_TIME_KNOTS = 256
 MAX_VIEW_ANCHORS = 64  # camera centres kept as view-detail anchors (evenly over the frames)
@@ -69,7 +68,9 @@ def distill(
     device = resolve_device(cfg.device)
     torch.manual_seed(seed)  # field initialisation (on CPU, then moved)
     gen = torch.Generator().manual_seed(seed)
-    field_cfg = with_view_detail(with_time_knots(lattice_for_time(config.field.with_time(uses_time), cfg), capture.num_frames), capture)
+    field_cfg = with_view_detail(
+        with_time_knots(lattice_for_time(config.field.with_time(uses_time), cfg), capture.num_frames), capture
+    )
     bounds = bounds or scene_bounds(capture, cfg.time_normalisation_frames)
     use_envmaps = cfg.uses_envmaps(prior.capabilities.envmaps)
     sources = emitter_sources(capture, prior, cfg, bounds, uses_time) if use_envmaps else None
@@ -80,8 +81,13 @@ def distill(
     with timings("surfaces"):
         surfaces = surface_points(capture, prior, cfg, bounds, uses_time, sources) if use_envmaps else None
     if surfaces is not None:
-        field_cfg = field_cfg.model_copy(update={
-            "surface_points": surfaces.count, "surface_knots": surfaces.knots, "surface_height": cfg.observed_surfaces_height or cfg.envmap_height})
+        field_cfg = field_cfg.model_copy(
+            update={
+                "surface_points": surfaces.count,
+                "surface_knots": surfaces.knots,
+                "surface_height": cfg.observed_surfaces_height or cfg.envmap_height,
+            }
+        )
     if cfg.time_gain and field_cfg.uses_time and use_envmaps:  # the ball loop (the paper's path) keeps its field
         field_cfg = field_cfg.model_copy(update={"time_gain_knots": time_knots(capture.num_frames),
                                                  "time_gain_channels": cfg.time_gain_channels})
@@ -121,11 +127,21 @@ def distill(
     if surfaces is not None:  # only now: during the distillation the network learns every direction
         with timings("surfaces"):
             field.surfaces.set_surfaces(surfaces.points, surfaces.colors)
-    return DistillResult(field.cpu(), losses, timings, cfg.iterations, resumed_from=start,
-                         stats={"field_config": field_cfg.model_dump(), "perceptual": perceptual_description(cfg.perceptual_net),
-                                "device": str(device), "supervision": "envmaps" if use_envmaps else "balls",
-                                "emitters": sources.describe() if sources is not None else [],
-                                "surfaces": surfaces.describe() if surfaces is not None else None})
+    return DistillResult(
+        field.cpu(),
+        losses,
+        timings,
+        cfg.iterations,
+        resumed_from=start,
+        stats={
+            "field_config": field_cfg.model_dump(),
+            "perceptual": perceptual_description(cfg.perceptual_net),
+            "device": str(device),
+            "supervision": "envmaps" if use_envmaps else "balls",
+            "emitters": sources.describe() if sources is not None else [],
+            "surfaces": surfaces.describe() if surfaces is not None else None,
+        },
+    )
 
 
 def emitter_sources(capture: Capture, prior: Prior, cfg, bounds: SceneBounds, uses_time: bool) -> EmitterSources | None:
@@ -160,8 +176,11 @@ def parameter_groups(field: LightField, time_gain_lr_scale: float = 1.0) -> list
     emitter = [p for n, p in field.named_parameters() if n.startswith("emitters.")]
     gain = [p for n, p in field.named_parameters() if n.startswith("time_gain.")]
     rest = [p for n, p in field.named_parameters() if not n.startswith(("emitters.", "time_gain."))]
-    return ([{"params": rest, "lr_scale": 1.0}] + ([{"params": emitter, "lr_scale": EMITTER_LR_SCALE}] if emitter else [])
-            + ([{"params": gain, "lr_scale": time_gain_lr_scale}] if gain else []))
+    return (
+        [{"params": rest, "lr_scale": 1.0}]
+        + ([{"params": emitter, "lr_scale": EMITTER_LR_SCALE}] if emitter else [])
+        + ([{"params": gain, "lr_scale": time_gain_lr_scale}] if gain else [])
+    )
 
 
 def view_rays(capture: Capture, cfg, prior: Prior) -> torch.Tensor | None:

@@ -159,7 +159,9 @@ def find_emitters(capture: Capture, linear_frame, *, count: int, contrast: float
     clusters: list[list] = []
     for det in detections:
         for cl in clusters:
-            if all(d[0] != det[0] for d in cl) and float((cl[0][1] - det[1]).norm()) < max(MERGE_DISTANCE, 2 * (cl[0][2] + det[2])):
+            if all(d[0] != det[0] for d in cl) and float((cl[0][1] - det[1]).norm()) < max(
+                MERGE_DISTANCE, 2 * (cl[0][2] + det[2])
+            ):
                 cl.append(det)
                 break
         else:

@@ -50,7 +50,9 @@ class FreeSpaceSampler:
         """Up to n free-space points [m, 3] (float32, m <= n; 0 when every draw was inside a surface)."""
         if n <= 0:
             return torch.zeros(0, 3)
-        cand = self.lo + (self.hi - self.lo) * torch.rand(n * CANDIDATES_PER_PROBE, 3, generator=gen, dtype=torch.float64)
+        cand = self.lo + (self.hi - self.lo) * torch.rand(
+            n * CANDIDATES_PER_PROBE, 3, generator=gen, dtype=torch.float64
+        )
         return cand[self.free(cand)][:n].float()
 
     def free(self, points: torch.Tensor) -> torch.Tensor:

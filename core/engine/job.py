@@ -100,8 +100,14 @@ CAPTURE_STAGE_PROGRESS = {"loading": 0.0, "tracking": 0.02}
 def _capture_stage(input_path, depth_path, params: JobParams, limits, reporter: Reporter, timings: StageTimer,
                    on_capture: Callable[[Capture], None] | None) -> Capture:
     """Capture preparation (core.capture.prepare), its warnings shown to run_job's caller."""
-    prepared = prepare_capture(input_path, depth_path, params, limits, timed=timings,
-                               on_stage=lambda name, message: reporter.stage(name, CAPTURE_STAGE_PROGRESS[name], message))
+    prepared = prepare_capture(
+        input_path,
+        depth_path,
+        params,
+        limits,
+        timed=timings,
+        on_stage=lambda name, message: reporter.stage(name, CAPTURE_STAGE_PROGRESS[name], message),
+    )
     capture = prepared.capture
     for w in capture.warnings:  # after tracking, which may replace assumptions (FOV, room)
         warnings.warn(w, stacklevel=3)
@@ -156,7 +162,12 @@ def job_metadata(capture: Capture, run: Distillation, params: JobParams, config:
     decision, work, result = run.decision, run.work, run.result
     prior_description = run.prior.describe()
     return {
-        "time": {"t0": float(capture.times[0]), "t1": float(capture.times[-1]), "fps": capture.fps, "uses_time": decision.uses_time},
+        "time": {
+            "t0": float(capture.times[0]),
+            "t1": float(capture.times[-1]),
+            "fps": capture.fps,
+            "uses_time": decision.uses_time,
+        },
         "capture": capture.summary(),
         "working_resolution": {"width": work.width, "height": work.height, "intrinsics": work.intrinsics.as_dict()},
         "prior": prior_description,
@@ -181,8 +192,10 @@ def job_metadata(capture: Capture, run: Distillation, params: JobParams, config:
             "time_input": decision.uses_time,
             "point_cloud_builds": prior_description.get("point_cloud_builds"),
             "camera": "static" if capture.static_camera else "moving",
-            "rendered": ("ball pixels only (field evaluated at ball centres for reflected directions)"
-                         if result.stats["supervision"] == "balls"
-                         else "no balls: the prior's HDR env maps at probe centres, random directions (radiance supervision)"),
+            "rendered": (
+                "ball pixels only (field evaluated at ball centres for reflected directions)"
+                if result.stats["supervision"] == "balls"
+                else "no balls: the prior's HDR env maps at probe centres, random directions (radiance supervision)"
+            ),
         },
     }

@@ -16,6 +16,7 @@ import os
 
 import torch
 import torch.nn.functional as F
+from safetensors.torch import load_file
 
 SATURATED = 0.999
 SSIM_C1, SSIM_C2 = 0.01**2, 0.03**2
@@ -36,7 +37,9 @@ def _gaussian_window(size: int = 7, sigma: float = 1.5, dtype=torch.float32) -> 
     return (g[:, None] * g[None, :])[None, None].expand(3, 1, size, size).contiguous()
 
 
-def masked_ssim_loss(pred_ldr: torch.Tensor, target_ldr: torch.Tensor, mask: torch.Tensor, size: int = 7) -> torch.Tensor:
+def masked_ssim_loss(
+    pred_ldr: torch.Tensor, target_ldr: torch.Tensor, mask: torch.Tensor, size: int = 7
+) -> torch.Tensor:
     """1 - SSIM averaged over masked pixels (local statistics with a Gaussian window)."""
     win = _gaussian_window(size, dtype=pred_ldr.dtype).to(pred_ldr.device)
     x, y = pred_ldr.clamp(0, 1)[None], target_ldr.clamp(0, 1)[None]
@@ -63,7 +66,7 @@ def perceptual_kind(net: str = "alex") -> str:
     if not path or not os.path.exists(path):
         return "ssim"
     try:
-        import lpips  # noqa: F401
+        import lpips  # noqa: F401, PLC0415 — optional: probed here
     except Exception:
         return "ssim"
     return "lpips"
@@ -84,8 +87,7 @@ class PerceptualLoss:
         self.kind = perceptual_kind(net)
         self._lpips = None
         if self.kind == "lpips":  # pragma: no cover - needs weights that CI never has
-            import lpips
-            from safetensors.torch import load_file
+            import lpips  # noqa: PLC0415 — lpips is heavy: imported when used
 
             model = lpips.LPIPS(pretrained=False, net=net, pnet_rand=True, verbose=False)
             model.load_state_dict(load_file(os.environ[LPIPS_WEIGHTS_ENV[net]]))  # strict: no silently random layers
@@ -95,5 +97,6 @@ class PerceptualLoss:
         if self._lpips is None:
             return masked_ssim_loss(pred, target, mask)
         self._lpips.to(pred.device)  # pragma: no cover - no-op once there
-        d = self._lpips(pred[None] * 2 - 1, target[None] * 2 - 1, retPerLayer=False, normalize=False)  # pragma: no cover
+        d = self._lpips(pred[None] * 2 - 1, target[None] * 2 - 1,  # pragma: no cover
+                        retPerLayer=False, normalize=False)
         return d.mean()  # pragma: no cover

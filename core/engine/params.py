@@ -37,7 +37,8 @@ class JobParams(CaptureParams):
     preset: PresetName = "draft"
     prior: PriorName = "reprojection"
     prior_weights: str | None = None
-    prior_profile: ProfileName | None = None  # diffusion prior's inference profile (None: the card's; `seed` with preset seed)
+    # diffusion prior's inference profile (None: the card's; `seed` with preset seed)
+    prior_profile: ProfileName | None = None
     temporal: TemporalMode = "auto"
     seed: int = 0
     field: FieldKind | None = None  # None -> the preset's default

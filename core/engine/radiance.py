@@ -22,10 +22,15 @@ import math
 import torch
 
 from core.capture.base import Capture
+from core.conventions import (
+    equirect_pixel_centres,
+    equirect_pixel_to_theta_phi,
+    pixel_to_camera_ray,
+    theta_phi_to_direction,
+)
 from core.engine.config import DistillConfig
 from core.engine.free_space import FreeSpaceSampler
 from core.engine.probes import sample_probes
-from core.conventions import equirect_pixel_centres, equirect_pixel_to_theta_phi, pixel_to_camera_ray, theta_phi_to_direction
 from core.envmap import equirect_stencil, pad_poles
 from core.exposure import luminance
 
@@ -45,7 +50,9 @@ def supervision_probes(capture: Capture, frame_index: int, cfg: DistillConfig, g
     for n, depth_fraction in ((surface, cfg.probe_depth_fraction), (cfg.envmap_room_probes, ROOM_DEPTH_FRACTION)):
         if n == 0:
             continue
-        pixels, depths = sample_probes(capture, frame_index, cfg.model_copy(update={"n_probes": n, "probe_depth_fraction": depth_fraction}), gen)
+        pixels, depths = sample_probes(
+            capture, frame_index, cfg.model_copy(update={"n_probes": n, "probe_depth_fraction": depth_fraction}), gen
+        )
         # on the ray through each pixel at its planar depth (core.chrome_ball.place_probe, all at once)
         rays = pixel_to_camera_ray(pixels[:, 0], pixels[:, 1], k.fx, k.fy, k.cx, k.cy) * depths[:, None]
         centers.append((rays @ cam.c2w[:3, :3].T.double() + cam.c2w[:3, 3].double()).float())
@@ -72,7 +79,9 @@ def bright_directions(maps: torch.Tensor, k: int, gen: torch.Generator) -> torch
     weight = (lum * torch.sin(theta_c)).reshape(p, -1) + 1e-12
     index = torch.multinomial(weight, k, replacement=True, generator=gen)
     jitter = torch.rand(p, k, 2, generator=gen, dtype=torch.float64)
-    theta, phi = equirect_pixel_to_theta_phi((index // w).double() + jitter[..., 0], (index % w).double() + jitter[..., 1], h)
+    theta, phi = equirect_pixel_to_theta_phi(
+        (index // w).double() + jitter[..., 0], (index % w).double() + jitter[..., 1], h
+    )
     return theta_phi_to_direction(theta, phi).float()
 
 

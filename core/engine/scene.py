@@ -33,7 +33,11 @@ def normalised_time(bounds: SceneBounds, frames: int | None, fps: float | None) 
 
 def distinct_geometry(capture: Capture) -> list[int]:
     """Frames whose geometry differs: frame 0 alone for a static camera with static depth."""
-    return [0] if capture.static_camera and capture.num_frames > 0 and _depth_static(capture) else list(range(capture.num_frames))
+    return (
+        [0]
+        if capture.static_camera and capture.num_frames > 0 and _depth_static(capture)
+        else list(range(capture.num_frames))
+    )
 
 
 def _depth_static(capture: Capture) -> bool:

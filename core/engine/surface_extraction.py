@@ -19,9 +19,9 @@ import torch
 
 from core.capture.base import Capture
 from core.engine.emitter_detection import EmitterSources
-from core.fields.kinds.config import MAX_SURFACE_VALUES
 from core.envmap import voxel_merge
 from core.fields.components.normalization import SceneBounds
+from core.fields.kinds.config import MAX_SURFACE_VALUES
 
 MAX_SURFACE_VIEWS = 16  # viewpoints of a moving camera merged into the layer
 EMITTER_CLEARANCE = 2.0  # radii around an emitter's centre whose points the layer leaves to it
@@ -67,7 +67,9 @@ def observed_surfaces(capture: Capture, view_radiance, bounds: SceneBounds, *, m
         colors = torch.cat([_frame_colors(view_radiance, f) for f in frames])[:, None]
     ok = torch.isfinite(points).all(-1) & torch.isfinite(colors).all((-1, -2))
     if emitters is not None and emitters.count:
-        gap = torch.cdist(points.double(), emitters.centres.double()) - EMITTER_CLEARANCE * emitters.radii.double()[None]
+        gap = (
+            torch.cdist(points.double(), emitters.centres.double()) - EMITTER_CLEARANCE * emitters.radii.double()[None]
+        )
         ok &= ~(gap < 0).any(-1)
     if not bool(ok.any()):
         return None

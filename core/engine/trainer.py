@@ -44,7 +44,8 @@ class Trainer:
     device: torch.device
     use_envmaps: bool = False  # radiance supervision (the prior answers env maps)
     floors: list[float] | None = None  # per-frame log floors of the radiance loss
-    view_rays: torch.Tensor | None = None  # [H*W, 3] camera-frame pixel rays when the camera probe is fitted to view radiance
+    # [H*W, 3] camera-frame pixel rays when the camera probe is fitted to view radiance
+    view_rays: torch.Tensor | None = None
     free_space: FreeSpaceSampler | None = None  # draws the probes off the camera rays (priors that answer anywhere)
 
     def step(self, step: int) -> float:
@@ -62,7 +63,9 @@ class Trainer:
 
         with timings("probe_geometry"):
             pixels, depths = sample_probes(capture, i, cfg, gen)
-            placed = [place_probe(cam, pixels[n], float(depths[n]), cfg.ball_diameter_fraction) for n in range(cfg.n_probes)]
+            placed = [
+                place_probe(cam, pixels[n], float(depths[n]), cfg.ball_diameter_fraction) for n in range(cfg.n_probes)
+            ]
             centers = torch.stack([c for c, _ in placed])
             radii = torch.tensor([r for _, r in placed], dtype=torch.float32)
             rays = ball_reflection_rays(cam, centers, radii, supersample=cfg.supersample)
@@ -144,7 +147,9 @@ class Trainer:
             pred = field.probe_radiance(torch.cat(centers).to(dev), torch.cat(times).to(dev), torch.cat(index).to(dev),
                                         torch.cat(dirs).to(dev))
         with timings("optimisation"):
-            loss = radiance_loss(pred, torch.cat(targets).to(dev), torch.cat(floors).to(dev), cfg.linear_weight, cfg.chroma_weight)
+            loss = radiance_loss(
+                pred, torch.cat(targets).to(dev), torch.cat(floors).to(dev), cfg.linear_weight, cfg.chroma_weight
+            )
             return self._optimise(step, loss)
 
     def _optimise(self, step: int, loss: torch.Tensor) -> float:

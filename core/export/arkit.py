@@ -14,6 +14,8 @@ numerically against the documented Metal cube layout).
 """
 from __future__ import annotations
 
+import base64
+
 import numpy as np
 
 
@@ -25,7 +27,8 @@ def _srgb_encode(linear: np.ndarray) -> np.ndarray:
 def metal_cube_slices(faces: np.ndarray, pixel_format: str = "rgba16Float", exposure_ev: float = 0.0) -> list[bytes]:
     """Per-slice bytes of cube faces [6, S, S, 3] (ours) for a Metal cube texture.
 
-    `rgba16Float`: linear radiance clipped to the half range (+-65504), alpha 1 (bytesPerRow = 8 S). `rgba8Unorm_srgb`: 2^ev scaled,
+    `rgba16Float`: linear radiance clipped to the half range (+-65504), alpha 1 (bytesPerRow = 8 S). `rgba8Unorm_srgb`:
+    2^ev scaled,
     clipped to [0, 1], sRGB-encoded, alpha 255 (bytesPerRow = 4 S)."""
     f = np.asarray(faces, np.float32)
     if f.ndim != 4 or f.shape[0] != 6 or f.shape[1] != f.shape[2] or f.shape[3] != 3:
@@ -42,7 +45,7 @@ def metal_cube_slices(faces: np.ndarray, pixel_format: str = "rgba16Float", expo
 
 def arkit_sh_planes(radiance_sh) -> list[float]:
     """Our [9, 3] SH -> 27 floats as three planes of 9 (all R, then G, then B): core.export.sh_layouts 'arkit'."""
-    from core.export.sh_layouts import pack
+    from core.export.sh_layouts import pack  # noqa: PLC0415 — core.export.sh_layouts pulls in torch: imported when used
 
     return pack(radiance_sh, "arkit")
 
@@ -50,13 +53,11 @@ def arkit_sh_planes(radiance_sh) -> list[float]:
 def arkit_probe(env, x, t, flags, size: int = 64, pixel_format: str = "rgba16Float", exposure_ev: float = 0.0):
     """The ARKit product (core.export.schema.ArkitProbe) of one env map of ours [H, 2H, 3]: Metal cube
     slices, the ambient SH planes and the main light. `flags`: core.export.schema.Flags."""
-    import base64
+    import torch  # noqa: PLC0415 — torch is heavy: imported when used
 
-    import torch
-
-    from core.cubemap import equirect_to_cubemap
-    from core.export.schema import ArkitProbe, DominantLight
-    from core.lights import extract_dominant_light
+    from core.cubemap import equirect_to_cubemap  # noqa: PLC0415 — core.cubemap pulls in torch: imported when used
+    from core.export.schema import ArkitProbe, DominantLight  # noqa: PLC0415 — core.export.schema pulls in pydantic, torch: imported when used
+    from core.lights import extract_dominant_light  # noqa: PLC0415 — core.lights pulls in torch: imported when used
 
     e = torch.as_tensor(np.asarray(env, np.float32))
     faces = equirect_to_cubemap(e, size).numpy()

@@ -34,8 +34,11 @@ The scene holds a node `probe` at the query position x (metres), with `extras` g
 """
 from __future__ import annotations
 
+import json
+
 import numpy as np
 
+from core.export.sh_layouts import to_layout
 from core.io.images import encode_png
 
 EXTENSION = "EXT_lights_image_based"
@@ -60,8 +63,6 @@ def rgbd_decode(rgbd: np.ndarray) -> np.ndarray:
 
 def irradiance_coefficients(radiance_sh: np.ndarray) -> list[list[float]]:
     """Our radiance SH [9, 3] -> the extension's irradiance SH, 9 x [r, g, b] (Babylon's basis)."""
-    from core.export.sh_layouts import to_layout
-
     return to_layout(np.asarray(radiance_sh, np.float64).reshape(9, 3), "babylon").tolist()
 
 
@@ -82,7 +83,7 @@ def build_glb(mips: list[np.ndarray], radiance_sh: np.ndarray, x, t: float | Non
     (prefiltered, roughness i / (N - 1)), `radiance_sh` our [9, 3] SH of the same map.
     `main_light`: a core.lights.DominantLight; when given and found, a KHR_lights_punctual
     directional light and the ambient SH (see the module doc)."""
-    import pygltflib as g
+    import pygltflib as g  # noqa: PLC0415 — pygltflib is heavy: imported when used
 
     if not mips:
         raise ValueError("at least one specular mip is needed")
@@ -132,9 +133,7 @@ def build_glb(mips: list[np.ndarray], radiance_sh: np.ndarray, x, t: float | Non
 
 def read_glb(data: bytes) -> tuple[dict, bytes]:
     """(JSON document, binary chunk) of a .glb, read by pygltflib (for tests and round trips)."""
-    import json
-
-    import pygltflib as g
+    import pygltflib as g  # noqa: PLC0415 — pygltflib is heavy: imported when used
 
     doc = g.GLTF2.load_from_bytes(bytes(data))
     if doc is None or doc.asset is None or doc.asset.version != "2.0":

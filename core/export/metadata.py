@@ -11,6 +11,8 @@ rotated 180 degrees about +y from it, and a reader honouring the tag would turn 
 """
 from __future__ import annotations
 
+import fractions
+
 import numpy as np
 
 from core.conventions import CONVENTIONS_SUMMARY
@@ -53,9 +55,7 @@ def in_colour(env: np.ndarray, colour: str = "rec709") -> np.ndarray:
 def sequence_attributes(t: float, fps: float | None) -> dict:
     """`framesPerSecond` (a rational close to `fps`) and the SMPTE `timeCode` of time t (seconds,
     counted at the nearest whole frame rate), the standard attributes compositors read on sequences."""
-    import fractions
-
-    import OpenEXR
+    import OpenEXR  # noqa: PLC0415 — OpenEXR is heavy: imported when used
 
     if not fps or fps <= 0 or t < 0:
         return {}

@@ -24,14 +24,15 @@ import math
 
 import torch
 
-from core.cubemap import cubemap_directions, equirect_to_cubemap
 from core.conventions import equirect_directions
+from core.cubemap import cubemap_directions, equirect_to_cubemap
 from core.envmap import check_envmap, resize_envmap, sample_envmap, solid_angles
 
 DEFAULT_SAMPLES = 64
 LOD_BIAS = 0.0
 QUADRATURE_MAX_FACE = 32  # levels this small (rough, wide lobes) are integrated directly, larger ones sampled
-QUADRATURE_SOURCE_RATIO = 2  # source rows per face texel; 64 cube on 2 CPUs: 2 -> 1.1 % error, ~1 s; 1 -> 2.9 %, 0.23 s (bench/export_latency.py)
+# source rows per face texel; 64 cube on 2 CPUs: 2 -> 1.1 % error, ~1 s; 1 -> 2.9 %, 0.23 s (bench/export_latency.py)
+QUADRATURE_SOURCE_RATIO = 2
 MIN_FACE = 4  # default mip chains stop at faces of this size or above (glTF: the last mip must hold roughness 1)
 
 
@@ -96,8 +97,11 @@ def _prefilter_level(pyramid: list[torch.Tensor], n: torch.Tensor, roughness: fl
     lod = (0.5 * torch.log2(omega_s / omega_p) + LOD_BIAS).clamp(0.0, len(pyramid) - 1.0)
     tangent, bitangent = _tangent_frame(n)
     # all samples at once: h [K, M, 3], l = reflect(-n, h)
-    h = (tangent[:, None] * (sin_h * torch.cos(phi))[None, :, None] + bitangent[:, None] * (sin_h * torch.sin(phi))[None, :, None]
-         + n[:, None] * cos_h[None, :, None])
+    h = (
+        tangent[:, None] * (sin_h * torch.cos(phi))[None, :, None]
+        + bitangent[:, None] * (sin_h * torch.sin(phi))[None, :, None]
+        + n[:, None] * cos_h[None, :, None]
+    )
     nh = (n[:, None] * h).sum(-1, keepdim=True)
     l = 2.0 * nh * h - n[:, None]
     nl = (n[:, None] * l).sum(-1, keepdim=True).clamp_min(0.0)  # [K, M, 1]
@@ -133,7 +137,7 @@ def _quadrature_level(pyramid: list[torch.Tensor], n: torch.Tensor, roughness: f
 def prefiltered_cubemap(envmap: torch.Tensor, size: int, levels: int | None = None,
                         samples: int = DEFAULT_SAMPLES) -> list[torch.Tensor]:
     """GGX-prefiltered cube mip chain: `levels` tensors [6, size >> i, size >> i, 3] (float32)."""
-    h = check_envmap(envmap)
+    check_envmap(envmap)
     if size < 1 or size & (size - 1):
         raise ValueError(f"cube face size must be a power of two, got {size}")
     levels = levels or default_levels(size)

@@ -9,6 +9,15 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from core.conventions import CONVENTIONS_SUMMARY
+from core.envmap import mirror_envmap
+from core.export.ktx2 import encode_ktx2_cubemap
+from core.export.metadata import envmap_attributes
+from core.export.prefilter import prefiltered_cubemap
+from core.export.sh_layouts import pack
+from core.export.usd import usdz
+from core.lights import extract_dominant_light
+from core.sh import project_sh
 
 
 def cube_source_height(size: int) -> int:
@@ -21,8 +30,6 @@ def _tensor(env) -> torch.Tensor:
 
 
 def prefiltered(env, size: int, levels: int | None = None) -> list[np.ndarray]:
-    from core.export.prefilter import prefiltered_cubemap
-
     return [m.numpy() for m in prefiltered_cubemap(_tensor(env), size, levels)]
 
 
@@ -33,8 +40,6 @@ def cube_for(env, layout: str = "gl"):
     """The map whose GL-table cube faces a consumer samples as our radiance: 'gl' (OpenGL/Vulkan/Metal
     cube tables, Babylon, Filament, ARCore) is ours; 'threejs' is mirrored in x, because three.js
     samples a CubeTexture it did not render at (-x, y, z) (`flipEnvMap = -1`)."""
-    from core.envmap import mirror_envmap
-
     if layout not in CUBE_LAYOUTS:
         raise ValueError(f"cube layout must be one of {', '.join(CUBE_LAYOUTS)}, got {layout!r}")
     e = _tensor(env)
@@ -43,8 +48,6 @@ def cube_for(env, layout: str = "gl"):
 
 def cube_ktx2(env, size: int, levels: int | None = None, layout: str = "gl") -> bytes:
     """KTX2 cube map, RGBA16F, GGX roughness mips (levels=1: the mirror cube only), in `layout`."""
-    from core.export.ktx2 import encode_ktx2_cubemap
-
     return encode_ktx2_cubemap(prefiltered(cube_for(env, layout), size, levels))
 
 
@@ -52,10 +55,7 @@ def probe_glb(env, x, t, size: int = 64, levels: int | None = None, artefact: st
               main_light: bool = True) -> bytes:
     """glTF binary with EXT_lights_image_based (irradiance SH + prefiltered specular mips) and, with
     `main_light` and a light found, a KHR_lights_punctual directional light (core.export.gltf)."""
-    from core.conventions import CONVENTIONS_SUMMARY
-    from core.export.gltf import build_glb
-    from core.lights import extract_dominant_light
-    from core.sh import project_sh
+    from core.export.gltf import build_glb  # noqa: PLC0415 — core.export.gltf pulls in av, cv2, OpenEXR, PIL: imported when used
 
     e = _tensor(env)
     light = extract_dominant_light(e) if main_light else None
@@ -64,19 +64,13 @@ def probe_glb(env, x, t, size: int = 64, levels: int | None = None, artefact: st
 
 
 def probe_usdz(env, x, t, artefact: str = "") -> bytes:
-    from core.export.usd import usdz
-
     return usdz(np.asarray(_tensor(env).detach().cpu(), np.float32), x, t, artefact)
 
 
 def envmap_exr_attributes(x, t, artefact: str = "", extrapolated: str | None = None) -> dict:
-    from core.export.metadata import envmap_attributes
-
     return envmap_attributes(x, t, artefact or None, extrapolated=extrapolated)
 
 
 def sh_in_layout(radiance_sh, layout: str) -> list[float]:
     """27 floats of our radiance SH in a consumer's layout (core.export.sh_layouts)."""
-    from core.export.sh_layouts import pack
-
     return pack(radiance_sh, layout)

@@ -9,7 +9,7 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
-from core.export.sh_layouts import LAYOUT_NAMES
+from core.export.sh_layouts import LAYOUT_NAMES, pack
 
 SHLayoutName = Literal["arcore", "threejs", "babylon", "unity", "arkit"]
 assert set(SHLayoutName.__args__) == set(LAYOUT_NAMES)  # the table in core.export.sh_layouts is the source
@@ -27,12 +27,16 @@ class Flags(BaseModel):
 class DominantLight(BaseModel):
     direction: tuple[float, float, float] = Field(description="unit vector the light arrives from (world); "
                                                   "the best guess even when found is false")
-    intensity: tuple[float, float, float] = Field(description="RGB intensity of a directional light (radiance x sr, "
-                                                  "relative units): ambient SH + this light reproduce the map's irradiance")
+    intensity: tuple[float, float, float] = Field(
+        description="RGB intensity of a directional light (radiance x sr, "
+        "relative units): ambient SH + this light reproduce the map's irradiance"
+    )
     solid_angle: float = Field(description="effective steradians of the light's lobe")
     found: bool = Field(description="confidence >= the threshold: the light is real; when false, use the ambient SH "
                         "alone (coefficients_with_light) or the light at your own risk")
-    confidence: float = Field(description="0..1: share of the irradiance facing the light that it gives x (1 - 1/contrast)")
+    confidence: float = Field(
+        description="0..1: share of the irradiance facing the light that it gives x (1 - 1/contrast)"
+    )
     reason: str = Field(description="why it was or was not found, in words")
     sharpness: float = Field(0.0, description="von Mises-Fisher kappa of the lobe (large = compact)")
     contrast: float = Field(1.0, description="mean radiance of the light's cap over its surroundings")
@@ -41,11 +45,17 @@ class DominantLight(BaseModel):
     @classmethod
     def of(cls, light) -> "DominantLight":
         """From a core.lights.DominantLight."""
-        return cls(direction=tuple(float(v) for v in light.direction), intensity=tuple(float(v) for v in light.intensity_rgb),
-                   solid_angle=float(light.solid_angle), found=bool(light.found), confidence=float(light.confidence),
-                   reason=light.reason, sharpness=float(light.sharpness),
-                   contrast=float(light.contrast) if light.contrast != float("inf") else 1e30,
-                   irradiance_error=float(light.irradiance_error))
+        return cls(
+            direction=tuple(float(v) for v in light.direction),
+            intensity=tuple(float(v) for v in light.intensity_rgb),
+            solid_angle=float(light.solid_angle),
+            found=bool(light.found),
+            confidence=float(light.confidence),
+            reason=light.reason,
+            sharpness=float(light.sharpness),
+            contrast=float(light.contrast) if light.contrast != float("inf") else 1e30,
+            irradiance_error=float(light.irradiance_error),
+        )
 
 
 class SphericalHarmonics(BaseModel):
@@ -64,8 +74,6 @@ class SphericalHarmonics(BaseModel):
     @classmethod
     def of(cls, x, t, flags: Flags, layout: str, light, full_sh) -> "SphericalHarmonics":
         """From a core.lights.DominantLight (its ambient SH) and the whole map's SH [9, 3]."""
-        from core.export.sh_layouts import pack
-
         return cls(x=tuple(float(v) for v in x), t=None if t is None else float(t), extrapolated=flags, layout=layout,
                    coefficients=pack(light.ambient_sh, layout), coefficients_with_light=pack(full_sh, layout),
                    arcore_27=pack(light.ambient_sh, "arcore"), dominant_light=DominantLight.of(light))

@@ -5,7 +5,8 @@ pattern Nuke / Houdini / Blender read as a sequence), each with `core.export.met
 attributes (probe position, time, units, colour space, artefact id, and the standard
 `timeCode` / `framesPerSecond` of evenly spaced frames), plus `sequence.json` listing
 frame -> t. `colour="acescg"` writes ACEScg pixels (AP1 chromaticities). Members are regular
-files with mode 0644 (what unzip restores), not Python's default of no permissions. The zip is produced incrementally: `zip_stream` yields its bytes as each
+files with mode 0644 (what unzip restores), not Python's default of no permissions. The zip is produced incrementally:
+`zip_stream` yields its bytes as each
 member is written, so a caller can send frames while later ones are still being evaluated.
 """
 from __future__ import annotations
@@ -83,8 +84,8 @@ def sequence_members(maps: Iterable[tuple[float, np.ndarray]], x, artefact: str 
                      colour: str = "rec709") -> Iterator[tuple[str, bytes]]:
     """(name, EXR bytes) per (t, env map), then `sequence.json`. `fps` (see `sequence_fps`) gives
     each frame its `framesPerSecond` and `timeCode`."""
-    from core.export.metadata import envmap_attributes, in_colour, sequence_attributes
-    from core.io.exr import encode_exr
+    from core.export.metadata import envmap_attributes, in_colour, sequence_attributes  # noqa: PLC0415 — core.export.metadata pulls in torch: imported when used
+    from core.io.exr import encode_exr  # noqa: PLC0415 — core.io.exr pulls in av, cv2, OpenEXR, PIL, torch: imported when used
 
     index = []
     for i, (t, env) in enumerate(maps):

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.sh import COSINE_LOBE_BY_BAND, SH_BANDS, SH_COUNT, SH_ORDERS, C0, C1, C2, C2_0, C2_2
+from core.sh import C0, C1, C2, C2_0, C2_2, COSINE_LOBE_BY_BAND, SH_BANDS, SH_COUNT, SH_ORDERS
 
 _BASIS_CONSTANTS = (C0, C1, C1, C1, C2, C2, C2_0, C2, C2_2)
 _LOBE = tuple(COSINE_LOBE_BY_BAND[l] for l in SH_BANDS)
@@ -65,10 +65,13 @@ class SHLayout:
 
     def describe(self) -> str:
         flipped = [k for k, s in enumerate(self.signs) if s < 0]
-        return (f"{self.name}: {self.quantity} for {self.reads_it}; "
-                f"{'entries k = ' + ', '.join(map(str, flipped)) + ' negated' if flipped else 'no sign change'}"
-                f"{'' if set(self.scale) == {1.0} else ', scaled per band'}; "
-                f"{'27 floats, coefficient-major, RGB interleaved' if self.packing == 'rgb_interleaved' else '27 floats, three planes of 9 (R, G, B)'}")
+        return (
+            f"{self.name}: {self.quantity} for {self.reads_it}; "
+            f"{'entries k = ' + ', '.join(map(str, flipped)) + ' negated' if flipped else 'no sign change'}"
+            f"{'' if set(self.scale) == {1.0} else ', scaled per band'}; "
+            + ("27 floats, coefficient-major, RGB interleaved" if self.packing == "rgb_interleaved"
+               else "27 floats, three planes of 9 (R, G, B)")
+        )
 
 
 LAYOUTS: dict[str, SHLayout] = {layout.name: layout for layout in (

@@ -18,7 +18,7 @@ import numpy as np
 def threejs_sh(radiance_sh) -> list[float]:
     """Our [9, 3] radiance SH -> the 27 floats `SphericalHarmonics3.fromArray` reads
     (core.export.sh_layouts 'threejs')."""
-    from core.export.sh_layouts import pack
+    from core.export.sh_layouts import pack  # noqa: PLC0415 — core.export.sh_layouts pulls in torch: imported when used
 
     return pack(radiance_sh, "threejs")
 

@@ -23,9 +23,9 @@ def to_unity(v) -> np.ndarray:
 
 def unity_sh(env) -> list[list[float]]:
     """SphericalHarmonicsL2 values [3 channels][9] for an env map of ours [H, 2H, 3]."""
-    import torch
+    import torch  # noqa: PLC0415 — torch is heavy: imported when used
 
-    from core.sh import project_sh
+    from core.sh import project_sh  # noqa: PLC0415 — core.sh pulls in torch: imported when used
 
     return unity_sh_from_coefficients(project_sh(torch.as_tensor(np.asarray(env, np.float64))))
 
@@ -33,7 +33,7 @@ def unity_sh(env) -> list[list[float]]:
 def unity_sh_from_coefficients(radiance_sh) -> list[list[float]]:
     """Our radiance SH [9, 3] -> SphericalHarmonicsL2 values [3][9] (core.export.sh_layouts 'unity':
     the z mirror's signs and Unity's A_l C_k / pi scale)."""
-    from core.export.sh_layouts import to_layout
+    from core.export.sh_layouts import to_layout  # noqa: PLC0415 — core.export.sh_layouts pulls in torch: imported when used
 
     return to_layout(radiance_sh, "unity").T.tolist()
 
@@ -57,8 +57,8 @@ def unity_probe_grid(evaluate, bounds, counts, t, artefact: str = "", lo=None, h
     `evaluate(x)` -> (env map [H, 2H, 3] of ours, {'x': bool, 't': bool} the field's own flags).
     Without lo/hi the probes sit at the cell centres of the region the captures cover
     (core.export.coverage); every probe outside that region (or the time range) is flagged."""
-    from core.export.coverage import cell_centre_grid, covered_region, inside
-    from core.export.schema import Flags, Region, UnityProbe, UnityProbeGrid
+    from core.export.coverage import cell_centre_grid, covered_region, inside  # noqa: PLC0415 — core.export.coverage pulls in pydantic, torch: imported when used
+    from core.export.schema import Flags, Region, UnityProbe, UnityProbeGrid  # noqa: PLC0415 — core.export.schema pulls in pydantic, torch: imported when used
 
     c_lo, c_hi, source = covered_region(bounds)
     if lo is None and hi is None:
@@ -69,9 +69,14 @@ def unity_probe_grid(evaluate, bounds, counts, t, artefact: str = "", lo=None, h
     probes = []
     for x, ok in zip(positions, covered):
         env, flags = evaluate(tuple(float(v) for v in x))
-        probes.append(UnityProbe(position=tuple(float(v) for v in x), position_unity=tuple(float(v) for v in to_unity(x)),
-                                 sh=unity_sh(np.asarray(env, np.float64)),
-                                 extrapolated=Flags(x=bool(flags["x"] or not ok), t=bool(flags["t"]))))
+        probes.append(
+            UnityProbe(
+                position=tuple(float(v) for v in x),
+                position_unity=tuple(float(v) for v in to_unity(x)),
+                sh=unity_sh(np.asarray(env, np.float64)),
+                extrapolated=Flags(x=bool(flags["x"] or not ok), t=bool(flags["t"])),
+            )
+        )
     return UnityProbeGrid(t=t, grid=tuple(int(n) for n in counts),
                           covered=Region(lo=tuple(c_lo.tolist()), hi=tuple(c_hi.tolist()), source=source),
                           extrapolated_probes=sum(p.extrapolated.x or p.extrapolated.t for p in probes),

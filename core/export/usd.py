@@ -35,7 +35,7 @@ class USDUnavailable(ValueError):
 
 def _pxr():
     try:
-        from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdUtils
+        from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdUtils  # noqa: PLC0415 — optional: an ImportError is handled here
     except ImportError as exc:
         raise USDUnavailable(f"USD export needs Pixar's usd-core, which is not installed: {INSTALL_HINT}") from exc
     return Gf, Sdf, Usd, UsdGeom, UsdLux, UsdUtils
@@ -57,9 +57,9 @@ def openexr_latlong_direction(row: np.ndarray, col: np.ndarray, height: int) -> 
 
 def dome_texture_exr(env: np.ndarray, x=None, t: float | None = None, artefact: str | None = None) -> bytes:
     """The DomeLight's texture: OpenEXR-latlong float32 EXR with our metadata attributes."""
-    import OpenEXR
+    import OpenEXR  # noqa: PLC0415 — OpenEXR is heavy: imported when used
 
-    from core.io.exr import encode_exr
+    from core.io.exr import encode_exr  # noqa: PLC0415 — core.io.exr pulls in av, cv2, OpenEXR, PIL: imported when used
 
     attrs = envmap_attributes(x, t, artefact, layout=OPENEXR_LAYOUT)
     attrs["envmap"] = OpenEXR.ENVMAP_LATLONG

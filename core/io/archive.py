@@ -12,6 +12,7 @@ it is refused.
 """
 from __future__ import annotations
 
+import io
 import os
 import posixpath
 import stat
@@ -99,7 +100,9 @@ def check_zip_directory(f, size: int, max_members: int = MAX_MEMBERS, what: str 
         pos += _CD_ENTRY.size + fields[10] + fields[11] + fields[12]  # name, extra, comment lengths
         count += 1
         if count > max_members:
-            raise ArchiveError("too_large", f"{what} has more than {max_members} entries (its end record says {entries})")
+            raise ArchiveError(
+                "too_large", f"{what} has more than {max_members} entries (its end record says {entries})"
+            )
     return count
 
 
@@ -149,8 +152,6 @@ class ZipFiles(CaptureFiles):
     def __init__(self, source: Source, limits: MediaLimits = DEFAULT_LIMITS, max_members: int = MAX_MEMBERS,
                  max_total_bytes: int | None = None, max_ratio: float = MAX_RATIO):
         super().__init__(limits)
-        import io
-
         if isinstance(source, (bytes, bytearray, memoryview)):
             limits.check_bytes(len(source), "capture archive")
             target = io.BytesIO(bytes(source))
@@ -171,7 +172,9 @@ class ZipFiles(CaptureFiles):
     def _check(self, max_members: int, max_total: int, max_ratio: float) -> None:
         infos = self.zip.infolist()
         if len(infos) > max_members:
-            raise ArchiveError("too_large", f"capture archive has {len(infos)} entries, more than the limit of {max_members}")
+            raise ArchiveError(
+                "too_large", f"capture archive has {len(infos)} entries, more than the limit of {max_members}"
+            )
         total = 0
         for info in infos:
             if info.is_dir():
@@ -186,14 +189,19 @@ class ZipFiles(CaptureFiles):
                 raise ArchiveError("too_large", f"archive member {info.filename!r} is {info.file_size} bytes, "
                                                 f"more than the limit of {self.limits.max_bytes}")
             if info.file_size > _RATIO_MIN_BYTES and info.file_size > max_ratio * max(info.compress_size, 1):
-                raise ArchiveError("too_large", f"archive member {info.filename!r} expands {info.file_size / max(info.compress_size, 1):.0f}x "
-                                                f"(more than {max_ratio:g}x: a zip bomb?)")
+                raise ArchiveError(
+                    "too_large",
+                    f"archive member {info.filename!r} expands {info.file_size / max(info.compress_size, 1):.0f}x "
+                    f"(more than {max_ratio:g}x: a zip bomb?)",
+                )
             total += info.file_size
             if name in self.members:
                 raise ArchiveError("not_media", f"archive lists {name!r} twice")
             self.members[name] = info
         if total > max_total:
-            raise ArchiveError("too_large", f"capture archive expands to {total} bytes, more than the limit of {max_total}")
+            raise ArchiveError(
+                "too_large", f"capture archive expands to {total} bytes, more than the limit of {max_total}"
+            )
 
     def exists(self, name: str) -> bool:
         try:

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.io.archive import check_zip_directory
 from core.io.exr import atomic_write, read_exr_channels
 from core.io.images import encode_png16, read_png16
 from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source, read_source
@@ -63,8 +64,6 @@ def check_depth_range(depth: np.ndarray, what: str = "depth") -> None:
 def _open_npz(target, size: int, limits: MediaLimits) -> zipfile.ZipFile:
     """The .npz (a zip) with its directory walked within bounds (core.io.archive) before zipfile
     parses it, and exactly one member `depth.npy`."""
-    from core.io.archive import check_zip_directory
-
     check_zip_directory(target, size, _NPZ_MAX_MEMBERS, "depth .npz")
     target.seek(0)
     archive = zipfile.ZipFile(target)
@@ -135,7 +134,9 @@ def _load_png(data: bytes, limits: MediaLimits) -> np.ndarray:
             raise MediaError("wrong_bit_depth", f"depth PNG must be 16-bit millimetres; {exc}") from None
         raise
     if millimetres.ndim != 2:
-        raise MediaError("invalid_depth", f"depth PNG must be single-channel (greyscale), got {millimetres.shape[2]} channels")
+        raise MediaError(
+            "invalid_depth", f"depth PNG must be single-channel (greyscale), got {millimetres.shape[2]} channels"
+        )
     return millimetres.astype(np.float32) / np.float32(MM_PER_METRE)  # 0 mm -> 0 -> NaN below
 
 
@@ -239,7 +240,9 @@ def encode_depth_png16(depth_m: np.ndarray) -> bytes:
         raise MediaError("invalid_depth", f"depth PNG holds one [H, W] map, got shape {d.shape}")
     mm = np.round(np.nan_to_num(d, nan=0.0) * MM_PER_METRE)
     if mm.max(initial=0.0) > 65535:
-        raise MediaError("invalid_depth", f"depth {float(np.nanmax(d)):.3f} m exceeds the 16-bit millimetre range (65.535 m)")
+        raise MediaError(
+            "invalid_depth", f"depth {float(np.nanmax(d)):.3f} m exceeds the 16-bit millimetre range (65.535 m)"
+        )
     return encode_png16(mm.astype(np.uint16))
 
 

@@ -12,7 +12,9 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+import torch
 
+from core.exposure import to_uint8, tonemap
 from core.io.exr import atomic_write, encode_exr, read_exr
 from core.io.hdr import encode_hdr, read_hdr
 from core.io.images import encode_png
@@ -39,10 +41,6 @@ def _check_envmap(hdr: np.ndarray) -> np.ndarray:
 
 def tonemapped_preview(hdr: np.ndarray, ev: float = 0.0) -> np.ndarray:
     """uint8 [H, W, 3] preview: the paper's tone map at exposure `ev`, rounded."""
-    import torch  # only previews need torch; keep format conversion importable without it
-
-    from core.exposure import to_uint8, tonemap
-
     return to_uint8(tonemap(torch.from_numpy(np.ascontiguousarray(hdr)), float(ev))).numpy()
 
 
@@ -70,8 +68,14 @@ def encode_envmap(hdr: np.ndarray, fmt: EnvmapFormat, ev: float = 0.0, half: boo
     return data, MEDIA_TYPES[fmt]
 
 
-def save_envmap(path: str | os.PathLike, hdr: np.ndarray, fmt: EnvmapFormat | None = None, ev: float = 0.0, half: bool = False,
-                attributes: dict | None = None) -> Path:
+def save_envmap(
+    path: str | os.PathLike,
+    hdr: np.ndarray,
+    fmt: EnvmapFormat | None = None,
+    ev: float = 0.0,
+    half: bool = False,
+    attributes: dict | None = None,
+) -> Path:
     """Write an env map atomically; `fmt` defaults to the path's suffix."""
     path = Path(path)
     fmt = fmt or path.suffix.lower().lstrip(".")

@@ -52,7 +52,9 @@ def read_exr_channels(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> d
     channels = {}
     for name, channel in file_channels:
         if channel.xSampling != 1 or channel.ySampling != 1:
-            raise MediaError("unsupported_codec", f"EXR channel {name!r} is subsampled; only full-resolution channels are supported")
+            raise MediaError(
+                "unsupported_codec", f"EXR channel {name!r} is subsampled; only full-resolution channels are supported"
+            )
         pixels = np.asarray(channel.pixels)
         if pixels.shape != (height, width):
             raise MediaError("truncated", f"EXR channel {name!r} has shape {pixels.shape}, expected {(height, width)}")
@@ -89,13 +91,24 @@ def _prepare(
     a = a.astype(np.float32)
     finite = np.isfinite(a)
     if not allow_non_finite and not finite.all():
-        raise MediaError("non_finite", f"EXR array has {int((~finite).sum())} NaN/inf values; pass allow_non_finite=True to keep them")
+        raise MediaError(
+            "non_finite",
+            f"EXR array has {int((~finite).sum())} NaN/inf values; pass allow_non_finite=True to keep them",
+        )
     if half:
         over = finite & (np.abs(a) > HALF_MAX)
         if over.any():
             if on_overflow == "error":
-                raise MediaError("non_finite", f"{int(over.sum())} values exceed the half-float range (|x| > {HALF_MAX:g}); max |x| = {float(np.abs(a[over]).max()):g}")
-            warnings.warn(f"clamped {int(over.sum())} values beyond the half-float range to +-{HALF_MAX:g}", HalfOverflowWarning, stacklevel=3)
+                raise MediaError(
+                    "non_finite",
+                    f"{int(over.sum())} values exceed the half-float range (|x| > {HALF_MAX:g}); max |x| = "
+                    f"{float(np.abs(a[over]).max()):g}",
+                )
+            warnings.warn(
+                f"clamped {int(over.sum())} values beyond the half-float range to +-{HALF_MAX:g}",
+                HalfOverflowWarning,
+                stacklevel=3,
+            )
             a = np.where(over, np.sign(a) * HALF_MAX, a)
         return a.astype(np.float16)
     return a

@@ -41,13 +41,19 @@ def _parse_header(data: bytes) -> tuple[int, int, bool, int]:
         raise MediaError("truncated", "Radiance header has no end (blank line) in the first 64 KiB")
     for line in data[:end].split(b"\n")[1:]:
         if line.startswith(b"FORMAT=") and line.strip() != b"FORMAT=32-bit_rle_rgbe":
-            raise MediaError("unsupported_codec", f"unsupported Radiance pixel format {line.decode(errors='replace')!r} (only 32-bit_rle_rgbe)")
+            raise MediaError(
+                "unsupported_codec",
+                f"unsupported Radiance pixel format {line.decode(errors='replace')!r} (only 32-bit_rle_rgbe)",
+            )
     eol = data.find(b"\n", end + 2)
     if eol < 0:
         raise MediaError("truncated", "Radiance file ends before its resolution line")
     parts = data[end + 2 : eol].split()
     if len(parts) != 4 or parts[2] != b"+X" or parts[0] not in (b"-Y", b"+Y"):
-        raise MediaError("unsupported_codec", f"unsupported Radiance resolution line {data[end + 2:eol][:40]!r} (need '-Y H +X W' or '+Y H +X W')")
+        raise MediaError(
+            "unsupported_codec",
+            f"unsupported Radiance resolution line {data[end + 2 : eol][:40]!r} (need '-Y H +X W' or '+Y H +X W')",
+        )
     try:
         height, width = int(parts[1]), int(parts[3])
     except ValueError:
@@ -87,7 +93,9 @@ def _decode_pixels(data: bytes, pos: int, height: int, width: int) -> np.ndarray
         head = data[pos : pos + 4]
         if rle_possible and len(head) == 4 and head[0] == 2 and head[1] == 2 and head[2] < 128:
             if (head[2] << 8) | head[3] != width:
-                raise MediaError("truncated", f"Radiance scanline {y} declares width {(head[2] << 8) | head[3]}, expected {width}")
+                raise MediaError(
+                    "truncated", f"Radiance scanline {y} declares width {(head[2] << 8) | head[3]}, expected {width}"
+                )
             pos += 4
             for c in range(4):
                 pos = _decode_rle_plane(data, pos, width, plane)
@@ -165,9 +173,13 @@ def encode_hdr(array: np.ndarray, rle: bool = True) -> bytes:
     if a.ndim != 3 or a.shape[2] != 3 or a.shape[0] < 1 or a.shape[1] < 1:
         raise MediaError("shape_mismatch", f"Radiance image must be [H, W, 3], got shape {a.shape}")
     if not np.isfinite(a).all():
-        raise MediaError("non_finite", f"image has {int((~np.isfinite(a)).sum())} NaN/inf values; RGBE cannot store them")
+        raise MediaError(
+            "non_finite", f"image has {int((~np.isfinite(a)).sum())} NaN/inf values; RGBE cannot store them"
+        )
     if (a < 0).any():
-        warnings.warn(f"clamped {int((a < 0).sum())} negative values to 0 (RGBE has no sign)", UserWarning, stacklevel=2)
+        warnings.warn(
+            f"clamped {int((a < 0).sum())} negative values to 0 (RGBE has no sign)", UserWarning, stacklevel=2
+        )
         a = np.maximum(a, 0)
     height, width = a.shape[:2]
     rgbe = float_to_rgbe(a)

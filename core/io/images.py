@@ -22,8 +22,15 @@ from PIL import Image
 
 from core.io.exr import atomic_write
 from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source, read_source
-from core.io.metadata import (ImageMetadata, describe_orientation, image_metadata, orient_array, orient_image,
-                              orientation_swaps_axes, to_srgb)
+from core.io.metadata import (
+    ImageMetadata,
+    describe_orientation,
+    image_metadata,
+    orient_array,
+    orient_image,
+    orientation_swaps_axes,
+    to_srgb,
+)
 from core.io.sniff import PNG_MAGIC, sniff_image
 
 try:
@@ -50,7 +57,9 @@ def _open_checked(data: bytes, limits: MediaLimits) -> Image.Image:
         raise MediaError("too_many_pixels", f"image declares too many pixels ({exc})") from None
     except Exception as exc:  # UnidentifiedImageError, SyntaxError from broken headers, ...
         if fmt == "heif":
-            raise MediaError("unsupported_codec", "HEIF/AVIF images are not supported; convert to PNG or JPEG") from None
+            raise MediaError(
+                "unsupported_codec", "HEIF/AVIF images are not supported; convert to PNG or JPEG"
+            ) from None
         raise MediaError("truncated", f"{fmt.upper()} header is corrupt or truncated") from exc
     width, height = image.size
     limits.check_pixels(width, height, f"{fmt.upper()} image")
@@ -110,7 +119,10 @@ def check_complete(data: bytes) -> None:
 def _check_sample_format(image: Image.Image, data: bytes) -> None:
     if image.mode in ("I", "F") and not (image.format == "PNG" and _png_bit_depth(data) == 16):
         # 32-bit integer / float samples: no defined white level
-        raise MediaError("unsupported_codec", f"{image.format} with 32-bit {image.mode!r} samples is not an LDR image; send HDR as EXR or .hdr")
+        raise MediaError(
+            "unsupported_codec",
+            f"{image.format} with 32-bit {image.mode!r} samples is not an LDR image; send HDR as EXR or .hdr",
+        )
 
 
 def _decode_png16(data: bytes) -> np.ndarray:

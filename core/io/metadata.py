@@ -133,7 +133,10 @@ def image_metadata(image: Image.Image) -> ImageMetadata:
     orientation = exif.get(ExifTags.Base.Orientation, 1)
     orientation = orientation if isinstance(orientation, int) and 1 <= orientation <= 8 else 1
     px_per_mm = None
-    xres, unit = _number(sub.get(ExifTags.Base.FocalPlaneXResolution)), sub.get(ExifTags.Base.FocalPlaneResolutionUnit, 2)
+    xres, unit = (
+        _number(sub.get(ExifTags.Base.FocalPlaneXResolution)),
+        sub.get(ExifTags.Base.FocalPlaneResolutionUnit, 2),
+    )
     if xres is not None and unit in _UNIT_MM:
         px_per_mm = xres / _UNIT_MM[unit]
     exif_width = sub.get(ExifTags.Base.ExifImageWidth)
@@ -189,7 +192,11 @@ def exif_intrinsics(meta: ImageMetadata, width: int, height: int, stored_width: 
         f = meta.focal_length_35mm * math.hypot(width, height) / FULL_FRAME_DIAGONAL_MM
         rule = f"EXIF FocalLengthIn35mmFilm = {meta.focal_length_35mm:g} mm (diagonal crop factor)"
     elif meta.focal_length_mm is not None and meta.focal_plane_px_per_mm is not None:
-        stored = stored_width if stored_width is not None else (height if orientation_swaps_axes(meta.orientation) else width)
+        stored = (
+            stored_width
+            if stored_width is not None
+            else (height if orientation_swaps_axes(meta.orientation) else width)
+        )
         ratio = stored / meta.exif_width if meta.exif_width else 1.0
         f = meta.focal_length_mm * meta.focal_plane_px_per_mm * ratio
         rule = (f"EXIF FocalLength = {meta.focal_length_mm:g} mm x FocalPlaneXResolution "

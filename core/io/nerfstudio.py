@@ -29,6 +29,7 @@ Every problem is an `ArchiveError` whose `.field` names the offending key, e.g.
 """
 from __future__ import annotations
 
+import io
 import json
 import math
 from dataclasses import dataclass, field
@@ -36,6 +37,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from PIL import Image
 
 from core.camera import MAX_FOV_DEG, MAX_POSE_TRANSLATION_M, MIN_FOV_DEG
 from core.io.archive import ArchiveError, CaptureFiles, ZipFiles, member_name, open_capture_files
@@ -105,7 +107,9 @@ class NerfstudioCamera:
 
     def scaled(self, width: int, height: int) -> "NerfstudioCamera":
         sx, sy = width / self.width, height / self.height
-        return NerfstudioCamera(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height, self.model, self.distortion)
+        return NerfstudioCamera(
+            self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height, self.model, self.distortion
+        )
 
     def as_dict(self) -> dict:
         return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "width": self.width, "height": self.height}
@@ -148,7 +152,8 @@ class NerfstudioCapture:
     names: list[str]
     metadata: dict
     warnings: list[str]
-    frame_ev: list[float] | None = None  # each kept image's exposure (stops, vs the first) when every one's EXIF states it
+    # each kept image's exposure (stops, vs the first) when every one's EXIF states it
+    frame_ev: list[float] | None = None
 
 
 def _camera(meta: dict, where: str, image_size: tuple[int, int] | None) -> NerfstudioCamera:
@@ -158,9 +163,12 @@ def _camera(meta: dict, where: str, image_size: tuple[int, int] | None) -> Nerfs
         raise _err(f"{where}camera_model", f"must be a string, got {model!r}")
     model = model.upper()
     if model not in PINHOLE_MODELS + DISTORTED_MODELS:
-        raise _err(f"{where}camera_model", f"{model!r} is not supported (use PINHOLE, SIMPLE_PINHOLE, OPENCV or "
-                                           "OPENCV_FISHEYE; 360-degree EQUIRECTANGULAR captures need a perspective export)",
-                   "unsupported_codec")
+        raise _err(
+            f"{where}camera_model",
+            f"{model!r} is not supported (use PINHOLE, SIMPLE_PINHOLE, OPENCV or "
+            "OPENCV_FISHEYE; 360-degree EQUIRECTANGULAR captures need a perspective export)",
+            "unsupported_codec",
+        )
     if "w" in meta or "h" in meta or image_size is None:
         w, h = _num(meta, "w", where, positive=True), _num(meta, "h", where, positive=True)
         if w != int(w) or h != int(h):
@@ -200,10 +208,13 @@ def _check_plausible(cam: NerfstudioCamera, where: str, fx_key: str, fy_key: str
     for key, f, size, axis in ((fx_key, cam.fx, cam.width, "horizontal"), (fy_key, cam.fy, cam.height, "vertical")):
         fov = math.degrees(2 * math.atan(0.5 * size / f))
         if not MIN_FOV_DEG <= fov <= MAX_FOV_DEG:
-            raise _err(f"{where}{key}", f"{f:g} px gives a {fov:.4g} deg {axis} field of view for {cam.width}x{cam.height} "
-                                        f"images; expected {MIN_FOV_DEG:g} to {MAX_FOV_DEG:g} deg (a focal length of "
-                                        f"{0.5 * size / math.tan(hi_fov):.4g} to {0.5 * size / math.tan(lo_fov):.4g} px)",
-                       "invalid_intrinsics")
+            raise _err(
+                f"{where}{key}",
+                f"{f:g} px gives a {fov:.4g} deg {axis} field of view for {cam.width}x{cam.height} "
+                f"images; expected {MIN_FOV_DEG:g} to {MAX_FOV_DEG:g} deg (a focal length of "
+                f"{0.5 * size / math.tan(hi_fov):.4g} to {0.5 * size / math.tan(lo_fov):.4g} px)",
+                "invalid_intrinsics",
+            )
     for key, c, size in (("cx", cam.cx, cam.width), ("cy", cam.cy, cam.height)):
         if abs(c - size / 2) > size:
             raise _err(f"{where}{key}", f"{c:g} px lies more than one image size from the centre; expected "
@@ -291,9 +302,6 @@ def _image_size(files: CaptureFiles, name: str, key: str, limits: MediaLimits = 
 
 
 def _stored_size(data: bytes) -> tuple[int, int]:
-    import io
-
-    from PIL import Image
 
     with Image.open(io.BytesIO(data)) as im:
         return im.size
@@ -308,7 +316,11 @@ def _find_index(files: CaptureFiles) -> None:
             files.prefix = found[0][: -len(INDEX)].rstrip("/")
             return
         if len(found) > 1:
-            raise _err("", f"the archive holds {len(found)} {INDEX} files ({found[:3]}...); send one capture per archive", "not_media")
+            raise _err(
+                "",
+                f"the archive holds {len(found)} {INDEX} files ({found[:3]}...); send one capture per archive",
+                "not_media",
+            )
     raise _err("", f"no {INDEX} in the capture", "not_found")
 
 
@@ -326,7 +338,9 @@ def read_index(files: CaptureFiles) -> NerfstudioIndex:
     if not isinstance(frames, list) or not frames:
         raise _err("frames", "must be a non-empty list")
     if len(frames) > MAX_INDEX_FRAMES:
-        raise _err("frames", f"lists {len(frames)} frames, more than the limit of {MAX_INDEX_FRAMES}", "too_many_frames")
+        raise _err(
+            "frames", f"lists {len(frames)} frames, more than the limit of {MAX_INDEX_FRAMES}", "too_many_frames"
+        )
     top = {k: meta[k] for k in CAMERA_KEYS if k in meta}
     notes: list[str] = []
     cams, names, matrices, depth_files = [], [], [], []
@@ -356,7 +370,9 @@ def read_index(files: CaptureFiles) -> NerfstudioIndex:
             cache[key] = _camera(merged, where if own else "", image_size)
         cam = cache[key]
         if cams and cam is not cams[0] and not _same_camera(cams[0], cam):
-            raise _err(f"{where}fl_x", "intrinsics differ from frames[0]: captures from several cameras are not supported")
+            raise _err(
+                f"{where}fl_x", "intrinsics differ from frames[0]: captures from several cameras are not supported"
+            )
         cams.append(cam)
         names.append(name)
         matrices.append(fr["transform_matrix"])
@@ -372,7 +388,11 @@ def read_index(files: CaptureFiles) -> NerfstudioIndex:
     if depth_files and len(depth_files) != len(frames):
         warnings.append(f"only {len(depth_files)} of {len(frames)} frames have a depth_file_path: depth ignored")
         depth_files = []
-    scale = _num(meta, "depth_unit_scale_factor", "", required=False, positive=True) if "depth_unit_scale_factor" in meta else None
+    scale = (
+        _num(meta, "depth_unit_scale_factor", "", required=False, positive=True)
+        if "depth_unit_scale_factor" in meta
+        else None
+    )
     P = _poses(matrices, [f"frames[{i}].transform_matrix" for i in range(len(matrices))])
     R = _world_rotation(P)
     if R is not None:
@@ -380,7 +400,10 @@ def read_index(files: CaptureFiles) -> NerfstudioIndex:
         notes.append("the file's world is +z up (cameras' mean up vector): turned to +y up by Rx(-90 deg), "
                      "(x, y, z)_ours = (x, z, -y)_file")
     if cams[0].distorted:
-        notes.append(f"{cams[0].model} distortion {list(cams[0].distortion)} removed (undistorted to a pinhole, same fx, fy, cx, cy)")
+        notes.append(
+            f"{cams[0].model} distortion {list(cams[0].distortion)} removed (undistorted to a pinhole, same fx, fy, "
+            "cx, cy)"
+        )
     return NerfstudioIndex(cams[0], names, P, depth_files or None, scale, R, notes, warnings)
 
 
@@ -437,7 +460,9 @@ def load_nerfstudio(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> Ner
         h, w = frames[0].shape[:2]
         for n, f in enumerate(frames):
             if f.shape[:2] != (h, w):
-                raise _err(f"frames[{keep[n]}].file_path", f"image is {f.shape[1]}x{f.shape[0]}, frames[{keep[0]}] is {w}x{h}")
+                raise _err(
+                    f"frames[{keep[n]}].file_path", f"image is {f.shape[1]}x{f.shape[0]}, frames[{keep[0]}] is {w}x{h}"
+                )
         notes = list(index.notes) + applied
         if (w, h) != (cam.width, cam.height):
             notes.append(f"images are {w}x{h}, transforms.json says {cam.width}x{cam.height}: intrinsics rescaled")
@@ -469,7 +494,9 @@ def inspect_nerfstudio(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> 
     with open_capture_files(source, limits) as files:
         index = read_index(files)
         limits.check_pixels(index.camera.width, index.camera.height, f"{INDEX}: w x h")
-        keep = [int(i) for i in select_frame_indices(len(index.files), index.camera.width * index.camera.height, limits)]
+        keep = [
+            int(i) for i in select_frame_indices(len(index.files), index.camera.width * index.camera.height, limits)
+        ]
         first = keep[0]
         limits.check_pixels(*_image_size(files, index.files[first], f"frames[{first}].file_path", limits),
                             f"frames[{first}] image")

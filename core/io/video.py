@@ -65,7 +65,9 @@ def select_frame_indices(
     count = (max(int(frame_count), 0) + stride - 1) // stride  # candidates 0, stride, 2 stride, ...
     budget = min(limits.max_frames, limits.max_total_pixels // max(frame_pixels, 1))
     if budget < 1:
-        raise MediaError("too_many_pixels", f"one frame of {frame_pixels} pixels exceeds max_total_pixels={limits.max_total_pixels}")
+        raise MediaError(
+            "too_many_pixels", f"one frame of {frame_pixels} pixels exceeds max_total_pixels={limits.max_total_pixels}"
+        )
     if count <= budget:
         return np.arange(count, dtype=np.int64) * stride
     if on_too_many == "error":
@@ -107,7 +109,10 @@ def _video_stream(container):
         raise MediaError("truncated", "video container is truncated or corrupt (no video stream found)")
     stream = container.streams.video[0]
     if stream.codec_context is None:  # the container names a codec this ffmpeg does not know
-        raise MediaError("unsupported_codec", "the video stream's codec is unknown to the bundled ffmpeg; re-encode as H.264, VP9 or MPEG-4")
+        raise MediaError(
+            "unsupported_codec",
+            "the video stream's codec is unknown to the bundled ffmpeg; re-encode as H.264, VP9 or MPEG-4",
+        )
     # Slice threading only: with frame threading, a decode error in a cut file discards the
     # frames already queued in other threads, so a truncated clip would yield none at all.
     stream.thread_type = "SLICE"
@@ -163,7 +168,9 @@ def _header(source: Source, container, stream, limits: MediaLimits, on_too_many:
     return fps, frame_count, select_frame_indices(frame_count, pixels, limits, on_too_many)
 
 
-def probe_video(source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_many: OnTooMany = "subsample") -> VideoHeader:
+def probe_video(
+    source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_many: OnTooMany = "subsample"
+) -> VideoHeader:
     """What `read_video` would decode, from the container's metadata and the FIRST frame only
     (which proves the stream decodes): the same size (upright, after the display rotation),
     frame-count and pixel limits, refused with the same MediaError codes, at the cost of one
@@ -182,7 +189,9 @@ def probe_video(source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_man
         return VideoHeader(w, h, fps, frame_count, selected, warnings)
 
 
-def read_video(source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_many: OnTooMany = "subsample") -> VideoFrames:
+def read_video(
+    source: Source, limits: MediaLimits = DEFAULT_LIMITS, on_too_many: OnTooMany = "subsample"
+) -> VideoFrames:
     """Decode a video (path or bytes) into float32 frames under `limits` (see module doc)."""
     container, _ = _open_container(source, limits)
     warnings: list[str] = []
@@ -262,7 +271,11 @@ def _decode_selected(container, stream, wanted: np.ndarray, limits: MediaLimits,
         if index in wanted_set:
             rgb = frame.to_ndarray(format="rgb24")
             if kept and rgb.shape != kept[0].shape:
-                raise MediaError("shape_mismatch", f"frame {index} is {rgb.shape[1]}x{rgb.shape[0]}, frame 0 was {kept[0].shape[1]}x{kept[0].shape[0]}")
+                raise MediaError(
+                    "shape_mismatch",
+                    f"frame {index} is {rgb.shape[1]}x{rgb.shape[0]}, frame 0 was "
+                    f"{kept[0].shape[1]}x{kept[0].shape[0]}",
+                )
             kept.append(rgb)
             indices.append(index)
         if index >= last:

@@ -3,10 +3,9 @@ geometry, never the light field being optimised. Registered by name (core.priors
 the built-in light priors register here, the diffusion prior on first use, the simulator's
 oracle when core.sim.oracle is imported."""
 from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest, ProbeGeometry
-from core.priors.registry import build_prior, job_prior_names, prior_names, register_prior
-
-from core.priors.reprojection import ReprojectionPrior  # registers "reprojection"
 from core.priors.known import KnownRadiancePrior  # registers "known"
+from core.priors.registry import build_prior, job_prior_names, prior_names, register_prior
+from core.priors.reprojection import ReprojectionPrior  # registers "reprojection"
 
 __all__ = [
     "KnownRadiancePrior", "Prior", "PriorCapabilities", "PriorConfig", "PriorError", "PriorRequest", "ProbeGeometry",

@@ -121,7 +121,7 @@ class Prior(ABC):
         """Where the prior wants its request tensors (the engine moves them there)."""
         return torch.device("cpu")
 
-    def bind(self, capture: Capture, *, lighting_changes: bool = True) -> None:
+    def bind(self, capture: Capture, *, lighting_changes: bool = True) -> None:  # noqa: B027 — an optional hook
         """Called once per job before distillation (precompute per-capture state).
         `lighting_changes` is the engine's temporal decision: False lets a prior pool what
         different frames saw."""

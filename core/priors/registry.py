@@ -43,7 +43,9 @@ def prior_class(name: str) -> type[Prior]:
         try:
             importlib.import_module(LAZY_PRIORS[name])
         except ImportError as exc:
-            raise PriorError(f"the {name} prior is unavailable ({LAZY_PRIORS[name]} could not be imported: {exc})") from exc
+            raise PriorError(
+                f"the {name} prior is unavailable ({LAZY_PRIORS[name]} could not be imported: {exc})"
+            ) from exc
     if name not in PRIORS:
         raise PriorError(f"unknown prior {name!r}; choose one of {', '.join(prior_names())}")
     return PRIORS[name]

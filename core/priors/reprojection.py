@@ -50,13 +50,13 @@ import torch
 import torch.nn.functional as F
 from pydantic import Field, PositiveFloat
 
-from core.conventions import expose, inverse_tonemap
 from core.capture.depth import surface_normals
 from core.capture.hdr_merge import capture_reading_weights, merge_frames
 from core.capture.highlights import CLIP_LDR, linearise_highlights
+from core.conventions import expose, inverse_tonemap
 from core.envmap import SPLAT_Z_TOLERANCE, resize_envmap, splat_points, voxel_merge
-from core.priors.indoor_fill import SOURCE_CAP, cap_sources, fill_unseen
 from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
+from core.priors.indoor_fill import SOURCE_CAP, cap_sources, fill_unseen
 from core.priors.known import ball_target
 from core.priors.registry import prior_settings, register_prior
 
@@ -84,7 +84,9 @@ def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP
     if src.stated_ev is not None:  # each frame's own units -> one scale (ev 0)
         lin = expose(lin, -src.frame_ev.to(lin.dtype)[:, None, None, None])
     if src is not capture and (src.height, src.width) != (capture.height, capture.width):
-        lin = F.interpolate(lin.permute(0, 3, 1, 2), size=(capture.height, capture.width), mode="area").permute(0, 2, 3, 1)
+        lin = F.interpolate(lin.permute(0, 3, 1, 2), size=(capture.height, capture.width), mode="area").permute(
+            0, 2, 3, 1
+        )
     return lin.contiguous()
 
 
@@ -159,18 +161,36 @@ def _sum_pool(x: torch.Tensor, kh: int, kw: int) -> torch.Tensor:
 
 class ReprojectionSettings(PriorConfig):
     env_height: int = Field(32, ge=4, description="splat resolution: env maps of env_height x 2 env_height")
-    clip_rule: Literal["estimate", "fixed"] = Field("estimate", description=(
-        "clipped pixels: 'estimate' their radiance per blob (core.capture.highlights) or multiply by clip_boost ('fixed')"))
-    clip_boost: float = Field(CLIP_BOOST, gt=0, description="radiance factor of clipped (>= CLIP_LDR) pixels with clip_rule 'fixed'")
-    unseen_fill: Literal["indoor", "push-pull"] = Field("indoor", description=(
-        "unobserved directions: pull-push with the indoor elevation gain and the seen mean colour (core.priors.indoor_fill), "
-        "or plain pull-push"))
+    clip_rule: Literal["estimate", "fixed"] = Field(
+        "estimate",
+        description=(
+            "clipped pixels: 'estimate' their radiance per blob (core.capture.highlights) or multiply by clip_boost "
+            "('fixed')"
+        ),
+    )
+    clip_boost: float = Field(
+        CLIP_BOOST, gt=0, description="radiance factor of clipped (>= CLIP_LDR) pixels with clip_rule 'fixed'"
+    )
+    unseen_fill: Literal["indoor", "push-pull"] = Field(
+        "indoor",
+        description=(
+            "unobserved directions: pull-push with the indoor elevation gain and the seen mean colour "
+            "(core.priors.indoor_fill), "
+            "or plain pull-push"
+        ),
+    )
     fill_source_cap: float | None = Field(SOURCE_CAP, gt=0, description=(
         "with unseen_fill 'indoor': seen radiance above this multiple of the seen median luminance is capped "
         "before it is extrapolated into unseen directions (core.priors.indoor_fill.cap_sources); null: not capped"))
-    elevation_gain: tuple[PositiveFloat, ...] | None = Field(None, min_length=2, description=(
-        "with unseen_fill 'indoor': the unseen directions' brightness profile from up to down (any number of rows, "
-        "each > 0); null: core.priors.indoor_fill.ELEVATION_GAIN (benches pass a profile refitted without the scored room)"))
+    elevation_gain: tuple[PositiveFloat, ...] | None = Field(
+        None,
+        min_length=2,
+        description=(
+            "with unseen_fill 'indoor': the unseen directions' brightness profile from up to down (any number of rows, "
+            "each > 0); null: core.priors.indoor_fill.ELEVATION_GAIN (benches pass a profile refitted without the "
+            "scored room)"
+        ),
+    )
     back_faces: Literal["dark", "front"] = Field("front", description=(
         "points whose observed side faces away from the probe: occluders of radiance 0 ('dark') or with the "
         "radiance of their observed side ('front')"))
@@ -252,7 +272,9 @@ class ReprojectionPrior(Prior):
         """World points [H*W, 3] of a frame (NaN rows where depth is invalid), cached."""
         owner = self._geometry_key[frame_index]
         if owner not in self._points:
-            self._points[owner] = self._capture.camera(owner).unproject(self._capture.depth[owner].float()).reshape(-1, 3)
+            self._points[owner] = (
+                self._capture.camera(owner).unproject(self._capture.depth[owner].float()).reshape(-1, 3)
+            )
             self.point_cloud_builds += 1
         return self._points[owner]
 
@@ -320,7 +342,8 @@ class ReprojectionPrior(Prior):
         env, seen = self._splat_seen(centers, frame_index)
         if self.unseen_fill != "indoor":
             return push_pull_fill(env, seen)
-        source = cap_sources(env, seen, self.fill_source_cap)  # the walls, not the lamps, set the fill's level and colour
+        # the walls, not the lamps, set the fill's level and colour
+        source = cap_sources(env, seen, self.fill_source_cap)
         extrapolated = push_pull_fill(source, seen)
         return fill_unseen(torch.where(seen[..., None], env, extrapolated), source, seen, self.elevation_gain)
 
@@ -336,7 +359,9 @@ class ReprojectionPrior(Prior):
         if self.back_faces == "dark":  # the probe sees the unobserved back of the surface (NaN normal: front)
             nrm = torch.cat([self.normals(v)[::k] for v, k in zip(views, stride)])[ok]
             rel = pts[None, :, :] - centers[:, None, :].to(pts.dtype)  # [N, P, 3]
-            col = torch.where(((rel * nrm[None]).sum(-1) > 0)[..., None], 0.0, col[None].expand(centers.shape[0], -1, 3))
+            col = torch.where(
+                ((rel * nrm[None]).sum(-1) > 0)[..., None], 0.0, col[None].expand(centers.shape[0], -1, 3)
+            )
         return splat_points(pts, col, centers, self.env_height)
 
     def view_radiance(self, frame_index: int) -> torch.Tensor:

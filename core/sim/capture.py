@@ -55,10 +55,10 @@ def write_capture(
     return the capture.json document plus a "cost" entry (per-effect seconds and rays).
 
     `probes=None` uses the scene's own held-out probes."""
-    from core.io.depth import write_depth_npz
-    from core.io.exr import atomic_write, write_exr
-    from core.io.images import write_png
-    from core.io.video import write_video
+    from core.io.depth import write_depth_npz  # noqa: PLC0415 — core.io.depth pulls in av, cv2, OpenEXR, PIL: imported when used
+    from core.io.exr import atomic_write, write_exr  # noqa: PLC0415 — core.io.exr pulls in av, cv2, OpenEXR, PIL: imported when used
+    from core.io.images import write_png  # noqa: PLC0415 — core.io.images pulls in av, cv2, OpenEXR, PIL: imported when used
+    from core.io.video import write_video  # noqa: PLC0415 — core.io.video pulls in av, cv2, OpenEXR, PIL: imported when used
 
     probes = list(scene.probes if probes is None else probes)
     _check_probes(scene, probes)

@@ -22,7 +22,12 @@ import math
 import torch
 
 from core.camera import Camera
-from core.conventions import direction_to_equirect_pixel, equirect_directions, pixel_to_camera_ray, theta_phi_to_direction
+from core.conventions import (
+    direction_to_equirect_pixel,
+    equirect_directions,
+    pixel_to_camera_ray,
+    theta_phi_to_direction,
+)
 from core.sim.shading import ShadingContext, tangent_frame
 
 SUBSAMPLES = 4  # per pixel side, for the background part of a refined pixel
@@ -52,7 +57,11 @@ def _cone_rays(axis: torch.Tensor, alpha: torch.Tensor):
     sin_t = (1.0 - cos_t * cos_t).clamp_min(0.0).sqrt()
     phi = 2.0 * math.pi * u2[None]
     t1, t2 = tangent_frame(axis.double())
-    d = (sin_t * phi.cos())[..., None] * t1[:, None] + (sin_t * phi.sin())[..., None] * t2[:, None] + cos_t[..., None] * axis.double()[:, None]
+    d = (
+        (sin_t * phi.cos())[..., None] * t1[:, None]
+        + (sin_t * phi.sin())[..., None] * t2[:, None]
+        + cos_t[..., None] * axis.double()[:, None]
+    )
     omega = (2.0 * math.pi * (1.0 - cos_a)).expand(-1, k * k) / (k * k)
     return d.reshape(-1, 3).float(), omega.reshape(-1).float()
 
@@ -89,7 +98,9 @@ def subpixel_rays(camera: Camera, pixels: torch.Tensor, s: int) -> torch.Tensor:
     return (ray / ray.norm(dim=-1, keepdim=True)).float().reshape(-1, 3)
 
 
-def envmap_lamp_pixels(ctx: ShadingContext, probe: torch.Tensor, height: int, trace_fn) -> list[tuple[torch.Tensor, torch.Tensor]]:
+def envmap_lamp_pixels(
+    ctx: ShadingContext, probe: torch.Tensor, height: int, trace_fn
+) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """[(flat pixel indices, mean radiance [P, 3])] for env-map pixels near lit lamps."""
     axis, alpha = _lamp_cones(ctx, probe)
     if len(axis) == 0:
@@ -116,8 +127,12 @@ def envmap_lamp_pixels(ctx: ShadingContext, probe: torch.Tensor, height: int, tr
     pix_cone = r_idx * width + c_idx
     return [
         _weighted_pixels(
-            ctx, probe, trace_fn,
-            torch.cat([pix_sub[outside], pix_cone]), torch.cat([d_sub[outside], d_cone]), torch.cat([w_sub[outside], w_cone]),
+            ctx,
+            probe,
+            trace_fn,
+            torch.cat([pix_sub[outside], pix_cone]),
+            torch.cat([d_sub[outside], d_cone]),
+            torch.cat([w_sub[outside], w_cone]),
             candidates,
         )
     ]
@@ -166,8 +181,12 @@ def frame_lamp_pixels(ctx: ShadingContext, camera: Camera, trace_fn) -> list[tup
     w_cone = omega * (k.fx * k.fy) / cos_t**3  # solid angle -> image area (pixels^2)
     return [
         _weighted_pixels(
-            ctx, origin, trace_fn,
-            torch.cat([pix_sub[outside], pix_cone]), torch.cat([d_sub[outside], d_cone]), torch.cat([w_sub[outside], w_cone]),
+            ctx,
+            origin,
+            trace_fn,
+            torch.cat([pix_sub[outside], pix_cone]),
+            torch.cat([d_sub[outside], d_cone]),
+            torch.cat([w_sub[outside], w_cone]),
             candidates,
         )
     ]

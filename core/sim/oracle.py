@@ -42,7 +42,9 @@ def load_scene(source: SceneSpec | str | os.PathLike) -> SceneSpec:
 class OracleSettings(PriorConfig):
     model_config = ConfigDict(arbitrary_types_allowed=True)
 
-    scene: SceneSpec | Path | str = Field(description="a SceneSpec, a scene.json, or a capture directory of the simulator")
+    scene: SceneSpec | Path | str = Field(
+        description="a SceneSpec, a scene.json, or a capture directory of the simulator"
+    )
     supersample: int = Field(1, ge=1, le=8)
 
 

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from core.camera import Camera
 from core.conventions import equirect_directions
-from core.envmap import check_envmap, sample_envmap
+from core.envmap import check_envmap, resize_envmap, sample_envmap
 from core.exposure import display_tonemap
 from core.tracking.room import RoomBox
 
@@ -64,7 +65,9 @@ def ldr_clip(hdr_frames: torch.Tensor, percentile: float = 99.0) -> torch.Tensor
     return torch.round(ldr * 255.0) / 255.0
 
 
-def render_clip(room: PanoramaRoom, cameras: list[Camera], supersample: int = 2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def render_clip(
+    room: PanoramaRoom, cameras: list[Camera], supersample: int = 2
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(LDR frames [T, H, W, 3] 8-bit-quantised at one exposure, planar depth [T, H, W], HDR frames)."""
     out = [room.render(c, supersample) for c in cameras]
     hdr = torch.stack([o[0] for o in out])
@@ -73,10 +76,7 @@ def render_clip(room: PanoramaRoom, cameras: list[Camera], supersample: int = 2)
 
 def load_panorama(path, height: int | None = None) -> torch.Tensor:
     """A panorama file (.hdr / .exr) as [H, 2H, 3] float32, area-downsampled to `height` rows."""
-    import numpy as np
-
-    from core.envmap import resize_envmap
-    from core.io.envmap_io import load_envmap
+    from core.io.envmap_io import load_envmap  # noqa: PLC0415 — core.io.envmap_io pulls in av, cv2, OpenEXR, PIL: imported when used
 
     pano = torch.from_numpy(np.ascontiguousarray(load_envmap(path)[..., :3])).float()
     return resize_envmap(pano, height) if height is not None and pano.shape[0] > height else pano

@@ -152,7 +152,9 @@ def render_envmap(scene: SceneSpec, x, t: float, height: int = 64, cost: CostRep
     return env.reshape(height, 2 * height, 3)
 
 
-def radiance(scene: SceneSpec, x: torch.Tensor, t: torch.Tensor, d: torch.Tensor, cost: CostReport | None = None) -> torch.Tensor:
+def radiance(
+    scene: SceneSpec, x: torch.Tensor, t: torch.Tensor, d: torch.Tensor, cost: CostReport | None = None
+) -> torch.Tensor:
     """Ground-truth radiance [B, 3] arriving at x [B, 3] (metres) at time t [B] (seconds)
     from directions d [B, 3] (need not be unit). Points outside free space, zero or
     non-finite directions and non-finite times get 0."""
@@ -163,7 +165,13 @@ def radiance(scene: SceneSpec, x: torch.Tensor, t: torch.Tensor, d: torch.Tensor
     d = d / norm.clamp_min(1e-12)
     out = torch.zeros(len(x), 3)
     geom = geometry(scene)
-    free = geom.inside_room(x) & ~geom.inside_furniture(x) & torch.isfinite(norm[:, 0]) & (norm[:, 0] > 1e-12) & torch.isfinite(t)
+    free = (
+        geom.inside_room(x)
+        & ~geom.inside_furniture(x)
+        & torch.isfinite(norm[:, 0])
+        & (norm[:, 0] > 1e-12)
+        & torch.isfinite(t)
+    )
     for tv in torch.unique(t):
         sel = (t == tv) & free
         if sel.any():

@@ -29,8 +29,10 @@ from pathlib import Path
 import torch
 
 from core.camera import Camera, Intrinsics
-from core.conventions import tonemap
+from core.conventions import equirect_width, inverse_tonemap, tonemap
+from core.envmap import resize_envmap, rotate_envmap, sample_envmap
 from core.exposure import luminance
+from core.sim.panorama_room import load_panorama
 
 SCAN_FPS = 10.0
 SCAN_SIZE = (192, 144)  # width, height
@@ -84,13 +86,17 @@ def scan_angles(yaw0: float = 0.0, path: str = "scan") -> list[tuple[float, floa
     return out
 
 
-def scan_poses(yaw0: float = 0.0, seed: int = 0, jitter_deg: float = HAND_JITTER_DEG, path: str = "scan") -> list[torch.Tensor]:
+def scan_poses(
+    yaw0: float = 0.0, seed: int = 0, jitter_deg: float = HAND_JITTER_DEG, path: str = "scan"
+) -> list[torch.Tensor]:
     """c2w poses [4, 4] float64 at the origin along the path (scan_angles), with a seeded hand jitter."""
     rng = random.Random(f"scan:{seed}")
     poses = []
     for yaw, pitch in scan_angles(yaw0, path):
         c2w = torch.eye(4, dtype=torch.float64)
-        c2w[:3, :3] = _rotation(yaw + rng.gauss(0, jitter_deg), pitch + rng.gauss(0, jitter_deg), rng.gauss(0, jitter_deg))
+        c2w[:3, :3] = _rotation(
+            yaw + rng.gauss(0, jitter_deg), pitch + rng.gauss(0, jitter_deg), rng.gauss(0, jitter_deg)
+        )
         poses.append(c2w)
     return poses
 
@@ -119,8 +125,6 @@ def render_scan(panorama: torch.Tensor, yaw0: float = 0.0, seed: int = 0, span_s
                 path: str = "scan") -> ScanClip:
     """A room scan (or, path "pan", a pan: scan_angles) of `panorama` [h, 2h, 3] (linear HDR, the
     camera at its centre)."""
-    from core.envmap import sample_envmap
-
     intr = Intrinsics.from_hfov(size[0], size[1], hfov_deg)
     big = intr.scaled(size[0] * supersample, size[1] * supersample)
     poses = scan_poses(yaw0, seed, path=path)
@@ -139,15 +143,11 @@ def render_scan(panorama: torch.Tensor, yaw0: float = 0.0, seed: int = 0, span_s
 def scan_truth(panorama: torch.Tensor, clip: ScanClip, height: int, first: int = 0) -> torch.Tensor:
     """The panorama [h, 2h, 3] in the axes of the scan's camera `first` (a tracked scan's world is
     its first kept camera's): truth(d) = panorama(R_first d), `height` rows."""
-    from core.envmap import resize_envmap, rotate_envmap
-
     return rotate_envmap(resize_envmap(panorama, height), clip.poses[first][:3, :3].T)
 
 
 def scan_constant_map(clip: ScanClip, height: int) -> torch.Tensor:
     """The baseline to beat: a constant map of the clip's mean linearised colour."""
-    from core.conventions import equirect_width, inverse_tonemap
-
     mean = inverse_tonemap(clip.ldr).reshape(-1, 3).mean(0)
     return mean.expand(height, equirect_width(height), 3).clone()
 
@@ -159,8 +159,7 @@ SAMPLE_SEED = 7
 def write_sample_scan(out_dir) -> tuple[Path, ScanClip, torch.Tensor]:
     """(MP4 path, ScanClip, panorama) of the bundled panorama's room scan, written as a phone
     would upload it (8-bit H.264, no poses): the demo's and the web page's sample."""
-    from core.io.video import write_video
-    from core.sim.panorama_room import load_panorama
+    from core.io.video import write_video  # noqa: PLC0415 — core.io.video pulls in av, cv2, OpenEXR, PIL: imported when used
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,6 @@ from core.exposure import luminance
 from core.sim.cost import CostReport
 from core.sim.spec import SceneSpec
 
-
 AE_MID_GREY = 0.18  # auto-exposure meters the frame's mean linear luminance to this
 AE_PIXEL_CAP = 4.0  # metered pixels are capped here (2^ev units): a tiny lamp must not set the exposure
 AE_RANGE_STOPS = 4.0  # the metered offset stays within this many stops of `sensor.ev`
@@ -68,7 +67,7 @@ def sensor_frame(scene: SceneSpec, hdr: torch.Tensor, frame_index: int, cost: Co
 
 def video_round_trip(ldr: np.ndarray, fps: float, crf: int) -> np.ndarray:
     """Encode [T, H, W, 3] LDR frames as mp4 and decode them back (lossy), same shape."""
-    from core.io.video import read_video, write_video
+    from core.io.video import read_video, write_video  # noqa: PLC0415 — core.io.video pulls in av, cv2, OpenEXR, PIL: imported when used
 
     t, h, w, _ = ldr.shape
     with tempfile.TemporaryDirectory() as tmp:
@@ -84,7 +83,9 @@ def sensor_sequence(scene: SceneSpec, hdr_frames: list[torch.Tensor], cost: Cost
     """LDR frames [T, H, W, 3] float32 in [0, 1] of a whole sequence (with compression if set)."""
     cost = cost if cost is not None else CostReport()
     evs = frame_evs(scene, hdr_frames)
-    ldr = np.stack([sensor_frame(scene, h, i, cost, ev).numpy() for i, (h, ev) in enumerate(zip(hdr_frames, evs))]).astype(np.float32)
+    ldr = np.stack(
+        [sensor_frame(scene, h, i, cost, ev).numpy() for i, (h, ev) in enumerate(zip(hdr_frames, evs))]
+    ).astype(np.float32)
     if scene.has("sensor") and scene.sensor.video_compression:
         with cost.track("sensor"):
             ldr = video_round_trip(ldr, scene.fps, scene.sensor.crf)

@@ -88,7 +88,9 @@ def surface_albedo(geom: SceneGeometry, kind: torch.Tensor, index: torch.Tensor)
     return albedo
 
 
-def _shadowed(ctx: ShadingContext, p: torch.Tensor, w: torch.Tensor, dist: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+def _shadowed(
+    ctx: ShadingContext, p: torch.Tensor, w: torch.Tensor, dist: torch.Tensor, active: torch.Tensor
+) -> torch.Tensor:
     """[N, S] visibility (1 visible) of segments p -> p + dist * w where `active`."""
     vis = torch.ones_like(dist)
     if not ctx.has("shadows") or not active.any():
@@ -150,7 +152,11 @@ def cosine_directions(n: torch.Tensor, p: torch.Tensor, count: int, seed: int) -
     phi = 2.0 * math.pi * u[..., 1]
     local_z = (1.0 - u[..., 0]).clamp_min(0.0).sqrt()
     t1, t2 = tangent_frame(n)
-    d = (r * phi.cos())[..., None] * t1[:, None] + (r * phi.sin())[..., None] * t2[:, None] + local_z[..., None] * n[:, None]
+    d = (
+        (r * phi.cos())[..., None] * t1[:, None]
+        + (r * phi.sin())[..., None] * t2[:, None]
+        + local_z[..., None] * n[:, None]
+    )
     return d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 

@@ -192,9 +192,13 @@ class SensorSpec(_Model):
 class RenderQuality(_Model):
     """Sample counts. Fixed, stratified and seeded, so renders are deterministic."""
 
-    area_samples: int = Field(default=16, ge=1, le=256, description="points per area emitter (rounded down to a square)")
+    area_samples: int = Field(
+        default=16, ge=1, le=256, description="points per area emitter (rounded down to a square)"
+    )
     indirect_samples: int = Field(default=16, ge=1, le=256, description="cosine-weighted gather rays per shading point")
-    indirect_area_samples: int = Field(default=4, ge=1, le=256, description="points per area emitter when shading gather hits")
+    indirect_area_samples: int = Field(
+        default=4, ge=1, le=256, description="points per area emitter when shading gather hits"
+    )
     chunk_rays: int = Field(default=65536, ge=1024, description="rays per vectorised batch (memory bound)")
 
 
@@ -241,7 +245,9 @@ class SceneSpec(_Model):
         if not self._in_free_space(self.camera.position):
             raise ValueError(f"camera.position {self.camera.position} is outside the room or inside furniture")
         if isinstance(self.camera.path, DollyPath) and not self._in_free_space(self.camera.path.position_end):
-            raise ValueError(f"camera.path.position_end {self.camera.path.position_end} is outside the room or inside furniture")
+            raise ValueError(
+                f"camera.path.position_end {self.camera.path.position_end} is outside the room or inside furniture"
+            )
         for i, e in enumerate(self.emitters):
             where = f"emitters[{i}] ({e.name or e.kind})"
             if isinstance(e, Lamp):
@@ -252,7 +258,10 @@ class SceneSpec(_Model):
                 front = list(e.center)
                 front[axis] += sign * 0.01
                 if not self._in_room(front):
-                    raise ValueError(f"{where}: centre {e.center} facing {e.facing} does not face into the room (put it on a wall or ceiling)")
+                    raise ValueError(
+                        f"{where}: centre {e.center} facing {e.facing} does not face into the room (put it on a wall "
+                        "or ceiling)"
+                    )
         return self
 
     def _in_room(self, p) -> bool:

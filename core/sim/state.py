@@ -78,7 +78,11 @@ def light_state(spec: SceneSpec, frame: float) -> LightState:
     use_schedules = spec.has("schedules")
     rects, lamps = [], []
     for e in spec.emitters:
-        v = schedule_value(e.schedule, frame, e.center) if use_schedules else EmitterValue(True, (1.0, 1.0, 1.0), tuple(e.center))
+        v = (
+            schedule_value(e.schedule, frame, e.center)
+            if use_schedules
+            else EmitterValue(True, (1.0, 1.0, 1.0), tuple(e.center))
+        )
         rad = [r * s * (1.0 if v.on else 0.0) for r, s in zip(e.radiance, v.scale)]
         (rects if isinstance(e, AreaEmitter) else lamps).append((e, v.center, rad))
     rc, ra, rs, rh, rr = [], [], [], [], []

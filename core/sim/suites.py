@@ -19,9 +19,9 @@ from core.sim.spec import (
     ProbePoint,
     Room,
     RoomAlbedo,
-    Schedule,
     SceneSpec,
     SceneSpecError,
+    Schedule,
     SensorSpec,
 )
 
@@ -30,15 +30,31 @@ ROOM = Box(lo=(0.0, 0.0, 0.0), hi=(5.0, 2.8, 4.0))
 
 
 def table(
-    x: float, z: float, width: float = 1.4, depth: float = 0.8, height: float = 0.75, name: str = "table", albedo=(0.45, 0.3, 0.2)
+    x: float,
+    z: float,
+    width: float = 1.4,
+    depth: float = 0.8,
+    height: float = 0.75,
+    name: str = "table",
+    albedo=(0.45, 0.3, 0.2),
 ) -> list[Furniture]:
     """A table top slab plus four legs, centred at (x, z); a probe fits under it."""
-    top = Furniture(name=f"{name}-top", box=Box(lo=(x - width / 2, height - 0.04, z - depth / 2), hi=(x + width / 2, height, z + depth / 2)), albedo=albedo)
+    top = Furniture(
+        name=f"{name}-top",
+        box=Box(lo=(x - width / 2, height - 0.04, z - depth / 2), hi=(x + width / 2, height, z + depth / 2)),
+        albedo=albedo,
+    )
     legs = []
     for sx in (-1, 1):
         for sz in (-1, 1):
             cx, cz = x + sx * (width / 2 - 0.05), z + sz * (depth / 2 - 0.05)
-            legs.append(Furniture(name=f"{name}-leg", box=Box(lo=(cx - 0.03, 0.0, cz - 0.03), hi=(cx + 0.03, height - 0.04, cz + 0.03)), albedo=(0.3, 0.2, 0.15)))
+            legs.append(
+                Furniture(
+                    name=f"{name}-leg",
+                    box=Box(lo=(cx - 0.03, 0.0, cz - 0.03), hi=(cx + 0.03, height - 0.04, cz + 0.03)),
+                    albedo=(0.3, 0.2, 0.15),
+                )
+            )
     return [top, *legs]
 
 
@@ -54,17 +70,38 @@ def static() -> SceneSpec:
         name="static",
         seed=101,
         room=Room(boxes=[ROOM]),
-        furniture=[*table(2.3, 1.6), Furniture(name="cabinet", box=Box(lo=(4.2, 0.0, 0.2), hi=(4.9, 1.2, 0.8)), albedo=(0.7, 0.7, 0.75))],
+        furniture=[
+            *table(2.3, 1.6),
+            Furniture(name="cabinet", box=Box(lo=(4.2, 0.0, 0.2), hi=(4.9, 1.2, 0.8)), albedo=(0.7, 0.7, 0.75)),
+        ],
         emitters=[
-            AreaEmitter(kind="ceiling_panel", name="panel", center=(2.5, 2.8, 2.0), facing="-y", size=(1.2, 0.6), radiance=(6.0, 6.0, 5.6)),
-            AreaEmitter(kind="window", name="window", center=(0.0, 1.5, 1.8), facing="+x", size=(1.2, 1.0), radiance=(8.0, 9.0, 11.0)),
+            AreaEmitter(
+                kind="ceiling_panel",
+                name="panel",
+                center=(2.5, 2.8, 2.0),
+                facing="-y",
+                size=(1.2, 0.6),
+                radiance=(6.0, 6.0, 5.6),
+            ),
+            AreaEmitter(
+                kind="window",
+                name="window",
+                center=(0.0, 1.5, 1.8),
+                facing="+x",
+                size=(1.2, 1.0),
+                radiance=(8.0, 9.0, 11.0),
+            ),
         ],
         camera=_camera(),
         frames=1,
         fps=10.0,
         resolution=RESOLUTION,
         effects=frozenset({"emission", "direct", "shadows", "indirect"}),
-        probes=[ProbePoint(x=(1.2, 1.2, 1.0), t=0.0), ProbePoint(x=(2.3, 0.35, 1.6), t=0.0), ProbePoint(x=(3.8, 1.6, 2.6), t=0.0)],
+        probes=[
+            ProbePoint(x=(1.2, 1.2, 1.0), t=0.0),
+            ProbePoint(x=(2.3, 0.35, 1.6), t=0.0),
+            ProbePoint(x=(3.8, 1.6, 2.6), t=0.0),
+        ],
     )
 
 
@@ -73,12 +110,25 @@ def spatial() -> SceneSpec:
     return SceneSpec(
         name="spatial",
         seed=202,
-        room=Room(boxes=[ROOM, Box(lo=(3.0, 0.0, -3.0), hi=(5.0, 2.8, 0.5))], albedo=RoomAlbedo(floor=(0.5, 0.45, 0.4), walls=(0.7, 0.68, 0.65))),
-        furniture=[*table(1.6, 2.0), Furniture(name="shelf", box=Box(lo=(3.4, 0.0, 1.0), hi=(4.0, 1.6, 1.3)), albedo=(0.6, 0.5, 0.4))],
+        room=Room(
+            boxes=[ROOM, Box(lo=(3.0, 0.0, -3.0), hi=(5.0, 2.8, 0.5))],
+            albedo=RoomAlbedo(floor=(0.5, 0.45, 0.4), walls=(0.7, 0.68, 0.65)),
+        ),
+        furniture=[
+            *table(1.6, 2.0),
+            Furniture(name="shelf", box=Box(lo=(3.4, 0.0, 1.0), hi=(4.0, 1.6, 1.3)), albedo=(0.6, 0.5, 0.4)),
+        ],
         emitters=[
             Lamp(name="warm-lamp", center=(0.5, 1.3, 0.6), radius=0.06, radiance=(900.0, 650.0, 350.0)),
             Lamp(name="cool-lamp", center=(4.3, 1.8, -2.2), radius=0.06, radiance=(300.0, 420.0, 600.0)),
-            AreaEmitter(kind="ceiling_panel", name="dim-panel", center=(1.5, 2.8, 2.5), facing="-y", size=(0.6, 0.6), radiance=(2.0, 2.0, 2.0)),
+            AreaEmitter(
+                kind="ceiling_panel",
+                name="dim-panel",
+                center=(1.5, 2.8, 2.5),
+                facing="-y",
+                size=(0.6, 0.6),
+                radiance=(2.0, 2.0, 2.0),
+            ),
         ],
         camera=_camera(position=(2.0, 1.5, 3.7), yaw_deg=-15.0),
         frames=1,
@@ -118,7 +168,10 @@ def temporal() -> SceneSpec:
                 center=(4.2, 1.2, 0.8),
                 radius=0.05,
                 radiance=(500.0, 500.0, 500.0),
-                schedule=Schedule(interpolation="linear", keyframes=[Keyframe(frame=0), Keyframe(frame=15, intensity=0.3, color=(1.0, 0.7, 0.4))]),
+                schedule=Schedule(
+                    interpolation="linear",
+                    keyframes=[Keyframe(frame=0), Keyframe(frame=15, intensity=0.3, color=(1.0, 0.7, 0.4))],
+                ),
             ),
         ],
         camera=_camera(),
@@ -141,9 +194,19 @@ def moving_camera() -> SceneSpec:
         name="moving-camera",
         seed=404,
         room=Room(boxes=[ROOM]),
-        furniture=[*table(2.0, 1.5), Furniture(name="sofa", box=Box(lo=(3.6, 0.0, 2.6), hi=(4.9, 0.5, 3.5)), albedo=(0.3, 0.35, 0.5))],
+        furniture=[
+            *table(2.0, 1.5),
+            Furniture(name="sofa", box=Box(lo=(3.6, 0.0, 2.6), hi=(4.9, 0.5, 3.5)), albedo=(0.3, 0.35, 0.5)),
+        ],
         emitters=[
-            AreaEmitter(kind="window", name="window", center=(2.5, 1.5, 0.0), facing="+z", size=(1.6, 1.1), radiance=(10.0, 11.0, 13.0)),
+            AreaEmitter(
+                kind="window",
+                name="window",
+                center=(2.5, 1.5, 0.0),
+                facing="+z",
+                size=(1.6, 1.1),
+                radiance=(10.0, 11.0, 13.0),
+            ),
             Lamp(name="lamp", center=(0.6, 1.4, 3.2), radius=0.05, radiance=(600.0, 480.0, 300.0)),
         ],
         camera=_camera(position=(2.5, 1.4, 3.6), yaw_deg=25.0, path=PanPath(yaw_end_deg=-25.0)),
@@ -152,7 +215,11 @@ def moving_camera() -> SceneSpec:
         resolution=RESOLUTION,
         effects=frozenset({"emission", "direct", "shadows", "camera_motion", "sensor"}),
         sensor=SensorSpec(ev=-0.5, noise_sigma=0.01),
-        probes=[ProbePoint(x=(2.0, 0.3, 1.5), t=0.0), ProbePoint(x=(1.0, 1.5, 2.0), t=1.0), ProbePoint(x=(4.0, 1.2, 1.0), t=1.8333333333)],
+        probes=[
+            ProbePoint(x=(2.0, 0.3, 1.5), t=0.0),
+            ProbePoint(x=(1.0, 1.5, 2.0), t=1.0),
+            ProbePoint(x=(4.0, 1.2, 1.0), t=1.8333333333),
+        ],
     )
 
 
@@ -174,12 +241,28 @@ def hard() -> SceneSpec:
     return SceneSpec(
         name="hard",
         seed=505,
-        room=Room(boxes=[ROOM], albedo=RoomAlbedo(floor=(0.06, 0.05, 0.05), ceiling=(0.1, 0.1, 0.1), walls=(0.08, 0.08, 0.09))),
+        room=Room(
+            boxes=[ROOM], albedo=RoomAlbedo(floor=(0.06, 0.05, 0.05), ceiling=(0.1, 0.1, 0.1), walls=(0.08, 0.08, 0.09))
+        ),
         furniture=table(2.5, 1.5, width=1.6, depth=1.0, albedo=(0.12, 0.08, 0.06)),
         emitters=[
             Lamp(name="tiny-lamp", center=(1.0, 1.6, 2.5), radius=0.015, radiance=(500.0, 450.0, 380.0)),
-            AreaEmitter(kind="window", name="window-left", center=(0.0, 1.5, 1.5), facing="+x", size=(1.0, 1.2), radiance=(6.0, 6.0, 6.6)),
-            AreaEmitter(kind="window", name="window-back", center=(3.5, 1.5, 0.0), facing="+z", size=(1.2, 1.2), radiance=(6.0, 6.2, 7.0)),
+            AreaEmitter(
+                kind="window",
+                name="window-left",
+                center=(0.0, 1.5, 1.5),
+                facing="+x",
+                size=(1.0, 1.2),
+                radiance=(6.0, 6.0, 6.6),
+            ),
+            AreaEmitter(
+                kind="window",
+                name="window-back",
+                center=(3.5, 1.5, 0.0),
+                facing="+z",
+                size=(1.2, 1.2),
+                radiance=(6.0, 6.2, 7.0),
+            ),
         ],
         camera=_camera(position=(2.5, 1.4, 3.8), path=DollyPath(position_end=(2.5, 1.3, 3.0))),
         frames=10,
@@ -187,7 +270,11 @@ def hard() -> SceneSpec:
         resolution=RESOLUTION,
         effects=frozenset({"emission", "direct", "shadows", "camera_motion", "sensor"}),
         sensor=SensorSpec(ev=0.0, noise_sigma=0.02, video_compression=True, crf=28),
-        probes=[ProbePoint(x=(2.5, 0.3, 1.5), t=0.0), ProbePoint(x=(1.2, 1.6, 2.5), t=1.0), ProbePoint(x=(0.5, 1.5, 1.5), t=1.8)],
+        probes=[
+            ProbePoint(x=(2.5, 0.3, 1.5), t=0.0),
+            ProbePoint(x=(1.2, 1.6, 2.5), t=1.0),
+            ProbePoint(x=(0.5, 1.5, 1.5), t=1.8),
+        ],
     )
 
 

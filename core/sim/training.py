@@ -57,13 +57,20 @@ def random_camera(scene: SceneSpec, g: torch.Generator, cfg: BallPlacement) -> C
         pos = [_uniform(g, b.lo[a] + cfg.wall_clearance, b.hi[a] - cfg.wall_clearance) for a in range(3)]
         pos[1] = _uniform(g, *cfg.camera_height)
         p = torch.tensor([pos], dtype=torch.float32)
-        if bool(geom.inside_room(p, cfg.wall_clearance * 0.5)) and float(geom.distance_to_furniture(p)) > cfg.wall_clearance:
+        if (
+            bool(geom.inside_room(p, cfg.wall_clearance * 0.5))
+            and float(geom.distance_to_furniture(p)) > cfg.wall_clearance
+        ):
             pose = pose_from_yaw_pitch(pos, _uniform(g, -180.0, 180.0), _uniform(g, *cfg.pitch_deg))
             return Camera(k, pose)
-    raise SceneSpecError(f"scene {scene.name!r}: found no free camera position {cfg.wall_clearance} m from walls and furniture")
+    raise SceneSpecError(
+        f"scene {scene.name!r}: found no free camera position {cfg.wall_clearance} m from walls and furniture"
+    )
 
 
-def place_balls(scene: SceneSpec, camera: Camera, bg_depth: torch.Tensor, count: int, g: torch.Generator, cfg: BallPlacement):
+def place_balls(
+    scene: SceneSpec, camera: Camera, bg_depth: torch.Tensor, count: int, g: torch.Generator, cfg: BallPlacement
+):
     """Up to `count` balls (centres [N, 3], radii [N]) inside the frustum, in front of the
     visible surface, clear of walls, furniture, lamps and each other."""
     geom = geometry(scene)
@@ -84,7 +91,9 @@ def place_balls(scene: SceneSpec, camera: Camera, bg_depth: torch.Tensor, count:
                 continue
             z = _uniform(g, cfg.ball_depth[0], min(cfg.ball_depth[1], surface))
             r = r_px * z / k.fx
-            ray = z * pixel_to_camera_ray(torch.tensor(u, dtype=torch.float64), torch.tensor(v, dtype=torch.float64), k.fx, k.fy, k.cx, k.cy)
+            ray = z * pixel_to_camera_ray(
+                torch.tensor(u, dtype=torch.float64), torch.tensor(v, dtype=torch.float64), k.fx, k.fy, k.cx, k.cy
+            )
             c = (camera.c2w[:3, :3] @ ray + camera.c2w[:3, 3]).to(torch.float32)
             if z - r < 0.1 or z + r > surface - cfg.gap:
                 continue
@@ -164,9 +173,9 @@ def _antialiased_balls(ctx, camera: Camera, centers, radii, background: torch.Te
 
 
 def write_sample(sample: BallSample, out: Path, scene_name: str, fps: float) -> None:
-    from core.io.depth import write_depth_npz
-    from core.io.exr import write_exr
-    from core.io.images import write_png
+    from core.io.depth import write_depth_npz  # noqa: PLC0415 — core.io.depth pulls in av, cv2, OpenEXR, PIL: imported when used
+    from core.io.exr import write_exr  # noqa: PLC0415 — core.io.exr pulls in av, cv2, OpenEXR, PIL: imported when used
+    from core.io.images import write_png  # noqa: PLC0415 — core.io.images pulls in av, cv2, OpenEXR, PIL: imported when used
 
     out.mkdir(parents=True, exist_ok=True)
     write_exr(out / "image_with_balls.exr", sample.image_with_balls.numpy())
@@ -181,12 +190,19 @@ def write_sample(sample: BallSample, out: Path, scene_name: str, fps: float) -> 
         ],
         "intrinsics": sample.camera.intrinsics.as_dict(),
         "c2w": sample.camera.c2w.reshape(-1).tolist(),
-        "source": {"renderer": "lightfield-sim", "scene": scene_name, "frame": sample.frame, "time": frame_time(sample.frame, fps)},
+        "source": {
+            "renderer": "lightfield-sim",
+            "scene": scene_name,
+            "frame": sample.frame,
+            "time": frame_time(sample.frame, fps),
+        },
     }
     (out / "meta.json").write_text(json.dumps(meta, indent=2))
 
 
-def write_training_export(scene: SceneSpec, out_dir: str | os.PathLike, views: int, cfg: BallPlacement = BallPlacement()) -> dict:
+def write_training_export(
+    scene: SceneSpec, out_dir: str | os.PathLike, views: int, cfg: BallPlacement = BallPlacement()
+) -> dict:
     """Write `views` samples under out_dir/samples/ and out_dir/dataset.json; returns dataset.json."""
     if views < 1:
         raise SceneSpecError(f"views must be >= 1, got {views}")

@@ -74,7 +74,9 @@ def _refined_intrinsics(tr: TrackingResult, k: Intrinsics, warn: list[str]) -> t
                      f"{refined.hfov_deg:.1f} deg horizontal FOV instead of the assumed {k.hfov_deg:.0f} deg")
 
 
-def room_depth(tr: TrackingResult, k: Intrinsics, poses: torch.Tensor, warn: list[str]) -> tuple[torch.Tensor, str, dict]:
+def room_depth(
+    tr: TrackingResult, k: Intrinsics, poses: torch.Tensor, warn: list[str]
+) -> tuple[torch.Tensor, str, dict]:
     """World-consistent depth [K, H, W] for the kept frames: fitted room, else the assumed one."""
     fit = None
     if tr.points is not None and tr.points.shape[0] >= MIN_ROOM_POINTS:

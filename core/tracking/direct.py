@@ -30,6 +30,7 @@ motion prior and named in the stats.
 """
 from __future__ import annotations
 
+import heapq
 import math
 from dataclasses import dataclass, field, replace
 
@@ -165,8 +166,12 @@ class _Level:
         v = -self.k.fy * d[..., 1] / z + self.k.cy
         grid = torch.stack([2.0 * u / self.w - 1.0, 2.0 * v / self.h - 1.0], -1)[:, None]  # [S, 1, N, 2]
         S = R.shape[0]
-        lj = F.grid_sample(self.Lj.expand(S, 1, self.h, self.w), grid, align_corners=False, padding_mode="border")[:, 0, 0]
-        vj = F.grid_sample(self.Vj.expand(S, 1, self.h, self.w), grid, align_corners=False, padding_mode="zeros")[:, 0, 0]
+        lj = F.grid_sample(self.Lj.expand(S, 1, self.h, self.w), grid, align_corners=False, padding_mode="border")[
+            :, 0, 0
+        ]
+        vj = F.grid_sample(self.Vj.expand(S, 1, self.h, self.w), grid, align_corners=False, padding_mode="zeros")[
+            :, 0, 0
+        ]
         inside = (d[..., 2] < -0.1) & (u > 0) & (u < self.w) & (v > 0) & (v < self.h)
         weight = torch.where(inside & (vj > 0.999), torch.ones_like(vj), torch.zeros_like(vj))
         return lj - torch.exp(gain.reshape(-1, 1)) * self.li[None], weight
@@ -237,7 +242,9 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
         for idx in torch.argsort(ranking).tolist():
             if len(picked) >= quota or not math.isfinite(float(ranking[idx])):
                 break
-            if all(rotation_angle_deg(cands[idx].numpy().T @ cands[q].numpy()) > SEARCH_STEP_DEG + 1e-6 for q in picked):
+            if all(
+                rotation_angle_deg(cands[idx].numpy().T @ cands[q].numpy()) > SEARCH_STEP_DEG + 1e-6 for q in picked
+            ):
                 picked.append(idx)
     if not picked:  # no rotation near the guesses keeps MIN_OVERLAP of the frame in view: the pair does not match
         return DirectPair(i, j, np.asarray(starts[0]), 0.0, math.inf, 0.0)
@@ -249,7 +256,8 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
     keep_counts = [min(n, candidates) for n in SURVIVORS[: len(levels)]] + [1] * max(0, len(levels) - len(SURVIVORS))
     with torch.no_grad():
         for n, (lev, keep) in enumerate(zip(levels, keep_counts)):
-            if n == 1 and search:  # a finer grid around each survivor: the coarse level's minima can sit a few degrees off
+            # a finer grid around each survivor: the coarse level's minima can sit a few degrees off
+            if n == 1 and search:
                 R = torch.cat([_search_grid(x.numpy(), LOCAL_SPAN_DEG, LOCAL_STEP_DEG) for x in R])
                 g, r, w = _gain_estimate(lev, R)
                 best = _survivors(r, w, lev.texture, LOCAL_CANDIDATES)
@@ -264,8 +272,15 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
     for c in sorted(range(R.shape[0]), key=lambda c: float(cost[c])):
         if float(overlap[c]) >= MIN_OVERLAP:
             Rc = R[c]
-            return DirectPair(i, j, _nearest_rotation(Rc.numpy()), GAMMA * float(g[c]), float(cost[c]), float(overlap[c]),
-                              _information(levels[-1], Rc, float(g[c])))
+            return DirectPair(
+                i,
+                j,
+                _nearest_rotation(Rc.numpy()),
+                GAMMA * float(g[c]),
+                float(cost[c]),
+                float(overlap[c]),
+                _information(levels[-1], Rc, float(g[c])),
+            )
     return DirectPair(i, j, _nearest_rotation(R[0].numpy()), GAMMA * float(g[0]), math.inf, 0.0)
 
 
@@ -455,8 +470,6 @@ def _spanning_tree(T: int, pairs: list[DirectPair], chain: dict[int, np.ndarray]
     with the most information (its least certain direction) first (a maximum spanning tree), so
     a frame the chain only coasted past is placed by a loop closure where one reaches it; frames
     no pair reaches keep the chain's rotation relative to the last placed frame before them."""
-    import heapq
-
     def strength(p: DirectPair) -> float:
         return float(np.linalg.eigvalsh(p.info)[0])
 

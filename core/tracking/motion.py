@@ -108,8 +108,15 @@ def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
         else:
             lost.append(t)
     finite = disp[np.isfinite(disp)]
-    evidence = {"analysis_width": int(width), "frames": T, "displacement_px": [round(float(d), 3) for d in disp],
-                "reference_frame": ref, "matches_to_reference": matches, "chained_frames": chained, "frames_without_matches": lost}
+    evidence = {
+        "analysis_width": int(width),
+        "frames": T,
+        "displacement_px": [round(float(d), 3) for d in disp],
+        "reference_frame": ref,
+        "matches_to_reference": matches,
+        "chained_frames": chained,
+        "frames_without_matches": lost,
+    }
     if len(finite) < 2:
         return MotionDecision(False, float("nan"), float("nan"),
                               "too few matched features to judge camera motion: camera treated as static", evidence)
@@ -120,7 +127,9 @@ def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
     evidence["keypoint_noise_px"] = round(sigma * width, 4)
     moving = stat > thr
     worst = int(np.nanargmax(disp))
-    reason = (f"camera {'moves' if moving else 'is static'}: max median feature displacement {stat * width:.2f} px "
-              f"({stat:.4f} of the width) at frame {worst} vs threshold {thr:.4f} (keypoint noise {sigma * width:.2f} px"
-              f"{f', {len(lost)} frame(s) without matches' if lost else ''})")
+    reason = (
+        f"camera {'moves' if moving else 'is static'}: max median feature displacement {stat * width:.2f} px "
+        f"({stat:.4f} of the width) at frame {worst} vs threshold {thr:.4f} (keypoint noise {sigma * width:.2f} px"
+        f"{f', {len(lost)} frame(s) without matches' if lost else ''})"
+    )
     return MotionDecision(moving, stat, thr, reason, evidence)

@@ -49,7 +49,9 @@ class RoomBox:
         for name in ("axes", "lo", "hi"):
             object.__setattr__(self, name, torch.as_tensor(getattr(self, name), dtype=torch.float64))
         if not bool((self.hi > self.lo).all()):
-            raise RoomFitError(f"room box needs lo < hi on every axis, got lo={self.lo.tolist()}, hi={self.hi.tolist()}")
+            raise RoomFitError(
+                f"room box needs lo < hi on every axis, got lo={self.lo.tolist()}, hi={self.hi.tolist()}"
+            )
 
     @property
     def size(self) -> torch.Tensor:
@@ -235,7 +237,11 @@ def fit_room(points, camera_centres, *, scale_hint: float | None = None, percent
             name = FACE_NAMES[a][side]
             cam_edge = qc[:, a].min() if sign < 0 else qc[:, a].max()
             # planes perpendicular to this axis, beyond every camera on this side
-            offs = [p.offset * float(np.sign(p.normal @ axes[:, a])) for p in planes if abs(p.normal @ axes[:, a]) >= cos_tol]
+            offs = [
+                p.offset * float(np.sign(p.normal @ axes[:, a]))
+                for p in planes
+                if abs(p.normal @ axes[:, a]) >= cos_tol
+            ]
             offs = [o for o in offs if (o - cam_edge) * sign > 0]
             beyond = q[(q[:, a] - cam_edge) * sign > 0, a]
             if offs:
@@ -252,4 +258,6 @@ def fit_room(points, camera_centres, *, scale_hint: float | None = None, percent
     margin = 0.05 * unit
     lo = np.minimum(lo, qc.min(0) - margin)
     hi = np.maximum(hi, qc.max(0) + margin)
-    return RoomFit(RoomBox(torch.from_numpy(axes), torch.from_numpy(lo), torch.from_numpy(hi)), planes, sources, floor_found)
+    return RoomFit(
+        RoomBox(torch.from_numpy(axes), torch.from_numpy(lo), torch.from_numpy(hi)), planes, sources, floor_found
+    )

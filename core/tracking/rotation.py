@@ -12,7 +12,8 @@ matched bearings b of frames i and j satisfy b_j = R_jᵀ R_i b_i with the c2w r
 3. a small bundle adjustment (Brown & Lowe's panorama formulation: symmetric transfer error
    of every inlier match through the two rotations; scipy least_squares with the Jacobian's
    sparsity, twice: all RANSAC inliers, then those within INLIER_PX of the first solution —
-   a Huber loss converged ~10x slower in scipy's trust region for the same answer), optionally refining the focal length too (self-calibration: a pan of
+   a Huber loss converged ~10x slower in scipy's trust region for the same answer), optionally refining the focal length
+   too (self-calibration: a pan of
    more than ~15 deg fixes it), and with a rolling shutter (`readout`, below).
 A phone reads its rows out one after another, so under a brisk pan each row sees the camera a
 little further on and the frame is sheared (or, held in portrait, stretched along the pan). The
@@ -33,6 +34,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix, lil_matrix
@@ -110,7 +112,9 @@ class RotationTrack:
     readout: float = 0.0  # rolling shutter: frame intervals from the first row read to the last
     readout_direction: tuple[float, float] | None = None  # the axis the rows are read along (core.conventions)
 
-    def predict(self, xa: np.ndarray, a: np.ndarray, xb: np.ndarray, b: np.ndarray, k: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    def predict(
+        self, xa: np.ndarray, a: np.ndarray, xb: np.ndarray, b: np.ndarray, k: Intrinsics
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Pixels xa of kept positions a seen in kept positions b (xb: where they were matched, the
         start of the search for the row that saw them): (pixels [M, 2], planar depth [M])."""
         return _transfer(self.rotations, np.asarray(self.kept), self.readout, self.readout_direction, xa, a, xb, b, k,
@@ -225,7 +229,11 @@ def _consensus_tree(n: int, rel: list[RelativeRotation]) -> tuple[dict[int, np.n
             for a in range(len(placed)):
                 # the most pairs agreeing, then the candidate nearest the camera coasting on from
                 # its two placed neighbours, or (without them) nearest the others that agree
-                off = rotation_angle_deg(cands[a].T @ coasting) if coasting is not None else float(angle[a, close[a]].mean())
+                off = (
+                    rotation_angle_deg(cands[a].T @ coasting)
+                    if coasting is not None
+                    else float(angle[a, close[a]].mean())
+                )
                 score = (len(np.unique(pair[close[a]])), coasting is not None, -off)
                 if best is None or score > best[0]:
                     best = (score, f, cands[a])
@@ -385,8 +393,15 @@ def _adjust(x0: np.ndarray, kept: list[int], dropped: list[int], rel: list[Relat
     obs = _Observations.build(kept, rel)
     x, nfev = x0, 0
     for _ in range(BA_ROUNDS):  # least squares on the inliers, re-select, again
-        sol = least_squares(_residuals, x, jac_sparsity=_sparsity(obs, len(kept), refine_focal, rolling), x_scale=1.0,
-                            bounds=(lower, upper), max_nfev=max_nfev, args=(obs, frames, k, refine_focal, rolling, direction))
+        sol = least_squares(
+            _residuals,
+            x,
+            jac_sparsity=_sparsity(obs, len(kept), refine_focal, rolling),
+            x_scale=1.0,
+            bounds=(lower, upper),
+            max_nfev=max_nfev,
+            args=(obs, frames, k, refine_focal, rolling, direction),
+        )
         x, nfev = sol.x, nfev + sol.nfev
         keep = np.linalg.norm(sol.fun.reshape(-1, 2), axis=1) < INLIER_PX
         if keep.all() or keep.sum() < MIN_INLIERS:
@@ -431,8 +446,6 @@ class EssentialFit:
 def essential_evidence(pairs: list[PairMatches], k: Intrinsics) -> list[EssentialFit]:
     """Per pair with enough matches, the essential matrix's inliers (fitted once per clip: the
     global and the rolling-shutter track are both compared with them)."""
-    import cv2
-
     out = []
     for m in pairs:
         if len(m) < ESSENTIAL_MIN_INLIERS:

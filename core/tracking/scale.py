@@ -30,7 +30,9 @@ class ScaleEstimate:
     evidence: dict = field(default_factory=dict)
 
 
-def _planar_depths(poses: np.ndarray, k: Intrinsics, points: np.ndarray, observations) -> list[tuple[int, np.ndarray, np.ndarray]]:
+def _planar_depths(
+    poses: np.ndarray, k: Intrinsics, points: np.ndarray, observations
+) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """(frame position, pixels [M, 2], planar depth of the observed points [M]) per camera."""
     out = []
     pts = torch.from_numpy(points)
@@ -42,7 +44,9 @@ def _planar_depths(poses: np.ndarray, k: Intrinsics, points: np.ndarray, observa
     return out
 
 
-def scale_from_depth(poses, k: Intrinsics, points, observations, depth: torch.Tensor, frames: list[int]) -> ScaleEstimate | None:
+def scale_from_depth(
+    poses, k: Intrinsics, points, observations, depth: torch.Tensor, frames: list[int]
+) -> ScaleEstimate | None:
     """`depth` [T, H, W] at full resolution; `frames` maps observation positions to depth rows."""
     T, H, W = depth.shape
     sx, sy = W / k.width, H / k.height
@@ -72,8 +76,11 @@ def scale_from_room(poses, k: Intrinsics, points, observations) -> ScaleEstimate
         q0 = poses[0, :3, 3] @ fit.box.axes.numpy()
         height = float(q0[1] - fit.box.lo[1])
         if height > 0:
-            return ScaleEstimate(ASSUMED_FLOOR_BELOW_M / height, "floor",
-                                 {"camera_height_units": round(height, 6), "assumed_camera_height_m": ASSUMED_FLOOR_BELOW_M})
+            return ScaleEstimate(
+                ASSUMED_FLOOR_BELOW_M / height,
+                "floor",
+                {"camera_height_units": round(height, 6), "assumed_camera_height_m": ASSUMED_FLOOR_BELOW_M},
+            )
     first = [z for n, _, z in _planar_depths(poses, k, points, observations) if n == 0]
     z = first[0][first[0] > 0] if first else np.zeros(0)
     if len(z) == 0:  # the first camera sees no point: use all cameras' points

@@ -71,7 +71,7 @@ class SfMTrack:
 
 def _pycolmap():
     try:
-        import pycolmap
+        import pycolmap  # noqa: PLC0415 — optional: an ImportError is handled here
     except ImportError as exc:  # a dependency; only a broken install lands here
         raise SfMUnavailable(f"pycolmap is not importable ({exc})") from None
     return pycolmap
@@ -116,7 +116,9 @@ def _run(pycolmap, images: list[np.ndarray], k: Intrinsics, threads: int, seed: 
         else:
             pairing = pycolmap.SequentialPairingOptions()
             pairing.overlap = SEQUENTIAL_OVERLAP
-            pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
+            pycolmap.match_sequential(
+                db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
+            )
         models = []
         for n, angle in enumerate(starts):
             opts = pycolmap.IncrementalPipelineOptions()
@@ -210,7 +212,9 @@ def pooled_median_error(model: SfMTrack, tracks: list[tuple[np.ndarray, np.ndarr
     for frames, uv in tracks:
         keep = np.array([f in P for f in frames.tolist()], bool)
         if keep.sum() >= 2:
-            by_length.setdefault(int(keep.sum()), []).append((np.stack([P[f] for f in frames[keep].tolist()]), uv[keep]))
+            by_length.setdefault(int(keep.sum()), []).append(
+                (np.stack([P[f] for f in frames[keep].tolist()]), uv[keep])
+            )
     errors = []
     for group in by_length.values():
         Ps = np.stack([g[0] for g in group])  # [N, M, 3, 4]

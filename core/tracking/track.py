@@ -48,6 +48,8 @@ from core.tracking.geometry import rotation_angle_deg
 from core.tracking.motion import MotionDecision, detect_motion
 from core.tracking.rotation import estimate_rotations
 from core.tracking.scale import ScaleEstimate, apply_scale, scale_from_depth, scale_from_room
+from core.tracking.sfm import run_sfm
+from core.tracking.twoview import run_two_view
 
 MIN_KEPT_FRACTION = 0.5  # a track that registers fewer frames than this is a failure
 # The rotation track stands in when structure from motion fails (rotation_fallback_ok): it must
@@ -100,11 +102,15 @@ class TrackingResult:
             "method": self.method,
             "camera_moves": self.motion.moving,
             "motion": self.motion.as_dict(),
-            "reprojection_error_px": None if self.reprojection_error_px is None else round(self.reprojection_error_px, 4),
+            "reprojection_error_px": None
+            if self.reprojection_error_px is None
+            else round(self.reprojection_error_px, 4),
             "analysis_size": list(self.analysis_size),
             "frames_kept": list(self.kept),
             "frames_dropped": list(self.dropped),
-            "scale_source": self.scale.source if self.scale else ("none: no translation" if self.method == "rotation" else None),
+            "scale_source": self.scale.source
+            if self.scale
+            else ("none: no translation" if self.method == "rotation" else None),
             "scale": None if self.scale is None else {"metres_per_unit": self.scale.scale, **self.scale.evidence},
             "sparse_points": 0 if self.points is None else int(self.points.shape[0]),
             "refined_focal_px": self.focal_px,
@@ -140,7 +146,9 @@ def track_camera(frames: torch.Tensor, intrinsics: Intrinsics, depth: torch.Tens
     if motion.moving:
         result = _track_moving(images, features, k, intrinsics, depth, refine_focal, use_pycolmap, motion, frames)
     elif not np.isfinite(motion.statistic):  # could not be judged: say so, a moving camera would be misread
-        result.warnings.append(f"{motion.reason}; if the camera moved, give poses (params.poses) or a capture-app export")
+        result.warnings.append(
+            f"{motion.reason}; if the camera moved, give poses (params.poses) or a capture-app export"
+        )
     result.cpu_seconds = time.process_time() - t_cpu
     return result
 
@@ -199,16 +207,31 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
         poses, points = apply_scale(track.poses, track.points, scale.scale)
         warn = _dropped_warning(track.dropped)
         if scale.source != "depth":
-            warn.append(f"camera translation scaled by the {scale.source} rule (no depth given): distances are approximate")
-        return TrackingResult(torch.from_numpy(poses), track.kept, track.dropped, name, motion,
-                              track.reprojection_error_px, size, scale, torch.from_numpy(points), None, warn,
-                              stats={**stats, **track.stats, "failures": failures} if failures else {**stats, **track.stats})
+            warn.append(
+                f"camera translation scaled by the {scale.source} rule (no depth given): distances are approximate"
+            )
+        return TrackingResult(
+            torch.from_numpy(poses),
+            track.kept,
+            track.dropped,
+            name,
+            motion,
+            track.reprojection_error_px,
+            size,
+            scale,
+            torch.from_numpy(points),
+            None,
+            warn,
+            stats={**stats, **track.stats, "failures": failures} if failures else {**stats, **track.stats},
+        )
     if rotation_fallback_ok(rot, T, noise, alone=True):
         focal = rot.focal * full.width / k.width if refine_focal else None
-        warn = [f"camera tracking: a pure rotation left residuals above an essential matrix's ({rot.parallax_px:.2f} vs "
-                f"{rot.epipolar_px:.2f} px: some parallax, or blur and noise) and structure from motion did not "
-                f"register the frames as well ({'; '.join(failures)}): using the rotation; give poses (params.poses) "
-                "if the camera moved far"] + _dropped_warning(rot.dropped)
+        warn = [
+            f"camera tracking: a pure rotation left residuals above an essential matrix's ({rot.parallax_px:.2f} vs "
+            f"{rot.epipolar_px:.2f} px: some parallax, or blur and noise) and structure from motion did not "
+            f"register the frames as well ({'; '.join(failures)}): using the rotation; give poses (params.poses) "
+            "if the camera moved far"
+        ] + _dropped_warning(rot.dropped)
         return TrackingResult(_poses_from_rotations(rot.rotations), rot.kept, rot.dropped, "rotation", motion,
                               rot.rms_px, size, None, None, focal, warn,
                               stats={**stats, "failures": failures, "rotation_fallback": True})
@@ -241,7 +264,11 @@ def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, ro
     and agrees with them, frame by frame, within DIRECT_MAX_DISAGREEMENT_DEG (else None)."""
     T = frames.shape[0]
     focal = rot.focal * full.width / k.width if refine_focal and len(rot.kept) >= 3 else None
-    intr = full if focal is None else Intrinsics(focal, focal * full.fy / full.fx, full.cx, full.cy, full.width, full.height)
+    intr = (
+        full
+        if focal is None
+        else Intrinsics(focal, focal * full.fy / full.fx, full.cx, full.cy, full.width, full.height)
+    )
     pos = {f: n for n, f in enumerate(rot.kept)}
     feature_pairs = {(f - 1, f): rot.rotations[pos[f]].T @ rot.rotations[pos[f - 1]]
                      for f in range(1, T) if f in pos and f - 1 in pos}
@@ -251,7 +278,9 @@ def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, ro
     common = [f for f in rot.kept if f in at]
     if common:  # both tracks in the first common frame's axes
         a, b = rot.rotations[pos[common[0]]], track.rotations[at[common[0]]]
-        disagree = max(rotation_angle_deg((a.T @ rot.rotations[pos[f]]).T @ (b.T @ track.rotations[at[f]])) for f in common)
+        disagree = max(
+            rotation_angle_deg((a.T @ rot.rotations[pos[f]]).T @ (b.T @ track.rotations[at[f]])) for f in common
+        )
     else:
         disagree = 0.0
     stats["direct"] = {**track.stats, "max_disagreement_with_features_deg": round(disagree, 3)}
@@ -291,16 +320,16 @@ def rotation_fallback_ok(rot, T: int, noise_px: float = 0.0, alone: bool = False
 
 
 def _dropped_warning(dropped: list[int]) -> list[str]:
-    return [f"camera tracking could not register {len(dropped)} frame(s) {dropped[:20]}: they are left out"] if dropped else []
+    return (
+        [f"camera tracking could not register {len(dropped)} frame(s) {dropped[:20]}: they are left out"]
+        if dropped
+        else []
+    )
 
 
 def _pycolmap_track(images, features, k):
-    from core.tracking.sfm import run_sfm
-
     return run_sfm(images, k)
 
 
 def _opencv_track(images, features, k):
-    from core.tracking.twoview import run_two_view
-
     return run_two_view(features, k)

@@ -136,7 +136,9 @@ class _Tracker:
             self.point_of[(t, int(p))] = int(pid)
         for r in sorted((r for r in self.Rt if r != t), key=lambda r: abs(r - t))[:NEIGHBOURS]:
             m = self.matches(t, r)
-            free = np.array([(t, p) not in self.point_of and (r, q) not in self.point_of for p, q in zip(m.ii, m.jj)], bool)
+            free = np.array(
+                [(t, p) not in self.point_of and (r, q) not in self.point_of for p, q in zip(m.ii, m.jj)], bool
+            )
             if free.any():
                 self.triangulate(t, r, m.ii[free], m.jj[free])
         return True

@@ -36,8 +36,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory(dir=REPO / "docs" / "integrations") as tmp:
         out = Path(tmp)
         assert cli(["envmap", args.field, "--x", args.x, "--height", str(args.height), "-o", str(out / "env.exr")]) == 0
-        from contextlib import redirect_stdout
         import io
+        from contextlib import redirect_stdout
 
         buf = io.StringIO()
         with redirect_stdout(buf):

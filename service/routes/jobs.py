@@ -13,12 +13,23 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import ValidationError
 
+from core.priors.base import PriorError
+from core.priors.registry import prior_class, require_weights
 from jobs.queue import TASK_NAME
 from jobs.storage import JobPaths, new_job_id
 from jobs.store import JobLimitReached, JobRecord
 from service.context import AppContext, Tenant, get_ctx, get_tenant, owned_job
-from service.errors import (BROKER_DOWN, RETRY_AFTER_STORAGE_S, ErrorBody, InvalidInput, ServiceUnavailable,
-                            TooManyJobs, broker_errors, describe_validation_errors, storage_errors)
+from service.errors import (
+    BROKER_DOWN,
+    RETRY_AFTER_STORAGE_S,
+    ErrorBody,
+    InvalidInput,
+    ServiceUnavailable,
+    TooManyJobs,
+    broker_errors,
+    describe_validation_errors,
+    storage_errors,
+)
 from service.lightfields import forget
 from service.models import JobList, JobView
 from service.upload import FormReader
@@ -55,7 +66,7 @@ _MULTIPART_SCHEMA = {
 
 
 def parse_params(text: str | None, ctx: AppContext):
-    from core.engine.params import JobParams
+    from core.engine.params import JobParams  # noqa: PLC0415 — core.engine.params pulls in av, cv2, OpenEXR, PIL, safetensors, scipy: imported when used
 
     try:
         params = JobParams.model_validate_json(text or "{}")
@@ -73,9 +84,7 @@ def parse_params(text: str | None, ctx: AppContext):
 def check_prior(params) -> None:
     """What the worker would refuse about the job's prior, refused now: its settings, and the
     weights of a prior that loads weights (the registry's rule, require_weights)."""
-    from core.engine.params import resolve_job
-    from core.priors.base import PriorError
-    from core.priors.registry import prior_class, require_weights
+    from core.engine.params import resolve_job  # noqa: PLC0415 — core.engine.params pulls in av, cv2, OpenEXR, PIL, safetensors, scipy: imported when used
 
     try:
         cls = prior_class(params.prior)

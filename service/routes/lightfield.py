@@ -12,17 +12,34 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, StreamingResponse
 
 from core.conventions import CONVENTIONS_SUMMARY
+from core.export.arkit import arkit_probe
+from core.export.products import cube_for, cube_ktx2, cube_source_height, envmap_exr_attributes, probe_glb, probe_usdz
+from core.export.sequence import sequence_fps, sequence_members, sequence_times, zip_stream
+from core.export.sh_layouts import LAYOUTS
+from core.export.unity import unity_probe_grid
+from core.export.usd import USDUnavailable
 from service import queries
 from service.context import AppContext, Tenant, get_ctx, get_tenant
 from service.errors import ErrorBody, InvalidInput, PayloadTooLarge, ServiceUnavailable
 from service.exports import Cancellation, run_export, stream_export
 from service.fieldcache import CachedField
 from service.lightfields import job_field, recent_field
-from service.queries import DEFAULT_QUALITY, MAX_ABS_EV, MAX_ABS_T_S, X_PATTERN
 from service.models import (
-    ArkitProbe, CubemapFace, CubemapResponse, EncodedEnvmap, EnvmapBatchRequest, EnvmapBatchResponse,
-    EnvmapFormat, Flags, LightfieldInfo, Quality, SHLayout, SphericalHarmonics, UnityProbeGrid,
+    ArkitProbe,
+    CubemapFace,
+    CubemapResponse,
+    EncodedEnvmap,
+    EnvmapBatchRequest,
+    EnvmapBatchResponse,
+    EnvmapFormat,
+    Flags,
+    LightfieldInfo,
+    Quality,
+    SHLayout,
+    SphericalHarmonics,
+    UnityProbeGrid,
 )
+from service.queries import DEFAULT_QUALITY, MAX_ABS_EV, MAX_ABS_T_S, X_PATTERN
 
 router = APIRouter(tags=["lightfield"])
 _ERRORS = {s: {"model": ErrorBody} for s in (401, 404, 409, 410, 413, 422, 503)}
@@ -55,15 +72,13 @@ def _npy(array: np.ndarray) -> bytes:
 
 
 def _encode(hdr: np.ndarray, fmt: str, ev: float, attributes: dict | None = None) -> tuple[bytes, str]:
-    from core.io.envmap_io import encode_envmap
+    from core.io.envmap_io import encode_envmap  # noqa: PLC0415 — core.io.envmap_io pulls in av, cv2, OpenEXR, PIL: imported when used
 
     # uncompressed EXR: ZIP saves 2-11 % on float32 radiance for 5-15x the encoding time
     return encode_envmap(hdr, fmt, ev, attributes=attributes, compress=False)
 
 
 def _attributes(point, t: float, job_id: str, flags: queries.EvalFlags) -> dict:
-    from core.export.products import envmap_exr_attributes
-
     return envmap_exr_attributes(point, t, job_id, flags.header())
 
 
@@ -150,15 +165,13 @@ async def post_envmaps(job_id: str, body: EnvmapBatchRequest, response: Response
 
 
 def _layout_help() -> str:
-    from core.export.sh_layouts import LAYOUTS
-
     return "; ".join(layout.describe() for layout in LAYOUTS.values())
 
 
 @router.get("/lightfield/{job_id}/sh", response_model=SphericalHarmonics, responses=_ERRORS,
             summary="ARCore-style lighting: main light + ambient SH, in a consumer's SH layout")
 async def get_sh(job_id: str, response: Response, x: str = XQuery, t: float = TQuery,
-                 layout: SHLayout = Query("arcore", description=_layout_help()),
+                 layout: SHLayout = Query("arcore", description=_layout_help()),  # noqa: B008 — a help string
                  quality: Quality = QualityQuery,
                  tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     point, t = queries.parse_x(x), queries.check_t(t)
@@ -190,21 +203,36 @@ def _counts(text: str) -> tuple[int, int, int]:
     return values  # type: ignore[return-value]
 
 
-@router.get("/lightfield/{job_id}/unity", response_model=UnityProbeGrid, responses=_ERRORS,
-            summary="Unity light-probe grid: positions (ours and Unity's) + SphericalHarmonicsL2, extrapolated probes flagged")
-async def get_unity(job_id: str, response: Response,
-                    grid: str = Query("3,2,3", description="probes per axis 'NX,NY,NZ' (each 1..64, at most "
-                                      f"{MAX_UNITY_PROBES} in all)", max_length=40),
-                    lo: str | None = Query(None, description="grid corner 'X,Y,Z' (our metres); default: the probes "
-                                           "sit at the cell centres of the region the captures cover", pattern=X_PATTERN,
-                                           max_length=200),
-                    hi: str | None = Query(None, description="opposite corner; default: that region's", pattern=X_PATTERN,
-                                           max_length=200),
-                    t: float | None = Query(None, description=T_HELP + " (required when the field varies over time)",
-                                            ge=-MAX_ABS_T_S, le=MAX_ABS_T_S),
-                    tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
-    from core.export.unity import unity_probe_grid
-
+@router.get(
+    "/lightfield/{job_id}/unity",
+    response_model=UnityProbeGrid,
+    responses=_ERRORS,
+    summary="Unity light-probe grid: positions (ours and Unity's) + SphericalHarmonicsL2, extrapolated probes flagged",
+)
+async def get_unity(
+    job_id: str,
+    response: Response,
+    grid: str = Query(
+        "3,2,3",
+        description=f"probes per axis 'NX,NY,NZ' (each 1..64, at most {MAX_UNITY_PROBES} in all)",
+        max_length=40,
+    ),
+    lo: str | None = Query(
+        None,
+        description="grid corner 'X,Y,Z' (our metres); default: the probes "
+        "sit at the cell centres of the region the captures cover",
+        pattern=X_PATTERN,
+        max_length=200,
+    ),
+    hi: str | None = Query(
+        None, description="opposite corner; default: that region's", pattern=X_PATTERN, max_length=200
+    ),
+    t: float | None = Query(
+        None, description=T_HELP + " (required when the field varies over time)", ge=-MAX_ABS_T_S, le=MAX_ABS_T_S
+    ),
+    tenant: Tenant = Depends(get_tenant),
+    ctx: AppContext = Depends(get_ctx),
+):
     counts = _counts(grid)
     corner_lo, corner_hi = (None if v is None else queries.parse_x(v) for v in (lo, hi))
     t = None if t is None else queries.check_t(t)
@@ -214,7 +242,9 @@ async def get_unity(job_id: str, response: Response,
         hdr, flags = queries.envmap(cf, point, t, UNITY_SH_HEIGHT)
         return hdr, {"x": flags.x, "t": flags.t}
 
-    doc = await run_in_threadpool(unity_probe_grid, evaluate, cf.artefact.bounds, counts, t, job_id, corner_lo, corner_hi)
+    doc = await run_in_threadpool(
+        unity_probe_grid, evaluate, cf.artefact.bounds, counts, t, job_id, corner_lo, corner_hi
+    )
     response.headers[CONVENTIONS_HEADER] = CONVENTIONS_SUMMARY
     response.headers[EXTRAPOLATED_HEADER] = "x" if doc.extrapolated_probes else "none"
     return doc
@@ -222,16 +252,21 @@ async def get_unity(job_id: str, response: Response,
 
 @router.get("/lightfield/{job_id}/arkit", response_model=ArkitProbe, responses=_ERRORS,
             summary="ARKit / RealityKit / SceneKit: Metal cube slices + SH planes + main light at (x, t)")
-async def get_arkit(job_id: str, response: Response, x: str = XQuery, t: float = TQuery,
-                    size: int = Query(64, ge=1, description="cube face edge in texels (at most LIGHTFIELD_MAX_CUBEMAP_SIZE)"),
-                    pixel_format: Literal["rgba16Float", "rgba8Unorm_srgb"] = Query(
-                        "rgba16Float", description="rgba16Float: linear HDR (EnvironmentResource, lightingEnvironment); "
-                        "rgba8Unorm_srgb: what AREnvironmentProbeAnchor.environmentTexture holds (tone-mapped at ev)"),
-                    ev: float = Query(0.0, ge=-MAX_ABS_EV, le=MAX_ABS_EV, description="exposure of the sRGB slices"),
-                    tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
-    from core.export.arkit import arkit_probe
-    from core.export.products import cube_source_height
-
+async def get_arkit(
+    job_id: str,
+    response: Response,
+    x: str = XQuery,
+    t: float = TQuery,
+    size: int = Query(64, ge=1, description="cube face edge in texels (at most LIGHTFIELD_MAX_CUBEMAP_SIZE)"),
+    pixel_format: Literal["rgba16Float", "rgba8Unorm_srgb"] = Query(
+        "rgba16Float",
+        description="rgba16Float: linear HDR (EnvironmentResource, lightingEnvironment); "
+        "rgba8Unorm_srgb: what AREnvironmentProbeAnchor.environmentTexture holds (tone-mapped at ev)",
+    ),
+    ev: float = Query(0.0, ge=-MAX_ABS_EV, le=MAX_ABS_EV, description="exposure of the sRGB slices"),
+    tenant: Tenant = Depends(get_tenant),
+    ctx: AppContext = Depends(get_ctx),
+):
     point, t, ev = queries.parse_x(x), queries.check_t(t), queries.check_ev(ev)
     queries.check_size(size, ctx.settings.limits.max_cubemap_size, "size")
     cf = await _field_async(job_id, tenant, ctx)
@@ -247,37 +282,48 @@ async def get_arkit(job_id: str, response: Response, x: str = XQuery, t: float =
           "description": "format=ktx2: one KTX2 file (RGBA16F cube, GGX roughness mips); format=npy: float32 array "
                          "[6, size, size, 3]; format=json: one EXR per face, base64 (kept for compatibility)"},
     **_ERRORS}, summary="Cube map faces +X, -X, +Y, -Y, +Z, -Z at (x, t); prefiltered mips as KTX2")
-async def get_cubemap(job_id: str, request: Request, x: str = XQuery, t: float = TQuery,
-                      size: int = Query(64, ge=1, description="face edge in texels (a power of two for ktx2; at "
-                                        "most LIGHTFIELD_MAX_CUBEMAP_SIZE)"),
-                      format: Literal["json", "npy", "ktx2"] = "json", quality: Quality = QualityQuery,
-                      levels: int | None = Query(None, ge=1, le=16, description="ktx2 only: mip levels, roughness "
-                                                 "i / (levels - 1); default: down to size/32 (6 for 128); 1 = mirror only"),
-                      layout: Literal["gl", "threejs"] = Query(
-                          "gl", description="gl: the OpenGL/Vulkan/Metal face table (Babylon, Filament, ARCore, "
-                          "engines reading KTX2 cubes); threejs: mirrored in x for a three.js CubeTexture, which "
-                          "three samples at (-x, y, z) (docs/integrations.md has the recipe)"),
-                      tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
+async def get_cubemap(
+    job_id: str,
+    request: Request,
+    x: str = XQuery,
+    t: float = TQuery,
+    size: int = Query(
+        64, ge=1, description="face edge in texels (a power of two for ktx2; at most LIGHTFIELD_MAX_CUBEMAP_SIZE)"
+    ),
+    format: Literal["json", "npy", "ktx2"] = "json",
+    quality: Quality = QualityQuery,
+    levels: int | None = Query(
+        None,
+        ge=1,
+        le=16,
+        description="ktx2 only: mip levels, roughness "
+        "i / (levels - 1); default: down to size/32 (6 for 128); 1 = mirror only",
+    ),
+    layout: Literal["gl", "threejs"] = Query(
+        "gl",
+        description="gl: the OpenGL/Vulkan/Metal face table (Babylon, Filament, ARCore, "
+        "engines reading KTX2 cubes); threejs: mirrored in x for a three.js CubeTexture, which "
+        "three samples at (-x, y, z) (docs/integrations.md has the recipe)",
+    ),
+    tenant: Tenant = Depends(get_tenant),
+    ctx: AppContext = Depends(get_ctx),
+):
     point, t = queries.parse_x(x), queries.check_t(t)
     queries.check_size(size, ctx.settings.limits.max_cubemap_size, "size")
     if format == "ktx2":
         _check_cube_size(size, levels)
     cf = await _field_async(job_id, tenant, ctx)
     if format == "ktx2":
-        from core.export.products import cube_ktx2, cube_source_height
-
         hdr, flags, used = await _export(request, ctx, queries.envmap_with_quality, cf, point, t,
                                          cube_source_height(size), quality)
         data = await run_in_threadpool(cube_ktx2, hdr, size, levels, layout)
         return _download(data, "image/ktx2", "cubemap.ktx2", flags)
 
     def finish(hdr: np.ndarray, _flags):  # in the batch's thread
-        from core.export.products import cube_for
-
         faces = queries.cube_faces(cube_for(hdr, layout).numpy(), size)
         if format == "npy":
             return _npy(faces)
-        from core.io.exr import encode_exr
+        from core.io.exr import encode_exr  # noqa: PLC0415 — core.io.exr pulls in av, cv2, OpenEXR, PIL: imported when used
 
         return [base64.b64encode(encode_exr(face, compress=False)).decode() for face in faces]
 
@@ -306,15 +352,22 @@ def _check_cube_size(size: int, levels: int | None) -> None:
     200: {"content": {"model/gltf-binary": {}}, "description": "glTF 2.0 binary with EXT_lights_image_based"},
     **_ERRORS}, summary="glTF (.glb) image-based light at (x, t): irradiance SH + prefiltered specular cube mips "
                          "(+ the main light as KHR_lights_punctual)")
-async def get_gltf(job_id: str, request: Request, x: str = XQuery, t: float = TQuery,
-                   size: int = Query(64, ge=1, description="specular cube face edge (a power of two)"),
-                   levels: int | None = Query(None, ge=1, le=16, description="specular mips (roughness 0..1)"),
-                   main_light: bool = Query(True, description="add the main light (when found) as a KHR_lights_punctual "
-                                            "directional light, with the ambient SH as irradiance; false: the whole "
-                                            "map's SH and no punctual light"),
-                   tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
-    from core.export.products import cube_source_height, probe_glb
-
+async def get_gltf(
+    job_id: str,
+    request: Request,
+    x: str = XQuery,
+    t: float = TQuery,
+    size: int = Query(64, ge=1, description="specular cube face edge (a power of two)"),
+    levels: int | None = Query(None, ge=1, le=16, description="specular mips (roughness 0..1)"),
+    main_light: bool = Query(
+        True,
+        description="add the main light (when found) as a KHR_lights_punctual "
+        "directional light, with the ambient SH as irradiance; false: the whole "
+        "map's SH and no punctual light",
+    ),
+    tenant: Tenant = Depends(get_tenant),
+    ctx: AppContext = Depends(get_ctx),
+):
     point, t = queries.parse_x(x), queries.check_t(t)
     queries.check_size(size, ctx.settings.limits.max_cubemap_size, "size")
     _check_cube_size(size, levels)
@@ -331,9 +384,6 @@ async def get_gltf(job_id: str, request: Request, x: str = XQuery, t: float = TQ
 async def get_usdz(job_id: str, request: Request, x: str = XQuery, t: float = TQuery,
                    height: int = Query(256, ge=1, description="rows of the dome's latlong EXR (width = 2 x height)"),
                                   tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
-    from core.export.products import probe_usdz
-    from core.export.usd import USDUnavailable
-
     point, t = queries.parse_x(x), queries.check_t(t)
     queries.check_size(height, ctx.settings.limits.max_envmap_height, "height")
     cf = await _field_async(job_id, tenant, ctx)
@@ -355,14 +405,12 @@ async def get_sequence(job_id: str, x: str = XQuery,
                        frames: int = Query(..., ge=1, description="evenly spaced frames from t0 to t1"),
                        height: int = Query(64, ge=1, description="rows (width = 2 x height)"),
                        first_frame: int = Query(1, ge=0, description="number of the first file (envmap.0001.exr)"),
-                       quality: Quality = Query("exact", description=QUALITY_HELP.replace(" (default)", "") +
+                       quality: Quality = Query("exact", description=QUALITY_HELP.replace(" (default)", "") +  # noqa: B008 — a help string
                                                 "; this route's default is exact"),
                        colour: Literal["rec709", "acescg"] = Query(
                            "rec709", description="pixel colour space: linear Rec. 709 (as estimated) or ACEScg (AP1 "
                            "primaries, ACES white, Bradford-adapted; the EXR chromaticities say which)"),
                        tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
-    from core.export.sequence import sequence_fps, sequence_members, sequence_times, zip_stream
-
     point, t0, t1 = queries.parse_x(x), queries.check_t(t0), queries.check_t(t1)
     queries.check_size(height, ctx.settings.limits.max_envmap_height, "height")
     queries.check_size(frames, ctx.settings.limits.max_sequence_frames, "frames")
@@ -378,8 +426,15 @@ async def get_sequence(job_id: str, x: str = XQuery,
     cancellation = Cancellation()
     on_map = (lambda q: metrics.export_maps.labels(q).inc()) if metrics is not None else None
     maps = ((t, hdr) for t, hdr, _ in queries.envmap_sequence(cf, point, times, height, quality, cancellation, on_map))
-    members = sequence_members(maps, point, job_id, first_frame=first_frame, extra={"height": height, "quality": quality},
-                               fps=sequence_fps(times), colour=colour)
+    members = sequence_members(
+        maps,
+        point,
+        job_id,
+        first_frame=first_frame,
+        extra={"height": height, "quality": quality},
+        fps=sequence_fps(times),
+        colour=colour,
+    )
     stream = stream_export(zip_stream(members), cancellation,
                            on_cancel=metrics.exports_cancelled.inc if metrics is not None else None)
     return StreamingResponse(stream, media_type="application/zip", headers={

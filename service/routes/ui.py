@@ -14,11 +14,16 @@ import threading
 from pathlib import Path
 
 import numpy as np
+import torch
 from fastapi import APIRouter, Depends, Query, Response
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 
+from core.capture.base import Capture
+from core.chrome_ball import BallPlacementError
 from core.conventions import CONVENTIONS_SUMMARY
+from core.insertion import InsertionError, insert_objects, parse_points
+from core.sim.room_scan import write_sample_scan
 from jobs.storage import JobPaths
 from service.context import AppContext, Tenant, get_ctx, get_tenant
 from service.errors import ErrorBody, Gone, InvalidInput, NotFound, storage_errors
@@ -71,7 +76,9 @@ class CaptureView(BaseModel):
 
 
 class ProbeView(BaseModel):
-    u: float | None = Field(description="fraction of the frame width (outside [0, 1]: off the frame; null: behind the camera)")
+    u: float | None = Field(
+        description="fraction of the frame width (outside [0, 1]: off the frame; null: behind the camera)"
+    )
     v: float | None = Field(description="fraction of the frame height")
     t: float
     frame_index: int
@@ -122,8 +129,6 @@ def _field_time(cf: CachedField, preview: StoredPreview, index: int) -> float | 
 
 
 def _flags(cf: CachedField, x, t: float | None) -> Flags:
-    import torch
-
     ts = None if t is None else torch.tensor([t], dtype=torch.float32)
     flags = cf.artefact.flags(torch.tensor([x], dtype=torch.float32), ts)[0]
     return Flags(x=bool(flags["extrapolated_x"]), t=bool(flags["extrapolated_t"]))
@@ -137,17 +142,32 @@ def get_capture(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppConte
     meta = summary.get("metadata", {})
     tracking = meta.get("tracking")
     notes = list(meta.get("applied", [])) + list((meta.get("nerfstudio") or {}).get("notes", []))
-    return CaptureView(id=job_id, width=preview.width, height=preview.height, frames=preview.num_frames,
-                       source_frames=preview.source_frames, times=[round(float(t), 6) for t in preview.times],
-                       fps=preview.fps, intrinsics=preview.intrinsics, depth_source=preview.depth_source,
-                       uses_time=bool(cf.artefact.uses_time), bounds=cf.artefact.bounds.to_dict(),
-                       static_camera=bool(summary.get("static_camera", True)),
-                       intrinsics_source=meta.get("intrinsics_source"), poses_source=meta.get("poses_source"),
-                       tracking={k: tracking.get(k) for k in ("method", "reprojection_error_px", "frames_dropped",
-                                                              "scale_source", "camera_moves", "reason")} if tracking else None,
-                       exposure_source=meta.get("exposure_source"),
-                       frame_ev=None if preview.stated_ev is None else [round(float(e), 4) for e in preview.stated_ev],
-                       notes=notes, warnings=list(summary.get("warnings", [])))
+    return CaptureView(
+        id=job_id,
+        width=preview.width,
+        height=preview.height,
+        frames=preview.num_frames,
+        source_frames=preview.source_frames,
+        times=[round(float(t), 6) for t in preview.times],
+        fps=preview.fps,
+        intrinsics=preview.intrinsics,
+        depth_source=preview.depth_source,
+        uses_time=bool(cf.artefact.uses_time),
+        bounds=cf.artefact.bounds.to_dict(),
+        static_camera=bool(summary.get("static_camera", True)),
+        intrinsics_source=meta.get("intrinsics_source"),
+        poses_source=meta.get("poses_source"),
+        tracking={
+            k: tracking.get(k)
+            for k in ("method", "reprojection_error_px", "frames_dropped", "scale_source", "camera_moves", "reason")
+        }
+        if tracking
+        else None,
+        exposure_source=meta.get("exposure_source"),
+        frame_ev=None if preview.stated_ev is None else [round(float(e), 4) for e in preview.stated_ev],
+        notes=notes,
+        warnings=list(summary.get("warnings", [])),
+    )
 
 
 @router.get("/lightfield/{job_id}/frame", response_class=Response, responses={
@@ -155,7 +175,7 @@ def get_capture(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppConte
     summary="A frame of the capture as PNG (preview resolution)")
 def get_frame(job_id: str, t: float = TQuery,
               tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
-    from core.io.images import encode_png
+    from core.io.images import encode_png  # noqa: PLC0415 — core.io.images pulls in av, cv2, OpenEXR, PIL: imported when used
 
     preview = _preview(job_id, tenant, ctx)
     index = preview.nearest_frame(check_t(t))
@@ -193,10 +213,6 @@ def get_probe(job_id: str,
 def _insertion_frame(preview: StoredPreview, index: int):
     """Frame [h,w,3] float in [0,1], depth [h,w] and camera of stored frame `index`, at most
     INSERTION_MAX_HEIGHT rows (the engine's own resize: area-averaged colour, nearest depth)."""
-    import torch
-
-    from core.capture.base import Capture
-
     capture = Capture(frames=torch.from_numpy(preview.frame(index).astype(np.float32) / 255.0)[None],
                       depth=torch.from_numpy(preview.depth_map(index))[None],
                       intrinsics=preview.camera(index).intrinsics,
@@ -207,11 +223,7 @@ def _insertion_frame(preview: StoredPreview, index: int):
 
 
 def _render_insertion(preview: StoredPreview, cf: CachedField, index: int, points_text: str, env_height: int) -> bytes:
-    import torch
-
-    from core.chrome_ball import BallPlacementError
-    from core.insertion import InsertionError, insert_objects, parse_points
-    from core.io.images import encode_png
+    from core.io.images import encode_png  # noqa: PLC0415 — core.io.images pulls in av, cv2, OpenEXR, PIL: imported when used
 
     try:
         points = parse_points(points_text)
@@ -258,8 +270,6 @@ def _render_sample_scan() -> bytes:
     """The bundled panorama's room scan as an MP4 (core.sim.room_scan.write_sample_scan),
     rendered once per process (about a second) and kept: the same bytes for every caller."""
     global _sample_scan
-    from core.sim.room_scan import write_sample_scan
-
     with _sample_lock:
         if _sample_scan is None:
             with tempfile.TemporaryDirectory() as tmp:

@@ -34,7 +34,9 @@ class Emitters(nn.Module):
     def __init__(self, count: int, knots: int, gate_resolution: int):
         super().__init__()
         if count < 1 or knots < 1 or gate_resolution < 1:
-            raise ValueError(f"Emitters needs count, knots, gate_resolution >= 1, got {count}, {knots}, {gate_resolution}")
+            raise ValueError(
+                f"Emitters needs count, knots, gate_resolution >= 1, got {count}, {knots}, {gate_resolution}"
+            )
         self.register_buffer("centres", torch.zeros(count, 3))
         self.register_buffer("radii", torch.full((count,), 0.01))
         # measured, then refined by the distillation (the prior's maps may hold more of a clipped lamp's energy)

@@ -2,13 +2,11 @@
 from __future__ import annotations
 
 import math
-
-import torch
-from torch import nn
-
 from typing import Literal
 
+import torch
 from pydantic import Field
+from torch import nn
 
 from core.conventions import direction_to_theta_phi, theta_phi_to_equirect_pixel
 from core.envmap import equirect_stencil, pad_poles, pixel_taps, taps_stencil
@@ -116,7 +114,9 @@ class TimeGain(nn.Module):
         with torch.no_grad():
             v = torch.as_tensor(log_gain, dtype=self.log_gain.dtype)
             v = v.reshape(-1, 1).expand_as(self.log_gain) if v.dim() == 1 else v.reshape(self.log_gain.shape)
-            self.log_gain.copy_(torch.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0).clamp(-LOG_GAIN_LIMIT, LOG_GAIN_LIMIT))
+            self.log_gain.copy_(
+                torch.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0).clamp(-LOG_GAIN_LIMIT, LOG_GAIN_LIMIT)
+            )
 
     def forward(self, tn: torch.Tensor) -> torch.Tensor:
         return interpolate_knots(self.log_gain.clamp(-LOG_GAIN_LIMIT, LOG_GAIN_LIMIT), tn)

@@ -32,7 +32,9 @@ class ObservedSurfaces(nn.Module):
     def __init__(self, count: int, knots: int, height: int):
         super().__init__()
         if count < 1 or knots < 1 or height < 2:
-            raise ValueError(f"ObservedSurfaces needs count, knots >= 1 and height >= 2, got {count}, {knots}, {height}")
+            raise ValueError(
+                f"ObservedSurfaces needs count, knots >= 1 and height >= 2, got {count}, {knots}, {height}"
+            )
         self.height = int(height)
         self.register_buffer("points", torch.zeros(count, 3))
         self.register_buffer("colors", torch.zeros(count, knots, 3))
@@ -96,4 +98,5 @@ class ObservedSurfaces(nn.Module):
         return torch.lerp(radiance, observed.to(radiance.dtype), s).clamp_min(floor)
 
     def extra_repr(self) -> str:
-        return f"count={self.points.shape[0]}, knots={self.knots}, height={self.height} ({equirect_width(self.height)} columns)"
+        return (f"count={self.points.shape[0]}, knots={self.knots}, height={self.height} "
+                f"({equirect_width(self.height)} columns)")

@@ -75,8 +75,14 @@ class LightField(nn.Module):
                 self.view_detail_time = TimeCodes(config.view_detail_time_knots, self.detail_time_rank)
             anchors = torch.tensor(config.view_anchors, dtype=torch.float32).reshape(-1, 3)
             self.register_buffer("view_anchors", anchors, persistent=False)  # in the config, not the weights
-        self.room_lattice = RoomLattice(config.room_lattice, config.room_lattice_height) if config.room_lattice else None
-        self.time_gain = TimeGain(config.time_gain_knots, config.time_gain_channels) if config.uses_time and config.time_gain_knots else None
+        self.room_lattice = (
+            RoomLattice(config.room_lattice, config.room_lattice_height) if config.room_lattice else None
+        )
+        self.time_gain = (
+            TimeGain(config.time_gain_knots, config.time_gain_channels)
+            if config.uses_time and config.time_gain_knots
+            else None
+        )
         self.emitters = (Emitters(config.emitter_count, config.emitter_knots, config.emitter_gate_resolution)
                          if config.emitter_count else None)
         self.surfaces = (ObservedSurfaces(config.surface_points, config.surface_knots, config.surface_height)
@@ -176,7 +182,9 @@ class LightField(nn.Module):
         """[N, 3] view-detail residual along unit directions d at normalised times tn [N, 1]."""
         return self.combine_detail(self.detail_parts(d), tn)
 
-    def _with_detail(self, z: torch.Tensor, w: torch.Tensor | None, d: torch.Tensor, tn: torch.Tensor | None) -> torch.Tensor:
+    def _with_detail(
+        self, z: torch.Tensor, w: torch.Tensor | None, d: torch.Tensor, tn: torch.Tensor | None
+    ) -> torch.Tensor:
         """z [B, 3] + w [B] x detail(d [B, 3], tn [B, 1]), the detail looked up only where w > 0."""
         if w is None:
             return z

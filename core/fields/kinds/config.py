@@ -15,8 +15,15 @@ from __future__ import annotations
 import math
 from typing import Any, Literal, Mapping
 
-from pydantic import (BaseModel, Field, SerializeAsAny, ValidationError, field_validator, model_serializer,
-                      model_validator)
+from pydantic import (
+    BaseModel,
+    Field,
+    SerializeAsAny,
+    ValidationError,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 from core.fields.components.settings import FieldSettings
 from core.fields.kinds.registry import FIELDS, field_class
@@ -40,7 +47,9 @@ class FieldConfig(FieldSettings):
     # one per height, added to every kind's output with a weight exp(-r^2 / 2 radius^2), r the
     # distance to the nearest anchor (the engine sets the capture's camera centres). () = off.
     view_detail_heights: tuple[int, ...] = Field((), max_length=6)
-    view_detail_radius: float = Field(0.3, gt=0, le=100, description="metres over which the detail fades away from an anchor")
+    view_detail_radius: float = Field(
+        0.3, gt=0, le=100, description="metres over which the detail fades away from an anchor"
+    )
     view_anchors: tuple[tuple[float, float, float], ...] = Field((), max_length=256)
     # With a time input the detail also has `view_detail_time_rank` maps whose weights follow
     # learned per-knot coefficients (`view_detail_time_knots`, the engine sets one per frame):
@@ -95,9 +104,13 @@ class FieldConfig(FieldSettings):
         for kind, field_cls in FIELDS.items():
             raw = given.pop(kind, None)
             try:
-                sections[kind] = raw if isinstance(raw, field_cls.Config) else field_cls.Config.model_validate(raw or {})
+                sections[kind] = (
+                    raw if isinstance(raw, field_cls.Config) else field_cls.Config.model_validate(raw or {})
+                )
             except ValidationError as exc:  # name the section: "mlp.width: ..."
-                raise ValueError("; ".join(f"{kind}.{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
+                raise ValueError(
+                    "; ".join(f"{kind}.{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+                ) from None
         if given:
             raise ValueError(f"settings for unknown field kinds {sorted(given)}; registered: {', '.join(FIELDS)}")
         data["sections"] = sections

@@ -69,7 +69,9 @@ class GridField(LightField):
         node, w_node = lattice_corners(self._lattice_coords(xn, tn), self.lattice_dims)  # [P, C]
         blended = blend_lattice_maps(self.maps, node, w_node)  # [P, h, w, 3]
         h = self.settings.env_height
-        if dirs.shape[0] == h * equirect_width(h) and torch.equal(dirs, equirect_directions(h, device=dirs.device).reshape(-1, 3)):
+        if dirs.shape[0] == h * equirect_width(h) and torch.equal(
+            dirs, equirect_directions(h, device=dirs.device).reshape(-1, 3)
+        ):
             return blended.reshape(xn.shape[0], -1, 3)  # same pixel centres: sampling is the identity
         padded = pad_poles(blended)  # [P, texels, 3]
         out = xn.new_empty(xn.shape[0], dirs.shape[0], 3)

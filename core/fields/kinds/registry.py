@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from typing import Callable, TypeVar
 
+from pydantic import BaseModel
+
 FIELDS: dict[str, type] = {}  # kind -> its LightField subclass, in registration order
 F = TypeVar("F", bound=type)
 
@@ -15,8 +17,6 @@ def register_field(kind: str) -> Callable[[F], F]:
     """Class decorator: the field kind `kind`, whose settings section is `cls.Config`."""
 
     def register(cls: F) -> F:
-        from pydantic import BaseModel
-
         config = getattr(cls, "Config", None)
         if not (isinstance(config, type) and issubclass(config, BaseModel)):
             raise TypeError(f"field {kind!r}: {cls.__name__}.Config must be a pydantic model (its settings)")

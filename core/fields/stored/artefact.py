@@ -26,8 +26,7 @@ from typing import Any
 import torch
 from pydantic import ValidationError
 from safetensors import SafetensorError
-from safetensors.torch import load as load_safetensors_bytes
-from safetensors.torch import save_file
+from safetensors.torch import load as load_safetensors_bytes, save_file
 
 from core.conventions import CONVENTIONS_SUMMARY, CONVENTIONS_VERSION
 from core.fields import BoundsError, FieldConfig, LightField, SceneBounds, build_field
@@ -37,7 +36,15 @@ SCHEMA_VERSION = 1
 WEIGHTS_FILE = "field.safetensors"
 META_FILE = "lightfield.json"
 MAX_ENVMAP_HEIGHT = 4096  # a 4096 x 8192 map is 400 MB of float32; refuse beyond that
-RESERVED_KEYS = ("schema_version", "conventions_version", "conventions", "field", "bounds", "weights", DOCUMENT_HASH_KEY)
+RESERVED_KEYS = (
+    "schema_version",
+    "conventions_version",
+    "conventions",
+    "field",
+    "bounds",
+    "weights",
+    DOCUMENT_HASH_KEY,
+)
 
 
 class ArtefactError(ValueError):
@@ -72,7 +79,11 @@ def save_artefact(out_dir, field: LightField, meta: dict | None = None) -> "Ligh
         state = {k: v.detach().to("cpu", torch.float32).contiguous().clone() for k, v in field.state_dict().items()}
         save_file(state, str(weights), metadata={"schema_version": str(SCHEMA_VERSION)})
         _fsync_file(weights)
-        document["weights"] = {"file": WEIGHTS_FILE, "sha256": _sha256(weights.read_bytes()), "bytes": weights.stat().st_size}
+        document["weights"] = {
+            "file": WEIGHTS_FILE,
+            "sha256": _sha256(weights.read_bytes()),
+            "bytes": weights.stat().st_size,
+        }
         document = seal_document(document)
         _write_json(tmp / META_FILE, document)
         _fsync_dir(tmp)
@@ -335,7 +346,8 @@ def _read_meta(path: Path) -> dict:
         raise ArtefactError(str(exc)) from None
     if meta.get("schema_version") != SCHEMA_VERSION:
         raise ArtefactError(
-            f"{META_FILE}: unsupported schema_version {meta.get('schema_version')!r} (this build reads {SCHEMA_VERSION})"
+            f"{META_FILE}: unsupported schema_version {meta.get('schema_version')!r} (this build reads "
+            f"{SCHEMA_VERSION})"
         )
     conv = meta.get("conventions_version")
     if not isinstance(conv, str) or conv.split(".")[0] != CONVENTIONS_VERSION.split(".")[0]:
@@ -346,12 +358,18 @@ def _read_meta(path: Path) -> dict:
         if key not in meta:
             raise ArtefactError(f"{META_FILE} is missing {key!r}")
     weights = meta["weights"]
-    if not isinstance(weights, dict) or weights.get("file") != WEIGHTS_FILE or not isinstance(weights.get("sha256"), str):
+    if (
+        not isinstance(weights, dict)
+        or weights.get("file") != WEIGHTS_FILE
+        or not isinstance(weights.get("sha256"), str)
+    ):
         raise ArtefactError(f"{META_FILE}: 'weights' must name {WEIGHTS_FILE!r} with a sha256, got {weights!r:.120}")
     return meta
 
 
-def _read_weights(path: Path, meta: dict, expected: dict[str, torch.Tensor], bounds: SceneBounds) -> dict[str, torch.Tensor]:
+def _read_weights(
+    path: Path, meta: dict, expected: dict[str, torch.Tensor], bounds: SceneBounds
+) -> dict[str, torch.Tensor]:
     """The weights, checked against the checksum in meta and the expected names / shapes."""
     weights_path = path / WEIGHTS_FILE
     if not weights_path.is_file():
@@ -367,11 +385,15 @@ def _read_weights(path: Path, meta: dict, expected: dict[str, torch.Tensor], bou
         raise ArtefactError(f"{WEIGHTS_FILE} cannot be parsed as safetensors: {exc}") from exc
     missing, unexpected = sorted(set(expected) - set(tensors)), sorted(set(tensors) - set(expected))
     if missing or unexpected:
-        raise ArtefactError(f"{WEIGHTS_FILE} does not match the field config: missing {missing}, unexpected {unexpected}")
+        raise ArtefactError(
+            f"{WEIGHTS_FILE} does not match the field config: missing {missing}, unexpected {unexpected}"
+        )
     for name, ref in expected.items():
         got = tensors[name]
         if tuple(got.shape) != tuple(ref.shape):
-            raise ArtefactError(f"{WEIGHTS_FILE}: tensor {name!r} has shape {tuple(got.shape)}, config implies {tuple(ref.shape)}")
+            raise ArtefactError(
+                f"{WEIGHTS_FILE}: tensor {name!r} has shape {tuple(got.shape)}, config implies {tuple(ref.shape)}"
+            )
         if got.dtype != torch.float32:
             raise ArtefactError(f"{WEIGHTS_FILE}: tensor {name!r} has dtype {got.dtype}, expected float32")
         if not torch.isfinite(got).all():

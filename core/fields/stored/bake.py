@@ -25,15 +25,21 @@ from pathlib import Path
 
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load as load_safetensors_bytes
-from safetensors.torch import save_file
+from safetensors.torch import load as load_safetensors_bytes, save_file
 
 from core.conventions import equirect_width
 from core.envmap import resize_envmap, upsample_envmaps
 from core.fields.components.encodings import lattice_corners
 from core.fields.components.normalization import SceneBounds
-from core.fields.stored.artefact import (ArtefactError, LightFieldArtefact, QueryError, check_height, extrapolation_flags,
-                                         query_positions, query_times)
+from core.fields.stored.artefact import (
+    ArtefactError,
+    LightFieldArtefact,
+    QueryError,
+    check_height,
+    extrapolation_flags,
+    query_positions,
+    query_times,
+)
 from core.integrity import sha256_bytes
 
 log = logging.getLogger("lightfield.fields")
@@ -147,7 +153,10 @@ class BakedField:
         if header.get("source_sha256") != artefact.weights_sha256:
             raise ArtefactError(f"{BAKED_FILE} is stale: it was baked from other weights than {artefact.path}")
         if maps.ndim != 7 or maps.shape[-1] != 3 or maps.shape[5] != 2 * maps.shape[4] or maps.dtype != torch.float32:
-            raise ArtefactError(f"{BAKED_FILE}: 'maps' has shape {tuple(maps.shape)} / {maps.dtype}, expected [K,nx,ny,nz,h,2h,3] float32")
+            raise ArtefactError(
+                f"{BAKED_FILE}: 'maps' has shape {tuple(maps.shape)} / {maps.dtype}, expected [K,nx,ny,nz,h,2h,3] "
+                "float32"
+            )
         if header.get("maps_sha256") != _maps_sha256(maps):
             raise ArtefactError(f"{BAKED_FILE}: checksum mismatch (missing, or the maps were corrupted after baking)")
         if not torch.isfinite(maps).all():
@@ -171,12 +180,16 @@ def bake(
     n_maps = n_times * grid[0] * grid[1] * grid[2]
     size = n_maps * height * equirect_width(height) * 3 * 4
     if size > MAX_BAKED_BYTES:
-        raise QueryError(f"bake of {n_maps} maps at height {height} needs {size / 2**20:.0f} MiB (> {MAX_BAKED_BYTES >> 20} MiB)")
+        raise QueryError(
+            f"bake of {n_maps} maps at height {height} needs {size / 2**20:.0f} MiB (> {MAX_BAKED_BYTES >> 20} MiB)"
+        )
 
     b = artefact.bounds
     axes = [torch.linspace(lo, hi, n, dtype=torch.float64) for lo, hi, n in zip(b.lo, b.hi, grid)]
     xs = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3).to(torch.float32)
-    key_times = torch.linspace(b.t0, b.t1, n_times, dtype=torch.float64).to(torch.float32) if artefact.uses_time else None
+    key_times = (
+        torch.linspace(b.t0, b.t1, n_times, dtype=torch.float64).to(torch.float32) if artefact.uses_time else None
+    )
     maps = torch.empty(n_times, xs.shape[0], height, equirect_width(height), 3)
     for k in range(n_times):
         for p0 in range(0, xs.shape[0], probes_per_batch):

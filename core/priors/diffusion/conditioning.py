@@ -61,7 +61,11 @@ def binary_mask_at(coverage: torch.Tensor, size: tuple[int, int]) -> torch.Tenso
     """[..., H, W] coverage -> [..., h, w] float {0, 1}: 1 where any covered pixel falls in the cell."""
     lead = coverage.shape[:-2]
     c = (coverage > 0).float().reshape(-1, 1, *coverage.shape[-2:])
-    small = F.adaptive_max_pool2d(c, size) if all(s >= t for s, t in zip(c.shape[-2:], size)) else F.interpolate(c, size=size, mode="nearest")
+    small = (
+        F.adaptive_max_pool2d(c, size)
+        if all(s >= t for s, t in zip(c.shape[-2:], size))
+        else F.interpolate(c, size=size, mode="nearest")
+    )
     return small.reshape(*lead, *size)
 
 

@@ -26,7 +26,8 @@ class InpaintCondition:
     """Everything the UNet and ControlNet see besides the noisy latent (batch B)."""
 
     mask: torch.Tensor  # [B, 1, h, w] latent-resolution binary ball mask
-    masked_image_latents: torch.Tensor | None  # [B, C, h, w] latent of the image with the balls blanked out (None: base UNet)
+    # [B, C, h, w] latent of the image with the balls blanked out (None: base UNet)
+    masked_image_latents: torch.Tensor | None
     control: torch.Tensor  # [B, 3, H, W] depth ControlNet image in [0, 1]
     embedding: ExposureEmbedding  # zeta(ev), batch B
     null_embedding: ExposureEmbedding  # empty prompt, batch B (used when guidance != 1)
@@ -34,10 +35,12 @@ class InpaintCondition:
 
 class InpaintDenoiser:
     def __init__(self, components: PriorComponents):
-        from diffusers import DDIMScheduler
+        from diffusers import DDIMScheduler  # noqa: PLC0415 — diffusers is heavy: imported when used
 
         self.c = components
-        self._scheduler_config = DDIMScheduler.from_config(components.scheduler.config, timestep_spacing="trailing").config
+        self._scheduler_config = DDIMScheduler.from_config(
+            components.scheduler.config, timestep_spacing="trailing"
+        ).config
 
     @property
     def latent_scale(self) -> float:
@@ -63,7 +66,7 @@ class InpaintDenoiser:
         Fresh per call because set_timesteps mutates the scheduler, and a worker may share
         one prior between threads.
         """
-        from diffusers import DDIMScheduler
+        from diffusers import DDIMScheduler  # noqa: PLC0415 — diffusers is heavy: imported when used
 
         if not (0.0 < tau <= 1.0):
             raise PriorError(f"tau must be in (0, 1] to denoise, got {tau}")
@@ -115,7 +118,7 @@ class InpaintDenoiser:
         generator: torch.Generator | None = None,
     ) -> torch.Tensor:
         """Noise `image_latents` to ~tau*T and denoise in `steps` DDIM steps, keeping the background."""
-        from diffusers.utils.torch_utils import randn_tensor
+        from diffusers.utils.torch_utils import randn_tensor  # noqa: PLC0415 — diffusers is heavy: imported when used
 
         scheduler, timesteps = self.schedule(tau, steps)
         x0 = image_latents.float()

@@ -28,7 +28,6 @@ from typing import Any
 import torch
 
 from core.device import DeviceError, resolve_device as core_resolve_device
-
 from core.priors.base import PriorError
 from core.priors.diffusion.card import ModelCard
 
@@ -139,7 +138,7 @@ def check_model_dir(weights_dir: str | os.PathLike, sdxl: bool = False) -> Path:
 
 
 def _text_encoder_class(path: Path):
-    from transformers import CLIPTextModel, CLIPTextModelWithProjection
+    from transformers import CLIPTextModel, CLIPTextModelWithProjection  # noqa: PLC0415 — transformers is heavy: imported when used
 
     archs = json.loads((path / "text_encoder" / "config.json").read_text()).get("architectures") or []
     return CLIPTextModelWithProjection if "CLIPTextModelWithProjection" in archs else CLIPTextModel
@@ -157,8 +156,8 @@ def load_components(
     dev = resolve_device(device)
     dt = resolve_dtype(dtype, dev)
 
-    from diffusers import AutoencoderKL, ControlNetModel, DDIMScheduler, UNet2DConditionModel
-    from transformers import CLIPTokenizer
+    from diffusers import AutoencoderKL, ControlNetModel, DDIMScheduler, UNet2DConditionModel  # noqa: PLC0415 — diffusers is heavy: imported when used
+    from transformers import CLIPTokenizer  # noqa: PLC0415 — transformers is heavy: imported when used
 
     common = dict(local_files_only=True, use_safetensors=True, torch_dtype=dt)
     try:
@@ -173,7 +172,7 @@ def load_components(
             scheduler = DDIMScheduler.from_pretrained(path, subfolder="scheduler", local_files_only=True)
             text_encoder_2 = tokenizer_2 = None
             if card.base_family == "sdxl":
-                from transformers import CLIPTextModelWithProjection
+                from transformers import CLIPTextModelWithProjection  # noqa: PLC0415 — transformers is heavy: imported when used
 
                 text_encoder_2 = CLIPTextModelWithProjection.from_pretrained(
                     path / "text_encoder_2", local_files_only=True, use_safetensors=True, dtype=dt
@@ -197,8 +196,8 @@ def load_components(
 @contextlib.contextmanager
 def quiet_loading():
     """Silence diffusers' / transformers' per-file loading bars (they clutter CLI and worker logs)."""
-    import diffusers.utils.logging as dlog
-    import transformers.utils.logging as tlog
+    import diffusers.utils.logging as dlog  # noqa: PLC0415 — diffusers is heavy: imported when used
+    import transformers.utils.logging as tlog  # noqa: PLC0415 — transformers is heavy: imported when used
 
     saved = (dlog.is_progress_bar_enabled(), tlog.is_progress_bar_enabled())
     dlog.disable_progress_bar()
@@ -216,15 +215,15 @@ def fuse_lora(unet, lora_file: Path, scale: float, sdxl: bool) -> None:
     """Fuse a LoRA (any format diffusers reads: diffusers, peft or kohya keys) into the UNet's
     weights, w <- w + scale * dW, then drop the adapter layers so the UNet is plain again
     (what DiffusionLight's `pipe.fuse_lora(lora_scale=0.75)` leaves). Needs peft."""
-    from safetensors.torch import load_file
+    from safetensors.torch import load_file  # noqa: PLC0415 — safetensors is heavy: imported when used
 
     if not lora_file.is_file():
         raise PriorError(f"model card names LoRA {str(lora_file)!r}, which does not exist")
     try:
-        import peft  # noqa: F401
+        import peft  # noqa: F401, PLC0415 — optional: probed here
     except ImportError as exc:
         raise PriorError(f"this prior has a LoRA; loading it needs the peft package ({exc})") from None
-    from diffusers.loaders.lora_pipeline import StableDiffusionLoraLoaderMixin, StableDiffusionXLLoraLoaderMixin
+    from diffusers.loaders.lora_pipeline import StableDiffusionLoraLoaderMixin, StableDiffusionXLLoraLoaderMixin  # noqa: PLC0415 — diffusers is heavy: imported when used
 
     mixin = StableDiffusionXLLoraLoaderMixin if sdxl else StableDiffusionLoraLoaderMixin
     try:
@@ -246,7 +245,9 @@ def _check_compatible(c: PriorComponents) -> None:
     latent = c.vae.config.latent_channels
     in_ch, card = c.unet.config.in_channels, c.card
     if in_ch != card.unet_in_channels:
-        raise PriorError(f"unet.in_channels is {in_ch} but the model card declares unet_in_channels={card.unet_in_channels}")
+        raise PriorError(
+            f"unet.in_channels is {in_ch} but the model card declares unet_in_channels={card.unet_in_channels}"
+        )
     if in_ch not in (2 * latent + 1, latent):
         raise PriorError(
             f"unet.in_channels is {in_ch}, expected {2 * latent + 1} (inpainting UNet: noisy latent + mask + "

@@ -39,7 +39,9 @@ def inpaint_forward(
         return_dict=False,
         **extra,
     )
-    unet_in = noisy_latents if masked_image_latents is None else torch.cat([noisy_latents, mask, masked_image_latents], dim=1)
+    unet_in = (
+        noisy_latents if masked_image_latents is None else torch.cat([noisy_latents, mask, masked_image_latents], dim=1)
+    )
     return unet(
         unet_in,
         timesteps,

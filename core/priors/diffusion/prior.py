@@ -34,6 +34,8 @@ from core.priors.diffusion.denoise import InpaintCondition, InpaintDenoiser
 from core.priors.diffusion.exposure import ExposureConditioner
 from core.priors.diffusion.loading import PriorComponents, load_components
 from core.priors.diffusion.profiles import ProfileName, get_profile
+from core.priors.diffusion.sampling import sample_balls
+from core.priors.diffusion.seed import SeedDenoiser
 from core.priors.registry import register_prior
 
 if TYPE_CHECKING:
@@ -43,7 +45,9 @@ if TYPE_CHECKING:
 
 class DiffusionSettings(PriorConfig):
     weights: str | None = Field(None, description="local model directory (docs/diffusion-prior.md); required")
-    dtype: str | None = Field(None, description="float32 / float16 / bfloat16 (default: the loader's choice for the device)")
+    dtype: str | None = Field(
+        None, description="float32 / float16 / bfloat16 (default: the loader's choice for the device)"
+    )
     profile: ProfileName | None = Field(None, description="inference profile (profiles.py); default: the model card's")
 
 
@@ -58,11 +62,18 @@ class DiffusionPrior(Prior):
         if self.profile.schedule == "authors" and (components.is_sdxl or not components.concat_inpaint):
             raise PriorError(
                 "the 'seed' profile reproduces the authors' SD-2 inpainting model (9-channel UNet); "
-                f"this model is {card.base_family} with a {card.unet_in_channels}-channel UNet: use 'paper' or 'diffusionlight'"
+                f"this model is {card.base_family} with a {card.unet_in_channels}-channel UNet: use 'paper' or "
+                "'diffusionlight'"
             )
         self.conditioner = ExposureConditioner(
-            components.text_encoder, components.tokenizer, card.prompts.max, card.prompts.min, card.ev_min,
-            negative_prompt=card.negative_prompt, text_encoder_2=components.text_encoder_2, tokenizer_2=components.tokenizer_2,
+            components.text_encoder,
+            components.tokenizer,
+            card.prompts.max,
+            card.prompts.min,
+            card.ev_min,
+            negative_prompt=card.negative_prompt,
+            text_encoder_2=components.text_encoder_2,
+            tokenizer_2=components.tokenizer_2,
         )
         self.denoiser = InpaintDenoiser(components)
         self._seed = None
@@ -82,8 +93,6 @@ class DiffusionPrior(Prior):
     @property
     def seed_denoiser(self):
         if self._seed is None:
-            from core.priors.diffusion.seed import SeedDenoiser
-
             self._seed = SeedDenoiser(self.components)
         return self._seed
 
@@ -119,7 +128,12 @@ class DiffusionPrior(Prior):
             return self._seed_target(request, image, per_ball, coverage, canvas, inputs)
         cond, image_latents = self.condition(image, per_ball, depth, request.sweep_ev, inputs, canvas)
         latents = self.denoiser.refine(
-            image_latents, cond, float(request.tau), int(request.steps), float(request.guidance_scale), request.generator
+            image_latents,
+            cond,
+            float(request.tau),
+            int(request.steps),
+            float(request.guidance_scale),
+            request.generator,
         )
         generated = canvas.to_frame(to_unit(self.denoiser.decode(latents))).to(image.device)
         return paste_outside(combine_per_ball(generated, per_ball), image, coverage)
@@ -133,8 +147,17 @@ class DiffusionPrior(Prior):
         mask = canvas.mask_to_model(per_ball.to(c.device))[:, None]
         control = control_image(self.control_encoding, inputs, canvas, c.device).expand(b, -1, -1, -1)
         out = self.seed_denoiser.refine(
-            comp, clean, mask, control, self.conditioner(request.sweep_ev).repeat(b), self.conditioner.null_embedding(b),
-            float(request.tau), float(request.guidance_scale), self.profile.cfg_rescale, request.generator, trace,
+            comp,
+            clean,
+            mask,
+            control,
+            self.conditioner(request.sweep_ev).repeat(b),
+            self.conditioner.null_embedding(b),
+            float(request.tau),
+            float(request.guidance_scale),
+            self.profile.cfg_rescale,
+            request.generator,
+            trace,
         )
         generated = combine_per_ball(canvas.to_frame(to_unit(out)).to(image.device), per_ball)
         return torch.where(coverage > 0, generated, image)
@@ -154,8 +177,6 @@ class DiffusionPrior(Prior):
         background_depth: torch.Tensor | None = None,
     ) -> "BallSamples":
         """Direct sampling: inpaint from pure noise at each EV, unwrap, merge to HDR (see sampling.py)."""
-        from core.priors.diffusion.sampling import sample_balls
-
         return sample_balls(self, image, masks, depth, probes, evs=evs, seed=seed, median_over=median_over,
                             steps=steps, guidance_scale=guidance_scale, env_height=env_height,
                             background_depth=background_depth)

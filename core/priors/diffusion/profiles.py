@@ -13,7 +13,8 @@
   | 2 guidance | plain CFG | CFG then rescale, phi = 1.0 |
   | 3 ControlNet depth | robust 1-99 % inverse depth of the composite | min-max disparity, balls (1/z)^(1/2.4), 8-bit |
   | 4 canvas | card pixel count, aspect kept | squashed to the card resolution |
-  | 5 sub-steps | k = ceil(10 tau) >= 1, trailing spacing | t = int(T tau), k = round(10 tau), k <= 1 -> 5, linspace over the T-step grid |
+  | 5 sub-steps | k = ceil(10 tau) >= 1, trailing spacing | t = int(T tau), k = round(10 tau), k <= 1 -> 5, linspace
+  over the T-step grid |
   | 6 mask / VAE | max-pooled binary mask, posterior mode | bilinear (soft) latent mask, posterior sample |
 
   plus: no latent blending after the last sub-step (its background is the model's), the
@@ -54,15 +55,35 @@ class InferenceProfile(BaseModel):
 
 
 PROFILES: dict[str, InferenceProfile] = {
-    "paper": InferenceProfile(name="paper", canvas="keep_aspect", depth_encoding="robust_inverse_depth",
-                              schedule="trailing", masked_image="blank_balls", latent_mask="max_pool",
-                              vae_latents="mode"),
-    "seed": InferenceProfile(name="seed", canvas="squash", depth_encoding="authors_disparity", schedule="authors",
-                             masked_image="clean_frame", latent_mask="bilinear", vae_latents="sample",
-                             cfg_rescale=1.0, paste="binary"),
-    "diffusionlight": InferenceProfile(name="diffusionlight", canvas="letterbox", depth_encoding="diffusionlight_nearest",
-                                       schedule="trailing", masked_image="blank_balls", latent_mask="max_pool",
-                                       vae_latents="mode"),
+    "paper": InferenceProfile(
+        name="paper",
+        canvas="keep_aspect",
+        depth_encoding="robust_inverse_depth",
+        schedule="trailing",
+        masked_image="blank_balls",
+        latent_mask="max_pool",
+        vae_latents="mode",
+    ),
+    "seed": InferenceProfile(
+        name="seed",
+        canvas="squash",
+        depth_encoding="authors_disparity",
+        schedule="authors",
+        masked_image="clean_frame",
+        latent_mask="bilinear",
+        vae_latents="sample",
+        cfg_rescale=1.0,
+        paste="binary",
+    ),
+    "diffusionlight": InferenceProfile(
+        name="diffusionlight",
+        canvas="letterbox",
+        depth_encoding="diffusionlight_nearest",
+        schedule="trailing",
+        masked_image="blank_balls",
+        latent_mask="max_pool",
+        vae_latents="mode",
+    ),
 }
 
 assert tuple(PROFILES) == get_args(ProfileName), "PROFILES and ProfileName list the same profiles"

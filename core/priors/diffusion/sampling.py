@@ -25,7 +25,9 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from core.chrome_ball import unwrap_ball
 from core.conventions import DEFAULT_BRACKET_EVS
+from core.exposure import merge_brackets
 from core.priors.base import PriorError, ProbeGeometry
 from core.priors.diffusion.conditioning import combine_per_ball, paste_outside, union_coverage
 from core.priors.diffusion.control import ControlInputs, control_image
@@ -46,7 +48,7 @@ class BallSamples:
 
 def build_pipeline(prior: "DiffusionPrior"):
     """A diffusers inpainting + ControlNet pipeline (SD or SDXL) sharing the prior's loaded models."""
-    from diffusers import (
+    from diffusers import (  # noqa: PLC0415 — diffusers is heavy: imported when used
         DDIMScheduler,
         StableDiffusionControlNetInpaintPipeline,
         StableDiffusionXLControlNetInpaintPipeline,
@@ -160,9 +162,6 @@ def sample_balls(
 
 
 def _unwrap_and_merge(images: dict[float, torch.Tensor], probes: ProbeGeometry, env_height: int):
-    from core.chrome_ball import unwrap_ball
-    from core.exposure import merge_brackets
-
     evs = list(images)
     envs, valids = [], []
     for i in range(probes.centers.shape[0]):

@@ -102,7 +102,7 @@ def ddim_step_to(scheduler, model_output: torch.Tensor, t: int, x: torch.Tensor,
 
 class SeedDenoiser:
     def __init__(self, components: PriorComponents):
-        from diffusers import DDIMScheduler
+        from diffusers import DDIMScheduler  # noqa: PLC0415 — diffusers is heavy: imported when used
 
         self.c = components
         # the released code swaps in a DDIM scheduler built from the checkpoint's config and
@@ -111,7 +111,7 @@ class SeedDenoiser:
 
     @torch.no_grad()
     def _posterior(self, image_signed: torch.Tensor):
-        from diffusers.models.autoencoders.vae import DiagonalGaussianDistribution
+        from diffusers.models.autoencoders.vae import DiagonalGaussianDistribution  # noqa: PLC0415 — diffusers is heavy: imported when used
 
         params = self.c.vae.encode(image_signed.to(self.c.device, self.c.dtype)).latent_dist.parameters.float()
         return [DiagonalGaussianDistribution(params[i : i + 1]) for i in range(params.shape[0])]
@@ -136,7 +136,7 @@ class SeedDenoiser:
         trace: SeedTrace | None = None,
     ) -> torch.Tensor:
         """The decoded target in [-1, 1] ([B, 3, H, W]), composite outside the binary mask."""
-        from diffusers.utils.torch_utils import randn_tensor
+        from diffusers.utils.torch_utils import randn_tensor  # noqa: PLC0415 — diffusers is heavy: imported when used
 
         c, sch = self.c, self.scheduler
         t0, k = authors_substeps(tau, sch.config.num_train_timesteps)
@@ -157,7 +157,9 @@ class SeedDenoiser:
         for i in range(k):
             t, prev = steps[i], steps[i + 1]
             masked = self._sample(posteriors[b:], generator)
-            eps = self._guided(x, t, latent_mask, masked, control, embedding, null_embedding, guidance_scale, cfg_rescale)
+            eps = self._guided(
+                x, t, latent_mask, masked, control, embedding, null_embedding, guidance_scale, cfg_rescale
+            )
             x = ddim_step_to(sch, eps, t, x, prev)
             if i < k - 1:  # no blending after the last sub-step
                 background = sch.add_noise(z0, noise, torch.tensor([prev]))

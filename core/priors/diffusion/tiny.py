@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 
 from core.priors.diffusion.card import ModelCard
+from core.priors.diffusion.loading import quiet_loading
 
 # The CLIP tokenizer works on byte-level unicode symbols; without merges every character is a token.
 _BOS, _EOS = "<|startoftext|>", "<|endoftext|>"
@@ -31,7 +32,9 @@ class TinyConfig:
 
 def _byte_symbols() -> list[str]:
     """GPT-2 / CLIP byte -> printable unicode table (each of the 256 bytes gets one symbol)."""
-    printable = list(range(ord("!"), ord("~") + 1)) + list(range(ord("¡"), ord("¬") + 1)) + list(range(ord("®"), ord("ÿ") + 1))
+    printable = (
+        list(range(ord("!"), ord("~") + 1)) + list(range(ord("¡"), ord("¬") + 1)) + list(range(ord("®"), ord("ÿ") + 1))
+    )
     codes = printable[:]
     n = 0
     for b in range(256):
@@ -67,7 +70,7 @@ def write_byte_level_tokenizer(out_dir: Path, max_length: int = 77) -> None:
 
 
 def tiny_unet(cfg: TinyConfig, in_channels: int = 9):
-    from diffusers import UNet2DConditionModel
+    from diffusers import UNet2DConditionModel  # noqa: PLC0415 — diffusers is heavy: imported when used
 
     return UNet2DConditionModel(
         sample_size=cfg.resolution[0] // 8,
@@ -90,7 +93,7 @@ def tiny_controlnet(unet, cfg: TinyConfig):
     that, not the 9-channel UNet input), so it is derived from a 4-channel copy of the UNet
     whose conv_in keeps the UNet's weights for the noisy-latent channels.
     """
-    from diffusers import ControlNetModel
+    from diffusers import ControlNetModel  # noqa: PLC0415 — diffusers is heavy: imported when used
 
     unet4 = tiny_unet(cfg, in_channels=4)
     state = unet.state_dict()
@@ -101,7 +104,7 @@ def tiny_controlnet(unet, cfg: TinyConfig):
 
 
 def tiny_vae(cfg: TinyConfig):
-    from diffusers import AutoencoderKL
+    from diffusers import AutoencoderKL  # noqa: PLC0415 — diffusers is heavy: imported when used
 
     n = len(cfg.vae_channels)
     return AutoencoderKL(
@@ -118,7 +121,7 @@ def tiny_vae(cfg: TinyConfig):
 
 
 def tiny_text_encoder(cfg: TinyConfig, vocab_size: int):
-    from transformers import CLIPTextConfig, CLIPTextModel
+    from transformers import CLIPTextConfig, CLIPTextModel  # noqa: PLC0415 — transformers is heavy: imported when used
 
     config = CLIPTextConfig(
         vocab_size=vocab_size,
@@ -135,7 +138,7 @@ def tiny_text_encoder(cfg: TinyConfig, vocab_size: int):
 
 
 def tiny_scheduler():
-    from diffusers import DDIMScheduler
+    from diffusers import DDIMScheduler  # noqa: PLC0415 — diffusers is heavy: imported when used
 
     # Stable Diffusion's training schedule.
     return DDIMScheduler(
@@ -152,8 +155,6 @@ def tiny_scheduler():
 
 def build_tiny_model(out_dir: str | Path, config: TinyConfig = TinyConfig()) -> Path:
     """Write a randomly initialised prior (all sub-models + model card) to `out_dir`."""
-    from core.priors.diffusion.loading import quiet_loading
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     with torch.random.fork_rng(devices=[]), quiet_loading():  # seeded init without touching the caller's RNG

@@ -22,7 +22,15 @@ from pathlib import Path
 
 import torch
 
-from core.priors.diffusion.tiny import TinyConfig, tiny_controlnet, tiny_text_encoder, tiny_unet, tiny_vae, write_byte_level_tokenizer
+from core.priors.diffusion.loading import quiet_loading
+from core.priors.diffusion.tiny import (
+    TinyConfig,
+    tiny_controlnet,
+    tiny_text_encoder,
+    tiny_unet,
+    tiny_vae,
+    write_byte_level_tokenizer,
+)
 
 SD2_PNDM = {"_class_name": "PNDMScheduler", "_diffusers_version": "0.8.0", "beta_end": 0.012,
             "beta_schedule": "scaled_linear", "beta_start": 0.00085, "clip_sample": False, "num_train_timesteps": 1000,
@@ -46,7 +54,7 @@ def _save_diffusers(model, folder: Path, fmt: str) -> None:
 
 
 def _save_transformers(model, folder: Path, fmt: str) -> None:
-    from safetensors.torch import load_file, save_file
+    from safetensors.torch import load_file, save_file  # noqa: PLC0415 — safetensors is heavy: imported when used
 
     model.save_pretrained(folder)
     st = folder / "model.safetensors"
@@ -55,7 +63,9 @@ def _save_transformers(model, folder: Path, fmt: str) -> None:
         torch.save(state, folder / "pytorch_model.bin")
         st.unlink()
     elif fmt == "fp16":
-        save_file({k: v.half() for k, v in state.items()}, str(folder / "model.fp16.safetensors"), metadata={"format": "pt"})
+        save_file(
+            {k: v.half() for k, v in state.items()}, str(folder / "model.fp16.safetensors"), metadata={"format": "pt"}
+        )
         st.unlink()
 
 
@@ -74,7 +84,9 @@ def _deprecate_vae_attention_keys(folder: Path) -> None:
 
 def _model_index(folder: Path, cls: str, parts: dict[str, list[str]]) -> None:
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "model_index.json").write_text(json.dumps({"_class_name": cls, "_diffusers_version": "0.21.4", **parts}, indent=2))
+    (folder / "model_index.json").write_text(
+        json.dumps({"_class_name": cls, "_diffusers_version": "0.21.4", **parts}, indent=2)
+    )
 
 
 def write_authors_release(root: str | Path, config: TinyConfig = TinyConfig(resolution=(32, 32))) -> tuple[Path, Path]:
@@ -83,10 +95,19 @@ def write_authors_release(root: str | Path, config: TinyConfig = TinyConfig(reso
     pipe, cn = root / "Multi_Inpaint", root / "controlnet-sd21-depth-diffusers"
     with torch.random.fork_rng(devices=[]), _quiet():
         torch.manual_seed(config.seed)
-        _model_index(pipe, "StableDiffusionInpaintPipeline", {
-            "unet": ["diffusers", "UNet2DConditionModel"], "vae": ["diffusers", "AutoencoderKL"],
-            "text_encoder": ["transformers", "CLIPTextModel"], "tokenizer": ["transformers", "CLIPTokenizer"],
-            "scheduler": ["diffusers", "PNDMScheduler"], "feature_extractor": [None, None], "safety_checker": [None, None]})
+        _model_index(
+            pipe,
+            "StableDiffusionInpaintPipeline",
+            {
+                "unet": ["diffusers", "UNet2DConditionModel"],
+                "vae": ["diffusers", "AutoencoderKL"],
+                "text_encoder": ["transformers", "CLIPTextModel"],
+                "tokenizer": ["transformers", "CLIPTokenizer"],
+                "scheduler": ["diffusers", "PNDMScheduler"],
+                "feature_extractor": [None, None],
+                "safety_checker": [None, None],
+            },
+        )
         write_byte_level_tokenizer(pipe / "tokenizer")
         unet = tiny_unet(config)
         _save_diffusers(tiny_controlnet(unet, config), cn, "bin")
@@ -103,7 +124,7 @@ def write_authors_release(root: str | Path, config: TinyConfig = TinyConfig(reso
 
 def tiny_sdxl_unet(config: TinyConfig, text_hidden: int = 32, projection: int = 32, time_embed: int = 8):
     """An SDXL-shaped UNet: 4 input channels, 'text_time' added conditioning, two encoders' width."""
-    from diffusers import UNet2DConditionModel
+    from diffusers import UNet2DConditionModel  # noqa: PLC0415 — diffusers is heavy: imported when used
 
     return UNet2DConditionModel(
         sample_size=config.resolution[0] // 8, in_channels=4, out_channels=4,
@@ -116,7 +137,7 @@ def tiny_sdxl_unet(config: TinyConfig, text_hidden: int = 32, projection: int = 
 
 
 def tiny_text_encoder_2(config: TinyConfig, vocab_size: int, projection: int = 32):
-    from transformers import CLIPTextConfig, CLIPTextModelWithProjection
+    from transformers import CLIPTextConfig, CLIPTextModelWithProjection  # noqa: PLC0415 — transformers is heavy: imported when used
 
     return CLIPTextModelWithProjection(CLIPTextConfig(
         vocab_size=vocab_size, hidden_size=config.text_hidden, intermediate_size=2 * config.text_hidden,
@@ -130,7 +151,11 @@ def tiny_lora_state(unet, rank: int = 4, seed: int = 1) -> dict[str, torch.Tenso
     g = torch.Generator().manual_seed(seed)
     out = {}
     for name, mod in unet.named_modules():
-        if isinstance(mod, torch.nn.Linear) and name.split(".")[-1] in ("to_q", "to_k", "to_v") and "attentions" in name:
+        if (
+            isinstance(mod, torch.nn.Linear)
+            and name.split(".")[-1] in ("to_q", "to_k", "to_v")
+            and "attentions" in name
+        ):
             out[f"unet.{name}.lora.down.weight"] = 0.1 * torch.randn(rank, mod.in_features, generator=g)
             out[f"unet.{name}.lora.up.weight"] = 0.1 * torch.randn(mod.out_features, rank, generator=g)
     return out
@@ -138,24 +163,39 @@ def tiny_lora_state(unet, rank: int = 4, seed: int = 1) -> dict[str, torch.Tenso
 
 def write_diffusionlight_sdxl_release(root: str | Path, config: TinyConfig = TinyConfig(resolution=(64, 64))):
     """(SDXL folder, ControlNet folder, VAE folder, LoRA folder) in DiffusionLight's layout."""
-    from diffusers import ControlNetModel
-    from safetensors.torch import save_file
+    from diffusers import ControlNetModel  # noqa: PLC0415 — diffusers is heavy: imported when used
+    from safetensors.torch import save_file  # noqa: PLC0415 — safetensors is heavy: imported when used
 
     root = Path(root)
-    sdxl, cn, vae_dir = root / "stable-diffusion-xl-base-1.0", root / "controlnet-depth-sdxl-1.0", root / "sdxl-vae-fp16-fix"
+    sdxl, cn, vae_dir = (
+        root / "stable-diffusion-xl-base-1.0",
+        root / "controlnet-depth-sdxl-1.0",
+        root / "sdxl-vae-fp16-fix",
+    )
     lora_dir = root / "ThisIsTheFinal-lora-hdr-continuous-largeT@900" / "0_-5" / "checkpoint-2500"
     with torch.random.fork_rng(devices=[]), _quiet():
         torch.manual_seed(config.seed)
-        _model_index(sdxl, "StableDiffusionXLPipeline", {
-            "unet": ["diffusers", "UNet2DConditionModel"], "vae": ["diffusers", "AutoencoderKL"],
-            "text_encoder": ["transformers", "CLIPTextModel"], "text_encoder_2": ["transformers", "CLIPTextModelWithProjection"],
-            "tokenizer": ["transformers", "CLIPTokenizer"], "tokenizer_2": ["transformers", "CLIPTokenizer"],
-            "scheduler": ["diffusers", "EulerDiscreteScheduler"], "force_zeros_for_empty_prompt": True})
+        _model_index(
+            sdxl,
+            "StableDiffusionXLPipeline",
+            {
+                "unet": ["diffusers", "UNet2DConditionModel"],
+                "vae": ["diffusers", "AutoencoderKL"],
+                "text_encoder": ["transformers", "CLIPTextModel"],
+                "text_encoder_2": ["transformers", "CLIPTextModelWithProjection"],
+                "tokenizer": ["transformers", "CLIPTokenizer"],
+                "tokenizer_2": ["transformers", "CLIPTokenizer"],
+                "scheduler": ["diffusers", "EulerDiscreteScheduler"],
+                "force_zeros_for_empty_prompt": True,
+            },
+        )
         write_byte_level_tokenizer(sdxl / "tokenizer")
         write_byte_level_tokenizer(sdxl / "tokenizer_2")
         vocab = _vocab_size(sdxl / "tokenizer")
         unet = tiny_sdxl_unet(config)
-        save_file(tiny_lora_state(unet), str(_mkdir(lora_dir) / "pytorch_lora_weights.safetensors"), metadata={"format": "pt"})
+        save_file(
+            tiny_lora_state(unet), str(_mkdir(lora_dir) / "pytorch_lora_weights.safetensors"), metadata={"format": "pt"}
+        )
         for junk in ("optimizer.bin", "scheduler.bin", "random_states_0.pkl"):  # the training script's pickles
             (lora_dir / junk).write_bytes(b"\x80\x04not-a-weights-file")
         _save_diffusers(ControlNetModel.from_unet(unet, conditioning_embedding_out_channels=(4, 8, 8, 16)), cn, "fp16")
@@ -184,15 +224,15 @@ def write_diffusionlight_sd2_release(root: str | Path, config: TinyConfig = Tiny
         _save_diffusers(tiny_controlnet(unet, config), cn, "safetensors")
         _save_diffusers(unet, pipe / "unet", "safetensors")
         _save_diffusers(tiny_vae(config), pipe / "vae", "safetensors")
-        _save_transformers(tiny_text_encoder(config, _vocab_size(pipe / "tokenizer")), pipe / "text_encoder", "safetensors")
+        _save_transformers(
+            tiny_text_encoder(config, _vocab_size(pipe / "tokenizer")), pipe / "text_encoder", "safetensors"
+        )
         (pipe / "scheduler").mkdir()
         (pipe / "scheduler" / "scheduler_config.json").write_text(json.dumps(SD2_PNDM))
     return pipe, cn
 
 
 def _quiet():
-    from core.priors.diffusion.loading import quiet_loading
-
     return quiet_loading()
 
 

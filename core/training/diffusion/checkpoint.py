@@ -74,7 +74,7 @@ def list_checkpoints(out_dir: Path) -> list[Path]:
 
 def load_checkpoint(ckpt: Path, network, optimizer) -> dict:
     """Restore weights and optimizer state in place; returns state.json."""
-    from diffusers import ControlNetModel, UNet2DConditionModel
+    from diffusers import ControlNetModel, UNet2DConditionModel  # noqa: PLC0415 — diffusers is heavy: imported when used
 
     for name, cls in (("unet", UNet2DConditionModel), ("controlnet", ControlNetModel)):
         loaded = cls.from_pretrained(ckpt, subfolder=name, local_files_only=True, use_safetensors=True)

@@ -56,7 +56,9 @@ def read_dataset_info(root: str | Path) -> DatasetInfo:
     count = int(doc.get("count", 0))
     res = doc.get("resolution")
     if count < 1 or not (isinstance(res, list) and len(res) == 2 and min(res) > 0):
-        raise TrainingDataError(f"{doc_path}: needs count >= 1 and resolution [H, W], got count={count}, resolution={res}")
+        raise TrainingDataError(
+            f"{doc_path}: needs count >= 1 and resolution [H, W], got count={count}, resolution={res}"
+        )
     samples = tuple(root / "samples" / f"{i:06d}" for i in range(count))
     for s in samples:
         missing = [f for f in SAMPLE_FILES if not (s / f).is_file()]
@@ -76,9 +78,9 @@ class BallDataset(Dataset):
         return self.info.count
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        from core.io.depth import read_depth
-        from core.io.exr import read_exr
-        from core.io.images import read_image
+        from core.io.depth import read_depth  # noqa: PLC0415 — core.io.depth pulls in av, cv2, OpenEXR, PIL: imported when used
+        from core.io.exr import read_exr  # noqa: PLC0415 — core.io.exr pulls in av, cv2, OpenEXR, PIL: imported when used
+        from core.io.images import read_image  # noqa: PLC0415 — core.io.images pulls in av, cv2, OpenEXR, PIL: imported when used
 
         d = self.info.samples[index]
         hdr = _chw(read_exr(d / "image_with_balls.exr"))
@@ -88,7 +90,9 @@ class BallDataset(Dataset):
         shape = tuple(hdr.shape[-2:])
         for name, t in (("background.exr", background), ("ball_mask.png", coverage), ("depth_with_balls.npz", depth)):
             if tuple(t.shape[-2:]) != shape:
-                raise TrainingDataError(f"{d / name}: size {tuple(t.shape[-2:])} differs from image_with_balls.exr {shape}")
+                raise TrainingDataError(
+                    f"{d / name}: size {tuple(t.shape[-2:])} differs from image_with_balls.exr {shape}"
+                )
         # HDR is resized in linear space (area-weighted, so highlights keep their energy)
         hdr, background = (resize(_finite(x)[None], self.size, mode="area")[0] for x in (hdr, background))
         return {

@@ -24,6 +24,7 @@ from typing import Literal
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
+from torch.utils.data import DataLoader
 
 from core.conventions import tonemap
 from core.priors.diffusion.card import ModelCard
@@ -168,8 +169,7 @@ class TrainResult:
 def train_prior(data_dir: str | Path, base_dir: str | Path, out_dir: str | Path, cfg: TrainConfig,
                 resume: bool = False) -> TrainResult:
     """Fine-tune `base_dir` on `data_dir`; write checkpoints and the final model directory to `out_dir`."""
-    from accelerate import Accelerator
-    from torch.utils.data import DataLoader
+    from accelerate import Accelerator  # noqa: PLC0415 — accelerate is heavy: imported when used
 
     accelerator = Accelerator(mixed_precision=cfg.mixed_precision)
     world, rank = accelerator.num_processes, accelerator.process_index
@@ -180,7 +180,9 @@ def train_prior(data_dir: str | Path, base_dir: str | Path, out_dir: str | Path,
     comps = load_components(base_dir, device=accelerator.device, dtype=torch.float32)
     card = comps.card
     size = model_size(*info.resolution, card.resolution, comps.size_multiple)
-    conditioner = ExposureConditioner(comps.text_encoder, comps.tokenizer, card.prompts.max, card.prompts.min, card.ev_min)
+    conditioner = ExposureConditioner(
+        comps.text_encoder, comps.tokenizer, card.prompts.max, card.prompts.min, card.ev_min
+    )
     network = InpaintNetwork(comps.unet, comps.controlnet, card.controlnet_conditioning_scale)
     network.requires_grad_(True).train()
     if cfg.gradient_checkpointing:
@@ -198,7 +200,11 @@ def train_prior(data_dir: str | Path, base_dir: str | Path, out_dir: str | Path,
     dataset = BallDataset(data_dir, size)
     order = StepOrder(len(dataset), cfg.seed, start=start * accum * cfg.micro_batch, rank=rank, world=world)
     batches = iter(DataLoader(dataset, batch_size=cfg.micro_batch, sampler=order, num_workers=cfg.num_workers))
-    latent_shape = (comps.vae.config.latent_channels, size[0] // comps.vae_scale_factor, size[1] // comps.vae_scale_factor)
+    latent_shape = (
+        comps.vae.config.latent_channels,
+        size[0] // comps.vae_scale_factor,
+        size[1] // comps.vae_scale_factor,
+    )
     log_path = out / LOG_FILE
     if accelerator.is_main_process:
         out.mkdir(parents=True, exist_ok=True)

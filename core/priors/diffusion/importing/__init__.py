@@ -33,7 +33,14 @@ from pathlib import Path
 from core.priors.base import PriorError
 from core.priors.diffusion.card import CARD_FILENAME, ExposurePrompts, LoraSpec, ModelCard
 from core.priors.diffusion.importing.safe_convert import ConvertLimits
-from core.priors.diffusion.importing.weights import convert_pickles, convert_weights, expected_shapes, find_weight_files
+from core.priors.diffusion.importing.weights import (
+    convert_pickles,
+    convert_weights,
+    expected_shapes,
+    find_weight_files,
+    header_shapes,
+)
+from core.priors.diffusion.loading import load_components
 from core.priors.diffusion.profiles import get_profile
 
 LAYOUTS = ("authors", "diffusionlight-sdxl", "diffusionlight-sd2")
@@ -89,7 +96,9 @@ def _sources(source: Path, controlnet: Path | None, vae: Path | None) -> dict[st
     dirs["controlnet"] = cn
     missing = []
     for name, d in dirs.items():
-        marker = "scheduler_config.json" if name == "scheduler" else None if name.startswith("tokenizer") else "config.json"
+        marker = (
+            "scheduler_config.json" if name == "scheduler" else None if name.startswith("tokenizer") else "config.json"
+        )
         if marker and not (d / marker).is_file():
             missing.append(f"{d}/{marker}")
         if name.startswith("tokenizer") and not ((d / "vocab.json").is_file() or (d / "tokenizer.json").is_file()):
@@ -149,15 +158,33 @@ def _native_resolution(configs: dict) -> tuple[int, int]:
 def _card(layout: str, family: str, in_channels: int, conditioning: str, profile: str | None,
           lora_scale: float | None, has_lora: bool, resolution: tuple[int, int]) -> ModelCard:
     if layout == "authors":
-        fields = dict(multi_ball=True, resolution=resolution, controlnet_conditioning_scale=1.0,
-                      default_guidance_scale=12.5, profile="seed", sampler="ddim",
-                      base="ORionTMT/Sig25_4DLighting Multi_Inpaint (SD-2 inpainting, fine-tuned multi-ball) + stock SD-2.1 depth ControlNet")
+        fields = dict(
+            multi_ball=True,
+            resolution=resolution,
+            controlnet_conditioning_scale=1.0,
+            default_guidance_scale=12.5,
+            profile="seed",
+            sampler="ddim",
+            base="ORionTMT/Sig25_4DLighting Multi_Inpaint (SD-2 inpainting, fine-tuned multi-ball) + stock SD-2.1 "
+                 "depth ControlNet",
+        )
     else:
-        fields = dict(multi_ball=False, prompts=DL_PROMPTS, negative_prompt=DL_NEGATIVE, controlnet_conditioning_scale=0.5,
-                      default_guidance_scale=5.0, profile="diffusionlight", sampler="unipc", sampling_steps=30,
-                      resolution=resolution,
-                      base=("DiffusionLight: SDXL base + exposure LoRA + SDXL depth ControlNet" if family == "sdxl"
-                            else "DiffusionLight: SD-2 inpainting + SD-2.1 normal-map ControlNet"))
+        fields = dict(
+            multi_ball=False,
+            prompts=DL_PROMPTS,
+            negative_prompt=DL_NEGATIVE,
+            controlnet_conditioning_scale=0.5,
+            default_guidance_scale=5.0,
+            profile="diffusionlight",
+            sampler="unipc",
+            sampling_steps=30,
+            resolution=resolution,
+            base=(
+                "DiffusionLight: SDXL base + exposure LoRA + SDXL depth ControlNet"
+                if family == "sdxl"
+                else "DiffusionLight: SD-2 inpainting + SD-2.1 normal-map ControlNet"
+            ),
+        )
     if has_lora:
         fields["lora"] = LoraSpec(scale=0.75 if lora_scale is None else float(lora_scale))
     if profile is not None:
@@ -186,7 +213,9 @@ def import_prior(
         raise PriorError(f"{out}: already exists and is not an empty directory; choose a new output directory")
     if profile is not None:
         get_profile(profile)  # PriorError naming the profiles
-    dirs = _sources(source, Path(controlnet).expanduser() if controlnet else None, Path(vae).expanduser() if vae else None)
+    dirs = _sources(
+        source, Path(controlnet).expanduser() if controlnet else None, Path(vae).expanduser() if vae else None
+    )
     configs = {k: _read_json(d / ("scheduler_config.json" if k == "scheduler" else "config.json"), k)
                for k, d in dirs.items() if not k.startswith("tokenizer")}
     unet_cfg = configs["unet"]
@@ -196,12 +225,17 @@ def import_prior(
     chosen = _layout(layout, family, in_channels, cond)
     lora_file = _lora_file(Path(lora).expanduser()) if lora else None
     if chosen == "diffusionlight-sdxl" and lora_file is None:
-        raise PriorError("DiffusionLight's SDXL layout needs its exposure LoRA: --lora DIR (the folder with "
-                         "pytorch_lora_weights.safetensors, e.g. models/ThisIsTheFinal-lora-hdr-continuous-largeT@900/0_-5/checkpoint-2500)")
+        raise PriorError(
+            "DiffusionLight's SDXL layout needs its exposure LoRA: --lora DIR (the folder with "
+            "pytorch_lora_weights.safetensors, e.g. "
+            "models/ThisIsTheFinal-lora-hdr-continuous-largeT@900/0_-5/checkpoint-2500)"
+        )
     if family == "sdxl" and "text_encoder_2" not in dirs:
         raise PriorError(f"{source}: an SDXL UNet needs text_encoder_2/ and tokenizer_2/ in the pipeline folder")
     _check_cross_attention(configs, family)
-    card = _card(chosen, family, in_channels, cond, profile, lora_scale, lora_file is not None, _native_resolution(configs))
+    card = _card(
+        chosen, family, in_channels, cond, profile, lora_scale, lora_file is not None, _native_resolution(configs)
+    )
 
     out.mkdir(parents=True, exist_ok=True)
     try:
@@ -230,8 +264,10 @@ def _check_cross_attention(configs: dict, family: str) -> None:
     for name in ("unet", "controlnet"):
         cad = configs[name].get("cross_attention_dim")
         if cad != width:
-            raise PriorError(f"{name}/config.json: cross_attention_dim={cad} does not match the text encoder width {width} "
-                             "(e.g. an SD-1.5 ControlNet with an SD-2 model)")
+            raise PriorError(
+                f"{name}/config.json: cross_attention_dim={cad} does not match the text encoder width {width} "
+                "(e.g. an SD-1.5 ControlNet with an SD-2 model)"
+            )
     if configs["controlnet"].get("in_channels") != configs["vae"].get("latent_channels", 4):
         raise PriorError(f"controlnet/config.json: in_channels={configs['controlnet'].get('in_channels')} "
                          f"does not match the VAE's latent_channels={configs['vae'].get('latent_channels', 4)}")
@@ -282,8 +318,6 @@ def _write(dirs, configs, out: Path, card: ModelCard, variant, limits, lora_file
 
 
 def _import_lora(lora_file: Path, converted: dict[Path, Path], out: Path, report: ImportReport) -> dict:
-    from core.priors.diffusion.importing.weights import header_shapes
-
     (out / "lora").mkdir()
     target = out / "lora" / "pytorch_lora_weights.safetensors"
     if lora_file.suffix == ".bin":
@@ -307,8 +341,6 @@ def _check_variant_dtypes(record: dict) -> None:
 
 def _verify_loads(out: Path, report: ImportReport) -> None:
     """Load the result the way run time does (local, safetensors only): a directory that imports runs."""
-    from core.priors.diffusion.loading import load_components
-
     comps = load_components(out, device="cpu", dtype="bfloat16")  # half the memory; nothing is computed
     del comps
     report.notes.append("verified: loads with the run-time loader (local files, safetensors only)")

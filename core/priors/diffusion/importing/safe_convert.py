@@ -24,6 +24,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import torch
+
 EXIT_BAD_CONTENT = 2
 GIB = 1 << 30
 
@@ -95,7 +97,12 @@ def convert_bins(pairs: list[tuple[Path, Path]], limits: ConvertLimits = Convert
         raise ConvertError(f"{src}: conversion hit its CPU-time limit ({limits.cpu_seconds} s)")
     if proc.returncode == -signal.SIGXFSZ:
         raise ConvertError(f"{src}: conversion tried to write more than {out_max} bytes")
-    if "MemoryError" in proc.stderr or "Cannot allocate memory" in proc.stderr or "std::bad_alloc" in proc.stderr or "failed to map" in proc.stderr:
+    if (
+        "MemoryError" in proc.stderr
+        or "Cannot allocate memory" in proc.stderr
+        or "std::bad_alloc" in proc.stderr
+        or "failed to map" in proc.stderr
+    ):
         raise ConvertError(f"{src}: conversion needed more than its memory limit ({mem / GIB:.1f} GiB)")
     raise ConvertError(f"{src}: conversion failed (exit {proc.returncode}): {last[-300:]}")
 
@@ -106,8 +113,6 @@ def _remove(paths) -> None:
 
 
 def _tensors_only(obj) -> dict:
-    import torch
-
     if isinstance(obj, dict) and "state_dict" in obj and isinstance(obj["state_dict"], dict) and len(obj) <= 4:
         obj = obj["state_dict"]  # some trainers wrap the weights; everything else in the wrapper is dropped
     if not isinstance(obj, dict) or not obj:
@@ -119,8 +124,7 @@ def _tensors_only(obj) -> dict:
 
 
 def _child(src: str, dst: str) -> int:
-    import torch
-    from safetensors.torch import save_file
+    from safetensors.torch import save_file  # noqa: PLC0415 — safetensors is heavy: imported when used
 
     try:
         try:
@@ -153,7 +157,10 @@ def _child(src: str, dst: str) -> int:
 if __name__ == "__main__":
     args = sys.argv[1:]
     if not args or len(args) % 2:
-        print("usage: python -m core.priors.diffusion.importing.safe_convert SRC.bin DST.safetensors [...]", file=sys.stderr)
+        print(
+            "usage: python -m core.priors.diffusion.importing.safe_convert SRC.bin DST.safetensors [...]",
+            file=sys.stderr,
+        )
         sys.exit(EXIT_BAD_CONTENT)
     for i in range(0, len(args), 2):
         rc = _child(args[i], args[i + 1])

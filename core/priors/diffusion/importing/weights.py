@@ -51,7 +51,9 @@ def find_weight_files(folder: Path, transformers: bool, variant: str | None) -> 
                     return _shards(index), v
     present = sorted(p.name for p in folder.iterdir() if p.is_file()) if folder.is_dir() else []
     want = f" (variant {variant!r})" if variant else ""
-    raise PriorError(f"{folder}: no weights{want}: expected {stems[0]}[.fp16].safetensors or .bin; found {present or 'nothing'}")
+    raise PriorError(
+        f"{folder}: no weights{want}: expected {stems[0]}[.fp16].safetensors or .bin; found {present or 'nothing'}"
+    )
 
 
 def _present_variants(folder: Path, stems) -> list[str]:
@@ -81,7 +83,7 @@ def _shards(index: Path) -> list[Path]:
 
 def header_shapes(path: Path) -> dict[str, tuple[tuple[int, ...], str]]:
     """Tensor name -> (shape, dtype) from a safetensors header, without reading the data."""
-    from safetensors import safe_open
+    from safetensors import safe_open  # noqa: PLC0415 — safetensors is heavy: imported when used
 
     try:
         with safe_open(str(path), framework="pt") as f:
@@ -109,7 +111,7 @@ def convert_weights(files: list[Path], used_variant: str | None, converted: dict
     """Write `out_file` (one safetensors) from a sub-model's weight files after checking them against
     `expected`; pickled files are read from their `converted` safetensors."""
     pickled = files[0].suffix == ".bin"
-    with tempfile.TemporaryDirectory(dir=out_file.parent) as tmp:
+    with tempfile.TemporaryDirectory(dir=out_file.parent):
         parts = [converted[f] if f.suffix == ".bin" else f for f in files]
         shapes: dict[str, tuple[tuple[int, ...], str]] = {}
         for part in parts:
@@ -152,7 +154,7 @@ def _check_shapes(found: dict, expected: dict[str, tuple[int, ...]], what: str) 
 
 
 def _rewrite(parts: list[Path], out_file: Path, renames: dict[str, str]) -> None:
-    from safetensors.torch import load_file, save_file
+    from safetensors.torch import load_file, save_file  # noqa: PLC0415 — safetensors is heavy: imported when used
 
     tensors = {}
     for part in parts:
@@ -165,7 +167,7 @@ def _rewrite(parts: list[Path], out_file: Path, renames: dict[str, str]) -> None
 
 def expected_shapes(kind: str, config: dict) -> dict[str, tuple[int, ...]]:
     """Parameter / buffer shapes the sub-model's config builds (on the meta device: no memory)."""
-    from accelerate import init_empty_weights
+    from accelerate import init_empty_weights  # noqa: PLC0415 — accelerate is heavy: imported when used
 
     with init_empty_weights(include_buffers=True):
         model = _build(kind, config)
@@ -175,14 +177,14 @@ def expected_shapes(kind: str, config: dict) -> dict[str, tuple[int, ...]]:
 
 def _build(kind: str, config: dict):
     if kind in ("unet", "controlnet", "vae"):
-        from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
+        from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel  # noqa: PLC0415 — diffusers is heavy: imported when used
 
         cls = {"unet": UNet2DConditionModel, "controlnet": ControlNetModel, "vae": AutoencoderKL}[kind]
         try:
             return cls.from_config(config)
         except (TypeError, ValueError) as exc:
             raise PriorError(f"{kind}/config.json does not describe a {cls.__name__}: {exc}") from None
-    from transformers import CLIPTextConfig, CLIPTextModel, CLIPTextModelWithProjection
+    from transformers import CLIPTextConfig, CLIPTextModel, CLIPTextModelWithProjection  # noqa: PLC0415 — transformers is heavy: imported when used
 
     cfg = {k: v for k, v in config.items() if not k.startswith("_")}
     try:
