@@ -188,7 +188,8 @@ print(job.config.field.kind, job.config.field.section().initial_radiance, job.pr
 
 out = sys.argv[3]
 Image.fromarray(np.full((24, 32, 3), 128, np.uint8)).save(out + "/room.png")
-tiny = {"distill.iterations": 4, "distill.work_height": 24, "distill.warmup_steps": 1, "priors.constant.radiance": (0.5, 0.5, 0.5)}
+tiny = {"distill.iterations": 4, "distill.work_height": 24, "distill.warmup_steps": 1,
+        "priors.constant.radiance": (0.5, 0.5, 0.5)}
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     art = run_job(out + "/room.png", None, params, out + "/art", overrides=tiny).artefact
@@ -203,4 +204,5 @@ def test_a_job_selects_them_by_name_and_runs(tmp_path):
     done = subprocess.run([sys.executable, "-c", JOB_SCRIPT, PRIOR_EXAMPLE, FIELD_EXAMPLE, str(tmp_path)], cwd=REPO,
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
-    assert done.stdout.splitlines()[-2:] == ["constant 2.0 (0.5, 0.5, 0.5)", "constant constant [0.5, 0.5, 0.5] envmaps"]
+    assert done.stdout.splitlines()[-2:] == ["constant 2.0 (0.5, 0.5, 0.5)",
+                                             "constant constant [0.5, 0.5, 0.5] envmaps"]
