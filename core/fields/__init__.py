@@ -13,12 +13,15 @@ from __future__ import annotations
 from core.fields.components.normalization import BoundsError, SceneBounds
 from core.fields.kinds.base import LightField, build_field
 from core.fields.kinds.config import FieldConfig
-from core.fields.kinds.grid import GridField
-
-# the built-in kinds register on import, in this order (the order of FieldConfig's sections)
-from core.fields.kinds.mlp import MLPField
 from core.fields.kinds.registry import field_kinds, register_field
+
+# the built-in kinds register on import, in this order (the order of FieldConfig's sections and
+# of the API's field choices): not sorted
+# isort: off
+from core.fields.kinds.mlp import MLPField
+from core.fields.kinds.grid import GridField
 from core.fields.kinds.trunk import TrunkField
+# isort: on
 
 __all__ = [
     "BoundsError",
