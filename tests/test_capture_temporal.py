@@ -207,3 +207,30 @@ def test_simulator_suites_hard_is_static_temporal_is_not(tmp_path):
     assert not decisions["hard"].uses_time, decisions["hard"].reason
     assert decisions["hard"].statistic < 0.75 * decisions["hard"].threshold
     assert decisions["temporal"].uses_time, decisions["temporal"].reason
+
+
+def _window_with_a_ringing_edge(ring_gain: float) -> torch.Tensor:
+    """8 frames [T, 36, 48, 3] of a still room with a clipped window, the 2-pixel band round the
+    window brightened by `ring_gain` in every other frame (what a codec's ringing at a saturated
+    edge does as the frames are encoded apart)."""
+    frames = []
+    for i in range(8):
+        f = torch.full((36, 48, 3), 0.35)
+        f[10:26, 14:34] = 1.0  # the window, clipped
+        band = torch.zeros(36, 48, dtype=torch.bool)
+        band[8:28, 12:36] = True
+        band[10:26, 14:34] = False
+        f[band] = 0.35 * (ring_gain if i % 2 else 1.0)
+        frames.append(torch.round(f * 255) / 255)
+    return torch.stack(frames)
+
+
+def test_what_rings_round_a_clipped_source_is_not_light(monkeypatch):
+    """Pixels within CLIP_MARGIN of a clipped one are left out: the band round the window is
+    not read as the light changing; without the margin it is."""
+    import core.capture.temporal as temporal
+
+    cap = capture_from_arrays(_window_with_a_ringing_edge(1.6))
+    assert not detect_temporal(cap).uses_time
+    monkeypatch.setattr(temporal, "CLIP_MARGIN", 0)
+    assert detect_temporal(cap).uses_time

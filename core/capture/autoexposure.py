@@ -25,9 +25,7 @@ from dataclasses import replace
 
 from core.capture.base import Capture
 from core.capture.params import FRAME_EV_ESTIMATE, FRAME_EV_LOCKED, MAX_EXPOSURE_STOPS, CaptureParams
-from core.capture.temporal import global_log_course
-
-AUTO_MIN_RANGE = math.log(1.08)  # a moving camera's course under the temporal decision's floor needs no exposure
+from core.capture.temporal import ABS_FLOOR, global_log_course
 
 
 def with_estimated_exposure(capture: Capture, params: CaptureParams | None) -> Capture:
@@ -43,7 +41,7 @@ def with_estimated_exposure(capture: Capture, params: CaptureParams | None) -> C
     span = float(course.max() - course.min())
     meta = dict(capture.metadata)
     summary = {"course_range_stops": round(span / math.log(2.0), 4)}
-    if mode != FRAME_EV_ESTIMATE and span <= AUTO_MIN_RANGE:
+    if mode != FRAME_EV_ESTIMATE and span <= ABS_FLOOR:  # under the temporal decision's floor: nothing to correct
         meta["exposure_estimate"] = {**summary, "applied": False}
         return replace(capture, metadata=meta)
     ev = (course / math.log(2.0)).clamp(-MAX_EXPOSURE_STOPS, MAX_EXPOSURE_STOPS).float()

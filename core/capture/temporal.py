@@ -6,10 +6,8 @@ Statistic (documented in docs/engine.md):
    there is noise). (A moving camera: see below.)
 2. Drop clipped (LDR >= 0.99) and near-black (LDR < 0.02) pixels, which carry no ratio, and
    pixels within CLIP_MARGIN of a clipped one: around a saturated source an 8-bit video's codec
-   rings and a lens glares, by amounts that follow the exposure, not the light (on room scans
-   rendered from panoramas, with true poses and exposures, that ring read as a local change
-   of light in 3 of 4 rooms checked); a pixel is used only if it is usable in EVERY frame
-   (same pixel set for all frames).
+   rings and a lens glares, by amounts that follow the exposure, not the light; a pixel is used
+   only if it is usable in EVERY frame (same pixel set for all frames).
 3. Average linear luminance in a coarse grid of blocks (BLOCKS_Y x BLOCKS_X) per frame and take
    logs: l[t, b]. Block averaging suppresses sensor noise and block-compression artefacts.
 4. Deviation e[t] = mean over blocks of |l[t, b] - median_t l[t, b]|: how far frame t's
