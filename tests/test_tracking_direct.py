@@ -77,3 +77,56 @@ def test_a_pair_with_nothing_in_common_near_its_guess_is_unmatched_not_an_error(
     half_turn = np.diag([-1.0, 1.0, -1.0])  # 180 deg about y
     pair = align_pair(l[0], v[0], l[1], v[1], scan.intrinsics, [half_turn], 3, 4, span=10.0, candidates=4)
     assert not pair.matched and not pair.trusted and pair.cost == float("inf")
+
+
+@pytest.mark.slow  # 46 frames, ~40 s of CPU
+def test_a_scan_tracked_with_a_wrong_focal_length_fits_it_from_its_loop_closures(scan):
+    """The intrinsics assumed 3.5 % off (a 58 deg guess for a 60 deg lens): registered with that
+    focal length every ring comes round a few degrees short or long; with `refine_focal` the loop
+    closures fit the focal length within 0.5 % and every frame falls within a degree."""
+    from core.camera import Intrinsics
+
+    k = scan.intrinsics
+    wrong = Intrinsics.from_hfov(k.width, k.height, k.hfov_deg - 2.0)
+    plain = track_rotation_direct(scan.ldr, wrong)
+    fitted = track_rotation_direct(scan.ldr, wrong, refine_focal=True)
+    assert max(_rotation_errors(plain, scan)) > 2.0  # what the wrong focal length costs
+    assert fitted.stats["focal_scale_applied"]
+    assert abs(wrong.fx / fitted.focal_scale / k.fx - 1.0) < 0.005
+    assert max(_rotation_errors(fitted, scan)) < 1.0
+
+
+def test_a_short_turn_without_loop_closures_keeps_its_focal_length(scan):
+    """Six frames of one ring never come round: any focal length explains their consecutive
+    pairs, so the fit must not move it (the chi-square test keeps s = 1)."""
+    from core.camera import Intrinsics
+
+    k = scan.intrinsics
+    wrong = Intrinsics.from_hfov(k.width, k.height, k.hfov_deg - 2.0)
+    track = track_rotation_direct(scan.ldr[:6], wrong, refine_focal=True)
+    assert track.stats["loop_pairs"] == 0
+    assert not track.stats["focal_scale_applied"] and track.focal_scale == 1.0
+
+
+def test_the_finer_levels_keep_distinct_candidates_not_copies_of_one_basin():
+    """Survivors are picked by score but each more than a grid step from the others: the many
+    near-copies of one basin the local grid puts at the top must not crowd out a second basin
+    (the right turn, when a wrong one scores a little better on a coarse level), and the
+    cheapest candidate is kept besides."""
+    import torch
+
+    from core.tracking.direct import SEARCH_STEP_DEG, _survivors
+    from core.tracking.geometry import rotvec_to_matrix
+
+    angles = np.radians([0.0, 0.5, 1.0, 1.5, 20.0, 40.0])  # yaw: a basin of four copies, two others
+    R = torch.from_numpy(rotvec_to_matrix(np.stack([np.zeros(6), angles, np.zeros(6)], -1)))
+    texture = torch.ones(4, dtype=torch.float64)
+    # residuals: the copies explain every pixel, the 20 deg one three of four, the 40 deg none
+    r = torch.tensor([[0.0] * 4] * 4 + [[0.0, 0.0, 0.0, 1.0], [1.0] * 4], dtype=torch.float64)
+    w = torch.ones_like(r)
+    picked = _survivors(r, w, texture, 2, R).tolist()
+    assert picked[:2] == [0, 4]
+    for a in picked:
+        for b in picked:
+            if a < b:
+                assert abs(np.degrees(angles[a] - angles[b])) > SEARCH_STEP_DEG

@@ -260,8 +260,11 @@ def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, ro
     """The rotation of every frame from its pixels (core.tracking.direct), where matched features
     say the camera turns about one spot but register too few frames (a room scan's blank ceiling
     and floor, a studio's smooth walls). The features' rotations start the pairs they cover and
-    their refined focal length is used; the result is kept if it places more frames than they did
-    and agrees with them, frame by frame, within DIRECT_MAX_DISAGREEMENT_DEG (else None)."""
+    their refined focal length is used, then refitted from the loop closures where `refine_focal`
+    (core.tracking.direct `_self_calibrate`: the features saw too little of the turn to fix it
+    within a degree, and a focal length 1 % off turns a ring's frames 3 deg off); the result is
+    kept if it places more frames than they did and agrees with them, frame by frame, within
+    DIRECT_MAX_DISAGREEMENT_DEG (else None)."""
     T = frames.shape[0]
     focal = rot.focal * full.width / k.width if refine_focal and len(rot.kept) >= 3 else None
     intr = (
@@ -272,7 +275,9 @@ def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, ro
     pos = {f: n for n, f in enumerate(rot.kept)}
     feature_pairs = {(f - 1, f): rot.rotations[pos[f]].T @ rot.rotations[pos[f - 1]]
                      for f in range(1, T) if f in pos and f - 1 in pos}
-    track = track_rotation_direct(frames, intr, feature_pairs)
+    track = track_rotation_direct(frames, intr, feature_pairs, refine_focal=refine_focal)
+    if track.stats.get("focal_scale_applied"):  # the loop closures fixed the focal length better than the features
+        focal = intr.fx / track.focal_scale
     placed = track.stats["frames_fixed_by_pairs"]
     at = {f: n for n, f in enumerate(track.kept)}
     common = [f for f in rot.kept if f in at]
