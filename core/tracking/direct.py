@@ -23,10 +23,11 @@ inertia) and of any rotation the features offer, over the full grid only when th
 fix the rotation; then pairs the first pass says overlap but are far apart in time (a scan's
 rings see each other's edges: loop closures), and rotation averaging over all accepted pairs
 (robust least squares on the rotation vectors of the pair residuals, weighted by what each pair
-fixes), so the chain's drift is shared out. A pair is accepted when its cost is within
-MAX_PAIR_COST; the track starts at the first frame of the largest set the trusted pairs connect
-(frames before it are dropped), and a frame after it that no trusted pair fixes is placed by the
-motion prior and named in the stats.
+fixes), so the chain's drift is shared out; with `refine_focal` the averaging also fits the
+focal length's error, which only the loop closures can tell (`_self_calibrate`). A pair is
+accepted when its cost is within MAX_PAIR_COST; the track starts at the first frame of the
+largest set the trusted pairs connect (frames before it are dropped), and a frame after it that
+no trusted pair fixes is placed by the motion prior and named in the stats.
 """
 from __future__ import annotations
 
