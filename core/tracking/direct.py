@@ -78,6 +78,7 @@ NEAR_CANDIDATES = 4  # ... and refines this many of that grid's distinct best (l
 NEAR_ROLL_SPAN_DEG = 5.0  # ... and this far in roll
 NEAR_COST_RATIO = 3.0  # a near answer costing more than this x the clip's median pair cost is checked on the full grid
 MAX_LOOP_PAIRS = 120
+WEAK_OVERLAP = 2 * MIN_OVERLAP  # a consecutive pair overlapping less, at NEAR_COST_RATIO x the usual cost, is not trusted
 MAX_LOG_FOCAL_SCALE = math.log(1.25)  # the focal-length fit's range (a 60 deg guess for a 49-73 deg lens)
 FOCAL_FIT_CHI2 = 10.83  # chi-square of one parameter at p = 0.001: what the focal fit must explain to be kept
 
@@ -457,6 +458,11 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
             full = align_pair(l[f - 1], v[f - 1], l[f], v[f], k, starts, f - 1, f)
             if not p.trusted or (full.trusted and full.cost < p.cost):
                 p = full
+        if p.trusted and p.cost > NEAR_COST_RATIO * usual and p.overlap < WEAK_OVERLAP:
+            # the full grid found nothing cheaper either, and the two frames barely overlap (a
+            # scan's jump between rings): a wrong basin fits a sliver of overlap as cheaply as the
+            # right one, so the pair places nothing; the loop closures will
+            p = replace(p, info=np.zeros((3, 3)))
         if p.trusted:
             costs.append(p.cost)
         pairs.append(p)
