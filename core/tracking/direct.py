@@ -78,7 +78,7 @@ NEAR_CANDIDATES = 4  # ... and refines this many of that grid's distinct best (l
 NEAR_ROLL_SPAN_DEG = 5.0  # ... and this far in roll
 NEAR_COST_RATIO = 3.0  # a near answer costing more than this x the clip's median pair cost is checked on the full grid
 MAX_LOOP_PAIRS = 120
-WEAK_OVERLAP = 2 * MIN_OVERLAP  # a consecutive pair overlapping less, at NEAR_COST_RATIO x the usual cost, is not trusted
+WEAK_OVERLAP = 2 * MIN_OVERLAP  # a consecutive pair overlapping less, at NEAR_COST_RATIO x the usual cost: untrusted
 MAX_LOG_FOCAL_SCALE = math.log(1.25)  # the focal-length fit's range (a 60 deg guess for a 49-73 deg lens)
 FOCAL_FIT_CHI2 = 10.83  # chi-square of one parameter at p = 0.001: what the focal fit must explain to be kept
 
