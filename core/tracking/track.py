@@ -264,7 +264,8 @@ def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, ro
     (core.tracking.direct `_self_calibrate`: the features saw too little of the turn to fix it
     within a degree, and a focal length 1 % off turns a ring's frames 3 deg off); the result is
     kept if it places more frames than they did and agrees with them, frame by frame, within
-    DIRECT_MAX_DISAGREEMENT_DEG (else None)."""
+    DIRECT_MAX_DISAGREEMENT_DEG at the focal length both used (a refitted one would count the
+    features' own focal error against the pixels) (else None)."""
     T = frames.shape[0]
     focal = rot.focal * full.width / k.width if refine_focal and len(rot.kept) >= 3 else None
     intr = (
@@ -281,11 +282,10 @@ def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, ro
     placed = track.stats["frames_fixed_by_pairs"]
     at = {f: n for n, f in enumerate(track.kept)}
     common = [f for f in rot.kept if f in at]
-    if common:  # both tracks in the first common frame's axes
-        a, b = rot.rotations[pos[common[0]]], track.rotations[at[common[0]]]
-        disagree = max(
-            rotation_angle_deg((a.T @ rot.rotations[pos[f]]).T @ (b.T @ track.rotations[at[f]])) for f in common
-        )
+    if common:  # both tracks in the first common frame's axes, at the focal length both were registered with
+        same = track.rotations if track.at_given_focal is None else track.at_given_focal
+        a, b = rot.rotations[pos[common[0]]], same[at[common[0]]]
+        disagree = max(rotation_angle_deg((a.T @ rot.rotations[pos[f]]).T @ (b.T @ same[at[f]])) for f in common)
     else:
         disagree = 0.0
     stats["direct"] = {**track.stats, "max_disagreement_with_features_deg": round(disagree, 3)}
