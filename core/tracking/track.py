@@ -262,7 +262,7 @@ def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, ro
     and floor, a studio's smooth walls). The features' rotations start the pairs they cover and
     their refined focal length is used, then refitted from the loop closures where `refine_focal`
     (core.tracking.direct `_self_calibrate`: the features saw too little of the turn to fix it
-    within a degree, and a focal length 1 % off turns a ring's frames 3 deg off); the result is
+    within a degree, and a focal length slightly off turns a ring's frames degrees off); the result is
     kept if it places more frames than they did and agrees with them, frame by frame, within
     DIRECT_MAX_DISAGREEMENT_DEG at the focal length both used (a refitted one would count the
     features' own focal error against the pixels) (else None)."""
