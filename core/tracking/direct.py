@@ -114,9 +114,6 @@ class DirectTrack:
     pairs: list[DirectPair]
     stats: dict = field(default_factory=dict)
     focal_scale: float = 1.0  # the focal length registered with over the one the loop closures fit (1: not fitted)
-    # [K, 3, 3] the rotations at the focal length registered with (= rotations when none was fitted): what
-    # another track made with that focal length is compared with
-    at_given_focal: np.ndarray | None = None
 
 
 def frame_luma(frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -490,10 +487,9 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
     Tk = T - start
     init = _spanning_tree(Tk, sub, chain)
     if refine_focal:
-        rots, focal_scale, calibration, at_given_focal = _self_calibrate(Tk, sub, init)
+        rots, focal_scale, calibration = _self_calibrate(Tk, sub, init)
     else:
         (rots, focal_scale, _), calibration = _average_rotations(Tk, sub, init), {}
-        at_given_focal = rots
     placed = {f + start for f in _placed(Tk, [p for p in sub if p.trusted])}
     kept = list(range(start, T))
     stats = {"pairs": len(pairs), "matched_pairs": len(matched), "trusted_pairs": sum(p.trusted for p in pairs),
@@ -501,7 +497,7 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
              "chain_fixed": len(chained), "frames_fixed_by_pairs": len(placed), "first_frame": start,
              "frames_from_motion_prior": sorted(set(kept) - placed),
              "median_cost": float(np.median([p.cost for p in matched])) if matched else None, **calibration}
-    return DirectTrack(rots, kept, list(range(start)), pairs, stats, focal_scale, at_given_focal)
+    return DirectTrack(rots, kept, list(range(start)), pairs, stats, focal_scale)
 
 
 def _spanning_tree(T: int, pairs: list[DirectPair], chain: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
@@ -613,10 +609,8 @@ def _average_rotations(T: int, pairs: list[DirectPair], init: dict[int, np.ndarr
     return rots(sol.x), math.exp(sol.x[n_rot]) if fit_focal else 1.0, float(sol.cost)
 
 
-def _self_calibrate(T: int, pairs: list[DirectPair],
-                    init: dict[int, np.ndarray]) -> tuple[np.ndarray, float, dict, np.ndarray]:
-    """(rotations, focal scale s, stats, the rotations at the given focal length): the averaging
-    with the focal scale fitted, kept when it
+def _self_calibrate(T: int, pairs: list[DirectPair], init: dict[int, np.ndarray]) -> tuple[np.ndarray, float, dict]:
+    """(rotations, focal scale s, stats): the averaging with the focal scale fitted, kept when it
     explains the pairs better than the focal they were registered with by more than one free
     parameter does by chance (the drop in robust cost over the fitted cost per degree of freedom
     beyond FOCAL_FIT_CHI2, the chi-square of one parameter at p = 0.001); else s = 1."""
@@ -626,7 +620,7 @@ def _self_calibrate(T: int, pairs: list[DirectPair],
     gain = (cost_fixed - cost_fit) / max(cost_fit / dof, 1e-12)
     keep = gain > FOCAL_FIT_CHI2
     stats = {"focal_scale_fitted": round(s, 5), "focal_fit_gain": round(gain, 2), "focal_scale_applied": keep}
-    return (fitted, s, stats, fixed) if keep else (fixed, 1.0, stats, fixed)
+    return (fitted, s, stats) if keep else (fixed, 1.0, stats)
 
 
 def _sqrt_info(info: np.ndarray) -> np.ndarray:

@@ -264,8 +264,10 @@ def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, ro
     (core.tracking.direct `_self_calibrate`: the features saw too little of the turn to fix it
     within a degree, and a focal length slightly off turns a ring's frames degrees off); the result is
     kept if it places more frames than they did and agrees with them, frame by frame, within
-    DIRECT_MAX_DISAGREEMENT_DEG at the focal length both used (a refitted one would count the
-    features' own focal error against the pixels) (else None)."""
+    DIRECT_MAX_DISAGREEMENT_DEG (else None). The comparison is at the refitted focal length, so
+    the features' own focal error counts against it; comparing at the focal length both used was
+    tried and let a focal fit that had gone wrong through (bench/results/room_scans/
+    tried_same_focal_guard.md: `sepulchral_chapel_rotunda` 178 deg off)."""
     T = frames.shape[0]
     focal = rot.focal * full.width / k.width if refine_focal and len(rot.kept) >= 3 else None
     intr = (
@@ -282,10 +284,11 @@ def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, ro
     placed = track.stats["frames_fixed_by_pairs"]
     at = {f: n for n, f in enumerate(track.kept)}
     common = [f for f in rot.kept if f in at]
-    if common:  # both tracks in the first common frame's axes, at the focal length both were registered with
-        same = track.rotations if track.at_given_focal is None else track.at_given_focal
-        a, b = rot.rotations[pos[common[0]]], same[at[common[0]]]
-        disagree = max(rotation_angle_deg((a.T @ rot.rotations[pos[f]]).T @ (b.T @ same[at[f]])) for f in common)
+    if common:  # both tracks in the first common frame's axes
+        a, b = rot.rotations[pos[common[0]]], track.rotations[at[common[0]]]
+        disagree = max(
+            rotation_angle_deg((a.T @ rot.rotations[pos[f]]).T @ (b.T @ track.rotations[at[f]])) for f in common
+        )
     else:
         disagree = 0.0
     stats["direct"] = {**track.stats, "max_disagreement_with_features_deg": round(disagree, 3)}
