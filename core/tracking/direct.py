@@ -295,8 +295,7 @@ def _survivors(r: torch.Tensor, w: torch.Tensor, texture: torch.Tensor, keep: in
     least MIN_OVERLAP) when it is not among them. Distinct: the finer grid round each survivor
     puts many near-copies of one basin at the top, and keeping only those would drop the right
     turn when a wrong basin scores a little better on a coarse level (a studio's curtain, whose
-    stripes repeat along the turn: measured on the room scan of studio_small_05 in the module's
-    test)."""
+    stripes repeat along the turn: studio_small_05's room scan, bench/README.md section 9)."""
     score = _score(r, w, texture)
     order = torch.argsort(score)
     alive = torch.isfinite(score)
