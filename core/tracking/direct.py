@@ -242,15 +242,8 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
     # the coarse grid is a few degrees apart, where a right answer scores little better than a
     # wrong one: refine the best distinct candidates on the coarse level (by the score, and the
     # cheapest few), then the best of those through the pyramid
-    picked: list[int] = []
-    for ranking, quota in ((score, candidates), (mean_cost, candidates + max(1, candidates // 4))):
-        for idx in torch.argsort(ranking).tolist():
-            if len(picked) >= quota or not math.isfinite(float(ranking[idx])):
-                break
-            if all(
-                rotation_angle_deg(cands[idx].numpy().T @ cands[q].numpy()) > SEARCH_STEP_DEG + 1e-6 for q in picked
-            ):
-                picked.append(idx)
+    picked = _pick_distinct(score, cands, candidates)
+    picked = _pick_distinct(mean_cost, cands, candidates + max(1, candidates // 4), picked)
     if not picked:  # no rotation near the guesses keeps MIN_OVERLAP of the frame in view: the pair does not match
         return DirectPair(i, j, np.asarray(starts[0]), 0.0, math.inf, 0.0)
     # successive halving: refine the survivors on each level, keep the best by the score and the
@@ -289,6 +282,27 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
     return DirectPair(i, j, _nearest_rotation(R[0].numpy()), GAMMA * float(g[0]), math.inf, 0.0)
 
 
+def _pick_distinct(ranking: torch.Tensor, R: torch.Tensor, quota: int, picked: list[int] | None = None) -> list[int]:
+    """`picked` extended, best `ranking` first (finite values only), by candidates whose rotations
+    R [S, 3, 3] are more than SEARCH_STEP_DEG from every one picked, until `quota` are picked."""
+    picked = list(picked or [])
+    cos_min = math.cos(math.radians(SEARCH_STEP_DEG + 1e-6))
+
+    def far(q: int) -> torch.Tensor:  # [S]: the angle to candidate q above the step (trace of R_q^T R)
+        return ((R * R[q]).sum((1, 2)) - 1.0) / 2.0 < cos_min
+
+    alive = torch.isfinite(ranking)
+    for q in picked:
+        alive &= far(q)
+    for idx in torch.argsort(ranking).tolist():
+        if len(picked) >= quota or not bool(torch.isfinite(ranking[idx])):
+            break
+        if alive[idx]:
+            picked.append(idx)
+            alive &= far(idx)
+    return picked
+
+
 def _survivors(r: torch.Tensor, w: torch.Tensor, texture: torch.Tensor, keep: int, R: torch.Tensor) -> torch.Tensor:
     """Indices of the `keep` best-scored distinct candidates (`_score`; rotations R [S, 3, 3] more
     than SEARCH_STEP_DEG apart), plus the cheapest one (mean robust residual over an overlap of at
@@ -297,19 +311,8 @@ def _survivors(r: torch.Tensor, w: torch.Tensor, texture: torch.Tensor, keep: in
     turn when a wrong basin scores a little better on a coarse level (a studio's curtain, whose
     stripes repeat along the turn: studio_small_05's room scan, bench/README.md section 9)."""
     score = _score(r, w, texture)
-    order = torch.argsort(score)
-    alive = torch.isfinite(score)
-    cos_min = math.cos(math.radians(SEARCH_STEP_DEG))
-    picked: list[int] = []
-    while len(picked) < keep:
-        left = order[alive[order]]
-        if left.numel() == 0:
-            break
-        best = int(left[0])
-        picked.append(best)
-        cos = ((R * R[best]).sum((1, 2)) - 1.0) / 2.0  # cos of the angle between the two rotations
-        alive &= cos < cos_min
-    order = torch.tensor(picked) if picked else order[:keep]
+    picked = _pick_distinct(score, R, keep)
+    order = torch.tensor(picked) if picked else torch.argsort(score)[:keep]
     cost = (_robust(r) * w).sum(1) / w.sum(1).clamp_min(1.0)
     cost = torch.where(w.mean(1) >= MIN_OVERLAP, cost, torch.full_like(cost, math.inf))
     cheapest = int(torch.argmin(cost))
@@ -488,7 +491,8 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
     if refine_focal:
         rots, focal_scale, calibration = _self_calibrate(Tk, sub, init)
     else:
-        (rots, focal_scale, _), calibration = _average_rotations(Tk, sub, init), {}
+        rots, focal_scale, _ = _average_rotations(Tk, sub, init)
+        calibration = {}
     placed = {f + start for f in _placed(Tk, [p for p in sub if p.trusted])}
     kept = list(range(start, T))
     stats = {"pairs": len(pairs), "matched_pairs": len(matched), "trusted_pairs": sum(p.trusted for p in pairs),
