@@ -234,7 +234,8 @@ class ReprojectionPrior(Prior):
         self._colors = linear_frames(capture, self.clip_rule, self.clip_boost, lighting_changes)
         self._static_cloud = None
         if static_lighting_moving_camera:  # what one frame clipped or lost in the black, another saw
-            self._colors = merge_frames(capture, self._colors, capture_reading_weights(capture))
+            readings = linear_frames(capture, "fixed", 1.0, lighting_changes)  # nothing estimated
+            self._colors = merge_frames(capture, self._colors, capture_reading_weights(capture), readings)
         self._points = {}
         self._normals = {}
         self._camera_maps = {}
