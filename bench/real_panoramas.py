@@ -420,6 +420,7 @@ CV_MATERIALS = ("diffuse", "matte", "mirror")
 CV_METRICS = ("si_rmse_rel", "angular_deg", "nrmse")
 METHOD_ALIASES = {"field": FIELD, "prior": PRIOR, "constant": CONSTANT, "mean-colour": CONSTANT}
 GAIN_KEY = "priors.reprojection.elevation_gain"
+CLIP_KEY = "priors.reprojection.clip_coefficients"
 
 # Switches of the accuracy mechanisms (preset overrides), each turned off alone under CV
 # (`--variant NAME`; docs/engine.md "Accuracy mechanisms under cross-validation").
@@ -446,10 +447,10 @@ CV_REFIT: dict[str, tuple[tuple, str, str]] = {
 }
 
 
-def cv_select(rooms: list[Path], folds: dict[str, list[float]], overrides: dict, sphere_size: int, workdir: Path,
+def cv_select(rooms: list[Path], folds: dict[str, dict], overrides: dict, sphere_size: int, workdir: Path,
               log=None) -> dict:
     """Per CV_REFIT setting not fixed by `overrides`: every room's prior-shortcut score (its
-    fold's elevation profile) at every grid value, then per fold the value with the lowest
+    fold's fits, `folds[room]`: `cv_fits`) at every grid value, then per fold the value with the lowest
     mean over the OTHER rooms (`chosen[room]`) and over all rooms (`all_rooms`: what a user
     gets; control rooms use it). The scored room never takes part in its own choice. (The
     other rooms are scored with their own folds' profiles, which include the held-out room's
@@ -461,7 +462,7 @@ def cv_select(rooms: list[Path], folds: dict[str, list[float]], overrides: dict,
             continue
         scores = {}  # room -> [score per grid value]
         for path in rooms:
-            ov = overrides if GAIN_KEY in overrides else {**overrides, GAIN_KEY: folds[path.name]}
+            ov = {**folds[path.name], **overrides}
             scores[path.name] = [
                 evaluate_panorama(path, sphere_size, workdir, methods=(PRIOR,), overrides={**ov, full: v})["scores"][
                     PRIOR
@@ -498,6 +499,19 @@ def cv_gains(rooms: list[Path]) -> tuple[dict[str, list[float]], list[float]]:
     profiles = panorama_profiles(rooms)
     folds = {p.name: gain_from_profiles(torch.cat([profiles[:i], profiles[i + 1:]])) for i, p in enumerate(rooms)}
     return folds, gain_from_profiles(profiles)
+
+
+def cv_fits(rooms: list[Path]) -> tuple[dict[str, dict], dict]:
+    """What the product fits on panoramas, as overrides: per room the fits on every other room
+    (room name -> overrides for scoring it) and the fits on all of them (what a user gets; for
+    rooms outside the folds): the unseen fill's elevation profile (`cv_gains`) and the clip
+    rule's coefficients (bench.clip_rule.cv_coefficients)."""
+    from bench.clip_rule import cv_coefficients
+
+    gains, all_gain = cv_gains(rooms)
+    clips, all_clip = cv_coefficients(rooms)
+    return ({p.name: {GAIN_KEY: gains[p.name], CLIP_KEY: clips[p.name]} for p in rooms},
+            {GAIN_KEY: all_gain, CLIP_KEY: all_clip})
 
 
 def cv_summary(images: list[dict], methods) -> dict:
@@ -547,7 +561,8 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
     """Leave-one-room-out: every indoor room (INDOOR_SPLITS together) scored with everything
     fitted from panoramas refitted without it. Today that is the elevation profile of the
     unseen fill (bench.indoor_fill, row means of the other rooms' panoramas), passed to the job
-    as the reprojection prior's `elevation_gain`, and (`refit`) the CV_REFIT settings chosen
+    as the reprojection prior's `elevation_gain`, the clip rule's coefficients
+    (bench.clip_rule.cv_coefficients, `clip_coefficients`), and (`refit`) the CV_REFIT settings chosen
     per fold by `cv_select`; an override that sets one itself (an ablation) wins. Nothing else
     the job runs is chosen on these panoramas (the draft's field settings were chosen on the
     simulator). `control` rooms (not indoor) get the profile and choices fitted on all indoor
@@ -558,11 +573,12 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
     overrides = dict(overrides or {})
     methods = tuple(methods)
     rooms = indoor_rooms(hdri_dir, limit)
-    folds, all_rooms_gain = cv_gains(rooms)
+    folds, all_rooms = cv_fits(rooms)
     protocol = PROTOCOL + (
         f" Leave-one-room-out over the {len(rooms)} indoor rooms ({', '.join(INDOOR_SPLITS)} together, one photo "
         "each): "
-        "each room's job gets the unseen fill's elevation profile refitted on the other rooms (bench.indoor_fill)"
+        "each room's job gets the unseen fill's elevation profile (bench.indoor_fill) and the clip rule's "
+        "coefficients (bench.clip_rule) refitted on the other rooms"
         + (
             f" and {', '.join(CV_REFIT)} chosen per fold on the other rooms (the prior shortcut, `refit` in the JSON); "
             if refit
@@ -575,7 +591,8 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
     if overrides:
         protocol += f" VARIANT, not the shipped preset: {PRESET} with {json.dumps(overrides)}."
     out: dict = {"protocol": protocol, "hdri_dir": str(hdri_dir), "preset": PRESET, "methods": list(methods),
-                 "overrides": overrides, "all_rooms_elevation_gain": all_rooms_gain, "splits": {}}
+                 "overrides": overrides, "all_rooms_elevation_gain": all_rooms[GAIN_KEY],
+                 "all_rooms_clip_coefficients": all_rooms[CLIP_KEY], "splits": {}}
     own_tmp = workdir is None
     workdir = Path(tempfile.mkdtemp(prefix="lightfield-cv-")) if own_tmp else Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
@@ -583,22 +600,22 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
     selected = cv_select(rooms, folds, overrides, sphere_size, workdir, log) if refit else {}
     out["refit"] = selected
 
-    def fold_overrides(name: str | None, gain) -> dict:
-        ov = overrides if GAIN_KEY in overrides else {**overrides, GAIN_KEY: gain}
+    def fold_overrides(name: str | None) -> dict:
+        ov = {**(folds[name] if name is not None else all_rooms), **overrides}
         for key, sel in selected.items():
             ov = {**ov, f"priors.reprojection.{key}": sel["all_rooms"] if name is None else sel["chosen"][name]}
         return ov
 
-    groups = {"indoor (leave-one-room-out)": [(p, folds[p.name]) for p in rooms]}
+    groups = {"indoor (leave-one-room-out)": rooms}
     if control:
         ctrl = sorted(r["filename"] for r in read_manifest(hdri_dir)
                       if r.get("split") == "control" and (hdri_dir / r["filename"]).is_file())
-        groups["control (not indoor)"] = [(hdri_dir / f, all_rooms_gain) for f in ctrl]
+        groups["control (not indoor)"] = [hdri_dir / f for f in ctrl]
     for group, items in groups.items():
         images = []
-        for path, gain in items:
+        for path in items:
             t0 = time.perf_counter()
-            ov = fold_overrides(path.name if path.name in folds else None, gain)
+            ov = fold_overrides(path.name if path.name in folds else None)
             im = evaluate_panorama(path, sphere_size, workdir, methods=methods, overrides=ov)
             im["split"] = split_of.get(path.name)
             im["fold_overrides"] = {k: v for k, v in ov.items() if k not in overrides}
@@ -607,7 +624,7 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
                 log(f"{group} {path.name}: {time.perf_counter() - t0:.0f}s " + ", ".join(
                     f"{k} diffuse si {v['diffuse']['si_rmse_rel']:.3f} ang {v['diffuse']['angular_deg']:.1f}"
                     for k, v in im["scores"].items() if "non_finite" not in v))
-        out["splits"][group] = {"files": [p.name for p, _ in items], "methods": cv_summary(images, methods),
+        out["splits"][group] = {"files": [p.name for p in items], "methods": cv_summary(images, methods),
                                 "images": images}
     if own_tmp:
         import shutil

@@ -24,10 +24,10 @@ linearised frame, over the frames (does what was seen reappear where it was seen
 relative L1 between the maps at the first and the last time (static light: 0); the job's CPU
 seconds; and for tracking, the method, frames kept and the largest rotation error.
 No setting of the product is fitted here; what the product itself fitted on panoramas (the
-indoor fill's elevation profile, its source cap and whitening) is refitted without the room
-scored (the default; `--no-cv` uses the shipped values): the profile on the other indoor rooms,
-the two settings as the photo cross-validation (bench.real_panoramas --cv) chose them in that
-room's fold.
+indoor fill's elevation profile and source cap, the clip rule's coefficients) is refitted
+without the room scored (the default; `--no-cv` uses the shipped values): the profile and the
+coefficients on the other indoor rooms, the cap as the photo cross-validation
+(bench.real_panoramas --cv) chose it in that room's fold.
 """
 from __future__ import annotations
 
@@ -238,19 +238,19 @@ DEFAULT_REFIT = Path(__file__).resolve().parent / "results" / "cv" / "product" /
 
 
 def cv_overrides(hdri: Path, refit_json: Path):
-    """room -> the draft's overrides for scoring that room: the elevation profile refitted on
-    every other indoor room (bench.real_panoramas.cv_gains) and the fill settings the photo CV
-    chose without it (its `refit` section); control rooms get the shipped profile (fitted on
-    indoor rooms only) and the all-rooms choices."""
-    from bench.real_panoramas import GAIN_KEY, cv_gains, indoor_rooms
+    """room -> the draft's overrides for scoring that room: the elevation profile and the clip
+    rule's coefficients refitted on every other indoor room (bench.real_panoramas.cv_fits) and
+    the fill settings the photo CV chose without it (its `refit` section); control rooms get the
+    shipped fits (on indoor rooms only) and the all-rooms choices."""
+    from bench.real_panoramas import cv_fits, indoor_rooms
     from core.priors.reprojection import ReprojectionSettings
 
-    folds, _ = cv_gains(indoor_rooms(hdri))
+    folds, _ = cv_fits(indoor_rooms(hdri))
     refit = json.loads(refit_json.read_text()).get("refit", {}) if refit_json.exists() else {}
     refit = {k: v for k, v in refit.items() if k in ReprojectionSettings.model_fields}  # settings that still exist
 
     def overrides_for(name: str) -> dict:
-        ov = {GAIN_KEY: folds[name]} if name in folds else {}
+        ov = dict(folds.get(name, {}))
         for key, sel in refit.items():
             ov[f"priors.reprojection.{key}"] = sel["chosen"].get(name, sel["all_rooms"])
         return ov

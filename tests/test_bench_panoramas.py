@@ -208,6 +208,28 @@ def test_cv_refits_the_elevation_profile_without_the_scored_room(tmp_path):
     assert len({tuple(g) for g in folds.values()}) == 3
 
 
+def test_cv_refits_the_clip_rule_without_the_scored_room(monkeypatch, tmp_path):
+    """Each room's coefficients are the least-squares fit on the OTHER rooms' blobs; the shipped
+    ones are the fit on all of them; a fold with no blob keeps the shipped coefficients."""
+    import bench.clip_rule as cr
+    from core.capture.highlights import RULE_COEFFICIENTS
+
+    rng = torch.Generator().manual_seed(0)
+
+    def blobs(slope):
+        feats = torch.cat([torch.ones(12, 1), torch.rand(12, 4, generator=rng) * 4 - 2], 1).double()
+        return [{"features": f.tolist(), "true_stops": float(1.0 + slope * f[2]), "energy": 1.0} for f in feats]
+
+    samples = {"a.hdr": blobs(0.5), "b.hdr": blobs(-0.5), "c.hdr": blobs(0.0), "d.hdr": []}
+    monkeypatch.setattr(cr, "blob_samples", lambda path: samples[path.name])
+    folds, everything = cr.cv_coefficients([tmp_path / n for n in samples])
+    assert folds["a.hdr"] == cr.fit(samples["b.hdr"] + samples["c.hdr"])
+    assert folds["c.hdr"] == cr.fit(samples["a.hdr"] + samples["b.hdr"])
+    assert folds["a.hdr"] != folds["b.hdr"]
+    assert everything == cr.fit(samples["a.hdr"] + samples["b.hdr"] + samples["c.hdr"])
+    assert cr.cv_coefficients([tmp_path / "d.hdr"])[1] == list(RULE_COEFFICIENTS)
+
+
 def test_cv_select_never_lets_the_scored_room_vote(monkeypatch, tmp_path):
     """Per fold, the grid value with the lowest score summed over the OTHER rooms: a room whose
     own score would flip the choice does not flip its own."""
@@ -222,7 +244,7 @@ def test_cv_select_never_lets_the_scored_room_vote(monkeypatch, tmp_path):
 
     monkeypatch.setattr(rp, "evaluate_panorama", fake)
     rooms = [tmp_path / n for n in table]
-    sel = rp.cv_select(rooms, {n: [1.0, 1.0] for n in table}, {}, 16, tmp_path)["fill_source_cap"]
+    sel = rp.cv_select(rooms, {n: {rp.GAIN_KEY: [1.0, 1.0]} for n in table}, {}, 16, tmp_path)["fill_source_cap"]
     # all rooms: 11 vs 5 -> 2.0; without a: 10 vs 3 -> 2.0; without c: 2 vs 4 -> 1.0
     assert sel["all_rooms"] == 2.0
     assert sel["chosen"] == {"a": 2.0, "b": 2.0, "c": 1.0}
@@ -253,9 +275,10 @@ def test_cv_runs_the_prior_and_the_constant_map_on_a_tiny_manifest(tmp_path):
         ov = im["fold_overrides"]
         assert ov["priors.reprojection.fill_source_cap"] == out["refit"]["fill_source_cap"]["chosen"][im["file"]]
         assert len(ov["priors.reprojection.elevation_gain"]) == 24
-    assert (
-        control["images"][0]["fold_overrides"]["priors.reprojection.elevation_gain"] == out["all_rooms_elevation_gain"]
-    )
+        assert len(ov["priors.reprojection.clip_coefficients"]) == 5
+    control_ov = control["images"][0]["fold_overrides"]
+    assert control_ov["priors.reprojection.elevation_gain"] == out["all_rooms_elevation_gain"]
+    assert control_ov["priors.reprojection.clip_coefficients"] == out["all_rooms_clip_coefficients"]
     m = indoor["methods"][PRIOR]
     assert all(math.isfinite(v) for v in m["vs_constant"].values())
     assert m["rooms_diffuse_angle_over_1.5x_constant"]["of"] == 3

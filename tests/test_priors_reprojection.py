@@ -360,6 +360,23 @@ def test_linear_frames_see_clipping_at_full_resolution():
     assert float(fixed[0].sum() - naive[0].sum()) > 0.0
 
 
+def test_the_clip_rule_coefficients_a_job_passes_are_the_ones_used():
+    """Benches pass the clip rule refitted without the scored room: the setting must reach the
+    linearisation (a constant rule of 3 stops makes a clipped blob 8x its linearised value)."""
+    from core.priors.reprojection import ReprojectionPrior
+
+    frames = torch.full((1, 24, 32, 3), 0.2)
+    frames[0, 10:13, 14:18] = 1.0
+    cap = capture_from_arrays(frames, None)
+    prior = ReprojectionPrior(env_height=8, clip_coefficients=(3.0, 0.0, 0.0, 0.0, 0.0))
+    prior.bind(cap)
+    lamp = prior._colors[0, 10:13, 14:18]
+    torch.testing.assert_close(lamp, torch.full_like(lamp, 8.0))
+    assert prior.describe()["clip_coefficients"] == [3.0, 0.0, 0.0, 0.0, 0.0]
+    with pytest.raises(PriorError):
+        ReprojectionPrior(clip_coefficients=(1.0, 2.0))  # five features, five coefficients
+
+
 def test_surface_normals_face_the_camera_and_ignore_depth_edges():
     from core.capture.depth import surface_normals
 

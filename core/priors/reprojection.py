@@ -52,7 +52,7 @@ from pydantic import Field, PositiveFloat
 
 from core.capture.depth import surface_normals
 from core.capture.hdr_merge import capture_reading_weights, merge_frames
-from core.capture.highlights import CLIP_LDR, linearise_highlights
+from core.capture.highlights import CLIP_LDR, RULE_COEFFICIENTS, linearise_highlights
 from core.conventions import expose, inverse_tonemap
 from core.envmap import SPLAT_Z_TOLERANCE, resize_envmap, splat_points, voxel_merge
 from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
@@ -68,11 +68,12 @@ STATIC_CLOUD_POINTS = 12288  # still light, moving camera: one cloud of every fr
 
 
 def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP_BOOST,
-                  lighting_changes: bool = True) -> torch.Tensor:
+                  lighting_changes: bool = True, clip_coefficients: tuple[float, ...] | None = None) -> torch.Tensor:
     """Linear radiance [T, H, W, 3] (ev 0; each frame's stated exposure removed) of a capture
     at its own resolution, linearised at the resolution it was resized from (see the module
     docstring, step 1). Exposure changes between frames are used only for a static camera
-    under static lighting (a lamp switching off must not read as an exposure change)."""
+    under static lighting (a lamp switching off must not read as an exposure change).
+    `clip_coefficients`: the blob rule's (None: core.capture.highlights.RULE_COEFFICIENTS)."""
     src = capture.full_resolution or capture
     if clip_rule == "fixed":
         lin = linearise(src.frames, clip_boost)
@@ -80,6 +81,7 @@ def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP
         ev = src.stated_ev
         known = None if ev is None else torch.pow(2.0, ev.double() - float(ev[0]))  # frame t's exposure / frame 0's
         lin = linearise_highlights(src.frames, src.intrinsics, src.static_camera and not lighting_changes,
+                                   coefficients=clip_coefficients or RULE_COEFFICIENTS,
                                    static_camera=src.static_camera, known_ratios=known)
     if src.stated_ev is not None:  # each frame's own units -> one scale (ev 0)
         lin = expose(lin, -src.frame_ev.to(lin.dtype)[:, None, None, None])
@@ -171,6 +173,9 @@ class ReprojectionSettings(PriorConfig):
     clip_boost: float = Field(
         CLIP_BOOST, gt=0, description="radiance factor of clipped (>= CLIP_LDR) pixels with clip_rule 'fixed'"
     )
+    clip_coefficients: tuple[float, float, float, float, float] | None = Field(None, description=(
+        "with clip_rule 'estimate': the blob rule's coefficients (core.capture.highlights.Blob.features); null: "
+        "RULE_COEFFICIENTS (benches pass coefficients refitted without the scored room)"))
     unseen_fill: Literal["indoor", "push-pull"] = Field(
         "indoor",
         description=(
@@ -210,6 +215,7 @@ class ReprojectionPrior(Prior):
         self.env_height = int(s.env_height)
         self.clip_boost = float(s.clip_boost)
         self.clip_rule = s.clip_rule
+        self.clip_coefficients = None if s.clip_coefficients is None else tuple(float(c) for c in s.clip_coefficients)
         self.unseen_fill = s.unseen_fill
         self.fill_source_cap = s.fill_source_cap
         self.elevation_gain = None if s.elevation_gain is None else tuple(float(g) for g in s.elevation_gain)
@@ -231,7 +237,7 @@ class ReprojectionPrior(Prior):
         self._capture = capture
         static_lighting_moving_camera = not lighting_changes and not capture.static_camera
         self.merge_views = self.configured_merge_views or (capture.num_frames if static_lighting_moving_camera else 1)
-        self._colors = linear_frames(capture, self.clip_rule, self.clip_boost, lighting_changes)
+        self._colors = linear_frames(capture, self.clip_rule, self.clip_boost, lighting_changes, self.clip_coefficients)
         self._static_cloud = None
         if static_lighting_moving_camera:  # what one frame clipped or lost in the black, another saw
             readings = linear_frames(capture, "fixed", 1.0, lighting_changes)  # nothing estimated
@@ -385,6 +391,8 @@ class ReprojectionPrior(Prior):
             "clip_ldr": CLIP_LDR,
             "clip_rule": self.clip_rule,
             "clip_boost": self.clip_boost if self.clip_rule == "fixed" else None,
+            "clip_coefficients": list(self.clip_coefficients or RULE_COEFFICIENTS) if self.clip_rule == "estimate"
+            else None,
             "z_tolerance": Z_TOLERANCE,
             "hole_fill": "pull-push pyramid in the equirect domain" + (
                 " + indoor elevation gain and the seen mean colour" if self.unseen_fill == "indoor" else ""),
