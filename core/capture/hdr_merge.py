@@ -7,15 +7,13 @@ lifted in a dark one. With the light still, every frame's linear radiance (expos
 one surface point is a reading of one value, each as reliable as its LDR value is far from
 clipping and from the black. `merge_frames` therefore replaces each frame's radiance by the
 weighted mean, over the frames that see the same point, of their readings (Debevec & Malik's
-merge, with the weights of `reading_weight`), channel by channel as theirs is: a pixel whose blue
-clipped still reads its red and green exactly, and those readings give a clipped source its
-colour. Where every frame clipped a channel, that channel is the highest of their estimates
-(each frame's clip-rule estimate; the frame exposed darkest bounds the source from below the
-most). The frames see a point where it projects inside them, in front of the camera, with a
-depth within DEPTH_TOLERANCE of their own (the rest is occluded or another surface); only frames
-whose views overlap (optical axes within their diagonal field of view) are looked at. A frame's
-exposure must already be removed from `linear` and the readings (stated or estimated:
-core.capture.autoexposure) or be the same for all frames.
+merge, with the weights of `reading_weight`); where every frame clipped, by the highest of their
+estimates (each frame's clip-rule estimate; the frame exposed darkest bounds the source from
+below the most). The frames see a point where it projects inside them, in front of the camera,
+with a depth within DEPTH_TOLERANCE of their own (the rest is occluded or another surface);
+only frames whose views overlap (optical axes within their diagonal field of view) are looked
+at. A frame's exposure must already be removed from `linear` (stated or estimated: core.capture
+.autoexposure) or be the same for all frames.
 """
 from __future__ import annotations
 
@@ -33,23 +31,21 @@ MIN_WEIGHT = 1e-3  # total weight under which a point counts as seen clipped eve
 
 
 def reading_weight(ldr_luma: torch.Tensor, clipped_fraction: torch.Tensor) -> torch.Tensor:
-    """How much a pixel's (or one channel's) linear reading is worth [...]: 0 where it clipped (the
-    share of its area that did, squared off), ramping from 0 at black to 1 at DARK_LDR."""
+    """How much a pixel's linear radiance is worth [...]: 0 where it clipped (the share of its area
+    that did, squared off), ramping from 0 at black to 1 at DARK_LDR."""
     return (1.0 - clipped_fraction).clamp(0.0, 1.0) ** 2 * (ldr_luma / DARK_LDR).clamp(0.0, 1.0)
 
 
 def capture_reading_weights(capture: Capture) -> torch.Tensor:
-    """`reading_weight` [T, H, W, 3] of each channel of a (resized) capture's pixels: the share of
-    it that clipped from its full resolution (area-averaged LDR hides which pixels clipped), the
-    luma from its own frames."""
+    """`reading_weight` [T, H, W] of a (resized) capture's pixels: the clipped share from its full
+    resolution (area-averaged LDR hides which pixels clipped), the luma from its own frames."""
     src = capture.full_resolution or capture
-    clipped = (src.frames >= CLIP_LDR).float()
+    clipped = (src.frames.amax(-1) >= CLIP_LDR).float()
     if (src.height, src.width) != (capture.height, capture.width):
-        clipped = F.interpolate(clipped.permute(0, 3, 1, 2), size=(capture.height, capture.width),
-                                mode="area").permute(0, 2, 3, 1)
+        clipped = F.interpolate(clipped[:, None], size=(capture.height, capture.width), mode="area")[:, 0]
     f = capture.frames
     luma = 0.2126 * f[..., 0] + 0.7152 * f[..., 1] + 0.0722 * f[..., 2]
-    return reading_weight(luma[..., None], clipped)
+    return reading_weight(luma, clipped)
 
 
 def _overlapping(capture: Capture) -> list[list[int]]:
@@ -62,24 +58,17 @@ def _overlapping(capture: Capture) -> list[list[int]]:
     return [[j for j in range(capture.num_frames) if j != i and bool(near[i, j])] for i in range(capture.num_frames)]
 
 
-def merge_frames(capture: Capture, linear: torch.Tensor, weight: torch.Tensor,
-                 readings: torch.Tensor | None = None) -> torch.Tensor:
+def merge_frames(capture: Capture, linear: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     """Merged radiance [T, H, W, 3] of `capture` (its frames, depth and poses at the resolution of
-    `linear` [T, H, W, 3], ev 0: each frame's radiance with its clipped pixels estimated) from the
-    `readings` [T, H, W, 3] (the same frames linearised with nothing estimated; None: `linear`)
-    and their `weight` [T, H, W, 3] per channel (`capture_reading_weights`; [T, H, W]: one for
-    all three)."""
+    `linear` [T, H, W, 3], ev 0) from the readings' `weight` [T, H, W] (`reading_weight`)."""
     T, H, W, _ = linear.shape
     out = linear.clone()
-    if weight.dim() == 3:
-        weight = weight[..., None].expand(T, H, W, 3)
     lin64, w64 = linear.to(torch.float64), weight.to(torch.float64)
-    read64 = lin64 if readings is None else readings.to(torch.float64)
     depth = capture.depth.to(torch.float64)
     for i, others in enumerate(_overlapping(capture)):
         pts = capture.camera(i).unproject(capture.depth[i]).reshape(-1, 3).to(torch.float64)  # [P, 3]
-        num = read64[i].reshape(-1, 3) * w64[i].reshape(-1, 3)
-        den = w64[i].reshape(-1, 3).clone()
+        num = lin64[i].reshape(-1, 3) * w64[i].reshape(-1, 1)
+        den = w64[i].reshape(-1).clone()
         brightest = lin64[i].reshape(-1, 3).clone()
         for j in others:
             u, v, z = capture.camera(j).project(pts)
@@ -93,14 +82,12 @@ def merge_frames(capture: Capture, linear: torch.Tensor, weight: torch.Tensor,
             if not bool(same.any()):
                 continue
             lin_j = F.grid_sample(lin64[j].permute(2, 0, 1)[None], grid, align_corners=False)[0, :, 0].T  # [P, 3]
-            read_j = (lin_j if readings is None else
-                      F.grid_sample(read64[j].permute(2, 0, 1)[None], grid, align_corners=False)[0, :, 0].T)
-            w_j = F.grid_sample(w64[j].permute(2, 0, 1)[None], grid, align_corners=False)[0, :, 0].T * same[:, None]
-            num += read_j * w_j
+            w_j = F.grid_sample(w64[j][None, None], grid, align_corners=False)[0, 0, 0] * same
+            num += lin_j * w_j[:, None]
             den += w_j
             brighter = same & (lin_j.sum(-1) > brightest.sum(-1))
             brightest = torch.where(brighter[:, None], lin_j, brightest)
-        merged = torch.where(den > MIN_WEIGHT, num / den.clamp_min(MIN_WEIGHT), brightest)
+        merged = torch.where((den > MIN_WEIGHT)[:, None], num / den.clamp_min(MIN_WEIGHT)[:, None], brightest)
         ok = torch.isfinite(pts).all(-1)
         out[i] = torch.where(ok[:, None], merged, lin64[i].reshape(-1, 3)).reshape(H, W, 3).to(linear.dtype)
     return out

@@ -240,8 +240,7 @@ class ReprojectionPrior(Prior):
         self._colors = linear_frames(capture, self.clip_rule, self.clip_boost, lighting_changes, self.clip_coefficients)
         self._static_cloud = None
         if static_lighting_moving_camera:  # what one frame clipped or lost in the black, another saw
-            readings = linear_frames(capture, "fixed", 1.0, lighting_changes)  # nothing estimated
-            self._colors = merge_frames(capture, self._colors, capture_reading_weights(capture), readings)
+            self._colors = merge_frames(capture, self._colors, capture_reading_weights(capture))
         self._points = {}
         self._normals = {}
         self._camera_maps = {}
