@@ -322,7 +322,9 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: in
             if display_rotation_ccw:
                 stream.set_display_rotation(int(display_rotation_ccw))
             if codec == "libx264":
-                stream.options = {"crf": str(int(crf)), "preset": "medium"}
+                # mbtree off: with it this x264 encoded the same frames differently from run to run
+                # (even in one thread), and simulated captures and the benches on them must repeat
+                stream.options = {"crf": str(int(crf)), "preset": "medium", "x264-params": "mbtree=0"}
             else:
                 stream.bit_rate = 8_000_000
             for image in a:
