@@ -81,7 +81,10 @@ def test_the_same_walk_video_uploaded_twice_gets_the_same_answer(tmp_path):
     video = write_video(tmp_path / "walk.mp4", noisy.numpy(), 10.0)
     a, b = (_run(video, {"fps": 10}, tmp_path / name).artefact for name in ("a", "b"))
     assert a.meta["capture"]["metadata"]["tracking"]["method"] == "sfm:pycolmap"
-    assert len(a.meta["capture"]["poses"]) == 10 and a.meta["capture"]["poses"] == b.meta["capture"]["poses"]
+    # 9 or 10 of the 10 frames register, as the encoder's rate control leaves the noise; the same both times
+    assert len(a.meta["capture"]["poses"]) >= 9 and a.meta["capture"]["poses"] == b.meta["capture"]["poses"]
+    assert a.meta["capture"]["metadata"]["tracking"]["frames_kept"] == b.meta["capture"]["metadata"]["tracking"][
+        "frames_kept"]
     for x, t in (((0.0, 0.0, 0.0), 0.0), ((0.3, -0.2, -1.0), 0.5)):
         assert torch.equal(a.envmap(torch.tensor(x), t, 16)[0], b.envmap(torch.tensor(x), t, 16)[0])
 
