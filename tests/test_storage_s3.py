@@ -234,9 +234,12 @@ def test_a_job_survives_its_worker_on_another_host_and_is_served_by_an_api_that_
         assert final["resumed"] is True and final["attempts"] == 2
         other = stack.host_dir(f"w{1 - runner}")
         assert "resuming" in stack.log(f"worker{1 - runner}") or final["resumed"]
-        assert not list(other.glob(f"artefacts/*/{job}/lightfield/*"))  # the worker keeps nothing afterwards
+        # the worker keeps nothing afterwards, here or in the store (it cleans up just after it has
+        # published the success)
+        wait_until(lambda: not list(other.glob(f"artefacts/*/{job}/lightfield/*")) and not any(
+            "/uploads/" in k or "/checkpoint/" in k for k in s3_server.keys(prefix) if job in k), 30, interval_s=0.1,
+            what="the worker to delete its local copy, the upload and the checkpoint")
         keys = s3_server.keys(prefix)
-        assert not any("/uploads/" in k or "/checkpoint/" in k for k in keys if job in k)  # cleaned up in the store
         assert any(k.endswith(f"{job}/lightfield/lightfield.json") for k in keys)
 
         api_copy = list(stack.host_dir("api").glob(f"artefacts/*/{job}"))
