@@ -13,7 +13,15 @@ import pytest
 
 from core.sim.panorama_room import load_panorama
 from core.sim.room_scan import render_scan
-from core.tracking.direct import align_pair, exposure_from_offsets, frame_luma, track_rotation_direct
+from core.tracking.direct import (
+    WEAK_OVERLAP,
+    DirectPair,
+    _better_of,
+    align_pair,
+    exposure_from_offsets,
+    frame_luma,
+    track_rotation_direct,
+)
 from core.tracking.geometry import rotation_angle_deg
 
 PANORAMA = Path(__file__).resolve().parents[1] / "assets" / "sample_panorama.hdr"
@@ -42,6 +50,24 @@ def test_one_pair_recovers_its_turn_and_exposure_step(scan):
     assert pair.trusted
     assert rotation_angle_deg(pair.R.T @ true) < 0.5
     assert abs(pair.log_gain / np.log(2.0) - (scan.evs[4] - scan.evs[3])) < 0.1
+
+
+def test_a_cheaper_answer_on_a_sliver_of_overlap_does_not_replace_a_broad_one(scan):
+    """A consecutive pair's near answer (its guesses) against the full grid's: a wrong basin that
+    keeps a sliver of the frames overlapping fits as cheaply as the right turn over a broad
+    overlap, so a cheaper full-grid answer replaces the near one only where it overlaps as
+    broadly (a smooth floor agreeing with a wrong guess), or where the near one is not trusted."""
+    l, v = frame_luma(scan.ldr[3:5])
+    near = align_pair(l[0], v[0], l[1], v[1], scan.intrinsics, [np.eye(3)], 3, 4)
+    assert near.trusted and near.overlap > WEAK_OVERLAP
+    wrong = np.diag([-1.0, 1.0, -1.0])
+    sliver = DirectPair(3, 4, wrong, 0.0, near.cost / 2, WEAK_OVERLAP / 2, near.info)
+    broad = DirectPair(3, 4, wrong, 0.0, near.cost / 2, near.overlap, near.info)
+    assert sliver.trusted and broad.trusted
+    assert _better_of(near, sliver) is near
+    assert _better_of(near, broad) is broad
+    untrusted_near = DirectPair(3, 4, near.R, 0.0, near.cost, near.overlap)  # no information: fixes nothing
+    assert _better_of(untrusted_near, sliver) is sliver
 
 
 @pytest.mark.slow  # 46 frames, ~40 s of CPU
