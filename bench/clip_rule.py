@@ -125,24 +125,62 @@ COLOUR_SWEEP_EXCESS = (0.01, 0.02, 0.05, 0.1, 0.2)
 COLOUR_SWEEP_RATIO = (0.3, 0.5, 0.7)
 
 
-def colour_sweep(samples: list[dict]) -> list[dict]:
-    """`colour_errors` with the spill colour's two settings swept (tune on dev only)."""
+def recoloured(samples: list[dict], excess: float | None, ratio: float | None) -> list[dict]:
+    """The blobs with white-hot pixels, their spill colour redone with the two settings (None:
+    left white)."""
     from core.capture.highlights import Blob
 
     out = []
+    for s in samples:
+        if s.get("hot_true_rgb") is None:
+            continue
+        blob = Blob(s["area_px"], 0.0, tuple(s["halo"]), tuple(s["ring_pixels"]), s["white_fraction"],
+                    tuple(tuple(c) if c is not None else None for c in s["halo_rgb"]))
+        out.append({**s, "spill_colour": None if excess is None else blob.spill_colour(excess, ratio)})
+    return out
+
+
+def colour_sweep(samples: list[dict]) -> list[dict]:
+    """`colour_errors` with the spill colour's two settings swept."""
+    out = []
     for excess in COLOUR_SWEEP_EXCESS:
         for ratio in COLOUR_SWEEP_RATIO:
-            redone = []
-            for s in samples:
-                if s.get("hot_true_rgb") is None:
-                    continue
-                blob = Blob(s["area_px"], 0.0, tuple(s["halo"]), tuple(s["ring_pixels"]), s["white_fraction"],
-                            tuple(tuple(c) if c is not None else None for c in s["halo_rgb"]))
-                redone.append({**s, "spill_colour": blob.spill_colour(excess, ratio)})
-            e = colour_errors(redone)
+            e = colour_errors(recoloured(samples, excess, ratio))
             out.append({"min_excess": excess, "min_ratio": ratio, "recoloured": e["recoloured"],
                         **{k: round(v, 3) for k, v in e["spill_colour"].items()}})
     return out
+
+
+def colour_cv(samples: list[dict]) -> dict:
+    """The spill colour's two settings chosen without the room scored: per room, the sweep's
+    setting (or leaving white-hot pixels white) with the lowest energy-weighted colour error on
+    the other rooms' blobs, and the room's blobs recoloured with it. Against the shipped
+    settings and against leaving them white, on the same blobs."""
+    from core.capture.highlights import SPILL_COLOUR_MIN_EXCESS, SPILL_COLOUR_MIN_RATIO
+
+    settings = [(None, None)] + [(e, r) for e in COLOUR_SWEEP_EXCESS for r in COLOUR_SWEEP_RATIO]
+    by_room: dict[str, list[dict]] = {}
+    for s in samples:
+        by_room.setdefault(s["file"], []).append(s)
+
+    def choose(chosen: list[dict]) -> tuple:
+        def cost(setting):
+            e = colour_errors(recoloured(chosen, *setting))
+            return e["spill_colour"]["energy_weighted_deg"] if e["blobs"] else 0.0
+        return min(settings, key=cost)
+
+    folds = leave_one_room_out(by_room, choose)
+    held_out = [s for room, ss in by_room.items() for s in recoloured(ss, *folds[room])]
+    shipped = (SPILL_COLOUR_MIN_EXCESS, SPILL_COLOUR_MIN_RATIO)
+    return {
+        "chosen_per_room": {room: list(c) for room, c in folds.items()},
+        "rooms_choosing_shipped": sum(tuple(c) == shipped for c in folds.values()),
+        "chosen_on_all_rooms": list(choose(samples)),
+        "held_out": colour_errors(held_out)["spill_colour"],
+        "shipped": colour_errors(recoloured(samples, *shipped))["spill_colour"],
+        "left_white": colour_errors(recoloured(samples, None, None))["spill_colour"],
+        "blobs": len(held_out),
+    }
 
 
 def colour_angle_deg(a, b) -> float:
@@ -279,6 +317,11 @@ def evaluate(samples: list[dict], coefficients, constant_stops: float) -> dict:
             "colour": colour_errors(samples)}
 
 
+def leave_one_room_out(samples: dict[str, list[dict]], fit_on) -> dict[str, object]:
+    """{room: fit_on(the samples of every other room)}: the one fold loop of this bench."""
+    return {n: fit_on([s for m, ss in samples.items() if m != n for s in ss]) for n in samples}
+
+
 def cv_coefficients(rooms: list[Path]) -> tuple[dict[str, list[float]], list[float]]:
     """The rule's coefficients fitted on the real blobs of every room but one (room name ->
     coefficients, for scoring that room) and on all of them (what a user gets: RULE_COEFFICIENTS
@@ -286,25 +329,22 @@ def cv_coefficients(rooms: list[Path]) -> tuple[dict[str, list[float]], list[flo
     from core.capture.highlights import RULE_COEFFICIENTS
 
     samples = {p.name: blob_samples(p) for p in rooms}
-    names = list(samples)
 
-    def fit_on(keep):
-        chosen = [s for n in keep for s in samples[n]]
+    def fit_on(chosen):
         return fit(chosen) if chosen else [float(c) for c in RULE_COEFFICIENTS]  # no blob: nothing to fit
 
-    return {n: fit_on([m for m in names if m != n]) for n in names}, fit_on(names)
+    return leave_one_room_out(samples, fit_on), fit_on([s for ss in samples.values() for s in ss])
 
 
 def leave_one_panorama_out(samples: list[dict]) -> dict:
-    """Dev error of the rule and of the best constant when each panorama is predicted by a fit on the others."""
-    files = sorted({s["file"] for s in samples})
-    rule, const = np.zeros(len(samples)), np.zeros(len(samples))
-    for f in files:
-        train = [s for s in samples if s["file"] != f]
-        idx = [i for i, s in enumerate(samples) if s["file"] == f]
-        X = np.array([samples[i]["features"] for i in idx])
-        rule[idx] = predict_stops(X, fit(train))
-        const[idx] = fit(train, constant_only=True)[0]
+    """Error of the rule and of the best constant when each panorama is predicted by a fit on the others."""
+    by_room: dict[str, list[dict]] = {}
+    for s in samples:
+        by_room.setdefault(s["file"], []).append(s)
+    rules = leave_one_room_out(by_room, fit)
+    consts = leave_one_room_out(by_room, lambda chosen: fit(chosen, constant_only=True)[0])
+    rule = np.array([predict_stops(np.array([s["features"]]), rules[s["file"]])[0] for s in samples])
+    const = np.array([consts[s["file"]] for s in samples])
     return {"rule": errors(samples, rule), "best_constant": errors(samples, const)}
 
 
@@ -319,6 +359,8 @@ def main(argv=None) -> int:
     p.add_argument("--fit", action="store_true", help="refit the coefficients on the splits' blobs and print them")
     p.add_argument("-o", "--out", default=None)
     p.add_argument("--colour-sweep", action="store_true", help="also sweep the spill colour's settings on dev")
+    p.add_argument("--colour-cv", action="store_true", help="also choose the spill colour's settings leave-one-room-"
+                   "out over the splits' real blobs (colour_cv)")
     p.add_argument("--samples-out", default=None, help="also write every blob's features and truth (JSON)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -350,6 +392,8 @@ def main(argv=None) -> int:
         report["splits"][split] = evaluate(by_split[split], coefficients, constant)
     if args.colour_sweep:
         report["dev_colour_sweep"] = {"real": colour_sweep(dev), "synthetic_lamps": colour_sweep(lamps)}
+    if args.colour_cv:
+        report["colour_leave_one_room_out"] = colour_cv(fitted_on)
     if args.samples_out:
         Path(args.samples_out).write_text(
             json.dumps({"dev": dev, "lamps": lamps, **{k: v for k, v in by_split.items() if k != "dev"}})

@@ -1,6 +1,7 @@
 """The real-panorama protocol's geometry: crops and ground truth agree on directions."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from hypothesis import given, settings, strategies as st
@@ -228,6 +229,28 @@ def test_cv_refits_the_clip_rule_without_the_scored_room(monkeypatch, tmp_path):
     assert folds["a.hdr"] != folds["b.hdr"]
     assert everything == cr.fit(samples["a.hdr"] + samples["b.hdr"] + samples["c.hdr"])
     assert cr.cv_coefficients([tmp_path / "d.hdr"])[1] == list(RULE_COEFFICIENTS)
+
+
+def test_the_spill_colour_settings_are_chosen_without_the_scored_room():
+    """bench.clip_rule.colour_cv: each room's white-hot blobs are recoloured with the setting
+    the OTHER rooms' blobs favour. Two rooms' warm lamps spill their own warm light; a third,
+    heavier room's white lamps sit on a warm wall. Over all rooms leaving the pixels white wins
+    (the heavy room decides); the heavy room's own fold recolours, the others' folds do not."""
+    import bench.clip_rule as cr
+
+    warm, white, background = (1.0, 0.7, 0.5), (1.0, 1.0, 1.0), np.array([0.1, 0.1, 0.1])
+
+    def blob(room, truth, energy):
+        halo_rgb = [list(background + 0.5 * np.array(warm) * (1.0 - r / 8)) for r in range(6)] + [list(background)] * 2
+        return {"file": room, "area_px": 20, "halo": [float(np.mean(c)) for c in halo_rgb], "ring_pixels": [30] * 8,
+                "white_fraction": 1.0, "halo_rgb": halo_rgb, "hot_true_rgb": list(truth), "hot_energy": energy}
+
+    samples = [blob("a", warm, 1.0), blob("b", warm, 1.0), blob("c", white, 10.0)]
+    report = cr.colour_cv(samples)
+    assert report["chosen_on_all_rooms"] == [None, None]
+    assert report["chosen_per_room"]["a"] == [None, None] and report["chosen_per_room"]["b"] == [None, None]
+    assert report["chosen_per_room"]["c"] != [None, None]
+    assert report["held_out"]["mean_deg"] > report["left_white"]["mean_deg"]  # every fold chose wrong
 
 
 def test_cv_select_never_lets_the_scored_room_vote(monkeypatch, tmp_path):
