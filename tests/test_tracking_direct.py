@@ -14,7 +14,7 @@ import pytest
 from core.sim.panorama_room import load_panorama
 from core.sim.room_scan import render_scan
 from core.tracking.direct import (
-    WEAK_OVERLAP,
+    MIN_OVERLAP,
     DirectPair,
     _better_of,
     align_pair,
@@ -52,22 +52,28 @@ def test_one_pair_recovers_its_turn_and_exposure_step(scan):
     assert abs(pair.log_gain / np.log(2.0) - (scan.evs[4] - scan.evs[3])) < 0.1
 
 
-def test_a_cheaper_answer_on_a_sliver_of_overlap_does_not_replace_a_broad_one(scan):
+def test_the_full_grid_replaces_a_near_answer_only_where_it_fits_as_well_as_usual_or_explains_as_much(scan):
     """A consecutive pair's near answer (its guesses) against the full grid's: a wrong basin that
-    keeps a sliver of the frames overlapping fits as cheaply as the right turn over a broad
-    overlap, so a cheaper full-grid answer replaces the near one only where it overlaps as
-    broadly (a smooth floor agreeing with a wrong guess), or where the near one is not trusted."""
+    keeps a sliver of blank overlap can be cheaper than the right turn and explain less of frame
+    i's texture (the score); a right turn between rings overlaps little and can explain less
+    than a wrong one over a smooth wall, but fits at the clip's usual cost. The full grid's
+    answer replaces the near one when it is cheaper and either fits as well as the usual pair or
+    explains at least as much, or when the near one is not trusted."""
     l, v = frame_luma(scan.ldr[3:5])
     near = align_pair(l[0], v[0], l[1], v[1], scan.intrinsics, [np.eye(3)], 3, 4)
-    assert near.trusted and near.overlap > WEAK_OVERLAP
+    assert near.trusted and near.score < 0  # explains more of the texture than it leaves
     wrong = np.diag([-1.0, 1.0, -1.0])
-    sliver = DirectPair(3, 4, wrong, 0.0, near.cost / 2, WEAK_OVERLAP / 2, near.info)
-    broad = DirectPair(3, 4, wrong, 0.0, near.cost / 2, near.overlap, near.info)
-    assert sliver.trusted and broad.trusted
-    assert _better_of(near, sliver) is near
-    assert _better_of(near, broad) is broad
+    cheaper_blank = DirectPair(3, 4, wrong, 0.0, near.cost / 2, MIN_OVERLAP, near.info, score=near.score / 10)
+    cheaper_explains_more = DirectPair(3, 4, wrong, 0.0, near.cost / 2, MIN_OVERLAP, near.info, score=near.score * 1.1)
+    costlier = DirectPair(3, 4, wrong, 0.0, near.cost * 2, near.overlap, near.info, score=near.score * 1.1)
+    assert cheaper_blank.trusted and cheaper_explains_more.trusted
+    above_usual, usual = near.cost / 4, near.cost
+    assert _better_of(near, cheaper_blank, above_usual) is near
+    assert _better_of(near, cheaper_blank, usual) is cheaper_blank
+    assert _better_of(near, cheaper_explains_more, above_usual) is cheaper_explains_more
+    assert _better_of(near, costlier, usual) is near
     untrusted_near = DirectPair(3, 4, near.R, 0.0, near.cost, near.overlap)  # no information: fixes nothing
-    assert _better_of(untrusted_near, sliver) is sliver
+    assert _better_of(untrusted_near, cheaper_blank, above_usual) is cheaper_blank
 
 
 @pytest.mark.slow  # 46 frames, ~40 s of CPU
