@@ -151,7 +151,7 @@ def colour_angle(a: torch.Tensor, b: torch.Tensor) -> float:
 def test_white_hot_lamp_takes_its_halos_colour():
     """Every channel of a warm lamp clips, so the blob itself says "white"; its halo's excess
     over the wall carries the lamp's colour (Blob.spill_colour). The estimate is closer to the
-    lamp's colour than white is (SPILL_COLOUR_MIN_RATIO caps the saturation, so not equal),
+    lamp's colour than white is (not equal: the grey wall's light is in the halo too),
     and no channel of a recoloured pixel falls below white."""
     tint = torch.tensor([1.0, 0.75, 0.5], dtype=torch.float64)
     lamp = lamp_scene(16.0, 2.0, wall=0.0, glare=0.05)
