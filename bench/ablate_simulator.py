@@ -7,10 +7,10 @@ off (the draft otherwise), one JSON per entry under the output folder, and `tabl
 per suite the field over the constant map (diffuse si-RMSE, matte si-RMSE, diffuse angle; below
 1 beats it), the worst field/prior ratio, the temporal suite's switch error, and the brightest
 direction's luminance over the truth's (where a lamp shows: a diffuse sphere's error barely
-sees it). The simulator
-is where the mechanisms that act away from the camera (emitters, observed surfaces, the room
-lattice, free-space probes) can show what they do: the real-panorama protocols query the
-camera centre only. A ratio comes with the accuracy probe's 90 % interval over its probes.
+sees it). The simulator is where the mechanisms that act away from the camera (emitters,
+observed surfaces, the room lattice, free-space probes) can show what they do: the
+real-panorama protocols query the camera centre only. A ratio comes with the accuracy probe's
+90 % interval over its probes.
 """
 from __future__ import annotations
 
@@ -30,7 +30,6 @@ MECHANISMS: dict[str, dict] = {
     "no-view-fit": {"distill.envmap_view_directions": 0, "field.view_detail_heights": []},
     "no-time-gain": {"distill.time_gain": False},
 }
-SUITES = ("spatial", "temporal", "moving-camera", "hard")
 
 
 def run(name: str, out_dir: Path) -> Path:
@@ -59,8 +58,9 @@ def summary(report: dict) -> dict:
             "switch_error": max((w["abs_diff"] for w in switches), default=None),
             # where a lamp stands: the brightest direction's luminance over the truth's, geometric
             # mean over the probes (the si-RMSE of a diffuse sphere barely sees a lamp's peak)
-            "peak_vs_truth": round(math.exp(sum(math.log(p["peak_luminance"]["field"] / p["peak_luminance"]["truth"])
-                                                for p in s["per_probe"]) / len(s["per_probe"])), 3),
+            "peak_vs_truth": round(math.exp(sum(
+                math.log(max(p["peak_luminance"]["field"], 1e-12) / max(p["peak_luminance"]["truth"], 1e-12))
+                for p in s["per_probe"]) / len(s["per_probe"])), 3),
             "cpu_s": s["cpu_s"]["field"],
         }
     return rows

@@ -20,10 +20,12 @@ them for every frame.
 `track_rotation_direct(frames, intrinsics)` places every frame: consecutive pairs, searched
 first within NEAR_SPAN_DEG of the camera coasting at its last angular velocity (a camera has
 inertia) and of any rotation the features offer, over the full grid only when that does not
-fix the rotation; then pairs the first pass says overlap but are far apart in time (a scan's
-rings see each other's edges: loop closures), and rotation averaging over all accepted pairs
-(robust least squares on the rotation vectors of the pair residuals, weighted by what each pair
-fixes), so the chain's drift is shared out; with `refine_focal` the averaging also fits the
+fix the rotation (whose answer is kept only if cheaper and either as good as the clip's usual
+pair or explaining as much of the frame's texture: `_better_of`); then pairs the first pass
+says overlap but are far apart in time (a scan's rings see each other's edges: loop
+closures), and rotation averaging over all accepted pairs (robust least squares on the rotation
+vectors of the pair residuals, weighted by what each pair fixes), so the chain's drift is
+shared out; with `refine_focal` the averaging also fits the
 focal length's error, which only the loop closures can tell (`_self_calibrate`). A pair is
 accepted when its cost is within MAX_PAIR_COST; the track starts at the first frame of the
 largest set the trusted pairs connect (frames before it are dropped), and a frame after it that
@@ -462,7 +464,7 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
             # the better answer of the two (`_better_of`)
             p = _better_of(p, align_pair(l[f - 1], v[f - 1], l[f], v[f], k, starts, f - 1, f), usual)
         if p.trusted and p.cost > NEAR_COST_RATIO * usual and p.overlap < WEAK_OVERLAP:
-            # the full grid found nothing cheaper either, and the two frames barely overlap (a
+            # the full grid gave nothing better either, and the two frames barely overlap (a
             # scan's jump between rings): a wrong basin fits a sliver of overlap as cheaply as the
             # right one, so the pair places nothing; the loop closures will
             p = replace(p, info=np.zeros((3, 3)))
