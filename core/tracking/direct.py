@@ -33,6 +33,7 @@ no trusted pair fixes is placed by the motion prior and named in the stats.
 """
 from __future__ import annotations
 
+import copy
 import heapq
 import math
 from dataclasses import dataclass, field, replace
@@ -166,6 +167,13 @@ class _Level:
         gy, gx = torch.gradient(Li)
         self.texture = torch.sqrt(gx * gx + gy * gy).reshape(-1)[keep]  # what a pixel can tell apart
 
+    def to(self, dtype: torch.dtype) -> "_Level":
+        """A copy with its images and pixels in `dtype`."""
+        out = copy.copy(self)
+        for name in ("Lj", "Vj", "bearings", "li", "texture"):
+            setattr(out, name, getattr(self, name).to(dtype))
+        return out
+
     def residuals(self, R: torch.Tensor, gain: torch.Tensor):
         """(residuals [S, N], weights [S, N]: 1 where frame j shows the pixel usable) for rotations [S, 3, 3]."""
         d = torch.einsum("sij,nj->sni", R, self.bearings)
@@ -181,8 +189,7 @@ class _Level:
             :, 0, 0
         ]
         inside = (d[..., 2] < -0.1) & (u > 0) & (u < self.w) & (v > 0) & (v < self.h)
-        weight = torch.where(inside & (vj > 0.999), torch.ones_like(vj), torch.zeros_like(vj))
-        return lj - torch.exp(gain.reshape(-1, 1)) * self.li[None], weight
+        return lj - torch.exp(gain.reshape(-1, 1)) * self.li[None], (inside & (vj > 0.999)).to(vj.dtype)
 
 
 def _robust(r: torch.Tensor) -> torch.Tensor:
@@ -198,7 +205,7 @@ def _masked_median(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 def _gain_estimate(lev: "_Level", R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per candidate rotation [S, 3, 3]: the log gain it implies (median of log(Y_j / Y_i) over its
     overlap), and its residuals and weights under that gain (one lookup: r = Y_j - e^g Y_i)."""
-    r, w = lev.residuals(R, torch.zeros(R.shape[0], dtype=torch.float64))
+    r, w = lev.residuals(R, torch.zeros(R.shape[0], dtype=R.dtype))
     lj = r + lev.li[None]
     ratio = torch.log(lj.clamp_min(1e-3) / lev.li[None].clamp_min(1e-3))
     g = _masked_median(ratio, w).nan_to_num(0.0)
@@ -234,10 +241,14 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
                        for s in starts])
     with torch.no_grad():
         # every grid rotation a few Gauss-Newton steps on the coarse level (each falls into the
-        # basin it is in), then scored one level up (18 rows blur what tells candidates apart)
-        g, _, _ = _gain_estimate(coarse, cands)
-        cands, g = _refine(coarse, cands, g, GRID_ITERATIONS)
-        scorer = levels[min(1, len(levels) - 1)]
+        # basin it is in), then scored one level up (18 rows blur what tells candidates apart);
+        # in single precision: this only ranks thousands of rotations, whose rounding (1e-7 of
+        # an LDR value) is far below what tells them apart, at half the memory traffic of the
+        # step that dominates a scan's tracking; the picked ones go on in double
+        c32 = coarse.to(torch.float32)
+        g, _, _ = _gain_estimate(c32, cands.float())
+        cands, g = _refine(c32, cands.float(), g, GRID_ITERATIONS)
+        scorer = levels[min(1, len(levels) - 1)].to(torch.float32)
         r, w = scorer.residuals(cands, g)
         score = _score(r, w, scorer.texture)
         mean_cost = (_robust(r) * w).sum(1) / w.sum(1).clamp_min(1.0)
@@ -253,7 +264,8 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
     # cheapest: the score (evidence over frame i's texture) favours a larger overlap, where a
     # smooth floor half-agrees with a wrong turn; the cost (the mean residual over the overlap)
     # is what the right turn brings down to the noise
-    R, g = cands[picked], g[picked]
+    R = torch.from_numpy(np.stack([_nearest_rotation(x) for x in cands[picked].double().numpy()]))
+    g = g[picked].double()
     keep_counts = [min(n, candidates) for n in SURVIVORS[: len(levels)]] + [1] * max(0, len(levels) - len(SURVIVORS))
     with torch.no_grad():
         for n, (lev, keep) in enumerate(zip(levels, keep_counts)):
@@ -381,9 +393,9 @@ def _refine(lev: _Level, R0: torch.Tensor, g0: torch.Tensor, iterations: int) ->
     most MAX_STEP_DEG. Returns (R [S, 3, 3], g [S])."""
     S = R0.shape[0]
     step = 1e-3
-    probes = torch.cat([torch.zeros(1, 3), step * torch.eye(3), -step * torch.eye(3)]).double()  # [7, 3]
+    probes = torch.cat([torch.zeros(1, 3), step * torch.eye(3), -step * torch.eye(3)]).to(R0.dtype)  # [7, 3]
     turn_probes = torch.matrix_exp(_skew(probes))  # [7, 3, 3]
-    R, g = R0.clone(), g0.clone().double()
+    R, g = R0.clone(), g0.clone().to(R0.dtype)
     for _ in range(iterations):
         Rp = (turn_probes[None] @ R[:, None]).reshape(-1, 3, 3)  # [S * 7, 3, 3]
         r, w = lev.residuals(Rp, g.repeat_interleave(7))
@@ -393,7 +405,7 @@ def _refine(lev: _Level, R0: torch.Tensor, g0: torch.Tensor, iterations: int) ->
         J = torch.stack([(r[:, 1 + a] - r[:, 4 + a]) / (2 * step) for a in range(3)]
                         + [-torch.exp(g)[:, None] * lev.li[None]], -1)  # [S, N, 4]
         irls = common / torch.sqrt(1.0 + (r0 / ROBUST_SCALE) ** 2)
-        JtJ = torch.einsum("sn,sna,snb->sab", irls, J, J) + 1e-9 * torch.eye(4, dtype=torch.float64)
+        JtJ = torch.einsum("sn,sna,snb->sab", irls, J, J) + 1e-9 * torch.eye(4, dtype=R.dtype)
         Jtr = torch.einsum("sn,sna,sn->sa", irls, J, r0)
         delta = -torch.linalg.solve(JtJ, Jtr)  # [S, 4]
         turn = delta[:, :3]
