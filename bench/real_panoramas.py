@@ -531,7 +531,7 @@ def cv_summary(images: list[dict], methods) -> dict:
              "metrics": mean_scores([im["scores"][name] for im in images]),
              "observed_corr": sum(im["observed_corr"][name] for im in images) / max(1, len(images))}
         if name != CONSTANT and CONSTANT in methods:
-            ratios, intervals, wins, medians = {}, {}, {}, {}
+            ratios, intervals, wins, medians, floors = {}, {}, {}, {}, {}
             for mat in CV_MATERIALS:
                 for metric in CV_METRICS:
                     pairs = [(im["scores"][name][mat][metric], im["scores"][CONSTANT][mat][metric]) for im in scored
@@ -544,10 +544,15 @@ def cv_summary(images: list[dict], methods) -> dict:
                     intervals[key] = ratio_interval(list(a), list(b), seed=CV_SEED, level=CV_LEVEL)
                     wins[key] = [sum(x < y for x, y in pairs), len(pairs)]
                     medians[key] = round(statistics.median(x / y for x, y in pairs if y > 0), 4)
+                    floors[key] = round(sum(min(x, y) for x, y in pairs) / max(sum(b), 1e-30), 4)
             m["vs_constant"] = ratios
             m[f"interval_{round(CV_LEVEL * 100)}"] = intervals
             m["rooms_beating_constant"] = wins
             m["median_room_ratio"] = medians  # the typical room, not swayed by the rooms with the largest errors
+            # an oracle, not a method: each room scored by the better of this method and the
+            # constant map, i.e. the most that a rule keeping the map "never worse than the
+            # constant" could bring, had it known room by room which is better
+            m["oracle_floor_at_constant"] = floors
             fails = [im["file"] for im in scored if im["scores"][name]["diffuse"]["angular_deg"]
                      > ANGLE_FAILURE * im["scores"][CONSTANT]["diffuse"]["angular_deg"]]
             m["rooms_diffuse_angle_over_1.5x_constant"] = {"count": len(fails), "of": len(scored), "rooms": fails}
@@ -663,6 +668,15 @@ def cv_markdown(res: dict, rows: bool = True) -> list[str]:
                 )
                 + " |"
             )
+    for group, g in res.get("splits", {}).items():
+        for name, m in g["methods"].items():
+            floor = m.get("oracle_floor_at_constant", {})
+            if "diffuse_angular_deg" in floor:
+                out += ["", f"Oracle bound, {group}, {name}: scored room by room by the better of it and the constant "
+                        "map (per metric; not a method: the most a 'never worse than the constant' rule could "
+                        "bring): diffuse "
+                        f"si-RMSE {floor['diffuse_si_rmse_rel']:.3f}, "
+                        f"diffuse angle {floor['diffuse_angular_deg']:.3f}."]
     if rows:
         for group, g in res.get("splits", {}).items():
             methods = [k for k in g["methods"] if k not in ("truth", CONSTANT)]
@@ -770,8 +784,19 @@ def main(argv=None) -> int:
         help="with --cv-table: only the rooms of these MANIFEST splits, e.g. "
         "test,extra (the rooms no value was ever chosen on before the CV)",
     )
-    p.add_argument("--md", default=None, help="with --cv / --cv-table: also write the markdown here")
+    p.add_argument("--md", default=None, help="with --cv / --cv-table / --cv-report: also write the markdown here")
+    p.add_argument("--cv-report", default=None, metavar="CV_JSON", help="a saved --cv report as markdown, its "
+                   "summaries re-made from the per-room results (nothing is estimated)")
     args = p.parse_args(argv)
+    if args.cv_report:
+        rep = json.loads(Path(args.cv_report).read_text())
+        for g in rep.get("splits", {}).values():
+            g["methods"] = cv_summary(g["images"], tuple(rep["methods"]))
+        lines = cv_markdown(rep)
+        if args.md:
+            Path(args.md).write_text("\n".join(lines) + "\n")
+        print("\n".join(lines))
+        return 0
     if args.cv_table:
         reports = {}
         for f in args.cv_table:

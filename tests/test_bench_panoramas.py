@@ -1,6 +1,8 @@
 """The real-panorama protocol's geometry: crops and ground truth agree on directions."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -188,9 +190,25 @@ def test_cv_summary_ratios_95_interval_and_rooms_failing_on_angle():
     assert f["rooms_diffuse_angle_over_1.5x_constant"] == {"count": 1, "of": 4, "rooms": ["d"]}
     assert f["rooms_beating_constant"]["diffuse_si_rmse_rel"] == [3, 4]
     assert "vs_constant" not in s[CONSTANT]
+    # the oracle bound takes each room's better of the two: d's 1.1 counts as its constant's 1.0
+    assert f["oracle_floor_at_constant"]["diffuse_si_rmse_rel"] == pytest.approx((0.5 + 0.9 + 0.7 + 1.0) / 4)
+    assert f["oracle_floor_at_constant"]["diffuse_angular_deg"] == pytest.approx((0.5 + 0.9 + 0.7 + 1.0) / 4)
     report = {"protocol": "p", "splits": {"indoor (leave-one-room-out)": {"methods": s, "images": images}}}
     text = "\n".join(cv_markdown(report))
     assert "1 / 4" in text and "| d | dev |" in text
+    assert "Oracle bound, indoor (leave-one-room-out), field" in text and "diffuse angle 0.775" in text
+
+
+def test_a_saved_cv_report_is_rendered_again_with_its_summaries_remade(tmp_path):
+    from bench.real_panoramas import CONSTANT, FIELD, main
+
+    images = [_cv_photo("a", 0.5, 1.0), _cv_photo("d", 1.1, 1.0, angle=1.6)]
+    saved = {"protocol": "p", "methods": [FIELD, CONSTANT],
+             "splits": {"indoor (leave-one-room-out)": {"methods": {}, "images": images}}}
+    (tmp_path / "cv.json").write_text(json.dumps(saved))
+    assert main(["--cv-report", str(tmp_path / "cv.json"), "--md", str(tmp_path / "cv.md")]) == 0
+    text = (tmp_path / "cv.md").read_text()
+    assert "0.800 [" in text and "1 / 2" in text and "diffuse si-RMSE 0.750" in text
 
 
 def test_cv_refits_the_elevation_profile_without_the_scored_room(tmp_path):
