@@ -23,7 +23,9 @@ extra, what a user gets) by weighted least squares in stops, and reports their
 leave-one-panorama-out error; the synthetic lamps (dev) are reported as a stress test, not
 fitted. The accuracy benches refit the coefficients without the room they score
 (`cv_coefficients`). Colour (`colour`): the white-hot pixels' estimate left white vs in the
-halo's spill colour (core.capture.highlights.Blob.spill_colour), degrees between RGB vectors.
+halo's spill colour (core.capture.highlights.Blob.spill_colour), degrees between RGB vectors;
+the accuracy benches choose its two settings without the room they score too
+(`cv_spill_colour`).
 """
 from __future__ import annotations
 
@@ -151,31 +153,43 @@ def colour_sweep(samples: list[dict]) -> list[dict]:
     return out
 
 
+COLOUR_SETTINGS = [(None, None)] + [(e, r) for e in COLOUR_SWEEP_EXCESS for r in COLOUR_SWEEP_RATIO]
+# "left white" as the job's setting: an excess over the halo's background no spill reaches
+LEFT_WHITE_EXCESS = 1e9
+
+
+def choose_spill_colour(chosen: list[dict]) -> tuple:
+    """Of COLOUR_SETTINGS ((None, None): left white), the one with the lowest energy-weighted
+    colour error of the white-hot pixels over the blobs `chosen` (the first where none has any)."""
+    def cost(setting):
+        e = colour_errors(recoloured(chosen, *setting))
+        return e["spill_colour"]["energy_weighted_deg"] if e["blobs"] else 0.0
+    return min(COLOUR_SETTINGS, key=cost)
+
+
+def as_job_setting(setting: tuple) -> list[float]:
+    """A `choose_spill_colour` result as the reprojection prior's `spill_colour` setting."""
+    excess, ratio = setting
+    return [LEFT_WHITE_EXCESS, 1.0] if excess is None else [float(excess), float(ratio)]
+
+
 def colour_cv(samples: list[dict]) -> dict:
     """The spill colour's two settings chosen without the room scored: per room, the sweep's
     setting (or leaving white-hot pixels white) with the lowest energy-weighted colour error on
-    the other rooms' blobs, and the room's blobs recoloured with it. Against the shipped
-    settings and against leaving them white, on the same blobs."""
+    the other rooms' blobs (`choose_spill_colour`), and the room's blobs recoloured with it.
+    Against the shipped settings and against leaving them white, on the same blobs."""
     from core.capture.highlights import SPILL_COLOUR_MIN_EXCESS, SPILL_COLOUR_MIN_RATIO
 
-    settings = [(None, None)] + [(e, r) for e in COLOUR_SWEEP_EXCESS for r in COLOUR_SWEEP_RATIO]
     by_room: dict[str, list[dict]] = {}
     for s in samples:
         by_room.setdefault(s["file"], []).append(s)
-
-    def choose(chosen: list[dict]) -> tuple:
-        def cost(setting):
-            e = colour_errors(recoloured(chosen, *setting))
-            return e["spill_colour"]["energy_weighted_deg"] if e["blobs"] else 0.0
-        return min(settings, key=cost)
-
-    folds = leave_one_room_out(by_room, choose)
+    folds = leave_one_room_out(by_room, choose_spill_colour)
     held_out = [s for room, ss in by_room.items() for s in recoloured(ss, *folds[room])]
     shipped = (SPILL_COLOUR_MIN_EXCESS, SPILL_COLOUR_MIN_RATIO)
     return {
         "chosen_per_room": {room: list(c) for room, c in folds.items()},
         "rooms_choosing_shipped": sum(tuple(c) == shipped for c in folds.values()),
-        "chosen_on_all_rooms": list(choose(samples)),
+        "chosen_on_all_rooms": list(choose_spill_colour(samples)),
         "held_out": colour_errors(held_out)["spill_colour"],
         "shipped": colour_errors(recoloured(samples, *shipped))["spill_colour"],
         "left_white": colour_errors(recoloured(samples, None, None))["spill_colour"],
@@ -322,18 +336,29 @@ def leave_one_room_out(samples: dict[str, list[dict]], fit_on) -> dict[str, obje
     return {n: fit_on([s for m, ss in samples.items() if m != n for s in ss]) for n in samples}
 
 
-def cv_coefficients(rooms: list[Path]) -> tuple[dict[str, list[float]], list[float]]:
+def cv_coefficients(rooms: list[Path], samples: dict[str, list[dict]] | None = None
+                    ) -> tuple[dict[str, list[float]], list[float]]:
     """The rule's coefficients fitted on the real blobs of every room but one (room name ->
     coefficients, for scoring that room) and on all of them (what a user gets: RULE_COEFFICIENTS
-    is this fit on every indoor room)."""
+    is this fit on every indoor room). `samples`: {room: blob_samples} where the caller has them."""
     from core.capture.highlights import RULE_COEFFICIENTS
 
-    samples = {p.name: blob_samples(p) for p in rooms}
+    samples = samples if samples is not None else {p.name: blob_samples(p) for p in rooms}
 
     def fit_on(chosen):
         return fit(chosen) if chosen else [float(c) for c in RULE_COEFFICIENTS]  # no blob: nothing to fit
 
     return leave_one_room_out(samples, fit_on), fit_on([s for ss in samples.values() for s in ss])
+
+
+def cv_spill_colour(samples: dict[str, list[dict]]) -> tuple[dict[str, list[float]], list[float]]:
+    """The spill colour's settings chosen on the real blobs of every room but one (room name ->
+    the prior's `spill_colour`, for scoring that room) and on all of them (what a user gets:
+    SPILL_COLOUR is this choice on every indoor room)."""
+    def choose_on(chosen):
+        return as_job_setting(choose_spill_colour(chosen))
+
+    return leave_one_room_out(samples, choose_on), choose_on([s for ss in samples.values() for s in ss])
 
 
 def leave_one_panorama_out(samples: list[dict]) -> dict:

@@ -421,6 +421,7 @@ CV_METRICS = ("si_rmse_rel", "angular_deg", "nrmse")
 METHOD_ALIASES = {"field": FIELD, "prior": PRIOR, "constant": CONSTANT, "mean-colour": CONSTANT}
 GAIN_KEY = "priors.reprojection.elevation_gain"
 CLIP_KEY = "priors.reprojection.clip_coefficients"
+SPILL_KEY = "priors.reprojection.spill_colour"
 
 # Switches of the accuracy mechanisms (preset overrides), each turned off alone under CV
 # (`--variant NAME`; docs/engine.md "Accuracy mechanisms under cross-validation").
@@ -505,13 +506,16 @@ def cv_fits(rooms: list[Path]) -> tuple[dict[str, dict], dict]:
     """What the product fits on panoramas, as overrides: per room the fits on every other room
     (room name -> overrides for scoring it) and the fits on all of them (what a user gets; for
     rooms outside the folds): the unseen fill's elevation profile (`cv_gains`) and the clip
-    rule's coefficients (bench.clip_rule.cv_coefficients)."""
-    from bench.clip_rule import cv_coefficients
+    rule's coefficients and its spill colour's settings (bench.clip_rule.cv_coefficients,
+    cv_spill_colour)."""
+    from bench.clip_rule import blob_samples, cv_coefficients, cv_spill_colour
 
     gains, all_gain = cv_gains(rooms)
-    clips, all_clip = cv_coefficients(rooms)
-    return ({p.name: {GAIN_KEY: gains[p.name], CLIP_KEY: clips[p.name]} for p in rooms},
-            {GAIN_KEY: all_gain, CLIP_KEY: all_clip})
+    samples = {p.name: blob_samples(p) for p in rooms}
+    clips, all_clip = cv_coefficients(rooms, samples)
+    spills, all_spill = cv_spill_colour(samples)
+    return ({p.name: {GAIN_KEY: gains[p.name], CLIP_KEY: clips[p.name], SPILL_KEY: spills[p.name]} for p in rooms},
+            {GAIN_KEY: all_gain, CLIP_KEY: all_clip, SPILL_KEY: all_spill})
 
 
 def cv_summary(images: list[dict], methods) -> dict:

@@ -269,6 +269,11 @@ def test_the_spill_colour_settings_are_chosen_without_the_scored_room():
     assert report["chosen_per_room"]["a"] == [None, None] and report["chosen_per_room"]["b"] == [None, None]
     assert report["chosen_per_room"]["c"] != [None, None]
     assert report["held_out"]["mean_deg"] > report["left_white"]["mean_deg"]  # every fold chose wrong
+    # the same choices as the jobs' `spill_colour` setting: "left white" as an excess no spill reaches
+    by_room = {room: [x for x in samples if x["file"] == room] for room in "abc"}
+    folds, everything = cr.cv_spill_colour(by_room)
+    assert everything == folds["a"] == folds["b"] == [cr.LEFT_WHITE_EXCESS, 1.0]
+    assert folds["c"] == [float(v) for v in report["chosen_per_room"]["c"]]
 
 
 def test_cv_select_never_lets_the_scored_room_vote(monkeypatch, tmp_path):

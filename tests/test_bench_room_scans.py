@@ -9,10 +9,10 @@ from capture_fixtures import bright_ceiling_room, write_manifest_rooms
 
 
 def test_each_room_is_scored_with_a_profile_and_choices_made_without_it(tmp_path):
-    """The elevation profile and clip rule of the room's fold (fitted on the other indoor rooms)
+    """The elevation profile, clip rule and spill colour of the room's fold (fitted on the other indoor rooms)
     and the fill settings the photo CV chose in that fold; a control room gets the all-rooms
     choices."""
-    from bench.real_panoramas import CLIP_KEY, GAIN_KEY, cv_fits, indoor_rooms
+    from bench.real_panoramas import CLIP_KEY, GAIN_KEY, SPILL_KEY, cv_fits, indoor_rooms
     from bench.room_scans import cv_overrides
 
     write_manifest_rooms(tmp_path, bright_ceiling_room)
@@ -22,7 +22,7 @@ def test_each_room_is_scored_with_a_profile_and_choices_made_without_it(tmp_path
     overrides_for = cv_overrides(tmp_path, tmp_path / "refit.json")
     folds, _ = cv_fits(indoor_rooms(tmp_path))
     assert overrides_for("b.hdr") == {GAIN_KEY: folds["b.hdr"][GAIN_KEY], CLIP_KEY: folds["b.hdr"][CLIP_KEY],
-                                      "priors.reprojection.fill_source_cap": 4.0}
+                                      SPILL_KEY: folds["b.hdr"][SPILL_KEY], "priors.reprojection.fill_source_cap": 4.0}
     assert overrides_for("a.hdr")[GAIN_KEY] != overrides_for("b.hdr")[GAIN_KEY]
     assert overrides_for("d.hdr") == {"priors.reprojection.fill_source_cap": 8.0}
 

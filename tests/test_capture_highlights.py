@@ -165,6 +165,27 @@ def test_white_hot_lamp_takes_its_halos_colour():
     assert bool((est[hot] >= inverse_tonemap(torch.tensor(0.99)).item() - 1e-6).all())
 
 
+def test_the_spill_colour_settings_reach_the_jobs_linearisation():
+    """The reprojection prior's `spill_colour` setting (what the benches choose per fold) decides
+    the white-hot pixels' colour: the shipped settings give the warm lamp its halo's colour, an
+    excess no spill reaches leaves it white; the prior reports the settings it used."""
+    from core.capture.highlights import SPILL_COLOUR
+    from core.capture.load import capture_from_arrays
+    from core.priors.reprojection import ReprojectionPrior, linear_frames
+
+    tint = torch.tensor([1.0, 0.75, 0.5], dtype=torch.float64)
+    true = lamp_scene(16.0, 2.0, wall=0.0, glare=0.05)[..., None] * tint + 0.05
+    ldr = (torch.round(true.clamp(0, 1) ** (1 / 2.4) * 255) / 255).float()
+    hot = ldr.amin(-1) >= 0.99
+    cap = capture_from_arrays(ldr[None], None)
+    shipped = linear_frames(cap)[0][hot].double().mean(0)
+    white = linear_frames(cap, spill_colour=(1e9, 1.0))[0][hot].double().mean(0)
+    assert colour_angle(shipped, tint) < 0.6 * colour_angle(torch.ones(3), tint)
+    assert colour_angle(white, torch.ones(3)) < 1e-6
+    assert ReprojectionPrior().describe()["spill_colour"] == list(SPILL_COLOUR)
+    assert ReprojectionPrior(spill_colour=[1e9, 1.0]).describe()["spill_colour"] == [1e9, 1.0]
+
+
 def test_lamp_without_halo_stays_white():
     """A hard-edged lamp on a uniform wall: no excess in its halo, so no colour is invented."""
     H, W = 96, 128

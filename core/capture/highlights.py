@@ -58,9 +58,11 @@ RULE_COEFFICIENTS = (-0.297, -0.065, -0.576, 1.476, -0.080)
 # share of the background (else it is noise on the background's own colour), with each
 # channel at least SPILL_COLOUR_MIN_RATIO of the largest (a tinted wall tints the spill too).
 # Chosen by `python -m bench.clip_rule --colour-cv` on every indoor room (what a user gets); the
-# leave-one-room-out choice is the same in 23 of 24 folds (docs/highlights.md).
+# leave-one-room-out choice is the same in 23 of 24 folds (docs/highlights.md), and each room's
+# job in the accuracy benches gets its fold's (bench.clip_rule.cv_spill_colour).
 SPILL_COLOUR_MIN_EXCESS = 0.2
 SPILL_COLOUR_MIN_RATIO = 0.3
+SPILL_COLOUR = (SPILL_COLOUR_MIN_EXCESS, SPILL_COLOUR_MIN_RATIO)  # (min excess, min ratio): Blob.spill_colour's
 MIN_EXPOSURE_RATIO_PIXELS = 64  # unclipped mid-tone pixels needed to trust a frame's exposure ratio
 TRACK_MIN_OVERLAP = 0.5  # share of the smaller blob two frames' blobs must overlap to be one source
 TRACK_RING_PX = 2  # width of the fixed ring whose light follows a tracked source over time
@@ -191,12 +193,14 @@ def estimate_clipped(
     coefficients=RULE_COEFFICIENTS,
     found: tuple[np.ndarray, list[Blob]] | None = None,
     stops: list[float] | None = None,
+    spill: tuple[float, float] = SPILL_COLOUR,
 ) -> np.ndarray:
     """One frame's linear radiance [H, W, 3] with each clipped blob estimated: its pixels times
     the blob's boost, and its white-hot pixels (every channel clipped) in the spill's colour
     where the halo gives one (`Blob.spill_colour`), never below their linearised value.
     `found`: this frame's `find_blobs` result when the caller has it; `stops`: each blob's
-    log2 boost when the caller decided it (`stops_over_time`), else the rule's."""
+    log2 boost when the caller decided it (`stops_over_time`), else the rule's; `spill`: the
+    spill colour's (min excess, min ratio)."""
     labels, blobs = found if found is not None else find_blobs(linear, clipped, pixel_sr)
     out = linear.astype(np.float64, copy=True)
     if not blobs:
@@ -206,7 +210,7 @@ def estimate_clipped(
         own = labels == k
         boost = 2.0 ** stops[k - 1] if stops is not None else blob_boost(blob, coefficients)
         out[own] *= boost
-        colour = blob.spill_colour()
+        colour = blob.spill_colour(*spill)
         if colour is not None:
             hot = own & white_hot
             y = out[hot] @ np.asarray(LUMINANCE_WEIGHTS)
@@ -350,7 +354,8 @@ def _compact(found: tuple[np.ndarray, list[Blob]]) -> tuple[np.ndarray, list[Blo
 
 def linearise_highlights(frames: torch.Tensor, intrinsics, compare_frames: bool,
                          coefficients=RULE_COEFFICIENTS, static_camera: bool = False,
-                         known_ratios: torch.Tensor | None = None) -> torch.Tensor:
+                         known_ratios: torch.Tensor | None = None,
+                         spill: tuple[float, float] = SPILL_COLOUR) -> torch.Tensor:
     """LDR frames [T, H, W, 3] -> linear radiance in each frame's own units (ev 0: white = 1)
     with clipped sources estimated (`known_ratios` [T]: each frame's stated exposure relative
     to frame 0, else estimated from the frames): exposure changes first, then the blob rule for what stays clipped.
@@ -358,16 +363,18 @@ def linearise_highlights(frames: torch.Tensor, intrinsics, compare_frames: bool,
     frames see the same radiance up to exposure (a static camera and static lighting), so
     one frame's unclipped reading may stand in for another's clipped one. `static_camera`
     (implied by `compare_frames`): a source stays at its pixels, so its blobs are followed
-    over the frames and estimated together (`stops_over_time`)."""
+    over the frames and estimated together (`stops_over_time`). `coefficients` and `spill`: the
+    blob rule's and the spill colour's settings (`estimate_clipped`)."""
     ldr = frames.clamp(0, 1)
     lin = inverse_tonemap(ldr)
     clipped = clipped_mask(ldr)
     if bool(clipped.any()):
-        lin = _estimate_highlights(lin, clipped, intrinsics, compare_frames, coefficients, static_camera, known_ratios)
+        lin = _estimate_highlights(lin, clipped, intrinsics, compare_frames, coefficients, static_camera, known_ratios,
+                                   spill)
     return lin
 
 
-def _estimate_highlights(lin, clipped, intrinsics, compare_frames, coefficients, static_camera, known_ratios):
+def _estimate_highlights(lin, clipped, intrinsics, compare_frames, coefficients, static_camera, known_ratios, spill):
     recovered = torch.zeros_like(clipped)
     if compare_frames and lin.shape[0] > 1:
         lin2 = recover_from_exposures(lin, clipped, known_ratios)
@@ -382,5 +389,6 @@ def _estimate_highlights(lin, clipped, intrinsics, compare_frames, coefficients,
         if not still[t].any():
             continue
         lin[t] = torch.from_numpy(estimate_clipped(lin[t].numpy(), still[t], pixel_sr, coefficients, found=found[t],
-                                                   stops=None if stops is None else stops[t])).to(lin.dtype)
+                                                   stops=None if stops is None else stops[t], spill=spill)
+                                  ).to(lin.dtype)
     return lin

@@ -48,11 +48,11 @@ from typing import Literal
 
 import torch
 import torch.nn.functional as F
-from pydantic import Field, PositiveFloat
+from pydantic import Field, NonNegativeFloat, PositiveFloat
 
 from core.capture.depth import surface_normals
 from core.capture.hdr_merge import capture_reading_weights, merge_frames
-from core.capture.highlights import CLIP_LDR, RULE_COEFFICIENTS, linearise_highlights
+from core.capture.highlights import CLIP_LDR, RULE_COEFFICIENTS, SPILL_COLOUR, linearise_highlights
 from core.conventions import expose, inverse_tonemap
 from core.envmap import SPLAT_Z_TOLERANCE, resize_envmap, splat_points, voxel_merge
 from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
@@ -68,12 +68,14 @@ STATIC_CLOUD_POINTS = 12288  # still light, moving camera: one cloud of every fr
 
 
 def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP_BOOST,
-                  lighting_changes: bool = True, clip_coefficients: tuple[float, ...] | None = None) -> torch.Tensor:
+                  lighting_changes: bool = True, clip_coefficients: tuple[float, ...] | None = None,
+                  spill_colour: tuple[float, float] | None = None) -> torch.Tensor:
     """Linear radiance [T, H, W, 3] (ev 0; each frame's stated exposure removed) of a capture
     at its own resolution, linearised at the resolution it was resized from (see the module
     docstring, step 1). Exposure changes between frames are used only for a static camera
     under static lighting (a lamp switching off must not read as an exposure change).
-    `clip_coefficients`: the blob rule's (None: core.capture.highlights.RULE_COEFFICIENTS)."""
+    `clip_coefficients`: the blob rule's (None: core.capture.highlights.RULE_COEFFICIENTS);
+    `spill_colour`: its white-hot pixels' (min excess, min ratio) (None: highlights.SPILL_COLOUR)."""
     src = capture.full_resolution or capture
     if clip_rule == "fixed":
         lin = linearise(src.frames, clip_boost)
@@ -82,7 +84,8 @@ def linear_frames(capture, clip_rule: str = "estimate", clip_boost: float = CLIP
         known = None if ev is None else torch.pow(2.0, ev.double() - float(ev[0]))  # frame t's exposure / frame 0's
         lin = linearise_highlights(src.frames, src.intrinsics, src.static_camera and not lighting_changes,
                                    coefficients=clip_coefficients or RULE_COEFFICIENTS,
-                                   static_camera=src.static_camera, known_ratios=known)
+                                   static_camera=src.static_camera, known_ratios=known,
+                                   spill=spill_colour or SPILL_COLOUR)
     if src.stated_ev is not None:  # each frame's own units -> one scale (ev 0)
         lin = expose(lin, -src.frame_ev.to(lin.dtype)[:, None, None, None])
     if src is not capture and (src.height, src.width) != (capture.height, capture.width):
@@ -176,6 +179,10 @@ class ReprojectionSettings(PriorConfig):
     clip_coefficients: tuple[float, float, float, float, float] | None = Field(None, description=(
         "with clip_rule 'estimate': the blob rule's coefficients (core.capture.highlights.Blob.features); null: "
         "RULE_COEFFICIENTS (benches pass coefficients refitted without the scored room)"))
+    spill_colour: tuple[NonNegativeFloat, PositiveFloat] | None = Field(None, description=(
+        "with clip_rule 'estimate': the white-hot pixels' spill colour settings (min excess over the halo's "
+        "background, min channel ratio: core.capture.highlights.Blob.spill_colour); null: SPILL_COLOUR_MIN_EXCESS "
+        "and SPILL_COLOUR_MIN_RATIO (benches pass the settings chosen without the scored room)"))
     unseen_fill: Literal["indoor", "push-pull"] = Field(
         "indoor",
         description=(
@@ -216,6 +223,7 @@ class ReprojectionPrior(Prior):
         self.clip_boost = float(s.clip_boost)
         self.clip_rule = s.clip_rule
         self.clip_coefficients = None if s.clip_coefficients is None else tuple(float(c) for c in s.clip_coefficients)
+        self.spill_colour = None if s.spill_colour is None else (float(s.spill_colour[0]), float(s.spill_colour[1]))
         self.unseen_fill = s.unseen_fill
         self.fill_source_cap = s.fill_source_cap
         self.elevation_gain = None if s.elevation_gain is None else tuple(float(g) for g in s.elevation_gain)
@@ -237,7 +245,8 @@ class ReprojectionPrior(Prior):
         self._capture = capture
         static_lighting_moving_camera = not lighting_changes and not capture.static_camera
         self.merge_views = self.configured_merge_views or (capture.num_frames if static_lighting_moving_camera else 1)
-        self._colors = linear_frames(capture, self.clip_rule, self.clip_boost, lighting_changes, self.clip_coefficients)
+        self._colors = linear_frames(capture, self.clip_rule, self.clip_boost, lighting_changes, self.clip_coefficients,
+                                     self.spill_colour)
         self._static_cloud = None
         if static_lighting_moving_camera:  # what one frame clipped or lost in the black, another saw
             self._colors = merge_frames(capture, self._colors, capture_reading_weights(capture))
@@ -392,6 +401,8 @@ class ReprojectionPrior(Prior):
             "clip_boost": self.clip_boost if self.clip_rule == "fixed" else None,
             "clip_coefficients": list(self.clip_coefficients or RULE_COEFFICIENTS) if self.clip_rule == "estimate"
             else None,
+            "spill_colour": list(self.spill_colour or SPILL_COLOUR)
+            if self.clip_rule == "estimate" else None,
             "z_tolerance": Z_TOLERANCE,
             "hole_fill": "pull-push pyramid in the equirect domain" + (
                 " + indoor elevation gain and the seen mean colour" if self.unseen_fill == "indoor" else ""),
