@@ -24,9 +24,10 @@ linearised frame, over the frames (does what was seen reappear where it was seen
 relative L1 between the maps at the first and the last time (static light: 0); the job's CPU
 seconds; and for tracking, the method, frames kept and the largest rotation error.
 No setting of the product is fitted here; what the product itself fitted on panoramas (the
-indoor fill's elevation profile and source cap, the clip rule's coefficients) is refitted
-without the room scored (the default; `--no-cv` uses the shipped values): the profile and the
-coefficients on the other indoor rooms, the cap as the photo cross-validation
+indoor fill's elevation profile and source cap, the clip rule's coefficients and spill colour
+thresholds) is refitted without the room scored (the default; `--no-cv` uses the shipped
+values): the profile, the coefficients and the thresholds on the other indoor rooms, the cap as
+the photo cross-validation
 (bench.real_panoramas --cv) chose it in that room's fold.
 """
 from __future__ import annotations
@@ -239,7 +240,7 @@ DEFAULT_REFIT = Path(__file__).resolve().parent / "results" / "cv" / "product" /
 
 def cv_overrides(hdri: Path, refit_json: Path):
     """room -> the draft's overrides for scoring that room: the elevation profile and the clip
-    rule's coefficients refitted on every other indoor room (bench.real_panoramas.cv_fits) and
+    rule's coefficients and spill colour refitted on every other indoor room (bench.real_panoramas.cv_fits) and
     the fill settings the photo CV chose without it (its `refit` section); control rooms get the
     shipped fits (on indoor rooms only) and the all-rooms choices."""
     from bench.real_panoramas import cv_fits, indoor_rooms
