@@ -178,14 +178,14 @@ def colour_cv(samples: list[dict]) -> dict:
     setting (or leaving white-hot pixels white) with the lowest energy-weighted colour error on
     the other rooms' blobs (`choose_spill_colour`), and the room's blobs recoloured with it.
     Against the shipped settings and against leaving them white, on the same blobs."""
-    from core.capture.highlights import SPILL_COLOUR_MIN_EXCESS, SPILL_COLOUR_MIN_RATIO
+    from core.capture.highlights import SPILL_COLOUR
 
     by_room: dict[str, list[dict]] = {}
     for s in samples:
         by_room.setdefault(s["file"], []).append(s)
     folds = leave_one_room_out(by_room, choose_spill_colour)
     held_out = [s for room, ss in by_room.items() for s in recoloured(ss, *folds[room])]
-    shipped = (SPILL_COLOUR_MIN_EXCESS, SPILL_COLOUR_MIN_RATIO)
+    shipped = SPILL_COLOUR
     return {
         "chosen_per_room": {room: list(c) for room, c in folds.items()},
         "rooms_choosing_shipped": sum(tuple(c) == shipped for c in folds.values()),
