@@ -59,6 +59,7 @@ SURVIVORS = [24, 3, 2]  # candidates kept after each level (coarse to fine)
 GRID_ITERATIONS = 2  # Gauss-Newton steps every grid rotation takes before they are compared
 GN_ITERATIONS = (6, 4, 3)  # Gauss-Newton steps per level, coarse to fine
 MAX_STEP_DEG = 3.0  # a Gauss-Newton step turns by at most this
+GRID_DTYPE = torch.float32  # the grid search's precision: it only ranks candidates (align_pair)
 ROBUST_SCALE = 0.05  # LDR units: pseudo-Huber scale of the residual
 # Candidates are compared by the textured pixels they explain (_score): residual within SCORE_CAP
 # times what 8-bit and compression noise (SCORE_NOISE, LDR units) and a misregistration of
@@ -245,10 +246,10 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
         # in single precision: this only ranks thousands of rotations, whose rounding (1e-7 of
         # an LDR value) is far below what tells them apart, at half the memory traffic of the
         # step that dominates a scan's tracking; the picked ones go on in double
-        c32 = coarse.to(torch.float32)
-        g, _, _ = _gain_estimate(c32, cands.float())
-        cands, g = _refine(c32, cands.float(), g, GRID_ITERATIONS)
-        scorer = levels[min(1, len(levels) - 1)].to(torch.float32)
+        grid_level = coarse.to(GRID_DTYPE)
+        g, _, _ = _gain_estimate(grid_level, cands.to(GRID_DTYPE))
+        cands, g = _refine(grid_level, cands.to(GRID_DTYPE), g, GRID_ITERATIONS)
+        scorer = levels[min(1, len(levels) - 1)].to(GRID_DTYPE)
         r, w = scorer.residuals(cands, g)
         score = _score(r, w, scorer.texture)
         mean_cost = (_robust(r) * w).sum(1) / w.sum(1).clamp_min(1.0)
