@@ -26,33 +26,20 @@ from pathlib import Path
 
 import torch
 
-from core.exposure import LUMINANCE_WEIGHTS
+from core.exposure import luminance
 
 FILL_SCALES = (2.0, 6.0)
 
 
-def seen_mask(intrinsics, height: int) -> torch.Tensor:
-    """[H, 2H] bool: the equirect pixels the photo's pixel rays land in (identity camera)."""
-    from core.camera import Camera
-    from core.conventions import direction_to_equirect_pixel, equirect_width
-
-    rays = Camera(intrinsics, torch.eye(4, dtype=torch.float64)).pixel_rays(dtype=torch.float64)[1].reshape(-1, 3)
-    row, col = direction_to_equirect_pixel(rays, height)
-    mask = torch.zeros(height, equirect_width(height), dtype=torch.bool)
-    mask[row.round().long().clamp(0, height - 1), col.round().long() % equirect_width(height)] = True
-    return mask
-
-
 def variants(prior: torch.Tensor, constant: torch.Tensor, truth: torch.Tensor, seen: torch.Tensor) -> dict:
     """The prior's map [H, W, 3] and the variants of the module docstring (seen: [H, W] bool)."""
-    w = torch.tensor(LUMINANCE_WEIGHTS, dtype=prior.dtype)
-    lum, true_lum = prior @ w, truth @ w
+    lum, true_lum = luminance(prior), luminance(truth)
     ok = seen & (true_lum > 0)
     scale = float((lum[ok] / true_lum[ok]).median()) if bool(ok.any()) else 1.0  # the map's units per truth's
     s = seen[..., None]
 
     def chroma(x):
-        return x / (x @ w).clamp_min(1e-30)[..., None]
+        return x / luminance(x).clamp_min(1e-30)[..., None]
 
     out = {"prior": prior}
     out.update({f"fill x{f:g}": torch.where(s, prior, f * prior) for f in FILL_SCALES})
@@ -66,6 +53,8 @@ def evaluate(path: Path, overrides: dict, workdir: Path, sphere_size: int = 64) 
     """One room's photo: per variant, diffuse si-RMSE and angle, and the constant map's."""
     import bench.real_panoramas as rp
     from bench.suite.evaluation import score_probe
+    from core.camera import Camera
+    from core.engine.extrapolation import observed_directions
     from core.envmap import resize_envmap, rotate_envmap
 
     pano = rp.load_panorama(path)
@@ -75,7 +64,8 @@ def evaluate(path: Path, overrides: dict, workdir: Path, sphere_size: int = 64) 
     photo = rp.write_photo(ldr, workdir / (path.stem + ".png"))
     truth = rotate_envmap(resize_envmap(pano, rp.GT_HEIGHT), R.T).double()
     constant = rp.estimate_mean_colour(ldr).double()
-    preds = variants(rp.estimate_prior(photo, overrides).double(), constant, truth, seen_mask(intr, rp.GT_HEIGHT))
+    seen = observed_directions(Camera(intr, torch.eye(4, dtype=torch.float64)), rp.GT_HEIGHT)  # the photo's camera
+    preds = variants(rp.estimate_prior(photo, overrides).double(), constant, truth, seen)
     scores = score_probe({**preds, rp.CONSTANT: constant}, truth, sphere_size)
     return {name: {k: s["diffuse"][k] for k in ("si_rmse_rel", "angular_deg")} for name, s in scores.items()}
 
