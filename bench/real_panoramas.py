@@ -642,6 +642,16 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
     return out
 
 
+def resummarised(report: dict, splits: list[str] | None = None) -> dict:
+    """A saved CV report with its summaries re-made from its per-room results (this code's
+    statistics), keeping only the rooms of the MANIFEST `splits` when given."""
+    for g in report.get("splits", {}).values():
+        if splits:
+            g["images"] = [im for im in g["images"] if im.get("split") in splits]
+        g["methods"] = cv_summary(g["images"], tuple(report["methods"]))
+    return report
+
+
 def cv_markdown(res: dict, rows: bool = True) -> list[str]:
     """A CV report as markdown: per group and method the ratios to the constant map with their
     intervals, the rooms failing on angle, then (rows) each room's ratios."""
@@ -793,10 +803,7 @@ def main(argv=None) -> int:
                    "summaries re-made from the per-room results (nothing is estimated)")
     args = p.parse_args(argv)
     if args.cv_report:
-        rep = json.loads(Path(args.cv_report).read_text())
-        for g in rep.get("splits", {}).values():
-            g["methods"] = cv_summary(g["images"], tuple(rep["methods"]))
-        lines = cv_markdown(rep)
+        lines = cv_markdown(resummarised(json.loads(Path(args.cv_report).read_text())))
         if args.md:
             Path(args.md).write_text("\n".join(lines) + "\n")
         print("\n".join(lines))
@@ -804,12 +811,8 @@ def main(argv=None) -> int:
     if args.cv_table:
         reports = {}
         for f in args.cv_table:
-            rep = json.loads(Path(f).read_text())
-            # summaries re-made from the per-room results (this code's statistics)
-            for g in rep.get("splits", {}).values():
-                if args.table_splits:
-                    g["images"] = [im for im in g["images"] if im.get("split") in args.table_splits.split(",")]
-                g["methods"] = cv_summary(g["images"], tuple(rep["methods"]))
+            rep = resummarised(json.loads(Path(f).read_text()),
+                               args.table_splits.split(",") if args.table_splits else None)
             name = rep.get("variant") or Path(f).stem
             if rep.get("refit"):
                 name += f" ({', '.join(rep['refit'])} chosen per fold)"
