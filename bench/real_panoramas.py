@@ -429,6 +429,7 @@ CV_VARIANTS: dict[str, dict] = {
     "shipped": {},
     "no elevation gain": {GAIN_KEY: [1.0, 1.0]},  # flat profile: the unseen fill at pull-push's level
     "no source cap": {"priors.reprojection.fill_source_cap": None},
+    "no light colour": {"priors.reprojection.light_colour_knee": None},  # the unseen fill in the walls' colour
     "clip rule fixed": {"priors.reprojection.clip_rule": "fixed"},
     "unseen fill push-pull": {"priors.reprojection.unseen_fill": "push-pull"},
     "no emitters": {"distill.emitters": 0},
@@ -445,6 +446,7 @@ CV_VARIANTS: dict[str, dict] = {
 # One setting at a time, the others at their defaults.
 CV_REFIT: dict[str, tuple[tuple, str, str]] = {
     "fill_source_cap": ((1.0, 2.0, 4.0, 8.0, None), "diffuse", "si_rmse_rel"),
+    "light_colour_knee": ((0.25, 0.5, 1.0, 2.0, None), "diffuse", "angular_deg"),
 }
 
 

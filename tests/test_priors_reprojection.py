@@ -447,3 +447,91 @@ def test_the_elevation_profile_is_a_setting():
     assert not torch.allclose(envs[None], envs[(1.0, 1.0)])
     with pytest.raises(PriorError):
         ReprojectionPrior(elevation_gain=(1.0, 0.0))
+
+
+def test_the_unseen_fill_is_the_lights_colour_where_bright_and_the_walls_where_dim():
+    """Rule 4 of core.priors.indoor_fill: unseen pixels at or below the fill's median keep the
+    walls' colour, those at (1 + knee) x the median and above take the light's, in between a
+    log-chromaticity blend; luminance is never changed. No light (or no knee) or a flat frame's
+    zero light: the walls' colour everywhere."""
+    from core.exposure import luminance
+    from core.priors.indoor_fill import fill_unseen
+
+    h = 16
+    env = torch.zeros(1, h, 2 * h, 3, dtype=torch.float64)
+    seen = torch.zeros(1, h, 2 * h, dtype=torch.bool)
+    seen[0, 6:10, 8:16] = True
+    walls = torch.tensor([0.6, 0.4, 0.2], dtype=torch.float64)  # warm walls
+    env[seen] = walls
+    filled = push_pull_fill(env, seen)
+    filled[0, 1, 20:24] *= 10.0  # a bright unseen patch (the fill is bright where the gain or a source makes it)
+    filled[0, 14, 20:24] *= 1e-12  # and a nearly black one (grazing the floor)
+    light = torch.tensor([0.2, 0.3, 0.6], dtype=torch.float64)  # bluish light (any scale)
+    out = fill_unseen(filled, env, seen, light=light, light_knee=1.0)
+    plain = fill_unseen(filled, env, seen)
+    assert torch.equal(out[seen], env[seen])
+    assert torch.allclose(luminance(out), luminance(plain), rtol=1e-9)  # colour only
+
+    def chroma(x):
+        return x / luminance(x)[..., None]
+
+    unseen = ~seen[0]
+    y = luminance(plain[0])
+    median = y[unseen].median()
+    dim, bright = unseen & (y <= median), unseen & (y >= 2.0 * median)
+    assert dim.any() and bright.any()
+    assert torch.allclose(chroma(out[0][dim]), chroma(walls).expand(int(dim.sum()), 3), atol=1e-9)
+    assert torch.allclose(chroma(out[0][bright]), chroma(light).expand(int(bright.sum()), 3), atol=1e-9)
+    between = unseen & (y > 1.05 * median) & (y < 1.95 * median)
+    if between.any():  # bluer than the walls, not yet the light
+        b = chroma(out[0][between])[:, 2]
+        assert bool(((b > chroma(walls)[2]) & (b < chroma(light)[2])).all())
+    assert torch.equal(fill_unseen(filled, env, seen, light=light, light_knee=None), plain)
+    assert torch.equal(fill_unseen(filled, env, seen, light=torch.zeros(3, dtype=torch.float64), light_knee=1.0), plain)
+    assert torch.isfinite(out).all()
+
+
+def test_grey_edge_reads_the_lights_colour_where_the_walls_mean_colour_does_not():
+    """Walls of a red-tinted albedo (grey texture plus a red offset) under a bluish light: the
+    photo's mean colour is the tint times the light, its grey-edge (edges cancel the offset) is
+    the light's colour. Flat and black frames give no light (zero), never NaN."""
+    from core.conventions import tonemap
+    from core.exposure import luminance
+    from core.priors.indoor_fill import grey_edge
+
+    g = torch.Generator().manual_seed(0)
+    texture = torch.rand(1, 48, 64, 1, generator=g, dtype=torch.float64) * 0.6
+    albedo = texture + torch.tensor([0.35, 0.0, 0.0], dtype=torch.float64)
+    light = torch.tensor([0.5, 0.7, 1.0], dtype=torch.float64)
+    frames = tonemap(albedo * light).clamp(0, 1)
+    est = grey_edge(frames)[0]
+
+    def chroma(x):
+        return x / luminance(x)
+
+    def angle(a, b):
+        return float(torch.rad2deg(torch.arccos(torch.nn.functional.cosine_similarity(a, b, dim=0).clamp(-1, 1))))
+
+    mean = (albedo * light).reshape(-1, 3).mean(0)
+    assert angle(chroma(est), chroma(light)) < 1.0
+    assert angle(chroma(mean), chroma(light)) > 10.0
+    assert torch.equal(grey_edge(torch.full((2, 8, 8, 3), 0.5)), torch.zeros(2, 3, dtype=torch.float64))
+    assert torch.equal(grey_edge(torch.zeros(1, 8, 8, 3)), torch.zeros(1, 3, dtype=torch.float64))
+
+
+def test_the_prior_reports_the_light_colour_knee_and_null_turns_rule_4_off():
+    from core.priors.indoor_fill import LIGHT_COLOUR_KNEE
+
+    g = torch.Generator().manual_seed(1)
+    frames = (0.2 + 0.5 * torch.rand(1, H, W, 1, generator=g)) * torch.tensor([1.0, 0.8, 0.5])  # textured, warm
+    maps = {}
+    for knee in (LIGHT_COLOUR_KNEE, None):
+        prior = ReprojectionPrior(env_height=16, light_colour_knee=knee)
+        prior.bind(_capture(frames))
+        assert prior.describe()["light_colour_knee"] == knee
+        maps[knee] = prior.envmaps(torch.zeros(1, 3), 0.0, 16)[0]
+    _, seen = prior.observed_envmaps(torch.zeros(1, 3), 0.0)
+    assert torch.equal(maps[None][seen[0]], maps[LIGHT_COLOUR_KNEE][seen[0]])  # what was seen is kept
+    assert not torch.equal(maps[None], maps[LIGHT_COLOUR_KNEE])
+    with pytest.raises(PriorError):
+        ReprojectionPrior(light_colour_knee=0.0)

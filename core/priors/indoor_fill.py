@@ -32,14 +32,27 @@ mechanisms under cross-validation" (bench/results/cv/).
    extrapolation therefore starts from the seen radiance capped at SOURCE_CAP x the seen
    pixels' median luminance (`cap_sources`); the seen pixels themselves keep their value.
    SOURCE_CAP is chosen among 1, 2, 4, 8 and no cap by the prior's mean diffuse si-RMSE.
+4. The light is not the walls' colour: a room's walls are its light times their albedo, and
+   what lights a diffuse object is mostly the few bright directions (lamps, windows, lit
+   ceilings), whose colour is the light's. So where the fill is brighter than its median it
+   moves from the walls' colour (rule 2) towards the light's colour as the frames show it,
+   estimated by grey-edge (the mean absolute difference between neighbouring pixels per
+   channel: edges between surfaces of different albedo average to the light's colour; van de
+   Weijer, Gevers and Gijsenij 2007): in log chromaticity, in proportion to log(L / median),
+   all the way at (1 + LIGHT_COLOUR_KNEE) x the median. Dim fill keeps the walls' colour, so
+   a mirror ball still shows walls of the right colour. LIGHT_COLOUR_KNEE is chosen like
+   SOURCE_CAP, by the prior's mean diffuse angular error (none: the rule off).
 Elevation is measured from the world's +y: right for single images and tracked videos (the
 first camera is upright by assumption) and the simulator; a capture whose world up is not
 +y (some nerfstudio exports) gets the profile tilted. Seen pixels are never changed.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
+from core.conventions import inverse_tonemap
 from core.exposure import luminance
 
 HORIZON_BAND_DEG = 25.0
@@ -56,6 +69,8 @@ ELEVATION_GAIN = (
 # Chosen on all 24 indoor panoramas by bench.real_panoramas.CV_REFIT's rule (the prior's mean
 # diffuse si-RMSE over the rooms; `refit` -> `all_rooms` in bench/results/cv/shortcut/shipped_refit.json).
 SOURCE_CAP = 2.0  # x the seen median luminance: what pull-push may extrapolate
+# Chosen the same way, by the prior's mean diffuse angular error (`refit` -> `all_rooms`).
+LIGHT_COLOUR_KNEE = 0.5  # the unseen fill is the light's colour from (1 + this) x its median luminance
 
 
 def elevation_gain(height: int, dtype=torch.float64, profile: tuple[float, ...] | None = None) -> torch.Tensor:
@@ -67,12 +82,28 @@ def elevation_gain(height: int, dtype=torch.float64, profile: tuple[float, ...] 
     return g[0, 0].exp().to(dtype)
 
 
+def _chroma(x: torch.Tensor) -> torch.Tensor:
+    return x / luminance(x).clamp_min(1e-12)[..., None]
+
+
+def grey_edge(frames: torch.Tensor) -> torch.Tensor:
+    """The light's colour as LDR frames [T, H, W, 3] show it (rule 4): per frame [T, 3], the
+    mean absolute difference between neighbouring pixels of the display-linear image, per
+    channel (any scale; zero for a flat frame)."""
+    lin = inverse_tonemap(frames.clamp(0, 1).double())
+    dx = (lin[:, :, 1:] - lin[:, :, :-1]).abs().flatten(1, 2)
+    dy = (lin[:, 1:] - lin[:, :-1]).abs().flatten(1, 2)
+    return torch.cat([dx, dy], 1).mean(1)
+
+
 def fill_unseen(filled: torch.Tensor, env: torch.Tensor, weight: torch.Tensor,
-                gain_profile: tuple[float, ...] | None = None) -> torch.Tensor:
+                gain_profile: tuple[float, ...] | None = None, light: torch.Tensor | None = None,
+                light_knee: float | None = None) -> torch.Tensor:
     """filled: pull-push result [N, h, w, 3]; env, weight: its inputs (weight > 0 = seen; the
     reprojection prior passes env after cap_sources). Unseen pixels get the elevation gain
-    (`gain_profile`, None: ELEVATION_GAIN) and the mean colour of env's seen pixels; seen
-    ones are kept."""
+    (`gain_profile`, None: ELEVATION_GAIN) and the mean colour of env's seen pixels, moving
+    towards `light`'s colour ([N, 3] or [3], any scale: `grey_edge`) where they are brighter
+    than their median (rule 4; `light` or `light_knee` None: not); seen ones are kept."""
     n, h = filled.shape[:2]
     seen = weight.to(filled.dtype)  # [N, h, w]
     count = seen.sum((1, 2))
@@ -82,8 +113,18 @@ def fill_unseen(filled: torch.Tensor, env: torch.Tensor, weight: torch.Tensor,
     seen_gain = (seen * gain).sum((1, 2)) / count.clamp_min(1e-12)  # [N]
     scaled = filled * (gain / seen_gain.clamp_min(1e-12)[:, None, None])[..., None]
     mean = (env * seen[..., None]).sum((1, 2)) / count.clamp_min(1e-12)[:, None]  # [N, 3]
-    chroma = mean / luminance(mean).clamp_min(1e-12)[:, None]
-    recoloured = luminance(scaled).clamp_min(0.0)[..., None] * chroma[:, None, None, :]
+    lum = luminance(scaled).clamp_min(0.0)
+    colour = _chroma(mean)[:, None, None, :].expand_as(scaled)
+    if light is not None and light_knee is not None:
+        light = light.to(filled.dtype).expand_as(mean)
+        unseen = weight <= 0
+        median = torch.nanmedian(torch.where(unseen, lum, torch.nan).flatten(1), dim=1).values.nan_to_num(0.0)
+        t = torch.log(lum.clamp_min(1e-30) / median.clamp_min(1e-30)[:, None, None]) / math.log1p(light_knee)
+        t = t.clamp(0.0, 1.0) * (luminance(light) > 0).to(t.dtype)[:, None, None]  # a flat frame shows no light
+        log_walls = colour.clamp_min(1e-6).log()
+        log_light = _chroma(light).clamp_min(1e-6).log()[:, None, None, :]
+        colour = _chroma(torch.lerp(log_walls, log_light, t[..., None]).exp())
+    recoloured = lum[..., None] * colour
     ok = (count > 0)[:, None, None, None] & (luminance(mean) > 0)[:, None, None, None]
     out = torch.where(ok, recoloured, filled)
     return torch.where(weight[..., None] > 0, filled, out)

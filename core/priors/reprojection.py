@@ -30,7 +30,8 @@ It answers "what would a chrome ball at c show?" from the frame itself:
    observed pixels down a pyramid to one pixel, then blend each level with the upsampled
    coarser one by its weight (columns wrap at the seam). With unseen_fill "indoor" (default)
    the unseen directions then get an elevation gain fitted on the indoor panoramas (scored
-   leave-one-room-out) and the seen mean colour (core.priors.indoor_fill). This is a smooth
+   leave-one-room-out) and the seen mean colour, moving towards the light's colour (grey-edge
+   of the frames) where the fill is bright (core.priors.indoor_fill). This is a smooth
    extrapolation of what was seen (e.g. the room behind the camera gets the average colour
    of the nearby walls, floor and ceiling). No light source is invented.
 5. Render the balls under those env maps (core.chrome_ball, probe-centre lookup) and tone
@@ -56,7 +57,7 @@ from core.capture.highlights import CLIP_LDR, RULE_COEFFICIENTS, SPILL_COLOUR, l
 from core.conventions import expose, inverse_tonemap
 from core.envmap import SPLAT_Z_TOLERANCE, resize_envmap, splat_points, voxel_merge
 from core.priors.base import Prior, PriorCapabilities, PriorConfig, PriorError, PriorRequest
-from core.priors.indoor_fill import SOURCE_CAP, cap_sources, fill_unseen
+from core.priors.indoor_fill import LIGHT_COLOUR_KNEE, SOURCE_CAP, cap_sources, fill_unseen, grey_edge
 from core.priors.known import ball_target
 from core.priors.registry import prior_settings, register_prior
 
@@ -194,6 +195,10 @@ class ReprojectionSettings(PriorConfig):
     fill_source_cap: float | None = Field(SOURCE_CAP, gt=0, description=(
         "with unseen_fill 'indoor': seen radiance above this multiple of the seen median luminance is capped "
         "before it is extrapolated into unseen directions (core.priors.indoor_fill.cap_sources); null: not capped"))
+    light_colour_knee: float | None = Field(LIGHT_COLOUR_KNEE, gt=0, description=(
+        "with unseen_fill 'indoor': unseen directions brighter than the fill's median move from the walls' colour "
+        "towards the light's (grey-edge of the frames), all the way at (1 + this) x the median "
+        "(core.priors.indoor_fill, rule 4); null: the walls' colour everywhere"))
     elevation_gain: tuple[PositiveFloat, ...] | None = Field(
         None,
         min_length=2,
@@ -226,12 +231,14 @@ class ReprojectionPrior(Prior):
         self.spill_colour = None if s.spill_colour is None else (float(s.spill_colour[0]), float(s.spill_colour[1]))
         self.unseen_fill = s.unseen_fill
         self.fill_source_cap = s.fill_source_cap
+        self.light_colour_knee = s.light_colour_knee
         self.elevation_gain = None if s.elevation_gain is None else tuple(float(g) for g in s.elevation_gain)
         self.back_faces = s.back_faces
         self.configured_merge_views = s.merge_views
         self.merge_views = s.merge_views or 1
         self._capture = None
         self._colors: torch.Tensor | None = None
+        self._light: torch.Tensor | None = None  # [T, 3]: each frame's grey-edge light colour
         self._points: dict[int, torch.Tensor] = {}
         self._normals: dict[int, torch.Tensor] = {}
         self._camera_maps: dict[int, torch.Tensor] = {}  # frame -> its map at its own camera centre
@@ -247,6 +254,7 @@ class ReprojectionPrior(Prior):
         self.merge_views = self.configured_merge_views or (capture.num_frames if static_lighting_moving_camera else 1)
         self._colors = linear_frames(capture, self.clip_rule, self.clip_boost, lighting_changes, self.clip_coefficients,
                                      self.spill_colour)
+        self._light = grey_edge(capture.frames)
         self._static_cloud = None
         if static_lighting_moving_camera:  # what one frame clipped or lost in the black, another saw
             self._colors = merge_frames(capture, self._colors, capture_reading_weights(capture))
@@ -360,7 +368,10 @@ class ReprojectionPrior(Prior):
         # the walls, not the lamps, set the fill's level and colour
         source = cap_sources(env, seen, self.fill_source_cap)
         extrapolated = push_pull_fill(source, seen)
-        return fill_unseen(torch.where(seen[..., None], env, extrapolated), source, seen, self.elevation_gain)
+        # the light's colour from the frames this request splats (all of them for one merged cloud)
+        frames = [v for v, _ in self.views_for(frame_index)] if self._static_cloud is None else slice(None)
+        return fill_unseen(torch.where(seen[..., None], env, extrapolated), source, seen, self.elevation_gain,
+                           self._light[frames].mean(0), self.light_colour_knee)
 
     def _splat_seen(self, centers: torch.Tensor, frame_index: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Splatted radiance [N, h, w, 3] and its seen mask [N, h, w] (no fill)."""
@@ -405,8 +416,10 @@ class ReprojectionPrior(Prior):
             if self.clip_rule == "estimate" else None,
             "z_tolerance": Z_TOLERANCE,
             "hole_fill": "pull-push pyramid in the equirect domain" + (
-                " + indoor elevation gain and the seen mean colour" if self.unseen_fill == "indoor" else ""),
+                " + indoor elevation gain, the seen mean colour and the light's"
+                if self.unseen_fill == "indoor" else ""),
             "fill_source_cap": self.fill_source_cap if self.unseen_fill == "indoor" else None,
+            "light_colour_knee": self.light_colour_knee if self.unseen_fill == "indoor" else None,
             "back_faces": self.back_faces,
             "merge_views": self.merge_views,
             "merged_cloud_points": None if self._static_cloud is None else int(self._static_cloud[0].shape[0]),
