@@ -186,3 +186,25 @@ def test_the_finer_levels_keep_distinct_candidates_not_copies_of_one_basin():
         for b in picked:
             if a < b:
                 assert abs(np.degrees(angles[a] - angles[b])) > SEARCH_STEP_DEG
+
+
+def test_a_candidate_whose_gauss_newton_system_is_singular_stays_put_instead_of_failing_the_job():
+    """In single precision (the grid's ranking) the 1e-9 damping is lost in rounding: a
+    candidate whose residuals move the same way under two turns (a sliver of overlap, one
+    textured edge) has an exactly singular system. It keeps its rotation and gain (the demo's
+    room scan stopped on this with a LinAlgError on one machine's CPU kernels)."""
+    import torch
+
+    from core.tracking.direct import _refine
+
+    class OneEdge:  # a level whose residual sees only the sum of the turns about y and z
+        li = torch.zeros(100)
+
+        def residuals(self, R, g):
+            r = (R[:, 0, 1] - R[:, 0, 2] - 0.01)[:, None].expand(-1, 100)
+            return r.float(), torch.ones_like(r, dtype=torch.float32)
+
+    R0 = torch.eye(3).expand(2, 3, 3).clone()
+    R, g = _refine(OneEdge(), R0, torch.zeros(2), iterations=2)
+    assert torch.isfinite(R).all() and torch.isfinite(g).all()
+    assert torch.equal(R, R0) and torch.equal(g, torch.zeros(2))

@@ -408,7 +408,10 @@ def _refine(lev: _Level, R0: torch.Tensor, g0: torch.Tensor, iterations: int) ->
         irls = common / torch.sqrt(1.0 + (r0 / ROBUST_SCALE) ** 2)
         JtJ = torch.einsum("sn,sna,snb->sab", irls, J, J) + 1e-9 * torch.eye(4, dtype=R.dtype)
         Jtr = torch.einsum("sn,sna,sn->sa", irls, J, r0)
-        delta = -torch.linalg.solve(JtJ, Jtr)  # [S, 4]
+        # a candidate whose system is singular (in single precision the damping above is lost in
+        # rounding where the overlap is a sliver) or whose step is not finite stays where it is
+        step_, info = torch.linalg.solve_ex(JtJ, Jtr)
+        delta = torch.where(((info == 0)[:, None] & torch.isfinite(step_)), -step_, torch.zeros_like(step_))  # [S, 4]
         turn = delta[:, :3]
         norm = turn.norm(dim=1, keepdim=True)
         limit = math.radians(MAX_STEP_DEG)
