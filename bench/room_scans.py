@@ -235,7 +235,7 @@ def summarise(rows: list[dict], modes) -> dict:
     return out
 
 
-DEFAULT_REFIT = Path(__file__).resolve().parent / "results" / "cv" / "product" / "clip-cv-2026-12-06.json"
+DEFAULT_REFIT = Path(__file__).resolve().parent / "results" / "cv" / "product" / "light-colour-2026-12-06.json"
 
 
 def cv_overrides(hdri: Path, refit_json: Path):
