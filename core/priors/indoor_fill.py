@@ -3,12 +3,12 @@ fill for unobserved directions (a small statistical prior, not a light source fi
 
 Pull-push (core.priors.reprojection.push_pull_fill) extrapolates the seen pixels smoothly,
 which gives every unseen direction roughly the brightness and the colour of the walls the
-photo happened to show. Three regularities of indoor light that a plain extrapolation
+photo happened to show. Four regularities of indoor light that a plain extrapolation
 misses. Each value below is what a user gets: fitted or chosen on ALL 24 indoor panoramas
 of MANIFEST.tsv (dev, test and extra). None of them is scored on the rooms it was fitted
 on: `python -m bench.real_panoramas --cv` refits each of them per fold without the scored
-room (the profile from the other 23 rooms' row means; SOURCE_CAP chosen on the other 23 by
-the same rule as here), and each rule's held-out effect is in docs/engine.md, "Accuracy
+room (the profile from the other 23 rooms' row means; SOURCE_CAP and LIGHT_COLOUR_KNEE chosen
+on the other 23 by the same rules as here), and each rule's held-out effect is in docs/engine.md, "Accuracy
 mechanisms under cross-validation" (bench/results/cv/).
 
 1. Brightness depends on elevation: ELEVATION_GAIN[k] is the mean over the indoor panoramas
