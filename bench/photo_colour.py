@@ -26,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from core.exposure import luminance
+from core.exposure import chromaticity, luminance
 
 FILL_SCALES = (2.0, 6.0)
 
@@ -37,15 +37,11 @@ def variants(prior: torch.Tensor, constant: torch.Tensor, truth: torch.Tensor, s
     ok = seen & (true_lum > 0)
     scale = float((lum[ok] / true_lum[ok]).median()) if bool(ok.any()) else 1.0  # the map's units per truth's
     s = seen[..., None]
-
-    def chroma(x):
-        return x / luminance(x).clamp_min(1e-30)[..., None]
-
     out = {"prior": prior}
     out.update({f"fill x{f:g}": torch.where(s, prior, f * prior) for f in FILL_SCALES})
     out["seen exact"] = torch.where(s, scale * truth, prior)
-    out["unseen in constant colour"] = torch.where(s, prior, lum[..., None] * chroma(constant.reshape(-1, 3)[0]))
-    out["unseen in true colour"] = torch.where(s, prior, lum[..., None] * chroma(truth))
+    out["unseen in constant colour"] = torch.where(s, prior, lum[..., None] * chromaticity(constant.reshape(-1, 3)[0]))
+    out["unseen in true colour"] = torch.where(s, prior, lum[..., None] * chromaticity(truth))
     return out
 
 

@@ -41,6 +41,12 @@ def luminance(rgb: torch.Tensor) -> torch.Tensor:
     return (rgb * w).sum(-1)
 
 
+def chromaticity(rgb: torch.Tensor) -> torch.Tensor:
+    """Linear RGB [..., 3] divided by its luminance (colour at unit luminance); black (luminance
+    under 1e-12) stays near 0 instead of dividing by zero."""
+    return rgb / luminance(rgb).clamp_min(1e-12)[..., None]
+
+
 def merge_brackets(ldr_list: Sequence[torch.Tensor], evs: Sequence[float] = DEFAULT_BRACKET_EVS) -> torch.Tensor:
     """Merge LDR brackets [..., 3] in [0, 1] (tone mapped at `evs`) into linear HDR [..., 3].
 

@@ -53,7 +53,7 @@ import math
 import torch
 
 from core.conventions import inverse_tonemap
-from core.exposure import luminance
+from core.exposure import chromaticity, luminance
 
 HORIZON_BAND_DEG = 25.0
 GAIN_ROWS = 24
@@ -80,10 +80,6 @@ def elevation_gain(height: int, dtype=torch.float64, profile: tuple[float, ...] 
     if height != g.shape[-1]:
         g = torch.nn.functional.interpolate(g, size=height, mode="linear", align_corners=False)
     return g[0, 0].exp().to(dtype)
-
-
-def _chroma(x: torch.Tensor) -> torch.Tensor:
-    return x / luminance(x).clamp_min(1e-12)[..., None]
 
 
 def grey_edge(frames: torch.Tensor) -> torch.Tensor:
@@ -114,7 +110,7 @@ def fill_unseen(filled: torch.Tensor, env: torch.Tensor, weight: torch.Tensor,
     scaled = filled * (gain / seen_gain.clamp_min(1e-12)[:, None, None])[..., None]
     mean = (env * seen[..., None]).sum((1, 2)) / count.clamp_min(1e-12)[:, None]  # [N, 3]
     lum = luminance(scaled).clamp_min(0.0)
-    colour = _chroma(mean)[:, None, None, :].expand_as(scaled)
+    colour = chromaticity(mean)[:, None, None, :].expand_as(scaled)
     if light is not None and light_knee is not None:
         light = light.to(filled.dtype).expand_as(mean)
         unseen = weight <= 0
@@ -122,8 +118,8 @@ def fill_unseen(filled: torch.Tensor, env: torch.Tensor, weight: torch.Tensor,
         t = torch.log(lum.clamp_min(1e-30) / median.clamp_min(1e-30)[:, None, None]) / math.log1p(light_knee)
         t = t.clamp(0.0, 1.0) * (luminance(light) > 0).to(t.dtype)[:, None, None]  # a flat frame shows no light
         log_walls = colour.clamp_min(1e-6).log()
-        log_light = _chroma(light).clamp_min(1e-6).log()[:, None, None, :]
-        colour = _chroma(torch.lerp(log_walls, log_light, t[..., None]).exp())
+        log_light = chromaticity(light).clamp_min(1e-6).log()[:, None, None, :]
+        colour = chromaticity(torch.lerp(log_walls, log_light, t[..., None]).exp())
     recoloured = lum[..., None] * colour
     ok = (count > 0)[:, None, None, None] & (luminance(mean) > 0)[:, None, None, None]
     out = torch.where(ok, recoloured, filled)
