@@ -244,3 +244,19 @@ def test_preview_refuses_a_record_whose_poses_do_not_fit_its_frames(tmp_path):
     with warnings.catch_warnings(), pytest.raises(CaptureError, match="do not describe 3 frames"):
         warnings.simplefilter("ignore")
         reload_capture(video, None, record)
+
+
+def test_the_whole_job_runs_at_the_configured_torch_threads_and_restores_them(tmp_path):
+    """distill.threads holds from the capture stage (tracking) to the end: two intra-op threads
+    cost a room scan's tracking a third more CPU on a 2-core box. The caller's setting comes back."""
+    img = tmp_path / "room.png"
+    Image.fromarray((np.random.default_rng(0).random((48, 64, 3)) * 255).astype(np.uint8)).save(img)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        seen = []
+        _run(img, {}, tmp_path / "field", on_capture=lambda c: seen.append(torch.get_num_threads()))
+        assert seen == [1] and TINY.distill.threads == 1
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

@@ -124,9 +124,12 @@ class DistillConfig(BaseModel):
         description="normalise time as if the clip had this many frames (the authors' release: 30); None: over the "
                     "capture",
     )
-    # Per-step tensors are small (a few thousand ball samples): intra-op threads cost more in
-    # synchronisation than they gain, and are disastrous on a shared, oversubscribed machine.
-    threads: int | None = Field(1, ge=1, description="torch intra-op threads during distillation (None: leave as is)")
+    # Per-step tensors are small (a few thousand ball samples; a tracker's pair a few thousand
+    # pixels): intra-op threads cost more in synchronisation than they gain, and are disastrous on
+    # a shared, oversubscribed machine. A worker runs one job per core instead.
+    threads: int | None = Field(
+        1, ge=1, description="torch intra-op threads for the whole job: capture, tracking, distillation (None: as is)"
+    )
     checkpoint_every: int = Field(100, ge=1)
     device: str = Field(
         "auto",

@@ -112,7 +112,7 @@ def distill(
     lattice_from = lattice_start_step(field_cfg, cfg)
     reporter.begin(start)
     reporter.check_cancel()  # then once per step, in reporter.step (a store query in the worker)
-    with _torch_threads(cfg.threads):
+    with torch_threads(cfg.threads):
         for step in range(start, cfg.iterations):
             if field.room_lattice is not None:  # from the step alone, so a resumed run repeats it
                 field.room_lattice.requires_grad_(step >= lattice_from)
@@ -252,7 +252,8 @@ def time_knots(num_frames: int) -> int:
 
 
 @contextmanager
-def _torch_threads(n: int | None):
+def torch_threads(n: int | None):
+    """torch's intra-op threads set to `n` (None: left as is) for the block."""
     old = torch.get_num_threads()
     if n is not None:
         torch.set_num_threads(n)

@@ -22,7 +22,7 @@ from core.capture.temporal import TemporalDecision, decide_temporal
 from core.device import resolve_device
 from core.engine.checkpoints import clear_checkpoint
 from core.engine.config import EngineConfig
-from core.engine.distill import DistillResult, distill
+from core.engine.distill import DistillResult, distill, torch_threads
 from core.engine.params import JobParams, ResolvedJob, job_prior_settings, resolve_job  # noqa: F401 (job_prior_settings: re-exported)
 from core.engine.progress import CancelCheck, Progress, ProgressCallback, Reporter, StageTimer
 from core.engine.scene import distinct_geometry, scene_bounds
@@ -78,8 +78,11 @@ def run_job(
     job = resolve_job(params, overrides, config)
     device = resolve_device(job.config.distill.device)  # an unavailable device fails before any work
 
-    capture = _capture_stage(input_path, depth_path, params, limits, reporter, timings, on_capture)
-    run = _distillation_stage(capture, job, prior, prior_factory, device, reporter, timings, checkpoint_dir)
+    # the whole job at distill.threads, tracking included: on the 2-core AMD box two threads cost
+    # a room scan's tracking 11 s more CPU for 1.6 s less wall time (docs/engine.md, "Device")
+    with torch_threads(job.config.distill.threads):
+        capture = _capture_stage(input_path, depth_path, params, limits, reporter, timings, on_capture)
+        run = _distillation_stage(capture, job, prior, prior_factory, device, reporter, timings, checkpoint_dir)
 
     reporter.stage("saving", 0.98, "writing artefact")
     meta = job_metadata(capture, run, params, job.config, timings, wall_time_s=time.perf_counter() - t_start)
