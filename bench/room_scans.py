@@ -1,6 +1,6 @@
 """Room scans of real panoramas, end to end: what a user gets from a phone turned around a room.
 
-    python -m bench.room_scans [--rooms a,b] [--modes product,true-poses] [-o out.json]
+    python -m bench.room_scans [--rooms a,b] [--modes product,true-poses] [--set distill.emitters=0] [-o out.json]
 
 Per indoor panorama of MANIFEST.tsv (dev, test and extra together; `control` rooms are not
 indoor and are reported apart): a room scan as core.sim.room_scan makes it (46 frames at 10 fps,
@@ -302,6 +302,7 @@ def markdown(report: dict) -> list[str]:
 
 
 def main(argv=None) -> int:
+    from bench.overrides import parse_set
     from bench.real_panoramas import read_manifest
     from bench.report import sanitize
 
@@ -324,6 +325,8 @@ def main(argv=None) -> int:
         help="the per-fold choices of the photo CV "
         "(bench.real_panoramas --cv: its `refit` section, e.g. fill_source_cap) to apply to each held-out room",
     )
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="draft preset override for every room's job (JSON value), e.g. distill.emitters=0 (ablations)")
     p.add_argument("--rescore", default=None, metavar="REPORT_JSON",
                    help="re-summarise a saved report (its rooms as they are) and write its table beside it (.md)")
     args = p.parse_args(argv)
@@ -344,6 +347,10 @@ def main(argv=None) -> int:
     )
     modes = tuple(args.modes.split(","))
     overrides_for = None if args.no_cv else cv_overrides(hdri, Path(args.refit))
+    if args.set:
+        extra = parse_set(args.set)
+        fold = overrides_for
+        overrides_for = lambda name: {**(fold(name) if fold else {}), **extra}  # noqa: E731
     out: dict = {"protocol": __doc__, "modes": modes, "path": args.path, "rooms": {}, "targets": TARGETS,
                  "cross_validated": not args.no_cv,
                  "command": "python -m bench.room_scans " + " ".join(argv if argv is not None else sys.argv[1:])}
