@@ -7,9 +7,10 @@ off (the draft otherwise), one JSON per entry under the output folder, and `tabl
 per suite the field over the constant map (diffuse si-RMSE, matte si-RMSE, diffuse angle; below
 1 beats it), the worst field/prior ratio, the temporal suite's switch error, and the brightest
 direction's luminance over the truth's (where a lamp shows: a diffuse sphere's error barely
-sees it). The simulator is where the mechanisms that act away from the camera (emitters,
-observed surfaces, the room lattice, free-space probes) can show what they do: the
-real-panorama protocols query the camera centre only. A ratio comes with the accuracy probe's
+sees it) and how many probes put their brightest direction within PEAK_FOUND_DEG of the truth's
+(a lamp seen from every probe, where it stands). The simulator is where the mechanisms that act
+away from the camera (emitters, observed surfaces, the room lattice, free-space probes) can show
+what they do: the real-panorama protocols query the camera centre only. A ratio comes with the accuracy probe's
 90 % interval over its probes.
 """
 from __future__ import annotations
@@ -19,6 +20,8 @@ import json
 import math
 import sys
 from pathlib import Path
+
+PEAK_FOUND_DEG = 15.0  # a lamp of a few degrees, found where it stands (gt at 64 rows: 2.8° a pixel)
 
 # name -> the draft's settings that turn the mechanism off
 MECHANISMS: dict[str, dict] = {
@@ -61,6 +64,10 @@ def summary(report: dict) -> dict:
             "peak_vs_truth": round(math.exp(sum(
                 math.log(max(p["peak_luminance"]["field"], 1e-12) / max(p["peak_luminance"]["truth"], 1e-12))
                 for p in s["per_probe"]) / len(s["per_probe"])), 3),
+            # does every probe see the strongest source where it is (runs before the metric: None)
+            "peak_found": (None if any("peak_direction_deg" not in p for p in s["per_probe"]) else
+                           f"{sum(p['peak_direction_deg']['field'] <= PEAK_FOUND_DEG for p in s['per_probe'])}"
+                           f"/{len(s['per_probe'])}"),
             "cpu_s": s["cpu_s"]["field"],
         }
     return rows
@@ -68,15 +75,16 @@ def summary(report: dict) -> dict:
 
 def markdown(summaries: dict[str, dict]) -> str:
     lines = ["| mechanism off | suite | diffuse si-RMSE / constant [90 %] | matte si-RMSE / constant | "
-             "diffuse angle / constant | worst field / prior | switch error | peak / truth | CPU s |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             f"diffuse angle / constant | worst field / prior | switch error | peak / truth | "
+             f"peak within {PEAK_FOUND_DEG:.0f}° | CPU s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, rows in summaries.items():
         for suite, r in rows.items():
             lo, hi = r["diffuse_si_90"]
             sw = "" if r["switch_error"] is None else f"{r['switch_error']:.3f}"
             lines.append(f"| {name} | {suite} | {r['diffuse_si']:.3f} [{lo:.2f}, {hi:.2f}] | {r['matte_si']:.3f} | "
                          f"{r['diffuse_angle']:.3f} | {r['worst_vs_prior']:.3f} | {sw} | {r['peak_vs_truth']:.3f} | "
-                         f"{r['cpu_s']} |")
+                         f"{r.get('peak_found') or ''} | {r['cpu_s']} |")
     return "\n".join(lines) + "\n"
 
 

@@ -206,6 +206,20 @@ def scale_stops(pred: torch.Tensor, gt: torch.Tensor) -> dict:
     return {"mean": round(float(stops.mean()), 3), "sd": round(float(stops.std()), 3) if stops.numel() > 1 else 0.0}
 
 
+def peak_direction_error(pred: torch.Tensor, gt: torch.Tensor) -> float:
+    """Degrees between the brightest direction of `pred` and of `gt` (equirect [h, 2h, 3], each at
+    its own height): where a probe sees the room's strongest source, if it sees it at all."""
+    from core.conventions import equirect_directions
+    from core.exposure import luminance
+
+    def peak(env):
+        lum = luminance(env.double()).reshape(-1)
+        return equirect_directions(env.shape[0], dtype=torch.float64).reshape(-1, 3)[int(lum.argmax())]
+
+    cos = float(torch.dot(peak(pred), peak(gt)).clamp(-1.0, 1.0))
+    return float(torch.rad2deg(torch.tensor(cos).acos()))
+
+
 def without_frame_ev(capture_dir: Path, out: Path) -> Path:
     """A copy of a simulator capture whose capture.json states no per-frame exposures (the files
     linked, not copied)."""
@@ -310,6 +324,7 @@ def main(argv: list[str] | None = None) -> int:
         for i, pp in enumerate(per_probe):  # where the brightest direction stands: a lamp no frame shows reads here
             pp["peak_luminance"] = {"truth": round(float(luminance(suite.gt[i]).max()), 3),
                                     **{k: round(float(luminance(v[i]).max()), 3) for k, v in preds.items()}}
+            pp["peak_direction_deg"] = {k: round(peak_direction_error(v[i], suite.gt[i]), 2) for k, v in preds.items()}
         scores = {k: mean_scores([pp[k] for pp in per_probe]) for k in preds}
         entry: dict = {
             "probes": [{"x": list(p.x), "t": p.t} for p in suite.probes],

@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-from bench.accuracy_probe import markdown_table
+from bench.accuracy_probe import markdown_table, peak_direction_error
 from bench.suite.evaluation import ratio_interval
 from bench.suite.simulated import SuiteData, with_extra_probes
 from core.sim.render import check_probe
@@ -133,3 +133,21 @@ def test_observed_hybrid_takes_the_splat_where_the_prior_saw_and_the_field_elsew
     # seen: the splat, not dimmed at the edge
     assert torch.allclose(out[:, :4], torch.tensor([5.0, 3.0, 1.0]).expand(2, 4, 16, 3), rtol=1e-4)
     assert torch.equal(out[:, 5:], field[:, 5:])  # unseen: the field
+
+
+def test_the_peak_direction_error_is_the_angle_between_the_brightest_directions_at_any_heights():
+    """A lamp found where it stands reads ~0; one found a quarter turn away, 90 degrees; the
+    maps may differ in height (the field's and the truth's)."""
+    from core.conventions import equirect_directions
+
+    def lamp(height, direction):
+        d = equirect_directions(height, dtype=torch.float64)
+        env = torch.full((height, 2 * height, 3), 0.1, dtype=torch.float64)
+        pixel = (d @ torch.tensor(direction, dtype=torch.float64)).reshape(-1).argmax()
+        env.reshape(-1, 3)[pixel] = 50.0
+        return env
+
+    truth = lamp(64, (0.0, 0.6, -0.8))
+    assert peak_direction_error(lamp(32, (0.0, 0.6, -0.8)), truth) < 5.0
+    assert abs(peak_direction_error(lamp(32, (1.0, 0.0, 0.0)), truth) - 90.0) < 5.0
+    assert abs(peak_direction_error(truth, truth)) < 1e-6
