@@ -78,8 +78,8 @@ def run_job(
     job = resolve_job(params, overrides, config)
     device = resolve_device(job.config.distill.device)  # an unavailable device fails before any work
 
-    # the whole job at distill.threads, tracking included: on the 2-core AMD box two threads cost
-    # a room scan's tracking 11 s more CPU for 1.6 s less wall time (docs/engine.md, "Device")
+    # the whole job at distill.threads, tracking included: on a 2-core box a room scan's job took
+    # 79 s of CPU with two threads against 49 s with one (docs/engine.md, "Device")
     with torch_threads(job.config.distill.threads):
         capture = _capture_stage(input_path, depth_path, params, limits, reporter, timings, on_capture)
         run = _distillation_stage(capture, job, prior, prior_factory, device, reporter, timings, checkpoint_dir)
