@@ -21,9 +21,11 @@ Ratios field/prior (target <= 1.05 on every metric) and field/constant (target <
 diffuse and matte si-RMSE) are printed; on suites with a time series, the brightness
 after/before each switch (pred vs truth, target |diff| <= 0.1) and, per stretch between
 switches, the largest deviation of pred/truth brightness from its mean (on a static stretch the
-field's own flatness; target <= 3 %). Each ratio of means comes with a 90 % bootstrap interval
-over the probes (`interval_90`): a target is missed for sure only when the whole interval is
-past it. `--set` overrides the draft preset (dotted keys).
+field's own flatness; target <= 3 %). Per probe it also records the brightest direction's
+luminance and its angle to the truth's (`peak_direction_deg`: where a lamp is seen from there).
+Each ratio of means comes with a 90 % bootstrap interval over the probes (`interval_90`): a
+target is missed for sure only when the whole interval is past it. `--set` overrides the draft
+preset (dotted keys).
 """
 from __future__ import annotations
 
@@ -211,13 +213,13 @@ def peak_direction_error(pred: torch.Tensor, gt: torch.Tensor) -> float:
     its own height): where a probe sees the room's strongest source, if it sees it at all."""
     from core.conventions import equirect_directions
     from core.exposure import luminance
+    from core.metrics import angular_error_deg
 
-    def peak(env):
+    def peak(env):  # [1, 3]: the unit direction of the brightest pixel
         lum = luminance(env.double()).reshape(-1)
-        return equirect_directions(env.shape[0], dtype=torch.float64).reshape(-1, 3)[int(lum.argmax())]
+        return equirect_directions(env.shape[0], dtype=torch.float64).reshape(-1, 3)[int(lum.argmax())][None]
 
-    cos = float(torch.dot(peak(pred), peak(gt)).clamp(-1.0, 1.0))
-    return float(torch.rad2deg(torch.tensor(cos).acos()))
+    return angular_error_deg(peak(pred), peak(gt))
 
 
 def without_frame_ev(capture_dir: Path, out: Path) -> Path:
