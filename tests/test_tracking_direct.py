@@ -208,3 +208,81 @@ def test_a_candidate_whose_gauss_newton_system_is_singular_stays_put_instead_of_
     R, g = _refine(OneEdge(), R0, torch.zeros(2), iterations=2)
     assert torch.isfinite(R).all() and torch.isfinite(g).all()
     assert torch.equal(R, R0) and torch.equal(g, torch.zeros(2))
+
+
+def _reference_residuals(li, vi, lj, vj, k, height, R, gain):
+    """The lookup written out the plain way: project each of frame i's usable pixels through R
+    with the level's intrinsics, read frame j's luma with border padding and its mask with zero
+    padding in two lookups, and keep the pixels in front of frame j and inside its edges."""
+    import torch
+    import torch.nn.functional as F
+
+    from core.tracking.direct import MIN_DEPTH, _level, _pixel_bearings
+
+    Li, Vi = _level(li, vi, height)
+    Lj, Vj = _level(lj, vj, height)
+    h, w = Li.shape
+    s = k.scaled(w, h)
+    b = _pixel_bearings(h, w, k).reshape(-1, 3)[Vi.reshape(-1) > 0.5]
+    d = torch.einsum("sij,nj->sni", R, b)
+    z = (-d[..., 2]).clamp_min(1e-6)
+    u, v = s.fx * d[..., 0] / z + s.cx, -s.fy * d[..., 1] / z + s.cy
+    grid = torch.stack([2.0 * u / w - 1.0, 2.0 * v / h - 1.0], -1)[:, None]
+    n = R.shape[0]
+    lj_ = F.grid_sample(Lj.expand(n, 1, h, w), grid, align_corners=False, padding_mode="border")[:, 0, 0]
+    vj_ = F.grid_sample(Vj.expand(n, 1, h, w), grid, align_corners=False, padding_mode="zeros")[:, 0, 0]
+    inside = (-d[..., 2] > MIN_DEPTH) & (u > 0) & (u < w) & (v > 0) & (v < h)
+    return lj_ - torch.exp(gain)[:, None] * Li.reshape(-1)[Vi.reshape(-1) > 0.5], inside & (vj_ > 0.999)
+
+
+def test_the_folded_projection_reads_what_the_plain_projection_reads(scan):
+    """The lookup folds rotation, intrinsics and the margined image's coordinates into one 3 x 3
+    map per candidate and reads luma and mask in one two-channel lookup (a scan's tracking
+    time): for turns up to 40 degrees, with an off-centre principal point, it must give the
+    plain projection's residuals and in-view pixels."""
+    import torch
+
+    from core.camera import Intrinsics
+    from core.tracking.direct import _Level
+    from core.tracking.geometry import rotvec_to_matrix
+
+    l, v = frame_luma(scan.ldr[3:5])
+    k0 = scan.intrinsics
+    k = Intrinsics(k0.fx * 1.1, k0.fy * 1.1, k0.cx + 7.0, k0.cy - 5.0, k0.width, k0.height)
+    rng = np.random.default_rng(0)
+    R = torch.from_numpy(rotvec_to_matrix(rng.normal(size=(40, 3)) * np.radians(20.0)))
+    gain = torch.from_numpy(rng.normal(size=40) * 0.3)
+    for height in (18, 36):
+        lev = _Level(l[0], v[0], l[1], v[1], k, height)
+        r, w = lev.residuals(R, gain)
+        r_ref, w_ref = _reference_residuals(l[0], v[0], l[1], v[1], k, height, R, gain)
+        # the two differ only by rounding in where a pixel lands: at most a few pixels on the
+        # mask's threshold change side
+        assert (w != w_ref.double()).double().mean() < 1e-3
+        both = (w > 0) & w_ref
+        assert both.sum() > 1000
+        assert torch.allclose(r[both], r_ref[both], atol=1e-9)
+
+
+def test_a_pixel_behind_frame_j_is_not_in_its_view():
+    """A turn of 180 degrees puts frame i's pixels behind frame j: the perspective divide is
+    clamped there, which maps a pixel straight behind to the image's centre; none may count
+    as seen (nor any under a turn past the side)."""
+    import torch
+
+    from core.camera import Intrinsics
+    from core.tracking.direct import _Level
+    from core.tracking.geometry import rotvec_to_matrix
+
+    k = Intrinsics(10.0, 10.0, 8.0, 6.0, 16, 12)
+    ones = torch.full((12, 16), 0.5)
+    lev = _Level(ones, torch.ones(12, 16), ones, torch.ones(12, 16), k, 12)
+    turns = np.radians([[0.0, 180.0, 0.0], [180.0, 0.0, 0.0], [0.0, 100.0, 0.0], [0.0, 0.0, 0.0]])
+    R = torch.from_numpy(rotvec_to_matrix(turns))
+    # the pixel nearest the axis, straight behind after the half turn: make it exactly so
+    b = lev.bearings.clone()
+    b[0] = torch.tensor([0.0, 0.0, -1.0], dtype=b.dtype)
+    lev.bearings = b
+    _, w = lev.residuals(R, torch.zeros(4, dtype=torch.float64))
+    assert w[:3].sum() == 0
+    assert w[3].sum() == lev.bearings.shape[0]

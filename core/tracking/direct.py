@@ -67,6 +67,7 @@ ROBUST_SCALE = 0.05  # LDR units: pseudo-Huber scale of the residual
 SCORE_CAP = 3.0
 SCORE_NOISE = 0.01
 SCORE_SUBPIXEL = 0.5
+MIN_DEPTH = 0.1  # a bearing this far in front of frame j (cosine to its axis) or less is not in its view
 MIN_OVERLAP = 0.15  # share of frame i's usable pixels frame j must show
 MAX_PAIR_COST = 0.0004  # mean robust cost over the overlap above which a pair is not trusted
 MAX_PAIR_SIGMA_DEG = 1.0  # a pair fixes the rotation when its least certain direction is within this
@@ -159,11 +160,28 @@ class _Level:
 
     def __init__(self, li, vi, lj, vj, k: Intrinsics, height: int):
         Li, Vi = _level(li, vi, height)
-        self.Lj, self.Vj = _level(lj, vj, height)
+        Lj, Vj = _level(lj, vj, height)
         self.h, self.w = Li.shape
         self.k = k.scaled(self.w, self.h)
+        # frame j's luma (edge-replicated) and mask (zero outside) under a one-pixel margin, as one
+        # two-channel image: one lookup reads both, and a pixel inside the frame whose bilinear
+        # taps reach past its edge reads the luma's edge and a mask below one, as separate
+        # lookups with border and zero padding would
+        self.image = torch.stack([F.pad(Lj[None, None], (1, 1, 1, 1), mode="replicate")[0, 0],
+                                  F.pad(Vj, (1, 1, 1, 1))])[None]  # [1, 2, h + 2, w + 2]
+        # bearing (our camera frame: looking down -z) -> (x, y, 1) x depth in grid_sample's
+        # normalised coordinates of the margined image (align_corners=False: -1 and 1 are its outer edges)
+        sk = self.k
+        ax, ay = 2.0 / (self.w + 2), 2.0 / (self.h + 2)
+        self.to_grid = torch.tensor([[ax * sk.fx, 0.0, -(ax * (sk.cx + 1.0) - 1.0)],
+                                     [0.0, -ay * sk.fy, -(ay * (sk.cy + 1.0) - 1.0)],
+                                     [0.0, 0.0, -1.0]], dtype=torch.float64)
         keep = Vi.reshape(-1) > 0.5
         self.bearings = _pixel_bearings(self.h, self.w, k).reshape(-1, 3)[keep]
+        # a rotation whose turn of the optical axis (acos R[2, 2]) and the widest pixel's angle off
+        # it (alpha) add up to less than acos(MIN_DEPTH) keeps every pixel in front of frame j
+        alpha = math.acos(min(1.0, float((-self.bearings[:, 2]).min()))) if len(self.bearings) else 0.0
+        self.cos_turn_all_ahead = math.cos(max(0.0, math.acos(MIN_DEPTH) - alpha))
         self.li = Li.reshape(-1)[keep]
         gy, gx = torch.gradient(Li)
         self.texture = torch.sqrt(gx * gx + gy * gy).reshape(-1)[keep]  # what a pixel can tell apart
@@ -171,26 +189,25 @@ class _Level:
     def to(self, dtype: torch.dtype) -> "_Level":
         """A copy with its images and pixels in `dtype`."""
         out = copy.copy(self)
-        for name in ("Lj", "Vj", "bearings", "li", "texture"):
+        for name in ("image", "bearings", "li", "texture"):
             setattr(out, name, getattr(self, name).to(dtype))
         return out
 
     def residuals(self, R: torch.Tensor, gain: torch.Tensor):
         """(residuals [S, N], weights [S, N]: 1 where frame j shows the pixel usable) for rotations [S, 3, 3]."""
-        d = torch.einsum("sij,nj->sni", R, self.bearings)
-        z = (-d[..., 2]).clamp_min(1e-6)
-        u = self.k.fx * d[..., 0] / z + self.k.cx
-        v = -self.k.fy * d[..., 1] / z + self.k.cy
-        grid = torch.stack([2.0 * u / self.w - 1.0, 2.0 * v / self.h - 1.0], -1)[:, None]  # [S, 1, N, 2]
-        S = R.shape[0]
-        lj = F.grid_sample(self.Lj.expand(S, 1, self.h, self.w), grid, align_corners=False, padding_mode="border")[
-            :, 0, 0
-        ]
-        vj = F.grid_sample(self.Vj.expand(S, 1, self.h, self.w), grid, align_corners=False, padding_mode="zeros")[
-            :, 0, 0
-        ]
-        inside = (d[..., 2] < -0.1) & (u > 0) & (u < self.w) & (v > 0) & (v < self.h)
-        return lj - torch.exp(gain.reshape(-1, 1)) * self.li[None], (inside & (vj > 0.999)).to(vj.dtype)
+        # the rotation, the projection and the margined image's normalised coordinates as one 3 x 3
+        # map per candidate, applied in planar layout: a scan's tracking is this lookup over
+        # thousands of rotations, and elementwise work on interleaved [S, N, 2] costs several times
+        # as much; a pixel past frame j's edge (or in its margin) reads a mask below one, and one
+        # behind it is named by its depth where a candidate turns far enough to put one there (the
+        # clamp would put one straight behind at the centre)
+        q = torch.matmul(self.to_grid.to(R.dtype) @ R, self.bearings.T)  # [S, 3, N]
+        grid = (q[:, :2] / q[:, 2:].clamp_min(1e-6)).transpose(1, 2)  # [S, N, 2], a view grid_sample reads as is
+        lj, vj = F.grid_sample(self.image, grid[None], align_corners=False, padding_mode="zeros")[0]
+        seen = vj > 0.999
+        if bool((R[:, 2, 2] < self.cos_turn_all_ahead).any()):
+            seen &= q[:, 2] > MIN_DEPTH
+        return lj - torch.exp(gain.reshape(-1, 1)) * self.li[None], seen.to(vj.dtype)
 
 
 def _robust(r: torch.Tensor) -> torch.Tensor:
