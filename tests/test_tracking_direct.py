@@ -286,34 +286,3 @@ def test_a_pixel_behind_frame_j_is_not_in_its_view():
     _, w = lev.residuals(R, torch.zeros(4, dtype=torch.float64))
     assert w[:3].sum() == 0
     assert w[3].sum() == lev.bearings.shape[0]
-
-
-def test_the_slope_jacobian_matches_central_differences_over_a_pixel_where_the_image_is_smooth(scan):
-    """`_Level.linearised` (the grid's Gauss-Newton steps) differentiates the lookup through frame
-    j's luma slope, a central difference over two pixels: on a smooth image its derivative by a
-    turn about each axis must match central differences of the residuals over a turn of about a
-    pixel each way (a sign or scale wrong reads 100 % off or more), and its residuals and
-    in-view pixels are `residuals`' own."""
-    import torch
-
-    from core.tracking.direct import _Level, _skew
-    from core.tracking.geometry import rotvec_to_matrix
-
-    l, v = frame_luma(scan.ldr[3:5])
-    smooth = torch.nn.functional.avg_pool2d(l[None], 21, stride=1, padding=10, count_include_pad=False)[0]
-    lev = _Level(smooth[0], torch.ones_like(v[0]), smooth[1], torch.ones_like(v[1]), scan.intrinsics, 72)
-    R = torch.from_numpy(rotvec_to_matrix(np.radians([[2.0, 25.0, 1.0], [-3.0, -20.0, 4.0]])))
-    g = torch.tensor([0.1, -0.2], dtype=torch.float64)
-    r, w, J = lev.linearised(R, g)
-    r_plain, w_plain = lev.residuals(R, g)
-    assert torch.equal(w, w_plain) and torch.allclose(r, r_plain, atol=1e-12)
-    use = w > 0
-    step = 1.0 / lev.k.fx  # a pixel at the centre, for a turn across the view
-    for a in range(3):
-        turn = torch.zeros(3, dtype=torch.float64)
-        turn[a] = step
-        plus, _ = lev.residuals(torch.matrix_exp(_skew(turn)) @ R, g)
-        minus, _ = lev.residuals(torch.matrix_exp(_skew(-turn)) @ R, g)
-        fd = ((plus - minus) / (2 * step))[use]
-        assert fd.abs().mean() > 0.01  # the turn moves what the frame shows
-        assert (J[:, a][use] - fd).abs().mean() < 0.1 * fd.abs().mean()

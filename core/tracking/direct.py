@@ -167,13 +167,8 @@ class _Level:
         # two-channel image: one lookup reads both, and a pixel inside the frame whose bilinear
         # taps reach past its edge reads the luma's edge and a mask below one, as separate
         # lookups with border and zero padding would
-        lpad = F.pad(Lj[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
-        self.image = torch.stack([lpad, F.pad(Vj, (1, 1, 1, 1))])[None]  # [1, 2, h + 2, w + 2]
-        # ... and the luma's slope in those coordinates (central differences; a unit of the
-        # normalised coordinate is half the margined image), for the Gauss-Newton steps
-        gy, gx = torch.gradient(lpad)
-        slope = torch.stack([gx * ((self.w + 2) / 2.0), gy * ((self.h + 2) / 2.0)])[None]
-        self.image_with_slope = torch.cat([self.image, slope], 1)  # [1, 4, h + 2, w + 2]
+        self.image = torch.stack([F.pad(Lj[None, None], (1, 1, 1, 1), mode="replicate")[0, 0],
+                                  F.pad(Vj, (1, 1, 1, 1))])[None]  # [1, 2, h + 2, w + 2]
         # bearing (our camera frame: looking down -z) -> (x, y, 1) x depth in grid_sample's
         # normalised coordinates of the margined image (align_corners=False: -1 and 1 are its outer edges)
         sk = self.k
@@ -194,7 +189,7 @@ class _Level:
     def to(self, dtype: torch.dtype) -> "_Level":
         """A copy with its images and pixels in `dtype`."""
         out = copy.copy(self)
-        for name in ("image", "image_with_slope", "bearings", "li", "texture"):
+        for name in ("image", "bearings", "li", "texture"):
             setattr(out, name, getattr(self, name).to(dtype))
         return out
 
@@ -213,28 +208,6 @@ class _Level:
         if bool((R[:, 2, 2] < self.cos_turn_all_ahead).any()):
             seen &= q[:, 2] > MIN_DEPTH
         return lj - torch.exp(gain.reshape(-1, 1)) * self.li[None], seen.to(vj.dtype)
-
-
-    def linearised(self, R: torch.Tensor, gain: torch.Tensor):
-        """`residuals` and their derivatives [S, 3, N] by a turn about frame j's axes (R <- exp([t]x) R):
-        through the projection of R b and frame j's luma slope there."""
-        T = self.to_grid.to(R.dtype)
-        # the turn moves d = R b by t x d: q = T d and its three derivatives T [e_a]x R b in one product
-        axes = _skew(torch.eye(3, dtype=R.dtype))  # [3, 3, 3]: [e_a]x
-        maps = torch.cat([T[None], T @ axes])  # [4, 3, 3]
-        q = torch.matmul((maps[None] @ R[:, None]).reshape(-1, 12, 3), self.bearings.T)  # [S, 12, N]
-        S = R.shape[0]
-        z = q[:, 2:3].clamp_min(1e-6)
-        xy = q[:, :2] / z  # [S, 2, N]
-        lj, vj, sx, sy = F.grid_sample(self.image_with_slope, xy.transpose(1, 2)[None], align_corners=False,
-                                       padding_mode="zeros")[0]
-        seen = vj > 0.999
-        if bool((R[:, 2, 2] < self.cos_turn_all_ahead).any()):
-            seen &= q[:, 2] > MIN_DEPTH
-        dq = q[:, 3:].reshape(S, 3, 3, -1)  # [S, axis, xyz, N]
-        dxy = (dq[:, :, :2] - xy[:, None] * dq[:, :, 2:]) / z[:, None]  # [S, 3, 2, N]
-        J = dxy[:, :, 0] * sx[:, None] + dxy[:, :, 1] * sy[:, None]  # [S, 3, N]
-        return lj - torch.exp(gain.reshape(-1, 1)) * self.li[None], seen.to(vj.dtype), J
 
 
 def _robust(r: torch.Tensor) -> torch.Tensor:
@@ -285,14 +258,14 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
     cands = torch.cat([_search_grid(s, span, roll_span=roll_span) if search else torch.from_numpy(np.asarray(s)[None])
                        for s in starts])
     with torch.no_grad():
-        # every grid rotation a few Gauss-Newton steps on the coarse level along the image's slope
-        # (each falls into the basin it is in), then scored one level up (18 rows blur what tells candidates apart);
+        # every grid rotation a few Gauss-Newton steps on the coarse level (each falls into the
+        # basin it is in), then scored one level up (18 rows blur what tells candidates apart);
         # in single precision: this only ranks thousands of rotations, whose rounding (1e-7 of
         # an LDR value) is far below what tells them apart, at half the memory traffic of the
         # step that dominates a scan's tracking; the picked ones go on in double
         grid_level = coarse.to(GRID_DTYPE)
         g, _, _ = _gain_estimate(grid_level, cands.to(GRID_DTYPE))
-        cands, g = _refine(grid_level, cands.to(GRID_DTYPE), g, GRID_ITERATIONS, slope=True)
+        cands, g = _refine(grid_level, cands.to(GRID_DTYPE), g, GRID_ITERATIONS)
         scorer = levels[min(1, len(levels) - 1)].to(GRID_DTYPE)
         r, w = scorer.residuals(cands, g)
         score = _score(r, w, scorer.texture)
@@ -431,34 +404,27 @@ def _score(r: torch.Tensor, w: torch.Tensor, texture: torch.Tensor) -> torch.Ten
     return torch.where(w.mean(1) >= MIN_OVERLAP, vote, torch.full_like(vote, math.inf))
 
 
-def _refine(lev: _Level, R0: torch.Tensor, g0: torch.Tensor, iterations: int,
-            slope: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+def _refine(lev: _Level, R0: torch.Tensor, g0: torch.Tensor, iterations: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Gauss-Newton (iteratively reweighted for the pseudo-Huber cost) over a turn about each of
-    the rotations R0 [S, 3, 3] and its log gain g0 [S], all candidates at once on one level, steps
-    of at most MAX_STEP_DEG. The Jacobian: by central differences (one batched lookup of 7 probes
-    per candidate: the slope of the bilinear image itself, so the steps settle where its cost is
-    least), or with `slope` through frame j's luma slope (`_Level.linearised`: one lookup, and a
-    slope taken over two pixels, which points the way from further off; the grid's thousands of
-    candidates, which only need to fall into their basins). Returns (R [S, 3, 3], g [S])."""
-    R, g = R0.clone(), g0.clone().to(R0.dtype)
+    the rotations R0 [S, 3, 3] and its log gain g0 [S], all candidates at once on one level; the
+    Jacobian by central differences (one batched lookup of 7 probes per candidate), steps of at
+    most MAX_STEP_DEG. Returns (R [S, 3, 3], g [S])."""
     S = R0.shape[0]
     step = 1e-3
     probes = torch.cat([torch.zeros(1, 3), step * torch.eye(3), -step * torch.eye(3)]).to(R0.dtype)  # [7, 3]
     turn_probes = torch.matrix_exp(_skew(probes))  # [7, 3, 3]
+    R, g = R0.clone(), g0.clone().to(R0.dtype)
     for _ in range(iterations):
-        if slope:
-            r0, w, Jt = lev.linearised(R, g)
-        else:
-            Rp = (turn_probes[None] @ R[:, None]).reshape(-1, 3, 3)  # [S * 7, 3, 3]
-            r, w = lev.residuals(Rp, g.repeat_interleave(7))
-            r, w = r.reshape(S, 7, -1), w.reshape(S, 7, -1)
-            r0, w = r[:, 0], w.prod(1)
-            Jt = (r[:, 1:4] - r[:, 4:7]) / (2 * step)
-        J = torch.cat([Jt, (-torch.exp(g)[:, None] * lev.li[None])[:, None]], 1)  # [S, 4, N]
-        irls = w / torch.sqrt(1.0 + (r0 / ROBUST_SCALE) ** 2)
-        Jw = J * irls[:, None]
-        JtJ = Jw @ J.transpose(1, 2) + 1e-9 * torch.eye(4, dtype=R.dtype)
-        Jtr = (Jw @ r0[:, :, None])[..., 0]
+        Rp = (turn_probes[None] @ R[:, None]).reshape(-1, 3, 3)  # [S * 7, 3, 3]
+        r, w = lev.residuals(Rp, g.repeat_interleave(7))
+        r, w = r.reshape(S, 7, -1), w.reshape(S, 7, -1)
+        common = w.prod(1)  # [S, N] pixels every probe sees
+        r0 = r[:, 0]
+        J = torch.stack([(r[:, 1 + a] - r[:, 4 + a]) / (2 * step) for a in range(3)]
+                        + [-torch.exp(g)[:, None] * lev.li[None]], -1)  # [S, N, 4]
+        irls = common / torch.sqrt(1.0 + (r0 / ROBUST_SCALE) ** 2)
+        JtJ = torch.einsum("sn,sna,snb->sab", irls, J, J) + 1e-9 * torch.eye(4, dtype=R.dtype)
+        Jtr = torch.einsum("sn,sna,sn->sa", irls, J, r0)
         # a candidate whose system is singular (in single precision the damping above is lost in
         # rounding where the overlap is a sliver) or whose step is not finite stays where it is
         step_, info = torch.linalg.solve_ex(JtJ, Jtr)
