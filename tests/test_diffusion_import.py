@@ -1,5 +1,5 @@
 """`lightfield prior import` on folders laid out exactly like the releases (tiny random
-modules, core/priors/diffusion/tiny_releases.py), then a distillation end to end through
+modules, tests/diffusion_releases.py), then a distillation end to end through
 `run_job` with each imported prior. Sockets are blocked throughout: nothing may be fetched.
 """
 from __future__ import annotations
@@ -28,7 +28,7 @@ def no_network(monkeypatch):
 
 @pytest.fixture(scope="module")
 def releases(tmp_path_factory):
-    from core.priors.diffusion.tiny_releases import (
+    from tests.diffusion_releases import (
         write_authors_release,
         write_diffusionlight_sd2_release,
         write_diffusionlight_sdxl_release,

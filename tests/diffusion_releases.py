@@ -1,4 +1,5 @@
-"""Tiny random stand-ins laid out EXACTLY as the real releases are, for the importer's tests.
+"""Tiny random stand-ins laid out EXACTLY as the real releases are, for the importer's tests (test code:
+it lives here, not in the engine, because only tests/test_diffusion_import.py writes these folders).
 
 * `write_authors_release`: ORionTMT/Sig25_4DLighting's `Multi_Inpaint` -- a diffusers SD-2
   inpainting pipeline folder (model_index.json, 9-channel UNet, pickled `*.bin` weights,
