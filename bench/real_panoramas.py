@@ -578,6 +578,8 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
     the job runs is chosen on these panoramas (the draft's field settings were chosen on the
     simulator). `control` rooms (not indoor) get the profile and choices fitted on all indoor
     rooms and are summarised apart."""
+    from bench.suite.measure import machine_info
+
     hdri_dir = Path(hdri_dir)
     if not (hdri_dir / "MANIFEST.tsv").is_file():
         return {"skipped": f"no MANIFEST.tsv in {hdri_dir} (pass --hdri-dir)"}
@@ -603,7 +605,8 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
         protocol += f" VARIANT, not the shipped preset: {PRESET} with {json.dumps(overrides)}."
     out: dict = {"protocol": protocol, "hdri_dir": str(hdri_dir), "preset": PRESET, "methods": list(methods),
                  "overrides": overrides, "all_rooms_elevation_gain": all_rooms[GAIN_KEY],
-                 "all_rooms_clip_coefficients": all_rooms[CLIP_KEY], "splits": {}}
+                 "all_rooms_clip_coefficients": all_rooms[CLIP_KEY], "splits": {},
+                 "machine": machine_info()}  # seconds per photo depend on the host
     own_tmp = workdir is None
     workdir = Path(tempfile.mkdtemp(prefix="lightfield-cv-")) if own_tmp else Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)

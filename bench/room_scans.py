@@ -283,6 +283,10 @@ def markdown(report: dict) -> list[str]:
             f"{m['drift']:.3f} | {m['cpu_s']:.0f} | {tracked} | "
             f"{m['uses_time']} |"
         )
+    machine = report.get("machine")
+    if machine:  # CPU seconds are the host's as much as the code's
+        lines += ["", f"CPU seconds on {machine.get('cpu_model')}, {machine.get('cores')} cores, at "
+                      f"{str(machine.get('git_commit', ''))[:7]} ({machine.get('date_utc', '')[:10]})."]
     lines += ["", "| room | split | mode | diffuse si-RMSE / angle / mirror vs const | seen corr. | drift | CPU s | "
               "largest rotation error (°) | exposure span (stops) |", "|" + "---|" * 9]
     for r in rows:
@@ -305,6 +309,7 @@ def main(argv=None) -> int:
     from bench.overrides import parse_set
     from bench.real_panoramas import read_manifest
     from bench.report import sanitize
+    from bench.suite.measure import machine_info
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--hdri-dir", default=str(DEFAULT_HDRI_DIR))
@@ -352,7 +357,7 @@ def main(argv=None) -> int:
         fold = overrides_for
         overrides_for = lambda name: {**(fold(name) if fold else {}), **extra}  # noqa: E731
     out: dict = {"protocol": __doc__, "modes": modes, "path": args.path, "rooms": {}, "targets": TARGETS,
-                 "cross_validated": not args.no_cv,
+                 "cross_validated": not args.no_cv, "machine": machine_info(),  # CPU seconds depend on the host
                  "command": "python -m bench.room_scans " + " ".join(argv if argv is not None else sys.argv[1:])}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.workdir or tmp)

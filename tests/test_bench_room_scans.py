@@ -44,3 +44,21 @@ def test_the_truth_is_the_panorama_in_the_first_kept_cameras_axes():
         a = sample_envmap(truth.double(), forward)
         b = sample_envmap(pano.double(), world)
         torch.testing.assert_close(a, b, rtol=0.05, atol=0.02)
+
+
+def test_the_table_names_the_host_its_cpu_seconds_were_measured_on():
+    """A report that records its machine says so under its summary; one that does not (before
+    the bench recorded it) prints no host line rather than a guess."""
+    from bench.room_scans import markdown
+
+    room = {"file": "a.hdr", "split": "dev", "span_stops": 4.0, "truth_seen_corr": 0.9,
+            "scores": {m: {k: {"si_rmse": 1.0, "si_rmse_rel": 1.0, "angular_deg": 2.0}
+                           for k in ("diffuse", "matte", "mirror")}
+                       for m in ("product", "mean-colour")},
+            "modes": {"product": {"cpu_s": 50.0, "seen_corr": 0.9, "drift": 0.0, "uses_time": False,
+                                  "tracking": {"method": "rotation", "max_rotation_error_deg": 0.1}}}}
+    report = {"modes": ["product"], "rooms": [room]}
+    assert not any(line.startswith("CPU seconds on") for line in markdown(report))
+    report["machine"] = {"cpu_model": "Some CPU", "cores": 2, "git_commit": "abcdef0123",
+                         "date_utc": "2026-12-07T07:00"}
+    assert "CPU seconds on Some CPU, 2 cores, at abcdef0 (2026-12-07)." in markdown(report)
