@@ -113,7 +113,9 @@ def main(argv: list[str] | None = None) -> int:
                 return 2
             results.append(bench_preset(name, args.unique_frames, Path(tmp), args.temporal, overrides))
             print(json.dumps(results[-1]), file=sys.stderr)
-    text = json.dumps({"presets": results}, indent=2)
+    from bench.suite.measure import machine_info
+
+    text = json.dumps({"presets": results, "machine": machine_info()}, indent=2)  # seconds are the host's too
     if args.output:
         Path(args.output).write_text(text)
     print(text)

@@ -99,7 +99,7 @@ def test_presets_are_whole_config_trees_and_overrides_stay_typed():
     nested = draft.with_overrides({"distill": {"iterations": 7}, "field": {"mlp": {"width": 32}}})
     dotted = draft.with_overrides({"distill.iterations": 7, "field.mlp.width": 32})
     assert nested == dotted and dotted.distill.iterations == 7 and dotted.field.section().width == 32
-    assert dotted.distill.work_height == draft.distill.work_height and draft.distill.iterations == 600  # a copy
+    assert dotted.distill.work_height == draft.distill.work_height and draft.distill.iterations == 400  # a copy
     assert draft.with_field_kind("grid").field.kind == "grid" and draft.with_field_kind(None) is draft
     with pytest.raises(ValidationError, match="iteratons"):
         draft.with_overrides({"distill.iteratons": 7})
