@@ -14,7 +14,7 @@ the reprojection, known and oracle priors; the diffusion prior keeps the ball lo
 per step, each with 1 probe in front of the depth, 1 along a camera ray, 1 anywhere in the
 scene box no frame shows inside a surface (core.engine.free_space) and the camera centre,
 256 directions per probe, log-radiance loss, 400 steps (600 scored within 0.01 on the real rooms' photos,
-pans and scans, at a third more CPU: docs/engine.md, "Presets"); the camera centre is also
+pans and scans, and cost a scan's job 55 s of CPU against 44: docs/engine.md, "Presets"); the camera centre is also
 fitted along 256 of the frame's pixel rays to the prior's view radiance, through the field's
 view detail (32- and 128-row residual maps anchored at the camera centres, with a rank-4
 time part when the lighting changes); small bright sources in view (up to 4 lamps) are explicit
