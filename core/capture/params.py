@@ -12,6 +12,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from core.transfer import AUTO, parse_transfer
+
 MAX_FPS = 240.0
 MAX_FRAMES_LIMIT = 10_000  # hard ceiling; MediaLimits may be stricter
 FRAME_EV_ESTIMATE = "estimate"  # frame_ev: estimate each frame's exposure from the frames (core.capture.autoexposure)
@@ -71,6 +73,13 @@ class CaptureParams(_Strict):
                                   "'estimate': the camera adjusted its exposure without recording it, so the frames' "
                                   "overall brightness course is taken as the exposure's; 'locked': it did not; unset: "
                                   "estimated for a moving camera whose frames show an auto-exposure (docs/captures.md)")
+    transfer: str = Field(
+        default=AUTO, description="the camera's transfer function (how its code values relate to light): 'srgb', "
+                                  "'rec709', 'gamma:G' (1 <= G <= 4), 'linear', 'hlg', 'pq', or 'auto': what the file "
+                                  "says (PNG sRGB/gAMA/iCCP/cICP chunks, a JPEG's ICC profile or EXIF colour space, a "
+                                  "video stream's transfer characteristics), and sRGB when it says nothing. Where the "
+                                  "frames' exposures vary, the response is also estimated from the frames and used "
+                                  "when it explains them better (docs/captures.md, 'The camera's response')")
     tracking: Literal["auto", "off"] = Field(
         default="auto", description="camera tracking when several frames come without poses: 'auto' detects camera "
                                      "motion and tracks it; 'off' treats the camera as static (docs/captures.md)")
@@ -104,6 +113,13 @@ class CaptureParams(_Strict):
         for i, e in enumerate(v):
             if not (math.isfinite(e) and abs(e) <= MAX_EXPOSURE_STOPS):
                 raise ValueError(f"frame_ev[{i}] must be finite and within +-{MAX_EXPOSURE_STOPS:g} stops, got {e}")
+        return v
+
+    @field_validator("transfer")
+    @classmethod
+    def _transfer(cls, v):
+        if v != AUTO:
+            parse_transfer(v)  # ValueError naming the accepted forms
         return v
 
     @field_validator("fps")

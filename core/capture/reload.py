@@ -7,6 +7,8 @@ Loading the input again is not enough: tracking may have left frames out
 depth a room fixed in the world (`metadata.room`). The record says all three, so the frames
 the job kept are picked by the tracking's own indices, the recorded cameras and exposures are
 put back, and the depth of a capture that had none is the recorded room's, as the job saw it.
+The frames are decoded with the recorded transfer and, where the job estimated one, its
+response (core.capture.response).
 """
 from __future__ import annotations
 
@@ -17,7 +19,9 @@ import torch
 from core.capture.base import Capture, CaptureError
 from core.capture.depth import ASSUMED_DEPTH_SOURCE
 from core.capture.params import CaptureParams
+from core.capture.response import apply_curve
 from core.tracking.room import RoomFitError, box_depth, room_from_dict
+from core.transfer import AUTO
 
 DURATION_TOLERANCE_S = 1e-3
 
@@ -28,13 +32,16 @@ def recorded_params(record: dict) -> CaptureParams:
     `max_frames` is subsampled alike). Poses and exposures are put back after the frames are
     picked, since tracking may have dropped some."""
     k = record.get("intrinsics") or {}
-    tracking = (record.get("metadata") or {}).get("tracking") or {}
+    meta = record.get("metadata") or {}
+    tracking = meta.get("tracking") or {}
+    transfer = (meta.get("transfer") or {}).get("curve", AUTO)
     loaded = len(tracking.get("frames_kept", [])) + len(tracking.get("frames_dropped", []))
     return CaptureParams(
         intrinsics={n: k[n] for n in ("fx", "fy", "cx", "cy")} if k else None,
         fps=record.get("fps"),
         max_frames=loaded or record.get("frames") or None,
         frame_ev="locked",  # the recorded exposures are put back below: nothing to estimate
+        transfer=transfer,  # the curve the job decoded the frames with
     )
 
 
@@ -45,6 +52,9 @@ def reload_capture(input_path, depth_path, record: dict) -> Capture:
 
     raw = load_capture(input_path, depth_path, recorded_params(record), track=False)
     meta = record.get("metadata") or {}
+    response = meta.get("response") or {}
+    if response.get("used"):  # the response the job estimated from the frames, applied as the job did
+        raw = dataclasses.replace(raw, frames=apply_curve(raw.frames, response["codes"], response["log_linear"]))
     tracking = meta.get("tracking") or {}
     kept = tracking.get("frames_kept")
     count = int(record.get("frames", raw.num_frames))

@@ -1,0 +1,140 @@
+"""The camera's response recovered from frames at different exposures (core.capture.response),
+and the transfer functions it starts from (core.transfer): synthetic auto-exposure captures
+encoded with curves the product does not assume, read as a file that declares sRGB is read."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from core.camera import Intrinsics
+from core.capture.load import capture_from_arrays
+from core.capture.params import CaptureParams
+from core.capture.response import fit_response, with_estimated_response
+from core.transfer import SRGB, parse_transfer, transfer_from_h273
+
+EVS = torch.tensor([0.0, -1.0, -2.0, 1.0, 0.5, -1.5, 2.0, -0.5])
+
+
+def filmic(x: torch.Tensor) -> torch.Tensor:
+    """A phone-like tone curve (toe and shoulder) reaching 1 at 11.2x the exposure's white."""
+    def f(v):
+        return v * (2.51 * v + 0.03) / (v * (2.43 * v + 0.59) + 0.14)
+    return (f(x) / f(torch.tensor(11.2))).clamp(0.0, 1.0)
+
+
+def wall_radiance(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """A textured wall over ~2.5 decades: smooth gradients and flat patches."""
+    patches = 1.0 + 3.0 * (((x * 3).floor() + (y * 2).floor()) % 3)
+    rgb = torch.stack((0.02 + 0.5 * (x % 1) * (y % 1), 0.03 + 0.4 * (x % 1), 0.05 + 0.3 * (y % 1)), -1)
+    return rgb * patches[..., None]
+
+
+def encoded(linear: torch.Tensor, camera, seed: int) -> torch.Tensor:
+    """What a camera writes (noise before its curve, 8 bits), read back as a file declaring sRGB is."""
+    g = torch.Generator().manual_seed(seed)
+    noisy = (linear + torch.randn(linear.shape, generator=g) * 0.002 * linear.sqrt()).clamp_min(0.0)
+    return SRGB.to_convention(torch.round(camera(noisy) * 255.0) / 255.0)
+
+
+def static_capture(camera, evs=EVS):
+    H, W = 72, 96
+    y, x = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
+    scene = wall_radiance(x, y)
+    frames = torch.stack([encoded(scene * 2.0 ** float(e), camera, i) for i, e in enumerate(evs)])
+    return capture_from_arrays(frames, frame_ev=evs), scene
+
+
+def moving_capture(camera):
+    """A camera sliding 0.6 m along a wall 2 m away, auto-exposing, with poses and depth."""
+    H, W = 72, 96
+    k = Intrinsics.from_hfov(W, H, 60.0)
+    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    frames, poses = [], []
+    for i, e in enumerate(EVS):
+        tx = 0.6 * i / (len(EVS) - 1)
+        X = tx + (u - k.cx) / k.fx * 2.0
+        Y = -(v - k.cy) / k.fy * 2.0
+        frames.append(encoded(wall_radiance(X * 0.8, Y * 0.8 + 1.0) * 2.0 ** float(e), camera, i))
+        pose = torch.eye(4, dtype=torch.float64)
+        pose[0, 3] = tx
+        poses.append(pose)
+    depth = torch.full((len(EVS), H, W), 2.0)
+    return capture_from_arrays(torch.stack(frames), depth, intrinsics=k, poses=torch.stack(poses), frame_ev=EVS)
+
+
+def log_error(frames_convention: torch.Tensor, scene: torch.Tensor) -> float:
+    """Mean |log linear error| over the well-exposed pixels of frame 0, up to one scale."""
+    ok = (frames_convention > 0.06) & (frames_convention < 0.95)
+    e = (frames_convention.clamp_min(1e-6).pow(2.4).log() - scene.clamp(0, 1).clamp_min(1e-6).log())[ok]
+    return float((e - e.median()).abs().mean())
+
+
+def test_transfers_round_trip_and_name_their_h273_codes():
+    x = torch.logspace(-6, 0, 200)
+    for name in ("srgb", "rec709", "linear", "hlg", "gamma:2.2"):
+        t = parse_transfer(name)
+        assert torch.allclose(t.to_linear(t.from_linear(x)), x, rtol=1e-3, atol=1e-7), name
+    assert str(transfer_from_h273(18)) == "hlg" and str(transfer_from_h273(16)) == "pq"
+    assert str(transfer_from_h273(13)) == "srgb" and transfer_from_h273(2) is None
+    with pytest.raises(ValueError, match="gamma:G"):
+        parse_transfer("gamma2.4")
+    with pytest.raises(ValueError):
+        CaptureParams(transfer="gamma:9")
+
+
+def test_hlg_keeps_highlights_far_above_reference_white_unclipped():
+    hlg = parse_transfer("hlg")
+    white = torch.tensor(0.265)  # HLG reference white (75 % signal) in scene light
+    assert abs(float(hlg.from_linear(white)) - 0.75) < 0.01
+    lamp = white * 3.5  # a lamp 3.5x reference white: still under HLG's top code
+    assert float(hlg.from_linear(lamp)) < 0.99
+    assert float(SRGB.from_linear(lamp / white)) > 0.999  # an SDR camera puts white at its top code: clipped
+
+
+def test_a_filmic_camera_read_as_srgb_is_corrected_from_its_exposures():
+    capture, scene = static_capture(lambda v: SRGB.from_linear(filmic(v)))
+    fit = fit_response(capture)
+    assert fit is not None and fit.better
+    assert fit.fitted_error < 0.2 * fit.declared_error
+    corrected, _ = with_estimated_response(capture)
+    assert corrected.metadata["response"]["used"]
+    before, after = log_error(capture.frames[0], scene), log_error(corrected.frames[0], scene)
+    assert after < 0.25 * before, (before, after)
+    # the curve keeps white white and black black, and stays monotone
+    assert float(corrected.frames.max()) <= 1.0 and float(corrected.frames.min()) >= 0.0
+    assert (fit.log_g.diff() >= 0).all()
+
+
+def test_a_correctly_declared_camera_keeps_its_curve_within_noise():
+    capture, scene = static_capture(SRGB.from_linear)
+    corrected, fit = with_estimated_response(capture)
+    assert fit is not None
+    assert log_error(corrected.frames[0], scene) < log_error(capture.frames[0], scene) + 0.005
+
+
+def test_rec709_read_as_srgb_is_recovered_through_a_moving_cameras_poses():
+    capture = moving_capture(parse_transfer("rec709").from_linear)
+    fit = fit_response(capture)
+    assert fit is not None and fit.better and fit.fitted_error < 0.3 * fit.declared_error
+
+
+def test_a_locked_exposure_or_one_frame_cannot_tell_a_curve():
+    capture, _ = static_capture(SRGB.from_linear, evs=torch.zeros(4))
+    kept, fit = with_estimated_response(capture)
+    assert fit is None and not kept.metadata["response"]["used"]
+    assert torch.equal(kept.frames, capture.frames)
+    single, _ = static_capture(SRGB.from_linear, evs=torch.zeros(1))
+    assert fit_response(single) is None
+
+
+def test_with_estimated_exposures_the_fit_keeps_mid_grey():
+    """A curve and its exposures are defined together only up to a power: with exposures estimated
+    from the frames the fit may change the curve's shape but keeps the declared value at mid-grey."""
+    capture, _ = static_capture(lambda v: SRGB.from_linear(filmic(v)))
+    fit = fit_response(capture, pin=True)
+    assert fit is not None
+    mid = fit.apply(torch.tensor([0.5]))
+    assert abs(float(mid) - 0.5) < 0.01
+    assert math.isfinite(fit.fitted_error)
