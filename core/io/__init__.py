@@ -1,5 +1,6 @@
 """Media I/O with limits: every user-triggerable failure raises `MediaError` (a
 ValueError) with a stable `.code`; see core.io.limits.HTTP_STATUS for the code list."""
+from core.io.colour import StatedTransfer
 from core.io.depth import encode_depth_png16, probe_depth, read_depth, sanitize_depth, write_depth_npz
 from core.io.envmap_io import MEDIA_TYPES, encode_envmap, load_envmap, save_envmap, tonemapped_preview
 from core.io.exr import HalfOverflowWarning, encode_exr, read_exr, read_exr_channels, write_exr
@@ -17,6 +18,7 @@ __all__ = [
     "MEDIA_TYPES",
     "MediaError",
     "MediaLimits",
+    "StatedTransfer",
     "VideoFrames",
     "VideoHeader",
     "encode_depth_png16",

@@ -6,8 +6,12 @@ Pillow's own bomb guard (`Image.MAX_IMAGE_PIXELS`) is kept as a second line of d
 raised, never lowered, to the largest limit in use. 16-bit PNGs are decoded with OpenCV
 because Pillow truncates 16-bit colour PNGs to 8 bits. Pixels come back UPRIGHT (the EXIF
 orientation applied, as a viewer shows them) and in sRGB (an embedded non-sRGB ICC profile
-converted); `decode_image` also returns the file's metadata and what was applied
-(core.io.metadata has the rules).
+converted); `decode_image` also returns the file's metadata, what was applied (core.io.metadata
+has the rules) and what the file states about its transfer (`stated_transfer`, core.io.colour).
+
+PNGs written here say what their values are: by default a gAMA chunk of 1/2.4 (the engine's
+convention, core.conventions, so they read back as gamma:2.4), or the `transfer` asked for
+(core.io.colour.png_colour_chunks). 16-bit PNGs hold data (depth) unless a transfer is given.
 """
 from __future__ import annotations
 
@@ -20,6 +24,13 @@ import cv2
 import numpy as np
 from PIL import Image
 
+from core.io.colour import (
+    StatedTransfer,
+    exif_color_space,
+    image_stated_transfer,
+    insert_after_ihdr,
+    png_colour_chunks,
+)
 from core.io.exr import atomic_write
 from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source, read_source
 from core.io.metadata import (
@@ -32,6 +43,7 @@ from core.io.metadata import (
     to_srgb,
 )
 from core.io.sniff import PNG_MAGIC, sniff_image
+from core.transfer import CONVENTION, Transfer
 
 try:
     _ENV_MAX_PIXELS = MediaLimits.from_env().max_pixels
@@ -147,6 +159,7 @@ class DecodedImage:
     metadata: ImageMetadata
     stored_size: tuple[int, int]  # (width, height) as stored, before orientation
     applied: list[str] = field(default_factory=list)  # what was done to the stored pixels
+    stated_transfer: StatedTransfer | None = None  # what the file states (always set by decode_image)
 
 
 def decode_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> DecodedImage:
@@ -157,17 +170,22 @@ def decode_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> Decode
     image = _open_checked(data, limits)
     meta = image_metadata(image)
     applied = [describe_orientation(meta.orientation) + ": turned upright"] if meta.orientation != 1 else []
+    color_space = exif_color_space(image)
+
+    def stated(bit_depth: int, icc_converted: bool) -> StatedTransfer:
+        return image_stated_transfer(data, image.format, meta, bit_depth, icc_converted, color_space)
+
     if image.format == "PNG" and _png_bit_depth(data) == 16:
         if meta.icc_description is not None and not meta.icc_is_srgb:
             applied.append(f"ICC profile {meta.icc_description!r} of a 16-bit PNG not converted (values used as sRGB)")
         pixels = orient_array(_to_rgb(_decode_png16(data)), meta.orientation).astype(np.float32) / np.float32(65535.0)
-        return DecodedImage(pixels, meta, image.size, applied)
+        return DecodedImage(pixels, meta, image.size, applied, stated(16, False))
     _check_sample_format(image, data)
     try:
         image.load()
         if image.mode.startswith("I;16"):  # 16-bit grey TIFF
             grey = orient_array(np.asarray(image, np.float32) / np.float32(65535.0), meta.orientation)
-            return DecodedImage(_to_rgb(grey), meta, image.size, applied)
+            return DecodedImage(_to_rgb(grey), meta, image.size, applied, stated(16, False))
         converted, note = to_srgb(image, meta)
         if note:
             applied.append(note)
@@ -176,7 +194,8 @@ def decode_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> Decode
         raise MediaError("too_many_pixels", str(exc)) from None
     except (OSError, SyntaxError, ValueError) as exc:
         raise MediaError("truncated", f"{image.format} data is truncated or corrupt ({exc})") from None
-    return DecodedImage(np.asarray(rgb, np.float32) / np.float32(255.0), meta, image.size, applied)
+    return DecodedImage(np.asarray(rgb, np.float32) / np.float32(255.0), meta, image.size, applied,
+                        stated(8, converted is not image))
 
 
 def read_image(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> np.ndarray:
@@ -197,33 +216,41 @@ def _to_bgr(a: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(a, cv2.COLOR_RGBA2BGRA if a.shape[2] == 4 else cv2.COLOR_RGB2BGR)
 
 
-def _png_bytes(a: np.ndarray) -> bytes:
-    """PNG bytes of a checked uint8/uint16 RGB(A) or grey array (cv2 wants BGR order)."""
+def _png_bytes(a: np.ndarray, transfer: str | Transfer | None = None) -> bytes:
+    """PNG bytes of a checked uint8/uint16 RGB(A) or grey array (cv2 wants BGR order), with the
+    chunks that state `transfer` (None: none) right after IHDR."""
     ok, buf = cv2.imencode(".png", _to_bgr(np.ascontiguousarray(a)))
     if not ok:
         raise MediaError("shape_mismatch", f"PNG encoder refused an array of shape {a.shape}")
-    return buf.tobytes()
+    png = buf.tobytes()
+    return png if transfer is None else insert_after_ihdr(png, png_colour_chunks(transfer))
 
 
-def encode_png(ldr: np.ndarray) -> bytes:
-    """8-bit PNG bytes from float in [0, 1] (clipped, rounded) or uint8, RGB(A) or grey."""
+def encode_png(ldr: np.ndarray, transfer: str | Transfer | None = None) -> bytes:
+    """8-bit PNG bytes from float in [0, 1] (clipped, rounded) or uint8, RGB(A) or grey.
+    `transfer` states what the values are: None, the engine's convention (gamma:2.4), writes a
+    gAMA chunk of 1/2.4 (0.41667); 'srgb' an sRGB chunk (rendering intent 0, with gAMA 0.45455);
+    'gamma:G' gAMA 1/G; 'linear' gAMA 1; 'rec709', 'hlg', 'pq' a cICP chunk (core.io.colour).
+    The values are written as given, never converted."""
     a = _check_image_array(ldr, "PNG image")
     if a.dtype != np.uint8:
         a = a.astype(np.float32)
         if not np.isfinite(a).all():
             raise MediaError("non_finite", f"PNG image has {int((~np.isfinite(a)).sum())} NaN/inf values")
         a = np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
-    return _png_bytes(a)
+    return _png_bytes(a, CONVENTION if transfer is None else transfer)
 
 
-def write_png(path: str | os.PathLike, ldr: np.ndarray) -> Path:
+def write_png(path: str | os.PathLike, ldr: np.ndarray, transfer: str | Transfer | None = None) -> Path:
     """Write an 8-bit PNG (see `encode_png`) atomically."""
-    return atomic_write(path, encode_png(ldr))
+    return atomic_write(path, encode_png(ldr, transfer))
 
 
-def encode_png16(array: np.ndarray) -> bytes:
+def encode_png16(array: np.ndarray, transfer: str | Transfer | None = None) -> bytes:
     """16-bit PNG bytes from uint16 [H, W] or [H, W, 3|4] (RGB order). Other integer dtypes
-    are accepted if every value fits in 0..65535; floats are refused (scale them first)."""
+    are accepted if every value fits in 0..65535; floats are refused (scale them first).
+    `transfer` as in `encode_png`, except that None writes no colour chunk: a 16-bit PNG here
+    is data (depth in millimetres) unless a transfer says it is an image."""
     a = _check_image_array(array, "16-bit PNG image")
     if a.dtype != np.uint16:
         if not np.issubdtype(a.dtype, np.integer):
@@ -231,12 +258,12 @@ def encode_png16(array: np.ndarray) -> bytes:
         if a.size and (a.min() < 0 or a.max() > 65535):
             raise MediaError("shape_mismatch", f"16-bit PNG values must be in 0..65535, got {a.min()}..{a.max()}")
         a = a.astype(np.uint16)
-    return _png_bytes(a)
+    return _png_bytes(a, transfer)
 
 
-def write_png16(path: str | os.PathLike, array: np.ndarray) -> Path:
+def write_png16(path: str | os.PathLike, array: np.ndarray, transfer: str | Transfer | None = None) -> Path:
     """Write a 16-bit PNG (see `encode_png16`) atomically."""
-    return atomic_write(path, encode_png16(array))
+    return atomic_write(path, encode_png16(array, transfer))
 
 
 def read_png16(source: Source, limits: MediaLimits = DEFAULT_LIMITS) -> np.ndarray:

@@ -8,12 +8,20 @@ its full duration; `on_too_many='error'` refuses instead. Rotation metadata (pho
 videos: the display matrix, or a legacy `rotate` tag) is applied, so frames come upright
 as a player shows them, like images (core.io.metadata); `rotation_ccw_deg` says by how much.
 Containers are recognised by magic bytes (MP4/MOV, WebM/Matroska, AVI, MPEG-PS, Ogg, and animated GIF).
+
+Colour: frames are the file's CODE values, still in its transfer (`VideoFrames.stated_transfer`
+says which, core.io.colour; converting them to light is core.transfer's). 8-bit streams are
+converted to RGB by swscale (rgb24 / 255). Deeper ones (10/12-bit HDR from phones) never pass
+through 8 bits: planar Y'CbCr is converted here by H.273's equations (the stream's matrix,
+BT.2020 non-constant luminance, BT.709 or BT.601, and its range; core.io.colour), other deep
+formats by swscale at 16 bits (rgb48le). `write_video` can state a transfer and write 10/12 bits.
 """
 from __future__ import annotations
 
 import functools
 import io
 import os
+import re
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
@@ -22,9 +30,19 @@ from typing import Literal
 import av
 import numpy as np
 
+from core.io.colour import (
+    PRIMARIES_CODES,
+    StatedTransfer,
+    colour_tag,
+    h273_transfer_code,
+    rgb_to_yuv420_planes,
+    video_stated_transfer,
+    yuv_planes_to_rgb,
+)
 from core.io.limits import DEFAULT_LIMITS, MediaError, MediaLimits, Source, existing_file
 from core.io.metadata import rotate_frames, video_rotation_ccw
 from core.io.sniff import sniff_image, sniff_media, sniff_video
+from core.transfer import Transfer, parse_transfer
 
 OnTooMany = Literal["subsample", "error"]
 _SNIFF_BYTES = 64
@@ -44,6 +62,7 @@ class VideoFrames:
     warnings: list[str] = field(default_factory=list)
     rotation_ccw_deg: int = 0  # display rotation applied to the stored frames
     presentation_times: np.ndarray | None = None  # float64 [T] s from the first frame's timestamp
+    stated_transfer: StatedTransfer | None = None  # what the stream states (always set by read_video)
 
     @property
     def times(self) -> np.ndarray:
@@ -143,6 +162,7 @@ class VideoHeader:
     frame_count: int  # declared, or counted from the packets
     selected: np.ndarray  # source frame indices read_video keeps under the limits
     warnings: list[str] = field(default_factory=list)
+    stated_transfer: StatedTransfer | None = None  # what the stream states (from the first frame)
 
 
 def _header(source: Source, container, stream, limits: MediaLimits, on_too_many: OnTooMany, warnings: list[str]):
@@ -186,7 +206,8 @@ def probe_video(
         limits.check_pixels(first.width, first.height, "video frame")
         turned = video_rotation_ccw(stream, first) in (90, 270)
         w, h = (first.height, first.width) if turned else (first.width, first.height)
-        return VideoHeader(w, h, fps, frame_count, selected, warnings)
+        stated = video_stated_transfer(stream.codec_context, first)
+        return VideoHeader(w, h, fps, frame_count, selected, warnings, stated)
 
 
 def read_video(
@@ -198,15 +219,15 @@ def read_video(
     with container:
         stream = _video_stream(container)
         fps, frame_count, wanted = _header(source, container, stream, limits, on_too_many, warnings)
-        kept, indices, rotation, stamps = _decode_selected(container, stream, wanted, limits, warnings)
+        kept, indices, rotation, stamps, stated = _decode_selected(container, stream, wanted, limits, warnings)
     if not kept:
         raise MediaError("truncated", f"no frame could be decoded (the stream declares {frame_count})")
     if len(kept) < wanted.size:
         warnings.append(f"decoded {len(kept)} of {wanted.size} selected frames; the file ends early or is corrupt")
     frames = rotate_frames(np.stack(kept), rotation).astype(np.float32)
-    frames /= np.float32(255.0)
+    frames /= np.float32(255.0 if kept[0].dtype == np.uint8 else 65535.0)
     times = presentation_times(stamps, indices, fps, warnings)
-    return VideoFrames(frames, fps, np.asarray(indices, np.int64), frame_count, warnings, rotation, times)
+    return VideoFrames(frames, fps, np.asarray(indices, np.int64), frame_count, warnings, rotation, times, stated)
 
 
 UNEVEN_INTERVALS = 0.25  # frame intervals spread more than this fraction of the median: a variable rate
@@ -253,23 +274,48 @@ def _decoded_frames(container, stream, warnings: list[str]):
         pass
 
 
+_PLANAR_YUV = re.compile(r"^yuva?(420|422|440|444)p(9|10|12|14|16)le$")
+
+
+def _plane_array(plane) -> np.ndarray:
+    return np.frombuffer(plane, np.uint16).reshape(plane.height, plane.line_size // 2)[:, : plane.width]
+
+
+def deep_frame_codes(frame, codec_context=None) -> np.ndarray:
+    """uint16 [H, W, 3] R'G'B' code values (0..65535 for 0..1) of a frame of more than 8 bits,
+    without passing through 8 bits (module doc)."""
+    fmt = frame.format
+    if _PLANAR_YUV.match(fmt.name):
+        y, cb, cr = (_plane_array(frame.planes[i]) for i in range(3))
+        stated_range = int(frame.color_range or (codec_context.color_range if codec_context is not None else 0))
+        full = stated_range == 2  # AVCOL_RANGE_JPEG; unspecified is limited, as video is
+        rgb = yuv_planes_to_rgb(y, cb, cr, fmt.components[0].bits, colour_tag(frame, codec_context, "colorspace"),
+                                colour_tag(frame, codec_context, "color_primaries"), full)
+        return np.round(rgb * np.float32(65535.0)).astype(np.uint16)
+    return frame.to_ndarray(format="rgb48le")
+
+
 def _decode_selected(container, stream, wanted: np.ndarray, limits: MediaLimits, warnings: list[str]):
-    """(uint8 frames at the `wanted` source indices (presentation order), their indices, the
-    display rotation in ccw degrees, the presentation time in seconds (None: unknown) of
-    every frame decoded), stopping after the last wanted frame."""
+    """(frames at the `wanted` source indices (presentation order): uint8, or uint16 for a
+    stream of more than 8 bits, their indices, the display rotation in ccw degrees, the
+    presentation time in seconds (None: unknown) of every frame decoded, what the stream states
+    about its colour), stopping after the last wanted frame."""
     wanted_set = set(wanted.tolist())
     last = int(wanted[-1])
     kept: list[np.ndarray] = []
     indices: list[int] = []
     stamps: list[float | None] = []
-    rotation = 0
+    rotation, deep = 0, False
+    stated = StatedTransfer(None, "no frame decoded")
     for index, frame in enumerate(_decoded_frames(container, stream, warnings)):
         stamps.append(frame.time)
         if index == 0:  # streams that did not declare a size are checked here
             limits.check_pixels(frame.width, frame.height, "video frame")
             rotation = video_rotation_ccw(stream, frame)
+            stated = video_stated_transfer(stream.codec_context, frame)
+            deep = stated.bit_depth > 8
         if index in wanted_set:
-            rgb = frame.to_ndarray(format="rgb24")
+            rgb = deep_frame_codes(frame, stream.codec_context) if deep else frame.to_ndarray(format="rgb24")
             if kept and rgb.shape != kept[0].shape:
                 raise MediaError(
                     "shape_mismatch",
@@ -280,7 +326,7 @@ def _decode_selected(container, stream, wanted: np.ndarray, limits: MediaLimits,
             indices.append(index)
         if index >= last:
             break
-    return kept, indices, rotation, stamps
+    return kept, indices, rotation, stamps, stated
 
 
 @functools.lru_cache(maxsize=None)
@@ -293,45 +339,125 @@ def video_codec() -> str:
         return "mpeg4"
 
 
-def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: int = 18,
-                display_rotation_ccw: int = 0) -> Path:
-    """Write frames [T, H, W, 3] (float in [0, 1] or uint8) as an mp4 (yuv420p, moov atom
-    first so browsers can stream it). yuv420p needs even sizes: odd heights/widths are
-    padded by repeating the last row/column. `display_rotation_ccw` stores a display matrix
-    (as phones do for portrait clips) without touching the pixels."""
+BIT_DEPTH_PIX_FMTS = {8: "yuv420p", 10: "yuv420p10le", 12: "yuv420p12le"}
+_LIMITED_RANGE = 1  # AVCOL_RANGE_MPEG
+
+
+def _prepare_frames(frames: np.ndarray, bit_depth: int) -> np.ndarray:
+    """Checked [T, H, W, 3] frames, padded to even sizes: uint8 for 8 bits (float rounded to
+    /255 codes, as ever), float32 in [0, 1] for more (never rounded to 8 bits)."""
     a = np.asarray(frames)
     if a.ndim != 4 or a.shape[-1] != 3 or min(a.shape[:3]) < 1:
         raise MediaError("shape_mismatch", f"frames must be [T, H, W, 3], got shape {a.shape}")
-    if not (np.isfinite(fps) and fps > 0):
-        raise MediaError("non_finite", f"fps must be a positive number, got {fps}")
-    if a.dtype != np.uint8:
-        a = np.asarray(a, np.float32)
+    if bit_depth == 8:
+        if a.dtype != np.uint8:
+            a = np.asarray(a, np.float32)
+            if not np.isfinite(a).all():
+                raise MediaError("non_finite", "frames contain NaN/inf values")
+            a = np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
+    else:
+        scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(a.dtype, 1.0)
+        a = np.asarray(a, np.float32) / np.float32(scale)
         if not np.isfinite(a).all():
             raise MediaError("non_finite", "frames contain NaN/inf values")
-        a = np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
+        a = np.clip(a, 0.0, 1.0)
     pad_h, pad_w = a.shape[1] % 2, a.shape[2] % 2
     if pad_h or pad_w:
         a = np.pad(a, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
+    return a
+
+
+def _deep_frame(image: np.ndarray, pix_fmt: str, bits: int, matrix: int) -> av.VideoFrame:
+    """A yuv420p10le/12le frame from float R'G'B' [H, W, 3] by H.273's equations (core.io.colour)."""
+    frame = av.VideoFrame(image.shape[1], image.shape[0], pix_fmt)
+    for plane, values in zip(frame.planes, rgb_to_yuv420_planes(image, bits, matrix, matrix)):
+        padded = np.zeros((plane.height, plane.line_size // 2), np.uint16)
+        padded[: values.shape[0], : values.shape[1]] = values
+        plane.update(padded.tobytes())
+    frame.colorspace, frame.color_range = matrix, _LIMITED_RANGE
+    return frame
+
+
+def _with_dts(packet, codec: str):
+    if codec == "libx265" and packet.pts is not None:
+        packet.dts = packet.pts  # see the libx265 options in write_video
+    return packet
+
+
+def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: int = 18,
+                display_rotation_ccw: int = 0, transfer: str | Transfer | None = None, bit_depth: int = 8,
+                primaries: str | None = None, codec: str | None = None) -> Path:
+    """Write frames [T, H, W, 3] (float in [0, 1], or uint8) as an mp4 (4:2:0, moov atom
+    first so browsers can stream it). 4:2:0 needs even sizes: odd heights/widths are
+    padded by repeating the last row/column. `display_rotation_ccw` stores a display matrix
+    (as phones do for portrait clips) without touching the pixels.
+
+    Colour: the frames are written as the code values they are; `transfer` ('srgb', 'rec709',
+    'hlg', 'pq', 'linear', 'gamma:G') and `primaries` ('bt709', the default when anything is
+    stated, or 'bt2020') only STATE what they are, in the stream's colour description (H.273
+    transfer characteristics srgb 13, rec709 1, hlg 18, pq 16, linear 8, gamma:2.2 4,
+    gamma:2.8 5; other gamma curves, the engine's gamma:2.4 included, have no code and are
+    written as 2, unspecified). With transfer and primaries None and 8 bits the stream is written
+    as it always was (untagged, swscale's default matrix); otherwise it is limited range with the
+    matrix of its primaries (BT.709, or BT.2020 non-constant luminance), and says so.
+    `bit_depth` 10 or 12 writes yuv420p10le/12le from the float frames by H.273's equations,
+    never rounding to 8 bits (libx264's High 10 for 10 bits; 12 bits needs codec='libx265').
+    `codec`: 'libx264' (the default when PyAV's ffmpeg has it, else 'mpeg4'), 'libx265' (mp4
+    tag hvc1), or another ffmpeg encoder. libx264 is run with mbtree off, for repeatable output."""
+    if bit_depth not in BIT_DEPTH_PIX_FMTS:
+        raise ValueError(f"bit_depth must be one of {sorted(BIT_DEPTH_PIX_FMTS)}, got {bit_depth!r}")
+    if primaries is not None and primaries not in PRIMARIES_CODES:
+        raise ValueError(f"primaries must be one of {sorted(PRIMARIES_CODES)} or None, got {primaries!r}")
+    stated = transfer if isinstance(transfer, Transfer) or transfer is None else parse_transfer(transfer)
+    a = _prepare_frames(frames, bit_depth)
+    if not (np.isfinite(fps) and fps > 0):
+        raise MediaError("non_finite", f"fps must be a positive number, got {fps}")
+    codec = codec or video_codec()
+    pix_fmt = BIT_DEPTH_PIX_FMTS[bit_depth]
+    try:
+        encodable = {f.name for f in (av.codec.Codec(codec, "w").video_formats or ())}
+    except Exception as exc:
+        raise ValueError(f"no video encoder {codec!r} in PyAV's ffmpeg ({exc})") from None
+    if encodable and pix_fmt not in encodable:
+        raise ValueError(f"encoder {codec!r} cannot write {bit_depth}-bit video ({pix_fmt})")
+    tagged = stated is not None or primaries is not None or bit_depth > 8
+    matrix = PRIMARIES_CODES[primaries or "bt709"]  # the matrix follows the primaries: BT.709 or BT.2020 NCL
     path = Path(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    codec = video_codec()
     try:
         with av.open(str(tmp), mode="w", format="mp4", options={"movflags": "faststart"}) as container:
             stream = container.add_stream(codec, rate=Fraction(fps).limit_denominator(1001))
-            stream.width, stream.height, stream.pix_fmt = a.shape[2], a.shape[1], "yuv420p"
+            stream.width, stream.height, stream.pix_fmt = a.shape[2], a.shape[1], pix_fmt
             if display_rotation_ccw:
                 stream.set_display_rotation(int(display_rotation_ccw))
+            if tagged:
+                ctx = stream.codec_context
+                ctx.color_trc, ctx.color_primaries = h273_transfer_code(stated), matrix
+                ctx.colorspace, ctx.color_range = matrix, _LIMITED_RANGE
             if codec == "libx264":
                 # mbtree off: with it this x264 encoded the same frames differently from run to run
                 # (even in one thread), and simulated captures and the benches on them must repeat
                 stream.options = {"crf": str(int(crf)), "preset": "medium", "x264-params": "mbtree=0"}
+            elif codec == "libx265":
+                # no B-frames: the libx265 wrapper of PyAV's ffmpeg at times hands out packets with an
+                # uninitialised DTS (the mp4 muxer then fails, 'pts/dts pair unsupported'); without
+                # reordering DTS = PTS, which is set on every packet below
+                stream.options = {"crf": str(int(crf)), "preset": "medium", "x265-params": "log-level=error:bframes=0"}
+                stream.codec_context.codec_tag = "hvc1"  # what Apple's players and Safari want in mp4
             else:
                 stream.bit_rate = 8_000_000
             for image in a:
-                for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
-                    container.mux(packet)
+                if bit_depth > 8:
+                    frame = _deep_frame(image, pix_fmt, bit_depth, matrix)
+                elif tagged:
+                    frame = av.VideoFrame.from_ndarray(image, format="rgb24").reformat(
+                        format=pix_fmt, dst_colorspace=matrix, dst_color_range=_LIMITED_RANGE)
+                else:
+                    frame = av.VideoFrame.from_ndarray(image, format="rgb24")
+                for packet in stream.encode(frame):
+                    container.mux(_with_dts(packet, codec))
             for packet in stream.encode():
-                container.mux(packet)
+                container.mux(_with_dts(packet, codec))
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
