@@ -138,3 +138,56 @@ def test_with_estimated_exposures_the_fit_keeps_mid_grey():
     mid = fit.apply(torch.tensor([0.5]))
     assert abs(float(mid) - 0.5) < 0.01
     assert math.isfinite(fit.fitted_error)
+
+
+# ---------------------------------------------------------------------------------------
+# Files read through their own curve (core.capture.load.decode_transfer)
+# ---------------------------------------------------------------------------------------
+def _hdr_room(T=4, H=48, W=64):
+    """Linear scene light (HLG's scale: the sensor clips at 1): a wall at 0.1 and a lamp at 0.9,
+    3.4x reference white, which an SDR camera exposed for the wall clips."""
+    scene = torch.full((H, W, 3), 0.1)
+    scene[16:32, 24:40] = 0.9
+    return scene[None].expand(T, H, W, 3).clone()
+
+
+def test_an_hlg_10_bit_clip_is_read_to_linear_light_with_its_lamp_unclipped(tmp_path):
+    from core.capture.load import load_capture
+    from core.io import write_video
+
+    hlg = parse_transfer("hlg")
+    scene = _hdr_room()
+    for codec in ("libx265", "libx264"):
+        path = write_video(tmp_path / f"hlg-{codec}.mp4", hlg.from_linear(scene).numpy(), fps=10.0,
+                           transfer="hlg", bit_depth=10, primaries="bt2020", codec=codec)
+        cap = load_capture(path, params=CaptureParams(tracking="off"), track=False)
+        meta = cap.metadata["transfer"]
+        assert meta["curve"] == "hlg" and meta["bit_depth"] == 10 and meta["primaries"] == "bt2020", meta
+        linear = cap.linear()[0]
+        wall, lamp = float(linear[4:12, 4:12].mean()), float(linear[20:28, 28:36].mean())
+        assert lamp / wall == pytest.approx(9.0, rel=0.05), (codec, lamp, wall)  # the 8-bit twin clips it
+        assert float(cap.frames.max()) < 0.99  # nothing reads as clipped
+    sdr = write_video(tmp_path / "sdr.mp4", SRGB.from_linear(scene / 0.3).numpy(), fps=10.0, transfer="srgb")
+    cap = load_capture(sdr, params=CaptureParams(tracking="off"), track=False)
+    assert float(cap.frames[0, 20:28, 28:36].min()) > 0.99  # the SDR twin: the lamp clipped
+
+
+def test_png_chunks_decide_the_curve_and_params_override_them(tmp_path):
+    from core.capture.load import load_capture
+    from core.io import write_png
+
+    linear = torch.linspace(0.01, 1.0, 64).reshape(1, 64, 1).expand(48, 64, 3).contiguous()
+    for transfer in ("srgb", "gamma:2.2", None):
+        code = (SRGB if transfer == "srgb" else parse_transfer(transfer or "gamma:2.4")).from_linear(linear)
+        path = write_png(tmp_path / f"{transfer}.png", code.numpy(), transfer=transfer)
+        cap = load_capture(path, track=False)
+        assert cap.metadata["transfer"]["curve"] == (transfer or "gamma:2.4")
+        assert torch.allclose(cap.linear()[0], linear, atol=0.01, rtol=0.03), transfer
+    cap = load_capture(tmp_path / "srgb.png", params=CaptureParams(transfer="linear"), track=False)
+    assert cap.metadata["transfer"] == {"curve": "linear", "source": "params", "bit_depth": 8, "primaries": "bt709"}
+    from PIL import Image
+
+    Image.fromarray((SRGB.from_linear(linear).numpy() * 255).round().astype("uint8")).save(tmp_path / "plain.png")
+    cap = load_capture(tmp_path / "plain.png", track=False)  # a file that says nothing: sRGB
+    assert cap.metadata["transfer"]["curve"] == "srgb" and "default" in cap.metadata["transfer"]["source"]
+    assert torch.allclose(cap.linear()[0], linear, atol=0.01, rtol=0.03)

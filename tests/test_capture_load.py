@@ -13,6 +13,7 @@ from core.capture.load import capture_from_arrays, load_capture
 from core.capture.params import CaptureParams
 from core.conventions import DEFAULT_HFOV_DEG
 from core.io import write_png, write_video
+from core.transfer import SRGB
 
 
 def _image(tmp_path, h=24, w=32, name="img.png"):
@@ -264,8 +265,9 @@ def test_animated_gif_is_read_as_a_video(tmp_path):
         cap = load_capture(path)
     assert cap.num_frames == 3 and cap.fps == pytest.approx(10.0)
     assert cap.times.tolist() == pytest.approx([0.0, 0.1, 0.2])
-    means = cap.frames.mean(dim=(1, 2, 3))
-    assert torch.allclose(means, torch.tensor([30, 120, 220]) / 255.0, atol=2 / 255)
+    means = cap.frames.mean(dim=(1, 2, 3))  # a GIF states no curve: its codes are read as sRGB
+    assert torch.allclose(means, SRGB.to_convention(torch.tensor([30, 120, 220]) / 255.0), atol=2 / 255)
+    assert cap.metadata["transfer"]["curve"] == "srgb"
 
 
 def test_gif_obeys_frame_and_pixel_limits(tmp_path):

@@ -35,13 +35,14 @@ from core.capture.base import Capture, CaptureError
 from core.capture.depth import resolve_depth
 from core.capture.depth_model import load_depth_estimator
 from core.capture.params import MAX_EXPOSURE_STOPS, CaptureParams
-from core.conventions import DEFAULT_HFOV_DEG, frame_time
+from core.conventions import DEFAULT_HFOV_DEG, GAMMA, frame_time
 from core.io import read_depth, read_image, select_frame_indices, sniff_media
 from core.io.images import decode_image
 from core.io.limits import MediaLimits
 from core.io.metadata import exif_intrinsics
 from core.io.nerfstudio import load_nerfstudio
 from core.io.sniff import ZIP_MAGIC, sniff_image
+from core.transfer import AUTO, SRGB, parse_transfer
 
 DEPTH_MODEL_ENV = "LIGHTFIELD_DEPTH_MODEL"
 
@@ -93,7 +94,8 @@ def _read_image_file(path: Path, limits: MediaLimits) -> dict:
     img = decode_image(path, limits)
     h, w = img.pixels.shape[:2]
     out = {"frames": torch.from_numpy(np.ascontiguousarray(img.pixels, dtype=np.float32))[None],
-           "metadata": {"file": img.metadata.as_dict(), **({"applied": img.applied} if img.applied else {})}}
+           "metadata": {"file": img.metadata.as_dict(), **({"applied": img.applied} if img.applied else {})},
+           "stated_transfer": img.stated_transfer}
     exif = exif_intrinsics(img.metadata, w, h, stored_width=img.stored_size[0])
     if exif is not None:
         out["exif_intrinsics"] = exif
@@ -116,9 +118,12 @@ def _read_capture_dir(root: Path, limits: MediaLimits) -> dict:
         raise CaptureError("frames", "capture.json lists no frames")
     h, w = int(index.get("intrinsics", {}).get("height", 1)), int(index.get("intrinsics", {}).get("width", 1))
     keep = [int(i) for i in select_frame_indices(len(names), h * w, limits)]
+    first = decode_image(root / names[keep[0]], limits)  # what the frames' files say of their curve
     frames = torch.stack([_read_image(root / names[i], limits) for i in keep])
     out = {"frames": frames, "fps": float(index["fps"]) if index.get("fps") else None, "source_indices": keep,
-           "original_count": len(names)}
+           "original_count": len(names), "stated_transfer": first.stated_transfer}
+    if index.get("transfer") is not None:  # the capture app states its camera's curve
+        out["declared_transfer"] = (str(index["transfer"]), "capture.json")
     intr = index.get("intrinsics")
     if intr:
         out["intrinsics_dict"] = intr
@@ -256,7 +261,7 @@ def load_capture(input_path, depth_path=None, params: CaptureParams | None = Non
     warn: list[str] = []
     loaded = read_capture_input(path, limits, warn)
     metadata = dict(loaded.get("metadata", {}))
-    frames = _checked_frames(loaded["frames"])
+    frames = decode_transfer(_checked_frames(loaded["frames"]), params, loaded, metadata)
     T, H, W, _ = frames.shape
     source_idx = loaded.get("source_indices") or list(range(T))
     fps = params.fps or loaded.get("fps") or 1.0
@@ -306,6 +311,7 @@ def read_capture_input(path: Path, limits: MediaLimits, warn: list[str]) -> dict
                 "source_indices": [int(i) for i in vf.source_frame_indices],
                 "original_count": vf.original_frame_count,
                 "times": vf.times,
+                "stated_transfer": vf.stated_transfer,
             }  # presentation timestamps (variable frame rate), else index / fps
             if vf.rotation_ccw_deg:
                 loaded["metadata"] = {
@@ -321,6 +327,39 @@ def read_capture_input(path: Path, limits: MediaLimits, warn: list[str]) -> dict
             raise CaptureError("input", f"{path.name} is neither an image, a video nor a capture directory or zip")
     warn.extend(loaded.get("warnings", []))
     return loaded
+
+
+DEFAULT_TRANSFER_SOURCE = "default: the file states no transfer, read as sRGB (what cameras and phones write)"
+# linear BT.2020 RGB -> linear BT.709 / sRGB RGB (ITU-R BT.2087); out-of-gamut colours clip at 0
+BT2020_TO_BT709 = torch.tensor([[1.6605, -0.5876, -0.0728], [-0.1246, 1.1329, -0.0083], [-0.0182, -0.1006, 1.1187]])
+
+
+def decode_transfer(frames: torch.Tensor, params: CaptureParams, loaded: dict, metadata: dict) -> torch.Tensor:
+    """The frames' code values decoded from their camera's transfer into the engine's convention
+    (core.transfer): params.transfer unless 'auto', else what the capture file declares
+    (capture.json), else what the image or video file says, else sRGB. `metadata["transfer"]`
+    records the curve, where it came from, and the file's bit depth and primaries."""
+    stated = loaded.get("stated_transfer")
+    if params.transfer != AUTO:
+        transfer, source = parse_transfer(params.transfer), "params"
+    elif loaded.get("declared_transfer") is not None:
+        text, where = loaded["declared_transfer"]
+        try:
+            transfer, source = parse_transfer(text), where
+        except ValueError as exc:
+            raise CaptureError("transfer", f"{where}: {exc}") from None
+    elif stated is not None and stated.transfer is not None:
+        transfer, source = stated.transfer, stated.source
+    else:
+        transfer, source = SRGB, DEFAULT_TRANSFER_SOURCE
+    primaries = None if stated is None else stated.primaries
+    bits = None if stated is None else stated.bit_depth
+    metadata["transfer"] = {"curve": str(transfer), "source": source, "bit_depth": bits,
+                            "primaries": primaries or "bt709"}
+    if primaries != "bt2020":
+        return transfer.to_convention(frames)
+    linear = (transfer.to_linear(frames) @ BT2020_TO_BT709.T).clamp(0.0, 1.0)
+    return linear.pow(1.0 / GAMMA)
 
 
 def _checked_frames(frames: torch.Tensor) -> torch.Tensor:

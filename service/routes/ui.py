@@ -71,6 +71,12 @@ class CaptureView(BaseModel):
                                                           "file, or estimated (asked for, or a moving camera "
                                                           "taken to auto-expose); null: one locked exposure")
     frame_ev: list[float] | None = Field(None, description="the stored frames' exposures in stops (null: none)")
+    transfer: dict | None = Field(None, description="the camera's transfer function the frames were decoded with: "
+                                                    "curve, where it came from (params, the file, or the sRGB "
+                                                    "default), bit depth, primaries (null: an older artefact)")
+    response: dict | None = Field(None, description="the camera response estimated from frames at different "
+                                                    "exposures: whether it was used, and how well each curve "
+                                                    "explains held-out frames (null: not estimated)")
     notes: list[str] = Field(default_factory=list, description="what was taken from the file's metadata and applied")
     warnings: list[str] = Field(default_factory=list, description="the capture's warnings (assumptions, fallbacks)")
 
@@ -165,6 +171,10 @@ def get_capture(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppConte
         else None,
         exposure_source=meta.get("exposure_source"),
         frame_ev=None if preview.stated_ev is None else [round(float(e), 4) for e in preview.stated_ev],
+        transfer=meta.get("transfer"),
+        response={k: v for k, v in meta["response"].items() if k not in ("codes", "log_linear")}
+        if meta.get("response")
+        else None,
         notes=notes,
         warnings=list(summary.get("warnings", [])),
     )
