@@ -75,6 +75,18 @@ def test_lamp_switching_off_is_temporal():
     assert d.statistic > 2 * d.threshold
 
 
+def test_a_moving_camera_that_could_not_be_tracked_is_never_read_as_a_change_of_light():
+    """The same frames that read as a switch from a still camera read as static light when tracking
+    found the camera moving and registered no track (the frames stand at a pose not theirs)."""
+    capture = capture_from_arrays(_frames([True] * 4 + [False] * 4, noise=0.02))
+    assert detect_temporal(capture).uses_time
+    capture.metadata["tracking"] = {"method": "failed:static-fallback", "camera_moves": True}
+    d = detect_temporal(capture)
+    assert not d.uses_time and "could not be tracked" in d.reason
+    capture.metadata["tracking"] = {"method": "static", "camera_moves": False}  # a still camera: a switch again
+    assert detect_temporal(capture).uses_time
+
+
 def test_global_dimming_is_temporal_and_compression_does_not_hide_it():
     frames = torch.stack([tonemap(_albedo() * 0.5 * s) for s in (1.0, 1.0, 0.6, 0.6)])
     d = detect_temporal(capture_from_arrays(_jpeg_roundtrip(frames)))

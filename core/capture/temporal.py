@@ -269,11 +269,26 @@ def detect_temporal_moving(capture) -> TemporalDecision:
     return TemporalDecision(uses, stat, thr, reason)
 
 
+UNTRACKED_MOTION = ("the camera moves but could not be tracked: a turning view cannot be told from a change of "
+                    "light without the camera's motion, so the light is taken as static (give poses, or a capture "
+                    "app's export, to estimate a light that changes)")
+
+
+def untracked_motion(capture) -> bool:
+    """True when tracking found the camera moving but registered no track, so the frames stand at
+    one pose that they were not taken from (core.tracking.track: 'failed:static-fallback')."""
+    tracking = capture.metadata.get("tracking") or {}
+    return bool(tracking.get("camera_moves")) and str(tracking.get("method", "")).startswith("failed")
+
+
 def detect_temporal(capture) -> TemporalDecision:
-    """Automatic decision (see module docstring)."""
+    """Automatic decision (see module docstring). A moving camera that could not be tracked is
+    never read as a change of light (`untracked_motion`)."""
     T = capture.num_frames
     if T < 2:
         return TemporalDecision(False, 0.0, 0.0, "single frame: no time input")
+    if untracked_motion(capture):
+        return TemporalDecision(False, float("nan"), float("nan"), UNTRACKED_MOTION)
     if not capture.static_camera:
         return detect_temporal_moving(capture)
     l = block_log_luminance(capture)  # [T, B]
