@@ -26,6 +26,7 @@ from core.engine.distill import DistillResult, distill, torch_threads
 from core.engine.params import JobParams, ResolvedJob, job_prior_settings, resolve_job  # noqa: F401 (job_prior_settings: re-exported)
 from core.engine.progress import CancelCheck, Progress, ProgressCallback, Reporter, StageTimer
 from core.engine.scene import distinct_geometry, scene_bounds
+from core.engine.self_check import self_check
 from core.fields.stored.artefact import LightFieldArtefact, save_artefact
 from core.priors.base import Prior
 from core.priors.registry import build_prior
@@ -84,8 +85,11 @@ def run_job(
         capture = _capture_stage(input_path, depth_path, params, limits, reporter, timings, on_capture)
         run = _distillation_stage(capture, job, prior, prior_factory, device, reporter, timings, checkpoint_dir)
 
+    with timings("self_check"):
+        quality = self_check(run.result.field, run.work, run.decision.uses_time)
     reporter.stage("saving", 0.98, "writing artefact")
     meta = job_metadata(capture, run, params, job.config, timings, wall_time_s=time.perf_counter() - t_start)
+    meta["quality"] = quality
     with timings("saving"):
         artefact = save_artefact(out_dir, run.result.field, meta)
     if checkpoint_dir is not None:
