@@ -39,7 +39,7 @@ import json
 import numpy as np
 
 from core.export.sh_layouts import to_layout
-from core.io.images import encode_png
+from core.io.images import UNTAGGED, encode_png
 
 EXTENSION = "EXT_lights_image_based"
 PUNCTUAL = "KHR_lights_punctual"
@@ -97,7 +97,7 @@ def build_glb(mips: list[np.ndarray], radiance_sh: np.ndarray, x, t: float | Non
     for level in mips:
         faces = []
         for face in np.asarray(level, np.float32):
-            png = encode_png(rgbd_encode(face[:, ::-1] / scale))  # mirrored left-right (see module doc)
+            png = encode_png(rgbd_encode(face[:, ::-1] / scale), UNTAGGED)  # mirrored left-right (see module doc)
             views.append(g.BufferView(buffer=0, byteOffset=len(blob), byteLength=len(png)))
             blob += png + bytes(-len(png) % 4)
             images.append(g.Image(bufferView=len(views) - 1, mimeType="image/png"))

@@ -226,11 +226,15 @@ def _png_bytes(a: np.ndarray, transfer: str | Transfer | None = None) -> bytes:
     return png if transfer is None else insert_after_ihdr(png, png_colour_chunks(transfer))
 
 
+UNTAGGED = "untagged"  # encode_png: no colour chunk (data packed in an image: glTF's RGBD faces)
+
+
 def encode_png(ldr: np.ndarray, transfer: str | Transfer | None = None) -> bytes:
     """8-bit PNG bytes from float in [0, 1] (clipped, rounded) or uint8, RGB(A) or grey.
     `transfer` states what the values are: None, the engine's convention (gamma:2.4), writes a
     gAMA chunk of 1/2.4 (0.41667); 'srgb' an sRGB chunk (rendering intent 0, with gAMA 0.45455);
-    'gamma:G' gAMA 1/G; 'linear' gAMA 1; 'rec709', 'hlg', 'pq' a cICP chunk (core.io.colour).
+    'gamma:G' gAMA 1/G; 'linear' gAMA 1; 'rec709', 'hlg', 'pq' a cICP chunk (core.io.colour);
+    UNTAGGED none (values that are data, not light: glTF validators warn on colour chunks).
     The values are written as given, never converted."""
     a = _check_image_array(ldr, "PNG image")
     if a.dtype != np.uint8:
@@ -238,7 +242,7 @@ def encode_png(ldr: np.ndarray, transfer: str | Transfer | None = None) -> bytes
         if not np.isfinite(a).all():
             raise MediaError("non_finite", f"PNG image has {int((~np.isfinite(a)).sum())} NaN/inf values")
         a = np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
-    return _png_bytes(a, CONVENTION if transfer is None else transfer)
+    return _png_bytes(a, None if transfer == UNTAGGED else CONVENTION if transfer is None else transfer)
 
 
 def write_png(path: str | os.PathLike, ldr: np.ndarray, transfer: str | Transfer | None = None) -> Path:
