@@ -36,6 +36,14 @@ def test_sh_layouts_agree_and_the_light_says_how_sure_it_is(stack, job):
         arcore = c.get(f"/lightfield/{job}/sh", params={"x": x}).json()
         three = c.get(f"/lightfield/{job}/sh", params={"x": x, "layout": "threejs"}).json()
     assert arcore["layout"] == "arcore" and three["layout"] == "threejs"
+    with stack.client() as c:  # the job's self-check travels with every answer
+        sh = c.get(f"/lightfield/{job}/sh", params={"x": x})
+        env = c.get(f"/lightfield/{job}/envmap", params={"x": x, "height": 8})
+        info = c.get(f"/lightfield/{job}").json()
+    grade = info["metadata"]["quality"]
+    assert grade["grade"] in ("explained", "partly explained", "worse than a constant map"), grade
+    assert sh.headers["X-Lightfield-Grade"] == env.headers["X-Lightfield-Grade"]
+    assert sh.headers["X-Lightfield-Grade"].startswith(f"{grade['grade']}; residual_ratio={grade['residual_ratio']}")
     a = np.reshape(arcore["coefficients"], (9, 3))
     t = np.reshape(three["coefficients"], (9, 3))
     np.testing.assert_allclose(t[[0, 2, 4, 6, 8]], a[[0, 2, 4, 6, 8]], rtol=1e-6)

@@ -46,6 +46,7 @@ _ERRORS = {s: {"model": ErrorBody} for s in (401, 404, 409, 410, 413, 422, 503)}
 CONVENTIONS_HEADER = "X-Lightfield-Conventions"
 EXTRAPOLATED_HEADER = "X-Lightfield-Extrapolated"
 QUALITY_HEADER = "X-Lightfield-Quality"
+GRADE_HEADER = "X-Lightfield-Grade"  # the self-check (core.engine.self_check): how well the field explains its frames
 CUBE_FACES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
 X_HELP = "world position 'X,Y,Z' in metres: three finite numbers, each within +-1e6"
 T_HELP = "seconds from the first frame"
@@ -63,6 +64,16 @@ async def _field_async(job_id: str, tenant: Tenant, ctx: AppContext) -> CachedFi
     """The job's loaded field: from memory when it was found succeeded a moment ago (no Redis
     round trip, no thread hop: the hot path), else checked and loaded in the threadpool."""
     return recent_field(job_id, tenant, ctx) or await run_in_threadpool(job_field, job_id, tenant, ctx)
+
+
+def _grade(cf: CachedField) -> str:
+    """'GRADE; residual_ratio=R; frames_explained=K/N' from the artefact's self-check ('unchecked' for
+    an artefact made before the check)."""
+    q = cf.artefact.meta.get("quality") or {}
+    if not q.get("grade"):
+        return "unchecked"
+    return (f"{q['grade']}; residual_ratio={q.get('residual_ratio')}; "
+            f"frames_explained={q.get('frames_explained')}/{q.get('frames_checked')}")
 
 
 def _npy(array: np.ndarray) -> bytes:
@@ -127,7 +138,7 @@ async def get_envmap(
         (data, media_type), flags, used = answer.value, answer.flags, answer.quality
     return Response(data, media_type=media_type, headers={
         CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, EXTRAPOLATED_HEADER: flags.header(),
-        QUALITY_HEADER: used, "Content-Disposition": f'inline; filename="envmap.{format}"',
+        QUALITY_HEADER: used, GRADE_HEADER: _grade(cf), "Content-Disposition": f'inline; filename="envmap.{format}"',
     })
 
 
@@ -157,6 +168,7 @@ async def post_envmaps(job_id: str, body: EnvmapBatchRequest, response: Response
         for q in body.queries))
     response.headers[CONVENTIONS_HEADER] = CONVENTIONS_SUMMARY
     response.headers[QUALITY_HEADER] = body.quality
+    response.headers[GRADE_HEADER] = _grade(cf)
     return EnvmapBatchResponse(height=body.height, width=2 * body.height, format=body.format, items=[
         EncodedEnvmap(x=q.x, t=q.t, extrapolated=Flags(x=a.flags.x, t=a.flags.t), media_type=a.value[1],
                       data_base64=base64.b64encode(a.value[0]).decode())
@@ -183,6 +195,7 @@ async def get_sh(job_id: str, response: Response, x: str = XQuery, t: float = TQ
     response.headers[CONVENTIONS_HEADER] = CONVENTIONS_SUMMARY
     response.headers[EXTRAPOLATED_HEADER] = flags.header()
     response.headers[QUALITY_HEADER] = answer.quality
+    response.headers[GRADE_HEADER] = _grade(cf)
     return SphericalHarmonics.of(point, t, Flags(x=flags.x, t=flags.t), layout, light, full_sh)
 
 
