@@ -19,6 +19,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--height", type=int, default=64, help="ground-truth env map height (width = 2 x height)")
     p.add_argument("--no-video", action="store_true", help="skip video.mp4")
     p.add_argument(
+        "--curve", default=None, choices=("drawn", "srgb", "rec709", "filmic", "hlg10", "gamma2.4"),
+        help="the camera curve the frames are encoded with and declare (core.sim.camera_curves; default: the spec's "
+             "`sensor.curve`, 'drawn' by the scene's name unless it names one; gamma2.4 is the reference, the curve "
+             "the product used to assume)",
+    )
+    p.add_argument(
         "--training-export",
         metavar="DIR",
         default=None,
@@ -54,6 +60,8 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         scene = load_spec(args.spec)
+        if getattr(args, "curve", None):
+            scene = scene.model_copy(update={"sensor": scene.sensor.model_copy(update={"curve": args.curve})})
         probes = parse_probes(args.probes) if args.probes else None
         doc = write_capture(scene, args.output, probes=probes, envmap_height=args.height, video=not args.no_video)
         summary = {
@@ -61,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
             "frames": doc["frame_count"],
             "probes": len(doc["probes"]),
             "effects": sorted(scene.effects),
+            "camera_curve": doc["camera_curve"],
             "cost": doc["cost"],
         }
         if args.training_export:

@@ -1,7 +1,10 @@
 """Write a simulated capture directory (format: docs/simulator.md, "lightfield-capture" v1).
 
 The engine's capture loader reads it unchanged: LDR PNG frames + mp4, HDR EXR frames,
-planar depth (.npz), intrinsics, c2w poses, the scene spec and ground-truth env maps.
+planar depth (.npz), intrinsics, c2w poses, the scene spec and ground-truth env maps. The
+frames are the scene's camera's codes (core.sim.camera_curves, `sensor.curve`): the PNGs and
+the mp4 declare what that camera's files declare, and capture.json states the transfer as a
+capture app does (`transfer`) and, for the benches, the curve itself (`camera_curve`).
 """
 from __future__ import annotations
 
@@ -14,7 +17,7 @@ import numpy as np
 
 from core.sim.cost import CostReport
 from core.sim.render import check_probe, render_envmap, render_frame
-from core.sim.sensor import exposure_ev, frame_evs, sensor_sequence
+from core.sim.sensor import exposure_ev, frame_evs, scene_curve, sensor_sequence
 from core.sim.spec import ProbePoint, SceneSpec, SceneSpecError
 
 CAPTURE_FORMAT = "lightfield-capture"
@@ -57,8 +60,7 @@ def write_capture(
     `probes=None` uses the scene's own held-out probes."""
     from core.io.depth import write_depth_npz  # noqa: PLC0415 — core.io.depth pulls in av, cv2, OpenEXR, PIL: imported when used
     from core.io.exr import atomic_write, write_exr  # noqa: PLC0415 — core.io.exr pulls in av, cv2, OpenEXR, PIL: imported when used
-    from core.io.images import write_png  # noqa: PLC0415 — core.io.images pulls in av, cv2, OpenEXR, PIL: imported when used
-    from core.io.video import write_video  # noqa: PLC0415 — core.io.video pulls in av, cv2, OpenEXR, PIL: imported when used
+    from core.sim.camera_curves import write_png, write_video  # noqa: PLC0415 — core.io pulls in av, cv2, OpenEXR, PIL: imported when used
 
     probes = list(scene.probes if probes is None else probes)
     _check_probes(scene, probes)
@@ -66,6 +68,7 @@ def write_capture(
     for sub in ("frames", "hdr", "gt"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     cost = CostReport()
+    curve = scene_curve(scene)
     renders = []
     for i in range(scene.frames):
         r = render_frame(scene, i)
@@ -76,13 +79,13 @@ def write_capture(
     for i, (r, image) in enumerate(zip(renders, ldr)):
         frame_paths.append(f"frames/{i:05d}.png")
         hdr_paths.append(f"hdr/{i:05d}.exr")
-        write_png(out / frame_paths[-1], image)
+        write_png(out / frame_paths[-1], image, curve)
         write_exr(out / hdr_paths[-1], r.hdr.numpy())
     write_depth_npz(out / "depth.npz", np.stack([r.depth.numpy() for r in renders]))
     video_path = None
     if video:
         video_path = "video.mp4"
-        write_video(out / video_path, ldr, scene.fps)
+        write_video(out / video_path, ldr, scene.fps, curve)
     probe_docs = []
     for i, p in enumerate(probes):
         env = render_envmap(scene, p.x, p.t, envmap_height, cost)
@@ -104,6 +107,11 @@ def write_capture(
         "hdr_frames": hdr_paths,
         "scene": "scene.json",
         "exposure_ev": exposure_ev(scene),
+        # what the capture app states of its camera's transfer (core.capture.load reads it), and the
+        # curve itself (informational: the ground truth a bench linearises with; the tone curve of
+        # `filmic` is not stated, as phones do not state theirs)
+        "transfer": curve.oetf,
+        "camera_curve": curve.name,
         "probes": probe_docs,
     }
     if scene.has("sensor") and scene.sensor.auto_exposure:

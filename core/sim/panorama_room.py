@@ -6,6 +6,11 @@ to it, so a camera AT the centre sees exactly perspective crops of the panorama 
 rotation), and a camera elsewhere sees the same textured walls with true parallax. Depth,
 poses and the env map at any point inside are exact (ray casts of the same box), which is
 what tracking and room-fitting tests need: real photographic texture, known answers.
+
+Frames: `ldr_clip` / `render_clip` with a camera curve (core.sim.camera_curves) give that
+camera's file codes (what a bench writes as a PNG or an MP4 declaring the curve); without one
+they give the frames as the engine holds them after loading (its convention, for captures
+built in memory with core.capture.load.capture_from_arrays).
 """
 from __future__ import annotations
 
@@ -18,6 +23,7 @@ from core.camera import Camera
 from core.conventions import equirect_directions
 from core.envmap import check_envmap, resize_envmap, sample_envmap
 from core.exposure import display_tonemap
+from core.sim.camera_curves import CameraCurve, display_exposure
 from core.tracking.room import RoomBox
 
 
@@ -57,21 +63,25 @@ class PanoramaRoom:
         return self.radiance(o, d)[0]
 
 
-def ldr_clip(hdr_frames: torch.Tensor, percentile: float = 99.0) -> torch.Tensor:
-    """8-bit LDR frames [T, H, W, 3] with ONE exposure for the whole clip (DiffusionLight's
-    TonemapHDR rule, fixed from all frames together: a locked exposure, no flicker)."""
+def ldr_clip(hdr_frames: torch.Tensor, percentile: float = 99.0, curve: CameraCurve | None = None) -> torch.Tensor:
+    """Frames [T, H, W, 3] with ONE exposure for the whole clip (DiffusionLight's TonemapHDR
+    rule, fixed from all frames together: a locked exposure, no flicker): `curve`'s codes at its
+    bit depth, or (None) 8-bit frames in the engine's convention (in-memory captures)."""
     flat = hdr_frames.reshape(1, -1, 3)
+    if curve is not None:
+        return curve.encode(hdr_frames * display_exposure(flat, percentile, 0.9))
     ldr = display_tonemap(flat, percentile=percentile, gamma=2.4, max_mapping=0.9).reshape(hdr_frames.shape)
     return torch.round(ldr * 255.0) / 255.0
 
 
 def render_clip(
-    room: PanoramaRoom, cameras: list[Camera], supersample: int = 2
+    room: PanoramaRoom, cameras: list[Camera], supersample: int = 2, curve: CameraCurve | None = None
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(LDR frames [T, H, W, 3] 8-bit-quantised at one exposure, planar depth [T, H, W], HDR frames)."""
+    """(frames [T, H, W, 3] at one exposure (`ldr_clip`: the curve's codes, or the engine's
+    convention), planar depth [T, H, W], HDR frames)."""
     out = [room.render(c, supersample) for c in cameras]
     hdr = torch.stack([o[0] for o in out])
-    return ldr_clip(hdr), torch.stack([o[1] for o in out]), hdr
+    return ldr_clip(hdr, curve=curve), torch.stack([o[1] for o in out]), hdr
 
 
 def load_panorama(path, height: int | None = None) -> torch.Tensor:

@@ -16,8 +16,9 @@ sits at the panorama's centre, so every frame is an exact perspective crop of it
   each frame (the lag a real auto-exposure has). Nothing is stretched: the span is what the
   room makes it, 2-7 stops over the rooms here (floor in shadow to ceiling with its lamps);
   `span_stops` rescales the course of goals in log for a test that wants a given span.
-* Sensor: the tone map of core.conventions at each frame's exposure, 8-bit, H.264 (the caller
-  writes the video).
+* Sensor: a camera curve (core.sim.camera_curves) at each frame's exposure, quantised to its
+  bit depth, H.264 declaring the curve (the caller writes the video: `write_scan`); without a
+  curve, 8-bit frames in the engine's convention (a capture built in memory).
 """
 from __future__ import annotations
 
@@ -29,9 +30,10 @@ from pathlib import Path
 import torch
 
 from core.camera import Camera, Intrinsics
-from core.conventions import equirect_width, inverse_tonemap, tonemap
+from core.conventions import equirect_width, expose, inverse_tonemap, tonemap
 from core.envmap import resize_envmap, rotate_envmap, sample_envmap
 from core.exposure import luminance
+from core.sim.camera_curves import CameraCurve, get_curve, write_video
 from core.sim.panorama_room import load_panorama
 
 SCAN_FPS = 10.0
@@ -50,12 +52,17 @@ MID_GREY = 0.18
 
 @dataclass(frozen=True)
 class ScanClip:
-    ldr: torch.Tensor  # [T, H, W, 3] 8-bit-quantised LDR at each frame's exposure
+    ldr: torch.Tensor  # [T, H, W, 3] the camera curve's codes (or the convention's 8-bit LDR) at each frame's exposure
     hdr: torch.Tensor  # [T, H, W, 3] linear radiance (the truth the sensor saw)
     evs: list[float]  # each frame's exposure in stops (unknown to the product)
     poses: list[torch.Tensor]  # [4, 4] c2w, world = the panorama's frame
     intrinsics: Intrinsics
     span_stops: float  # the exposure's range over the clip
+    curve: CameraCurve | None = None  # the camera's curve (None: frames in the engine's convention)
+
+    def linear(self) -> torch.Tensor:
+        """The frames [T, H, W, 3] linearised with the curve they were encoded with."""
+        return inverse_tonemap(self.ldr) if self.curve is None else self.curve.decode(self.ldr)
 
 
 def _rotation(yaw_deg: float, pitch_deg: float, roll_deg: float) -> torch.Tensor:
@@ -122,9 +129,10 @@ def lagging_auto_exposure(hdr: torch.Tensor, span_stops: float | None = None, sp
 
 def render_scan(panorama: torch.Tensor, yaw0: float = 0.0, seed: int = 0, span_stops: float | None = None,
                 size: tuple[int, int] = SCAN_SIZE, hfov_deg: float = SCAN_HFOV_DEG, supersample: int = 2,
-                path: str = "scan") -> ScanClip:
+                path: str = "scan", curve: CameraCurve | None = None) -> ScanClip:
     """A room scan (or, path "pan", a pan: scan_angles) of `panorama` [h, 2h, 3] (linear HDR, the
-    camera at its centre)."""
+    camera at its centre), encoded with the camera `curve` (None: 8-bit frames in the engine's
+    convention, for captures built in memory)."""
     intr = Intrinsics.from_hfov(size[0], size[1], hfov_deg)
     big = intr.scaled(size[0] * supersample, size[1] * supersample)
     poses = scan_poses(yaw0, seed, path=path)
@@ -136,8 +144,11 @@ def render_scan(panorama: torch.Tensor, yaw0: float = 0.0, seed: int = 0, span_s
         frames.append(torch.nn.functional.avg_pool2d(rgb, supersample)[0].permute(1, 2, 0))
     hdr = torch.stack(frames).float()
     evs = lagging_auto_exposure(hdr, span_stops)
-    ldr = torch.stack([torch.round(tonemap(h, ev) * 255.0) / 255.0 for h, ev in zip(hdr, evs)])
-    return ScanClip(ldr, hdr, evs, poses, intr, max(evs) - min(evs))
+    if curve is None:
+        ldr = torch.stack([torch.round(tonemap(h, ev) * 255.0) / 255.0 for h, ev in zip(hdr, evs)])
+    else:
+        ldr = torch.stack([curve.encode(expose(h, ev)) for h, ev in zip(hdr, evs)])
+    return ScanClip(ldr, hdr, evs, poses, intr, max(evs) - min(evs), curve)
 
 
 def scan_truth(panorama: torch.Tensor, clip: ScanClip, height: int, first: int = 0) -> torch.Tensor:
@@ -147,22 +158,35 @@ def scan_truth(panorama: torch.Tensor, clip: ScanClip, height: int, first: int =
 
 
 def scan_constant_map(clip: ScanClip, height: int) -> torch.Tensor:
-    """The baseline to beat: a constant map of the clip's mean linearised colour."""
-    mean = inverse_tonemap(clip.ldr).reshape(-1, 3).mean(0)
+    """The baseline to beat: a constant map of the clip's mean colour, linearised with the
+    curve the clip was encoded with (`ScanClip.linear`)."""
+    mean = clip.linear().reshape(-1, 3).mean(0)
     return mean.expand(height, equirect_width(height), 3).clone()
+
+
+def write_scan(path, clip: ScanClip) -> Path:
+    """The clip as the phone's MP4: its codes at the curve's bit depth, the stream declaring the
+    curve's transfer. A clip without a curve holds the engine's convention, which no camera
+    writes: it is refused (render the scan with a curve)."""
+    if clip.curve is None:
+        raise ValueError("a scan without a camera curve is in the engine's convention, not a camera's file: "
+                         "render it with render_scan(..., curve=...)")
+    return write_video(path, clip.ldr, SCAN_FPS, clip.curve)
 
 
 SAMPLE_PANORAMA = Path(__file__).resolve().parents[2] / "assets" / "sample_panorama.hdr"  # bundled (CC0)
 SAMPLE_SEED = 7
+# The sample's camera: a phone's SDR video (BT.709, 8-bit, declared), which every browser plays
+# (the web page shows it; 10-bit HLG H.264 plays in few).
+SAMPLE_CURVE = "rec709"
 
 
 def write_sample_scan(out_dir) -> tuple[Path, ScanClip, torch.Tensor]:
     """(MP4 path, ScanClip, panorama) of the bundled panorama's room scan, written as a phone
-    would upload it (8-bit H.264, no poses): the demo's and the web page's sample."""
-    from core.io.video import write_video  # noqa: PLC0415 — core.io.video pulls in av, cv2, OpenEXR, PIL: imported when used
-
+    would upload it (8-bit BT.709 H.264 declaring its transfer, no poses): the demo's and the
+    web page's sample."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     pano = load_panorama(SAMPLE_PANORAMA, 256)
-    clip = render_scan(pano, yaw0=0.0, seed=SAMPLE_SEED)
-    return write_video(out_dir / "room_scan.mp4", clip.ldr.numpy(), SCAN_FPS), clip, pano
+    clip = render_scan(pano, yaw0=0.0, seed=SAMPLE_SEED, curve=get_curve(SAMPLE_CURVE))
+    return write_scan(out_dir / "room_scan.mp4", clip), clip, pano

@@ -174,8 +174,14 @@ class CameraSpec(_Model):
         return self
 
 
+# The camera curves a scene can name (core.sim.camera_curves.NAMES), or "drawn": one of the
+# realistic curves a capture directory's 8-bit PNG frames can hold, drawn by the scene's name.
+CameraCurveName = Literal["drawn", "srgb", "rec709", "filmic", "hlg10", "gamma2.4"]
+
+
 class SensorSpec(_Model):
-    """Used only when the scene declares the `sensor` effect; otherwise LDR = tonemap(hdr, 0)."""
+    """Used only when the scene declares the `sensor` effect (otherwise the ideal sensor: ev 0,
+    no noise, no compression), except `curve`: every camera writes its file through a curve."""
 
     ev: float = Field(default=0.0, ge=-20.0, le=20.0, description="exposure (with auto_exposure: its compensation)")
     auto_exposure: bool = Field(default=False, description="a phone's auto-exposure: each frame's ev moves toward "
@@ -187,6 +193,11 @@ class SensorSpec(_Model):
     noise_sigma: float = Field(default=0.0, ge=0.0, le=1.0, description="Gaussian noise std in LDR units, before 8-bit")
     video_compression: bool = False
     crf: int = Field(default=23, ge=0, le=51)
+    curve: CameraCurveName = Field(
+        default="drawn", description="the camera curve (core.sim.camera_curves) the frames are encoded with and "
+        "their files declare, with or without the `sensor` effect: 'drawn' (one of srgb, rec709, filmic, drawn by "
+        "the scene's name), or a name ('hlg10' is video only: a capture directory's PNG frames take srgb; "
+        "'gamma2.4' is the reference, the curve the product used to assume)")
 
 
 class RenderQuality(_Model):
