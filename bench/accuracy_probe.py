@@ -62,12 +62,15 @@ def probe_method(name: str, base) -> "Method":
 
 
 def constant_maps(suite, height: int) -> torch.Tensor:
+    from bench.suite.simulated import capture_linear
     from core.capture.load import load_capture
     from core.conventions import equirect_width
     from core.engine.params import JobParams
 
     cap = load_capture(suite.capture_dir, params=JobParams(**suite.params))
-    linear = cap.linear()  # a stated per-frame exposure removed, as the job does
+    # linearised with the capture's own camera curve (not the engine's reading of its file, which
+    # keeps a filmic tone curve in), a stated per-frame exposure removed, as the job does
+    linear = capture_linear(suite.capture_dir, cap)
     out = []
     for p in suite.probes:
         i = int(torch.argmin((cap.times.double() - float(p.t)).abs()))
@@ -236,6 +239,8 @@ def without_frame_ev(capture_dir: Path, out: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from core.sim.camera_curves import add_curve_argument
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--suites", default="spatial,temporal,moving-camera,hard")
     p.add_argument("--methods", default="field", help="comma list of field, field-balls")
@@ -259,6 +264,7 @@ def main(argv: list[str] | None = None) -> int:
                         "the camera's exposure; 'locked' turns off the default's auto-exposure detection")
     p.add_argument("--cache-dir", default=None)
     p.add_argument("-o", "--output", default=None)
+    add_curve_argument(p, allow_all=False)  # the suites' camera curve: drawn per scene, or forced
     p.add_argument(
         "--table", default=None, metavar="REPORT_JSON", help="print the markdown table of a saved report and exit"
     )
@@ -285,9 +291,10 @@ def main(argv: list[str] | None = None) -> int:
     scratch = tempfile.TemporaryDirectory()  # the copies of `--withhold-frame-ev`
     report: dict = {"overrides": overrides, "seed": args.seed, "extra_probes": args.extra_probes,
                     "probe_seed": args.probe_seed, "temporal": args.temporal, "frame_ev": args.frame_ev,
-                    "withhold_frame_ev": args.withhold_frame_ev, "suites": {}}
+                    "withhold_frame_ev": args.withhold_frame_ev, "curve": args.curve, "suites": {}}
     for name in args.suites.split(","):
-        suite = with_extra_probes(load_suite(name, cache, None, args.gt_height), args.extra_probes, args.probe_seed)
+        suite = with_extra_probes(load_suite(name, cache, None, args.gt_height, args.curve), args.extra_probes,
+                                  args.probe_seed)
         if args.withhold_frame_ev:
             suite = dataclasses.replace(
                 suite, capture_dir=without_frame_ev(suite.capture_dir, Path(scratch.name) / name)

@@ -1,14 +1,16 @@
 """Auto-exposure pans of real panoramas: what an unrecorded exposure does to a job, and what
 `frame_ev="estimate"` recovers (docs/captures.md, "Exposure").
 
-    python -m bench.auto_exposure_pans --split dev [--limit N] [--iterations 200] [-o out.json]
+    python -m bench.auto_exposure_pans --split dev [--limit N] [--iterations 200] [--curve drawn|NAME|all] [-o out.json]
 
 Per panorama of MANIFEST.tsv (`--split`; tune on dev, report test once): a phone-style pan
 from one spot (PAN_DEG of yaw with a pitch wobble, 60 deg FOV, FRAMES frames) of the panorama
 pasted on the assumed box room (core.sim.panorama_room), scaled so the clip's mean luminance is
-mid-grey, exposed per frame by a phone-style auto-exposure (core.sim.sensor.metered_evs), tone
-mapped (core.conventions.tonemap), 8-bit, H.264 at 10 fps: a plain video with no poses, no
-intrinsics, no exposures, as a user uploads it. Then:
+mid-grey, exposed per frame by a phone-style auto-exposure (core.sim.sensor.metered_evs),
+encoded by the phone's camera curve (core.sim.camera_curves, `--curve`: by default drawn per
+panorama from srgb, rec709, filmic and hlg10; 8 or 10 bits), H.264 at 10 fps declaring the
+curve's transfer: a plain video with no poses, no intrinsics, no exposures, as a user uploads
+it (each row's `curve`; summaries per curve in `summary_per_curve`). Then:
 * `decision`: the temporal decision of the capture as loaded and tracked with `frame_ev`
   unset (`auto`: the product's default, which looks for a moving camera's auto-exposure),
   `"locked"` (no exposure handling) and `"estimate"` (static light is the truth);
@@ -20,7 +22,8 @@ intrinsics, no exposures, as a user uploads it. Then:
   steps, work height 72), the env map at the camera (the origin) at t = 0 and at the last
   frame's time; `drift_stops` = |log2| of the ratio of their mean luminances (static light:
   0 is right), and the t = 0 map's diffuse rel si-RMSE against the panorama rotated into the
-  first camera, with a constant map of frame 0's mean linear colour beside it;
+  first camera, with a constant map of frame 0's mean colour beside it (linearised with the
+  clip's own camera curve);
   `map_change_stops` = the RMS over the sphere of log2 of the two maps' luminance ratio: how
   much the answer at the camera changed over the clip (static light: 0 is right; an
   auto-exposure keeps each frame's mean near mid-grey, so the level alone barely moves while
@@ -49,16 +52,28 @@ FPS = 10.0
 WORK_HEIGHT = 72
 GT_HEIGHT = 64
 DIMMING = 0.5  # the locked-exposure control: the light halved from the middle frame on
+
+
+def pan_curve(filename: str, curve: str = "drawn"):
+    """The camera curve of the panorama's pans (`curve` "drawn": drawn by the capture's name,
+    this bench and the file, among every realistic curve of a video; a name forces it)."""
+    from core.sim.camera_curves import VIDEO, resolve
+
+    return resolve(curve, f"auto_exposure_pans:{filename}", VIDEO)
+
+
 def ae_clip(pano: torch.Tensor, yaw: float, pitch: float, dimming: float | None = None, *, speed: float = 0.5,
-            delay: int = 0, light=None):
-    """(LDR [T, H, W, 3] at each frame's exposure, the exposures, poses) of one pan, exposed by
+            delay: int = 0, light=None, curve=None):
+    """(frames [T, H, W, 3] at each frame's exposure, the exposures, poses) of one pan, exposed by
     an auto-exposure moving `speed` of the way to the metered ev per frame, metering the frame
     `delay` frames before. With `dimming`: the light times `dimming` from the middle frame on,
     under ONE exposure (the clip's mean at mid-grey): a locked exposure and a real change of
-    light; `light(i, FRAMES)`: the light's factor per frame, under one exposure too."""
+    light; `light(i, FRAMES)`: the light's factor per frame, under one exposure too. The frames
+    are the camera `curve`'s codes (core.sim.camera_curves), or (None) 8-bit frames in the
+    engine's convention (a capture built in memory)."""
     from bench.tracking import HFOV_DEG, PITCH_WOBBLE_DEG
     from core.camera import Camera, Intrinsics
-    from core.conventions import tonemap
+    from core.conventions import expose, tonemap
     from core.exposure import luminance
     from core.sim.panorama_room import PanoramaRoom
     from core.sim.sensor import metered_evs
@@ -82,7 +97,10 @@ def ae_clip(pano: torch.Tensor, yaw: float, pitch: float, dimming: float | None 
     else:
         metered = metered_evs(list(hdr), speed=speed)
         evs = [metered[max(i - delay, 0)] for i in range(FRAMES)]
-    ldr = torch.stack([torch.round(tonemap(h, ev) * 255) / 255 for h, ev in zip(hdr, evs)])
+    if curve is None:
+        ldr = torch.stack([torch.round(tonemap(h, ev) * 255) / 255 for h, ev in zip(hdr, evs)])
+    else:
+        ldr = torch.stack([curve.encode(expose(h, ev)) for h, ev in zip(hdr, evs)])
     return ldr, evs, poses
 
 
@@ -97,7 +115,7 @@ def map_change_stops(first: torch.Tensor, last: torch.Tensor) -> float:
     return float(((r**2 * w).sum() / w.sum()).sqrt())
 
 
-def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
+def evaluate(path: Path, iterations: int, workdir: Path, curve: str = "drawn") -> dict:
     from bench.suite.evaluation import envmap_brightness
     from bench.tracking import _view
     from core.capture.load import load_capture
@@ -107,19 +125,22 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
     from core.engine.params import JobParams
     from core.engine.presets import preset
     from core.envmap import resize_envmap, rotate_envmap
-    from core.io.video import write_video
+    from core.sim.camera_curves import VIDEO, write_video
     from core.sim.panorama_room import load_panorama
 
     pano = load_panorama(path, 256)
     yaw, pitch = _view(path.name)
-    ldr, evs, poses = ae_clip(pano, yaw, pitch)
-    video = write_video(workdir / f"{path.stem}.mp4", ldr.numpy(), FPS)
+    cam = pan_curve(path.name, curve)
+    extra_params = cam.job_params(VIDEO)  # {} but for the reference, whose video cannot state its curve
+    ldr, evs, poses = ae_clip(pano, yaw, pitch, curve=cam)
+    stem = path.stem + ("" if curve == "drawn" else f"-{cam.name}")
+    video = write_video(workdir / f"{stem}.mp4", ldr, FPS, cam)
     true = [e - evs[0] for e in evs]
-    out = {"file": path.name, "true_frame_ev": [round(e, 3) for e in true],
+    out = {"file": path.name, "curve": cam.name, "true_frame_ev": [round(e, 3) for e in true],
            "ae_range_stops": round(max(true) - min(true), 3)}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        loaded = {mode: load_capture(video, params=CaptureParams(fps=FPS, frame_ev=mode))
+        loaded = {mode: load_capture(video, params=CaptureParams(fps=FPS, frame_ev=mode, **extra_params))
                   for mode in (None, "locked", "estimate")}
     est = loaded["estimate"]
     out["decision"] = {"auto" if mode is None else mode: decide_temporal(c).uses_time for mode, c in loaded.items()}
@@ -129,12 +150,12 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
     kept = (est.times.double() * FPS).round().long()  # the source frames tracking kept
     truth = torch.tensor(true)[kept]
     out["estimate_error_stops"] = round(float((est.frame_ev - (truth - truth[0])).abs().max()), 3)
-    dim_ldr, _, _ = ae_clip(pano, yaw, pitch, dimming=DIMMING)
-    dim_video = write_video(workdir / f"{path.stem}-dimming.mp4", dim_ldr.numpy(), FPS)
+    dim_ldr, _, _ = ae_clip(pano, yaw, pitch, dimming=DIMMING, curve=cam)
+    dim_video = write_video(workdir / f"{stem}-dimming.mp4", dim_ldr, FPS, cam)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        dim = load_capture(dim_video, params=CaptureParams(fps=FPS))
-        dim_locked = load_capture(dim_video, params=CaptureParams(fps=FPS, frame_ev="locked"))
+        dim = load_capture(dim_video, params=CaptureParams(fps=FPS, **extra_params))
+        dim_locked = load_capture(dim_video, params=CaptureParams(fps=FPS, frame_ev="locked", **extra_params))
     out["locked_dimming"] = {"auto_detected": bool(dim.metadata.get("exposure_estimate", {}).get("applied")),
                              "read_as_changing_light": decide_temporal(dim_locked).uses_time}
     gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), poses[0][:3, :3].T)
@@ -145,8 +166,9 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
         t0 = time.process_time()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            result = run_job(video, None, JobParams.model_validate({"preset": "draft", "fps": FPS, **extra}),
-                             workdir / f"{path.stem}-{name}", config=cfg)
+            result = run_job(video, None,
+                             JobParams.model_validate({"preset": "draft", "fps": FPS, **extra_params, **extra}),
+                             workdir / f"{stem}-{name}", config=cfg)
         art = result.artefact
         t_end = float(art.meta["capture"]["duration_s"])
         first, _ = art.envmap(torch.zeros(3), 0.0, GT_HEIGHT)
@@ -157,17 +179,18 @@ def evaluate(path: Path, iterations: int, workdir: Path) -> dict:
                       "drift_stops": round(abs(math.log2(float(level[1] / level[0]))), 3),
                       "map_change_stops": round(map_change_stops(first, last), 3),
                       "cpu_s": round(time.process_time() - t0, 1)}
-    score_runs(runs, preds, gt, ldr[0], out)
+    score_runs(runs, preds, gt, ldr[0], out, cam)
     return out
 
 
-def score_runs(runs: dict, preds: dict, gt: torch.Tensor, frame_ldr: torch.Tensor, out: dict) -> None:
+def score_runs(runs: dict, preds: dict, gt: torch.Tensor, frame_ldr: torch.Tensor, out: dict, curve) -> None:
     """Each run's map (`preds`) scored on the diffuse sphere against `gt` (rel si-RMSE, into
-    `runs`), beside a constant map of the frame's mean linear colour; both land in `out`."""
+    `runs`), beside a constant map of the frame's mean colour, linearised with the camera
+    `curve` it was encoded with; both land in `out`."""
     from bench.suite.evaluation import score_probe
-    from core.conventions import equirect_width, inverse_tonemap
+    from core.conventions import equirect_width
 
-    mean = inverse_tonemap(frame_ldr).reshape(-1, 3).mean(0)
+    mean = curve.decode(frame_ldr).reshape(-1, 3).mean(0)
     preds = {**preds, "mean-colour": mean.expand(gt.shape[0], equirect_width(gt.shape[0]), 3).clone()}
     scores = score_probe(preds, gt, 64)
     for name in runs:
@@ -212,20 +235,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rescore", default=None, metavar="REPORT_JSON",
                    help="recompute a saved report's summary from its per-panorama rows (no estimation) and exit")
     args = p.parse_args(argv)
+    from bench.real_panoramas import curve_summaries
+
     if args.rescore:
         report = json.loads(Path(args.rescore).read_text())
         rows = report["panoramas"]
-        report["summary"] = summarise(rows)
+        report.update(curve_summaries(rows, summarise))
         Path(args.rescore).write_text(json.dumps(report, indent=1))
         print(json.dumps(report["summary"], indent=1))
         return 0
 
     from bench.real_panoramas import rows_over, split_files
+    from core.sim.camera_curves import VIDEO, run_choices
 
     rows = rows_over(split_files(args.hdri_dir, args.split, args.limit),
-                     lambda f, work: evaluate(f, args.iterations, work), args.workdir)
+                     lambda f, work, curve: evaluate(f, args.iterations, work, curve), args.workdir,
+                     run_choices(args.curve, VIDEO))
     report = {"split": args.split, "frames": FRAMES, "pan_deg": PAN_DEG, "size": list(SIZE),
-              "iterations": args.iterations, "summary": summarise(rows), "panoramas": rows}
+              "iterations": args.iterations, "curve": args.curve, **curve_summaries(rows, summarise),
+              "panoramas": rows}
     from bench.report import show_and_write
 
     show_and_write(report["summary"], report, args.output)

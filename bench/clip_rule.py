@@ -1,14 +1,16 @@
 """How far off is the clip rule? Clipped LDR crops of real HDR panoramas with known radiance.
 
-    python -m bench.clip_rule [--hdri-dir DIR] [--fit] [--splits dev,test,extra] [-o out.json]
+    python -m bench.clip_rule [--hdri-dir DIR] [--fit] [--splits dev,test,extra] [--curve drawn|NAME] [-o out.json]
 
 For every panorama of the split, VIEWS_PER_PANORAMA photos are made exactly as in the
-real-panorama protocol (bench.real_panoramas: CROP_SIZE, 60° FOV, TonemapHDR to 8 bits),
+real-panorama protocol (bench.real_panoramas: CROP_SIZE, 60° FOV, TonemapHDR's exposure, a
+camera curve per photo (core.sim.camera_curves, `--curve`: drawn by the photo's name by
+default), 8 bits, read as the loader reads the PNG: decoded with what the file declares),
 with views seeded by the file name and the view index (pitch up to +-VIEW_PITCH_DEG so
 ceiling lamps are in some); every other view is over-exposed by up to MAX_EXTRA_EV stops, so
 the rule is not fitted to one tone map's exposure only. Each photo's clipped blobs (core.capture.highlights.find_blobs)
-get a true factor: the blob's mean true luminance, in the photo's linear units (the tone
-map's exposure is known), over its mean linearised luminance. Error of a rule = |log2
+get a true factor: the blob's mean true luminance, in the photo's linear units (the
+exposure is known), over its mean linearised luminance as the engine sees it. Error of a rule = |log2
 (estimated factor / true factor)| in stops, per blob (mean, and weighted by the blob's true
 energy, which is what lighting feels).
 
@@ -63,6 +65,24 @@ def photo_views(filename: str) -> list[tuple[float, float, float]]:
     ]
 
 
+def view_curve(filename: str, view: int, curve: str = "drawn"):
+    """The camera curve of one of the panorama's photos here (`curve` "drawn": drawn by the
+    photo's name, among the still curves; a name forces it)."""
+    from core.sim.camera_curves import STILL, resolve
+
+    return resolve(curve, f"{filename}#clip-rule-view{view}", STILL)
+
+
+def as_loaded(true: torch.Tensor, cam) -> tuple[torch.Tensor, torch.Tensor]:
+    """(frame in the engine's convention, its linearisation) of exposed linear light `true`
+    photographed by `cam` and loaded from its PNG (decoded with what the file declares)."""
+    from core.conventions import inverse_tonemap
+    from core.sim.camera_curves import STILL
+
+    ldr = cam.loaded(cam.encode(true), STILL).float()
+    return ldr, inverse_tonemap(ldr)
+
+
 def exposure_scale(hdr: torch.Tensor) -> float:
     """Linear factor of the protocol's tone map: linearised LDR = scale x HDR where unclipped
     (display_tonemap scales hdr^(1/2.4) by 0.9 / its 99th percentile; inverse_tonemap is x^2.4)."""
@@ -71,19 +91,18 @@ def exposure_scale(hdr: torch.Tensor) -> float:
     return (0.9 / level) ** 2.4 if level > 1e-8 else 1.0
 
 
-def blob_samples(path: Path) -> list[dict]:
+def blob_samples(path: Path, curve: str = "drawn") -> list[dict]:
     """Every clipped blob of every view of one panorama: features and true factor."""
     from bench.real_panoramas import camera_rotation, load_panorama, perspective_crop
     from core.capture.highlights import clipped_mask, find_blobs, pixel_solid_angle
-    from core.conventions import inverse_tonemap
 
     pano = load_panorama(path)
     out = []
-    for yaw, pitch, ev in photo_views(path.name):
+    for view, (yaw, pitch, ev) in enumerate(photo_views(path.name)):
         hdr, intr = perspective_crop(pano, camera_rotation(yaw, pitch))
         scale = exposure_scale(hdr) * 2.0 ** ev
-        ldr = torch.round((hdr.clamp_min(0.0) * scale).pow(1.0 / 2.4).clamp(0.0, 1.0) * 255.0) / 255.0
-        lin = inverse_tonemap(ldr).numpy()
+        ldr, lin = as_loaded(hdr.clamp_min(0.0) * scale, view_curve(path.name, view, curve))
+        lin = lin.numpy()
         clipped = clipped_mask(ldr).numpy()
         labels, blobs = find_blobs(lin, clipped, pixel_solid_angle(intr))
         y_true = (hdr.numpy() * scale) @ np.asarray(LUMINANCE_WEIGHTS)
@@ -246,18 +265,17 @@ def lens_psf(sigma: float, glare: float, tail_px: float = 4.0, half: int = 15) -
     return psf / psf.sum()
 
 
-def synthetic_lamp_samples(path: Path) -> list[dict]:
+def synthetic_lamp_samples(path: Path, curve: str = "drawn") -> list[dict]:
     """SYNTHETIC_LAMPS_PER_PANORAMA photos of the panorama, each with a disc lamp added (radiance
     2^U(1, 8) x white, radius U(1, 6) px, through lens_psf with sigma U(0.5, 1.5), glare
     U(0, 0.05)): bright point sources the 1k panoramas (area-downsampled) hardly contain."""
     from bench.real_panoramas import camera_rotation, load_panorama, perspective_crop
     from core.capture.highlights import clipped_mask, find_blobs, pixel_solid_angle
-    from core.conventions import inverse_tonemap
 
     rng = random.Random(f"clip-rule-lamps:{path.name}")
     pano = load_panorama(path)
     out = []
-    for _ in range(SYNTHETIC_LAMPS_PER_PANORAMA):
+    for lamp_index in range(SYNTHETIC_LAMPS_PER_PANORAMA):
         hdr, intr = perspective_crop(
             pano, camera_rotation(rng.uniform(-180, 180), rng.uniform(-VIEW_PITCH_DEG, VIEW_PITCH_DEG))
         )
@@ -273,8 +291,8 @@ def synthetic_lamp_samples(path: Path) -> list[dict]:
         lamp = torch.nn.functional.conv2d(torch.nn.functional.pad(lamp[None, None], (15,) * 4), psf[None, None])[0, 0]
         tint = torch.tensor([1.0, rng.uniform(0.8, 1.0), rng.uniform(0.6, 1.0)], dtype=torch.float64)
         true = (hdr.double() + lamp[..., None] * tint) * scale
-        ldr = (torch.round(true.clamp(0.0, 1.0).pow(1.0 / 2.4) * 255.0) / 255.0).float()
-        lin = inverse_tonemap(ldr).numpy()
+        ldr, lin = as_loaded(true, view_curve(path.name, VIEWS_PER_PANORAMA + lamp_index, curve))
+        lin = lin.numpy()
         labels, blobs = find_blobs(lin, clipped_mask(ldr).numpy(), pixel_solid_angle(intr))
         k = int(labels[int(cy), int(cx)])
         if k == 0:
@@ -376,6 +394,7 @@ def leave_one_panorama_out(samples: list[dict]) -> dict:
 def main(argv=None) -> int:
     from bench.real_panoramas import DEFAULT_HDRI_DIR, read_manifest
     from core.capture import highlights
+    from core.sim.camera_curves import add_curve_argument
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--hdri-dir", default=str(DEFAULT_HDRI_DIR))
@@ -387,6 +406,7 @@ def main(argv=None) -> int:
     p.add_argument("--colour-cv", action="store_true", help="also choose the spill colour's settings leave-one-room-"
                    "out over the splits' real blobs (colour_cv)")
     p.add_argument("--samples-out", default=None, help="also write every blob's features and truth (JSON)")
+    add_curve_argument(p, allow_all=False)
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     hdri = Path(args.hdri_dir)
@@ -394,12 +414,12 @@ def main(argv=None) -> int:
     by_split = {}
     for split in sorted(set(args.splits.split(",")) | ({"dev"})):
         files = sorted(r["filename"] for r in rows if r.get("split") == split and (hdri / r["filename"]).is_file())
-        by_split[split] = [s for f in files for s in blob_samples(hdri / f)]
+        by_split[split] = [s for f in files for s in blob_samples(hdri / f, args.curve)]
         print(f"[clip_rule] {split}: {len(files)} panoramas, {len(by_split[split])} blobs", file=sys.stderr)
     lamps = [
         s
         for f in sorted(r["filename"] for r in rows if r.get("split") == "dev" and (hdri / r["filename"]).is_file())
-        for s in synthetic_lamp_samples(hdri / f)
+        for s in synthetic_lamp_samples(hdri / f, args.curve)
     ]
     print(f"[clip_rule] dev: {len(lamps)} synthetic lamps", file=sys.stderr)
     dev = by_split["dev"]
@@ -409,6 +429,7 @@ def main(argv=None) -> int:
     coefficients = fit(fitted_on) if args.fit else list(highlights.RULE_COEFFICIENTS)
     constant = fit(fitted_on, constant_only=True)[0]
     report = {"coefficients": coefficients, "fitted_now": bool(args.fit), "fitted_on_splits": args.splits,
+              "curve": args.curve,
               "best_constant_stops": constant, "views_per_panorama": VIEWS_PER_PANORAMA, "splits": {}}
     if args.fit:
         report["leave_one_panorama_out"] = leave_one_panorama_out(fitted_on)

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 
-def track_report(suite_name: str) -> dict:
+def track_report(suite_name: str, curve: str | None = None) -> dict:
     import torch
 
     from bench.run import default_cache_dir
@@ -40,7 +40,7 @@ def track_report(suite_name: str) -> dict:
     from core.exposure import LUMINANCE_WEIGHTS
     from core.io.exr import read_exr
 
-    suite = load_suite(suite_name, default_cache_dir(), None, 64)
+    suite = load_suite(suite_name, default_cache_dir(), None, 64, curve)
     cap = load_capture(suite.capture_dir)
     if not cap.static_camera:
         raise SystemExit(f"suite {suite_name!r} has a moving camera: the rule follows sources only for a static one")
@@ -70,15 +70,19 @@ def track_report(suite_name: str) -> dict:
                    "first_to_last_stops": rows[-1][f"{name}_stops"] - rows[0][f"{name}_stops"]}
             for name in ("rule", "over_time")},
             "true_first_to_last_stops": rows[-1]["true_stops"] - rows[0]["true_stops"]})
-    return {"suite": suite_name, "frames": cap.num_frames, "exposure_ev": ev, "tracks": tracks}
+    return {"suite": suite_name, "curve": suite.describe()["camera_curve"], "frames": cap.num_frames, "exposure_ev": ev,
+            "tracks": tracks}
 
 
 def main(argv: list[str] | None = None) -> int:
+    from core.sim.camera_curves import add_curve_argument
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--suite", default="temporal", help="a simulator suite with a static camera")
     p.add_argument("-o", "--out", default=None)
+    add_curve_argument(p, allow_all=False)  # the suite's camera curve: drawn by its name, or forced
     args = p.parse_args(argv)
-    report = track_report(args.suite)
+    report = track_report(args.suite, args.curve)
     for i, tr in enumerate(report["tracks"]):
         print(
             f"track {i}: {tr['frames']} frames; first -> last: true {tr['true_first_to_last_stops']:+.2f} stops, "

@@ -1,6 +1,7 @@
 """Camera tracking on handheld-style pans: motion blur, a rolling shutter and sensor noise.
 
-    python -m bench.handheld --split dev [--limit N] [--variants a,b] [--global-shutter] [-o out.json]
+    python -m bench.handheld --split dev [--limit N] [--variants a,b] [--global-shutter] [--curve drawn|NAME|all]
+        [-o out.json]
 
 bench/tracking.py renders each frame at one instant (a global shutter, no blur). A phone
 pans by hand: each frame integrates the scene over its exposure (motion blur) and its rows
@@ -10,11 +11,14 @@ bench.tracking draws for the file: PAN_DEG of yaw in FRAMES frames at FPS with a
 wobble, SIZE at 60 deg FOV, from one spot of the panorama pasted on the assumed box room,
 rendered at SUB_SAMPLES instants per frame. Variants (VARIANTS): `sharp` (global shutter),
 `blur` (EXPOSURE_S of exposure), `rolling` (READOUT_S from the top row to the bottom),
-`handheld` (both, with NOISE_SIGMA Gaussian noise in 8-bit LDR), `dim` (the same, exposed
+`handheld` (both, with NOISE_SIGMA Gaussian noise in code units), `dim` (the same, exposed
 DIM_EV stops, with DIM_NOISE_SIGMA of noise), and `portrait-rolling` /
 `portrait-handheld` (the phone held upright: SIZE turned, the sensor's rows vertical, so the
-readout runs along the pan and stretches the frame rather than shearing it). Each is tone mapped at one
-exposure and run through camera tracking as loading runs it (`core.tracking.track.track_camera`,
+readout runs along the pan and stretches the frame rather than shearing it). Each is encoded at one
+exposure by the phone's camera curve (core.sim.camera_curves, `--curve`: by default drawn per
+panorama from srgb, rec709, filmic and hlg10; the noise in its code units, then its bit depth),
+decoded as the loader decodes the declared file (`CameraCurve.loaded`), and run through camera
+tracking as loading runs it (`core.tracking.track.track_camera`,
 no intrinsics given: the assumed 60 deg, refined by the pan as the product does). Reported per
 clip: the method, frames kept, the largest rotation error against the true poses (degrees,
 the kept frames, world = the first kept frame), the refined horizontal FOV, the rotation
@@ -109,19 +113,31 @@ def render_frame(room, intr, index: int, yaw0: float, pitch0: float, exposure: f
     return out.transpose(0, 1) if portrait else out
 
 
-def clips(path: Path, variants: dict = VARIANTS):
-    """Yield (name, LDR frames [T, H, W, 3] in 8-bit steps, intrinsics, true c2w poses [T, 4, 4]
-    relative to the first frame) per variant of `variants` (VARIANTS or WALKS) for the panorama."""
+def clip_curve(filename: str, curve: str = "drawn"):
+    """The camera curve of the panorama's clips (`curve` "drawn": drawn by the capture's name,
+    this bench and the file, among every realistic curve of a video; a name forces it)."""
+    from core.sim.camera_curves import VIDEO, resolve
+
+    return resolve(curve, f"handheld:{filename}", VIDEO)
+
+
+def clips(path: Path, variants: dict = VARIANTS, curve: str = "drawn"):
+    """Yield (name, frames [T, H, W, 3] as loading hands them to tracking (the camera curve's
+    codes, quantised, decoded as the file declares), intrinsics, true c2w poses [T, 4, 4]
+    relative to the first frame) per variant of `variants` (VARIANTS or WALKS) for the panorama;
+    the camera: `clip_curve(path.name, curve)`."""
     from bench.tracking import HFOV_DEG, _view, walk_poses
     from core.camera import Camera, Intrinsics
-    from core.conventions import tonemap
+    from core.conventions import expose
     from core.exposure import luminance
+    from core.sim.camera_curves import VIDEO
     from core.sim.panorama_room import PanoramaRoom, load_panorama
     from core.tracking.geometry import relative_to_first
     from core.tracking.room import assumed_room
 
     pano = load_panorama(path, 512)
     yaw, pitch = _view(path.name)
+    cam = clip_curve(path.name, curve)
     room = PanoramaRoom(pano, assumed_room(), torch.zeros(3))
     pan_truth, _ = relative_to_first(torch.stack([pose_at(i / FPS, yaw, pitch) for i in range(FRAMES)]).numpy())
     for name, spec in variants.items():
@@ -139,19 +155,19 @@ def clips(path: Path, variants: dict = VARIANTS):
                 [render_frame(room, intr, i, yaw, pitch, exposure, readout, portrait) for i in range(FRAMES)]
             )
         hdr = hdr * (0.18 / float(luminance(hdr).mean().clamp_min(1e-12)))
-        ldr = tonemap(hdr, ev)
+        codes = cam.apply(expose(hdr, ev))
         if sigma > 0:
-            ldr = (ldr + sigma * torch.randn(ldr.shape, generator=torch.Generator().manual_seed(7))).clamp(0, 1)
-        yield name, torch.round(ldr * 255) / 255, intr, true
+            codes = (codes + sigma * torch.randn(codes.shape, generator=torch.Generator().manual_seed(7))).clamp(0, 1)
+        yield name, cam.loaded(cam.quantise(codes), VIDEO), intr, true
 
 
-def evaluate(path: Path, variants: dict = VARIANTS) -> dict:
+def evaluate(path: Path, variants: dict = VARIANTS, curve: str = "drawn") -> dict:
     from core.tracking.capture_geometry import pose_errors
     from core.tracking.geometry import relative_to_first
     from core.tracking.track import track_camera
 
-    out = {"file": path.name, "clips": {}}
-    for name, ldr, intr, true in clips(path, variants):
+    out = {"file": path.name, "curve": clip_curve(path.name, curve).name, "clips": {}}
+    for name, ldr, intr, true in clips(path, variants, curve):
         size = (intr.width, intr.height)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -202,6 +218,8 @@ def summarise(rows: list[dict], variants: dict = VARIANTS) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from core.sim.camera_curves import VIDEO, add_curve_argument, run_choices
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--split", default="dev", choices=("dev", "test"))
     p.add_argument("--hdri-dir", default=str(Path(__file__).resolve().parents[2] / "shared" / "hdri"))
@@ -209,8 +227,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated names of VARIANTS")
     p.add_argument("--global-shutter", action="store_true", help="track without the rolling-shutter model")
     p.add_argument("-o", "--output", default=None)
+    add_curve_argument(p)
     args = p.parse_args(argv)
-    from bench.real_panoramas import split_files
+    from bench.real_panoramas import curve_summaries, split_files
 
     files = split_files(args.hdri_dir, args.split, args.limit)
     known = {**VARIANTS, **WALKS}
@@ -226,12 +245,14 @@ def main(argv: list[str] | None = None) -> int:
         track_module.estimate_rotations = functools.partial(track_module.estimate_rotations, rolling_shutter=False)
     rows = []
     for f in files:
-        rows.append(evaluate(f, variants))
-        print(json.dumps(rows[-1]), flush=True)
+        for curve in run_choices(args.curve, VIDEO):
+            rows.append(evaluate(f, variants, curve))
+            print(json.dumps(rows[-1]), flush=True)
     report = {"split": args.split, "frames": FRAMES, "fps": FPS, "pan_deg": PAN_DEG, "size": list(SIZE),
               "exposure_s": EXPOSURE_S, "readout_s": READOUT_S, "noise_sigma": NOISE_SIGMA,
-              "dim": {"ev": DIM_EV, "noise_sigma": DIM_NOISE_SIGMA},
-              "rolling_shutter_model": not args.global_shutter, "summary": summarise(rows, variants), "panoramas": rows}
+              "dim": {"ev": DIM_EV, "noise_sigma": DIM_NOISE_SIGMA}, "curve": args.curve,
+              "rolling_shutter_model": not args.global_shutter,
+              **curve_summaries(rows, lambda rs: summarise(rs, variants)), "panoramas": rows}
     from bench.report import show_and_write
 
     show_and_write(report["summary"], report, args.output)

@@ -75,6 +75,8 @@ def mean_over(probes: list[dict], key: str) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from core.sim.camera_curves import add_curve_argument
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--suites", default="hard,moving-camera")
     p.add_argument("--extra-probes", type=int, default=8, help="as the accuracy probe's (same draws for the same seed)")
@@ -87,6 +89,7 @@ def main(argv: list[str] | None = None) -> int:
                         "exposure evidence across frames): the accuracy probe's prior row before 2026-12-02")
     p.add_argument("--cache-dir", default=None)
     p.add_argument("-o", "--output", default=None)
+    add_curve_argument(p, allow_all=False)  # the suites' camera curve: drawn per scene, or forced
     args = p.parse_args(argv)
 
     from bench.methods import _bound_prior
@@ -101,10 +104,12 @@ def main(argv: list[str] | None = None) -> int:
         "extra_probes": args.extra_probes,
         "probe_seed": args.probe_seed,
         "bind_changing": args.bind_changing,
+        "curve": args.curve,
         "suites": {},
     }
     for name in args.suites.split(","):
-        suite = with_extra_probes(load_suite(name, cache, None, args.gt_height), args.extra_probes, args.probe_seed)
+        suite = with_extra_probes(load_suite(name, cache, None, args.gt_height, args.curve), args.extra_probes,
+                                  args.probe_seed)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             prior = _bound_prior(suite, cfg)

@@ -6,9 +6,12 @@ Protocol (DiffusionLight-style single-image evaluation, run as a user runs the p
 2. Camera: at the panorama's centre, horizontal FOV CROP_HFOV_DEG, CROP_SIZE pixels, yaw
    uniform in [-180, 180) and pitch uniform in [-PITCH_DEG, PITCH_DEG], drawn from a
    generator seeded by SEED and the file name (fixed across runs and machines).
-3. Photo: the panorama sampled bilinearly along every pixel ray, tone mapped with
-   DiffusionLight's TonemapHDR rule (core.exposure.display_tonemap: x^(1/2.4) scaled so its
-   99th percentile maps to 0.9, clipped) and quantised to 8 bits, written as a PNG.
+3. Photo: the panorama sampled bilinearly along every pixel ray, exposed with DiffusionLight's
+   TonemapHDR rule (core.exposure.display_tonemap: x^(1/2.4) scaled so its 99th percentile maps
+   to 0.9, clipped; core.sim.camera_curves.display_exposure: that rule as a linear exposure)
+   and encoded by a camera curve (core.sim.camera_curves: `--curve`, by default drawn per photo
+   from srgb, rec709 and filmic by its name), 8 bits, written as a PNG declaring what that
+   camera's stills declare (the filmic tone curve is not stated; rec709 states nothing).
 4. Ground truth: the panorama rotated into that camera's frame (world = camera frame, as for
    any single image the engine receives), compared at GT_HEIGHT rows.
 5. Methods, all at the camera centre x = (0, 0, 0):
@@ -19,12 +22,13 @@ Protocol (DiffusionLight-style single-image evaluation, run as a user runs the p
    - `prior (shortcut)`: the job's reprojection prior, with the preset's settings, bound to
      the same decoded capture and queried directly: a shortcut, labelled so, showing what
      distillation keeps or loses.
-   - `mean-colour`: the trivial baseline, a constant map of the photo's mean linearised colour.
+   - `mean-colour`: the trivial baseline, a constant map of the photo's mean colour, linearised
+     with the photo's own camera curve (its exact inverse: the baseline is not biased by it).
 Scores: the three-sphere metrics of bench.suite.evaluation (scale-invariant or percentile-
 normalised, so the photo's unknown exposure does not matter), reported per split as ratios
 to the mean-colour map (mean relative si-RMSE / mean angular error of the method over the
 mean-colour's); and the observed-region correlation (core.metrics.observed_region_correlation):
-the map re-projected into the capturing camera vs the linearised photo. The ground truth's
+the map re-projected into the capturing camera vs the photo linearised with its camera curve. The ground truth's
 own correlation is reported as the protocol's ceiling (8-bit quantisation and clipping keep
 it below 1).
 """
@@ -55,15 +59,18 @@ METHODS = (FIELD, PRIOR, CONSTANT)
 PROTOCOL = (
     f"Photo: {CROP_SIZE[0]}x{CROP_SIZE[1]} px, {CROP_HFOV_DEG:g}° horizontal FOV, yaw U[-180°, 180°), pitch "
     f"U[-{PITCH_DEG:g}°, {PITCH_DEG:g}°] "
-    f"(seed {SEED} + file name), DiffusionLight TonemapHDR (gamma 2.4, 99th percentile -> 0.9), 8-bit PNG. "
+    f"(seed {SEED} + file name), DiffusionLight TonemapHDR's exposure (99th percentile of x^(1/2.4) -> 0.9), a camera "
+    "curve per photo (core.sim.camera_curves; `curve` of each image), 8-bit PNG declaring what that camera's stills "
+    "declare. "
     f"Ground truth: the panorama rotated into the camera frame, {GT_HEIGHT}x{2 * GT_HEIGHT}. All at the camera centre: "
     f"`field` = the product (`estimate` on the PNG with its FOV, no depth, preset {PRESET}; then the exact env map "
     "query at x=0,0,0); "
     "`prior (shortcut)` = the job's reprojection prior queried directly (not the product); `mean-colour` = constant "
     "map of the "
-    "photo's mean linearised colour. Ratios: method's mean / mean-colour's mean over the split (< 1 beats a constant "
-    "map). "
-    "Observed corr. = log-luminance correlation of the map re-projected into the camera with the linearised photo "
+    "photo's mean colour linearised with its camera curve. Ratios: method's mean / mean-colour's mean over the split "
+    "(< 1 beats a constant map). "
+    "Observed corr. = log-luminance correlation of the map re-projected into the camera with the photo linearised by "
+    "its camera curve "
     "(`truth` row: the ground-truth panorama's own, the protocol's ceiling). `control` panoramas are not indoor and "
     "are reported apart."
 )
@@ -80,9 +87,10 @@ def split_files(hdri_dir, split: str, limit: int | None = None) -> list[Path]:
     return [hdri / r["filename"] for r in read_manifest(hdri) if r["split"] == split][:limit]
 
 
-def add_split_arguments(p, iterations: int | None = None) -> None:
-    """A per-panorama bench's common options: --split, --hdri-dir, --limit, --workdir, -o, and
-    --iterations (the draft's steps per job) where its jobs take a default."""
+def add_split_arguments(p, iterations: int | None = None, curve: bool = True) -> None:
+    """A per-panorama bench's common options: --split, --hdri-dir, --limit, --workdir, -o,
+    --iterations (the draft's steps per job) where its jobs take a default, and (`curve`) the
+    camera curve of its captures (--curve: core.sim.camera_curves.add_curve_argument)."""
     p.add_argument("--split", default="dev", choices=("dev", "test"))
     p.add_argument("--hdri-dir", default=str(Path(__file__).resolve().parents[2] / "shared" / "hdri"))
     p.add_argument("--limit", type=int, default=None)
@@ -90,11 +98,16 @@ def add_split_arguments(p, iterations: int | None = None) -> None:
         p.add_argument("--iterations", type=int, default=iterations)
     p.add_argument("--workdir", default=None)
     p.add_argument("-o", "--output", default=None)
+    if curve:
+        from core.sim.camera_curves import add_curve_argument
+
+        add_curve_argument(p)
 
 
-def rows_over(files: list[Path], evaluate, workdir=None) -> list[dict]:
-    """evaluate(file, workdir) per panorama, each row printed as it comes (a run's log can
-    rebuild its report), in `workdir` or a temporary directory."""
+def rows_over(files: list[Path], evaluate, workdir=None, curves: tuple[str, ...] | None = None) -> list[dict]:
+    """evaluate(file, workdir) per panorama (with `curves`, a camera-curve choice per run:
+    evaluate(file, workdir, curve) per panorama and curve), each row printed as it comes (a
+    run's log can rebuild its report), in `workdir` or a temporary directory."""
     import json
     import tempfile
 
@@ -102,9 +115,20 @@ def rows_over(files: list[Path], evaluate, workdir=None) -> list[dict]:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(workdir or tmp)
         for f in files:
-            rows.append(evaluate(f, work))
-            print(json.dumps(rows[-1]), flush=True)
+            for curve in curves or (None,):
+                rows.append(evaluate(f, work) if curve is None else evaluate(f, work, curve))
+                print(json.dumps(rows[-1]), flush=True)
     return rows
+
+
+def curve_summaries(rows: list[dict], summarise) -> dict:
+    """A per-capture bench's summaries over its rows (each with the `curve` it was encoded with):
+    `summary` over the realistic curves (over every row when only the reference was run),
+    `summary_per_curve` per curve (core.sim.camera_curves.group_by_curve, the reference labelled)."""
+    from core.sim.camera_curves import REFERENCE, group_by_curve
+
+    realistic = [r for r in rows if r.get("curve") != REFERENCE]
+    return {"summary": summarise(realistic or rows), "summary_per_curve": group_by_curve(rows, summarise)}
 
 
 def camera_rotation(yaw_deg: float, pitch_deg: float) -> torch.Tensor:
@@ -138,17 +162,34 @@ def perspective_crop(pano: torch.Tensor, R: torch.Tensor) -> tuple[torch.Tensor,
     return sample_envmap(pano.to(torch.float64), d).to(torch.float32), intr
 
 
-def ldr_photo(hdr: torch.Tensor) -> torch.Tensor:
-    from core.exposure import display_tonemap
-
-    ldr = display_tonemap(hdr, percentile=99.0, gamma=2.4, max_mapping=0.9)
-    return torch.round(ldr * 255.0) / 255.0
+def photo_name(filename: str, view: int = 0) -> str:
+    """The name a photo's camera curve is drawn by: the file's, and the view's after the first."""
+    return filename if view == 0 else f"{filename}#view{view}"
 
 
-def job_params():
+def photo_curve(filename: str, view: int = 0, choice: str = "drawn"):
+    """The photo's camera curve (core.sim.camera_curves.resolve: `choice` "drawn" draws it by
+    `photo_name` from the still curves, a name forces it)."""
+    from core.sim.camera_curves import STILL, resolve
+
+    return resolve(choice, photo_name(filename, view), STILL)
+
+
+def ldr_photo(hdr: torch.Tensor, curve) -> torch.Tensor:
+    """The photo's 8-bit codes: the protocol's exposure (TonemapHDR's rule as a linear factor),
+    encoded by the camera `curve`."""
+    from core.sim.camera_curves import display_exposure
+
+    return curve.encode(hdr * display_exposure(hdr, 99.0, 0.9))
+
+
+def job_params(curve=None):
+    """The job's parameters: the photo's FOV (and what the reference camera's file cannot state)."""
     from core.engine.params import JobParams
+    from core.sim.camera_curves import STILL
 
-    return JobParams.model_validate({"preset": PRESET, "intrinsics": {"hfov_deg": CROP_HFOV_DEG}})
+    extra = curve.job_params(STILL) if curve is not None else {}
+    return JobParams.model_validate({"preset": PRESET, "intrinsics": {"hfov_deg": CROP_HFOV_DEG}, **extra})
 
 
 def engine_config(overrides: dict | None):
@@ -160,7 +201,7 @@ def engine_config(overrides: dict | None):
     return preset(PRESET).with_overrides(overrides)
 
 
-def estimate_field(photo_path: Path, workdir: Path, overrides: dict | None = None) -> torch.Tensor:
+def estimate_field(photo_path: Path, workdir: Path, overrides: dict | None = None, curve=None) -> torch.Tensor:
     """The product: run_job (as `lightfield estimate`) then the exact env map at the camera."""
     import warnings
 
@@ -170,20 +211,20 @@ def estimate_field(photo_path: Path, workdir: Path, overrides: dict | None = Non
     out = workdir / (photo_path.stem + ".lightfield")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # e.g. "no depth: assuming a box room" (expected here)
-        run_job(photo_path, None, job_params(), out, config=engine_config(overrides))
+        run_job(photo_path, None, job_params(curve), out, config=engine_config(overrides))
     art = LightFieldArtefact.load(out)  # what `lightfield envmap OUT --x 0,0,0` loads
     env, _ = art.envmap(torch.zeros(3), None, GT_HEIGHT)
     return env
 
 
-def estimate_prior(photo_path: Path, overrides: dict | None = None) -> torch.Tensor:
+def estimate_prior(photo_path: Path, overrides: dict | None = None, curve=None) -> torch.Tensor:
     """Shortcut: the job's prior (preset settings) on the same capture at the job's working
     resolution (as run_job binds it), queried directly."""
     from core.capture.load import load_capture
     from core.engine.presets import preset
     from core.priors.registry import build_prior
 
-    params = job_params()
+    params = job_params(curve)
     config = engine_config(overrides) or preset(PRESET)
     capture = load_capture(photo_path, None, params, track=False).resized(config.distill.work_height)
     prior = build_prior(params.prior, config.prior_settings(params.prior))
@@ -191,10 +232,11 @@ def estimate_prior(photo_path: Path, overrides: dict | None = None) -> torch.Ten
     return prior.envmaps(torch.zeros(1, 3), 0.0, GT_HEIGHT)[0]
 
 
-def estimate_mean_colour(ldr: torch.Tensor) -> torch.Tensor:
-    from core.conventions import equirect_width, inverse_tonemap
+def estimate_mean_colour(ldr: torch.Tensor, curve) -> torch.Tensor:
+    """A constant map of the photo's mean colour, linearised with the photo's own camera curve."""
+    from core.conventions import equirect_width
 
-    mean = inverse_tonemap(ldr).reshape(-1, 3).mean(0)
+    mean = curve.decode(ldr).reshape(-1, 3).mean(0)
     return mean.expand(GT_HEIGHT, equirect_width(GT_HEIGHT), 3).clone()
 
 
@@ -208,17 +250,19 @@ def load_panorama(path: Path) -> torch.Tensor:
     return resize_envmap(pano, PANO_HEIGHT) if pano.shape[0] > PANO_HEIGHT else pano
 
 
-def write_photo(ldr: torch.Tensor, path: Path) -> Path:
-    from core.io.images import write_png
+def write_photo(ldr: torch.Tensor, path: Path, curve) -> Path:
+    """The photo as the camera's PNG, declaring what its stills declare."""
+    from core.sim.camera_curves import write_png
 
-    return write_png(path, (ldr.clamp(0, 1) * 255.0).round().to(torch.uint8).numpy())
+    return write_png(path, ldr, curve)
 
 
-def protocol_photos(hdri_dir: Path, split: str, views: int, work_height: int):
+def protocol_photos(hdri_dir: Path, split: str, views: int, work_height: int, curve: str = "drawn"):
     """The protocol's photos of a split, for benches that query the prior alone: per panorama
     (sorted by name) and view (view_for), a dict with the file `name`, the `pano`, the camera's
-    `rotation` and `intrinsics`, the `ldr` photo and the capture `work` at `work_height` rows,
-    loaded from its PNG as the job loads it (in a temporary directory, gone after the loop)."""
+    `rotation` and `intrinsics`, the camera `curve` (`photo_curve` of `curve`), the `ldr` photo
+    (its codes) and the capture `work` at `work_height` rows, loaded from its PNG as the job
+    loads it (in a temporary directory, gone after the loop)."""
     from core.capture.load import load_capture
 
     files = sorted(
@@ -232,18 +276,21 @@ def protocol_photos(hdri_dir: Path, split: str, views: int, work_height: int):
             for view in range(views):
                 R = camera_rotation(*view_for(f, view, views))
                 hdr, intr = perspective_crop(pano, R)
-                ldr = ldr_photo(hdr)
+                cam = photo_curve(f, view, curve)
+                ldr = ldr_photo(hdr, cam)
                 work = load_capture(
-                    write_photo(ldr, Path(tmp) / f"{f}_{view}.png"), None, job_params(), track=False
+                    write_photo(ldr, Path(tmp) / f"{f}_{view}.png", cam), None, job_params(cam), track=False
                 ).resized(work_height)
-                yield {"name": f, "pano": pano, "rotation": R, "intrinsics": intr, "ldr": ldr, "work": work}
+                yield {"name": f, "pano": pano, "rotation": R, "intrinsics": intr, "curve": cam, "ldr": ldr,
+                       "work": work}
 
 
 def evaluate_panorama(path: Path, sphere_size: int, workdir: Path, methods=METHODS, overrides: dict | None = None,
-                      view: int = 0, views: int = 1) -> dict:
+                      view: int = 0, views: int = 1, curve: str = "drawn") -> dict:
+    """One photo, scored; `curve`: the camera curve's choice (`photo_curve`), recorded as the
+    row's `curve`."""
     from bench.suite.evaluation import score_probe
     from core.camera import Camera
-    from core.conventions import inverse_tonemap
     from core.envmap import resize_envmap, rotate_envmap
     from core.metrics import observed_region_correlation
 
@@ -251,11 +298,14 @@ def evaluate_panorama(path: Path, sphere_size: int, workdir: Path, methods=METHO
     yaw, pitch = view_for(path.name, view, views)
     R = camera_rotation(yaw, pitch)
     hdr, intr = perspective_crop(pano, R)
-    ldr = ldr_photo(hdr)
-    photo = write_photo(ldr, workdir / (path.stem + (f"_view{view}" if view else "") + ".png"))
+    cam = photo_curve(path.name, view, curve)
+    ldr = ldr_photo(hdr, cam)
+    stem = path.stem + (f"_view{view}" if view else "") + ("" if curve == "drawn" else f"_{cam.name}")
+    photo = write_photo(ldr, workdir / (stem + ".png"), cam)
     gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), R.T)  # camera frame: gt(d) = pano(R d)
-    run = {FIELD: lambda: estimate_field(photo, workdir, overrides), PRIOR: lambda: estimate_prior(photo, overrides),
-           CONSTANT: lambda: estimate_mean_colour(ldr)}
+    run = {FIELD: lambda: estimate_field(photo, workdir, overrides, cam),
+           PRIOR: lambda: estimate_prior(photo, overrides, cam),
+           CONSTANT: lambda: estimate_mean_colour(ldr, cam)}
     preds, seconds = {}, {}
     for name in methods:
         t0 = time.perf_counter()
@@ -264,9 +314,9 @@ def evaluate_panorama(path: Path, sphere_size: int, workdir: Path, methods=METHO
     scores = score_probe(preds, gt, sphere_size)
     # the photo's own camera, in the camera frame the estimates live in (identity pose)
     rays = Camera(intr, torch.eye(4, dtype=torch.float64)).pixel_rays(dtype=torch.float64)[1]
-    linear = inverse_tonemap(ldr)
+    linear = cam.decode(ldr)
     corr = {name: observed_region_correlation(env, linear, rays) for name, env in {**preds, "truth": gt}.items()}
-    return {"file": path.name, "view": view, "yaw_deg": round(yaw, 2), "pitch_deg": round(pitch, 2),
+    return {"file": path.name, "view": view, "curve": cam.name, "yaw_deg": round(yaw, 2), "pitch_deg": round(pitch, 2),
             "clipped_fraction": float((ldr.amax(-1) >= 0.99).float().mean()), "seconds": seconds, "scores": scores,
             "observed_corr": corr}
 
@@ -330,7 +380,10 @@ def rescore(report: dict) -> dict:
     """Re-summarise a saved report from its per-image results (no estimate is rerun): how a
     report written before a summary statistic existed gets it."""
     for split in report.get("splits", {}).values():
-        split["methods"] = summarise(split["images"], tuple(k for k in split["methods"] if k != "truth"))
+        methods = tuple(k for k in split["methods"] if k != "truth")
+        split["methods"] = summarise(split["images"], methods)
+        if any("curve" in im for im in split["images"]):
+            split["per_curve"] = per_curve(split["images"], lambda ims: summarise(ims, methods))
     return report
 
 
@@ -361,18 +414,38 @@ def compare_reports(before: dict, after: dict, method: str = FIELD) -> list[str]
     return lines
 
 
+def curve_groups(name: str, curve: str) -> list[tuple[str, str]]:
+    """(group name, curve choice) of one split or CV group under `--curve curve`: the group
+    itself for "drawn" or one curve; with "all", one group per curve, named after it (the
+    reference labelled so)."""
+    from core.sim.camera_curves import ALL, STILL, curve_label, run_choices
+
+    if curve != ALL:
+        return [(name, curve)]
+    return [(f"{name} · curve {curve_label(c)}", c) for c in run_choices(ALL, STILL)]
+
+
+def per_curve(images: list[dict], summarise_fn) -> dict:
+    """The group's summary per camera curve its photos were encoded with (reference last)."""
+    from core.sim.camera_curves import group_by_curve
+
+    return group_by_curve(images, summarise_fn)
+
+
 def run_panoramas(hdri_dir: Path, limit: int | None, sphere_size: int, quick: bool = False,
                   workdir: Path | None = None, splits=SPLITS, log=None, overrides: dict | None = None,
-                  views: int = 1) -> dict:
+                  views: int = 1, curve: str = "drawn") -> dict:
     """Per split: every method's mean scores over the photos (`views` per panorama, see
-    `view_for`), ratios with their interval over the panoramas, and per-photo results
-    (`skipped` if no data)."""
+    `view_for`), ratios with their interval over the panoramas, per camera curve the same
+    (`per_curve`), and per-photo results (`skipped` if no data). `curve`: the photos' camera
+    curve (core.sim.camera_curves: "drawn" per photo, a name, or "all": each split once per
+    curve, as its own group)."""
     hdri_dir = Path(hdri_dir)
     if not (hdri_dir / "MANIFEST.tsv").is_file():
         return {"skipped": f"no MANIFEST.tsv in {hdri_dir} (pass --hdri-dir); the real-panorama section was not run"}
     rows = read_manifest(hdri_dir)
     out: dict = {"protocol": PROTOCOL, "hdri_dir": str(hdri_dir), "limit_per_split": limit, "preset": PRESET,
-                 "views_per_panorama": views, "splits": {}}
+                 "views_per_panorama": views, "curve": curve, "splits": {}}
     if views > 1:
         out["protocol"] += (
             f" {views} photos per panorama: the first as above, the others at its yaw turned by multiples "
@@ -391,18 +464,19 @@ def run_panoramas(hdri_dir: Path, limit: int | None, sphere_size: int, quick: bo
             files = files[:limit]
         if not files:
             continue
-        images = []
-        for f in files:
-            for view in range(views):
-                t0 = time.perf_counter()
-                images.append(evaluate_panorama(hdri_dir / f, sphere_size, workdir, overrides=overrides, view=view,
-                                                views=views))
-                if log:
-                    im = images[-1]
-                    log(f"panorama {split}/{f} view {view}: {time.perf_counter() - t0:.0f}s, observed corr "
-                        + ", ".join(f"{k} {v:.2f}" for k, v in im["observed_corr"].items()))
-        out["splits"][split + (" (not indoor)" if split == "control" else "")] = {
-            "files": files, "methods": summarise(images), "images": images}
+        for group, choice in curve_groups(split + (" (not indoor)" if split == "control" else ""), curve):
+            images = []
+            for f in files:
+                for view in range(views):
+                    t0 = time.perf_counter()
+                    images.append(evaluate_panorama(hdri_dir / f, sphere_size, workdir, overrides=overrides,
+                                                    view=view, views=views, curve=choice))
+                    if log:
+                        im = images[-1]
+                        log(f"panorama {split}/{f} view {view} curve {im['curve']}: {time.perf_counter() - t0:.0f}s, "
+                            "observed corr " + ", ".join(f"{k} {v:.2f}" for k, v in im["observed_corr"].items()))
+            out["splits"][group] = {"files": files, "curve": choice, "methods": summarise(images),
+                                    "per_curve": per_curve(images, summarise), "images": images}
     if own_tmp:
         import shutil
 
@@ -451,7 +525,7 @@ CV_REFIT: dict[str, tuple[tuple, str, str]] = {
 
 
 def cv_select(rooms: list[Path], folds: dict[str, dict], overrides: dict, sphere_size: int, workdir: Path,
-              log=None) -> dict:
+              log=None, curve: str = "drawn") -> dict:
     """Per CV_REFIT setting not fixed by `overrides`: every room's prior-shortcut score (its
     fold's fits, `folds[room]`: `cv_fits`) at every grid value, then per fold the value with the lowest
     mean over the OTHER rooms (`chosen[room]`) and over all rooms (`all_rooms`: what a user
@@ -467,7 +541,8 @@ def cv_select(rooms: list[Path], folds: dict[str, dict], overrides: dict, sphere
         for path in rooms:
             ov = {**folds[path.name], **overrides}
             scores[path.name] = [
-                evaluate_panorama(path, sphere_size, workdir, methods=(PRIOR,), overrides={**ov, full: v})["scores"][
+                evaluate_panorama(path, sphere_size, workdir, methods=(PRIOR,), overrides={**ov, full: v},
+                                  curve=curve)["scores"][
                     PRIOR
                 ][material][metric]
                 for v in grid
@@ -568,7 +643,8 @@ def cv_summary(images: list[dict], methods) -> dict:
 
 
 def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: dict | None = None, control: bool = True,
-           limit: int | None = None, log=None, workdir: Path | None = None, refit: bool = True) -> dict:
+           limit: int | None = None, log=None, workdir: Path | None = None, refit: bool = True,
+           curve: str = "drawn") -> dict:
     """Leave-one-room-out: every indoor room (INDOOR_SPLITS together) scored with everything
     fitted from panoramas refitted without it. Today that is the elevation profile of the
     unseen fill (bench.indoor_fill, row means of the other rooms' panoramas), passed to the job
@@ -579,10 +655,19 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
     simulator). `control` rooms (not indoor) get the profile and choices fitted on all indoor
     rooms and are summarised apart."""
     from bench.suite.measure import machine_info
+    from core.sim.camera_curves import ALL, STILL, curve_label, run_choices
 
     hdri_dir = Path(hdri_dir)
     if not (hdri_dir / "MANIFEST.tsv").is_file():
         return {"skipped": f"no MANIFEST.tsv in {hdri_dir} (pass --hdri-dir)"}
+    if curve == ALL:  # the whole CV once per curve (its refit too); each curve's groups named after it
+        runs = {c: run_cv(hdri_dir, sphere_size, methods, overrides, control, limit, log, workdir, refit, c)
+                for c in run_choices(ALL, STILL)}
+        out = {**next(iter(runs.values())), "curve": ALL, "splits": {}, "refit": {}}
+        for c, res in runs.items():
+            out["splits"].update({f"{g} · curve {curve_label(c)}": v for g, v in res["splits"].items()})
+            out["refit"][curve_label(c)] = res["refit"]
+        return out
     overrides = dict(overrides or {})
     methods = tuple(methods)
     rooms = indoor_rooms(hdri_dir, limit)
@@ -604,14 +689,14 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
     if overrides:
         protocol += f" VARIANT, not the shipped preset: {PRESET} with {json.dumps(overrides)}."
     out: dict = {"protocol": protocol, "hdri_dir": str(hdri_dir), "preset": PRESET, "methods": list(methods),
-                 "overrides": overrides, "all_rooms_elevation_gain": all_rooms[GAIN_KEY],
+                 "overrides": overrides, "curve": curve, "all_rooms_elevation_gain": all_rooms[GAIN_KEY],
                  "all_rooms_clip_coefficients": all_rooms[CLIP_KEY], "splits": {},
                  "machine": machine_info()}  # seconds per photo depend on the host
     own_tmp = workdir is None
     workdir = Path(tempfile.mkdtemp(prefix="lightfield-cv-")) if own_tmp else Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     split_of = {r["filename"]: r["split"] for r in read_manifest(hdri_dir)}
-    selected = cv_select(rooms, folds, overrides, sphere_size, workdir, log) if refit else {}
+    selected = cv_select(rooms, folds, overrides, sphere_size, workdir, log, curve) if refit else {}
     out["refit"] = selected
 
     def fold_overrides(name: str | None) -> dict:
@@ -630,7 +715,7 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
         for path in items:
             t0 = time.perf_counter()
             ov = fold_overrides(path.name if path.name in folds else None)
-            im = evaluate_panorama(path, sphere_size, workdir, methods=methods, overrides=ov)
+            im = evaluate_panorama(path, sphere_size, workdir, methods=methods, overrides=ov, curve=curve)
             im["split"] = split_of.get(path.name)
             im["fold_overrides"] = {k: v for k, v in ov.items() if k not in overrides}
             images.append(im)
@@ -638,7 +723,9 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
                 log(f"{group} {path.name}: {time.perf_counter() - t0:.0f}s " + ", ".join(
                     f"{k} diffuse si {v['diffuse']['si_rmse_rel']:.3f} ang {v['diffuse']['angular_deg']:.1f}"
                     for k, v in im["scores"].items() if "non_finite" not in v))
-        out["splits"][group] = {"files": [p.name for p in items], "methods": cv_summary(images, methods),
+        out["splits"][group] = {"files": [p.name for p in items], "curve": curve,
+                                "methods": cv_summary(images, methods),
+                                "per_curve": per_curve(images, lambda ims: cv_summary(ims, methods)),
                                 "images": images}
     if own_tmp:
         import shutil
@@ -654,6 +741,8 @@ def resummarised(report: dict, splits: list[str] | None = None) -> dict:
         if splits:
             g["images"] = [im for im in g["images"] if im.get("split") in splits]
         g["methods"] = cv_summary(g["images"], tuple(report["methods"]))
+        if any("curve" in im for im in g["images"]):
+            g["per_curve"] = per_curve(g["images"], lambda ims: cv_summary(ims, tuple(report["methods"])))
     return report
 
 
@@ -687,6 +776,7 @@ def cv_markdown(res: dict, rows: bool = True) -> list[str]:
                 )
                 + " |"
             )
+    out += curve_table(res, lambda m, k: cell(m, k), ("diffuse_si_rmse_rel", "diffuse_angular_deg"))
     for group, g in res.get("splits", {}).items():
         for name, m in g["methods"].items():
             floor = m.get("oracle_floor_at_constant", {})
@@ -716,6 +806,23 @@ def cv_markdown(res: dict, rows: bool = True) -> list[str]:
                 out.append(
                     f"| {im['file']} | {im.get('split')} | " + " | ".join(cells) + f" | {c['angular_deg']:.1f} |"
                 )
+    return out
+
+
+def curve_table(res: dict, cell, keys) -> list[str]:
+    """Per group and camera curve (the groups' `per_curve`), each method's `cell(m, key)` for
+    `keys`: how the score moves with the camera's curve (the reference row labelled so)."""
+    rows = [(group, label, name, m) for group, g in res.get("splits", {}).items()
+            for label, ms in g.get("per_curve", {}).items() for name, m in ms.items()
+            if name not in ("truth", CONSTANT) and "vs_constant" in m]
+    if not rows:
+        return []
+    head = ["group", "camera curve", "method", "photos"] + [k.replace("_rel", "").replace("_", " ") + " vs const"
+                                                            for k in keys]
+    out = ["", "Per camera curve (core.sim.camera_curves; each photo's curve is its row's `curve`):", "",
+           "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for group, label, name, m in rows:
+        out.append("| " + " | ".join([group, label, name, str(m.get("images"))] + [cell(m, k) for k in keys]) + " |")
     return out
 
 
@@ -765,6 +872,7 @@ def main(argv=None) -> int:
     import argparse
 
     from bench.report import panorama_markdown, sanitize
+    from core.sim.camera_curves import add_curve_argument
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--hdri-dir", default=str(DEFAULT_HDRI_DIR))
@@ -804,6 +912,7 @@ def main(argv=None) -> int:
         "test,extra (the rooms no value was ever chosen on before the CV)",
     )
     p.add_argument("--md", default=None, help="with --cv / --cv-table / --cv-report: also write the markdown here")
+    add_curve_argument(p)
     p.add_argument("--cv-report", default=None, metavar="CV_JSON", help="a saved --cv report as markdown, its "
                    "summaries re-made from the per-room results (nothing is estimated)")
     args = p.parse_args(argv)
@@ -845,6 +954,7 @@ def main(argv=None) -> int:
             refit=not args.no_refit,
             limit=args.limit or None,
             log=lambda m: print(m, file=sys.stderr, flush=True),
+            curve=args.curve,
         )
         res["variant"] = args.variant or ("shipped" if not args.overrides else "overrides")
         res["command"] = "python -m bench.real_panoramas " + " ".join(sys.argv[1:] if argv is None else argv)
@@ -874,6 +984,7 @@ def main(argv=None) -> int:
         log=lambda m: print(m, file=sys.stderr, flush=True),
         overrides=json.loads(args.overrides) if args.overrides else None,
         views=max(1, args.views),
+        curve=args.curve,
     )
     if args.out:
         Path(args.out).write_text(json.dumps(sanitize(res), indent=1))

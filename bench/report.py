@@ -313,7 +313,17 @@ def panorama_markdown(pano: dict) -> list[str]:
                          _with_interval(m, "matte_si_rmse_rel"), m.get("observed_corr"),
                          _get(m, "metrics", "diffuse", "si_rmse_rel"), _get(m, "metrics", "diffuse", "angular_deg"),
                          _get(m, "metrics", "mirror", "angular_deg")])
-    return out + [table(headers, rows), ""]
+    out += [table(headers, rows), ""]
+    # how the scores move with the photos' camera curves (core.sim.camera_curves)
+    curve_rows = [[split, label, method, m.get("images"), _with_interval(m, "diffuse_si_rmse_rel"),
+                   _with_interval(m, "diffuse_angular_deg"), m.get("observed_corr")]
+                  for split, s in pano.get("splits", {}).items() for label, ms in s.get("per_curve", {}).items()
+                  for method, m in ms.items() if method != "truth" and "vs_constant" in m]
+    if curve_rows:
+        out += ["Per camera curve (each photo's curve is its row's `curve`):", "",
+                table(["split", "camera curve", "method", "images", "diffuse si-RMSE vs const [90 %]",
+                       "diffuse ang vs const [90 %]", "observed corr."], curve_rows), ""]
+    return out
 
 
 def scaling_markdown(scaling: dict) -> list[str]:

@@ -1,14 +1,19 @@
 """Room scans of real panoramas, end to end: what a user gets from a phone turned around a room.
 
-    python -m bench.room_scans [--rooms a,b] [--modes product,true-poses] [--set distill.emitters=0] [-o out.json]
+    python -m bench.room_scans [--rooms a,b] [--modes product,true-poses] [--set distill.emitters=0]
+        [--curve drawn|NAME|all] [-o out.json]
 
 Per indoor panorama of MANIFEST.tsv (dev, test and extra together; `control` rooms are not
 indoor and are reported apart): a room scan as core.sim.room_scan makes it (46 frames at 10 fps,
 192x144, rings at pitch +10, +55 and -40 with tilts between, hand jitter, a lagging
-auto-exposure spanning 4-9 stops, 8-bit H.264; seeded by the file name), uploaded as a plain
-MP4: no poses, no exposures, no intrinsics. Then `run_job` (the draft preset, as `lightfield
-estimate scan.mp4` runs it) and the env map at the first camera (the origin) at t = 0 and at
-the last frame's time.
+auto-exposure spanning 4-9 stops; seeded by the file name), encoded by the phone's camera curve
+(core.sim.camera_curves, `--curve`: by default drawn per room from srgb, rec709, filmic and
+hlg10; 8 or 10 bits), H.264 declaring the curve's transfer, uploaded as a plain MP4: no poses,
+no exposures, no intrinsics. Each room's `curve` is in its row; `summary_per_curve` and the
+table's per-curve rows score each curve apart (`--curve all`: every room once per curve, and
+the reference gamma2.4, the curve the product used to assume, labelled so). Then `run_job`
+(the draft preset, as `lightfield estimate scan.mp4` runs it) and the env map at the first
+camera (the origin) at t = 0 and at the last frame's time.
 
 Modes: `product` (THE PRODUCT: the video alone); `product+estimate` (the video and
 `"frame_ev": "estimate"`: the user says the exposure moved, as the README advises); `true-poses` (a diagnostic shortcut,
@@ -18,10 +23,11 @@ true exposures given too: what tracking and exposure recovery could reach at bes
 
 Scores, against the panorama rotated into the first camera's frame (world = first camera):
 three-sphere metrics (bench.suite.evaluation.score_probe) as ratios to the constant map of the
-clip's mean linearised colour (`mean-colour`, as in bench.real_panoramas); `seen_corr`, the
-log-luminance correlation of the map re-projected into every frame (true rotations) with the
-linearised frame, over the frames (does what was seen reappear where it was seen); `drift`, the
-relative L1 between the maps at the first and the last time (static light: 0); the job's CPU
+clip's mean colour linearised with its camera curve (`mean-colour`, as in bench.real_panoramas);
+`seen_corr`, the log-luminance correlation of the map re-projected into every frame (true
+rotations) with the frame linearised by its camera curve, over the frames (does what was seen
+reappear where it was seen); `drift`, the relative L1 between the maps at the first and the
+last time (static light: 0); the job's CPU
 seconds; and for tracking, the method, frames kept and the largest rotation error.
 No setting of the product is fitted here; what the product itself fitted on panoramas (the
 indoor fill's elevation profile and source cap, the clip rule's coefficients and spill colour
@@ -56,16 +62,24 @@ def room_seed(name: str) -> int:
     return zlib.crc32(name.encode()) % 1000
 
 
-def make_scan(pano_path: Path, workdir: Path, path: str = "scan"):
+def scan_curve(filename: str, curve: str = "drawn"):
+    """The camera curve of the room's scan (`curve` "drawn": drawn by the capture's name, this
+    bench and the file, among every realistic curve of a video; a name forces it)."""
+    from core.sim.camera_curves import VIDEO, resolve
+
+    return resolve(curve, f"room_scans:{filename}", VIDEO)
+
+
+def make_scan(pano_path: Path, workdir: Path, path: str = "scan", curve: str = "drawn"):
     """(video path, ScanClip) of the room's scan (or pan: core.sim.room_scan.scan_angles), seeded
-    by its file name."""
-    from core.io.video import write_video
+    by its file name, encoded by its camera curve (`scan_curve`) and written declaring it."""
     from core.sim.panorama_room import load_panorama
-    from core.sim.room_scan import SCAN_FPS, render_scan
+    from core.sim.room_scan import render_scan, write_scan
 
     seed = room_seed(pano_path.name)
-    clip = render_scan(load_panorama(pano_path, 256), yaw0=float(seed % 360), seed=seed, path=path)
-    video = write_video(workdir / f"{pano_path.stem}-{path}.mp4", clip.ldr.numpy(), SCAN_FPS)
+    cam = scan_curve(pano_path.name, curve)
+    clip = render_scan(load_panorama(pano_path, 256), yaw0=float(seed % 360), seed=seed, path=path, curve=cam)
+    video = write_scan(workdir / f"{pano_path.stem}-{path}-{cam.name}.mp4", clip)
     return video, clip
 
 
@@ -94,8 +108,10 @@ def run_mode(video: Path, clip, mode: str, workdir: Path, overrides: dict | None
     from core.engine import run_job
     from core.engine.params import JobParams
     from core.engine.presets import preset
+    from core.sim.camera_curves import VIDEO
 
-    params: dict = {"preset": "draft"}
+    # {} but for the reference camera, whose video cannot state its curve
+    params: dict = {"preset": "draft", **(clip.curve.job_params(VIDEO) if clip.curve is not None else {})}
     if mode == "product+estimate":  # the user says the camera's exposure moved (docs/captures.md, "Exposure")
         params["frame_ev"] = "estimate"
     elif mode != "product":
@@ -113,18 +129,18 @@ def run_mode(video: Path, clip, mode: str, workdir: Path, overrides: dict | None
 
 def seen_correlation(env: torch.Tensor, clip, first: int = 0) -> float:
     """Mean over the frames of the map re-projected into the frame (true rotation relative to the
-    first camera) against the linearised frame (core.metrics.observed_region_correlation)."""
+    first camera) against the frame linearised with its camera curve
+    (core.metrics.observed_region_correlation)."""
     from core.camera import Camera
-    from core.conventions import inverse_tonemap
     from core.metrics import observed_region_correlation
 
     vals = []
-    for c2w, ldr in zip(relative_poses(clip, first), clip.ldr):
+    for c2w, ldr, linear in zip(relative_poses(clip, first), clip.ldr, clip.linear()):
         rays = Camera(clip.intrinsics, c2w).pixel_rays(dtype=torch.float64)[1]
         unclipped = ldr.amax(-1) < 0.99
         if int(unclipped.sum()) < 16:
             continue
-        vals.append(observed_region_correlation(env, inverse_tonemap(ldr), rays, unclipped))
+        vals.append(observed_region_correlation(env, linear, rays, unclipped))
     return sum(vals) / len(vals) if vals else 0.0
 
 
@@ -171,11 +187,12 @@ def tracking_summary(artefact, clip) -> dict:
 
 
 def evaluate_room(
-    pano_path: Path, modes, workdir: Path, sphere_size: int, overrides_for=None, path: str = "scan"
+    pano_path: Path, modes, workdir: Path, sphere_size: int, overrides_for=None, path: str = "scan",
+    curve: str = "drawn",
 ) -> dict:
     from bench.suite.evaluation import score_probe
 
-    video, clip = make_scan(pano_path, workdir, path)
+    video, clip = make_scan(pano_path, workdir, path, curve)
     gt = ground_truth(pano_path, clip)
     preds = {CONSTANT: constant_map(clip)}
     extra: dict = {}
@@ -198,8 +215,8 @@ def evaluate_room(
     scores = score_probe(preds, gt, sphere_size)
     for mode, own in extra_scores.items():  # scored at the first kept camera, against the constant map there
         scores[mode], scores[f"{CONSTANT}@{mode}"] = own[mode], own[CONSTANT]
-    return {"file": pano_path.name, "span_stops": round(clip.span_stops, 2), "scores": scores, "modes": extra,
-            "truth_seen_corr": round(seen_correlation(gt, clip), 4)}
+    return {"file": pano_path.name, "curve": clip.curve.name, "span_stops": round(clip.span_stops, 2),
+            "scores": scores, "modes": extra, "truth_seen_corr": round(seen_correlation(gt, clip), 4)}
 
 
 def summarise(rows: list[dict], modes) -> dict:
@@ -260,35 +277,46 @@ def cv_overrides(hdri: Path, refit_json: Path):
 
 
 def markdown(report: dict) -> list[str]:
-    """The report's summary as a table (one row per mode), then one row per room."""
+    """The report's summary as a table (one row per mode; over the realistic camera curves, then
+    per curve, the reference labelled), then one row per room and curve."""
+    from core.sim.camera_curves import NAMES, REFERENCE, curve_label
+
     head = ("| capture | mode | rooms | diffuse si-RMSE vs const [95 %] | diffuse angle vs const [95 %] | "
             "mirror si-RMSE vs const [95 %] | seen corr. (truth) | drift | CPU s | tracked as rotation (≤ 2°) | "
             "read as changing light |")
     lines = [head, "|" + "---|" * 11]
-    rows = [r for r in report["rooms"] if r.get("split") != "control"]
-    truth = sum(r["truth_seen_corr"] for r in rows) / max(len(rows), 1)
-    for mode in report["modes"]:
-        m = summarise(rows, (mode,))[mode]
+    every = [r for r in report["rooms"] if r.get("split") != "control"]
+    # the summary rows: the realistic cameras (the reference alone when only it was run), then each curve apart
+    groups = [("", [r for r in every if r.get("curve") != REFERENCE] or every)]
+    curves = [c for c in NAMES if any(r.get("curve") == c for r in every)]
+    if len(curves) > 1 or report.get("curve", "drawn") == "drawn":
+        groups += [(f", curve {curve_label(c)}", [r for r in every if r.get("curve") == c]) for c in curves]
+    for suffix, rows in groups:
+        truth = sum(r["truth_seen_corr"] for r in rows) / max(len(rows), 1)
+        for mode in report["modes"]:
+            m = summarise(rows, (mode,))[mode]
 
-        def cell(key):
-            v = m.get(key)
-            return f"{v['ratio']:.2f} [{v['interval_95'][0]:.2f}, {v['interval_95'][1]:.2f}]" if v else "–"
+            def cell(key):
+                v = m.get(key)
+                return f"{v['ratio']:.2f} [{v['interval_95'][0]:.2f}, {v['interval_95'][1]:.2f}]" if v else "–"
 
-        tracked = (
-            f"{m['tracked_as_rotation']} ({m['tracked_within_2deg']})" if mode.startswith("product") else "poses given"
-        )
-        lines.append(
-            f"| {report.get('path', 'scan')} | {mode} | {len(rows)} | {cell('diffuse_si_rmse_rel')} | "
-            f"{cell('diffuse_angular_deg')} | {cell('mirror_si_rmse_rel')} | {m['seen_corr']:.2f} ({truth:.2f}) | "
-            f"{m['drift']:.3f} | {m['cpu_s']:.0f} | {tracked} | "
-            f"{m['uses_time']} |"
-        )
+            tracked = (
+                f"{m['tracked_as_rotation']} ({m['tracked_within_2deg']})" if mode.startswith("product")
+                else "poses given"
+            )
+            lines.append(
+                f"| {report.get('path', 'scan')}{suffix} | {mode} | {len(rows)} | {cell('diffuse_si_rmse_rel')} | "
+                f"{cell('diffuse_angular_deg')} | {cell('mirror_si_rmse_rel')} | {m['seen_corr']:.2f} ({truth:.2f}) | "
+                f"{m['drift']:.3f} | {m['cpu_s']:.0f} | {tracked} | "
+                f"{m['uses_time']} |"
+            )
+    rows = every
     machine = report.get("machine")
     if machine:  # CPU seconds are the host's as much as the code's
         lines += ["", f"CPU seconds on {machine.get('cpu_model')}, {machine.get('cores')} cores, at "
                       f"{str(machine.get('git_commit', ''))[:7]} ({machine.get('date_utc', '')[:10]})."]
-    lines += ["", "| room | split | mode | diffuse si-RMSE / angle / mirror vs const | seen corr. | drift | CPU s | "
-              "largest rotation error (°) | exposure span (stops) |", "|" + "---|" * 9]
+    lines += ["", "| room | split | camera curve | mode | diffuse si-RMSE / angle / mirror vs const | seen corr. | "
+              "drift | CPU s | largest rotation error (°) | exposure span (stops) |", "|" + "---|" * 10]
     for r in rows:
         for mode, ex in r["modes"].items():
             sc, c = r["scores"][mode], r["scores"].get(f"{CONSTANT}@{mode}", r["scores"][CONSTANT])
@@ -298,7 +326,8 @@ def markdown(report: dict) -> list[str]:
                 for a, b in (("diffuse", "s"), ("diffuse", "a"), ("mirror", "s"))
             ]
             lines.append(
-                f"| {r['file']} | {r.get('split')} | {mode} | {ratio[0]:.2f} / {ratio[1]:.2f} / {ratio[2]:.2f} | "
+                f"| {r['file']} | {r.get('split')} | {r.get('curve', '–')} | {mode} | "
+                f"{ratio[0]:.2f} / {ratio[1]:.2f} / {ratio[2]:.2f} | "
                 f"{ex['seen_corr']:.2f} | {ex['drift']:.3f} | {ex['cpu_s']:.0f} | "
                 f"{ex['tracking'].get('max_rotation_error_deg', '–')} | {r['span_stops']} |"
             )
@@ -307,9 +336,10 @@ def markdown(report: dict) -> list[str]:
 
 def main(argv=None) -> int:
     from bench.overrides import parse_set
-    from bench.real_panoramas import read_manifest
+    from bench.real_panoramas import curve_summaries, read_manifest
     from bench.report import sanitize
     from bench.suite.measure import machine_info
+    from core.sim.camera_curves import VIDEO, add_curve_argument, run_choices
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--hdri-dir", default=str(DEFAULT_HDRI_DIR))
@@ -332,13 +362,14 @@ def main(argv=None) -> int:
     )
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="draft preset override for every room's job (JSON value), e.g. distill.emitters=0 (ablations)")
+    add_curve_argument(p)
     p.add_argument("--rescore", default=None, metavar="REPORT_JSON",
                    help="re-summarise a saved report (its rooms as they are) and write its table beside it (.md)")
     args = p.parse_args(argv)
     if args.rescore:
         report = json.loads(Path(args.rescore).read_text())
         indoor = [r for r in report["rooms"] if r.get("split") != "control"]
-        report["summary"] = summarise(indoor, report["modes"])
+        report.update(curve_summaries(indoor, lambda rs: summarise(rs, report["modes"])))
         Path(args.rescore).write_text(json.dumps(report, indent=1))
         table = "\n".join(markdown(report)) + "\n"
         Path(args.rescore).with_suffix(".md").write_text(table)
@@ -356,7 +387,8 @@ def main(argv=None) -> int:
         extra = parse_set(args.set)
         fold = overrides_for
         overrides_for = lambda name: {**(fold(name) if fold else {}), **extra}  # noqa: E731
-    out: dict = {"protocol": __doc__, "modes": modes, "path": args.path, "rooms": {}, "targets": TARGETS,
+    out: dict = {"protocol": __doc__, "modes": modes, "path": args.path, "curve": args.curve, "rooms": {},
+                 "targets": TARGETS,
                  "cross_validated": not args.no_cv, "machine": machine_info(),  # CPU seconds depend on the host
                  "command": "python -m bench.room_scans " + " ".join(argv if argv is not None else sys.argv[1:])}
     with tempfile.TemporaryDirectory() as tmp:
@@ -364,16 +396,18 @@ def main(argv=None) -> int:
         work.mkdir(parents=True, exist_ok=True)
         results = []
         for name in names:
-            t0 = time.perf_counter()
-            row = evaluate_room(hdri / name, modes, work, args.sphere_size, overrides_for, args.path)
-            row["split"] = next((r["split"] for r in rows if r["filename"] == name), None)
-            results.append(row)
-            print(json.dumps(sanitize(row)), flush=True)
-            if args.out:
-                Path(args.out).write_text(json.dumps(sanitize({**out, "rooms": results, "partial": True}), indent=1))
-            print(f"{name}: {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+            for curve in run_choices(args.curve, VIDEO):
+                t0 = time.perf_counter()
+                row = evaluate_room(hdri / name, modes, work, args.sphere_size, overrides_for, args.path, curve)
+                row["split"] = next((r["split"] for r in rows if r["filename"] == name), None)
+                results.append(row)
+                print(json.dumps(sanitize(row)), flush=True)
+                if args.out:
+                    Path(args.out).write_text(json.dumps(sanitize({**out, "rooms": results, "partial": True}),
+                                                         indent=1))
+                print(f"{name} ({row['curve']}): {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
     indoor = [r for r in results if r["split"] != "control"]
-    out["summary"] = summarise(indoor, modes)
+    out.update(curve_summaries(indoor, lambda rs: summarise(rs, modes)))
     control = [r for r in results if r["split"] == "control"]
     if control:
         out["summary_control"] = summarise(control, modes)

@@ -87,6 +87,9 @@ class BenchOptions:
     sweep_suites: tuple[str, ...] | None = None  # override the mode's (empty: core methods only)
     diffusion_weights: Path | None = None  # local diffusion prior weights: adds mlp/grid-diffusion
     diffusionlight_weights: Path | None = None  # imported DiffusionLight weights: adds diffusionlight(-distilled)
+    # the captures' camera curve (core.sim.camera_curves): "drawn" per capture, or a name (every
+    # section's captures encoded with it); a per-curve run of a bench is its own CLI's `--curve all`
+    curve: str = "drawn"
 
 
 def log(msg: str) -> None:
@@ -136,7 +139,7 @@ def run_simulated(mode: Mode, opts: BenchOptions, workdir: Path) -> dict:
     }
     for name in opts.suites:
         log(f"suite {name}: preparing capture")
-        suite = load_suite(name, cache, mode.resolution, mode.gt_height)
+        suite = load_suite(name, cache, mode.resolution, mode.gt_height, opts.curve)
         methods = core_methods(opts.diffusion_weights, opts.diffusionlight_weights) + (
             sweep_methods(budget) if name in mode.sweep_suites else []
         )
@@ -163,7 +166,7 @@ def run_bench(opts: BenchOptions) -> dict:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     results: dict = {"mode": mode.name, "note": mode.note, "mode_settings": asdict(mode), "machine": machine_info(),
-                     "sections": list(opts.sections)}
+                     "sections": list(opts.sections), "curve": opts.curve}
     workdir = Path(tempfile.mkdtemp(prefix="lightfield-bench-"))
     try:
         if "simulated" in opts.sections:
@@ -172,7 +175,8 @@ def run_bench(opts: BenchOptions) -> dict:
             from bench.real_panoramas import run_panoramas
 
             results["real_panoramas"] = run_panoramas(
-                opts.hdri_dir, mode.panorama_limit, mode.sphere_size, quick=opts.quick, workdir=workdir, log=log
+                opts.hdri_dir, mode.panorama_limit, mode.sphere_size, quick=opts.quick, workdir=workdir, log=log,
+                curve=opts.curve,
             )
         if "scaling" in opts.sections:
             from bench.scaling import run_scaling
@@ -187,7 +191,7 @@ def run_bench(opts: BenchOptions) -> dict:
 
             log("tracking: speed clips and panorama pans")
             results["tracking"] = run_tracking(
-                opts.hdri_dir, mode.panorama_limit, mode.sphere_size, opts.quick, workdir
+                opts.hdri_dir, mode.panorama_limit, mode.sphere_size, opts.quick, workdir, curve=opts.curve
             )
     finally:
         torch.set_num_threads(threads)
@@ -202,6 +206,7 @@ def run_bench(opts: BenchOptions) -> dict:
         and opts.suites == SUITE_NAMES
         and opts.iterations is None
         and opts.sweep_suites is None
+        and opts.curve == "drawn"
     )
     if Path(opts.out_dir).resolve() == DEFAULT_OUT_DIR.resolve() and complete:
         # only a complete run into the committed results directory refreshes the README

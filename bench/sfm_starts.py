@@ -1,12 +1,12 @@
 """Structure from motion's starts on walks: what each initial pair gives, and what the rule keeps.
 
     python -m bench.sfm_starts --split dev [--limit N] [--variants walk-noisy,walk-dim] \
-        [--starts 4,8,16] [-o bench/results/handheld/dev_sfm_starts.json]
+        [--starts 4,8,16] [--curve drawn|NAME|all] [-o bench/results/handheld/dev_sfm_starts.json]
 
 COLMAP's incremental mapper grows its model from one pair of frames, and on a phone's noisy
 walk the pair it starts from decides whether the model drifts (core.tracking.sfm). Per
 panorama of MANIFEST.tsv (`--split`; tune on dev, report test once) and per walk of
-bench.handheld (WALKS, the same clips), COLMAP runs once per start (`--starts`: the initial
+bench.handheld (WALKS, the same clips and camera curves: `--curve`), COLMAP runs once per start (`--starts`: the initial
 pair's minimum triangulation angle, degrees) on the analysis frames, as structure from motion
 alone (not track_camera: no rotation track, no fallback). Reported per start: frames
 registered, the largest rotation error against the true poses (degrees, world = the first
@@ -26,13 +26,14 @@ from pathlib import Path
 from bench.handheld import FRAMES, WALKS, clips
 
 
-def evaluate(path: Path, variants: dict, starts: tuple[float, ...]) -> dict:
+def evaluate(path: Path, variants: dict, starts: tuple[float, ...], curve: str = "drawn") -> dict:
     import core.tracking.sfm as sfm
+    from bench.handheld import clip_curve
     from core.tracking.features import analysis_frames
     from core.tracking.geometry import relative_to_first, rotation_angle_deg
 
-    out = {"file": path.name, "clips": {}}
-    for name, ldr, intr, true in clips(path, variants):
+    out = {"file": path.name, "curve": clip_curve(path.name, curve).name, "clips": {}}
+    for name, ldr, intr, true in clips(path, variants, curve):
         images, k = analysis_frames(ldr, intr)
         models = []
         for angle in starts:
@@ -81,7 +82,8 @@ def summarise(rows: list[dict], variants: dict, starts: tuple[float, ...]) -> di
 
 
 def main(argv: list[str] | None = None) -> int:
-    from bench.real_panoramas import add_split_arguments, split_files
+    from bench.real_panoramas import add_split_arguments, curve_summaries, split_files
+    from core.sim.camera_curves import VIDEO, run_choices
     from core.tracking.sfm import INIT_MIN_TRI_ANGLES_DEG
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -97,12 +99,14 @@ def main(argv: list[str] | None = None) -> int:
     starts = tuple(float(a) for a in args.starts.split(",")) if args.starts else INIT_MIN_TRI_ANGLES_DEG
     rows = []
     for f in split_files(args.hdri_dir, args.split, args.limit):
-        rows.append(evaluate(f, variants, starts))
-        print(json.dumps(rows[-1]), flush=True)
+        for curve in run_choices(args.curve, VIDEO):  # bench.handheld's clips and their camera curves
+            rows.append(evaluate(f, variants, starts, curve))
+            print(json.dumps(rows[-1]), flush=True)
     report = {
         "split": args.split,
         "starts": list(starts),
-        "summary": summarise(rows, variants, starts),
+        "curve": args.curve,
+        **curve_summaries(rows, lambda rs: summarise(rs, variants, starts)),
         "panoramas": rows,
     }
     from bench.report import show_and_write

@@ -105,6 +105,8 @@ def parse_variant(text: str) -> tuple[str, dict]:
 
 
 def main(argv=None) -> int:
+    from core.sim.camera_curves import add_curve_argument
+
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variant", action="append", default=[], help="NAME:key=value,key=value (draft overrides)")
@@ -115,6 +117,7 @@ def main(argv=None) -> int:
         help="also compare each stretch's end-to-start brightness change at this many room positions (0: off)",
     )
     p.add_argument("-o", "--output", default=None)
+    add_curve_argument(p, allow_all=False)  # the suite's camera curve: drawn by its name, or forced
     args = p.parse_args(argv)
     torch.set_num_threads(1)
 
@@ -124,10 +127,10 @@ def main(argv=None) -> int:
     from bench.suite.simulated import load_suite
     from core.engine.presets import preset
 
-    suite = load_suite("temporal", default_cache_dir(), None, 64)
+    suite = load_suite("temporal", default_cache_dir(), None, 64, args.curve)
     prior_run = run_per_probe(Method("prior", "per-probe", "baseline", "prior"), suite, preset("draft"))
-    report = {"suite": "temporal", "seed": args.seed, "prior (shortcut)": stretch_courses(suite, prior_run.series),
-              "variants": {}}
+    report = {"suite": "temporal", "curve": suite.describe()["camera_curve"], "seed": args.seed,
+              "prior (shortcut)": stretch_courses(suite, prior_run.series), "variants": {}}
     positions = room_positions(suite.scene, args.room_positions, seed=5)
     if positions:
         from bench.methods import _bound_prior

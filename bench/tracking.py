@@ -6,13 +6,15 @@ process (time.process_time, all threads) and wall seconds. Target (issue 13): <=
 
 Accuracy (the product, the way a user runs it): per panorama of MANIFEST.tsv, a phone-style
 pan (PAN_FRAMES frames, PAN_DEG of yaw with a pitch wobble, 60 deg FOV, one locked exposure,
-H.264 at 10 fps) from a view drawn per file name, written as an mp4 and estimated with
+encoded by the phone's camera curve (core.sim.camera_curves: drawn per file name from srgb,
+rec709, filmic and hlg10 unless `curve` forces one; each image's `curve`), H.264 at 10 fps
+declaring it) from a view drawn per file name, written as an mp4 and estimated with
 `run_job` (no intrinsics given, as a user would); the env map at the camera at t = 0 (the
 world origin: world = first camera) is compared with the panorama rotated into that camera:
 * `tracked`: no poses given (the product tracks the camera);
 * `true-poses`: the true poses given in `params.poses`;
 * `static`: tracking off (`params.tracking = "off"`: what the product did before it tracked);
-* `mean-colour`: a constant map of frame 0's mean linearised colour.
+* `mean-colour`: a constant map of frame 0's mean colour, linearised with its camera curve.
 Target: tracked within 5 % of true-poses on diffuse rel si-RMSE, and better than mean-colour.
 `test` panoramas are evaluated once for the report, never tuned on.
 """
@@ -59,15 +61,25 @@ def walk_poses(n: int, scale: float = 1.0) -> list[torch.Tensor]:
     ]
 
 
-def _clip(pano: torch.Tensor, poses, size, centre=(0.0, 0.0, 0.0)):
+def _clip(pano: torch.Tensor, poses, size, centre=(0.0, 0.0, 0.0), curve=None):
+    """(frames, depth, intrinsics) of the clip: the camera `curve`'s codes, or (None) the
+    engine's convention (the speed clips, tracked in memory)."""
     from core.camera import Camera, Intrinsics
     from core.sim.panorama_room import PanoramaRoom, render_clip
     from core.tracking.room import assumed_room
 
     intr = Intrinsics.from_hfov(size[0], size[1], HFOV_DEG)
     room = PanoramaRoom(pano, assumed_room(), torch.tensor(centre))
-    ldr, depth, _ = render_clip(room, [Camera(intr, p) for p in poses])
+    ldr, depth, _ = render_clip(room, [Camera(intr, p) for p in poses], curve=curve)
     return ldr, depth, intr
+
+
+def pan_curve(filename: str, curve: str = "drawn"):
+    """The camera curve of the panorama's pan (`curve` "drawn": drawn by the capture's name,
+    this bench and the file, among every realistic curve of a video; a name forces it)."""
+    from core.sim.camera_curves import VIDEO, resolve
+
+    return resolve(curve, f"tracking:{filename}", VIDEO)
 
 
 def run_speed() -> dict:
@@ -121,41 +133,43 @@ def _estimate(video: Path, params: dict, workdir: Path, iterations: int, work_he
 
 
 def evaluate_panorama(path: Path, frames: int, size, iterations: int, work_height: int, sphere_size: int,
-                      workdir: Path) -> dict:
+                      workdir: Path, curve: str = "drawn") -> dict:
     from bench.suite.evaluation import score_probe
-    from core.conventions import equirect_width, inverse_tonemap
+    from core.conventions import equirect_width
     from core.envmap import resize_envmap, rotate_envmap
-    from core.io.video import write_video
+    from core.sim.camera_curves import VIDEO, write_video
     from core.sim.panorama_room import load_panorama
 
     pano = load_panorama(path, PANO_HEIGHT)
     yaw, pitch = _view(path.name)
     poses = pan_poses(frames, yaw, pitch)
-    ldr, _, _ = _clip(pano, poses, size)
-    video = write_video(workdir / f"{path.stem}.mp4", ldr.numpy(), FPS)
+    cam = pan_curve(path.name, curve)
+    ldr, _, _ = _clip(pano, poses, size, curve=cam)
+    video = write_video(workdir / f"{path.stem}-{cam.name}.mp4", ldr, FPS, cam)
     R0 = poses[0][:3, :3]
     gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), R0.T)  # world = the first camera's frame
     rel = [torch.linalg.inv(poses[0]) @ p for p in poses]
+    extra = cam.job_params(VIDEO)  # {} but for the reference, whose video cannot state its curve
     runs = {
-        "tracked": {},
-        "true-poses": {"poses": [p.reshape(-1).tolist() for p in rel]},
-        "static": {"tracking": "off"},
+        "tracked": {**extra},
+        "true-poses": {"poses": [p.reshape(-1).tolist() for p in rel], **extra},
+        "static": {"tracking": "off", **extra},
     }
     preds, seconds, meta = {}, {}, {}
     for name, params in runs.items():
         t0 = time.perf_counter()
-        preds[name] = _estimate(video, params, workdir / f"{path.stem}-{name}", iterations, work_height)
+        preds[name] = _estimate(video, params, workdir / f"{path.stem}-{cam.name}-{name}", iterations, work_height)
         seconds[name] = round(time.perf_counter() - t0, 2)
-    mean = inverse_tonemap(ldr[0]).reshape(-1, 3).mean(0)
+    mean = cam.decode(ldr[0]).reshape(-1, 3).mean(0)  # linearised with the clip's own curve
     preds["mean-colour"] = mean.expand(GT_HEIGHT, equirect_width(GT_HEIGHT), 3).clone()
-    return {"file": path.name, "yaw_deg": round(yaw, 2), "pitch_deg": round(pitch, 2), "seconds": seconds,
-            "scores": score_probe(preds, gt, sphere_size), **meta}
+    return {"file": path.name, "curve": cam.name, "yaw_deg": round(yaw, 2), "pitch_deg": round(pitch, 2),
+            "seconds": seconds, "scores": score_probe(preds, gt, sphere_size), **meta}
 
 
 def run_tracking(hdri_dir: Path, limit: int | None, sphere_size: int, quick: bool, workdir: Path,
-                 splits: tuple[str, ...] = ("dev", "test")) -> dict:
+                 splits: tuple[str, ...] = ("dev", "test"), curve: str = "drawn") -> dict:
     from bench.real_panoramas import read_manifest
-    from bench.suite.evaluation import mean_scores
+    from core.sim.camera_curves import REFERENCE, VIDEO, group_by_curve, run_choices
 
     frames, size = (12, (160, 120)) if quick else (20, (320, 240))
     iterations, work_height = (60, 72) if quick else (300, 96)
@@ -164,8 +178,10 @@ def run_tracking(hdri_dir: Path, limit: int | None, sphere_size: int, quick: boo
         "protocol": (
             f"pan of {PAN_DEG:g} deg yaw (+-{PITCH_WOBBLE_DEG:g} deg pitch wobble) from one spot, {frames} frames "
             f"{size[0]}x{size[1]}, {HFOV_DEG:g} deg FOV, locked exposure, H.264 at {FPS:g} fps; run_job "
-            f"draft preset at {iterations} steps, work height {work_height}; env map at the first camera, t = 0"
+            f"draft preset at {iterations} steps, work height {work_height}; env map at the first camera, t = 0; "
+            f"camera curve {curve} (core.sim.camera_curves; each image's `curve`)"
         ),
+        "curve": curve,
         "splits": {},
     }
     hdri_dir = Path(hdri_dir)
@@ -182,11 +198,22 @@ def run_tracking(hdri_dir: Path, limit: int | None, sphere_size: int, quick: boo
         for f in files:
             d = workdir / "tracking" / split
             d.mkdir(parents=True, exist_ok=True)
-            images.append(evaluate_panorama(hdri_dir / f, frames, size, iterations, work_height, sphere_size, d))
-        methods = {name: mean_scores([im["scores"][name] for im in images])
-                   for name in ("tracked", "true-poses", "static", "mean-colour")}
-        t, p, c = (methods[n]["diffuse"]["si_rmse_rel"] for n in ("tracked", "true-poses", "mean-colour"))
-        out["splits"][split] = {"files": files, "methods": methods, "images": images,
-                                "tracked_vs_true_poses": round(t / p - 1.0, 4) if p else None,
-                                "within_5_percent": bool(p and t <= 1.05 * p), "better_than_constant": bool(t < c)}
+            for choice in run_choices(curve, VIDEO):
+                images.append(evaluate_panorama(hdri_dir / f, frames, size, iterations, work_height, sphere_size, d,
+                                                choice))
+        realistic = [im for im in images if im["curve"] != REFERENCE] or images
+        out["splits"][split] = {"files": files, **split_summary(realistic), "images": images,
+                                "per_curve": group_by_curve(images, split_summary)}
     return out
+
+
+def split_summary(images: list[dict]) -> dict:
+    """Mean scores per method over the images, and the targets: tracked within 5 % of
+    true-poses on diffuse rel si-RMSE, and better than the constant map."""
+    from bench.suite.evaluation import mean_scores
+
+    methods = {name: mean_scores([im["scores"][name] for im in images])
+               for name in ("tracked", "true-poses", "static", "mean-colour")}
+    t, p, c = (methods[n]["diffuse"]["si_rmse_rel"] for n in ("tracked", "true-poses", "mean-colour"))
+    return {"methods": methods, "tracked_vs_true_poses": round(t / p - 1.0, 4) if p else None,
+            "within_5_percent": bool(p and t <= 1.05 * p), "better_than_constant": bool(t < c)}

@@ -1,12 +1,15 @@
 """A person walking through a static camera's view of real panorama rooms: read as the light
 changing, or painted out (core/capture/transients.py; docs/captures.md).
 
-    python -m bench.transients --split dev [--limit N] [--iterations 200] [-o out.json]
+    python -m bench.transients --split dev [--limit N] [--iterations 200] [--curve drawn|NAME|all] [-o out.json]
 
 Per panorama of MANIFEST.tsv (`--split`; tune on dev, report test once): a static view (the
 yaw and pitch of bench.tracking's clips, 60 deg FOV, SIZE) of the panorama pasted on the
 assumed box room (core.sim.panorama_room), FRAMES frames at FPS under one exposure (the clip's
-mean at mid-grey), 8-bit, H.264: a plain video with no parameters, as a user uploads it. A
+mean at mid-grey), encoded by the phone's camera curve (core.sim.camera_curves, `--curve`: by
+default drawn per panorama from srgb, rec709, filmic and hlg10), H.264 declaring the curve's
+transfer: a plain video with no parameters, as a user uploads it (each row's `curve`; summaries
+per curve in `summary_per_curve`). A
 simulated figure (a head and a body 3/4 of the frame high, a textured coat whose brightness is
 drawn per panorama, 0.1x-2x mid-grey) walks from left to right over frames WALK. Clips:
 * `walk`: the figure under steady light;
@@ -29,7 +32,8 @@ Jobs (`walk` with the default and with "keep", and `clean`; the draft at `--iter
 work height 72): the env map at the camera at t = 0 and at the middle frame's time (the figure
 in view); `map_change_stops` = RMS over the sphere of log2 of their luminance ratio (static
 light: 0 is right); the middle map's diffuse rel si-RMSE against the panorama rotated into the
-camera, with a constant map of the clean frame's mean linear colour beside it. The figure is
+camera, with a constant map of the clean frame's mean colour beside it (linearised with the
+clip's camera curve). The figure is
 simulated: real people cast shadows, reflect, and stop.
 """
 from __future__ import annotations
@@ -68,14 +72,21 @@ def figure(h: int, w: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     return shape, level * colour * texture[..., None]
 
 
+def view_curve(filename: str, curve: str = "drawn"):
+    """The camera curve of the panorama's clips (`curve` "drawn": drawn by the capture's name,
+    this bench and the file, among every realistic curve of a video; a name forces it)."""
+    from core.sim.camera_curves import VIDEO, resolve
+
+    return resolve(curve, f"transients:{filename}", VIDEO)
+
+
 def clip(
-    pano: torch.Tensor, yaw: float, pitch: float, seed: int, *, walker: bool, light
+    pano: torch.Tensor, yaw: float, pitch: float, seed: int, *, walker: bool, light, curve
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(8-bit LDR [T, H, W, 3], where the figure is [T, H, W]) of one static view; `light(i, hdr)`
-    returns frame i's linear image from the steady one."""
+    """(the camera `curve`'s codes [T, H, W, 3], where the figure is [T, H, W]) of one static
+    view; `light(i, hdr)` returns frame i's linear image from the steady one."""
     from bench.tracking import HFOV_DEG
     from core.camera import Camera, Intrinsics
-    from core.conventions import tonemap
     from core.exposure import luminance
     from core.sim.panorama_room import PanoramaRoom
     from core.sim.state import pose_from_yaw_pitch
@@ -97,7 +108,7 @@ def clip(
             s[:, x0:x0 + pw] = shape[:, :pw]
             hdr[i][s] = coat[:, :pw][shape[:, :pw]]
             where[i] = s
-    return torch.round(tonemap(hdr) * 255) / 255, where
+    return curve.encode(hdr), where
 
 
 def pool(h: int, w: int) -> torch.Tensor:
@@ -106,25 +117,25 @@ def pool(h: int, w: int) -> torch.Tensor:
     return 2.0 * torch.exp(-((xx - 0.35) ** 2 + (yy - 0.65) ** 2) / 0.03)[..., None]
 
 
-def pans(pano: torch.Tensor, yaw: float, pitch: float, seed: int, stem: Path) -> dict:
+def pans(pano: torch.Tensor, yaw: float, pitch: float, seed: int, stem: Path, curve) -> dict:
     """bench.auto_exposure_pans' pan (90 deg, 16 frames at 10 fps, one exposure, steady light)
     with and without the figure walking across the frame over frames 4-11 (with the room's
     drift in the frame, the camera half following them), under an auto-exposure, and with the
     light halved from the middle frame. Per clip as loaded: tracked or taken for a static
     camera, the tracking method, the largest rotation error (deg, frames kept, world = the
-    first kept frame), whether the temporal decision reads changing light, the painted share."""
+    first kept frame), whether the temporal decision reads changing light, the painted share.
+    Every clip is the camera `curve`'s (core.sim.camera_curves)."""
     from bench.auto_exposure_pans import FPS as PAN_FPS, ae_clip
     from core.capture.load import load_capture
     from core.capture.params import CaptureParams
     from core.capture.temporal import decide_temporal
-    from core.conventions import inverse_tonemap, tonemap
-    from core.io.video import write_video
+    from core.sim.camera_curves import VIDEO, write_video
 
-    ldr, _, poses = ae_clip(pano, yaw, pitch, light=lambda i, n: 1.0)
-    ae, _, _ = ae_clip(pano, yaw, pitch, speed=0.5)
-    halved, _, _ = ae_clip(pano, yaw, pitch, light=lambda i, n: 1.0 if i < n // 2 else 0.5)
+    ldr, _, poses = ae_clip(pano, yaw, pitch, light=lambda i, n: 1.0, curve=curve)
+    ae, _, _ = ae_clip(pano, yaw, pitch, speed=0.5, curve=curve)
+    halved, _, _ = ae_clip(pano, yaw, pitch, light=lambda i, n: 1.0 if i < n // 2 else 0.5, curve=curve)
     T, h, w, _ = ldr.shape
-    lin = inverse_tonemap(ldr)
+    lin = curve.decode(ldr)
     shape, coat = figure(h, w, seed)
     pw = w // 6
     for i in range(4, 12):
@@ -133,12 +144,11 @@ def pans(pano: torch.Tensor, yaw: float, pitch: float, seed: int, stem: Path) ->
         s[:, x0:x0 + pw] = shape[:, :pw]
         lin[i][s] = coat[:, :pw][shape[:, :pw]]
     out = {}
-    for name, frames in (("pan", ldr), ("pan-walk", torch.round(tonemap(lin) * 255) / 255), ("pan-ae", ae),
-                         ("pan-halved", halved)):
-        video = write_video(Path(f"{stem}-{name}.mp4"), frames.numpy(), PAN_FPS)
+    for name, frames in (("pan", ldr), ("pan-walk", curve.encode(lin)), ("pan-ae", ae), ("pan-halved", halved)):
+        video = write_video(Path(f"{stem}-{name}.mp4"), frames, PAN_FPS, curve)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            cap = load_capture(video, params=CaptureParams(fps=PAN_FPS))
+            cap = load_capture(video, params=CaptureParams(fps=PAN_FPS, **curve.job_params(VIDEO)))
         kept = (cap.times.double() * PAN_FPS).round().long()
         truth = torch.stack([torch.as_tensor(poses[int(k)], dtype=torch.float64) for k in kept])
         rel_true = truth[0, :3, :3].T @ truth[:, :3, :3]
@@ -153,7 +163,7 @@ def pans(pano: torch.Tensor, yaw: float, pitch: float, seed: int, stem: Path) ->
     return out
 
 
-def evaluate(path: Path, iterations: int, workdir: Path, pans_only: bool = False) -> dict:
+def evaluate(path: Path, iterations: int, workdir: Path, pans_only: bool = False, curve: str = "drawn") -> dict:
     from bench.auto_exposure_pans import map_change_stops, score_runs
     from bench.tracking import _view
     from core.capture.load import load_capture
@@ -164,15 +174,18 @@ def evaluate(path: Path, iterations: int, workdir: Path, pans_only: bool = False
     from core.engine.params import JobParams
     from core.engine.presets import preset
     from core.envmap import resize_envmap, rotate_envmap
-    from core.io.video import write_video
+    from core.sim.camera_curves import VIDEO, write_video
     from core.sim.panorama_room import load_panorama
     from core.sim.state import pose_from_yaw_pitch
 
     pano = load_panorama(path, 256)
     yaw, pitch = _view(path.name)
     seed = sum(path.name.encode())
+    cam = view_curve(path.name, curve)
+    extra_params = cam.job_params(VIDEO)  # {} but for the reference, whose video cannot state its curve
+    stem = path.stem + ("" if curve == "drawn" else f"-{cam.name}")
     if pans_only:
-        return {"file": path.name, "pans": pans(pano, yaw, pitch, seed, workdir / path.stem)}
+        return {"file": path.name, "curve": cam.name, "pans": pans(pano, yaw, pitch, seed, workdir / stem, cam)}
     w, h = SIZE
     mid = FRAMES // 2
     lights = {
@@ -181,16 +194,16 @@ def evaluate(path: Path, iterations: int, workdir: Path, pans_only: bool = False
         "pool-off": (False, lambda i, x: x * (1.0 + pool(h, w)) if i < mid else x),
         "clean": (False, lambda i, x: x),
     }
-    out = {"file": path.name, "clips": {}}
+    out = {"file": path.name, "curve": cam.name, "clips": {}}
     videos = {}
     for name, (walker, light) in lights.items():
-        ldr, where = clip(pano, yaw, pitch, seed, walker=walker, light=light)
-        videos[name] = write_video(workdir / f"{path.stem}-{name}.mp4", ldr.numpy(), FPS)
+        ldr, where = clip(pano, yaw, pitch, seed, walker=walker, light=light, curve=cam)
+        videos[name] = write_video(workdir / f"{stem}-{name}.mp4", ldr, FPS, cam)
         row = {}
         for mode in ("remove", "keep"):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                cap = load_capture(videos[name], params=CaptureParams(fps=FPS, transients=mode))
+                cap = load_capture(videos[name], params=CaptureParams(fps=FPS, transients=mode, **extra_params))
             row[f"changing_light_{mode}"] = decide_temporal(cap).uses_time
             if mode == "remove":
                 found = cap.metadata.get("transients", {})
@@ -202,7 +215,7 @@ def evaluate(path: Path, iterations: int, workdir: Path, pans_only: bool = False
                     row["iou"] = round(float((mask & where).sum()) / max(float((mask | where).sum()), 1.0), 3)
                     row["recall"] = round(float((mask & where).sum()) / max(float(where.sum()), 1.0), 3)
         out["clips"][name] = row
-    out["pans"] = pans(pano, yaw, pitch, seed, workdir / path.stem)
+    out["pans"] = pans(pano, yaw, pitch, seed, workdir / stem, cam)
     gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), pose_from_yaw_pitch((0, 0, 0), yaw, pitch)[:3, :3].T)
     cfg = preset("draft").with_overrides({"distill.iterations": iterations, "distill.work_height": WORK_HEIGHT})
     t_mid = mid / FPS
@@ -215,8 +228,8 @@ def evaluate(path: Path, iterations: int, workdir: Path, pans_only: bool = False
             result = run_job(
                 videos[clip_name],
                 None,
-                JobParams.model_validate({"preset": "draft", "fps": FPS, **extra}),
-                workdir / f"{path.stem}-job-{name}",
+                JobParams.model_validate({"preset": "draft", "fps": FPS, **extra_params, **extra}),
+                workdir / f"{stem}-job-{name}",
                 config=cfg,
             )
         art = result.artefact
@@ -228,8 +241,8 @@ def evaluate(path: Path, iterations: int, workdir: Path, pans_only: bool = False
             "map_change_stops": round(map_change_stops(first, middle), 3),
             "cpu_s": round(time.process_time() - t0, 1),
         }
-    clean_ldr, _ = clip(pano, yaw, pitch, seed, walker=False, light=lights["clean"][1])
-    score_runs(runs, preds, gt, clean_ldr[0], out)
+    clean_ldr, _ = clip(pano, yaw, pitch, seed, walker=False, light=lights["clean"][1], curve=cam)
+    score_runs(runs, preds, gt, clean_ldr[0], out, cam)
     return out
 
 
@@ -290,20 +303,24 @@ def main(argv: list[str] | None = None) -> int:
                        if line.startswith('{"file"')], args)
 
     from bench.real_panoramas import rows_over, split_files
+    from core.sim.camera_curves import VIDEO, run_choices
 
     rows = rows_over(
         split_files(args.hdri_dir, args.split, args.limit),
-        lambda f, work: evaluate(f, args.iterations, work, args.pans_only),
+        lambda f, work, curve: evaluate(f, args.iterations, work, args.pans_only, curve),
         args.workdir,
+        run_choices(args.curve, VIDEO),
     )
     return _write(rows, args)
 
 
 def _write(rows: list[dict], args) -> int:
+    from bench.real_panoramas import curve_summaries
     from bench.report import show_and_write
 
     report = {"split": args.split, "frames": FRAMES, "fps": FPS, "size": list(SIZE), "walk": list(WALK),
-              "iterations": args.iterations, "summary": summarise(rows), "panoramas": rows}
+              "iterations": args.iterations, "curve": args.curve, **curve_summaries(rows, summarise),
+              "panoramas": rows}
     show_and_write(report["summary"], report, args.output)
     return 0
 

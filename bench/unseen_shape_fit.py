@@ -1,6 +1,7 @@
 """Can the photo predict the low-frequency shape of what it did not see? A one-off experiment (issue 12).
 
-    python -m bench.unseen_shape_fit [--train-views 12] [--views 4] [--lambdas 1e9,10,1,0.1] [-o out.json]
+    python -m bench.unseen_shape_fit [--train-views 12] [--views 4] [--lambdas 1e9,10,1,0.1] [--curve drawn|NAME]
+        [-o out.json]
 
 Oracle splices (docs/engine.md, "where the prior's remaining error sits") put most of the
 reprojection prior's error on real photos in the low-frequency shape of the unseen directions:
@@ -41,8 +42,10 @@ FLOOR = 0.05  # x the mean seen luminance: the least a predicted SH map may give
 FEATURES = ("moments", "fill", "both")
 
 
-def photos(hdri: Path, split: str, views: int) -> list[dict]:
-    """Per photo: the prior's map, the truth (camera frame), the seen mask, the constant map."""
+def photos(hdri: Path, split: str, views: int, curve: str = "drawn") -> list[dict]:
+    """Per photo: the prior's map, the truth (camera frame), the seen mask, the constant map (the
+    photo's mean colour linearised with its camera curve: bench.real_panoramas.photo_curve of
+    `curve`), the curve's name."""
     import bench.real_panoramas as rp
     from core.camera import Camera
     from core.engine.extrapolation import observed_directions
@@ -53,7 +56,7 @@ def photos(hdri: Path, split: str, views: int) -> list[dict]:
     cfg = preset(rp.PRESET)
     base = dict(cfg.priors.get("reprojection", {}))
     out = []
-    for photo in rp.protocol_photos(hdri, split, views, cfg.distill.work_height):
+    for photo in rp.protocol_photos(hdri, split, views, cfg.distill.work_height, curve):
         prior = ReprojectionPrior(**base)
         prior.bind(photo["work"])
         out.append(
@@ -64,7 +67,8 @@ def photos(hdri: Path, split: str, views: int) -> list[dict]:
                 "seen": observed_directions(
                     Camera(photo["intrinsics"], torch.eye(4, dtype=torch.float64)), rp.GT_HEIGHT
                 ),
-                "const": rp.estimate_mean_colour(photo["ldr"]).double(),
+                "const": rp.estimate_mean_colour(photo["ldr"], photo["curve"]).double(),
+                "curve": photo["curve"].name,
             }
         )
     return out
@@ -138,6 +142,7 @@ def main(argv=None) -> int:
     from bench.real_panoramas import DEFAULT_HDRI_DIR
     from bench.suite.evaluation import score_probe
     from core.exposure import luminance
+    from core.sim.camera_curves import add_curve_argument
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--hdri-dir", default=str(DEFAULT_HDRI_DIR))
@@ -146,11 +151,12 @@ def main(argv=None) -> int:
     p.add_argument("--features", default="moments,fill", help=f"comma-separated, of {FEATURES}")
     p.add_argument("--lambdas", default="1e9,10,1,0.1")
     p.add_argument("-o", "--output", default=None)
+    add_curve_argument(p, allow_all=False)
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     hdri = Path(args.hdri_dir)
     lambdas = [float(v) for v in args.lambdas.split(",")]
-    train, evaluate = photos(hdri, "dev", args.train_views), photos(hdri, "dev", args.views)
+    train, evaluate = photos(hdri, "dev", args.train_views, args.curve), photos(hdri, "dev", args.views, args.curve)
     import bench.real_panoramas as rp
 
     basis = ShapeBasis(rp.GT_HEIGHT)
@@ -205,6 +211,8 @@ def main(argv=None) -> int:
         Path(args.output).write_text(
             json.dumps(
                 {
+                    "curve": args.curve,
+                    "photo_curves": [[q["name"], q["curve"]] for q in evaluate],
                     "train_photos": len(train),
                     "photos": len(evaluate),
                     "floor": FLOOR,

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 HELP = "benchmark accuracy vs time (simulated suites, real panoramas, scaling, stability)"
+# core.sim.camera_curves.CHOICES less "all" (not imported here: the CLI starts without torch)
+CURVE_CHOICES = ("drawn", "srgb", "rec709", "filmic", "hlg10", "gamma2.4")
 
 
 def add_arguments(p) -> None:
@@ -50,6 +52,14 @@ def add_arguments(p) -> None:
         default=None,
         help="suites that get the budget sweep and ablations ('none' for core methods only)",
     )
+    p.add_argument(
+        "--curve",
+        default="drawn",
+        choices=CURVE_CHOICES,
+        help="the camera curve every section's captures are encoded with (core.sim.camera_curves): 'drawn' "
+             "(default) per capture from the realistic set, or a name (gamma2.4: the reference, the curve the product "
+             "used to assume); per-curve runs: a bench module's own `--curve all` (e.g. python -m bench.room_scans)",
+    )
 
 
 def _subset(value: str | None, allowed: tuple[str, ...], flag: str) -> tuple[str, ...]:
@@ -86,6 +96,7 @@ def run(args) -> int:
         iterations=_positive(args.iterations, "--iterations"),
         diffusion_weights=Path(args.diffusion_weights) if args.diffusion_weights else None,
         diffusionlight_weights=Path(args.diffusionlight_weights) if args.diffusionlight_weights else None,
+        curve=args.curve,
         sweep_suites=None
         if args.sweep_suites is None
         else (() if args.sweep_suites.strip() == "none" else _subset(args.sweep_suites, SUITE_NAMES, "--sweep-suites")),

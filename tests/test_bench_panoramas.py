@@ -48,24 +48,36 @@ def test_views_are_fixed_per_file_and_differ_between_files():
     assert view_for("a.hdr") != view_for("b.hdr")
 
 
-def test_mean_colour_baseline_is_the_linearised_mean():
+@pytest.mark.parametrize("name", ["srgb", "rec709", "filmic", "gamma2.4"])
+def test_mean_colour_baseline_is_the_mean_linearised_with_the_photos_curve(name):
+    from core.sim.camera_curves import CURVES
+
+    curve = CURVES[name]
     ldr = torch.zeros(4, 4, 3)
-    ldr[:2] = 1.0
-    env = estimate_mean_colour(ldr)
-    assert torch.allclose(env, torch.full_like(env, float(inverse_tonemap(torch.tensor(1.0))) / 2))
+    ldr[:2] = 0.5
+    env = estimate_mean_colour(ldr, curve)
+    assert torch.allclose(env, torch.full_like(env, float(curve.decode(torch.tensor(0.5))) / 2))
+    if name == "gamma2.4":  # the reference camera's inverse is the convention's
+        assert torch.allclose(env, torch.full_like(env, float(inverse_tonemap(torch.tensor(0.5))) / 2))
 
 
-def test_photo_round_trips_through_the_png_the_job_reads(tmp_path):
+@pytest.mark.parametrize("name", ["srgb", "rec709", "filmic", "gamma2.4"])
+def test_photo_round_trips_through_the_png_the_job_reads(tmp_path, name):
     """The product path reads the photo from a PNG file: the capture the job sees is the
-    8-bit photo exactly, with the stated FOV."""
-    from bench.real_panoramas import CROP_HFOV_DEG, job_params, ldr_photo, write_photo
+    8-bit photo decoded with what its file declares (sRGB where it declares nothing), with
+    the stated FOV."""
+    from bench.real_panoramas import CROP_HFOV_DEG, job_params, ldr_photo, photo_curve, write_photo
     from core.capture.load import load_capture
+    from core.sim.camera_curves import STILL
 
     pano = _direction_coded_pano()
     crop, intr = perspective_crop(pano, camera_rotation(10.0, 0.0))
-    ldr = ldr_photo(crop)
-    cap = load_capture(write_photo(ldr, tmp_path / "p.png"), None, job_params(), track=False)
-    assert torch.allclose(cap.frames[0], ldr, atol=1e-6)
+    curve = photo_curve("p.hdr", 0, name)
+    ldr = ldr_photo(crop, curve)
+    levels = ldr * 255
+    assert torch.allclose(levels, levels.round(), atol=1e-3)
+    cap = load_capture(write_photo(ldr, tmp_path / "p.png", curve), None, job_params(curve), track=False)
+    assert torch.allclose(cap.frames[0], curve.loaded(ldr, STILL), atol=1e-5)
     assert abs(cap.intrinsics.fx - intr.fx) < 1e-6 * intr.fx
     assert job_params().intrinsics.hfov_deg == CROP_HFOV_DEG and job_params().preset == "draft"
 
@@ -92,6 +104,12 @@ def test_section_runs_the_product_end_to_end_on_a_tiny_manifest(tmp_path):
     assert methods[CONSTANT]["observed_corr"] == 0.0
     assert methods["truth"]["observed_corr"] > 0.9
     assert methods[PRIOR]["observed_corr"] > 0.5
+    # the photo's camera curve is drawn by its name, recorded, and summarised per curve
+    from bench.real_panoramas import photo_curve
+
+    image = out["splits"]["dev"]["images"][0]
+    assert out["curve"] == "drawn" and image["curve"] == photo_curve("room.hdr").name
+    assert list(out["splits"]["dev"]["per_curve"]) == [image["curve"]]
 
 
 def test_views_turn_the_first_photo_evenly_around_the_room():
@@ -284,7 +302,7 @@ def test_cv_select_never_lets_the_scored_room_vote(monkeypatch, tmp_path):
     monkeypatch.setattr(rp, "CV_REFIT", {"fill_source_cap": ((1.0, 2.0), "diffuse", "si_rmse_rel")})
     table = {"a": (1.0, 2.0), "b": (1.0, 2.0), "c": (9.0, 1.0)}  # a, b prefer 1.0; c strongly prefers 2.0
 
-    def fake(path, sphere_size, workdir, methods, overrides):
+    def fake(path, sphere_size, workdir, methods, overrides, curve="drawn"):
         v = table[path.name][(1.0, 2.0).index(overrides["priors.reprojection.fill_source_cap"])]
         return {"scores": {rp.PRIOR: {"diffuse": {"si_rmse_rel": v}}}}
 

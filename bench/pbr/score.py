@@ -38,11 +38,13 @@ FIB_NORMALS = 64
 
 
 def constant_map(ldr: np.ndarray, height: int) -> torch.Tensor:
-    """A constant map of the capture's mean linearised colour (core.conventions.inverse_tonemap of
-    the decoded frames, as the other benches' `mean-colour`)."""
-    from core.conventions import equirect_width, inverse_tonemap
+    """A constant map of the capture's mean colour: the decoded frames' codes linearised with the
+    curve the session's camera encoded them with (bench.pbr.camera.sensor: sRGB; the engine's
+    x^2.4 would bias the baseline), as the other benches' `mean-colour`."""
+    from core.conventions import equirect_width
+    from core.sim.camera_curves import CURVES
 
-    mean = inverse_tonemap(torch.from_numpy(np.asarray(ldr, np.float32))).reshape(-1, 3).mean(0)
+    mean = CURVES["srgb"].decode(torch.from_numpy(np.asarray(ldr, np.float32))).reshape(-1, 3).mean(0)
     return mean.expand(height, equirect_width(height), 3).clone()
 
 

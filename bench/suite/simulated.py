@@ -53,7 +53,10 @@ class SuiteData:
         return int(self.gt.shape[1])
 
     def describe(self) -> dict:
+        from core.sim.sensor import scene_curve
+
         return {
+            "camera_curve": scene_curve(self.scene).label,  # what the capture's frames were encoded with
             "frames": self.scene.frames,
             "fps": self.scene.fps,
             "resolution": list(self.scene.resolution),
@@ -164,6 +167,25 @@ def free_space_box(scene) -> tuple[torch.Tensor, torch.Tensor]:
     return lo + EXTRA_PROBE_MARGIN_M, hi - EXTRA_PROBE_MARGIN_M
 
 
+def capture_linear(capture_dir: Path, capture) -> torch.Tensor:
+    """The frames [T, H, W, 3] the job kept of a simulated capture (`capture`, as loaded),
+    linearised with the camera curve they were encoded with (capture.json `camera_curve`, the
+    truth a bench knows: core.sim.camera_curves.CameraCurve.decode, the filmic tone curve
+    included) and each frame's exposure removed as the job removes it (`capture.frame_ev`).
+    A capture written before camera curves: `capture.linear()` (the engine's convention)."""
+    from core.io.images import read_image
+    from core.sim.camera_curves import get_curve
+
+    doc = json.loads((Path(capture_dir) / "capture.json").read_text())
+    if doc.get("camera_curve") is None:
+        return capture.linear()
+    curve = get_curve(doc["camera_curve"])
+    index = (capture.times.double() * float(doc["fps"])).round().long().tolist()
+    codes = torch.stack([torch.from_numpy(read_image(Path(capture_dir) / doc["frames"][i])[..., :3].copy())
+                         for i in index]).float()
+    return curve.decode(codes) * torch.pow(2.0, -capture.frame_ev.float())[:, None, None, None]
+
+
 def with_extra_probes(suite: SuiteData, n: int, seed: int = 0) -> SuiteData:
     """The suite with `n` more held-out probes: positions uniform in the room's free space
     (EXTRA_PROBE_MARGIN_M inside its bounding box; a draw outside the room or in furniture is
@@ -199,8 +221,11 @@ def with_extra_probes(suite: SuiteData, n: int, seed: int = 0) -> SuiteData:
                      global_time=suite.global_time, series=suite.series, render_seconds=suite.render_seconds)
 
 
-def load_suite(name: str, cache_dir: Path, resolution: tuple[int, int] | None, gt_height: int) -> SuiteData:
-    """Render (or reuse) a suite's capture and collect its ground truth."""
+def load_suite(name: str, cache_dir: Path, resolution: tuple[int, int] | None, gt_height: int,
+               curve: str | None = None) -> SuiteData:
+    """Render (or reuse) a suite's capture and collect its ground truth. `curve`: the camera
+    curve of its frames (core.sim.camera_curves; None or "drawn": the scene's own, drawn by
+    its name; a name forces it)."""
     from core.capture.load import load_capture
     from core.io.exr import read_exr
     from core.sim.suites import suite
@@ -208,6 +233,8 @@ def load_suite(name: str, cache_dir: Path, resolution: tuple[int, int] | None, g
     scene = suite(name)
     if resolution is not None:
         scene = scene.model_copy(update={"resolution": tuple(resolution)})
+    if curve is not None and curve != scene.sensor.curve:
+        scene = scene.model_copy(update={"sensor": scene.sensor.model_copy(update={"curve": curve})})
     capture_dir, render_seconds = prepare_capture(scene, cache_dir, gt_height)
     doc = json.loads((capture_dir / "capture.json").read_text())
     gt = torch.stack(
