@@ -41,6 +41,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-service", action="store_true",
                    help="run the job in this process instead of through the embedded service (no subprocesses)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.add_argument("--camera", choices=("rec709", "srgb", "filmic", "hlg10"), default="rec709",
+                   help="the room scan's camera curve: 8-bit rec709 / srgb / filmic H.264, or hlg10, a 10-bit HLG "
+                        "HEVC clip as iPhones record HDR video (default %(default)s)")
     p.add_argument("--no-scan", action="store_true",
                    help="skip the second job: a room scan of the bundled panorama (assets/sample_panorama.hdr)")
 
@@ -83,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
             if not args.no_scan:
                 say(f"4/{steps} a room scan (46 frames turning about one spot, auto-exposure on, no poses) of "
                     "the bundled panorama: tracking, HDR recovery, distillation ...")
-                scan = room_scan_demo(out / "scan", backend, args.preset)
+                scan = room_scan_demo(out / "scan", backend, args.preset, args.camera)
     except EmbeddedServiceError as exc:
         print(f"demo: the service failed: {exc}", file=sys.stderr)
         return 1

@@ -15,7 +15,7 @@ from pathlib import Path
 SPHERE_SIZE = 64
 
 
-def room_scan_demo(out_dir: Path, backend, preset: str) -> dict:
+def room_scan_demo(out_dir: Path, backend, preset: str, camera: str = "rec709") -> dict:
     """Upload the scan through `backend` (the demo's service or in-process run), fetch the env
     map at the first camera and score it; returns the summary's `room_scan` entry."""
     import torch
@@ -25,7 +25,7 @@ def room_scan_demo(out_dir: Path, backend, preset: str) -> dict:
     from core.metrics import angular_error_deg, render_probe_spheres, si_rmse
     from core.sim.room_scan import scan_constant_map, scan_truth, write_sample_scan
 
-    video, clip, pano = write_sample_scan(out_dir)
+    video, clip, pano = write_sample_scan(out_dir, camera)
     backend.estimate(Upload(file=video, depth=None, params={"preset": preset}, name="lightfield-scan"))
     path = out_dir / "first_camera_estimate.exr"
     backend.save_envmap((0.0, 0.0, 0.0), 0.0, path)
@@ -38,7 +38,8 @@ def room_scan_demo(out_dir: Path, backend, preset: str) -> dict:
     constant = scan_constant_map(clip, est.shape[0])
     (se, sc, sg), mask = render_probe_spheres([est, constant, truth], "diffuse", SPHERE_SIZE)
     return {
-        "video": str(video), "job": backend.job_id, "frames": len(clip.poses),
+        "video": str(video), "camera": camera, "job": backend.job_id, "frames": len(clip.poses),
+        "transfer": capture.get("metadata", {}).get("transfer") if isinstance(capture, dict) else None,
         "exposure_span_stops": round(float(clip.span_stops), 2),
         "envmap": str(path),
         "field": {"si_rmse": si_rmse(se, sg, mask), "angular_deg": angular_error_deg(se, sg, mask)},
@@ -51,7 +52,8 @@ def room_scan_demo(out_dir: Path, backend, preset: str) -> dict:
 def format_scan(scan: dict) -> str:
     f, c = scan["field"], scan["constant"]
     return (
-        f"Room scan ({scan['frames']} frames, auto-exposure over {scan['exposure_span_stops']} stops, no poses) at the "
+        f"Room scan ({scan['frames']} frames, {scan.get('camera', 'rec709')} camera, auto-exposure over "
+        f"{scan['exposure_span_stops']} stops, no poses) at the "
         f"first camera, diffuse sphere vs the panorama:\n"
         f"  si-RMSE  field {f['si_rmse']:.3f}   constant map {c['si_rmse']:.3f}   "
         f"({f['si_rmse'] / max(c['si_rmse'], 1e-12):.2f}x)\n"

@@ -191,3 +191,33 @@ def test_png_chunks_decide_the_curve_and_params_override_them(tmp_path):
     cap = load_capture(tmp_path / "plain.png", track=False)  # a file that says nothing: sRGB
     assert cap.metadata["transfer"]["curve"] == "srgb" and "default" in cap.metadata["transfer"]["source"]
     assert torch.allclose(cap.linear()[0], linear, atol=0.01, rtol=0.03)
+
+
+@pytest.mark.slow
+def test_an_hlg_clip_end_to_end_keeps_the_lamp_its_8_bit_twin_clips(tmp_path):
+    """The same static room (a wall and a lamp 9x brighter) as a 10-bit HLG HEVC clip and as its
+    8-bit sRGB twin exposed for the wall: both jobs succeed, the HLG job records its curve, and its
+    env map holds the lamp's level over the wall (9x) closer than the twin's, whose clipped frames
+    leave the level to the clip rule's guess."""
+    from core.engine import run_job
+    from core.engine.params import JobParams
+    from core.fields.stored.artefact import LightFieldArtefact
+    from core.io import write_video
+
+    scene = _hdr_room(T=3)
+    hlg_path = write_video(tmp_path / "hlg.mp4", parse_transfer("hlg").from_linear(scene).numpy(), fps=5.0,
+                           transfer="hlg", bit_depth=10, codec="libx265")
+    sdr_path = write_video(tmp_path / "sdr.mp4", SRGB.from_linear(scene / 0.3).numpy(), fps=5.0, transfer="srgb")
+    ratios = {}
+    for name, path in (("hlg", hlg_path), ("sdr", sdr_path)):
+        params = JobParams.model_validate({"intrinsics": {"hfov_deg": 60.0}, "tracking": "off"})
+        run_job(path, None, params, tmp_path / name, overrides={"distill.iterations": 60})
+        art = LightFieldArtefact.load(tmp_path / name)
+        assert art.meta["capture"]["metadata"]["transfer"]["curve"] == ("hlg" if name == "hlg" else "srgb")
+        assert art.meta["quality"]["grade"] is not None
+        d = torch.tensor([[0.0, 0.0, -1.0], [-0.5, 0.35, -0.79]])  # the lamp (view centre), the wall
+        rad = art.radiance(torch.zeros(2, 3), None, d / d.norm(dim=-1, keepdim=True)).mean(-1)
+        assert torch.isfinite(rad).all() and (rad > 0).all()
+        ratios[name] = float(rad[0] / rad[1])
+    error = {name: abs(math.log(r / 9.0)) for name, r in ratios.items()}
+    assert error["hlg"] < math.log(1.5) and error["hlg"] < error["sdr"], ratios

@@ -267,11 +267,12 @@ def write_png(path: str | os.PathLike, codes, curve: CameraCurve):
 
 def write_video(path: str | os.PathLike, codes, fps: float, curve: CameraCurve, crf: int = 18):
     """An MP4 of the codes [T, H, W, 3] at the curve's bit depth, its stream declaring the
-    curve's transfer characteristics (nothing where H.273 has no code for it)."""
+    curve's transfer characteristics (nothing where H.273 has no code for it); 10-bit curves as
+    HEVC, as phones record HDR video."""
     from core.io.video import write_video as _write_video  # noqa: PLC0415 — core.io.video pulls in av, cv2, OpenEXR, PIL: imported when used
 
     return _write_video(path, _numpy(codes), fps, crf=crf, transfer=curve.declares(VIDEO),
-                        bit_depth=curve.bit_depth)
+                        bit_depth=curve.bit_depth, codec="libx265" if curve.bit_depth > 8 else None)
 
 
 def _numpy(codes):

@@ -181,12 +181,12 @@ SAMPLE_SEED = 7
 SAMPLE_CURVE = "rec709"
 
 
-def write_sample_scan(out_dir) -> tuple[Path, ScanClip, torch.Tensor]:
+def write_sample_scan(out_dir, curve: str = SAMPLE_CURVE) -> tuple[Path, ScanClip, torch.Tensor]:
     """(MP4 path, ScanClip, panorama) of the bundled panorama's room scan, written as a phone
-    would upload it (8-bit BT.709 H.264 declaring its transfer, no poses): the demo's and the
-    web page's sample."""
+    would upload it (by default 8-bit BT.709 H.264 declaring its transfer; `curve="hlg10"`: a
+    10-bit HLG clip as iPhones record; no poses): the demo's and the web page's sample."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     pano = load_panorama(SAMPLE_PANORAMA, 256)
-    clip = render_scan(pano, yaw0=0.0, seed=SAMPLE_SEED, curve=get_curve(SAMPLE_CURVE))
+    clip = render_scan(pano, yaw0=0.0, seed=SAMPLE_SEED, curve=get_curve(curve))
     return write_scan(out_dir / "room_scan.mp4", clip), clip, pano
