@@ -181,13 +181,18 @@ def _held_out_residuals(ci, cj, ratio, knots, log_g) -> torch.Tensor:
     return (ratio - (_hat_weights(cj, knots) - _hat_weights(ci, knots)) @ log_g).abs()
 
 
+CODE_STEP = math.log(256.0 / 255.0)  # one 8-bit code at white, in log light: a curve difference smaller is no camera's
+
+
 def _clearly_better(fitted: torch.Tensor, declared: torch.Tensor) -> bool:
     """True when the fitted curve's held-out residuals are lower than the declared curve's by more
     than twice the standard error of their paired difference (residuals capped at 5 robust
-    scales, so a switching lamp's readings do not decide)."""
+    scales, so a switching lamp's readings do not decide) AND by more than one 8-bit code in the
+    median (with 60,000 samples a difference far below what a curve could make is significant)."""
     cap = 5.0 * 1.4826 * float(torch.minimum(fitted, declared).median()) + 1e-9
     d = declared.clamp(max=cap) - fitted.clamp(max=cap)
-    return float(d.mean()) > 2.0 * float(d.std()) / math.sqrt(max(d.numel(), 1))
+    significant = float(d.mean()) > 2.0 * float(d.std()) / math.sqrt(max(d.numel(), 1))
+    return significant and float(declared.median() - fitted.median()) > CODE_STEP
 
 
 def fit_response(capture: Capture, config: ResponseConfig = DEFAULT, pin: bool = False) -> ResponseFit | None:
