@@ -60,6 +60,7 @@ def render_session(scene: dict, cache, spp: int, log=print) -> np.ndarray:
     out = []
     t0 = time.perf_counter()
     poses = camera_poses(scene)
+    spp = int(scene["camera"].get("spp", spp))  # rooms lit by a lamp close to surfaces need more
     for i, t in enumerate(frame_times(scene)):
         out.append(render_frame(scene, scales_at(scene, float(t)), poses[i], spp, cache))
         if (i + 1) % 10 == 0:

@@ -9,9 +9,10 @@ Conventions (checked by tests/test_pbr_sessions.py): Mitsuba's `look_at` with up
 camera (core/conventions.py), so a pose c2w renders with look_at(origin, origin - c2w[:3, 2],
 c2w[:3, 1]); depth comes from a second pass with the `depth` integrator (4 spp; the `depth` AOV
 of the `aov` integrator, the same distance, doubled a frame's cost), the distance along each ray,
-turned into planar depth by the cosine to the optical axis. Fireflies (caustic paths through
-chrome objects) are removed from the frames and cube faces (`despeckle`), not from the cache. Cube faces are rendered by 90 deg cameras looking along each axis
-and mirrored left-right into OpenGL's face table (core/cubemap.py: the table is left-handed).
+turned into planar depth by the cosine to the optical axis. Cube faces are rendered by 90 deg
+cameras looking along each axis and mirrored left-right into OpenGL's face table (core/cubemap.py:
+the table is left-handed). Isolated fireflies (paths a few samples found) are removed from frames
+and faces as they are read (`despeckle`), not in the cache.
 
 Every render is cached under CACHE_DIR/<key[:2]>/<key>.npy, key = sha256 of the scene's geometry
 and materials (`geometry_key`), the lights' scales at the render's time, the sensor, the samples
@@ -152,6 +153,9 @@ def _bsdf(mat: dict, mi) -> dict:
         return {"type": "diffuse", "reflectance": reflectance()}
     if kind == "twosided":
         return {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": reflectance()}}
+    if kind == "shade":  # a lampshade: its colour outside, dark-lined inside (its back faces, facing the bulb)
+        return {"type": "twosided", "bsdf_outside": {"type": "diffuse", "reflectance": reflectance()},
+                "bsdf_inside": {"type": "diffuse", "reflectance": {"type": "rgb", "value": mat["inside"]}}}
     if kind == "plastic":
         if mat.get("alpha", 0.0) <= 0.0:
             return {"type": "plastic", "diffuse_reflectance": reflectance()}
@@ -245,11 +249,24 @@ def _light_shapes(light: dict, scale: float, bsdfs: dict, mi) -> list[dict]:
     return [_rectangle(q["centre"], q["normal"], q["width"], q["height"], frame, mi, emitter) for q in quads]
 
 
+def used_materials(scene: dict) -> set[str]:
+    room = scene["room"]
+    used = {room["floor"], room["ceiling"], *room["walls"], *(o["mat"] for o in scene["objects"])}
+    for light in scene["lights"].values():
+        if light["kind"] == "bulb":
+            used.add("bulb")
+            used.update(x["mat"] for x in (light.get("shade"), light.get("pole")) if x)
+        else:
+            used.add(light.get("frame_mat", "panel"))
+    return used
+
+
 def geometry_key(scene: dict) -> dict:
-    """What a render depends on besides the lights' scales and the sensor: room, materials,
-    objects and the lights without their schedules."""
+    """What a render depends on besides the lights' scales and the sensor: room, the materials it
+    uses, objects and the lights without their schedules."""
     lights = {k: {kk: vv for kk, vv in v.items() if kk != "schedule"} for k, v in scene["lights"].items()}
-    return {"room": scene["room"], "materials": scene["materials"], "objects": scene["objects"], "lights": lights}
+    materials = {k: v for k, v in scene["materials"].items() if k in used_materials(scene)}
+    return {"room": scene["room"], "materials": materials, "objects": scene["objects"], "lights": lights}
 
 
 def scene_dict(scene: dict, scales: dict[str, float], integrator: str = "path") -> dict:

@@ -263,7 +263,9 @@ def _base_materials() -> dict:
         "white": {"type": "diffuse", "rgb": [0.8, 0.8, 0.78]},
         "metal": {"type": "conductor", "material": "Al", "alpha": 0.25},
         "chrome": {"type": "conductor", "material": "Cr", "alpha": 0.0},
-        "shade": {"type": "twosided", "rgb": [0.85, 0.8, 0.7]},
+        # dark-lined: a light inside would be a tiny, very bright second source that only BSDF
+        # sampling finds (fireflies over every wall at 36-144 spp)
+        "shade": {"type": "shade", "rgb": [0.85, 0.8, 0.7], "inside": [0.04, 0.04, 0.04]},
         "bulb": {"type": "diffuse", "rgb": [0.9, 0.9, 0.9]},  # a bulb switched off
         "window": {"type": "diffuse", "rgb": [0.05, 0.06, 0.07]},  # glass at night, roughly
         "screen": {"type": "plastic", "rgb": [0.02, 0.02, 0.02], "alpha": 0.05},
@@ -341,7 +343,7 @@ def office_desk_lamp_off() -> dict:
         *table(0.3, -1.6, 1.5, 0.75, 0.75, "desk", "metal"),
         box((0.15, 0.83, -1.85), (0.2, 0.16, 0.12), "cabinet"),  # the monitor's stand
         box((0.15, 1.06, -1.88), (0.62, 0.38, 0.04), "cabinet"),  # the monitor's body behind its screen
-        {"type": "cylinder", "p0": [0.75, 0.75, -1.45], "p1": [0.75, 0.85, -1.45], "radius": 0.04, "mat": "mug",
+        {"type": "cylinder", "p0": [0.55, 0.75, -1.35], "p1": [0.55, 0.85, -1.35], "radius": 0.04, "mat": "mug",
          "caps": True},
         {"type": "sphere", "centre": [-0.25, 0.81, -1.4], "radius": 0.06, "mat": "chrome"},
         box((-1.45, 0.55, -1.3), (0.5, 1.1, 0.9), "cabinet"),
@@ -349,9 +351,9 @@ def office_desk_lamp_off() -> dict:
         box((1.45, 1.0, 1.2), (0.5, 2.0, 1.0), "cabinet"),
     ]
     lights = {
-        "desk_lamp": bulb((0.85, 1.12, -1.72), 0.045, WARM, 320.0, step(2.45, 1.0, 0.0),
+        "desk_lamp": bulb((0.85, 1.2, -1.45), 0.045, WARM, 320.0, step(2.45, 1.0, 0.0),
                           shade={"kind": "cap", "radius": 0.1, "height": 0.1, "mat": "shade"},
-                          pole=[0.85, 0.75, -1.72]),
+                          pole=[0.85, 0.75, -1.45]),
         "monitor": quad_light((0.15, 1.06, -1.859), (0, 0, 1), 0.58, 0.34, (0.75, 0.85, 1.0), 1.6, [[0.0, 1.0]]),
         "panels": {"kind": "quads", "radiance": _rgb(PANEL, 4.0), "schedule": [[0.0, 1.0]],
                    "quads": [{"centre": [-0.8, 2.598, -0.6], "normal": [0, -1, 0], "width": 0.6, "height": 0.6},
@@ -364,10 +366,10 @@ def office_desk_lamp_off() -> dict:
         "materials": mats, "objects": objects, "lights": lights,
         "events": [{"light": "desk_lamp", "kind": "off", "t0": 2.45, "t1": 2.5}],
         "camera": {"path": "look-around", "p0": [-0.1, 1.5, 1.05], "yaws": [25.0, -35.0, 5.0], "pitch": -14.0,
-                   "pitch_amp": 7.0, "seed": 2, "hfov_deg": HFOV_DEG, "fps": FPS, "frames": FRAMES,
+                   "pitch_amp": 7.0, "seed": 2, "spp": 100, "hfov_deg": HFOV_DEG, "fps": FPS, "frames": FRAMES,
                    "size": list(SIZE)},
         "probes": [
-            {"x": [0.65, 0.95, -1.35], "label": "on desk, by the lamp"},
+            {"x": [0.6, 0.95, -1.15], "label": "on desk, by the lamp"},
             {"x": [-0.45, 0.95, -1.45], "label": "on desk, left"},
             {"x": [0.0, 1.3, 0.0], "label": "room middle"},
             {"x": [0.9, 1.0, -0.2], "label": "in front of the desk"},
@@ -497,15 +499,15 @@ def bedroom_reading() -> dict:
         {"type": "quad", "centre": [0.7, 0.501, -0.6], "normal": [0, 1, 0], "width": 1.5, "height": 1.1,
          "mat": "blanket"},
         box((0.7, 0.6, -1.98), (1.6, 1.2, 0.06), "wood"),
-        box((-0.35, 0.3, -1.7), (0.45, 0.6, 0.4), "wood"),  # nightstand
+        box((-0.35, 0.3, -1.65), (0.45, 0.6, 0.5), "wood"),  # nightstand
         box((1.45, 0.38, 1.45), (0.4, 0.76, 0.8), "wood"),  # desk (a block)
         box((1.4, 0.77, 1.45), (0.26, 0.02, 0.34), "wood"),
-        {"type": "sphere", "centre": [-0.45, 0.68, -1.6], "radius": 0.08, "mat": "glossy"},
+        {"type": "sphere", "centre": [-0.48, 0.68, -1.75], "radius": 0.08, "mat": "glossy"},
     ]
     lights = {
-        "reading_lamp": bulb((-0.3, 1.0, -1.75), 0.05, WARM, 240.0, step(1.55, 0.0, 1.0),
+        "reading_lamp": bulb((-0.3, 1.0, -1.55), 0.05, WARM, 240.0, step(1.55, 0.0, 1.0),
                              shade={"kind": "cap", "radius": 0.12, "height": 0.14, "mat": "shade"},
-                             pole=[-0.3, 0.6, -1.75]),
+                             pole=[-0.3, 0.6, -1.55]),
         "window": quad_light((-1.698, 1.45, 0.4), (1, 0, 0), 1.0, 1.1, (0.6, 0.65, 0.95), 1.0, [[0.0, 1.0]]),
         "laptop": quad_light((1.45, 0.93, 1.42), (-0.94, 0.34, 0.0), 0.3, 0.2, (0.8, 0.85, 1.0), 2.0,
                              [[0.0, 1.0]]),
@@ -517,10 +519,10 @@ def bedroom_reading() -> dict:
         "materials": mats, "objects": objects, "lights": lights,
         "events": [{"light": "reading_lamp", "kind": "on", "t0": 1.55, "t1": 1.6}],
         "camera": {"path": "look-around", "p0": [-0.9, 1.55, 1.3], "yaws": [-40.0, 10.0, 35.0, -10.0],
-                   "pitch": -15.0, "pitch_amp": 6.0, "seed": 5, "hfov_deg": HFOV_DEG, "fps": FPS,
+                   "pitch": -15.0, "pitch_amp": 6.0, "seed": 5, "spp": 100, "hfov_deg": HFOV_DEG, "fps": FPS,
                    "frames": FRAMES, "size": list(SIZE)},
         "probes": [
-            {"x": [-0.1, 0.8, -1.35], "label": "by the reading lamp"},
+            {"x": [-0.05, 0.85, -1.2], "label": "by the reading lamp"},
             {"x": [0.7, 0.85, -1.0], "label": "over the bed"},
             {"x": [-1.25, 1.2, 0.4], "label": "by window"},
             {"x": [1.2, 1.2, 1.2], "label": "by the desk"},

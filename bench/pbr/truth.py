@@ -3,10 +3,10 @@
 Light transport is linear in the sources' strengths (geometry and materials do not change), so
 the env map at probe x and time t is sum_k s_k(t) M_k(x), M_k the map with source k alone at its
 full radiance (direct and indirect), s_k its schedule. Each M_k is a cube of six 90 deg Mitsuba
-renders at the probe (bench.pbr.render.render_cube, no geometry at the probe point), converted to
-the product's equirect layout by core.cubemap.cubemap_to_equirect. The same maps give each
-source's share of a probe's irradiance (the /sh main light is scored where one source gives
->= MAIN_SHARE of it).
+renders at the probe (bench.pbr.render.render_cube, no geometry at the probe point; a bulb's at
+BULB_SPP_FACTOR x the samples), converted to the product's equirect layout by
+core.cubemap.cubemap_to_equirect. The same maps give each source's share of a probe's irradiance
+(the /sh main light is scored where one source gives >= MAIN_SHARE of it).
 """
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import torch
 
 FACE_SIZE = 32
 CUBE_SPP = 144
+BULB_SPP_FACTOR = 4  # a small bright bulb lights nearby surfaces hard: its indirect light needs more samples
 GT_HEIGHT = 64
 
 
@@ -25,8 +26,9 @@ def source_maps(scene: dict, probe, cache, face_size: int = FACE_SIZE, spp: int 
     from core.cubemap import cubemap_to_equirect
 
     out = {}
-    for name in scene["lights"]:
-        faces = render_cube(scene, {name: 1.0}, probe, face_size, spp, cache)
+    for name, light in scene["lights"].items():
+        n = spp * (BULB_SPP_FACTOR if light["kind"] == "bulb" else 1)
+        faces = render_cube(scene, {name: 1.0}, probe, face_size, n, cache)
         out[name] = cubemap_to_equirect(torch.from_numpy(np.ascontiguousarray(faces)), height).float()
     return out
 
