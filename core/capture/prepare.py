@@ -65,7 +65,7 @@ def prepare_capture(input_path, depth_path=None, params: CaptureParams | None = 
     capture = with_estimated_exposure(capture, params)  # after tracking: a pan is compared through its poses
     if not stated and capture.stated_ev is not None:  # estimated under the declared curve: check the curve
         with timed("response"):
-            corrected, fit = with_estimated_response(capture, exposures_estimated=True)
+            corrected, fit = with_estimated_response(capture, exposures_stated=False)
         if fit is not None and fit.better:
             capture = with_estimated_exposure(replace(corrected, stated_ev=None), params)
         else:

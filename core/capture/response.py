@@ -13,13 +13,17 @@ log g is piecewise linear in the code (as many knots as explain held-out samples
 `ResponseConfig.knots`: a filmic shoulder needs more than a power law), fixed at 0 at the clip point
 (code 1 stays white), pulled towards the declared curve by a smoothness prior on the difference,
 and fitted by iteratively reweighted least squares (a lamp that switches between two readings is
-an outlier, not a curve). The fit is used only when it explains frames it was NOT fitted on
-better than the declared curve does (half the surfaces held out), so a capture whose declared
-curve is right keeps it, and a capture that cannot tell (a locked exposure, one frame) is left
-alone. Exposures that were themselves estimated from the frames (core.capture.autoexposure) are
-estimated under the declared curve; the fit then keeps the declared curve's mid-grey (a curve and
-its exposures are only defined together up to a power: g^k with k ev explains the same frames),
-and the exposures are estimated again through the new curve.
+an outlier, not a curve). Every frame's exposure gets a correction fitted with the curve: it
+absorbs a misstated or misestimated exposure and a change of the whole room's light alike
+(daylight fading while the auto-exposure follows it), so only how a pair's ratio varies with the
+code level is left to the curve, which is what tells a curve from a light. A curve and the
+exposures are defined together only up to a power (g^k with k ev explains the same frames), so
+the pair is scaled to the member of that family nearest the declared curve. The fit is used only
+when it explains surfaces it was NOT fitted on (half of them held out) clearly better than the
+declared curve with its own best exposures, so a capture whose declared curve is right keeps it,
+and a capture that cannot tell (a locked exposure, one frame) is left alone. Where the exposures
+were estimated from the frames (core.capture.autoexposure), they are estimated again through the
+new curve.
 """
 from __future__ import annotations
 
@@ -30,7 +34,7 @@ import torch
 import torch.nn.functional as F
 
 from core.capture.base import Capture
-from core.capture.temporal import ANALYSIS_HEIGHT, _overlapping_pairs, _warp_into
+from core.capture.temporal import ANALYSIS_HEIGHT, OVERLAP_PAIRS_PER_FRAME, _overlapping_pairs, _warp_into
 from core.conventions import GAMMA, valid_depth_mask
 
 
@@ -40,14 +44,12 @@ class ResponseConfig:
     knots: tuple[int, ...] = (9, 17, 33)
     code_lo: float = 0.05  # convention codes below: noise and quantisation (8-bit code 1 of sRGB is 0.034)
     code_hi: float = 0.97  # above: clipped, or the codec's ringing around clipped pixels
-    min_step_stops: float = 0.1  # pairs whose exposures differ by less say nothing about the curve's shape
     min_span_stops: float = 0.5  # a capture whose exposures span less is not fitted
     smoothness: float = 0.1  # weight of the second-difference prior on log g minus the declared curve's
     edge_contrast: float = 0.03  # samples whose 3x3 neighbourhood varies more (edges: the warp blurs) are left out
     samples_per_pair: int = 4000
     max_samples: int = 60_000  # over all pairs: the fit has at most 33 unknowns
     irls_rounds: int = 4
-    pin_code: float = 0.5  # with estimated exposures, log g keeps the declared value at this code
 
 
 DEFAULT = ResponseConfig()
@@ -101,35 +103,33 @@ def _hat_weights(c: torch.Tensor, knots: torch.Tensor) -> torch.Tensor:
 
 
 def _pair_samples(capture: Capture, config: ResponseConfig) -> tuple[torch.Tensor, ...]:
-    """(c_i [N], c_j [N], log exposure ratio [N], surface parity [N] bool): one reading of a surface
-    in two frames whose exposures differ, per colour channel, at the analysis resolution."""
+    """(c_i [N], c_j [N], log exposure ratio [N], surface parity [N] bool, frame i [N], frame j [N]):
+    one reading of a surface in two frames, per colour channel, at the analysis resolution."""
     small = capture.resized(ANALYSIS_HEIGHT)
     ev = capture.frame_ev.double()
     T, h, w = small.depth.shape
     frames = small.frames.double()
     blur = F.avg_pool2d(frames.permute(0, 3, 1, 2), 3, 1, 1, count_include_pad=False).permute(0, 2, 3, 1)
-    flat = ((frames - blur).abs().amax(-1) <= config.edge_contrast)  # [T, h, w]
-    if capture.static_camera:
-        pairs = [(i, j) for i in range(T) for j in range(i + 1, T)]
+    flat = (frames - blur).abs().amax(-1) <= config.edge_contrast  # [T, h, w]
+    if capture.static_camera:  # each frame with its next few, as a moving camera's overlapping pairs
+        pairs = [(i, j) for i in range(T) for j in range(i + 1, min(T, i + 1 + OVERLAP_PAIRS_PER_FRAME))]
     else:
         pairs = _overlapping_pairs(capture)
     depth = torch.where(valid_depth_mask(small.depth), small.depth, torch.nan)
-    parity = ((torch.arange(h)[:, None] // 2 + torch.arange(w)[None] // 2) % 2 == 0)
+    parity = (torch.arange(h)[:, None] // 2 + torch.arange(w)[None] // 2) % 2 == 0
     gen = torch.Generator().manual_seed(0)
-    ci, cj, ratio, par = [], [], [], []
+    ci, cj, ratio, par, fi, fj = [], [], [], [], [], []
     for i, j in pairs:
         step = float(ev[j] - ev[i])
-        if abs(step) < config.min_step_stops:
-            continue
         if capture.static_camera:
-            fj, ok = frames[j], torch.ones(h, w, dtype=torch.bool)
+            read_j, ok = frames[j], torch.ones(h, w, dtype=torch.bool)
             flat_j = flat[j]
         else:
             planes = torch.cat((frames[j], flat[j].double()[..., None]), -1).float()
             warped, ok = _warp_into(planes, depth[i], depth[j], small.intrinsics, capture.poses[i], capture.poses[j])
-            fj, flat_j = warped[..., :3].double(), warped[..., 3] > 0.999
+            read_j, flat_j = warped[..., :3].double(), warped[..., 3] > 0.999
         keep = ok & flat[i] & flat_j
-        a, b = frames[i][keep], fj[keep]  # [n, 3]
+        a, b = frames[i][keep], read_j[keep]  # [n, 3]
         p = parity[keep][:, None].expand_as(a)
         good = (a > config.code_lo) & (a < config.code_hi) & (b > config.code_lo) & (b < config.code_hi)
         a, b, p = a[good], b[good], p[good]
@@ -138,18 +138,28 @@ def _pair_samples(capture: Capture, config: ResponseConfig) -> tuple[torch.Tenso
             a, b, p = a[pick], b[pick], p[pick]
         ci.append(a), cj.append(b), par.append(p)
         ratio.append(torch.full_like(a, step * math.log(2.0)))
+        fi.append(torch.full(a.shape, i, dtype=torch.long)), fj.append(torch.full(a.shape, j, dtype=torch.long))
     if not ci:
         empty = torch.zeros(0, dtype=torch.float64)
-        return empty, empty, empty, torch.zeros(0, dtype=torch.bool)
-    out = torch.cat(ci), torch.cat(cj), torch.cat(ratio), torch.cat(par)
+        index = torch.zeros(0, dtype=torch.long)
+        return empty, empty, empty, torch.zeros(0, dtype=torch.bool), index, index
+    out = tuple(torch.cat(x) for x in (ci, cj, ratio, par, fi, fj))
     if out[0].numel() > config.max_samples:
         pick = torch.randperm(out[0].numel(), generator=gen)[: config.max_samples]
         out = tuple(x[pick] for x in out)
     return out
 
 
-def _solve(ci, cj, ratio, knots, config: ResponseConfig, pin: bool) -> torch.Tensor:
-    """log g at the knots [K] (last = 0) fitted to the samples by IRLS (module docstring)."""
+def _solve(samples, knots, config: ResponseConfig, frames: int, ev_log: torch.Tensor, curve: bool = True,
+           exposures: bool = True):
+    """(log g at the knots [K] (last = 0), exposure corrections [frames] in log units) fitted to the
+    samples by IRLS (module docstring). `curve`: the curve is free (else the declared one);
+    `exposures`: every frame but the first gets a correction to its exposure (`ev_log`, log units),
+    which absorbs an exposure misstated or misestimated and a change of the whole room's light
+    alike, leaving to the curve only how a pair's ratio varies with the code level. With both free,
+    the curve and the exposures are scaled together to the member of their family (g^k with k ev
+    explains the same frames) nearest the declared curve in least squares."""
+    ci, cj, ratio, fi, fj = samples
     K = knots.shape[0]
     prior = GAMMA * torch.log(knots)  # the declared curve, in the convention: log g0(c) = GAMMA log c
     A = _hat_weights(cj, knots) - _hat_weights(ci, knots)
@@ -159,11 +169,16 @@ def _solve(ci, cj, ratio, knots, config: ResponseConfig, pin: bool) -> torch.Ten
     for k in range(K - 3):
         D[k, k], D[k, k + 1], D[k, k + 2] = 1.0, -2.0, 1.0
     reg = config.smoothness * (D.T @ D) + 1e-6 * torch.eye(K - 1, dtype=torch.float64)
-    if pin:
-        p = _hat_weights(torch.tensor([config.pin_code], dtype=torch.float64), knots)[0, :-1]
-        reg = reg + 1e3 * torch.outer(p, p)
+    if not curve:
+        A, reg = A[:, :0], reg[:0, :0]
+    if exposures and frames > 1:  # y(c_j) - y(c_i) = (ev_j + e_j - ev_i - e_i) ln 2 (frame 0 fixed)
+        E = torch.zeros(r0.shape[0], frames, dtype=torch.float64)
+        E[torch.arange(r0.shape[0]), fj] -= 1.0
+        E[torch.arange(r0.shape[0]), fi] += 1.0
+        A = torch.cat((A, E[:, 1:]), 1)
+        reg = torch.block_diag(reg, 1e-6 * torch.eye(frames - 1, dtype=torch.float64))
     weight = torch.ones_like(r0)
-    delta = torch.zeros(K - 1, dtype=torch.float64)
+    delta = torch.zeros(A.shape[1], dtype=torch.float64)
     n = max(int(r0.numel()), 1)
     for _ in range(config.irls_rounds):
         Aw = A * weight[:, None]
@@ -172,13 +187,24 @@ def _solve(ci, cj, ratio, knots, config: ResponseConfig, pin: bool) -> torch.Ten
         scale = 1.4826 * float(res.abs().median()) + 1e-6
         weight = 1.0 / (1.0 + (res / (2.0 * scale)) ** 2)  # Cauchy: a switch between two readings is an outlier
     log_g = prior.clone()
-    log_g[:-1] += delta
+    curve_cols = K - 1 if curve else 0
+    if curve_cols:
+        log_g[:-1] += delta[:curve_cols]
     log_g[-1] = 0.0
-    return torch.cummax(log_g, 0).values  # a response is monotone
+    exposure = torch.zeros(max(frames, 1), dtype=torch.float64)
+    if exposures and frames > 1:
+        exposure[1:] = delta[curve_cols:]
+    if curve and exposures:
+        k = float((log_g * prior).sum() / (log_g * log_g).sum().clamp_min(1e-12))
+        log_g = k * log_g
+        exposure = k * (ev_log + exposure) - ev_log
+    return torch.cummax(log_g, 0).values, exposure  # a response is monotone
 
 
-def _held_out_residuals(ci, cj, ratio, knots, log_g) -> torch.Tensor:
-    return (ratio - (_hat_weights(cj, knots) - _hat_weights(ci, knots)) @ log_g).abs()
+def _held_out_residuals(samples, knots, log_g, exposure) -> torch.Tensor:
+    ci, cj, ratio, fi, fj = samples
+    shift = exposure[fj] - exposure[fi] if exposure.numel() > 1 else 0.0
+    return (ratio + shift - (_hat_weights(cj, knots) - _hat_weights(ci, knots)) @ log_g).abs()
 
 
 CODE_STEP = math.log(256.0 / 255.0)  # one 8-bit code at white, in log light: a curve difference smaller is no camera's
@@ -195,39 +221,55 @@ def _clearly_better(fitted: torch.Tensor, declared: torch.Tensor) -> bool:
     return significant and float(declared.median() - fitted.median()) > CODE_STEP
 
 
-def fit_response(capture: Capture, config: ResponseConfig = DEFAULT, pin: bool = False) -> ResponseFit | None:
-    """The response fitted to the capture's frames at their exposures, or None where they cannot
-    tell (fewer than two frames, exposures spanning under `min_span_stops`, no shared surfaces)."""
+def fit_response(capture: Capture, config: ResponseConfig = DEFAULT, exposures_stated: bool = True
+                 ) -> ResponseFit | None:
+    """The response fitted to the capture's frames, or None where they cannot tell (fewer than two
+    frames, exposures spanning under `min_span_stops`, too few shared surfaces). The candidate: with
+    `exposures_stated`, the curve at the stated exposures (they pin the curve's power); else the
+    curve and the exposures together. It is used only when it explains held-out surfaces clearly
+    better than the declared curve with every frame's exposure free: that baseline explains any
+    per-frame factor (a misstated exposure, the whole room's light fading), so the fit wins only
+    where the ratio between two readings varies with their level, as only a curve makes it."""
     if capture.num_frames < 2 or capture.stated_ev is None:
         return None
     ev = capture.frame_ev
     if float(ev.max() - ev.min()) < config.min_span_stops:
         return None
-    ci, cj, ratio, parity = _pair_samples(capture, config)
+    ci, cj, ratio, parity, fi, fj = _pair_samples(capture, config)
     if int(parity.sum()) < 200 or int((~parity).sum()) < 200:
         return None
-    held = ~parity
+    frames = capture.num_frames
+    ev_log = capture.frame_ev.double() * math.log(2.0)
+    free = not exposures_stated
+    train = tuple(x[parity] for x in (ci, cj, ratio, fi, fj))
+    held = tuple(x[~parity] for x in (ci, cj, ratio, fi, fj))
     best = None
     for count in config.knots:
         knots = torch.linspace(config.code_lo, 1.0, count, dtype=torch.float64)
-        train = _solve(ci[parity], cj[parity], ratio[parity], knots, config, pin)
-        fitted = _held_out_residuals(ci[held], cj[held], ratio[held], knots, train)
+        log_g, exposure = _solve(train, knots, config, frames, ev_log, exposures=free)
+        fitted = _held_out_residuals(held, knots, log_g, exposure)
         if best is None or float(fitted.median()) < float(best[1].median()):
             best = (knots, fitted)
     knots, fitted = best
-    declared = _held_out_residuals(ci[held], cj[held], ratio[held], knots, GAMMA * torch.log(knots))
-    log_g = _solve(ci, cj, ratio, knots, config, pin)
-    return ResponseFit(knots, log_g, float(declared.median()), float(fitted.median()), int(ci.numel()),
-                       _clearly_better(fitted, declared))
+    baseline = _solve(train, knots, config, frames, ev_log, curve=False)[1]
+    declared = _held_out_residuals(held, knots, GAMMA * torch.log(knots), baseline)
+    log_g, _ = _solve((ci, cj, ratio, fi, fj), knots, config, frames, ev_log, exposures=free)
+    return ResponseFit(
+        knots,
+        log_g,
+        float(declared.median()),
+        float(fitted.median()),
+        int(ci.numel()),
+        _clearly_better(fitted, declared),
+    )
 
 
-def with_estimated_response(capture: Capture, config: ResponseConfig = DEFAULT,
-                            exposures_estimated: bool = False) -> tuple[Capture, ResponseFit | None]:
+def with_estimated_response(capture: Capture, config: ResponseConfig = DEFAULT, exposures_stated: bool = True
+                            ) -> tuple[Capture, ResponseFit | None]:
     """The capture re-encoded through the response its frames show, when it explains them better
-    than the declared curve (module docstring); `metadata["response"]` says what was decided.
-    `exposures_estimated`: the exposures came from the frames (keep mid-grey; the caller
-    estimates them again)."""
-    fit = fit_response(capture, config, pin=exposures_estimated)
+    than the declared curve (module docstring, `fit_response`); `metadata["response"]` says what
+    was decided."""
+    fit = fit_response(capture, config, exposures_stated)
     meta = dict(capture.metadata)
     if fit is None:
         meta["response"] = {"used": False, "why": "the frames' exposures do not vary enough to tell a curve"}
