@@ -82,7 +82,8 @@ def scan_table(rows: list[dict]) -> list[str]:
 
 
 def scan_room_table(rows: list[dict]) -> list[str]:
-    out = ["| room | curve | si | angle | mirror | seen corr | static | response used | grade |", "|---|---|---|---|---|---|---|---|---|"]
+    out = ["| room | curve | si | angle | mirror | seen corr | static | response used | grade |",
+           "|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: (r["room"], _curves(rows).index(r["curve"]))):
         out.append(f"| {r['room']} | {r['curve']} | {r['si']:.2f} | {r['angle']:.2f} | {r['mirror']:.2f} | "
                    f"{r['seen_corr']:.2f} | {'yes' if r['static'] else 'no'} | "
@@ -106,7 +107,8 @@ def photo_rows(paths: list[Path]) -> list[dict]:
 
 
 def photo_table(rows: list[dict]) -> list[str]:
-    out = ["| curve | photos | diffuse si-RMSE vs constant | diffuse angle vs constant | s / photo |", "|---|---|---|---|---|"]
+    out = ["| curve | photos | diffuse si-RMSE vs constant | diffuse angle vs constant | s / photo |",
+           "|---|---|---|---|---|"]
     for curve in _curves(rows):
         for r in (r for r in rows if r["curve"] == curve):
             out.append(f"| {_label(curve)} | {r['photos']} ({r['split']}) | {r['si']:.2f} | {r['angle']:.2f} | "
@@ -119,6 +121,7 @@ def main(argv=None) -> int:
     p.add_argument("--scans", type=Path, required=True)
     p.add_argument("--photos", type=Path, nargs="*", default=[])
     p.add_argument("--workdir", type=Path, default=None, help="the scans' --workdir (their artefacts)")
+    p.add_argument("--note", action="append", default=[], help="a line under the tables (what differs about the run)")
     p.add_argument("-o", "--out", type=Path, default=RESULTS / "RESULTS.md")
     args = p.parse_args(argv)
     scans = json.loads(args.scans.read_text())
@@ -130,14 +133,17 @@ def main(argv=None) -> int:
              f"Machine: {machine.get('cpu_model')}, {machine.get('cores')} cores (load "
              f"{machine.get('load_average_1_5_15min')}); commit {machine.get('git_commit')}; date "
              f"{machine.get('date_utc')}. Written by `python -m bench.camera_response`.", "",
-             "## Room scans (46 frames, lagging auto-exposure, no poses, plain MP4 declaring what a phone declares)", "",
+             "## Room scans (46 frames, lagging auto-exposure, no poses, a plain MP4 declaring what a phone's does)",
+             "",
              *scan_table(rows), "", *scan_room_table(rows), ""]
     photos = photo_rows(args.photos)
     if photos:
-        lines += ["## Single photos (60° crops, a PNG declaring what a phone's file declares)", "", *photo_table(photos), ""]
+        lines += ["## Single photos (60° crops, a PNG declaring what a phone's file declares)", "",
+                  *photo_table(photos), ""]
     lines += ["Ratios: the product's error over the constant map's (< 1 beats it), means over the rooms. "
               "`filmic` files declare sRGB and carry an undeclared tone curve; `hlg10` is a 10-bit HLG HEVC clip; "
-              f"`{REFERENCE}` is the product's former assumption, kept as a labelled reference.", ""]
+              f"`{REFERENCE}` is the product's former assumption, kept as a labelled reference.", "",
+              *(f"* {note}" for note in args.note), ""]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines))
     print(args.out)
