@@ -11,6 +11,7 @@ from core.camera import Camera, Intrinsics
 from core.conventions import inverse_tonemap, tonemap
 from core.insertion import ALBEDO, InsertionError, InsertionPoint, insert_objects, parse_points, place_objects
 from core.io import read_image, write_png
+from core.transfer import SRGB
 
 H, W = 36, 48
 
@@ -124,7 +125,8 @@ def test_estimate_takes_each_frames_exposure(tmp_path, capsys):
 
     yy, xx = np.meshgrid(np.linspace(0, 1, H), np.linspace(0, 1, W), indexing="ij")
     room = (0.05 + 0.3 * xx + 0.1 * yy)[..., None] * np.array([1.0, 0.9, 0.8])
-    frames = np.stack([tonemap(torch.from_numpy(room).float(), ev).numpy() for ev in (0.0, -1.0, -2.0)])
+    # a camera's file: the sRGB curve of each exposure (untagged: read as sRGB)
+    frames = np.stack([SRGB.from_linear(torch.from_numpy(room).float() * 2.0**ev).numpy() for ev in (0.0, -1.0, -2.0)])
     write_video(tmp_path / "ae.mp4", frames, fps=4.0)
     code = main(["estimate", str(tmp_path / "ae.mp4"), "-o", str(tmp_path / "out"), "--iterations", "4", "--quiet",
                  "--frame-ev", "0,-1,-2"])

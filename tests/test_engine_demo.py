@@ -84,7 +84,8 @@ def test_table_counts_wins_and_averages_absolute_stops():
 
 
 def _args(out, **kw):
-    base = dict(output=str(out), preset="draft", iterations=30, no_service=False, quiet=True, no_scan=True)
+    base = dict(output=str(out), preset="draft", iterations=30, no_service=False, quiet=True, no_scan=True,
+                camera="rec709")
     base.update(kw)
     return argparse.Namespace(**base)
 

@@ -2,9 +2,8 @@
 camera when several frames came without poses (core.capture.track), paint out what moved
 through the view (core.capture.transients), then estimate the frames' exposure when the
 camera changed it without recording it (core.capture.autoexposure). The last two compare a
-moving camera's frames through the poses tracking found, hence the order. The camera's response is estimated where
-the exposures vary (core.capture.response): right after tracking when the capture states them,
-after they are estimated otherwise (and they are then estimated again through the new curve).
+moving camera's frames through the poses tracking found, hence the order. The camera's response is estimated right after
+tracking where the capture states exposures that vary (core.capture.response).
 
 The caller reports and times the steps: `on_stage(name, message)` when a reported stage
 starts ("loading", "tracking"), `timed(name)` a context manager around each step's work
@@ -55,19 +54,11 @@ def prepare_capture(input_path, depth_path=None, params: CaptureParams | None = 
             on_stage("tracking", "finding the camera's motion")
         with timed("tracking" if tracks else "loading"):
             capture = track_capture(capture, params)
-    stated = capture.stated_ev is not None
-    if stated:
+    if capture.stated_ev is not None:  # a curve is told by stated exposures only (core.capture.response)
         with timed("response"):
             capture, _ = with_estimated_response(capture)
     as_uploaded = capture
     with timed("transients"):  # after tracking: a moving camera's frames are compared through its poses
         capture = without_transients(capture, params)
     capture = with_estimated_exposure(capture, params)  # after tracking: a pan is compared through its poses
-    if not stated and capture.stated_ev is not None:  # estimated under the declared curve: check the curve
-        with timed("response"):
-            corrected, fit = with_estimated_response(capture, exposures_stated=False)
-        if fit is not None and fit.better:
-            capture = with_estimated_exposure(replace(corrected, stated_ev=None), params)
-        else:
-            capture = corrected
     return PreparedCapture(capture, as_uploaded)

@@ -16,14 +16,14 @@ and fitted by iteratively reweighted least squares (a lamp that switches between
 an outlier, not a curve). Every frame's exposure gets a correction fitted with the curve: it
 absorbs a misstated or misestimated exposure and a change of the whole room's light alike
 (daylight fading while the auto-exposure follows it), so only how a pair's ratio varies with the
-code level is left to the curve, which is what tells a curve from a light. A curve and the
-exposures are defined together only up to a power (g^k with k ev explains the same frames), so
-the pair is scaled to the member of that family nearest the declared curve. The fit is used only
+code level is left to the curve, which is what tells a curve from a light. The fit is used only
 when it explains surfaces it was NOT fitted on (half of them held out) clearly better than the
 declared curve with its own best exposures, so a capture whose declared curve is right keeps it,
-and a capture that cannot tell (a locked exposure, one frame) is left alone. Where the exposures
-were estimated from the frames (core.capture.autoexposure), they are estimated again through the
-new curve.
+and a capture that cannot tell (a locked exposure, one frame) is left alone. Exposures the frames
+did not state are not enough: a curve and unknown exposures are defined together only up to a
+power (g^k with k ev explains the same frames), and fitting both through that ambiguity moved a
+correctly declared pan's estimated exposures by over a stop, so such captures keep the declared
+curve (prepare_capture fits only stated exposures).
 """
 from __future__ import annotations
 
@@ -150,15 +150,12 @@ def _pair_samples(capture: Capture, config: ResponseConfig) -> tuple[torch.Tenso
     return out
 
 
-def _solve(samples, knots, config: ResponseConfig, frames: int, ev_log: torch.Tensor, curve: bool = True,
-           exposures: bool = True):
+def _solve(samples, knots, config: ResponseConfig, frames: int, curve: bool = True):
     """(log g at the knots [K] (last = 0), exposure corrections [frames] in log units) fitted to the
-    samples by IRLS (module docstring). `curve`: the curve is free (else the declared one);
-    `exposures`: every frame but the first gets a correction to its exposure (`ev_log`, log units),
-    which absorbs an exposure misstated or misestimated and a change of the whole room's light
-    alike, leaving to the curve only how a pair's ratio varies with the code level. With both free,
-    the curve and the exposures are scaled together to the member of their family (g^k with k ev
-    explains the same frames) nearest the declared curve in least squares."""
+    samples by IRLS (module docstring). `curve`: the curve is free at the stated exposures (they
+    pin its power); else the declared curve with every frame but the first given a correction to
+    its exposure (log units), which absorbs a misstated exposure and a change of the
+    whole room's light alike: the baseline a fitted curve must beat."""
     ci, cj, ratio, fi, fj = samples
     K = knots.shape[0]
     prior = GAMMA * torch.log(knots)  # the declared curve, in the convention: log g0(c) = GAMMA log c
@@ -171,6 +168,7 @@ def _solve(samples, knots, config: ResponseConfig, frames: int, ev_log: torch.Te
     reg = config.smoothness * (D.T @ D) + 1e-6 * torch.eye(K - 1, dtype=torch.float64)
     if not curve:
         A, reg = A[:, :0], reg[:0, :0]
+    exposures = not curve
     if exposures and frames > 1:  # y(c_j) - y(c_i) = (ev_j + e_j - ev_i - e_i) ln 2 (frame 0 fixed)
         E = torch.zeros(r0.shape[0], frames, dtype=torch.float64)
         E[torch.arange(r0.shape[0]), fj] -= 1.0
@@ -194,10 +192,6 @@ def _solve(samples, knots, config: ResponseConfig, frames: int, ev_log: torch.Te
     exposure = torch.zeros(max(frames, 1), dtype=torch.float64)
     if exposures and frames > 1:
         exposure[1:] = delta[curve_cols:]
-    if curve and exposures:
-        k = float((log_g * prior).sum() / (log_g * log_g).sum().clamp_min(1e-12))
-        log_g = k * log_g
-        exposure = k * (ev_log + exposure) - ev_log
     return torch.cummax(log_g, 0).values, exposure  # a response is monotone
 
 
@@ -221,15 +215,13 @@ def _clearly_better(fitted: torch.Tensor, declared: torch.Tensor) -> bool:
     return significant and float(declared.median() - fitted.median()) > CODE_STEP
 
 
-def fit_response(capture: Capture, config: ResponseConfig = DEFAULT, exposures_stated: bool = True
-                 ) -> ResponseFit | None:
-    """The response fitted to the capture's frames, or None where they cannot tell (fewer than two
-    frames, exposures spanning under `min_span_stops`, too few shared surfaces). The candidate: with
-    `exposures_stated`, the curve at the stated exposures (they pin the curve's power); else the
-    curve and the exposures together. It is used only when it explains held-out surfaces clearly
-    better than the declared curve with every frame's exposure free: that baseline explains any
-    per-frame factor (a misstated exposure, the whole room's light fading), so the fit wins only
-    where the ratio between two readings varies with their level, as only a curve makes it."""
+def fit_response(capture: Capture, config: ResponseConfig = DEFAULT) -> ResponseFit | None:
+    """The response fitted to the capture's frames at their stated exposures, or None where they
+    cannot tell (fewer than two frames, exposures spanning under `min_span_stops`, too few shared
+    surfaces). It is used only when it explains held-out surfaces clearly better than the declared
+    curve with every frame's exposure free: that baseline explains any per-frame factor (a
+    misstated exposure, the whole room's light fading), so the fit wins only where the ratio
+    between two readings varies with their level, as only a curve makes it."""
     if capture.num_frames < 2 or capture.stated_ev is None:
         return None
     ev = capture.frame_ev
@@ -239,21 +231,19 @@ def fit_response(capture: Capture, config: ResponseConfig = DEFAULT, exposures_s
     if int(parity.sum()) < 200 or int((~parity).sum()) < 200:
         return None
     frames = capture.num_frames
-    ev_log = capture.frame_ev.double() * math.log(2.0)
-    free = not exposures_stated
     train = tuple(x[parity] for x in (ci, cj, ratio, fi, fj))
     held = tuple(x[~parity] for x in (ci, cj, ratio, fi, fj))
     best = None
     for count in config.knots:
         knots = torch.linspace(config.code_lo, 1.0, count, dtype=torch.float64)
-        log_g, exposure = _solve(train, knots, config, frames, ev_log, exposures=free)
+        log_g, exposure = _solve(train, knots, config, frames)
         fitted = _held_out_residuals(held, knots, log_g, exposure)
         if best is None or float(fitted.median()) < float(best[1].median()):
             best = (knots, fitted)
     knots, fitted = best
-    baseline = _solve(train, knots, config, frames, ev_log, curve=False)[1]
+    baseline = _solve(train, knots, config, frames, curve=False)[1]
     declared = _held_out_residuals(held, knots, GAMMA * torch.log(knots), baseline)
-    log_g, _ = _solve((ci, cj, ratio, fi, fj), knots, config, frames, ev_log, exposures=free)
+    log_g, _ = _solve((ci, cj, ratio, fi, fj), knots, config, frames)
     return ResponseFit(
         knots,
         log_g,
@@ -264,12 +254,11 @@ def fit_response(capture: Capture, config: ResponseConfig = DEFAULT, exposures_s
     )
 
 
-def with_estimated_response(capture: Capture, config: ResponseConfig = DEFAULT, exposures_stated: bool = True
-                            ) -> tuple[Capture, ResponseFit | None]:
+def with_estimated_response(capture: Capture, config: ResponseConfig = DEFAULT) -> tuple[Capture, ResponseFit | None]:
     """The capture re-encoded through the response its frames show, when it explains them better
     than the declared curve (module docstring, `fit_response`); `metadata["response"]` says what
     was decided."""
-    fit = fit_response(capture, config, exposures_stated)
+    fit = fit_response(capture, config)
     meta = dict(capture.metadata)
     if fit is None:
         meta["response"] = {"used": False, "why": "the frames' exposures do not vary enough to tell a curve"}
