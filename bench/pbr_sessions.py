@@ -125,6 +125,38 @@ def job_summary(artefact, cpu: float, wall: float) -> dict:
             "quality_grade": quality.get("grade")}
 
 
+def lights_in_view(scene: dict) -> dict:
+    """Per light: in how many frames the camera sees it (a bulb's or quad's centre, or any quad's of a
+    group, inside the frame and unoccluded) while it is on, of how many, and while it is off: a
+    light the camera never saw is one the product can only guess."""
+    from bench.pbr.render import line_of_sight
+    from bench.pbr.scenes import camera_poses, frame_times, intrinsics, scales_at
+
+    poses, k = camera_poses(scene), intrinsics(scene)
+    out = {}
+    for name, light in scene["lights"].items():
+        targets = [np.asarray(q["centre"], float) for q in light["quads"]] if light["kind"] == "quads" else [
+            np.asarray(light["centre"], float)]
+        on = off = n_on = 0
+        for c2w, t in zip(poses, frame_times(scene)):
+            seen = False
+            for target in targets:
+                p = np.linalg.inv(c2w) @ np.r_[target, 1.0]
+                if p[2] >= 0:
+                    continue
+                u, v = k["fx"] * p[0] / -p[2] + k["cx"], -k["fy"] * p[1] / -p[2] + k["cy"]
+                if 0 <= u < k["width"] and 0 <= v < k["height"] and line_of_sight(scene, c2w[:3, 3], light, target):
+                    seen = True
+                    break
+            if scales_at(scene, float(t))[name] > 0:
+                n_on += 1
+                on += seen
+            else:
+                off += seen
+        out[name] = {"kind": light["kind"], "in_view_on": on, "frames_on": n_on, "in_view_off": off}
+    return out
+
+
 def evaluate_session(scene: dict, cache, workdir: Path, variants, spp: int, face_size: int, cube_spp: int,
                      sphere_size: int = SPHERE_SIZE, overrides: dict | None = None, log=print,
                      render_only: bool = False) -> dict:
@@ -238,7 +270,8 @@ def evaluate_session(scene: dict, cache, workdir: Path, variants, spp: int, face
                 for name, s in tr["sources"].items()} for tr in truths]
     return {"scene": scene["name"], "render_s": round(render_s, 1), "renders": renders, "jobs": jobs,
             "probes": scene["probes"], "sources": sources, "times": times, "records": records, "sh": sh,
-            "switches": switches, "drift": drift, "frame_ev": [round(e, 3) for e in capture["evs"]]}
+            "switches": switches, "drift": drift, "frame_ev": [round(e, 3) for e in capture["evs"]],
+            "lights_in_view": lights_in_view(scene)}
 
 
 # ---------------------------------------------------------------------------------------
@@ -275,6 +308,16 @@ def summarise_variant(sessions: list[dict], v: str) -> dict:
            if r["lamps"][n]["truth_passes"] and r["lamps"][n]["state"] == "off"]
     out["lamp_seen_on"] = [sum(on), len(on)]
     out["lamp_seen_off"] = [sum(off), len(off)]
+    # does the estimate's answer follow the lamp? per (room, lamp, probe) scored both on and off
+    same = []
+    for s in sessions:
+        answers: dict = {}
+        for r in s["records"]:
+            for n, lamp in r["lamps"].items():
+                if lamp["truth_passes"]:
+                    answers.setdefault((n, r["probe"]), {}).setdefault(lamp["state"], set()).add(lamp["seen"][v])
+        same += [a["on"] == a["off"] and len(a["on"]) == 1 for a in answers.values() if "on" in a and "off" in a]
+    out["lamp_same_on_and_off"] = [sum(same), len(same)]
     errs, captured, spread = [], [], []
     for s in sessions:
         for sw in s["switches"]:
@@ -306,6 +349,20 @@ def summarise_variant(sessions: list[dict], v: str) -> dict:
     return out
 
 
+def compact(value):
+    """The report as plain JSON with floats at 5 significant digits (the scores carry no more)."""
+    from bench.report import sanitize
+
+    def rnd(x):
+        if isinstance(x, dict):
+            return {k: rnd(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [rnd(v) for v in x]
+        return float(f"{x:.5g}") if isinstance(x, float) else x
+
+    return rnd(sanitize(value))
+
+
 def _cell(m: dict, key: str) -> str:
     v = m.get(key)
     if not v:
@@ -316,7 +373,8 @@ def _cell(m: dict, key: str) -> str:
 
 def markdown(report: dict) -> str:
     lines = ["# Physically based AR sessions (issue 61)", "",
-             f"Command: `{report['command']}`", ""]
+             f"Command: `{report['command']}`" + (f" (tables regenerated from its JSON by `{report['rescored']}`)"
+                                                  if report.get("rescored") else ""), ""]
     m = report["machine"]
     lines += [f"Machine: {m.get('cpu_model')}, {m.get('cores')} cores, load {m.get('load_average_1_5_15min')}, "
               f"torch {m.get('torch_version')}, mitsuba {report.get('mitsuba')}; commit "
@@ -336,15 +394,16 @@ def markdown(report: dict) -> str:
               "relative RMS irradiance error after one scale per session (constant map in brackets). Drift: "
               "relative L1 between the maps at the ends of the static stretch (truth 0).", ""]
     head = ("| variant | diffuse si-RMSE vs const | diffuse angle vs const | mirror si-RMSE vs const | lamp seen on | "
-            "lamp seen off | switch err (stops) / captured / spread | main light angle (truth map) / ≤20° / found | "
-            "SH err (const) | drift | CPU s (max) | uses time |")
-    lines += [head, "|" + "---|" * 12]
+            "lamp seen off | lamp answer same on and off | switch err (stops) / captured / spread | "
+            "main light angle (truth map) / ≤20° / found | SH err (const) | drift | CPU s (max) | uses time |")
+    lines += [head, "|" + "---|" * 13]
     for v, s in report["summary"].items():
         ml = s["main_light"]
         lines.append(
             f"| {v} | {_cell(s, 'diffuse_si_rmse_rel')} | {_cell(s, 'diffuse_angular_deg')} | "
             f"{_cell(s, 'mirror_si_rmse_rel')} | {s['lamp_seen_on'][0]}/{s['lamp_seen_on'][1]} | "
-            f"{s['lamp_seen_off'][0]}/{s['lamp_seen_off'][1]} | {s['switch_error_stops']} / "
+            f"{s['lamp_seen_off'][0]}/{s['lamp_seen_off'][1]} | "
+            f"{s['lamp_same_on_and_off'][0]}/{s['lamp_same_on_and_off'][1]} | {s['switch_error_stops']} / "
             f"{s['switch_captured_median']} / {s['switch_spread']} | {ml['median_deg']}° "
             f"({ml['truth_map_median_deg']}°) / {ml['within_20deg']}/{ml['n']} / {ml['found']}/{ml['n']} | "
             f"{s['sh_error']:.3f} ({s['sh_error_constant']:.3f}) | {s['drift'] if s['drift'] is not None else '–'} | "
@@ -366,6 +425,12 @@ def markdown(report: dict) -> str:
                 f"{one['main_light']['median_deg']}° | {s['sh'][v]['mean']:.3f} ({s['sh']['mean-colour']['mean']:.3f})"
                 f" | {s['sh'][v]['scale_stops']} | {one['drift'] if one['drift'] is not None else '–'} | "
                 f"{job['cpu_s']:.0f} | {job['uses_time']} | {job.get('response_used')} | {job.get('quality_grade')} |")
+    lines += ["", "Lights in the camera's view (frames showing the light's centre unoccluded, while on / frames on; "
+              "while off):", "", "| room | light | kind | in view while on | while off |", "|---|---|---|---|---|"]
+    for s in report["sessions"]:
+        for name, L in (s.get("lights_in_view") or {}).items():
+            lines.append(f"| {s['scene']} | {name} | {L['kind']} | {L['in_view_on']}/{L['frames_on']} | "
+                         f"{L['in_view_off']} |")
     lines += ["", "Switches (fluence after / before, per probe: truth → " + ", ".join(report["variants"]) + "):", ""]
     for s in report["sessions"]:
         for sw in s["switches"]:
@@ -401,7 +466,22 @@ def main(argv=None) -> int:
     p.add_argument("--render-only", action="store_true", help="fill the render cache, run no job")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="draft preset override for every job (JSON value): ablations, not the product")
+    p.add_argument("--rescore", default=None, metavar="RESULTS_JSON",
+                   help="re-summarise a saved report (its sessions as they are; what a session lacks that the scene "
+                        "gives without rendering, e.g. lights_in_view, is added) and write RESULTS.md beside it")
     args = p.parse_args(argv)
+    if args.rescore:
+        path = Path(args.rescore)
+        report = json.loads(path.read_text())
+        for s in report["sessions"]:
+            if "lights_in_view" not in s:
+                s["lights_in_view"] = lights_in_view(get_scene(s["scene"]))
+        report["summary"] = {v: summarise_variant(report["sessions"], v) for v in report["variants"]}
+        report["rescored"] = "python -m bench.pbr_sessions " + " ".join(argv if argv is not None else sys.argv[1:])
+        path.write_text(json.dumps(compact(report), indent=1))
+        (path.parent / "RESULTS.md").write_text(markdown(sanitize(report)))
+        print(markdown(sanitize(report)))
+        return 0
     names = list(QUICK_SCENES) if args.quick else (args.scenes.split(",") if args.scenes else list(SCENES))
     variants = tuple(args.variants.split(","))
     overrides = parse_set(args.set) if args.set else None
@@ -427,7 +507,7 @@ def main(argv=None) -> int:
             report["sessions"].append(s)
             if not args.render_only:
                 out_dir.mkdir(parents=True, exist_ok=True)
-                (out_dir / "results.json").write_text(json.dumps(sanitize({**report, "partial": True}), indent=1))
+                (out_dir / "results.json").write_text(json.dumps(compact({**report, "partial": True}), indent=1))
     report["wall_s"] = round(time.perf_counter() - t0, 1)
     report["render_s"] = round(sum(s["render_s"] for s in report["sessions"]), 1)
     report["renders"] = sum(s["renders"] for s in report["sessions"])
@@ -435,7 +515,7 @@ def main(argv=None) -> int:
         log(f"rendered {report['renders']} (cache {cache.root}) in {report['wall_s']:.0f} s")
         return 0
     report["summary"] = {v: summarise_variant(report["sessions"], v) for v in variants}
-    (out_dir / "results.json").write_text(json.dumps(sanitize(report), indent=1))
+    (out_dir / "results.json").write_text(json.dumps(compact(report), indent=1))
     (out_dir / "RESULTS.md").write_text(markdown(sanitize(report)))
     print(markdown(sanitize(report)))
     return 0
