@@ -77,7 +77,7 @@ def scan_table(rows: list[dict]) -> list[str]:
             f"{statistics.mean(r['seen_corr'] for r in rs if r['seen_corr'] is not None):.2f} | "
             f"{sum(r['static'] for r in rs)} of {len(rs)} | "
             f"{sum(bool(r.get('response_used')) for r in rs)} of {len(rs)} | "
-            f"{(100 * statistics.mean(share)):.1f} %" + " |" if share else "— |")
+            + (f"{100 * statistics.mean(share):.1f} % |" if share else "— |"))
     return out
 
 
