@@ -17,9 +17,13 @@ an outlier, not a curve). Every frame's exposure gets a correction fitted with t
 absorbs a misstated or misestimated exposure and a change of the whole room's light alike
 (daylight fading while the auto-exposure follows it), so only how a pair's ratio varies with the
 code level is left to the curve, which is what tells a curve from a light. The fit is used only
-when it explains surfaces it was NOT fitted on (half of them held out) clearly better than the
-declared curve with its own best exposures, so a capture whose declared curve is right keeps it,
-and a capture that cannot tell (a locked exposure, one frame) is left alone. Exposures the frames
+when it explains frames it was NOT fitted on clearly better than the declared curve with its own
+best exposures, so a capture whose declared curve is right keeps it, and a capture that cannot
+tell (a locked exposure, one frame) is left alone. Frames are held out by stretches of time, not
+by pixels: a camera's curve is the same in every stretch, while a light that changes in part of
+the view (a lamp switched off beside a wall the camera sees) bends a curve fitted through its
+stretch in a way no other stretch confirms; held out by pixels, the fitted shoulder explained the
+switch's own other pixels and passed. Exposures the frames
 did not state are not enough: a curve and unknown exposures are defined together only up to a
 power (g^k with k ev explains the same frames), and fitting both through that ambiguity moved a
 correctly declared pan's estimated exposures by over a stop, so such captures keep the declared
@@ -50,6 +54,8 @@ class ResponseConfig:
     samples_per_pair: int = 4000
     max_samples: int = 60_000  # over all pairs: the fit has at most 33 unknowns
     irls_rounds: int = 4
+    min_pair_stops: float = 0.5
+    time_folds: int = 4  # stretches of time held out in turn (module docstring)
 
 
 DEFAULT = ResponseConfig()
@@ -121,6 +127,8 @@ def _pair_samples(capture: Capture, config: ResponseConfig) -> tuple[torch.Tenso
     ci, cj, ratio, par, fi, fj = [], [], [], [], [], []
     for i, j in pairs:
         step = float(ev[j] - ev[i])
+        if abs(step) < config.min_pair_stops:
+            continue
         if capture.static_camera:
             read_j, ok = frames[j], torch.ones(h, w, dtype=torch.bool)
             flat_j = flat[j]
@@ -195,6 +203,28 @@ def _solve(samples, knots, config: ResponseConfig, frames: int, curve: bool = Tr
     return torch.cummax(log_g, 0).values, exposure  # a response is monotone
 
 
+def _take(samples, mask: torch.Tensor) -> tuple:
+    return tuple(x[mask] for x in samples)
+
+
+def _time_folds(fi: torch.Tensor, fj: torch.Tensor, parity: torch.Tensor, frames: int, count: int) -> list[tuple]:
+    """(train, profile, score) sample masks per stretch of time: the frames cut into `count`
+    contiguous stretches; a fold holds out the pairs whose earlier frame is in its stretch and
+    trains on the pairs touching none of it; the held-out pairs are split by surface parity, one
+    half fitting the baseline's exposures, the other scoring both curves. Folds with fewer than
+    100 samples in a part are dropped."""
+    stretch = torch.arange(frames) * min(count, frames) // frames
+    si, sj = stretch[fi], stretch[fj]
+    out = []
+    for b in range(min(count, frames)):
+        held = si == b
+        train = (si != b) & (sj != b)
+        profile, score = held & parity, held & ~parity
+        if min(int(train.sum()), int(profile.sum()), int(score.sum())) >= 100:
+            out.append((train, profile, score))
+    return out
+
+
 def _held_out_residuals(samples, knots, log_g, exposure) -> torch.Tensor:
     ci, cj, ratio, fi, fj = samples
     shift = exposure[fj] - exposure[fi] if exposure.numel() > 1 else 0.0
@@ -231,19 +261,25 @@ def fit_response(capture: Capture, config: ResponseConfig = DEFAULT) -> Response
     if int(parity.sum()) < 200 or int((~parity).sum()) < 200:
         return None
     frames = capture.num_frames
-    train = tuple(x[parity] for x in (ci, cj, ratio, fi, fj))
-    held = tuple(x[~parity] for x in (ci, cj, ratio, fi, fj))
+    samples = (ci, cj, ratio, fi, fj)
+    folds = _time_folds(fi, fj, parity, frames, config.time_folds)
+    if not folds:
+        return None
     best = None
     for count in config.knots:
         knots = torch.linspace(config.code_lo, 1.0, count, dtype=torch.float64)
-        log_g, exposure = _solve(train, knots, config, frames)
-        fitted = _held_out_residuals(held, knots, log_g, exposure)
+        fitted = torch.cat([_held_out_residuals(_take(samples, score), knots,
+                                                *_solve(_take(samples, train), knots, config, frames))
+                            for train, _, score in folds])
         if best is None or float(fitted.median()) < float(best[1].median()):
             best = (knots, fitted)
     knots, fitted = best
-    baseline = _solve(train, knots, config, frames, curve=False)[1]
-    declared = _held_out_residuals(held, knots, GAMMA * torch.log(knots), baseline)
-    log_g, _ = _solve((ci, cj, ratio, fi, fj), knots, config, frames)
+    declared_log_g = GAMMA * torch.log(knots)
+    # the baseline: the declared curve with the held-out stretch's exposures fitted to its own other half
+    declared = torch.cat([_held_out_residuals(_take(samples, score), knots, declared_log_g,
+                                              _solve(_take(samples, profile), knots, config, frames, curve=False)[1])
+                          for _, profile, score in folds])
+    log_g, _ = _solve(samples, knots, config, frames)
     return ResponseFit(
         knots,
         log_g,
