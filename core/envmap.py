@@ -371,12 +371,10 @@ def splat_points(points: torch.Tensor, colors: torch.Tensor, centers: torch.Tens
 VOXEL_GROWTH = 1.25  # voxel_merge: the voxel grows by this factor until the points fit
 
 
-def voxel_merge(points: torch.Tensor, colors: torch.Tensor, max_points: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """At most `max_points` points: the mean position and colour of the points in each cell of a
-    voxel grid, the cell the smallest (x VOXEL_GROWTH steps from 1/1024 of the extent) that
-    leaves few enough cells occupied. Points that already fit are returned as they are."""
-    if points.shape[0] <= max_points:
-        return points, colors
+def voxel_cells(points: torch.Tensor, max_points: int) -> tuple[torch.Tensor, int]:
+    """(cell index [N] of each point, number of cells): the voxel grid of `voxel_merge`, the cell
+    the smallest (x VOXEL_GROWTH steps from 1/1024 of the extent) that leaves at most `max_points`
+    cells occupied."""
     lo = points.amin(0)
     extent = float((points.amax(0) - lo).amax().clamp_min(1e-6))
     size = extent / 1024
@@ -387,8 +385,16 @@ def voxel_merge(points: torch.Tensor, colors: torch.Tensor, max_points: int) -> 
         _, inverse = torch.unique(key, return_inverse=True)
         count = int(inverse.amax()) + 1
         if count <= max_points:
-            break
+            return inverse, count
         size *= VOXEL_GROWTH
+
+
+def voxel_merge(points: torch.Tensor, colors: torch.Tensor, max_points: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """At most `max_points` points: the mean position and colour of the points in each cell of a
+    voxel grid (`voxel_cells`). Points that already fit are returned as they are."""
+    if points.shape[0] <= max_points:
+        return points, colors
+    inverse, count = voxel_cells(points, max_points)
     weight = torch.zeros(count, dtype=points.dtype).index_add(0, inverse, torch.ones_like(inverse, dtype=points.dtype))
     merged_points = torch.zeros(count, 3, dtype=points.dtype).index_add(0, inverse, points) / weight[:, None]
     merged_colors = torch.zeros(count, *colors.shape[1:], dtype=colors.dtype).index_add(0, inverse, colors)

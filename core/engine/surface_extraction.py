@@ -8,8 +8,10 @@ points on a voxel grid.
 * Lighting that changes, seen by a static camera: the one view's points with, per time knot
   (one per frame, as the field's other time curves), the radiance of the frame nearest the
   knot's time.
-* Lighting that changes, seen by a moving camera: none. A point's radiance is known only at
-  the time its frame saw it, and holding it for the whole capture would freeze a switch.
+* Lighting that changes, seen by a moving camera: every frame's points (up to MAX_TIME_VIEWS
+  frames), each cell's radiance at every knot from its readings at the times it was seen and how
+  strongly it follows the room's change (core.engine.surface_course): a point's radiance is known
+  only when its frame saw it, and holding it for the whole capture would freeze a switch.
 """
 from __future__ import annotations
 
@@ -19,11 +21,13 @@ import torch
 
 from core.capture.base import Capture
 from core.engine.emitter_detection import EmitterSources
+from core.engine.surface_course import surface_course
 from core.envmap import voxel_merge
 from core.fields.components.normalization import SceneBounds
 from core.fields.kinds.config import MAX_SURFACE_VALUES
 
 MAX_SURFACE_VIEWS = 16  # viewpoints of a moving camera merged into the layer
+MAX_TIME_VIEWS = 64  # frames of a moving camera read for each surface's course (changing light)
 EMITTER_CLEARANCE = 2.0  # radii around an emitter's centre whose points the layer leaves to it
 
 
@@ -50,10 +54,12 @@ def observed_surfaces(capture: Capture, view_radiance, bounds: SceneBounds, *, m
     i's linear radiance [H, W, 3] at the capture's resolution; points within EMITTER_CLEARANCE
     radii of an emitter are left out (the field's emitters hold those lamps, energy exact); None
     when there is nothing to keep."""
-    if max_points < 1 or (uses_time and not capture.static_camera):
+    if max_points < 1:
         return None
     knots = knots if uses_time else 1
     max_points = min(max_points, MAX_SURFACE_VALUES // knots)
+    if uses_time and not capture.static_camera:
+        return _moving_surfaces(capture, view_radiance, bounds, max_points, knots, emitters)
     if capture.static_camera:
         points = _frame_points(capture, 0)
         if uses_time:
@@ -65,16 +71,38 @@ def observed_surfaces(capture: Capture, view_radiance, bounds: SceneBounds, *, m
         frames = capture.spread_frames(MAX_SURFACE_VIEWS).tolist()
         points = torch.cat([_frame_points(capture, f) for f in frames])
         colors = torch.cat([_frame_colors(view_radiance, f) for f in frames])[:, None]
+    ok = _kept(points, colors, emitters)
+    if not bool(ok.any()):
+        return None
+    points, colors = voxel_merge(points[ok].double(), colors[ok].double(), max_points)
+    return SurfacePoints(points.float(), colors.float().clamp_min(0.0))
+
+
+def _moving_surfaces(capture: Capture, view_radiance, bounds: SceneBounds, max_points: int, knots: int,
+                     emitters: EmitterSources | None) -> SurfacePoints | None:
+    frames = capture.spread_frames(MAX_TIME_VIEWS).tolist()
+    points = [_frame_points(capture, f) for f in frames]
+    view = torch.cat([torch.full((p.shape[0],), v, dtype=torch.long) for v, p in enumerate(points)])
+    points = torch.cat(points)
+    colors = torch.cat([_frame_colors(view_radiance, f) for f in frames])
+    ok = _kept(points, colors[:, None], emitters)
+    if not bool(ok.any()):
+        return None
+    view_times = capture.times.double()[frames]
+    points, colors = surface_course(points[ok], colors[ok], view[ok], view_times, bounds.knot_times(knots),
+                                    max_points)
+    return SurfacePoints(points, colors.clamp_min(0.0))
+
+
+def _kept(points: torch.Tensor, colors: torch.Tensor, emitters: EmitterSources | None) -> torch.Tensor:
+    """[N] bool: finite points and colours [N, K, 3], outside EMITTER_CLEARANCE radii of every emitter."""
     ok = torch.isfinite(points).all(-1) & torch.isfinite(colors).all((-1, -2))
     if emitters is not None and emitters.count:
         gap = (
             torch.cdist(points.double(), emitters.centres.double()) - EMITTER_CLEARANCE * emitters.radii.double()[None]
         )
         ok &= ~(gap < 0).any(-1)
-    if not bool(ok.any()):
-        return None
-    points, colors = voxel_merge(points[ok].double(), colors[ok].double(), max_points)
-    return SurfacePoints(points.float(), colors.float().clamp_min(0.0))
+    return ok
 
 
 def _frame_points(capture: Capture, i: int) -> torch.Tensor:
