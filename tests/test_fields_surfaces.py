@@ -176,14 +176,19 @@ def test_the_engine_keeps_one_view_with_radiance_per_knot_for_a_static_camera():
     assert torch.allclose(static.points[:, 2], torch.tensor(-2.0))  # on the depth plane, in front of the camera
 
 
-def test_a_moving_camera_merges_its_views_but_not_when_the_lighting_changes():
+def test_a_moving_camera_merges_its_views_and_carries_them_over_time_when_the_lighting_changes():
     cap = capture(T=5, moving=True)
     bounds = SceneBounds((-3.0, -3.0, -3.0), (3.0, 3.0, 3.0), 0.0, 4.0)
     radiance = lambda i: torch.full((12, 16, 3), 1.0)  # noqa: E731
     merged = observed_surfaces(cap, radiance, bounds, max_points=300, uses_time=False, knots=5)
     assert merged is not None and merged.count <= 300 and merged.knots == 1
     assert torch.allclose(merged.colors, torch.ones_like(merged.colors))
-    assert observed_surfaces(cap, radiance, bounds, max_points=300, uses_time=True, knots=5) is None
+    # the room brightens 2x at frame 3: every surface, seen before or after, follows it at each knot
+    brightening = lambda i: torch.full((12, 16, 3), 1.0 if i < 3 else 2.0)  # noqa: E731
+    timed = observed_surfaces(cap, brightening, bounds, max_points=300, uses_time=True, knots=5)
+    assert timed is not None and timed.count <= 300 and timed.knots == 5
+    assert torch.allclose(timed.colors[:, :3], torch.ones_like(timed.colors[:, :3]), rtol=1e-3)
+    assert torch.allclose(timed.colors[:, 3:], torch.full_like(timed.colors[:, 3:], 2.0), rtol=1e-3)
     assert observed_surfaces(cap, radiance, bounds, max_points=0, uses_time=False, knots=5) is None
 
 

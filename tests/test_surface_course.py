@@ -1,11 +1,11 @@
-"""Surfaces a moving camera saw while a lamp switched on (core.engine.surface_course): each
+"""Surfaces a moving camera saw while a lamp switched on (core.capture.surface_course): each
 keeps its own change, the walls near the lamp brighten far more than the far ones, and a wall
 seen only before the switch takes its neighbours' change, not the room's average."""
 from __future__ import annotations
 
 import torch
 
-from core.engine.surface_course import surface_course
+from core.capture.surface_course import surface_course
 
 XS = torch.linspace(0.0, 4.0, 400)  # a wall along x; the lamp at x = -0.3
 BASE = 1.0

@@ -10,7 +10,7 @@ points on a voxel grid.
   knot's time.
 * Lighting that changes, seen by a moving camera: every frame's points (up to MAX_TIME_VIEWS
   frames), each cell's radiance at every knot from its readings at the times it was seen and how
-  strongly it follows the room's change (core.engine.surface_course): a point's radiance is known
+  strongly it follows the room's change (core.capture.surface_course): a point's radiance is known
   only when its frame saw it, and holding it for the whole capture would freeze a switch.
 """
 from __future__ import annotations
@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import torch
 
 from core.capture.base import Capture
+from core.capture.surface_course import surface_course
 from core.engine.emitter_detection import EmitterSources
-from core.engine.surface_course import surface_course
 from core.envmap import voxel_merge
 from core.fields.components.normalization import SceneBounds
 from core.fields.kinds.config import MAX_SURFACE_VALUES

@@ -27,6 +27,8 @@ from core.envmap import voxel_cells
 LOG_FLOOR = 1e-6  # luminance floor (linear) before logs: a black reading is very dark, not -inf
 NEIGHBOURS = 8  # cells whose b a poorly seen cell borrows
 MEDIAN_ROUNDS = 6  # alternations of the room course's fixed-effects fit
+FACTOR_ROUNDS = 3  # alternations of the course and the cells' sensitivities
+MIN_SENSITIVITY = 0.2  # cells that barely follow the room do not tell its course (a division by b)
 CHUNK = 2048  # cells per distance block (bounds the [chunk, cells] distance matrix)
 
 
@@ -53,6 +55,9 @@ def surface_course(points: torch.Tensor, colors: torch.Tensor, view: torch.Tenso
     c, f = pair // V, pair % V
     course = _room_course(y, c, f, M, V)
     b, a = _sensitivities(y, c, course[f], pos, M)
+    for _ in range(FACTOR_ROUNDS):  # the course as the cells' own sensitivities say, then theirs again
+        course = _refined_course(y, c, f, a, b, course)
+        b, a = _sensitivities(y, c, course[f], pos, M)
     g = _at_times(course, view_times.double(), knot_times.double())  # [K]
     lum_k = torch.exp(a[:, None] + b[:, None] * g[None])  # [M, K]
     return pos.float(), (chroma[:, None, :] * lum_k[..., None]).float()
@@ -82,6 +87,22 @@ def _room_course(y: torch.Tensor, c: torch.Tensor, f: torch.Tensor, M: int, V: i
             G[v] = last
     first = G[torch.isfinite(G)][0]
     return torch.where(torch.isfinite(G), G, first)
+
+
+def _refined_course(y, c, f, a, b, course: torch.Tensor) -> torch.Tensor:
+    """G [V] given the cells' a and b: per view, the median of (y - a) / b over its cells seen in
+    other views too (a view that shows only the walls beside a lamp reads the room's course
+    through their larger b, so the course does not wander with what the camera looks at), anchored
+    at G_0 = 0; views without such cells keep theirs."""
+    V = course.shape[0]
+    M = a.shape[0]
+    seen = torch.zeros(M, dtype=torch.float64).index_add(0, c, torch.ones_like(y))
+    use = (seen[c] > 1) & (b[c] >= MIN_SENSITIVITY)
+    if not bool(use.any()):
+        return course
+    G = _group_median((y[use] - a[c[use]]) / b[c[use]], f[use], V)
+    G = torch.where(torch.isfinite(G), G, course)
+    return G - G[0]
 
 
 def _group_median(values: torch.Tensor, group: torch.Tensor, count: int) -> torch.Tensor:
