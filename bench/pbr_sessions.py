@@ -77,14 +77,15 @@ def session_truth(scene: dict, cache, face_size: int, spp: int, log=print) -> li
     return out
 
 
-def run_variant(capture: dict, variant: str, workdir: Path, overrides: dict | None = None):
-    """(artefact, CPU seconds, wall seconds) of the draft job on one upload."""
+def run_variant(capture: dict, variant: str, workdir: Path, overrides: dict | None = None,
+                preset_name: str = "draft"):
+    """(artefact, CPU seconds, wall seconds) of the job (the `preset_name` preset) on one upload."""
     from core.engine import run_job
     from core.engine.params import JobParams
     from core.engine.presets import preset
 
     v = capture["variants"][variant]
-    config = preset("draft").with_overrides(overrides) if overrides else None
+    config = preset(preset_name).with_overrides(overrides or {})
     t0, c0 = time.perf_counter(), time.process_time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -159,7 +160,7 @@ def lights_in_view(scene: dict) -> dict:
 
 def evaluate_session(scene: dict, cache, workdir: Path, variants, spp: int, face_size: int, cube_spp: int,
                      sphere_size: int = SPHERE_SIZE, overrides: dict | None = None, log=print,
-                     render_only: bool = False) -> dict:
+                     render_only: bool = False, preset_name: str = "draft") -> dict:
     from bench.pbr import score
     from bench.pbr.camera import write_session
     from bench.pbr.scenes import probe_times, scales_at
@@ -182,7 +183,7 @@ def evaluate_session(scene: dict, cache, workdir: Path, variants, spp: int, face
 
     jobs, est, est_sh = {}, {}, {}
     for v in variants:
-        art, cpu, wall = run_variant(capture, v, workdir / scene["name"], overrides)
+        art, cpu, wall = run_variant(capture, v, workdir / scene["name"], overrides, preset_name)
         jobs[v] = job_summary(art, cpu, wall)
         est[v] = {row["t"]: query(art, probes, row["t"], GT_HEIGHT) for row in times}
         est_sh[v] = {row["t"]: query_sh_map(art, probes, row["t"]) for row in times}
@@ -464,6 +465,7 @@ def main(argv=None) -> int:
     p.add_argument("--cube-spp", type=int, default=CUBE_SPP)
     p.add_argument("--sphere-size", type=int, default=SPHERE_SIZE)
     p.add_argument("--render-only", action="store_true", help="fill the render cache, run no job")
+    p.add_argument("--preset", default="draft", help="the engine preset every job runs (default: draft)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="draft preset override for every job (JSON value): ablations, not the product")
     p.add_argument("--rescore", default=None, metavar="RESULTS_JSON",
@@ -490,7 +492,7 @@ def main(argv=None) -> int:
     out_dir = Path(args.out)
     command = "python -m bench.pbr_sessions " + " ".join(argv if argv is not None else sys.argv[1:])
     report: dict = {"command": command.strip(), "machine": machine_info(), "mitsuba": mitsuba().__version__,
-                    "variants": variants, "overrides": overrides,
+                    "variants": variants, "overrides": overrides, "preset": args.preset,
                     "settings": {"frame_spp": args.spp, "face_size": args.face_size, "cube_spp": args.cube_spp,
                                  "sphere_size": args.sphere_size}, "sessions": []}
     t0 = time.perf_counter()
@@ -503,7 +505,7 @@ def main(argv=None) -> int:
         for name in names:
             log(f"{name} ({time.perf_counter() - t0:.0f} s)")
             s = evaluate_session(get_scene(name), cache, work, variants, args.spp, args.face_size, args.cube_spp,
-                                 args.sphere_size, overrides, log, args.render_only)
+                                 args.sphere_size, overrides, log, args.render_only, args.preset)
             report["sessions"].append(s)
             if not args.render_only:
                 out_dir.mkdir(parents=True, exist_ok=True)
