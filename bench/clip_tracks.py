@@ -7,7 +7,7 @@ it prints, per frame, the blob's estimate in stops over its linearised value (wh
 frame by frame by the rule alone (`blob_boost`) and along the track (`stops_over_time`, what
 the reprojection prior uses for a static camera), next to the truth: log2 of the blob's mean
 true luminance (the capture's HDR frames, at its exposure) over its mean linearised luminance,
-as bench/clip_rule.py defines it. Summaries: mean absolute error in stops, and the change from
+as bench/calibration/clip_rule.py defines it. Summaries: mean absolute error in stops, and the change from
 the first frame to the last (log2), estimated vs true. A component benchmark of the clip rule
 on the simulator's own scenes, not of what a user gets (bench.accuracy_probe measures that).
 """

@@ -336,7 +336,7 @@ def _bound_prior(suite: SuiteData, cfg: EngineConfig):
     it: with the job's temporal decision, so under static lighting a moving camera's requests
     merge viewpoints and a static camera's frames share their exposure evidence (binding it as
     for changing lighting scored a different prior than the one the field is distilled from:
-    on `moving-camera` a worse one, bench.prior_frames)."""
+    on `moving-camera` a worse one)."""
     from core.capture.load import load_capture
     from core.capture.temporal import decide_temporal
     from core.engine.params import JobParams

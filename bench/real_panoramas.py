@@ -570,9 +570,9 @@ def indoor_rooms(hdri_dir: Path, limit: int | None = None) -> list[Path]:
 
 
 def cv_gains(rooms: list[Path]) -> tuple[dict[str, list[float]], list[float]]:
-    """The elevation profile of each fold (bench.indoor_fill's fit on every room but that one)
+    """The elevation profile of each fold (bench.calibration.indoor_fill's fit on every room but that one)
     and the one fitted on all of them (what a user gets: core.priors.indoor_fill.ELEVATION_GAIN)."""
-    from bench.indoor_fill import gain_from_profiles, panorama_profiles
+    from bench.calibration.indoor_fill import gain_from_profiles, panorama_profiles
 
     profiles = panorama_profiles(rooms)
     folds = {p.name: gain_from_profiles(torch.cat([profiles[:i], profiles[i + 1:]])) for i, p in enumerate(rooms)}
@@ -583,9 +583,9 @@ def cv_fits(rooms: list[Path]) -> tuple[dict[str, dict], dict]:
     """What the product fits on panoramas, as overrides: per room the fits on every other room
     (room name -> overrides for scoring it) and the fits on all of them (what a user gets; for
     rooms outside the folds): the unseen fill's elevation profile (`cv_gains`) and the clip
-    rule's coefficients and its spill colour's settings (bench.clip_rule.cv_coefficients,
+    rule's coefficients and its spill colour's settings (bench.calibration.clip_rule.cv_coefficients,
     cv_spill_colour)."""
-    from bench.clip_rule import blob_samples, cv_coefficients, cv_spill_colour
+    from bench.calibration.clip_rule import blob_samples, cv_coefficients, cv_spill_colour
 
     gains, all_gain = cv_gains(rooms)
     samples = {p.name: blob_samples(p) for p in rooms}
@@ -647,9 +647,9 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
            curve: str = "drawn") -> dict:
     """Leave-one-room-out: every indoor room (INDOOR_SPLITS together) scored with everything
     fitted from panoramas refitted without it. Today that is the elevation profile of the
-    unseen fill (bench.indoor_fill, row means of the other rooms' panoramas), passed to the job
+    unseen fill (bench.calibration.indoor_fill, row means of the other rooms' panoramas), passed to the job
     as the reprojection prior's `elevation_gain`, the clip rule's coefficients
-    (bench.clip_rule.cv_coefficients, `clip_coefficients`), and (`refit`) the CV_REFIT settings chosen
+    (bench.calibration.clip_rule.cv_coefficients, `clip_coefficients`), and (`refit`) the CV_REFIT settings chosen
     per fold by `cv_select`; an override that sets one itself (an ablation) wins. Nothing else
     the job runs is chosen on these panoramas (the draft's field settings were chosen on the
     simulator). `control` rooms (not indoor) get the profile and choices fitted on all indoor
@@ -675,8 +675,8 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
     protocol = PROTOCOL + (
         f" Leave-one-room-out over the {len(rooms)} indoor rooms ({', '.join(INDOOR_SPLITS)} together, one photo "
         "each): "
-        "each room's job gets the unseen fill's elevation profile (bench.indoor_fill) and the clip rule's "
-        "coefficients (bench.clip_rule) refitted on the other rooms"
+        "each room's job gets the unseen fill's elevation profile (bench.calibration.indoor_fill) and the clip rule's "
+        "coefficients (bench.calibration.clip_rule) refitted on the other rooms"
         + (
             f" and {', '.join(CV_REFIT)} chosen per fold on the other rooms (the prior shortcut, `refit` in the JSON); "
             if refit

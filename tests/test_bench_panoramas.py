@@ -230,7 +230,7 @@ def test_a_saved_cv_report_is_rendered_again_with_its_summaries_remade(tmp_path)
 
 
 def test_cv_refits_the_elevation_profile_without_the_scored_room(tmp_path):
-    from bench.indoor_fill import gain_from_profiles, panorama_profiles
+    from bench.calibration.indoor_fill import gain_from_profiles, panorama_profiles
     from bench.real_panoramas import cv_gains, indoor_rooms
     from capture_fixtures import bright_ceiling_room, write_manifest_rooms
 
@@ -248,7 +248,7 @@ def test_cv_refits_the_elevation_profile_without_the_scored_room(tmp_path):
 def test_cv_refits_the_clip_rule_without_the_scored_room(monkeypatch, tmp_path):
     """Each room's coefficients are the least-squares fit on the OTHER rooms' blobs; the shipped
     ones are the fit on all of them; a fold with no blob keeps the shipped coefficients."""
-    import bench.clip_rule as cr
+    import bench.calibration.clip_rule as cr
     from core.capture.highlights import RULE_COEFFICIENTS
 
     rng = torch.Generator().manual_seed(0)
@@ -268,11 +268,11 @@ def test_cv_refits_the_clip_rule_without_the_scored_room(monkeypatch, tmp_path):
 
 
 def test_the_spill_colour_settings_are_chosen_without_the_scored_room():
-    """bench.clip_rule.colour_cv: each room's white-hot blobs are recoloured with the setting
+    """bench.calibration.clip_rule.colour_cv: each room's white-hot blobs are recoloured with the setting
     the OTHER rooms' blobs favour. Two rooms' warm lamps spill their own warm light; a third,
     heavier room's white lamps sit on a warm wall. Over all rooms leaving the pixels white wins
     (the heavy room decides); the heavy room's own fold recolours, the others' folds do not."""
-    import bench.clip_rule as cr
+    import bench.calibration.clip_rule as cr
 
     warm, white, background = (1.0, 0.7, 0.5), (1.0, 1.0, 1.0), np.array([0.1, 0.1, 0.1])
 

@@ -1,7 +1,7 @@
 """Fit core.priors.indoor_fill.ELEVATION_GAIN on every indoor panorama (dev, test and extra of
 MANIFEST.tsv; never `control`): what a user gets.
 
-    python -m bench.indoor_fill [--hdri-dir DIR] [--average arithmetic|geometric]  # fit, print the tuple
+    python -m bench.calibration.indoor_fill [--hdri-dir DIR] [--average arithmetic|geometric]  # fit, print the tuple
 
 Per panorama (area-downsampled to GAIN_ROWS rows, +y up as stored): each row's mean luminance
 over the mean luminance within +-HORIZON_BAND_DEG of the horizon; averaged over the panoramas

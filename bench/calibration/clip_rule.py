@@ -1,6 +1,7 @@
 """How far off is the clip rule? Clipped LDR crops of real HDR panoramas with known radiance.
 
-    python -m bench.clip_rule [--hdri-dir DIR] [--fit] [--splits dev,test,extra] [--curve drawn|NAME] [-o out.json]
+    python -m bench.calibration.clip_rule [--hdri-dir DIR] [--fit] [--splits dev,test,extra] [--curve drawn|NAME]
+        [-o out.json]
 
 For every panorama of the split, VIEWS_PER_PANORAMA photos are made exactly as in the
 real-panorama protocol (bench.real_panoramas: CROP_SIZE, 60° FOV, TonemapHDR's exposure, a
