@@ -63,11 +63,11 @@ def probe_method(name: str, base) -> "Method":
 
 def constant_maps(suite, height: int) -> torch.Tensor:
     from bench.suite.simulated import capture_linear
-    from core.capture.load import load_capture
+    from core.capture.prepare import load_prepared_capture
     from core.conventions import equirect_width
     from core.engine.params import JobParams
 
-    cap = load_capture(suite.capture_dir, params=JobParams(**suite.params))
+    cap = load_prepared_capture(suite.capture_dir, params=JobParams(**suite.params))
     # linearised with the capture's own camera curve (not the engine's reading of its file, which
     # keeps a filmic tone curve in), a stated per-frame exposure removed, as the job does
     linear = capture_linear(suite.capture_dir, cap)

@@ -35,13 +35,13 @@ def track_report(suite_name: str, curve: str | None = None) -> dict:
         source_tracks,
         stops_over_time,
     )
-    from core.capture.load import load_capture
+    from core.capture.prepare import load_prepared_capture
     from core.conventions import expose, inverse_tonemap
     from core.exposure import LUMINANCE_WEIGHTS
     from core.io.exr import read_exr
 
     suite = load_suite(suite_name, default_cache_dir(), None, 64, curve)
-    cap = load_capture(suite.capture_dir)
+    cap = load_prepared_capture(suite.capture_dir)
     if not cap.static_camera:
         raise SystemExit(f"suite {suite_name!r} has a moving camera: the rule follows sources only for a static one")
     doc = json.loads((suite.capture_dir / "capture.json").read_text())

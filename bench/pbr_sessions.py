@@ -46,7 +46,7 @@ import torch
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "pbr_sessions"
 FRAME_SPP = 36
 SPHERE_SIZE = 64
-SH_HEIGHT = 128  # the /sh route's map (service.queries.SH_ENVMAP_HEIGHT), evaluated at quality fast
+SH_HEIGHT = 128  # the /sh route's map (core.export.probe_queries.SH_ENVMAP_HEIGHT), evaluated at quality fast
 
 
 # ---------------------------------------------------------------------------------------

@@ -61,6 +61,7 @@ LIBRARIES = (
     "bench.calibration",
     "bench.methods",  # the methods `lightfield bench` compares
     "bench.overrides",  # `--set key=value` parsing
+    "bench.panoramas",  # the panorama set (MANIFEST.tsv) and the camera that looks into a panorama
     "bench.report",  # results.json -> results.md, plots and the README table
     "bench.registry",
     "bench.run",  # the suite's driver (registered as "suite" through the CLI)

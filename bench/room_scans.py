@@ -49,7 +49,7 @@ from pathlib import Path
 
 import torch
 
-from bench.real_panoramas import DEFAULT_HDRI_DIR
+from bench.panoramas import DEFAULT_HDRI_DIR
 
 GT_HEIGHT = 128
 MODES = ("product", "product+estimate", "true-poses", "true-poses+ev")
@@ -260,7 +260,8 @@ def cv_overrides(hdri: Path, refit_json: Path):
     rule's coefficients and spill colour refitted on every other indoor room (bench.real_panoramas.cv_fits) and
     the fill settings the photo CV chose without it (its `refit` section); control rooms get the
     shipped fits (on indoor rooms only) and the all-rooms choices."""
-    from bench.real_panoramas import cv_fits, indoor_rooms
+    from bench.panoramas import indoor_rooms
+    from bench.real_panoramas import cv_fits
     from core.priors.reprojection import ReprojectionSettings
 
     folds, _ = cv_fits(indoor_rooms(hdri))
@@ -336,7 +337,8 @@ def markdown(report: dict) -> list[str]:
 
 def main(argv=None) -> int:
     from bench.overrides import parse_set
-    from bench.real_panoramas import curve_summaries, read_manifest
+    from bench.panoramas import read_manifest
+    from bench.real_panoramas import curve_summaries
     from bench.report import sanitize
     from bench.suite.measure import machine_info
     from core.sim.camera_curves import VIDEO, add_curve_argument, run_choices

@@ -82,7 +82,8 @@ def summarise(rows: list[dict], variants: dict, starts: tuple[float, ...]) -> di
 
 
 def main(argv: list[str] | None = None) -> int:
-    from bench.real_panoramas import add_split_arguments, curve_summaries, split_files
+    from bench.panoramas import split_files
+    from bench.real_panoramas import add_split_arguments, curve_summaries
     from core.sim.camera_curves import VIDEO, run_choices
     from core.tracking.sfm import INIT_MIN_TRI_ANGLES_DEG
 

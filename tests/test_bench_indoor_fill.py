@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from bench.calibration.indoor_fill import gain_from_profiles, mean_log_profile, row_profile
-from bench.real_panoramas import DEFAULT_HDRI_DIR
+from bench.panoramas import DEFAULT_HDRI_DIR
 
 
 def test_arithmetic_mean_keeps_the_energy_a_few_bright_panoramas_carry():
@@ -47,7 +47,7 @@ DEV = Path(DEFAULT_HDRI_DIR)
 )
 def test_the_stored_gain_is_the_fit_on_every_indoor_room():
     from bench.calibration.indoor_fill import fit_gain
-    from bench.real_panoramas import indoor_rooms, read_manifest
+    from bench.panoramas import indoor_rooms, read_manifest
     from core.priors.indoor_fill import ELEVATION_GAIN
 
     rooms = indoor_rooms(DEV)

@@ -7,8 +7,9 @@ import warnings
 import pytest
 import torch
 
-from core.capture.load import capture_from_arrays, load_capture
+from core.capture.load import capture_from_arrays
 from core.capture.params import CaptureParams
+from core.capture.prepare import load_prepared_capture
 from core.capture.temporal import detect_temporal
 from core.capture.transients import MIN_FRAMES, transient_mask, without_transients
 from core.conventions import inverse_tonemap, tonemap
@@ -143,13 +144,13 @@ def test_a_video_upload_is_cleaned_on_load(tmp_path):
     video = write_video(tmp_path / "walk.mp4", frames_of(walked).numpy(), 4.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        capture = load_capture(video, params=CaptureParams(fps=4.0))
+        capture = load_prepared_capture(video, params=CaptureParams(fps=4.0))
     assert capture.static_camera
     assert capture.metadata["transients"]["frames_with_transients"] >= 9
     assert not detect_temporal(capture).uses_time
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        kept = load_capture(video, params=CaptureParams(fps=4.0, transients="keep"))
+        kept = load_prepared_capture(video, params=CaptureParams(fps=4.0, transients="keep"))
     assert detect_temporal(kept).uses_time
 
 
@@ -205,7 +206,7 @@ def test_a_patterned_passer_by_in_front_of_a_plain_wall_leaves_the_camera_still(
     def loaded():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            return load_capture(video, params=CaptureParams(fps=4.0))
+            return load_prepared_capture(video, params=CaptureParams(fps=4.0))
 
     assert loaded().static_camera
     monkeypatch.setattr(motion, "STILL_MIN", 10**9)  # the median of every match, as before

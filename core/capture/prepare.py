@@ -10,6 +10,7 @@ starts ("loading", "tracking"), `timed(name)` a context manager around each step
 (core.engine.progress.StageTimer fits); the capture's warnings are the caller's to show."""
 from __future__ import annotations
 
+import warnings
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
 from typing import Callable
@@ -47,7 +48,7 @@ def prepare_capture(input_path, depth_path=None, params: CaptureParams | None = 
     timed = timed or (lambda name: nullcontext())
     on_stage("loading", "reading input")
     with timed("loading"):
-        capture = load_capture(input_path, depth_path, params, limits, track=False)
+        capture = load_capture(input_path, depth_path, params, limits)
     if capture.num_frames > 1:  # tracked, or given poses placed in a world-fixed room (track_capture)
         tracks = not capture.metadata.get("poses_source")
         if tracks:
@@ -62,3 +63,13 @@ def prepare_capture(input_path, depth_path=None, params: CaptureParams | None = 
         capture = without_transients(capture, params)
     capture = with_estimated_exposure(capture, params)  # after tracking: a pan is compared through its poses
     return PreparedCapture(capture, as_uploaded)
+
+
+def load_prepared_capture(input_path, depth_path=None, params: CaptureParams | None = None,
+                          limits: MediaLimits | None = None) -> Capture:
+    """The capture as a job distils it (prepare_capture in one call, its warnings shown): what
+    scripts and tests that load a capture outside a job want."""
+    capture = prepare_capture(input_path, depth_path, params, limits).capture
+    for w in capture.warnings:
+        warnings.warn(w, stacklevel=2)
+    return capture
