@@ -23,6 +23,7 @@ from core.capture.response import with_estimated_response
 from core.capture.track import track_capture
 from core.capture.transients import without_transients
 from core.io.limits import MediaLimits
+from core.tracking.config import TrackingConfig, using_tracking
 
 StageCallback = Callable[[str, str], None]  # (stage name, message)
 StageTiming = Callable[[str], AbstractContextManager]
@@ -41,8 +42,9 @@ class PreparedCapture:
 
 def prepare_capture(input_path, depth_path=None, params: CaptureParams | None = None,
                     limits: MediaLimits | None = None, *, on_stage: StageCallback | None = None,
-                    timed: StageTiming | None = None) -> PreparedCapture:
-    """Load -> track -> transients -> exposure (module docstring); `limits` as load_capture's."""
+                    timed: StageTiming | None = None, tracking: TrackingConfig | None = None) -> PreparedCapture:
+    """Load -> track -> transients -> exposure (module docstring); `limits` as load_capture's;
+    `tracking`: the tracker's knobs (EngineConfig.tracking; None: those already active)."""
     params = params or CaptureParams()
     on_stage = on_stage or (lambda name, message: None)
     timed = timed or (lambda name: nullcontext())
@@ -53,7 +55,7 @@ def prepare_capture(input_path, depth_path=None, params: CaptureParams | None = 
         tracks = not capture.metadata.get("poses_source")
         if tracks:
             on_stage("tracking", "finding the camera's motion")
-        with timed("tracking" if tracks else "loading"):
+        with timed("tracking" if tracks else "loading"), using_tracking(tracking):
             capture = track_capture(capture, params)
     if capture.stated_ev is not None:  # a curve is told by stated exposures only (core.capture.response)
         with timed("response"):
@@ -66,10 +68,10 @@ def prepare_capture(input_path, depth_path=None, params: CaptureParams | None = 
 
 
 def load_prepared_capture(input_path, depth_path=None, params: CaptureParams | None = None,
-                          limits: MediaLimits | None = None) -> Capture:
+                          limits: MediaLimits | None = None, tracking: TrackingConfig | None = None) -> Capture:
     """The capture as a job distils it (prepare_capture in one call, its warnings shown): what
     scripts and tests that load a capture outside a job want."""
-    capture = prepare_capture(input_path, depth_path, params, limits).capture
+    capture = prepare_capture(input_path, depth_path, params, limits, tracking=tracking).capture
     for w in capture.warnings:
         warnings.warn(w, stacklevel=2)
     return capture
