@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from bench.overrides import parse_set, tracking_of
+from bench.overrides import knobs_of, parse_set
 from bench.suite.evaluation import ratio_interval
 
 if TYPE_CHECKING:
@@ -197,7 +197,7 @@ def distill_with_seed(method, suite, base, out_dir: Path, seed: int) -> Path:
         prior = OracleSimPrior(suite.scene)
     cfg = method.config(base)
     params = JobParams(preset="draft", prior="reprojection", field=cfg.field.kind, seed=seed, **suite.params)
-    with tracking_of(cfg):
+    with knobs_of(cfg):
         return run_job(suite.capture_dir, None, params, out_dir, prior=prior, config=cfg).path
 
 

@@ -33,7 +33,7 @@ from typing import Any, Literal
 
 import torch
 
-from bench.overrides import tracking_of
+from bench.overrides import knobs_of
 from bench.suite.measure import Measurement, measured
 from bench.suite.simulated import SERIES_HEIGHT, SuiteData
 from core.engine.config import EngineConfig
@@ -447,7 +447,7 @@ def distill_artefact(
         )
     else:
         params = JobParams(preset="draft", prior="reprojection", field=cfg.field.kind, seed=0)
-    with measured() as m, tracking_of(cfg):
+    with measured() as m, knobs_of(cfg):
         result = run_job(suite.capture_dir, None, params, out_dir, prior=prior, config=cfg)
     meta = result.artefact.meta
     training = meta.get("training", {})

@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bench.overrides import tracking_of
+from bench.overrides import knobs_of
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "pbr_sessions"
 FRAME_SPP = 36
@@ -88,7 +88,7 @@ def run_variant(capture: dict, variant: str, workdir: Path, overrides: dict | No
     v = capture["variants"][variant]
     config = preset("draft").with_overrides(overrides) if overrides else None
     t0, c0 = time.perf_counter(), time.process_time()
-    with warnings.catch_warnings(), tracking_of(config):
+    with warnings.catch_warnings(), knobs_of(config):
         warnings.simplefilter("ignore")
         result = run_job(capture["video"], v["depth"], JobParams.model_validate(v["params"]),
                          workdir / f"job-{variant}", config=config)

@@ -24,7 +24,7 @@ import time
 import warnings
 from pathlib import Path
 
-from bench.overrides import parse_set, tracking_of
+from bench.overrides import knobs_of, parse_set
 
 SIZES = {"draft": (20, 192, 144), "standard": (100, 320, 240)}
 
@@ -65,7 +65,7 @@ def bench_preset(name: str, unique: int, workdir: Path, temporal: str = "auto", 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         config = preset(name).with_overrides(overrides) if overrides else preset(name)
-        with tracking_of(config):
+        with knobs_of(config):
             result = run_job(clip, None, JobParams(preset=name, temporal=temporal), workdir / f"{name}-out",
                              config=config)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0

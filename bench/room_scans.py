@@ -49,7 +49,7 @@ from pathlib import Path
 
 import torch
 
-from bench.overrides import tracking_of
+from bench.overrides import knobs_of
 from bench.panoramas import DEFAULT_HDRI_DIR
 
 GT_HEIGHT = 128
@@ -122,7 +122,7 @@ def run_mode(video: Path, clip, mode: str, workdir: Path, overrides: dict | None
         params["frame_ev"] = [float(e) for e in clip.evs]
     config = preset("draft").with_overrides(overrides) if overrides else None
     t0 = time.process_time()
-    with warnings.catch_warnings(), tracking_of(config):
+    with warnings.catch_warnings(), knobs_of(config):
         warnings.simplefilter("ignore")
         result = run_job(video, None, JobParams.model_validate(params), workdir / f"{video.stem}-{mode}", config=config)
     return result.artefact, time.process_time() - t0

@@ -7,11 +7,12 @@ import warnings
 import pytest
 import torch
 
+from core.capture.config import capture_config
 from core.capture.load import capture_from_arrays
 from core.capture.params import CaptureParams
 from core.capture.prepare import load_prepared_capture
 from core.capture.temporal import detect_temporal
-from core.capture.transients import MIN_FRAMES, transient_mask, without_transients
+from core.capture.transients import transient_mask, without_transients
 from core.conventions import inverse_tonemap, tonemap
 
 T, H, W = 16, 72, 96
@@ -126,7 +127,7 @@ def test_a_person_during_a_light_switch_is_found_and_the_switch_kept():
 def test_what_is_not_looked_at():
     walked, _ = walk_through(lit(lambda t: 1.0), 0.003)
     frames = frames_of(walked)
-    few = static_capture(frames[:MIN_FRAMES - 1])
+    few = static_capture(frames[:capture_config().transients.min_frames - 1])
     assert without_transients(few).frames.equal(few.frames)
     assert "fewer than" in without_transients(few).metadata["transients"]["reason"]
     capture = static_capture(frames)

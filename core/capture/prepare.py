@@ -17,6 +17,7 @@ from typing import Callable
 
 from core.capture.autoexposure import with_estimated_exposure
 from core.capture.base import Capture
+from core.capture.config import CaptureConfig, using_capture
 from core.capture.load import load_capture
 from core.capture.params import CaptureParams
 from core.capture.response import with_estimated_response
@@ -42,9 +43,11 @@ class PreparedCapture:
 
 def prepare_capture(input_path, depth_path=None, params: CaptureParams | None = None,
                     limits: MediaLimits | None = None, *, on_stage: StageCallback | None = None,
-                    timed: StageTiming | None = None, tracking: TrackingConfig | None = None) -> PreparedCapture:
+                    timed: StageTiming | None = None, tracking: TrackingConfig | None = None,
+                    knobs: CaptureConfig | None = None) -> PreparedCapture:
     """Load -> track -> transients -> exposure (module docstring); `limits` as load_capture's;
-    `tracking`: the tracker's knobs (EngineConfig.tracking; None: those already active)."""
+    `tracking` and `knobs`: the tracker's and the stages' settings (EngineConfig.tracking and
+    .capture; None: those already active)."""
     params = params or CaptureParams()
     on_stage = on_stage or (lambda name, message: None)
     timed = timed or (lambda name: nullcontext())
@@ -61,17 +64,19 @@ def prepare_capture(input_path, depth_path=None, params: CaptureParams | None = 
         with timed("response"):
             capture, _ = with_estimated_response(capture)
     as_uploaded = capture
-    with timed("transients"):  # after tracking: a moving camera's frames are compared through its poses
+    # after tracking: a moving camera's frames are compared through its poses
+    with timed("transients"), using_capture(knobs):
         capture = without_transients(capture, params)
     capture = with_estimated_exposure(capture, params)  # after tracking: a pan is compared through its poses
     return PreparedCapture(capture, as_uploaded)
 
 
 def load_prepared_capture(input_path, depth_path=None, params: CaptureParams | None = None,
-                          limits: MediaLimits | None = None, tracking: TrackingConfig | None = None) -> Capture:
+                          limits: MediaLimits | None = None, tracking: TrackingConfig | None = None,
+                          knobs: CaptureConfig | None = None) -> Capture:
     """The capture as a job distils it (prepare_capture in one call, its warnings shown): what
     scripts and tests that load a capture outside a job want."""
-    capture = prepare_capture(input_path, depth_path, params, limits, tracking=tracking).capture
+    capture = prepare_capture(input_path, depth_path, params, limits, tracking=tracking, knobs=knobs).capture
     for w in capture.warnings:
         warnings.warn(w, stacklevel=2)
     return capture

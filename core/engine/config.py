@@ -1,8 +1,9 @@
 """The engine's configuration as one typed tree (nerfstudio's method configs): an
 `EngineConfig` holds the distillation loop's settings (`DistillConfig`), the field
 (`FieldConfig`: the default kind plus every kind's settings, so a job may pick another kind)
-the priors' settings defaults (each validated by that prior's Config) and the tracker's knobs
-(`TrackingConfig`, core.tracking.config: the capture stage tracks with them). The named
+the priors' settings defaults (each validated by that prior's Config), the tracker's knobs
+(`TrackingConfig`, core.tracking.config) and the capture stage's (`CaptureConfig`,
+core.capture.config). The named
 presets are in core.engine.presets; `with_overrides` derives variants (worker overrides,
 benchmarks, tests) without flat knobs.
 """
@@ -14,6 +15,7 @@ from typing import Any, Literal, Mapping
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from core.capture.config import CaptureConfig
 from core.conventions import DEFAULT_EV_MIN
 from core.device import DEVICE_PATTERN
 from core.fields import FieldConfig
@@ -194,6 +196,7 @@ class EngineConfig(BaseModel):
     priors: dict[str, dict[str, Any]] = Field(default_factory=dict, description="prior name -> settings defaults")
     # the tracker's knobs (core.tracking.config): `tracking.direct.search_step_deg=4` is an ablation
     tracking: TrackingConfig = TrackingConfig()
+    capture: CaptureConfig = CaptureConfig()  # the capture stage's knobs (core.capture.config)
 
     @field_validator("priors")
     @classmethod
