@@ -1,4 +1,5 @@
-"""`lightfield bench`: what accuracy costs in time (issue 7). See bench/README.md.
+"""Benchmarks of what accuracy costs in time (issue 7). See bench/README.md.
 
-Other scripts in this directory (sim_speed.py, ...) are standalone micro-benchmarks; the
-suite proper is `bench.run` (driven by `cli/bench.py`)."""
+Every bench is registered by name in bench/registry.py (`lightfield bench list`, `lightfield
+bench run NAME`); the suite proper is `bench.run` (driven by `cli/bench.py`), and the scripts
+that fit product constants are in bench/calibration/."""

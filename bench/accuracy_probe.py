@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from bench.overrides import parse_set
+from bench.overrides import knobs_of, parse_set
 from bench.suite.evaluation import ratio_interval
 
 if TYPE_CHECKING:
@@ -63,11 +63,11 @@ def probe_method(name: str, base) -> "Method":
 
 def constant_maps(suite, height: int) -> torch.Tensor:
     from bench.suite.simulated import capture_linear
-    from core.capture.load import load_capture
+    from core.capture.prepare import load_prepared_capture
     from core.conventions import equirect_width
     from core.engine.params import JobParams
 
-    cap = load_capture(suite.capture_dir, params=JobParams(**suite.params))
+    cap = load_prepared_capture(suite.capture_dir, params=JobParams(**suite.params))
     # linearised with the capture's own camera curve (not the engine's reading of its file, which
     # keeps a filmic tone curve in), a stated per-frame exposure removed, as the job does
     linear = capture_linear(suite.capture_dir, cap)
@@ -197,7 +197,8 @@ def distill_with_seed(method, suite, base, out_dir: Path, seed: int) -> Path:
         prior = OracleSimPrior(suite.scene)
     cfg = method.config(base)
     params = JobParams(preset="draft", prior="reprojection", field=cfg.field.kind, seed=seed, **suite.params)
-    return run_job(suite.capture_dir, None, params, out_dir, prior=prior, config=cfg).path
+    with knobs_of(cfg):
+        return run_job(suite.capture_dir, None, params, out_dir, prior=prior, config=cfg).path
 
 
 def scale_stops(pred: torch.Tensor, gt: torch.Tensor) -> dict:

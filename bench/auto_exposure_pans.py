@@ -118,8 +118,8 @@ def map_change_stops(first: torch.Tensor, last: torch.Tensor) -> float:
 def evaluate(path: Path, iterations: int, workdir: Path, curve: str = "drawn") -> dict:
     from bench.suite.evaluation import envmap_brightness
     from bench.tracking import _view
-    from core.capture.load import load_capture
     from core.capture.params import CaptureParams
+    from core.capture.prepare import load_prepared_capture
     from core.capture.temporal import decide_temporal
     from core.engine.job import run_job
     from core.engine.params import JobParams
@@ -140,7 +140,7 @@ def evaluate(path: Path, iterations: int, workdir: Path, curve: str = "drawn") -
            "ae_range_stops": round(max(true) - min(true), 3)}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        loaded = {mode: load_capture(video, params=CaptureParams(fps=FPS, frame_ev=mode, **extra_params))
+        loaded = {mode: load_prepared_capture(video, params=CaptureParams(fps=FPS, frame_ev=mode, **extra_params))
                   for mode in (None, "locked", "estimate")}
     est = loaded["estimate"]
     out["decision"] = {"auto" if mode is None else mode: decide_temporal(c).uses_time for mode, c in loaded.items()}
@@ -154,8 +154,8 @@ def evaluate(path: Path, iterations: int, workdir: Path, curve: str = "drawn") -
     dim_video = write_video(workdir / f"{stem}-dimming.mp4", dim_ldr, FPS, cam)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        dim = load_capture(dim_video, params=CaptureParams(fps=FPS, **extra_params))
-        dim_locked = load_capture(dim_video, params=CaptureParams(fps=FPS, frame_ev="locked", **extra_params))
+        dim = load_prepared_capture(dim_video, params=CaptureParams(fps=FPS, **extra_params))
+        dim_locked = load_prepared_capture(dim_video, params=CaptureParams(fps=FPS, frame_ev="locked", **extra_params))
     out["locked_dimming"] = {"auto_detected": bool(dim.metadata.get("exposure_estimate", {}).get("applied")),
                              "read_as_changing_light": decide_temporal(dim_locked).uses_time}
     gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), poses[0][:3, :3].T)
@@ -245,7 +245,8 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(report["summary"], indent=1))
         return 0
 
-    from bench.real_panoramas import rows_over, split_files
+    from bench.panoramas import split_files
+    from bench.real_panoramas import rows_over
     from core.sim.camera_curves import VIDEO, run_choices
 
     rows = rows_over(split_files(args.hdri_dir, args.split, args.limit),

@@ -7,7 +7,7 @@ it prints, per frame, the blob's estimate in stops over its linearised value (wh
 frame by frame by the rule alone (`blob_boost`) and along the track (`stops_over_time`, what
 the reprojection prior uses for a static camera), next to the truth: log2 of the blob's mean
 true luminance (the capture's HDR frames, at its exposure) over its mean linearised luminance,
-as bench/clip_rule.py defines it. Summaries: mean absolute error in stops, and the change from
+as bench/calibration/clip_rule.py defines it. Summaries: mean absolute error in stops, and the change from
 the first frame to the last (log2), estimated vs true. A component benchmark of the clip rule
 on the simulator's own scenes, not of what a user gets (bench.accuracy_probe measures that).
 """
@@ -35,13 +35,13 @@ def track_report(suite_name: str, curve: str | None = None) -> dict:
         source_tracks,
         stops_over_time,
     )
-    from core.capture.load import load_capture
+    from core.capture.prepare import load_prepared_capture
     from core.conventions import expose, inverse_tonemap
     from core.exposure import LUMINANCE_WEIGHTS
     from core.io.exr import read_exr
 
     suite = load_suite(suite_name, default_cache_dir(), None, 64, curve)
-    cap = load_capture(suite.capture_dir)
+    cap = load_prepared_capture(suite.capture_dir)
     if not cap.static_camera:
         raise SystemExit(f"suite {suite_name!r} has a moving camera: the rule follows sources only for a static one")
     doc = json.loads((suite.capture_dir / "capture.json").read_text())

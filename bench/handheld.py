@@ -229,7 +229,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-o", "--output", default=None)
     add_curve_argument(p)
     args = p.parse_args(argv)
-    from bench.real_panoramas import curve_summaries, split_files
+    from bench.panoramas import split_files
+    from bench.real_panoramas import curve_summaries
 
     files = split_files(args.hdri_dir, args.split, args.limit)
     known = {**VARIANTS, **WALKS}

@@ -26,7 +26,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--set", action="append", default=[], help="draft preset override key=value (JSON value)")
     overrides = parse_set(p.parse_args(argv).set)
-    from core.capture.load import capture_from_arrays, load_capture
+    from core.capture.load import capture_from_arrays
+    from core.capture.prepare import load_prepared_capture
     from core.conventions import inverse_tonemap
     from core.engine.distill import distill
     from core.engine.presets import preset
@@ -39,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     spec = spatial().model_copy(update={"resolution": (96, 72)})
     out = pathlib.Path(tempfile.mkdtemp())
     write_capture(spec, out, envmap_height=16, video=False)
-    base = load_capture(out)
+    base = load_prepared_capture(out)
     frames = base.frames[0].expand(8, -1, -1, -1).clone()
     h, w = frames.shape[1:3]
     patch = torch.zeros(h, w, dtype=torch.bool)

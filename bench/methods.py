@@ -33,6 +33,7 @@ from typing import Any, Literal
 
 import torch
 
+from bench.overrides import knobs_of
 from bench.suite.measure import Measurement, measured
 from bench.suite.simulated import SERIES_HEIGHT, SuiteData
 from core.engine.config import EngineConfig
@@ -336,14 +337,14 @@ def _bound_prior(suite: SuiteData, cfg: EngineConfig):
     it: with the job's temporal decision, so under static lighting a moving camera's requests
     merge viewpoints and a static camera's frames share their exposure evidence (binding it as
     for changing lighting scored a different prior than the one the field is distilled from:
-    on `moving-camera` a worse one, bench.prior_frames)."""
-    from core.capture.load import load_capture
+    on `moving-camera` a worse one)."""
+    from core.capture.prepare import load_prepared_capture
     from core.capture.temporal import decide_temporal
     from core.engine.params import JobParams
     from core.priors.registry import build_prior
 
     params = JobParams(**suite.params)
-    capture = load_capture(suite.capture_dir, params=params)
+    capture = load_prepared_capture(suite.capture_dir, params=params)
     decision = decide_temporal(capture, params.temporal)
     work = capture.resized(cfg.distill.work_height)
     prior = build_prior("reprojection", cfg.prior_settings("reprojection"))
@@ -380,16 +381,16 @@ def diffusion_centre_envmap(method: Method, suite: SuiteData, cfg: EngineConfig,
     """DiffusionLight's native setting: one chrome ball at the centre of the frame nearest the
     suite's global time, placed in front of the scene like the engine's probes, inpainted at
     each EV of the bracket and merged to HDR (DiffusionPrior.sample_balls)."""
-    from core.capture.depth import median_valid_depth
-    from core.capture.load import load_capture
+    from core.capture.prepare import load_prepared_capture
     from core.chrome_ball import composite_depth, place_probe, render_balls
+    from core.conventions import median_valid_depth
     from core.device import resolve_device
     from core.priors.base import ProbeGeometry
     from core.priors.registry import build_prior
 
     prior = build_prior("diffusion", {**cfg.prior_settings("diffusion"), "weights": method.prior_weights},
                         resolve_device(cfg.distill.device))
-    work = load_capture(suite.capture_dir).resized(cfg.distill.work_height)
+    work = load_prepared_capture(suite.capture_dir).resized(cfg.distill.work_height)
     i = int(torch.argmin((work.times - suite.global_time).abs()))
     cam = work.camera(i)
     pixel = torch.tensor([work.width / 2.0, work.height / 2.0], dtype=torch.float64)
@@ -446,7 +447,7 @@ def distill_artefact(
         )
     else:
         params = JobParams(preset="draft", prior="reprojection", field=cfg.field.kind, seed=0)
-    with measured() as m:
+    with measured() as m, knobs_of(cfg):
         result = run_job(suite.capture_dir, None, params, out_dir, prior=prior, config=cfg)
     meta = result.artefact.meta
     training = meta.get("training", {})

@@ -43,10 +43,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bench.overrides import knobs_of
+
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "pbr_sessions"
 FRAME_SPP = 36
 SPHERE_SIZE = 64
-SH_HEIGHT = 128  # the /sh route's map (service.queries.SH_ENVMAP_HEIGHT), evaluated at quality fast
+SH_HEIGHT = 128  # the /sh route's map (core.export.probe_queries.SH_ENVMAP_HEIGHT), evaluated at quality fast
 
 
 # ---------------------------------------------------------------------------------------
@@ -87,7 +89,7 @@ def run_variant(capture: dict, variant: str, workdir: Path, overrides: dict | No
     v = capture["variants"][variant]
     config = preset(preset_name).with_overrides(overrides or {})
     t0, c0 = time.perf_counter(), time.process_time()
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), knobs_of(config):
         warnings.simplefilter("ignore")
         result = run_job(capture["video"], v["depth"], JobParams.model_validate(v["params"]),
                          workdir / f"job-{variant}", config=config)

@@ -80,7 +80,7 @@ def summarise(rows: dict[str, dict]) -> dict:
 
 def main(argv=None) -> int:
     import bench.real_panoramas as rp
-    from bench.real_panoramas import DEFAULT_HDRI_DIR, indoor_rooms
+    from bench.panoramas import DEFAULT_HDRI_DIR, indoor_rooms
     from bench.room_scans import DEFAULT_REFIT, cv_overrides
     from core.sim.camera_curves import ALL, REFERENCE, STILL, add_curve_argument, group_by_curve, run_choices
 

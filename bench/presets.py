@@ -24,7 +24,7 @@ import time
 import warnings
 from pathlib import Path
 
-from bench.overrides import parse_set
+from bench.overrides import knobs_of, parse_set
 
 SIZES = {"draft": (20, 192, 144), "standard": (100, 320, 240)}
 
@@ -64,8 +64,10 @@ def bench_preset(name: str, unique: int, workdir: Path, temporal: str = "auto", 
     t0, c0 = time.perf_counter(), time.process_time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        config = preset(name).with_overrides(overrides) if overrides else None
-        result = run_job(clip, None, JobParams(preset=name, temporal=temporal), workdir / f"{name}-out", config=config)
+        config = preset(name).with_overrides(overrides) if overrides else preset(name)
+        with knobs_of(config):
+            result = run_job(clip, None, JobParams(preset=name, temporal=temporal), workdir / f"{name}-out",
+                             config=config)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     meta = result.artefact.meta
     tr = meta["training"]

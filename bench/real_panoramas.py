@@ -34,7 +34,6 @@ it below 1).
 """
 from __future__ import annotations
 
-import csv
 import json
 import random
 import sys
@@ -44,13 +43,21 @@ from pathlib import Path
 
 import torch
 
-DEFAULT_HDRI_DIR = Path(__file__).resolve().parents[2] / "shared" / "hdri"  # ../shared/hdri from the repo
+from bench.panoramas import (
+    CROP_HFOV_DEG,
+    CROP_SIZE,
+    DEFAULT_HDRI_DIR,
+    INDOOR_SPLITS,
+    camera_rotation,
+    indoor_rooms,
+    load_panorama,
+    perspective_crop,
+    read_manifest,
+)
+
 SEED = 7
-CROP_HFOV_DEG = 60.0
-CROP_SIZE = (192, 144)  # width, height (the issue's protocol)
 PITCH_DEG = 15.0
 GT_HEIGHT = 128  # = core.metrics.EVAL_HEIGHT: maps are queried and compared at the metric's own resolution
-PANO_HEIGHT = 256  # panoramas are area-downsampled to this before cropping (crop ~0.3 deg/px)
 PRESET = "draft"
 SPLITS = ("dev", "test", "control")
 FIELD, PRIOR, CONSTANT = "field", "prior (shortcut)", "mean-colour"
@@ -74,17 +81,6 @@ PROTOCOL = (
     "(`truth` row: the ground-truth panorama's own, the protocol's ceiling). `control` panoramas are not indoor and "
     "are reported apart."
 )
-
-
-def read_manifest(hdri_dir: Path) -> list[dict]:
-    with open(hdri_dir / "MANIFEST.tsv", newline="") as f:
-        return list(csv.DictReader(f, delimiter="\t"))
-
-
-def split_files(hdri_dir, split: str, limit: int | None = None) -> list[Path]:
-    """The panoramas of one split of MANIFEST.tsv, in its order (the first `limit`)."""
-    hdri = Path(hdri_dir)
-    return [hdri / r["filename"] for r in read_manifest(hdri) if r["split"] == split][:limit]
 
 
 def add_split_arguments(p, iterations: int | None = None, curve: bool = True) -> None:
@@ -131,13 +127,6 @@ def curve_summaries(rows: list[dict], summarise) -> dict:
     return {"summary": summarise(realistic or rows), "summary_per_curve": group_by_curve(rows, summarise)}
 
 
-def camera_rotation(yaw_deg: float, pitch_deg: float) -> torch.Tensor:
-    """Camera-to-world rotation: pitch about x (up positive), then yaw about +y (the simulator's camera rule)."""
-    from core.sim.state import pose_from_yaw_pitch
-
-    return pose_from_yaw_pitch((0.0, 0.0, 0.0), yaw_deg, pitch_deg)[:3, :3]
-
-
 def view_for(filename: str, view: int = 0, views: int = 1) -> tuple[float, float]:
     """(yaw, pitch) in degrees of photo `view` of `views` taken from one panorama. View 0 is the
     file's own draw (the protocol's single photo); view k turns the yaw by k 360 / views from it
@@ -148,18 +137,6 @@ def view_for(filename: str, view: int = 0, views: int = 1) -> tuple[float, float
         return yaw, pitch
     yaw = (yaw + 360.0 * view / views + 180.0) % 360.0 - 180.0
     return yaw, random.Random(f"{SEED}:{filename}:{view}").uniform(-PITCH_DEG, PITCH_DEG)
-
-
-def perspective_crop(pano: torch.Tensor, R: torch.Tensor) -> tuple[torch.Tensor, "object"]:
-    """Linear HDR crop [H, W, 3] seen by a camera with rotation R at the panorama's centre."""
-    from core.camera import Camera, Intrinsics
-    from core.envmap import sample_envmap
-
-    intr = Intrinsics.from_hfov(CROP_SIZE[0], CROP_SIZE[1], CROP_HFOV_DEG)
-    c2w = torch.eye(4, dtype=torch.float64)
-    c2w[:3, :3] = R
-    _, d = Camera(intr, c2w).pixel_rays(dtype=torch.float64)
-    return sample_envmap(pano.to(torch.float64), d).to(torch.float32), intr
 
 
 def photo_name(filename: str, view: int = 0) -> str:
@@ -226,7 +203,7 @@ def estimate_prior(photo_path: Path, overrides: dict | None = None, curve=None) 
 
     params = job_params(curve)
     config = engine_config(overrides) or preset(PRESET)
-    capture = load_capture(photo_path, None, params, track=False).resized(config.distill.work_height)
+    capture = load_capture(photo_path, None, params).resized(config.distill.work_height)
     prior = build_prior(params.prior, config.prior_settings(params.prior))
     prior.bind(capture)
     return prior.envmaps(torch.zeros(1, 3), 0.0, GT_HEIGHT)[0]
@@ -238,16 +215,6 @@ def estimate_mean_colour(ldr: torch.Tensor, curve) -> torch.Tensor:
 
     mean = curve.decode(ldr).reshape(-1, 3).mean(0)
     return mean.expand(GT_HEIGHT, equirect_width(GT_HEIGHT), 3).clone()
-
-
-def load_panorama(path: Path) -> torch.Tensor:
-    import numpy as np
-
-    from core.envmap import resize_envmap
-    from core.io.hdr import read_hdr
-
-    pano = torch.from_numpy(np.ascontiguousarray(read_hdr(path)[..., :3])).float()
-    return resize_envmap(pano, PANO_HEIGHT) if pano.shape[0] > PANO_HEIGHT else pano
 
 
 def write_photo(ldr: torch.Tensor, path: Path, curve) -> Path:
@@ -279,8 +246,7 @@ def protocol_photos(hdri_dir: Path, split: str, views: int, work_height: int, cu
                 cam = photo_curve(f, view, curve)
                 ldr = ldr_photo(hdr, cam)
                 work = load_capture(
-                    write_photo(ldr, Path(tmp) / f"{f}_{view}.png", cam), None, job_params(cam), track=False
-                ).resized(work_height)
+                    write_photo(ldr, Path(tmp) / f"{f}_{view}.png", cam), None, job_params(cam)).resized(work_height)
                 yield {"name": f, "pano": pano, "rotation": R, "intrinsics": intr, "curve": cam, "ldr": ldr,
                        "work": work}
 
@@ -486,7 +452,6 @@ def run_panoramas(hdri_dir: Path, limit: int | None, sphere_size: int, quick: bo
 # ---------------------------------------------------------------------------------------
 # Leave-one-room-out cross-validation (`--cv`)
 # ---------------------------------------------------------------------------------------
-INDOOR_SPLITS = ("dev", "test", "extra")  # every indoor room; `control` is scored apart
 CV_LEVEL = 0.95  # bootstrap interval over rooms
 CV_SEED = 0
 ANGLE_FAILURE = 1.5  # a room "fails" where its diffuse angular error is > this x its constant map's
@@ -560,19 +525,10 @@ def cv_select(rooms: list[Path], folds: dict[str, dict], overrides: dict, sphere
     return out
 
 
-def indoor_rooms(hdri_dir: Path, limit: int | None = None) -> list[Path]:
-    """Every indoor panorama of MANIFEST.tsv (splits INDOOR_SPLITS together), sorted by name."""
-    rows = read_manifest(hdri_dir)
-    names = sorted(
-        r["filename"] for r in rows if r.get("split") in INDOOR_SPLITS and (hdri_dir / r["filename"]).is_file()
-    )
-    return [hdri_dir / n for n in names][:limit]
-
-
 def cv_gains(rooms: list[Path]) -> tuple[dict[str, list[float]], list[float]]:
-    """The elevation profile of each fold (bench.indoor_fill's fit on every room but that one)
+    """The elevation profile of each fold (bench.calibration.indoor_fill's fit on every room but that one)
     and the one fitted on all of them (what a user gets: core.priors.indoor_fill.ELEVATION_GAIN)."""
-    from bench.indoor_fill import gain_from_profiles, panorama_profiles
+    from bench.calibration.indoor_fill import gain_from_profiles, panorama_profiles
 
     profiles = panorama_profiles(rooms)
     folds = {p.name: gain_from_profiles(torch.cat([profiles[:i], profiles[i + 1:]])) for i, p in enumerate(rooms)}
@@ -583,9 +539,9 @@ def cv_fits(rooms: list[Path]) -> tuple[dict[str, dict], dict]:
     """What the product fits on panoramas, as overrides: per room the fits on every other room
     (room name -> overrides for scoring it) and the fits on all of them (what a user gets; for
     rooms outside the folds): the unseen fill's elevation profile (`cv_gains`) and the clip
-    rule's coefficients and its spill colour's settings (bench.clip_rule.cv_coefficients,
+    rule's coefficients and its spill colour's settings (bench.calibration.clip_rule.cv_coefficients,
     cv_spill_colour)."""
-    from bench.clip_rule import blob_samples, cv_coefficients, cv_spill_colour
+    from bench.calibration.clip_rule import blob_samples, cv_coefficients, cv_spill_colour
 
     gains, all_gain = cv_gains(rooms)
     samples = {p.name: blob_samples(p) for p in rooms}
@@ -647,9 +603,9 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
            curve: str = "drawn") -> dict:
     """Leave-one-room-out: every indoor room (INDOOR_SPLITS together) scored with everything
     fitted from panoramas refitted without it. Today that is the elevation profile of the
-    unseen fill (bench.indoor_fill, row means of the other rooms' panoramas), passed to the job
+    unseen fill (bench.calibration.indoor_fill, row means of the other rooms' panoramas), passed to the job
     as the reprojection prior's `elevation_gain`, the clip rule's coefficients
-    (bench.clip_rule.cv_coefficients, `clip_coefficients`), and (`refit`) the CV_REFIT settings chosen
+    (bench.calibration.clip_rule.cv_coefficients, `clip_coefficients`), and (`refit`) the CV_REFIT settings chosen
     per fold by `cv_select`; an override that sets one itself (an ablation) wins. Nothing else
     the job runs is chosen on these panoramas (the draft's field settings were chosen on the
     simulator). `control` rooms (not indoor) get the profile and choices fitted on all indoor
@@ -675,8 +631,8 @@ def run_cv(hdri_dir: Path, sphere_size: int = 64, methods=METHODS, overrides: di
     protocol = PROTOCOL + (
         f" Leave-one-room-out over the {len(rooms)} indoor rooms ({', '.join(INDOOR_SPLITS)} together, one photo "
         "each): "
-        "each room's job gets the unseen fill's elevation profile (bench.indoor_fill) and the clip rule's "
-        "coefficients (bench.clip_rule) refitted on the other rooms"
+        "each room's job gets the unseen fill's elevation profile (bench.calibration.indoor_fill) and the clip rule's "
+        "coefficients (bench.calibration.clip_rule) refitted on the other rooms"
         + (
             f" and {', '.join(CV_REFIT)} chosen per fold on the other rooms (the prior shortcut, `refit` in the JSON); "
             if refit

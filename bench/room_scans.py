@@ -49,7 +49,8 @@ from pathlib import Path
 
 import torch
 
-from bench.real_panoramas import DEFAULT_HDRI_DIR
+from bench.overrides import knobs_of
+from bench.panoramas import DEFAULT_HDRI_DIR
 
 GT_HEIGHT = 128
 MODES = ("product", "product+estimate", "true-poses", "true-poses+ev")
@@ -121,7 +122,7 @@ def run_mode(video: Path, clip, mode: str, workdir: Path, overrides: dict | None
         params["frame_ev"] = [float(e) for e in clip.evs]
     config = preset("draft").with_overrides(overrides) if overrides else None
     t0 = time.process_time()
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), knobs_of(config):
         warnings.simplefilter("ignore")
         result = run_job(video, None, JobParams.model_validate(params), workdir / f"{video.stem}-{mode}", config=config)
     return result.artefact, time.process_time() - t0
@@ -260,7 +261,8 @@ def cv_overrides(hdri: Path, refit_json: Path):
     rule's coefficients and spill colour refitted on every other indoor room (bench.real_panoramas.cv_fits) and
     the fill settings the photo CV chose without it (its `refit` section); control rooms get the
     shipped fits (on indoor rooms only) and the all-rooms choices."""
-    from bench.real_panoramas import cv_fits, indoor_rooms
+    from bench.panoramas import indoor_rooms
+    from bench.real_panoramas import cv_fits
     from core.priors.reprojection import ReprojectionSettings
 
     folds, _ = cv_fits(indoor_rooms(hdri))
@@ -336,7 +338,8 @@ def markdown(report: dict) -> list[str]:
 
 def main(argv=None) -> int:
     from bench.overrides import parse_set
-    from bench.real_panoramas import curve_summaries, read_manifest
+    from bench.panoramas import read_manifest
+    from bench.real_panoramas import curve_summaries
     from bench.report import sanitize
     from bench.suite.measure import machine_info
     from core.sim.camera_curves import VIDEO, add_curve_argument, run_choices

@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from bench.methods import Budget, config_summary, core_methods, sweep_methods
-from bench.real_panoramas import DEFAULT_HDRI_DIR
+from bench.panoramas import DEFAULT_HDRI_DIR
 from bench.suite.measure import machine_info
 
 SUITE_NAMES = ("spatial", "temporal", "moving-camera", "hard")

@@ -82,9 +82,10 @@ def summarise(rows: list[dict], variants: dict, starts: tuple[float, ...]) -> di
 
 
 def main(argv: list[str] | None = None) -> int:
-    from bench.real_panoramas import add_split_arguments, curve_summaries, split_files
+    from bench.panoramas import split_files
+    from bench.real_panoramas import add_split_arguments, curve_summaries
     from core.sim.camera_curves import VIDEO, run_choices
-    from core.tracking.sfm import INIT_MIN_TRI_ANGLES_DEG
+    from core.tracking.config import tracking_config
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_split_arguments(p)  # its --workdir is not used: nothing here is written but the report
@@ -96,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         p.error(f"unknown variants {sorted(unknown)}; known: {', '.join(WALKS)}")
     variants = {k: v for k, v in WALKS.items() if k in args.variants.split(",")}
-    starts = tuple(float(a) for a in args.starts.split(",")) if args.starts else INIT_MIN_TRI_ANGLES_DEG
+    product_starts = tracking_config().sfm.init_min_tri_angles_deg
+    starts = tuple(float(a) for a in args.starts.split(",")) if args.starts else product_starts
     rows = []
     for f in split_files(args.hdri_dir, args.split, args.limit):
         for curve in run_choices(args.curve, VIDEO):  # bench.handheld's clips and their camera curves

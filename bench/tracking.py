@@ -168,7 +168,7 @@ def evaluate_panorama(path: Path, frames: int, size, iterations: int, work_heigh
 
 def run_tracking(hdri_dir: Path, limit: int | None, sphere_size: int, quick: bool, workdir: Path,
                  splits: tuple[str, ...] = ("dev", "test"), curve: str = "drawn") -> dict:
-    from bench.real_panoramas import read_manifest
+    from bench.panoramas import read_manifest
     from core.sim.camera_curves import REFERENCE, VIDEO, group_by_curve, run_choices
 
     frames, size = (12, (160, 120)) if quick else (20, (320, 240))

@@ -126,8 +126,8 @@ def pans(pano: torch.Tensor, yaw: float, pitch: float, seed: int, stem: Path, cu
     first kept frame), whether the temporal decision reads changing light, the painted share.
     Every clip is the camera `curve`'s (core.sim.camera_curves)."""
     from bench.auto_exposure_pans import FPS as PAN_FPS, ae_clip
-    from core.capture.load import load_capture
     from core.capture.params import CaptureParams
+    from core.capture.prepare import load_prepared_capture
     from core.capture.temporal import decide_temporal
     from core.sim.camera_curves import VIDEO, write_video
 
@@ -148,7 +148,7 @@ def pans(pano: torch.Tensor, yaw: float, pitch: float, seed: int, stem: Path, cu
         video = write_video(Path(f"{stem}-{name}.mp4"), frames, PAN_FPS, curve)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            cap = load_capture(video, params=CaptureParams(fps=PAN_FPS, **curve.job_params(VIDEO)))
+            cap = load_prepared_capture(video, params=CaptureParams(fps=PAN_FPS, **curve.job_params(VIDEO)))
         kept = (cap.times.double() * PAN_FPS).round().long()
         truth = torch.stack([torch.as_tensor(poses[int(k)], dtype=torch.float64) for k in kept])
         rel_true = truth[0, :3, :3].T @ truth[:, :3, :3]
@@ -166,8 +166,8 @@ def pans(pano: torch.Tensor, yaw: float, pitch: float, seed: int, stem: Path, cu
 def evaluate(path: Path, iterations: int, workdir: Path, pans_only: bool = False, curve: str = "drawn") -> dict:
     from bench.auto_exposure_pans import map_change_stops, score_runs
     from bench.tracking import _view
-    from core.capture.load import load_capture
     from core.capture.params import CaptureParams
+    from core.capture.prepare import load_prepared_capture
     from core.capture.temporal import decide_temporal
     from core.capture.transients import transient_mask
     from core.engine.job import run_job
@@ -203,7 +203,8 @@ def evaluate(path: Path, iterations: int, workdir: Path, pans_only: bool = False
         for mode in ("remove", "keep"):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                cap = load_capture(videos[name], params=CaptureParams(fps=FPS, transients=mode, **extra_params))
+                params = CaptureParams(fps=FPS, transients=mode, **extra_params)
+                cap = load_prepared_capture(videos[name], params=params)
             row[f"changing_light_{mode}"] = decide_temporal(cap).uses_time
             if mode == "remove":
                 found = cap.metadata.get("transients", {})
@@ -302,7 +303,8 @@ def main(argv: list[str] | None = None) -> int:
         return _write([json.loads(line) for line in Path(args.rescore).read_text().splitlines()
                        if line.startswith('{"file"')], args)
 
-    from bench.real_panoramas import rows_over, split_files
+    from bench.panoramas import split_files
+    from bench.real_panoramas import rows_over
     from core.sim.camera_curves import VIDEO, run_choices
 
     rows = rows_over(

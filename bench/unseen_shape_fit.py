@@ -139,7 +139,7 @@ def leave_one_out(train, evaluate, Xtr, Ttr, Xev, lam: float) -> torch.Tensor:
 
 
 def main(argv=None) -> int:
-    from bench.real_panoramas import DEFAULT_HDRI_DIR
+    from bench.panoramas import DEFAULT_HDRI_DIR
     from bench.suite.evaluation import score_probe
     from core.exposure import luminance
     from core.sim.camera_curves import add_curve_argument

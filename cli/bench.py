@@ -1,12 +1,22 @@
-"""`lightfield bench`: what accuracy costs in time (see bench/README.md)."""
+"""`lightfield bench`: what accuracy costs in time (see bench/README.md); `lightfield bench list`
+and `lightfield bench run NAME [--quick] [ARGS ...]`: every bench by name (bench/registry.py)."""
 from __future__ import annotations
 
-HELP = "benchmark accuracy vs time (simulated suites, real panoramas, scaling, stability)"
+import argparse
+
+HELP = "benchmark accuracy vs time (simulated suites, real panoramas, scaling, stability); list, run NAME"
 # core.sim.camera_curves.CHOICES less "all" (not imported here: the CLI starts without torch)
 CURVE_CHOICES = ("drawn", "srgb", "rec709", "filmic", "hlg10", "gamma2.4")
 
 
 def add_arguments(p) -> None:
+    sub = p.add_subparsers(dest="bench_command", metavar="{list,run}", required=False)
+    sub.add_parser("list", help="every registered bench: name, kind, quick mode, what it measures")
+    r = sub.add_parser("run", help="run one bench by name in its own process",
+                       description="Run a registered bench. --quick (anywhere after NAME) becomes the bench's own "
+                                   "quick arguments; every other argument goes to the bench unchanged.")
+    r.add_argument("name", help="a name from `lightfield bench list`")
+    r.add_argument("bench_args", nargs=argparse.REMAINDER, help="[--quick] and the bench's own arguments")
     p.add_argument(
         "--quick", action="store_true", help="tiny budgets: a few minutes on 2 cores (trends, not converged numbers)"
     )
@@ -80,8 +90,36 @@ def _positive(value: int | None, flag: str) -> int | None:
     return value
 
 
+def list_benches() -> int:
+    from bench.registry import BENCHES
+
+    width = max(len(name) for name in BENCHES)
+    for b in BENCHES.values():
+        tags = ", ".join(t for t in (b.kind if b.kind != "bench" else "", "quick" if b.quick is not None else "") if t)
+        print(f"{b.name:<{width}}  {b.summary}" + (f" [{tags}]" if tags else ""))
+    return 0
+
+
+def run_named(name: str, bench_args: list[str]) -> int:
+    """`--quick` before any `--` is the front door's; what follows `--` goes to the bench verbatim."""
+    from bench.registry import run_bench
+
+    cut = bench_args.index("--") if "--" in bench_args else len(bench_args)
+    head, tail = bench_args[:cut], bench_args[cut + 1:]
+    try:
+        return run_bench(name, [a for a in head if a != "--quick"] + tail, quick="--quick" in head)
+    except ValueError as exc:
+        raise SystemExit(f"lightfield bench run: {exc}") from None
+
+
 def run(args) -> int:
     from pathlib import Path
+
+    command = getattr(args, "bench_command", None)
+    if command == "list":
+        return list_benches()
+    if command == "run":
+        return run_named(args.name, args.bench_args)
 
     from bench.run import DEFAULT_HDRI_DIR, DEFAULT_OUT_DIR, SECTIONS, SUITE_NAMES, BenchOptions, run_bench
 

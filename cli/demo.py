@@ -20,11 +20,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
 from cli import choices
 from cli.demo_scan import format_scan, room_scan_demo
+from cli.demo_upload import Upload
 
 HELP = "Simulate a room, estimate its light field through the embedded service, and compare with the truth."
 SUITE = "spatial"
@@ -46,16 +46,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "HEVC clip as iPhones record HDR video (default %(default)s)")
     p.add_argument("--no-scan", action="store_true",
                    help="skip the second job: a room scan of the bundled panorama (assets/sample_panorama.hdr)")
-
-
-@dataclass(frozen=True)
-class Upload:
-    """What a user sends to POST /jobs."""
-
-    file: Path  # frame (PNG) or video (MP4)
-    depth: Path | None  # .npz with an array `depth`
-    params: dict  # JobParams as JSON
-    name: str = "lightfield"  # --no-service: the artefact's directory under the output
 
 
 def run(args: argparse.Namespace) -> int:

@@ -20,7 +20,7 @@ def room_scan_demo(out_dir: Path, backend, preset: str, camera: str = "rec709") 
     map at the first camera and score it; returns the summary's `room_scan` entry."""
     import torch
 
-    from cli.demo import Upload
+    from cli.demo_upload import Upload
     from core.io import load_envmap
     from core.metrics import angular_error_deg, render_probe_spheres, si_rmse
     from core.sim.room_scan import scan_constant_map, scan_truth, write_sample_scan

@@ -7,10 +7,10 @@ import json
 from pathlib import Path
 
 from cli.probe_args import Probe, flags_model, parse_position, print_json, run_guarded
+from core.export.probe_queries import SH_ENVMAP_HEIGHT
 from core.export.sh_layouts import LAYOUT_NAMES
 
 HELP = "Print the main light and ambient spherical harmonics at one or many probes, in a consumer's SH layout."
-SH_HEIGHT = 128  # the service's /sh evaluates the same map height
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
         probe = Probe(args.artefact, args.fast)
         out = []
         for x, t in _queries(args):
-            hdr, flags = probe.envmap(x, t, SH_HEIGHT)
+            hdr, flags = probe.envmap(x, t, SH_ENVMAP_HEIGHT)
             light = extract_dominant_light(hdr)
             out.append(SphericalHarmonics.of(x, t, flags_model(flags), args.layout, light,
                                              project_sh(hdr.double())).model_dump(mode="json"))

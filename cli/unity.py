@@ -7,24 +7,21 @@ import sys
 from pathlib import Path
 
 from cli.probe_args import Probe, parse_position, print_json, run_guarded
+from core.export.probe_queries import UNITY_GRID_DEFAULT, UNITY_SH_HEIGHT, parse_grid
 
 HELP = "Write a Unity light-probe grid: probe positions on Unity axes and SphericalHarmonicsL2 values for each."
-SH_HEIGHT = 32  # band-2 SH need little resolution
 
 
 def _counts(text: str) -> tuple[int, int, int]:
     try:
-        values = tuple(int(v) for v in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != 3 or not all(1 <= v <= 64 for v in values):
-        raise argparse.ArgumentTypeError(f"--grid must be three integers in 1..64 'NX,NY,NZ', got {text!r}")
-    return values  # type: ignore[return-value]
+        return parse_grid(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"--{exc}") from None
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("artefact", metavar="OUT", help="artefact directory written by `lightfield estimate -o OUT`")
-    p.add_argument("--grid", type=_counts, default=(3, 2, 3), metavar="NX,NY,NZ", help="probes per axis")
+    p.add_argument("--grid", type=_counts, default=UNITY_GRID_DEFAULT, metavar="NX,NY,NZ", help="probes per axis")
     p.add_argument("--lo", type=parse_position, default=None, metavar="X,Y,Z",
                    help="grid corner, our world metres (default: the probes sit at the cell centres of the region "
                         "the captures cover)")
@@ -43,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
         probe = Probe(args.artefact, args.fast)
 
         def evaluate(x):
-            hdr, flags = probe.envmap(x, args.t, SH_HEIGHT)
+            hdr, flags = probe.envmap(x, args.t, UNITY_SH_HEIGHT)
             return hdr.cpu().numpy(), {"x": flags["extrapolated_x"], "t": flags["extrapolated_t"]}
 
         doc = unity_probe_grid(evaluate, probe.artefact.bounds, args.grid, args.t, probe.id, args.lo, args.hi)

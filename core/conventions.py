@@ -186,6 +186,16 @@ def valid_depth_mask(depth: torch.Tensor) -> torch.Tensor:
     return torch.isfinite(depth) & (depth > 0)
 
 
+DEFAULT_MEDIAN_DEPTH_M = 2.0  # metres, when a frame has no valid depth at all
+
+
+def median_valid_depth(depth: torch.Tensor) -> float:
+    """Median of the valid pixels of a depth map: the stand-in where a pixel's depth is invalid
+    (DEFAULT_MEDIAN_DEPTH_M when no pixel is valid)."""
+    valid = valid_depth_mask(depth)
+    return float(depth[valid].median()) if bool(valid.any()) else DEFAULT_MEDIAN_DEPTH_M
+
+
 def frame_time(frame_index, fps: float):
     """Seconds from the first frame."""
     return frame_index / float(fps)

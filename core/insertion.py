@@ -14,9 +14,8 @@ from dataclasses import dataclass
 import torch
 
 from core.camera import Camera
-from core.capture.depth import median_valid_depth
 from core.chrome_ball import BallLayer, ball_reflection_rays, composite, place_probe, render_balls
-from core.conventions import equirect_directions, inverse_tonemap, tonemap, valid_depth_mask
+from core.conventions import equirect_directions, inverse_tonemap, median_valid_depth, tonemap, valid_depth_mask
 from core.envmap import irradiance, sample_envmap
 
 ALBEDO = 0.6

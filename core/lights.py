@@ -46,7 +46,7 @@ import torch
 from core.conventions import equirect_directions
 from core.envmap import check_envmap, irradiance, resize_envmap, solid_angles
 from core.exposure import luminance
-from core.sh import project_sh, sh_irradiance, to_arcore_27
+from core.sh import project_sh, sh_irradiance
 
 SEARCH_HEIGHT = 24  # coarse search grid: 1152 candidate directions, 7.5 deg apart
 CORE_FRACTION = 0.05  # the light = cap pixels whose excess is >= this x the cap's peak excess
@@ -93,7 +93,7 @@ class DominantLight:
         return math.degrees(math.acos(max(-1.0, 1.0 - 1.0 / self.sharpness))) if self.sharpness > 0 else 0.0
 
     def to_dict(self) -> dict:
-        """JSON-able summary (ARCore-compatible ambient SH included)."""
+        """JSON-able summary; ambient_sh in our layout (a consumer's: core.export.sh_layouts)."""
         return {
             "found": self.found,
             "reason": self.reason,
@@ -105,7 +105,6 @@ class DominantLight:
             "contrast": float(self.contrast),
             "irradiance_error": float(self.irradiance_error),
             "ambient_sh": self.ambient_sh.tolist(),
-            "ambient_sh_arcore27": to_arcore_27(self.ambient_sh),
         }
 
 

@@ -17,13 +17,12 @@ Condon-Shortley phase), evaluated on the unit direction d = (x, y, z) of core.co
 The formulas use our axes literally, so the basis' polar axis (m = 0) is our z (backward),
 not up. This is exactly the polynomial form ARCore's samples evaluate in ARCore's world
 frame (also +y up, -z forward); ARCore's coefficients differ only by the sign of the odd-m
-entries (k = 1, 3, 5, 7), see `to_arcore_27`, core.export.sh_layouts (every consumer's
-layout) and docs/conventions.md.
+entries (k = 1, 3, 5, 7): core.export.sh_layouts holds every consumer's layout (`to_arcore_27`
+there) and docs/conventions.md explains them.
 """
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 
 import torch
 
@@ -49,7 +48,7 @@ class SHError(ValueError):
     """Malformed SH coefficients or ARCore arrays."""
 
 
-def _check_coeffs(coeffs: torch.Tensor) -> None:
+def check_coeffs(coeffs: torch.Tensor) -> None:
     if coeffs.shape[0] != SH_COUNT:
         raise SHError(f"SH coefficients must have shape [9, ...], got {tuple(coeffs.shape)}")
 
@@ -134,7 +133,7 @@ def project_sh(envmap: torch.Tensor) -> torch.Tensor:
 
 def eval_sh(coeffs: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """Reconstruct sum_k c_k Y_k(d): coeffs [9, C], d [..., 3] -> [..., C]."""
-    _check_coeffs(coeffs)
+    check_coeffs(coeffs)
     return sh_basis(d.to(coeffs.dtype)) @ coeffs
 
 
@@ -143,7 +142,7 @@ def sh_irradiance(coeffs: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
 
     Divide by pi for the outgoing radiance of a white Lambertian surface.
     """
-    _check_coeffs(coeffs)
+    check_coeffs(coeffs)
     a = torch.tensor([COSINE_LOBE_BY_BAND[l] for l in SH_BANDS], dtype=coeffs.dtype, device=coeffs.device)
     return eval_sh(coeffs * a[:, None], normal)
 
@@ -154,46 +153,17 @@ def sh_to_envmap(coeffs: torch.Tensor, height: int) -> torch.Tensor:
     return eval_sh(coeffs, d)
 
 
-def to_arcore_27(coeffs: torch.Tensor) -> list[float]:
-    """Our [9, 3] radiance coefficients -> ARCore's 27 floats.
-
-    ARCore (`LightEstimate.getEnvironmentalHdrAmbientSphericalHarmonics`): coefficient-major,
-    RGB interleaved [c0.r, c0.g, c0.b, c1.r, ...], same band order and world frame as ours,
-    but with the Condon-Shortley phase, so entries with odd m (k = 1, 3, 5, 7) are negated.
-    The signs live in core.export.sh_layouts, the one table of every consumer's layout.
-    """
-    from core.export.sh_layouts import pack  # noqa: PLC0415 — import cycle through core.export.sh_layouts
-
-    _check_coeffs(coeffs)
-    if tuple(coeffs.shape) != (SH_COUNT, 3):
-        raise SHError(f"ARCore layout needs RGB coefficients [9, 3], got {tuple(coeffs.shape)}")
-    return pack(coeffs, "arcore")
-
-
-def from_arcore_27(values: Sequence[float] | torch.Tensor, dtype=torch.float32) -> torch.Tensor:
-    """Inverse of `to_arcore_27`: 27 floats -> our [9, 3] coefficients."""
-    from core.export.sh_layouts import unpack  # noqa: PLC0415 — import cycle through core.export.sh_layouts
-
-    t = torch.as_tensor(values, dtype=torch.float64).reshape(-1)
-    if t.numel() != 27:
-        raise SHError(f"ARCore spherical harmonics need exactly 27 floats, got {t.numel()}")
-    if not torch.isfinite(t).all():
-        raise SHError("ARCore spherical harmonics contain non-finite values")
-    return torch.from_numpy(unpack(t.numpy(), "arcore")).to(dtype)
-
-
 __all__ = [
     "SH_COUNT",
     "SH_BANDS",
     "SH_ORDERS",
     "COSINE_LOBE_BY_BAND",
     "SHError",
+    "check_coeffs",
     "sh_basis",
     "project_sh",
     "pixel_basis_integrals",
     "eval_sh",
     "sh_irradiance",
     "sh_to_envmap",
-    "to_arcore_27",
-    "from_arcore_27",
 ]

@@ -21,6 +21,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from jobs.errors import broker_errors
 from service.exports import ExportCancelled
+from service.query_rules import FIELD_RULES
 
 log = logging.getLogger("lightfield.service")
 
@@ -141,11 +142,9 @@ def error_response(status: int, code: str, message: str, headers: dict[str, str]
 
 def describe_validation_errors(errors) -> str:
     """pydantic/FastAPI error list -> "field.path: message; ..." (names the offending fields).
-    Query values with a rule of their own (service.queries.FIELD_RULES) are described by it and
+    Query values with a rule of their own (service.query_rules.FIELD_RULES) are described by it and
     the value sent ("x: must be three finite numbers ..., got 'nan,0,0'"), not by the regular
     expression or the one bound that happened to fail."""
-    from service.queries import FIELD_RULES  # noqa: PLC0415 — service.queries pulls in numpy: imported when used
-
     parts = []
     for err in errors:
         loc = [str(p) for p in err.get("loc", ()) if p not in ("body", "query", "path", "header")]

@@ -1,4 +1,4 @@
-"""bench.indoor_fill: the elevation profile's fit (arithmetic vs geometric mean over panoramas)."""
+"""bench.calibration.indoor_fill: the elevation profile's fit (arithmetic vs geometric mean over panoramas)."""
 from __future__ import annotations
 
 import math
@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from bench.indoor_fill import gain_from_profiles, mean_log_profile, row_profile
-from bench.real_panoramas import DEFAULT_HDRI_DIR
+from bench.calibration.indoor_fill import gain_from_profiles, mean_log_profile, row_profile
+from bench.panoramas import DEFAULT_HDRI_DIR
 
 
 def test_arithmetic_mean_keeps_the_energy_a_few_bright_panoramas_carry():
@@ -46,8 +46,8 @@ DEV = Path(DEFAULT_HDRI_DIR)
     not (DEV / "MANIFEST.tsv").is_file(), reason="the dev panoramas (../shared/hdri) are not on this machine"
 )
 def test_the_stored_gain_is_the_fit_on_every_indoor_room():
-    from bench.indoor_fill import fit_gain
-    from bench.real_panoramas import indoor_rooms, read_manifest
+    from bench.calibration.indoor_fill import fit_gain
+    from bench.panoramas import indoor_rooms, read_manifest
     from core.priors.indoor_fill import ELEVATION_GAIN
 
     rooms = indoor_rooms(DEV)

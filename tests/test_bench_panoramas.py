@@ -8,7 +8,8 @@ import pytest
 import torch
 from hypothesis import given, settings, strategies as st
 
-from bench.real_panoramas import PITCH_DEG, camera_rotation, estimate_mean_colour, perspective_crop, view_for
+from bench.panoramas import camera_rotation, perspective_crop
+from bench.real_panoramas import PITCH_DEG, estimate_mean_colour, view_for
 from core.conventions import equirect_directions, inverse_tonemap
 from core.envmap import rotate_envmap, sample_envmap
 
@@ -66,7 +67,8 @@ def test_photo_round_trips_through_the_png_the_job_reads(tmp_path, name):
     """The product path reads the photo from a PNG file: the capture the job sees is the
     8-bit photo decoded with what its file declares (sRGB where it declares nothing), with
     the stated FOV."""
-    from bench.real_panoramas import CROP_HFOV_DEG, job_params, ldr_photo, photo_curve, write_photo
+    from bench.panoramas import CROP_HFOV_DEG
+    from bench.real_panoramas import job_params, ldr_photo, photo_curve, write_photo
     from core.capture.load import load_capture
     from core.sim.camera_curves import STILL
 
@@ -76,7 +78,7 @@ def test_photo_round_trips_through_the_png_the_job_reads(tmp_path, name):
     ldr = ldr_photo(crop, curve)
     levels = ldr * 255
     assert torch.allclose(levels, levels.round(), atol=1e-3)
-    cap = load_capture(write_photo(ldr, tmp_path / "p.png", curve), None, job_params(curve), track=False)
+    cap = load_capture(write_photo(ldr, tmp_path / "p.png", curve), None, job_params(curve))
     assert torch.allclose(cap.frames[0], curve.loaded(ldr, STILL), atol=1e-5)
     assert abs(cap.intrinsics.fx - intr.fx) < 1e-6 * intr.fx
     assert job_params().intrinsics.hfov_deg == CROP_HFOV_DEG and job_params().preset == "draft"
@@ -230,8 +232,9 @@ def test_a_saved_cv_report_is_rendered_again_with_its_summaries_remade(tmp_path)
 
 
 def test_cv_refits_the_elevation_profile_without_the_scored_room(tmp_path):
-    from bench.indoor_fill import gain_from_profiles, panorama_profiles
-    from bench.real_panoramas import cv_gains, indoor_rooms
+    from bench.calibration.indoor_fill import gain_from_profiles, panorama_profiles
+    from bench.panoramas import indoor_rooms
+    from bench.real_panoramas import cv_gains
     from capture_fixtures import bright_ceiling_room, write_manifest_rooms
 
     write_manifest_rooms(tmp_path, bright_ceiling_room)  # a different bright ceiling per room
@@ -248,7 +251,7 @@ def test_cv_refits_the_elevation_profile_without_the_scored_room(tmp_path):
 def test_cv_refits_the_clip_rule_without_the_scored_room(monkeypatch, tmp_path):
     """Each room's coefficients are the least-squares fit on the OTHER rooms' blobs; the shipped
     ones are the fit on all of them; a fold with no blob keeps the shipped coefficients."""
-    import bench.clip_rule as cr
+    import bench.calibration.clip_rule as cr
     from core.capture.highlights import RULE_COEFFICIENTS
 
     rng = torch.Generator().manual_seed(0)
@@ -268,11 +271,11 @@ def test_cv_refits_the_clip_rule_without_the_scored_room(monkeypatch, tmp_path):
 
 
 def test_the_spill_colour_settings_are_chosen_without_the_scored_room():
-    """bench.clip_rule.colour_cv: each room's white-hot blobs are recoloured with the setting
+    """bench.calibration.clip_rule.colour_cv: each room's white-hot blobs are recoloured with the setting
     the OTHER rooms' blobs favour. Two rooms' warm lamps spill their own warm light; a third,
     heavier room's white lamps sit on a warm wall. Over all rooms leaving the pixels white wins
     (the heavy room decides); the heavy room's own fold recolours, the others' folds do not."""
-    import bench.clip_rule as cr
+    import bench.calibration.clip_rule as cr
 
     warm, white, background = (1.0, 0.7, 0.5), (1.0, 1.0, 1.0), np.array([0.1, 0.1, 0.1])
 

@@ -12,7 +12,8 @@ def test_each_room_is_scored_with_a_profile_and_choices_made_without_it(tmp_path
     """The elevation profile, clip rule and spill colour of the room's fold (fitted on the other indoor rooms)
     and the fill settings the photo CV chose in that fold; a control room gets the all-rooms
     choices."""
-    from bench.real_panoramas import CLIP_KEY, GAIN_KEY, SPILL_KEY, cv_fits, indoor_rooms
+    from bench.panoramas import indoor_rooms
+    from bench.real_panoramas import CLIP_KEY, GAIN_KEY, SPILL_KEY, cv_fits
     from bench.room_scans import cv_overrides
 
     write_manifest_rooms(tmp_path, bright_ceiling_room)

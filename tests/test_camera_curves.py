@@ -207,10 +207,10 @@ def test_the_simulators_capture_declares_its_curve(tmp_path, name):
     video = read_video(tmp_path / doc["video"]).stated_transfer
     assert (None if video.transfer is None else str(video.transfer)) == curve.declares(VIDEO)
     # the loader decodes the frames with what capture.json states (the filmic tone curve stays in)
-    from core.capture.load import load_capture
+    from core.capture.prepare import load_prepared_capture
     from core.transfer import parse_transfer
 
-    cap = load_capture(tmp_path)
+    cap = load_prepared_capture(tmp_path)
     assert cap.metadata["transfer"]["curve"] == curve.oetf
     stated = parse_transfer(doc["transfer"]).to_convention(torch.from_numpy(frame))
     torch.testing.assert_close(cap.frames[0], stated, atol=1e-5, rtol=0)
@@ -244,13 +244,13 @@ def test_a_simulated_suites_constant_map_decodes_with_its_own_curve(tmp_path):
     linearised with the capture's own curve are the light (to quantisation); the engine's
     reading of a filmic file (declared sRGB) keeps the tone curve in."""
     from bench.suite.simulated import capture_linear
-    from core.capture.load import load_capture
+    from core.capture.prepare import load_prepared_capture
     from core.sim.capture import write_capture
     from core.sim.render import render_frame
 
     scene = _tiny("filmic")
     write_capture(scene, tmp_path, envmap_height=4, video=False)
-    cap = load_capture(tmp_path)
+    cap = load_prepared_capture(tmp_path)
     hdr = render_frame(scene, 0).hdr.clamp(0.0, 1.0)
     lit = hdr > 0.02  # where 8 bits resolve the light well
     linear = capture_linear(tmp_path, cap)

@@ -188,7 +188,7 @@ def test_an_hlg_10_bit_clip_is_read_to_linear_light_with_its_lamp_unclipped(tmp_
     for codec in ("libx265", "libx264"):
         path = write_video(tmp_path / f"hlg-{codec}.mp4", hlg.from_linear(scene).numpy(), fps=10.0,
                            transfer="hlg", bit_depth=10, primaries="bt2020", codec=codec)
-        cap = load_capture(path, params=CaptureParams(tracking="off"), track=False)
+        cap = load_capture(path, params=CaptureParams(tracking="off"))
         meta = cap.metadata["transfer"]
         assert meta["curve"] == "hlg" and meta["bit_depth"] == 10 and meta["primaries"] == "bt2020", meta
         linear = cap.linear()[0]
@@ -196,7 +196,7 @@ def test_an_hlg_10_bit_clip_is_read_to_linear_light_with_its_lamp_unclipped(tmp_
         assert lamp / wall == pytest.approx(9.0, rel=0.05), (codec, lamp, wall)  # the 8-bit twin clips it
         assert float(cap.frames.max()) < 0.99  # nothing reads as clipped
     sdr = write_video(tmp_path / "sdr.mp4", SRGB.from_linear(scene / 0.3).numpy(), fps=10.0, transfer="srgb")
-    cap = load_capture(sdr, params=CaptureParams(tracking="off"), track=False)
+    cap = load_capture(sdr, params=CaptureParams(tracking="off"))
     assert float(cap.frames[0, 20:28, 28:36].min()) > 0.99  # the SDR twin: the lamp clipped
 
 
@@ -208,15 +208,15 @@ def test_png_chunks_decide_the_curve_and_params_override_them(tmp_path):
     for transfer in ("srgb", "gamma:2.2", None):
         code = (SRGB if transfer == "srgb" else parse_transfer(transfer or "gamma:2.4")).from_linear(linear)
         path = write_png(tmp_path / f"{transfer}.png", code.numpy(), transfer=transfer)
-        cap = load_capture(path, track=False)
+        cap = load_capture(path)
         assert cap.metadata["transfer"]["curve"] == (transfer or "gamma:2.4")
         assert torch.allclose(cap.linear()[0], linear, atol=0.01, rtol=0.03), transfer
-    cap = load_capture(tmp_path / "srgb.png", params=CaptureParams(transfer="linear"), track=False)
+    cap = load_capture(tmp_path / "srgb.png", params=CaptureParams(transfer="linear"))
     assert cap.metadata["transfer"] == {"curve": "linear", "source": "params", "bit_depth": 8, "primaries": "bt709"}
     from PIL import Image
 
     Image.fromarray((SRGB.from_linear(linear).numpy() * 255).round().astype("uint8")).save(tmp_path / "plain.png")
-    cap = load_capture(tmp_path / "plain.png", track=False)  # a file that says nothing: sRGB
+    cap = load_capture(tmp_path / "plain.png")  # a file that says nothing: sRGB
     assert cap.metadata["transfer"]["curve"] == "srgb" and "default" in cap.metadata["transfer"]["source"]
     assert torch.allclose(cap.linear()[0], linear, atol=0.01, rtol=0.03)
 

@@ -12,7 +12,8 @@ from core.camera import Intrinsics
 from core.capture.base import CaptureError
 from core.capture.depth import assumed_box_depth
 from core.capture.depth_model import disparity_to_depth, load_depth_estimator
-from core.capture.load import DEPTH_MODEL_ENV, load_capture
+from core.capture.load import DEPTH_MODEL_ENV
+from core.capture.prepare import load_prepared_capture
 
 H, W = 24, 36
 
@@ -134,7 +135,7 @@ def image_path(tmp_path):
 def test_load_capture_uses_the_model_when_the_env_var_is_set(tiny_dir, image_path, monkeypatch):
     monkeypatch.setenv(DEPTH_MODEL_ENV, str(tiny_dir))
     with pytest.warns(UserWarning, match="estimated"):
-        cap = load_capture(image_path)
+        cap = load_prepared_capture(image_path)
     assert cap.depth_source.startswith("estimated:tiny-dpt") and "scale arbitrary" in cap.depth_source
     assert any(DEPTH_MODEL_ENV in w for w in cap.warnings)
     assert torch.isfinite(cap.depth).all() and (cap.depth > 0).all()
@@ -146,14 +147,14 @@ def test_a_given_depth_file_wins_over_the_model(tiny_dir, image_path, monkeypatc
 
     np.save(tmp_path / "d.npy", np.full((H, W), 2.0, np.float32))
     monkeypatch.setenv(DEPTH_MODEL_ENV, str(tmp_path / "does-not-exist"))  # never read
-    cap = load_capture(image_path, tmp_path / "d.npy")
+    cap = load_prepared_capture(image_path, tmp_path / "d.npy")
     assert cap.depth_source == "file:d.npy" and torch.all(cap.depth == 2.0)
 
 
 def test_a_bad_env_var_fails_the_load_with_a_depth_error(image_path, monkeypatch, tmp_path):
     monkeypatch.setenv(DEPTH_MODEL_ENV, str(tmp_path / "nope"))
     with pytest.raises(CaptureError) as info:
-        load_capture(image_path)
+        load_prepared_capture(image_path)
     assert info.value.field == "depth" and DEPTH_MODEL_ENV in str(info.value)
 
 

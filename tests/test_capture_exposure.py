@@ -11,8 +11,9 @@ import torch
 
 from core.capture.autoexposure import with_estimated_exposure
 from core.capture.base import CaptureError
-from core.capture.load import capture_from_arrays, load_capture
+from core.capture.load import capture_from_arrays
 from core.capture.params import CaptureParams
+from core.capture.prepare import load_prepared_capture
 from core.capture.temporal import AUTO_EXPOSURE_HINT, decide_temporal
 from core.conventions import tonemap
 from core.engine.checkpoints import fingerprint
@@ -147,10 +148,10 @@ def test_a_simulated_auto_exposure_pan_states_its_exposures(tmp_path):
     (tmp_path / "plain" / "capture.json").write_text(json.dumps(doc))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        stated = load_capture(tmp_path / "stated")
-        plain = load_capture(tmp_path / "plain", params=CaptureParams(frame_ev="locked"))
-        given = load_capture(tmp_path / "plain", params=CaptureParams(frame_ev=doc["sensor_frame_ev"]))
-        detected = load_capture(tmp_path / "plain")  # frame_ev unset: a moving camera is taken to auto-expose
+        stated = load_prepared_capture(tmp_path / "stated")
+        plain = load_prepared_capture(tmp_path / "plain", params=CaptureParams(frame_ev="locked"))
+        given = load_prepared_capture(tmp_path / "plain", params=CaptureParams(frame_ev=doc["sensor_frame_ev"]))
+        detected = load_prepared_capture(tmp_path / "plain")  # frame_ev unset: a moving camera is taken to auto-expose
     assert stated.metadata["exposure_source"] == "capture.json" and given.metadata["exposure_source"] == "params"
     assert np.allclose(stated.frame_ev.numpy(), given.frame_ev.numpy())
     assert not decide_temporal(stated).uses_time  # a pan under static light
@@ -160,7 +161,7 @@ def test_a_simulated_auto_exposure_pan_states_its_exposures(tmp_path):
     assert not decide_temporal(detected).uses_time
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        estimated = load_capture(tmp_path / "plain", params=CaptureParams(frame_ev="estimate"))
+        estimated = load_prepared_capture(tmp_path / "plain", params=CaptureParams(frame_ev="estimate"))
     truth = np.array(doc["sensor_frame_ev"]) - doc["sensor_frame_ev"][0]
     assert np.abs(estimated.frame_ev.numpy() - truth).max() < 0.05  # chained through the pan's poses
     assert estimated.metadata["exposure_source"].startswith("estimated")
@@ -286,7 +287,7 @@ def test_a_photo_set_in_auto_mode_takes_each_photos_exposure_from_its_exif(tmp_p
         _photo_with_exposure(root / f"images/frame_{i:05d}.png", tonemap(hdr[i], ev).numpy(), sec, iso, 1.8)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        cap = load_capture(root)
+        cap = load_prepared_capture(root)
     assert cap.frame_ev.tolist() == pytest.approx([0.0, -1.0, 1.0], abs=1e-3)
     assert "EXIF" in cap.metadata["exposure_source"]
     lin = cap.linear()
@@ -296,7 +297,7 @@ def test_a_photo_set_in_auto_mode_takes_each_photos_exposure_from_its_exif(tmp_p
         assert float((torch.log(lin[i][ok]) - torch.log(lin[0][ok])).abs().median()) < 0.03
     with warnings.catch_warnings():  # "locked" still overrides what the files say
         warnings.simplefilter("ignore")
-        assert load_capture(root, params=CaptureParams(frame_ev="locked")).stated_ev is None
+        assert load_prepared_capture(root, params=CaptureParams(frame_ev="locked")).stated_ev is None
 
 
 def test_exif_exposures_need_every_photo_to_state_them():

@@ -161,8 +161,8 @@ def test_tracking_off_keeps_the_static_camera_and_says_so(tmp_path):
 
 
 def test_given_poses_without_depth_get_the_assumed_room_fixed_in_the_world(tmp_path):
-    from core.capture.load import load_capture
     from core.capture.params import CaptureParams
+    from core.capture.prepare import load_prepared_capture
     from core.tracking.room import assumed_room
 
     poses = [pose_from_yaw_pitch((0.2 * i, 0, 0), 30 * i, 0) for i in range(4)]
@@ -171,7 +171,7 @@ def test_given_poses_without_depth_get_the_assumed_room_fixed_in_the_world(tmp_p
     params = CaptureParams(poses=[p.reshape(-1).tolist() for p in poses])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        cap = load_capture(video, params=params)
+        cap = load_prepared_capture(video, params=params)
     assert cap.metadata["poses_source"] == "params" and "tracking" not in cap.metadata
     assert "world-fixed" in cap.depth_source and cap.metadata["room"]["source"] == "assumed"
     box = assumed_room(first_camera=poses[0])

@@ -9,8 +9,9 @@ import torch
 from core.camera import Intrinsics
 from core.capture.base import CaptureError
 from core.capture.depth import ASSUMED_DEPTH_SOURCE, assumed_box_depth, fill_depth_holes
-from core.capture.load import capture_from_arrays, load_capture
+from core.capture.load import capture_from_arrays
 from core.capture.params import CaptureParams
+from core.capture.prepare import load_prepared_capture
 from core.conventions import DEFAULT_HFOV_DEG
 from core.io import write_png, write_video
 from core.transfer import SRGB
@@ -27,7 +28,7 @@ def _image(tmp_path, h=24, w=32, name="img.png"):
 def test_image_gets_documented_defaults(tmp_path):
     path, img = _image(tmp_path)
     with pytest.warns(UserWarning):
-        cap = load_capture(path)
+        cap = load_prepared_capture(path)
     assert cap.frames.shape == (1, 24, 32, 3)
     assert np.allclose(cap.frames[0].numpy(), img, atol=1 / 255)
     assert cap.intrinsics.hfov_deg == pytest.approx(DEFAULT_HFOV_DEG)
@@ -58,7 +59,7 @@ def test_given_intrinsics_fps_depth_npz_and_poses(tmp_path):
     params = CaptureParams(
         intrinsics={"fx": 30, "fy": 31, "cx": 16, "cy": 12}, poses=[pose.reshape(-1).tolist()], fps=5
     )
-    cap = load_capture(path, tmp_path / "d.npz", params)
+    cap = load_prepared_capture(path, tmp_path / "d.npz", params)
     assert (cap.intrinsics.fx, cap.intrinsics.fy) == (30, 31)
     assert torch.allclose(cap.depth, torch.full((1, 24, 32), 2.0))
     assert cap.camera(0).position.tolist() == [1, 2, 3]
@@ -69,7 +70,7 @@ def test_depth_size_mismatch_names_both_sizes(tmp_path):
     path, _ = _image(tmp_path)
     np.savez(tmp_path / "d.npz", depth=np.ones((20, 30), np.float32))
     with pytest.raises(CaptureError) as exc:
-        load_capture(path, tmp_path / "d.npz")
+        load_prepared_capture(path, tmp_path / "d.npz")
     assert exc.value.field == "depth" and "30x20" in str(exc.value) and "32x24" in str(exc.value)
 
 
@@ -78,7 +79,7 @@ def test_depth_without_valid_pixels(tmp_path, bad):
     path, _ = _image(tmp_path)
     np.savez(tmp_path / "d.npz", depth=bad.astype(np.float32))
     with pytest.raises(CaptureError) as exc:
-        load_capture(path, tmp_path / "d.npz")
+        load_prepared_capture(path, tmp_path / "d.npz")
     assert exc.value.field == "depth"
 
 
@@ -116,7 +117,7 @@ def test_params_pose_count_mismatch_on_image(tmp_path):
     path, _ = _image(tmp_path)
     params = CaptureParams(poses=[np.eye(4).reshape(-1).tolist()] * 2)
     with pytest.raises(CaptureError) as exc:
-        load_capture(path, params=params)
+        load_prepared_capture(path, params=params)
     assert exc.value.field == "poses"
 
 
@@ -132,17 +133,17 @@ def test_unknown_input_and_missing_file(tmp_path):
     bad = tmp_path / "notes.txt"
     bad.write_text("hello")
     with pytest.raises(CaptureError) as exc:
-        load_capture(bad)
+        load_prepared_capture(bad)
     assert exc.value.field == "input"
     with pytest.raises(CaptureError):
-        load_capture(tmp_path / "missing.png")
+        load_prepared_capture(tmp_path / "missing.png")
 
 
 def test_video_times_and_max_frames(tmp_path):
     frames = np.stack([np.full((16, 16, 3), i / 10, np.float32) for i in range(6)])
     path = write_video(tmp_path / "v.mp4", frames, fps=5)
     with pytest.warns(UserWarning, match="assum"):
-        cap = load_capture(path, params=CaptureParams(max_frames=3))
+        cap = load_prepared_capture(path, params=CaptureParams(max_frames=3))
     assert cap.num_frames == 3 and cap.fps == pytest.approx(5)
     # evenly subsampled frames keep their source times
     assert cap.times[0] == 0.0 and cap.times[-1] > cap.times[1] > 0
@@ -163,7 +164,7 @@ def test_capture_directory(tmp_path):
              "intrinsics": {"fx": 20, "fy": 20, "cx": 8, "cy": 6, "width": W, "height": H},
              "poses": poses, "frames": names, "depth": "depth.npz", "future_key": 1}
     (tmp_path / "capture.json").write_text(json.dumps(index))
-    cap = load_capture(tmp_path)
+    cap = load_prepared_capture(tmp_path)
     assert cap.num_frames == T and cap.fps == 4 and cap.times.tolist() == [0.0, 0.25]
     assert cap.intrinsics.fx == 20 and not cap.static_camera
     assert cap.camera(1).position[0] == pytest.approx(0.5)
@@ -187,11 +188,11 @@ def test_capture_directory_with_bad_intrinsics(tmp_path):
              "intrinsics": {"fx": 0.0, "fy": 10, "cx": 4, "cy": 4, "width": 8, "height": 8}}
     (tmp_path / "capture.json").write_text(json.dumps(index))
     with pytest.raises(CaptureError) as exc:
-        load_capture(tmp_path)
+        load_prepared_capture(tmp_path)
     assert exc.value.field == "intrinsics" and "fx" in str(exc.value)
     (tmp_path / "capture.json").write_text(json.dumps({"format": "something-else"}))
     with pytest.raises(CaptureError, match="not a lightfield capture"):
-        load_capture(tmp_path)
+        load_prepared_capture(tmp_path)
 
 
 # ---------------------------------------------------------------------------------------
@@ -207,10 +208,10 @@ def test_image_over_the_pixel_limit_is_refused(tmp_path):
 
     path, _ = _image(tmp_path, h=24, w=32)  # 768 pixels
     with pytest.raises(MediaError) as exc:
-        load_capture(path, limits=MediaLimits(max_pixels=700))
+        load_prepared_capture(path, limits=MediaLimits(max_pixels=700))
     assert exc.value.code == "too_many_pixels"
     with pytest.warns(UserWarning):
-        assert load_capture(path, limits=MediaLimits(max_pixels=768)).frames.shape == (1, 24, 32, 3)
+        assert load_prepared_capture(path, limits=MediaLimits(max_pixels=768)).frames.shape == (1, 24, 32, 3)
 
 
 def test_depth_file_is_read_under_the_limits(tmp_path):
@@ -219,11 +220,11 @@ def test_depth_file_is_read_under_the_limits(tmp_path):
     path, _ = _image(tmp_path, h=16, w=16)
     big = _depth_npz(tmp_path / "big.npz", 24, 32)  # a bomb-like depth: more pixels than allowed
     with pytest.raises(MediaError) as exc:  # refused by the pixel limit, before any size comparison
-        load_capture(path, big, limits=MediaLimits(max_pixels=700))
+        load_prepared_capture(path, big, limits=MediaLimits(max_pixels=700))
     assert exc.value.code == "too_many_pixels"
     small = _depth_npz(tmp_path / "small.npz", 16, 16)
     with pytest.raises(MediaError) as exc:
-        load_capture(path, small, limits=MediaLimits(max_bytes=small.stat().st_size - 1))
+        load_prepared_capture(path, small, limits=MediaLimits(max_bytes=small.stat().st_size - 1))
     assert exc.value.code == "too_large"
 
 
@@ -237,7 +238,7 @@ def test_capture_directory_depth_obeys_the_limits(tmp_path):
     frame_bytes = (tmp_path / "f.png").stat().st_size
     assert depth.stat().st_size > frame_bytes  # so max_bytes between the two refuses only the depth
     with pytest.raises(MediaError) as exc:
-        load_capture(tmp_path, limits=MediaLimits(max_bytes=frame_bytes))
+        load_prepared_capture(tmp_path, limits=MediaLimits(max_bytes=frame_bytes))
     assert exc.value.code == "too_large" and "depth" in str(exc.value)
 
 
@@ -247,7 +248,7 @@ def test_limits_default_to_the_environment(tmp_path, monkeypatch):
     path, _ = _image(tmp_path, h=24, w=32)
     monkeypatch.setenv("LIGHTFIELD_MAX_PIXELS", "700")
     with pytest.raises(MediaError) as exc:
-        load_capture(path)
+        load_prepared_capture(path)
     assert exc.value.code == "too_many_pixels" and "700" in str(exc.value)
 
 
@@ -262,7 +263,7 @@ def _gif(path, values, duration_ms=100, hw=(24, 32)):
 def test_animated_gif_is_read_as_a_video(tmp_path):
     path = _gif(tmp_path / "clip.gif", (30, 120, 220), duration_ms=100)
     with pytest.warns(UserWarning):
-        cap = load_capture(path)
+        cap = load_prepared_capture(path)
     assert cap.num_frames == 3 and cap.fps == pytest.approx(10.0)
     assert cap.times.tolist() == pytest.approx([0.0, 0.1, 0.2])
     means = cap.frames.mean(dim=(1, 2, 3))  # a GIF states no curve: its codes are read as sRGB
@@ -275,8 +276,8 @@ def test_gif_obeys_frame_and_pixel_limits(tmp_path):
 
     path = _gif(tmp_path / "clip.gif", (10, 60, 110, 160, 210, 250))
     with pytest.warns(UserWarning):
-        cap = load_capture(path, params=CaptureParams(max_frames=3))
+        cap = load_prepared_capture(path, params=CaptureParams(max_frames=3))
     assert cap.num_frames == 3 and cap.times[-1] > cap.times[0]  # evenly subsampled, source times kept
     with pytest.raises(MediaError) as exc:
-        load_capture(path, limits=MediaLimits(max_pixels=700))
+        load_prepared_capture(path, limits=MediaLimits(max_pixels=700))
     assert exc.value.code == "too_many_pixels"

@@ -9,8 +9,8 @@ import pytest
 import core.io.video as video_module
 from core.camera import CameraError
 from core.capture.base import CaptureError
-from core.capture.load import load_capture
 from core.capture.params import CaptureParams
+from core.capture.prepare import load_prepared_capture
 from core.capture.probe import probe_capture
 from core.io import MediaError, MediaLimits, probe_depth, probe_image, probe_video, write_png, write_video
 
@@ -110,7 +110,7 @@ def test_probe_capture_sees_what_load_capture_loads(media, case):
     header = probe_capture(media[kind], depth_path, CaptureParams(**params))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # assumed depth / intrinsics
-        cap = load_capture(media[kind], depth_path, CaptureParams(**params))
+        cap = load_prepared_capture(media[kind], depth_path, CaptureParams(**params))
     assert (header.frames, header.width, header.height) == (cap.num_frames, cap.width, cap.height)
 
 
@@ -124,7 +124,7 @@ def test_probe_capture_refuses_what_load_capture_refuses(media, case):
         assert field == "params"  # refused by the schema before any loading
         return
     errors = []
-    for check in (probe_capture, load_capture):
+    for check in (probe_capture, load_prepared_capture):
         with pytest.raises((CaptureError, CameraError)) as info, warnings.catch_warnings():
             warnings.simplefilter("ignore")
             check(media[kind], depth_path, params)

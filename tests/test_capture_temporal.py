@@ -204,7 +204,7 @@ def test_simulator_suites_hard_is_static_temporal_is_not(tmp_path):
     read as temporal before linear-space resampling; the `temporal` suite switches a panel."""
     import warnings
 
-    from core.capture.load import load_capture
+    from core.capture.prepare import load_prepared_capture
     from core.sim.capture import write_capture
     from core.sim.suites import hard, temporal
 
@@ -215,7 +215,7 @@ def test_simulator_suites_hard_is_static_temporal_is_not(tmp_path):
         write_capture(small, tmp_path / name, envmap_height=8, video=False)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            decisions[name] = detect_temporal(load_capture(tmp_path / name))
+            decisions[name] = detect_temporal(load_prepared_capture(tmp_path / name))
     assert not decisions["hard"].uses_time, decisions["hard"].reason
     assert decisions["hard"].statistic < 0.75 * decisions["hard"].threshold
     assert decisions["temporal"].uses_time, decisions["temporal"].reason

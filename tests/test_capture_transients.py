@@ -7,10 +7,12 @@ import warnings
 import pytest
 import torch
 
-from core.capture.load import capture_from_arrays, load_capture
+from core.capture.config import capture_config
+from core.capture.load import capture_from_arrays
 from core.capture.params import CaptureParams
+from core.capture.prepare import load_prepared_capture
 from core.capture.temporal import detect_temporal
-from core.capture.transients import MIN_FRAMES, transient_mask, without_transients
+from core.capture.transients import transient_mask, without_transients
 from core.conventions import inverse_tonemap, tonemap
 
 T, H, W = 16, 72, 96
@@ -125,7 +127,7 @@ def test_a_person_during_a_light_switch_is_found_and_the_switch_kept():
 def test_what_is_not_looked_at():
     walked, _ = walk_through(lit(lambda t: 1.0), 0.003)
     frames = frames_of(walked)
-    few = static_capture(frames[:MIN_FRAMES - 1])
+    few = static_capture(frames[:capture_config().transients.min_frames - 1])
     assert without_transients(few).frames.equal(few.frames)
     assert "fewer than" in without_transients(few).metadata["transients"]["reason"]
     capture = static_capture(frames)
@@ -143,13 +145,13 @@ def test_a_video_upload_is_cleaned_on_load(tmp_path):
     video = write_video(tmp_path / "walk.mp4", frames_of(walked).numpy(), 4.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        capture = load_capture(video, params=CaptureParams(fps=4.0))
+        capture = load_prepared_capture(video, params=CaptureParams(fps=4.0))
     assert capture.static_camera
     assert capture.metadata["transients"]["frames_with_transients"] >= 9
     assert not detect_temporal(capture).uses_time
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        kept = load_capture(video, params=CaptureParams(fps=4.0, transients="keep"))
+        kept = load_prepared_capture(video, params=CaptureParams(fps=4.0, transients="keep"))
     assert detect_temporal(kept).uses_time
 
 
@@ -178,12 +180,12 @@ def test_a_job_on_a_video_with_a_passer_by_reads_static_light_and_previews_the_u
     assert float((preview[where] - frames_of(walked)[where]).abs().mean()) < 0.05  # the figure is still there
 
 
-def test_a_patterned_passer_by_in_front_of_a_plain_wall_leaves_the_camera_still(tmp_path, monkeypatch):
+def test_a_patterned_passer_by_in_front_of_a_plain_wall_leaves_the_camera_still(tmp_path):
     """Camera motion detection: the passer-by's features outnumber the wall's, so the median
     displacement of matched features is theirs; the wall's features that stayed put say the
-    camera did not move (core.tracking.motion.STILL_MIN)."""
-    import core.tracking.motion as motion
+    camera did not move (tracking.motion.still_min)."""
     from core.io.video import write_video
+    from core.tracking.config import TrackingConfig, using_tracking
 
     g = torch.Generator().manual_seed(5)
     yy, xx = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
@@ -205,11 +207,11 @@ def test_a_patterned_passer_by_in_front_of_a_plain_wall_leaves_the_camera_still(
     def loaded():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            return load_capture(video, params=CaptureParams(fps=4.0))
+            return load_prepared_capture(video, params=CaptureParams(fps=4.0))
 
     assert loaded().static_camera
-    monkeypatch.setattr(motion, "STILL_MIN", 10**9)  # the median of every match, as before
-    assert not loaded().static_camera
+    with using_tracking(TrackingConfig.model_validate({"motion": {"still_min": 10**9}})):  # every match's median
+        assert not loaded().static_camera
 
 
 def _pan(n: int = T):
@@ -270,7 +272,7 @@ def test_a_moving_camera_without_passers_by_is_left_alone(change):
 def test_a_still_camera_taken_for_moving_is_not_given_a_turn_from_its_pixels(monkeypatch):
     """Where the motion test is fooled (someone walking through a still view: the features say
     'moving'), neither the features nor the pixels must invent a turn: the photometric track of
-    such a clip does not agree with itself (core.tracking.track.DIRECT_MIN_MATCHED_SHARE), so the
+    such a clip does not agree with itself (tracking.track.direct_min_matched_share), so the
     camera stays static instead of a garbage rotation that drops frames."""
     from core.camera import Intrinsics
     from core.tracking import track as tracking

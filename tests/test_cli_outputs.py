@@ -69,7 +69,7 @@ def test_help_shows_defaults():
 
 
 def test_sh_batch_in_both_layouts(artefact_dir, tmp_path, capsys):
-    from core.sh import to_arcore_27
+    from core.export.sh_layouts import to_arcore_27
 
     queries = tmp_path / "q.json"
     queries.write_text(json.dumps([{"x": [0.1, 0.2, -1.0], "t": 0.5}, {"x": [0.0, 0.0, -2.0], "t": 1.5}]))

@@ -370,7 +370,7 @@ def test_run_job_records_a_lamp_in_the_photo_as_an_emitter(tmp_path):
     art = LightFieldArtefact.load(out)
     env, _ = art.envmap(torch.zeros(3), None, 32)
     peak = equirect_directions(32).reshape(-1, 3)[luminance(env).flatten().argmax()]
-    cap = load_capture(tmp_path / "lamp.png", None, JobParams(seed=0), track=False)
+    cap = load_capture(tmp_path / "lamp.png", None, JobParams(seed=0))
     spot = cap.camera(0).pixel_rays()[1][10:12, 30:32].reshape(-1, 3).mean(0)
     assert float(peak @ (spot / spot.norm())) > 0.95
 

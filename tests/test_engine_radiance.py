@@ -8,7 +8,8 @@ import json
 import pytest
 import torch
 
-from core.capture.load import capture_from_arrays, load_capture
+from core.capture.load import capture_from_arrays
+from core.capture.prepare import load_prepared_capture
 from core.conventions import inverse_tonemap
 from core.engine.distill import distill, view_rays, with_view_detail
 from core.engine.extrapolation import log_total_variation, observed_directions, ring_ratio
@@ -34,7 +35,7 @@ def simulated_scene(spec, resolution, tmp_dir):
     """(spec at `resolution`, its capture written to tmp_dir and loaded)."""
     spec = spec.model_copy(update={"resolution": resolution})
     write_capture(spec, tmp_dir, envmap_height=16, video=False)
-    return spec, load_capture(tmp_dir)
+    return spec, load_prepared_capture(tmp_dir)
 
 
 @pytest.fixture(scope="module")

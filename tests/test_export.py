@@ -263,8 +263,8 @@ def test_arkit_slices_follow_the_metal_cube_table():
 
 
 def test_threejs_sh_is_ours_unsigned_and_arcore_differs_by_odd_m():
+    from core.export.sh_layouts import to_arcore_27
     from core.export.threejs import threejs_sh
-    from core.sh import to_arcore_27
 
     sh = project_sh(lamp_map(16))
     three = np.array(threejs_sh(sh)).reshape(9, 3)

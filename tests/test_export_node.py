@@ -9,7 +9,8 @@ import numpy as np
 import torch
 
 from core.envmap import irradiance
-from core.sh import eval_sh, project_sh, sh_irradiance, to_arcore_27
+from core.export.sh_layouts import to_arcore_27
+from core.sh import eval_sh, project_sh, sh_irradiance
 from node_consumers import run_consumer
 from test_export import lamp_map, random_dirs
 

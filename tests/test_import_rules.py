@@ -1,7 +1,8 @@
 """The dependency rules of docs/architecture.md, read from the source with ast (every import,
 including those inside functions): HTTP and Celery adapters never import each other, the
-library never imports the service side, the layers of core point one way, and module-level
-imports form no cycle."""
+library never imports the service side, the layers of core point one way (the modules at the
+top of core/ import none of its packages), and no import that runs, at module level or inside
+a function, closes a cycle between files."""
 from __future__ import annotations
 
 import ast
@@ -18,14 +19,21 @@ FORBIDDEN = {
     "worker": ("service",),
     "jobs": ("service", "worker", "cli", "bench"),
     "core": ("service", "worker", "jobs", "cli", "bench"),
-    "core.priors": ("core.engine",),
-    "core.fields": ("core.engine", "core.priors", "core.capture"),
+    "core.engine": ("core.export", "core.sim", "core.training"),
+    "core.priors": ("core.engine", "core.export", "core.sim"),
+    "core.fields": ("core.engine", "core.priors", "core.capture", "core.tracking", "core.sim", "core.export"),
     # inside core.fields: components <- kinds <- stored (docs/architecture.md)
     "core.fields.components": ("core.fields.kinds", "core.fields.stored"),
     "core.fields.kinds": ("core.fields.stored",),
-    "core.capture": ("core.engine", "core.priors", "core.fields"),
-    "core.io": ("core.engine", "core.priors", "core.fields", "core.capture"),
+    "core.capture": ("core.engine", "core.priors", "core.fields", "core.export", "core.sim"),
+    "core.tracking": ("core.engine", "core.priors", "core.fields", "core.capture", "core.export", "core.sim"),
+    "core.io": ("core.engine", "core.priors", "core.fields", "core.capture", "core.tracking", "core.export",
+                "core.sim"),
+    "core.export": ("core.engine", "core.priors", "core.capture", "core.tracking", "core.sim", "core.training"),
 }
+CORE = REPO / "core"
+# core/*.py (conventions, camera, envmap, sh, lights, ...): the bottom layer, under every package of core
+CORE_PACKAGES = tuple(sorted(f"core.{p.name}" for p in CORE.iterdir() if (p / "__init__.py").is_file()))
 
 
 def module_name(path: Path) -> str:
@@ -37,9 +45,11 @@ def _is_type_checking(node: ast.AST) -> bool:
     return isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
 
 
-def imports(path: Path, module_level_only: bool = False, type_checking: bool = False) -> set[str]:
+def imports(path: Path, module_level_only: bool = False, type_checking: bool = False,
+            runtime_only: bool = False) -> set[str]:
     """Absolute names of the modules `path` imports (relative imports resolved); module_level_only:
-    not those inside functions nor, unless `type_checking`, those under `if TYPE_CHECKING:`."""
+    not those inside functions nor, unless `type_checking`, those under `if TYPE_CHECKING:`;
+    runtime_only: every import that runs (inside functions too), none under `if TYPE_CHECKING:`."""
     tree = ast.parse(path.read_text(), filename=str(path))
     found: set[str] = set()
 
@@ -47,6 +57,8 @@ def imports(path: Path, module_level_only: bool = False, type_checking: bool = F
         for child in ast.iter_child_nodes(node):
             if module_level_only and (isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef))
                                       or (_is_type_checking(child) and not type_checking)):
+                continue
+            if runtime_only and _is_type_checking(child):
                 continue
             if isinstance(child, ast.Import):
                 found.update(alias.name for alias in child.names)
@@ -81,6 +93,23 @@ def test_layers_import_only_downwards(importer):
         for name in imports(path):
             bad += [f"{module_name(path)} imports {name}" for banned in FORBIDDEN[importer] if _within(name, banned)]
     assert not bad, "\n".join(bad)
+
+
+def test_the_modules_at_the_top_of_core_import_none_of_its_packages():
+    """core/sh.py, core/lights.py, core/insertion.py ...: what every package builds on (an export
+    layout or a capture helper they need lives in the package, or moves down to them)."""
+    bad = []
+    for path in sorted(CORE.glob("*.py")):
+        bad += [f"{module_name(path)} imports {name}" for name in imports(path)
+                if any(_within(name, package) for package in CORE_PACKAGES)]
+    assert CORE_PACKAGES and not bad, "\n".join(bad)
+
+
+def test_no_import_that_runs_closes_a_cycle_between_files():
+    """Imports inside functions count: one there only hides a cycle from import time."""
+    modules = {module_name(p): p for p in sources()}
+    graph = {m: {n for n in imports(p, runtime_only=True) if n in modules and n != m} for m, p in modules.items()}
+    assert not cycles(graph), cycles(graph)
 
 
 def test_module_level_imports_have_no_cycle():
@@ -134,3 +163,10 @@ def test_the_rules_see_imports_inside_functions(tmp_path):
     source = tmp_path / "x.py"
     source.write_text("def f():\n    from worker.runner import JobRunner\n")
     assert "worker.runner" in imports(source) and "worker.runner" not in imports(source, module_level_only=True)
+    assert "worker.runner" in imports(source, runtime_only=True)
+
+
+def test_runtime_imports_leave_out_type_checking_only_ones(tmp_path):
+    source = tmp_path / "x.py"
+    source.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import jobs.store\n")
+    assert "jobs.store" in imports(source) and "jobs.store" not in imports(source, runtime_only=True)

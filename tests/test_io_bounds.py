@@ -157,7 +157,7 @@ def test_capture_values_outside_their_range_are_refused_naming_key_and_range(tmp
     from core.capture.load import load_capture
 
     with pytest.raises(ValueError) as late:  # the worker: the same code
-        load_capture(path, track=False)
+        load_capture(path)
     assert getattr(late.value, "code", None) == code
 
 
@@ -242,10 +242,10 @@ def test_variable_frame_rate_uses_presentation_timestamps_and_warns(tmp_path):
     from core.capture.load import load_capture
     from core.capture.params import CaptureParams
 
-    capture = load_capture(tmp_path / "vfr.mkv", track=False)
+    capture = load_capture(tmp_path / "vfr.mkv")
     np.testing.assert_allclose(capture.times.numpy(), stamps, atol=1e-3)
     assert any("variable frame rate" in w for w in capture.warnings)
-    fixed = load_capture(tmp_path / "vfr.mkv", params=CaptureParams(fps=2.0), track=False)  # an explicit rate wins
+    fixed = load_capture(tmp_path / "vfr.mkv", params=CaptureParams(fps=2.0))  # an explicit rate wins
     np.testing.assert_allclose(fixed.times.numpy(), np.arange(10) / 2.0)
 
 

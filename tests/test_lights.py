@@ -168,10 +168,13 @@ def test_huge_dynamic_range():
     assert float(light.intensity_rgb[0]) == pytest.approx(1e6 * sr, rel=1e-3)
 
 
-def test_to_dict_is_json_with_arcore_layout():
+def test_to_dict_is_json_and_its_sh_packs_in_the_arcore_layout():
+    from core.export.sh_layouts import to_arcore_27
+
     light = extract_dominant_light(map_with_square(range(20, 23), range(10, 13)))
     payload = json.loads(json.dumps(light.to_dict()))
-    assert len(payload["ambient_sh_arcore27"]) == 27 and len(payload["direction"]) == 3
+    assert len(payload["ambient_sh"]) == 9 and len(payload["direction"]) == 3
+    assert len(to_arcore_27(torch.tensor(payload["ambient_sh"]))) == 27
 
 
 def test_config_validation():

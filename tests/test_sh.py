@@ -6,17 +6,16 @@ import torch
 from hypothesis import given, settings, strategies as st
 
 from core.envmap import envmap_from_function, irradiance
+from core.export.sh_layouts import from_arcore_27, to_arcore_27
 from core.sh import (
     COSINE_LOBE_BY_BAND,
     SH_BANDS,
     SHError,
     eval_sh,
-    from_arcore_27,
     project_sh,
     sh_basis,
     sh_irradiance,
     sh_to_envmap,
-    to_arcore_27,
 )
 
 unit_vectors = st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)).filter(

@@ -114,10 +114,10 @@ def test_write_capture_parses_with_consistent_shapes(tmp_path):
 
 
 def test_engine_loads_simulated_capture_unchanged(tmp_path):
-    capture_mod = pytest.importorskip("core.capture.load")
+    capture_mod = pytest.importorskip("core.capture.prepare")
     s = small("moving-camera", frames=3)
     write_capture(s, tmp_path, envmap_height=4)
-    cap = capture_mod.load_capture(tmp_path)
+    cap = capture_mod.load_prepared_capture(tmp_path)
     assert tuple(cap.frames.shape) == (3, SMALL[1], SMALL[0], 3)
     doc = json.loads((tmp_path / "capture.json").read_text())
     torch.testing.assert_close(cap.poses.reshape(3, 16), torch.tensor(doc["poses"], dtype=torch.float64))

@@ -102,18 +102,18 @@ def _pan_with_a_passer_by(panorama, yaw: float):
 
 
 @pytest.mark.parametrize("yaw", [90.0, 180.0])
-def test_a_pan_with_someone_walking_through_is_tracked_by_the_room(panorama, yaw, monkeypatch):
+def test_a_pan_with_someone_walking_through_is_tracked_by_the_room(panorama, yaw):
     """Each pair offers the room's rotation and the passer-by's; the frames take the one their
     pairs agree on. With one candidate per pair (the most matches), the passer-by's pulled the
     pan several degrees off."""
-    import core.tracking.rotation as rotation
+    from core.tracking.config import TrackingConfig, using_tracking
 
     ldr, intr, poses = _pan_with_a_passer_by(panorama, yaw)
     r = track_camera(ldr, intr)
     assert r.method == "rotation" and len(r.kept) == 16, r.summary()
     assert _errors(r, poses)[0] < 1.0
-    monkeypatch.setattr(rotation, "PAIR_HYPOTHESES", 1)
-    before = track_camera(ldr, intr)
+    with using_tracking(TrackingConfig.model_validate({"rotation": {"pair_hypotheses": 1}})):
+        before = track_camera(ldr, intr)
     assert before.method != "rotation" or _errors(before, poses)[0] > 2.0
 
 
@@ -144,7 +144,7 @@ def test_walk_with_depth_recovers_translation_within_5_percent(walk, walk_tracke
     _, _, _, poses = walk
     r = walk_tracked
     assert r.method == "sfm:pycolmap" and r.scale.source == "depth" and not r.dropped
-    # no pan: the rolling shutter is not fitted (ROLLING_MAX_RATIO), so it cannot bend parallax into one
+    # no pan: the rolling shutter is not fitted (rolling_max_ratio), so it cannot bend parallax into one
     assert r.stats["rotation_model"]["readout_frames"] == 0.0 and not r.stats["rotation_model"]["fits"]
     rot, trans = _errors(r, poses)
     assert rot < 1.0, rot
@@ -207,7 +207,8 @@ def test_of_colmaps_models_the_one_that_reprojects_every_models_tracks_best_is_k
     """A drifting walk model (0.9 deg a frame, as COLMAP's from one initial pair on dev
     `dancing_hall`) loses to the true one on the pooled tracks' median reprojection error, though
     it came from the first, preferred start; a model that fits about as well does not replace it."""
-    from core.tracking.sfm import CLEARLY_BETTER, choose_model, feature_tracks, pooled_median_error
+    from core.tracking.config import tracking_config
+    from core.tracking.sfm import choose_model, feature_tracks, pooled_median_error
 
     k, model, true, drifted = _models_of_one_walk(0.9)
     right, wrong = model(true, 8.0), model(drifted, 4.0)
@@ -223,7 +224,7 @@ def test_of_colmaps_models_the_one_that_reprojects_every_models_tracks_best_is_k
     _, _, _, slightly = _models_of_one_walk(0.05)
     kept = choose_model([model(slightly, 4.0), model(true, 8.0)], k)  # the true one fits only a little better
     first, second = (m["pooled_median_px"] for m in kept.stats["models"])
-    assert CLEARLY_BETTER * first < second < first and kept.stats["init_min_tri_angle_deg"] == 4.0
+    assert tracking_config().sfm.clearly_better * first < second < first and kept.stats["init_min_tri_angle_deg"] == 4.0
     assert choose_model([], k) is None
 
 

@@ -13,8 +13,8 @@ import pytest
 
 from core.sim.panorama_room import load_panorama
 from core.sim.room_scan import render_scan
+from core.tracking.config import tracking_config
 from core.tracking.direct import (
-    MIN_OVERLAP,
     DirectPair,
     _better_of,
     align_pair,
@@ -87,8 +87,9 @@ def test_the_full_grid_replaces_a_near_answer_only_where_it_fits_as_well_as_usua
     near = align_pair(l[0], v[0], l[1], v[1], scan.intrinsics, [np.eye(3)], 3, 4)
     assert near.trusted and near.score < 0  # explains more of the texture than it leaves
     wrong = np.diag([-1.0, 1.0, -1.0])
-    cheaper_blank = DirectPair(3, 4, wrong, 0.0, near.cost / 2, MIN_OVERLAP, near.info, score=near.score / 10)
-    cheaper_explains_more = DirectPair(3, 4, wrong, 0.0, near.cost / 2, MIN_OVERLAP, near.info, score=near.score * 1.1)
+    sliver = tracking_config().direct.min_overlap
+    cheaper_blank = DirectPair(3, 4, wrong, 0.0, near.cost / 2, sliver, near.info, score=near.score / 10)
+    cheaper_explains_more = DirectPair(3, 4, wrong, 0.0, near.cost / 2, sliver, near.info, score=near.score * 1.1)
     costlier = DirectPair(3, 4, wrong, 0.0, near.cost * 2, near.overlap, near.info, score=near.score * 1.1)
     assert cheaper_blank.trusted and cheaper_explains_more.trusted
     above_usual, usual = near.cost / 4, near.cost
@@ -171,7 +172,7 @@ def test_the_finer_levels_keep_distinct_candidates_not_copies_of_one_basin():
     cheapest candidate is kept besides."""
     import torch
 
-    from core.tracking.direct import SEARCH_STEP_DEG, _survivors
+    from core.tracking.direct import _survivors
     from core.tracking.geometry import rotvec_to_matrix
 
     angles = np.radians([0.0, 0.5, 1.0, 1.5, 20.0, 40.0])  # yaw: a basin of four copies, two others
@@ -185,7 +186,7 @@ def test_the_finer_levels_keep_distinct_candidates_not_copies_of_one_basin():
     for a in picked:
         for b in picked:
             if a < b:
-                assert abs(np.degrees(angles[a] - angles[b])) > SEARCH_STEP_DEG
+                assert abs(np.degrees(angles[a] - angles[b])) > tracking_config().direct.search_step_deg
 
 
 def test_a_candidate_whose_gauss_newton_system_is_singular_stays_put_instead_of_failing_the_job():
@@ -217,7 +218,7 @@ def _reference_residuals(li, vi, lj, vj, k, height, R, gain):
     import torch
     import torch.nn.functional as F
 
-    from core.tracking.direct import MIN_DEPTH, _level, _pixel_bearings
+    from core.tracking.direct import _level, _pixel_bearings
 
     Li, Vi = _level(li, vi, height)
     Lj, Vj = _level(lj, vj, height)
@@ -231,7 +232,7 @@ def _reference_residuals(li, vi, lj, vj, k, height, R, gain):
     n = R.shape[0]
     lj_ = F.grid_sample(Lj.expand(n, 1, h, w), grid, align_corners=False, padding_mode="border")[:, 0, 0]
     vj_ = F.grid_sample(Vj.expand(n, 1, h, w), grid, align_corners=False, padding_mode="zeros")[:, 0, 0]
-    inside = (-d[..., 2] > MIN_DEPTH) & (u > 0) & (u < w) & (v > 0) & (v < h)
+    inside = (-d[..., 2] > tracking_config().direct.min_depth) & (u > 0) & (u < w) & (v > 0) & (v < h)
     return lj_ - torch.exp(gain)[:, None] * Li.reshape(-1)[Vi.reshape(-1) > 0.5], inside & (vj_ > 0.999)
 
 

@@ -216,7 +216,7 @@ def test_preview_from_capture_bounds_size_and_keeps_first_and_last_frames():
 
 
 def test_worker_hook_stores_the_capture_as_the_engine_loads_it_once(tmp_path):
-    from core.capture.load import load_capture
+    from core.capture.prepare import load_prepared_capture
     from core.engine.params import JobParams
     from core.io.images import write_png
 
@@ -224,8 +224,8 @@ def test_worker_hook_stores_the_capture_as_the_engine_loads_it_once(tmp_path):
     image[:, 20:] = 1.0
     params = JobParams(intrinsics={"hfov_deg": 90.0})
     with pytest.warns(UserWarning):  # the assumed depth
-        first = load_capture(write_png(tmp_path / "a.png", image), None, params)
-        second = load_capture(write_png(tmp_path / "b.png", 1.0 - image), None, params)
+        first = load_prepared_capture(write_png(tmp_path / "a.png", image), None, params)
+        second = load_prepared_capture(write_png(tmp_path / "b.png", 1.0 - image), None, params)
     write_capture_preview(first, tmp_path / "job")
     stored = load_preview(tmp_path / "job")
     assert stored.num_frames == 1 and stored.frame(0)[0, 0].tolist() == [0, 0, 0]

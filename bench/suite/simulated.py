@@ -226,7 +226,7 @@ def load_suite(name: str, cache_dir: Path, resolution: tuple[int, int] | None, g
     """Render (or reuse) a suite's capture and collect its ground truth. `curve`: the camera
     curve of its frames (core.sim.camera_curves; None or "drawn": the scene's own, drawn by
     its name; a name forces it)."""
-    from core.capture.load import load_capture
+    from core.capture.prepare import load_prepared_capture
     from core.io.exr import read_exr
     from core.sim.suites import suite
 
@@ -240,7 +240,7 @@ def load_suite(name: str, cache_dir: Path, resolution: tuple[int, int] | None, g
     gt = torch.stack(
         [torch.from_numpy(read_exr(capture_dir / p["envmap"])[..., :3].copy()).float() for p in doc["probes"]]
     )
-    capture = load_capture(capture_dir)
+    capture = load_prepared_capture(capture_dir)
     mid = capture.num_frames // 2
     return SuiteData(
         name=name,

@@ -1,5 +1,6 @@
 """Depth of a capture when the user gave none, or gave an incomplete one: the assumed box
-room, the per-frame median stand-in and hole filling, and the validation of given depth."""
+room and hole filling, and the validation of given depth (the per-frame median stand-in is
+core.conventions.median_valid_depth: the previews use it too)."""
 from __future__ import annotations
 
 import math
@@ -13,7 +14,6 @@ from core.conventions import pixel_to_camera_ray, valid_depth_mask
 # Depth with fewer valid pixels than this (per frame) is hole-filled with a warning.
 MIN_VALID_DEPTH_FRACTION = 0.5
 ASSUMED_DEPTH_SOURCE = "assumed:box-room 5x3x4 m, camera 1.5 m above floor, arbitrary scale"
-DEFAULT_MEDIAN_DEPTH_M = 2.0  # metres, when a frame has no valid depth at all
 
 
 # ---------------------------------------------------------------------------------------
@@ -35,13 +35,6 @@ def assumed_box_depth(intr: Intrinsics, half_width: float = 2.5, floor: float = 
     s = torch.minimum(s, torch.where(y > 0, ceiling / y.clamp_min(1e-12), inf))
     s = torch.minimum(s, torch.where(x.abs() > 0, half_width / x.abs().clamp_min(1e-12), inf))
     return s.float()
-
-
-def median_valid_depth(depth: torch.Tensor) -> float:
-    """Median of the valid pixels of a depth map: the stand-in where a pixel's depth is invalid
-    (DEFAULT_MEDIAN_DEPTH_M when no pixel is valid)."""
-    valid = valid_depth_mask(depth)
-    return float(depth[valid].median()) if bool(valid.any()) else DEFAULT_MEDIAN_DEPTH_M
 
 
 def fill_depth_holes(depth: torch.Tensor, max_iters: int = 64) -> torch.Tensor:

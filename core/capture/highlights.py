@@ -15,7 +15,7 @@ clipped pixels, any channel >= CLIP_LDR), a radiance factor from what the captur
    into bright neighbours a bright surface); the share of its pixels with all channels
    clipped (white-hot vs a saturated colour); and the light its halo holds above the
    background (blur and glare spill a share of a source's energy past its edge). The
-   coefficients are fitted by bench/clip_rule.py on every indoor panorama (refitted without
+   coefficients are fitted by bench/calibration/clip_rule.py on every indoor panorama (refitted without
    the scored room by the accuracy benches); the fit, its measured error in stops and its
    known limit (very bright point sources are underestimated) are in docs/highlights.md. A
    log-linear extrapolation of the halo into the core was tried and got no weight on dev.
@@ -50,16 +50,16 @@ BACKGROUND_RINGS = 2  # the outermost rings stand for the background the halo si
 REF_AREA_SR = 1e-3  # steradians: the area term is relative to a ~1.8 deg wide source
 MAX_BOOST_STOPS = 12.0
 HALO_FLOOR = 1e-4  # darker halo rings count as this (linear, white = 1)
-# Fitted by `python -m bench.clip_rule --fit` on every indoor panorama of MANIFEST.tsv (dev, test
+# Fitted by `python -m bench.calibration.clip_rule --fit` on every indoor panorama of MANIFEST.tsv (dev, test
 # and extra: what a user gets; docs/highlights.md). Scored only under leave-one-room-out, where
-# each room's job gets the fit on the other rooms (bench.clip_rule.cv_coefficients).
+# each room's job gets the fit on the other rooms (bench.calibration.clip_rule.cv_coefficients).
 RULE_COEFFICIENTS = (-0.297, -0.065, -0.576, 1.476, -0.080)
 # The spill's colour is used when its excess luminance over the background is at least this
 # share of the background (else it is noise on the background's own colour), with each
 # channel at least SPILL_COLOUR_MIN_RATIO of the largest (a tinted wall tints the spill too).
-# Chosen by `python -m bench.clip_rule --colour-cv` on every indoor room (what a user gets); the
+# Chosen by `python -m bench.calibration.clip_rule --colour-cv` on every indoor room (what a user gets); the
 # leave-one-room-out choice is the same in 23 of 24 folds (docs/highlights.md), and each room's
-# job in the accuracy benches gets its fold's (bench.clip_rule.cv_spill_colour).
+# job in the accuracy benches gets its fold's (bench.calibration.clip_rule.cv_spill_colour).
 SPILL_COLOUR_MIN_EXCESS = 0.2
 SPILL_COLOUR_MIN_RATIO = 0.3
 SPILL_COLOUR = (SPILL_COLOUR_MIN_EXCESS, SPILL_COLOUR_MIN_RATIO)  # (min excess, min ratio): Blob.spill_colour's

@@ -7,7 +7,8 @@ Defaults when the user gives nothing (recorded in `Capture.warnings` / `depth_so
 `metadata`; docs/captures.md):
 * intrinsics: the capture file's, else the image's EXIF focal length, else a centred pinhole
   with horizontal FOV `core.conventions.DEFAULT_HFOV_DEG`;
-* poses: several frames are tracked (core.capture.track; `params.tracking`), one frame is a
+* poses: several frames are tracked when the capture is prepared (core.capture.prepare, then
+  core.capture.track; `params.tracking`), one frame is a
   camera at the world origin (world = first camera frame);
 * fps: the video's own rate, else 1 (a single image has t = 0); a video's frame times are its
   presentation timestamps (a variable frame rate keeps its real timing) unless params.fps is
@@ -24,7 +25,6 @@ import dataclasses
 import json
 import math
 import os
-import warnings as _warnings
 from pathlib import Path
 
 import numpy as np
@@ -235,27 +235,20 @@ def _estimate_depth(
 
 
 def load_capture(input_path, depth_path=None, params: CaptureParams | None = None,
-                 limits: MediaLimits | None = None, track: bool = True) -> Capture:
+                 limits: MediaLimits | None = None) -> Capture:
     """Load an image, a video, a nerfstudio capture (directory or zip) or a simulator capture
-    directory (see module docstring).
+    directory (see module docstring), before camera tracking: a job prepares what this returns
+    in stages of its own (core.capture.prepare; `load_prepared_capture` there loads and
+    prepares in one call).
 
     `limits=None` reads them from the environment (`MediaLimits.from_env`: LIGHTFIELD_MAX_PIXELS
     etc.), so the CLI honours the same variables as the service. `params.max_frames` lowers
     `limits.max_frames`; longer videos are subsampled evenly by core.io and each kept frame
     keeps its source time (source index / fps). Poses given for every source frame are
-    subsampled the same way. `track=True` also prepares the capture as a job does (tracking,
-    transients, exposure: core.capture.prepare.prepare_capture) and shows its warnings;
-    `track=False` stops before camera tracking (run_job prepares the capture in stages of its
-    own). (The service's upload check reads headers only: core.capture.probe.probe_capture.)
+    subsampled the same way. (The service's upload check reads headers only:
+    core.capture.probe.probe_capture.)
     """
     params = params or CaptureParams()
-    if track:
-        from core.capture.prepare import prepare_capture  # noqa: PLC0415 — import cycle through core.capture.prepare
-
-        capture = prepare_capture(input_path, depth_path, params, limits).capture
-        for w in capture.warnings:
-            _warnings.warn(w, stacklevel=2)
-        return capture
     limits = effective_limits(params, limits)
     path = Path(input_path)
     warn: list[str] = []

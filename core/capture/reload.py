@@ -50,7 +50,7 @@ def reload_capture(input_path, depth_path, record: dict) -> Capture:
     CaptureError naming what does not match."""
     from core.capture.load import load_capture  # noqa: PLC0415 — core.capture.load pulls in av, cv2, OpenEXR, PIL: imported when used
 
-    raw = load_capture(input_path, depth_path, recorded_params(record), track=False)
+    raw = load_capture(input_path, depth_path, recorded_params(record))
     meta = record.get("metadata") or {}
     response = meta.get("response") or {}
     if response.get("used"):  # the response the job estimated from the frames, applied as the job did

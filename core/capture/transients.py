@@ -8,9 +8,10 @@ its own course over time (what stays, plus one image per light that changes on i
 its intensity): the clip, as a frames x pixels matrix, has a low rank. A person walking
 through does not: the pixels they cover change at different times as they move, which no few
 shared courses make. So each frame is compared with a robust low-rank model of the clip
-(`low_rank_course`: at most RANK courses, each kept only if it explains most of what is left);
-the pixels that depart from it by more than TRANSIENT_RATIO (and by more than K_SIGMA times
-their own noise) are transient, and are replaced by the pixel's own detail from the frames
+(`low_rank_course`: at most `rank` courses, each kept only if it explains most of what is
+left); the pixels that depart from it by more than `transient_ratio` (and by more than
+`k_sigma` times their own noise; the knobs are capture.transients.*, core/capture/config.py)
+are transient, and are replaced by the pixel's own detail from the frames
 where it is clear, on the model's course of light for that frame (`paint_out`).
 
 A moving camera (`_moving_mask`) has no fixed pixels: each frame is compared with its
@@ -18,22 +19,22 @@ neighbours before and after it, warped into it by depth and poses, and painted f
 median (`paint_from_neighbours`).
 
 Left alone, by design:
-* clips of fewer than MIN_FRAMES frames (a few frames cannot tell a course of light from a
+* clips of fewer than capture.transients.min_frames frames (a few frames cannot tell a course of light from a
   passer-by);
 * something that stays in one place for most of a static clip, or on the same part of the
   room for most of a moving camera's window (someone the camera follows);
-* a frame whose transient share exceeds MAX_FRAME_SHARE: most of the view changed in a way no
+* a frame whose transient share exceeds capture.transients.max_frame_share: most of the view changed in a way no
   light explains (a cut, the camera knocked), so painting it out would invent a frame.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 import torch
 import torch.nn.functional as F
 
 from core.capture.base import Capture
+from core.capture.config import TransientsConfig, capture_config
 from core.capture.temporal import CLIP_HI, DARK_LO, _warp_into  # LDR: clipped, and too dark for a ratio
 from core.conventions import (  # the tone curve: d(log linear)/d(LDR) = GAMMA/LDR
     GAMMA,
@@ -42,30 +43,17 @@ from core.conventions import (  # the tone curve: d(log linear)/d(LDR) = GAMMA/L
     valid_depth_mask,
 )
 
-MIN_FRAMES = 8  # fewer frames cannot separate a course of light from a passer-by
-RANK = 3  # what stays + up to two lights changing on their own courses (12+ frames; 8-11: 2)
-ANALYSIS_HEIGHT = 36  # the model is fitted on frames area-downsampled to this height (noise averages out;
-# a passer-by still spans many pixels)
-TRANSIENT_RATIO = math.log(1.3)  # a departure from the model under 30 % is not a transient
-K_SIGMA = 5.0  # ... nor one within 5x the pixel's own noise (its departures' robust spread)
-MAX_FRAME_SHARE = 0.5  # a frame more than half transient is left as it is
-MIN_SHARE = 1e-3  # a clip with fewer transient pixels than this share is left as it is
-ITERATIONS = 12
-MOVING_HEIGHT = 72  # a moving camera's frames are compared at this height (core.capture.temporal's)
-MOVING_WINDOW = 3  # ... each with its 3 neighbours either side, warped into it
-MOVING_MIN_SIDE = 2  # ... where at least 2 of them on each side see the point
-MOVING_ONE_SIDE = 3  # ... or, at the edge of a pan's view or the clip, all 3 on one side,
-SWITCH_SHARE = 0.03  # ... unless a light switched in the window (that share of points agree with one side only)
-MIN_SHARED_PIXELS = 50  # a neighbour that shares fewer usable pixels with the frame is not used
-KEEP_COURSE = 0.5  # a course of light is kept if it explains at least half of the departures left
+
+def _knobs() -> TransientsConfig:
+    return capture_config().transients
 
 
 def _rank(num_frames: int) -> int:
-    return RANK if num_frames >= 12 else 2
+    return _knobs().rank if num_frames >= 12 else 2
 
 
 def low_rank_course(
-    x: torch.Tensor, w: torch.Tensor, max_rank: int, iterations: int = ITERATIONS
+    x: torch.Tensor, w: torch.Tensor, max_rank: int, iterations: int | None = None
 ) -> tuple[torch.Tensor, int]:
     """A robust low-rank model [T, P] of `x` [T, P] (each column near 1: values over their
     median) with `w` [T, P] 0/1 (usable entries), and its rank.
@@ -75,7 +63,7 @@ def low_rank_course(
     leaves. Each pixel's mix of the courses is fitted robustly (`fit_courses`), so the few frames a passer-by covers it
     in do not pull its fit. A course
     is kept only if it explains most of what the courses before it left unexplained
-    (`departures` fall by at least KEEP_COURSE): a light that changes moves all its pixels along
+    (`departures` fall by at least capture.transients.keep_course): a light that changes moves all its pixels along
     one course, so one component takes all of it, where a passer-by moves each pixel in
     different frames and one component takes a little of them. The rank stops at `max_rank`."""
     course = torch.where(w > 0, x, torch.nan).nanmedian(1).values.nan_to_num(1.0)[:, None]  # [T, 1]
@@ -89,16 +77,17 @@ def low_rank_course(
         basis = torch.linalg.qr(torch.cat((course, more[:, :k - 1]), 1))[0]
         candidate = fit_courses(x, w, basis, iterations)
         now = int(departures(x, w, candidate).sum())
-        if now <= (1.0 - KEEP_COURSE) * left and (best is None or now < best[1]):
+        if now <= (1.0 - _knobs().keep_course) * left and (best is None or now < best[1]):
             best = (candidate, now, k)
     if best is not None:
         model, left, rank = best
     return model, rank
 
 
-def fit_courses(x: torch.Tensor, w: torch.Tensor, U: torch.Tensor, iterations: int = ITERATIONS) -> torch.Tensor:
+def fit_courses(x: torch.Tensor, w: torch.Tensor, U: torch.Tensor, iterations: int | None = None) -> torch.Tensor:
     """Each column of `x` fitted as a mix of the courses `U` [T, r], by iteratively reweighted
     least squares (Cauchy weights against the column's own residual scale: `_weights`)."""
+    iterations = _knobs().iterations if iterations is None else iterations
     r = U.shape[1]
     weight = w.clone()
     model = torch.ones_like(x)
@@ -111,11 +100,12 @@ def fit_courses(x: torch.Tensor, w: torch.Tensor, U: torch.Tensor, iterations: i
 
 
 def departures(x: torch.Tensor, w: torch.Tensor, model: torch.Tensor) -> torch.Tensor:
-    """[T, P] bool: usable entries over TRANSIENT_RATIO (log) from the model and over K_SIGMA
-    times their column's noise (1.4826 x its median absolute log departure over time)."""
+    """[T, P] bool: usable entries over capture.transients.transient_ratio (log) from the model
+    and over capture.transients.k_sigma times their column's noise (1.4826 x its median absolute
+    log departure over time)."""
     dev = (x.clamp_min(1e-6) / model.clamp_min(1e-6)).log().abs() * w
     noise = 1.4826 * torch.where(w > 0, dev, torch.nan).nanmedian(0).values.nan_to_num(0.0)
-    return (dev > torch.maximum(torch.full_like(noise, TRANSIENT_RATIO), K_SIGMA * noise)) & (w > 0)
+    return (dev > torch.maximum(torch.full_like(noise, _knobs().transient_ratio), _knobs().k_sigma * noise)) & (w > 0)
 
 
 def _weights(x: torch.Tensor, w: torch.Tensor, model: torch.Tensor) -> torch.Tensor:
@@ -136,8 +126,8 @@ def transient_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
     the pixels are painted from (`evidence["model"]`, popped by `without_transients`)."""
     T, H, W = capture.num_frames, capture.height, capture.width
     none = torch.zeros(T, H, W, dtype=torch.bool)
-    if T < MIN_FRAMES:
-        return none, {"looked": False, "reason": f"fewer than {MIN_FRAMES} frames: not looked for"}
+    if T < _knobs().min_frames:
+        return none, {"looked": False, "reason": f"fewer than {_knobs().min_frames} frames: not looked for"}
     mask_small, evidence = _static_mask(capture) if capture.static_camera else _moving_mask(capture)
     if not bool(mask_small.any()):
         return none, evidence
@@ -159,14 +149,14 @@ def _analysis(capture: Capture, h: int) -> tuple[torch.Tensor, torch.Tensor]:
 def _tidy(flagged: torch.Tensor, evidence: dict) -> tuple[torch.Tensor, dict]:
     """Flags [T, h, w] as regions: something in front of the scene covers a region, so a pixel
     flagged with fewer than half its 3x3 neighbourhood is noise, and the rest grow by a pixel,
-    which shares the edge's blend; frames over MAX_FRAME_SHARE and clips under MIN_SHARE are
-    left alone. The evidence gains the shares and the reason."""
+    which shares the edge's blend; frames over capture.transients.max_frame_share and clips under
+    capture.transients.min_share are left alone. The evidence gains the shares and the reason."""
     T = flagged.shape[0]
     near = F.avg_pool2d(flagged[:, None].float(), 3, stride=1, padding=1, count_include_pad=False)[:, 0]
     flagged = flagged & (near >= 0.5)
     flagged = F.max_pool2d(flagged[:, None].float(), 3, stride=1, padding=1)[:, 0] > 0.5
     share = flagged.reshape(T, -1).float().mean(1)
-    too_much = share > MAX_FRAME_SHARE
+    too_much = share > _knobs().max_frame_share
     flagged[too_much] = False
     total = float(flagged.float().mean())
     evidence.update({"looked": True, "analysis_height": int(flagged.shape[1]),
@@ -174,10 +164,10 @@ def _tidy(flagged: torch.Tensor, evidence: dict) -> tuple[torch.Tensor, dict]:
                      "pixel_share": round(total, 5),
                      "max_frame_share": round(float(share[~too_much].max()) if bool((~too_much).any()) else 0.0, 4),
                      "frames_left_alone": [int(i) for i in torch.nonzero(too_much).flatten()]})
-    if total < MIN_SHARE:
+    if total < _knobs().min_share:
         flagged[:] = False
         evidence["frames_with_transients"] = 0
-        evidence["reason"] = f"nothing moved through the view (transient share {total:.5f} < {MIN_SHARE})"
+        evidence["reason"] = f"nothing moved through the view (transient share {total:.5f} < {_knobs().min_share})"
     else:
         evidence["reason"] = "something moved through the view: its pixels painted out"
     return flagged, evidence
@@ -185,7 +175,7 @@ def _tidy(flagged: torch.Tensor, evidence: dict) -> tuple[torch.Tensor, dict]:
 
 def _static_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
     T = capture.num_frames
-    lin, usable = _analysis(capture, min(ANALYSIS_HEIGHT, capture.height))
+    lin, usable = _analysis(capture, min(_knobs().analysis_height, capture.height))
     _, h, w, _ = lin.shape
     x = lin.reshape(T, -1).double()  # [T, h*w*3]
     ok = usable[..., None].expand(-1, -1, -1, 3).reshape(T, -1)
@@ -200,33 +190,33 @@ def _static_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
 
 
 def _moving_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
-    """A moving camera's frames: each frame against the medians of its MOVING_WINDOW neighbours
+    """A moving camera's frames: each frame against the medians of its capture.transients.moving_window neighbours
     before and after it, warped into it by depth and poses (core.capture.temporal's warp), each
     neighbour first scaled by its median log ratio to the frame over what both show (an
     exposure, a change of the whole room). A passer-by who covers a point of the room in this
     frame and in fewer than half the frames either side departs from both medians the same way;
     a light that switched within the window agrees with the side the frame is on. A point that
-    fewer than MOVING_MIN_SIDE neighbours see on one side (the clip's first and last frames, the
-    edge of a pan's view) is judged by the other side alone, if all MOVING_ONE_SIDE neighbours
-    there see it and no light switched within the window (SWITCH_SHARE of the points judged
+    fewer than capture.transients.moving_min_side neighbours see on one side (the clip's first and last frames, the
+    edge of a pan's view) is judged by the other side alone, if all capture.transients.moving_one_side neighbours
+    there see it and no light switched within the window (capture.transients.switch_share of the points judged
     both ways agree with one side only); else not judged. Painted from the median of all the
     neighbours."""
     T = capture.num_frames
-    small = capture.resized(min(MOVING_HEIGHT, capture.height))
+    small = capture.resized(min(_knobs().moving_height, capture.height))
     lin, usable = _analysis(capture, small.height)
     depth = torch.where(valid_depth_mask(small.depth), small.depth, torch.nan)
     flagged = torch.zeros(usable.shape, dtype=torch.bool)
     consensus = lin.clone()
     for t in range(T):
         sides = {-1: [], 1: []}
-        for n in range(max(0, t - MOVING_WINDOW), min(T, t + MOVING_WINDOW + 1)):
+        for n in range(max(0, t - _knobs().moving_window), min(T, t + _knobs().moving_window + 1)):
             if n == t:
                 continue
             planes = torch.cat((lin[n], usable[n][..., None].float()), -1)
             warped, ok = _warp_into(planes, depth[t], depth[n], small.intrinsics, capture.poses[t], capture.poses[n])
             ok = ok & (warped[..., 3] > 0.999)
             both = ok & usable[t]
-            if int(both.sum()) < MIN_SHARED_PIXELS:
+            if int(both.sum()) < _knobs().min_shared_pixels:
                 continue
             scale = (warped[..., :3][both].clamp_min(1e-8).log() - lin[t][both].clamp_min(1e-8).log()).median()
             sides[1 if n > t else -1].append(torch.where(ok[..., None], warped[..., :3] / scale.exp(), torch.nan))
@@ -237,8 +227,8 @@ def _moving_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
         after = torch.stack(sides[1]) if sides[1] else nan
         n_before = torch.isfinite(before[..., 0]).sum(0)
         n_after = torch.isfinite(after[..., 0]).sum(0)
-        two_sided = (n_before >= MOVING_MIN_SIDE) & (n_after >= MOVING_MIN_SIDE)
-        one_sided = ~two_sided & ((n_before >= MOVING_ONE_SIDE) | (n_after >= MOVING_ONE_SIDE))
+        two_sided = (n_before >= _knobs().moving_min_side) & (n_after >= _knobs().moving_min_side)
+        one_sided = ~two_sided & ((n_before >= _knobs().moving_one_side) | (n_after >= _knobs().moving_one_side))
         judged = usable[t] & (two_sided | one_sided)
         if not bool(judged.any()):
             continue
@@ -248,13 +238,13 @@ def _moving_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
         # a passer-by departs from both sides alike; a light that switched agrees with one side
         same_way = torch.sign(d_before) == torch.sign(d_after)
         dev = torch.where(same_way, torch.minimum(d_before.abs(), d_after.abs()), torch.zeros_like(d_before))
-        one = torch.where(n_before[..., None] >= MOVING_ONE_SIDE, d_before, d_after).abs()  # NaN-free side
+        one = torch.where(n_before[..., None] >= _knobs().moving_one_side, d_before, d_after).abs()  # NaN-free side
         dev = torch.where(two_sided[..., None], dev, one.nan_to_num(0.0)).max(-1).values
         median = torch.cat((before, after)).nanmedian(0).values
         plain = (own - median.clamp_min(1e-6).log()).abs().max(-1).values  # the frame's noise: their robust spread
         scored = judged & plain.isfinite()
         noise = 1.4826 * float(plain[scored].median()) if bool(scored.any()) else 0.0
-        threshold = max(TRANSIENT_RATIO, K_SIGMA * noise)
+        threshold = max(_knobs().transient_ratio, _knobs().k_sigma * noise)
         # where the light switched within the window (points that depart from one side and agree
         # with the other), one side alone cannot tell a switch from a passer-by: not judged
         # (a switch between two frames of one side: the neighbours beyond it all depart the same
@@ -269,15 +259,15 @@ def _moving_mask(capture: Capture) -> tuple[torch.Tensor, dict]:
                 | (_switch_beyond(own, near_a, threshold) & _agrees(own, near_b, threshold))
             )
         )
-        if int(switched.sum()) >= SWITCH_SHARE * max(int((two_sided & usable[t]).sum()), 1):
+        if int(switched.sum()) >= _knobs().switch_share * max(int((two_sided & usable[t]).sum()), 1):
             judged = judged & two_sided
         # a dark pixel's log is noisier: the frame's noise in 8-bit units (tone curve slope
         # GAMMA / value), scaled back to each pixel's log
         slope = GAMMA / tonemap(lin[t]).max(-1).values.clamp_min(DARK_LO)
         noise_ldr = 1.4826 * float((plain / slope)[scored].median()) if bool(scored.any()) else 0.0
-        flagged[t] = judged & (dev > torch.clamp(K_SIGMA * noise_ldr * slope, min=TRANSIENT_RATIO))
+        flagged[t] = judged & (dev > torch.clamp(_knobs().k_sigma * noise_ldr * slope, min=_knobs().transient_ratio))
         consensus[t] = torch.where(judged[..., None], median.nan_to_num(0.0), lin[t])
-    flagged, evidence = _tidy(flagged, {"camera": "moving", "window": MOVING_WINDOW})
+    flagged, evidence = _tidy(flagged, {"camera": "moving", "window": _knobs().moving_window})
     evidence["neighbours"] = consensus
     return flagged, evidence
 

@@ -1,7 +1,9 @@
 """The engine's configuration as one typed tree (nerfstudio's method configs): an
 `EngineConfig` holds the distillation loop's settings (`DistillConfig`), the field
 (`FieldConfig`: the default kind plus every kind's settings, so a job may pick another kind)
-and the priors' settings defaults (each validated by that prior's Config). The named
+the priors' settings defaults (each validated by that prior's Config), the tracker's knobs
+(`TrackingConfig`, core.tracking.config) and the capture stage's (`CaptureConfig`,
+core.capture.config). The named
 presets are in core.engine.presets; `with_overrides` derives variants (worker overrides,
 benchmarks, tests) without flat knobs.
 """
@@ -13,11 +15,13 @@ from typing import Any, Literal, Mapping
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from core.capture.config import CaptureConfig
 from core.conventions import DEFAULT_EV_MIN
 from core.device import DEVICE_PATTERN
 from core.fields import FieldConfig
 from core.priors.base import PriorError
 from core.priors.registry import prior_settings
+from core.tracking.config import TrackingConfig
 
 
 class DistillConfig(BaseModel):
@@ -190,6 +194,9 @@ class EngineConfig(BaseModel):
     distill: DistillConfig = DistillConfig()
     field: FieldConfig = FieldConfig()  # `kind` is the default a job's params.field may replace
     priors: dict[str, dict[str, Any]] = Field(default_factory=dict, description="prior name -> settings defaults")
+    # the tracker's knobs (core.tracking.config): `tracking.direct.search_step_deg=4` is an ablation
+    tracking: TrackingConfig = TrackingConfig()
+    capture: CaptureConfig = CaptureConfig()  # the capture stage's knobs (core.capture.config)
 
     @field_validator("priors")
     @classmethod

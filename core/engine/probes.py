@@ -6,8 +6,7 @@ import math
 import torch
 
 from core.capture.base import Capture
-from core.capture.depth import median_valid_depth
-from core.conventions import valid_depth_mask
+from core.conventions import median_valid_depth, valid_depth_mask
 from core.engine.config import DistillConfig
 
 

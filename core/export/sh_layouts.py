@@ -27,11 +27,13 @@ documented formulas).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
-from core.sh import C0, C1, C2, C2_0, C2_2, COSINE_LOBE_BY_BAND, SH_BANDS, SH_COUNT, SH_ORDERS
+from core.sh import C0, C1, C2, C2_0, C2_2, COSINE_LOBE_BY_BAND, SH_BANDS, SH_COUNT, SH_ORDERS, SHError, check_coeffs
 
 _BASIS_CONSTANTS = (C0, C1, C1, C1, C2, C2, C2_0, C2, C2_2)
 _LOBE = tuple(COSINE_LOBE_BY_BAND[l] for l in SH_BANDS)
@@ -131,4 +133,28 @@ def unpack(values, name: str) -> np.ndarray:
     return v / layout.factors[:, None]
 
 
-__all__ = ["SHLayout", "LAYOUTS", "LAYOUT_NAMES", "get_layout", "to_layout", "pack", "unpack"]
+def to_arcore_27(coeffs: torch.Tensor) -> list[float]:
+    """Our [9, 3] radiance coefficients -> ARCore's 27 floats.
+
+    ARCore (`LightEstimate.getEnvironmentalHdrAmbientSphericalHarmonics`): coefficient-major,
+    RGB interleaved [c0.r, c0.g, c0.b, c1.r, ...], same band order and world frame as ours,
+    but with the Condon-Shortley phase, so entries with odd m (k = 1, 3, 5, 7) are negated.
+    """
+    check_coeffs(coeffs)
+    if tuple(coeffs.shape) != (SH_COUNT, 3):
+        raise SHError(f"ARCore layout needs RGB coefficients [9, 3], got {tuple(coeffs.shape)}")
+    return pack(coeffs, "arcore")
+
+
+def from_arcore_27(values: Sequence[float] | torch.Tensor, dtype=torch.float32) -> torch.Tensor:
+    """Inverse of `to_arcore_27`: 27 floats -> our [9, 3] coefficients."""
+    t = torch.as_tensor(values, dtype=torch.float64).reshape(-1)
+    if t.numel() != 27:
+        raise SHError(f"ARCore spherical harmonics need exactly 27 floats, got {t.numel()}")
+    if not torch.isfinite(t).all():
+        raise SHError("ARCore spherical harmonics contain non-finite values")
+    return torch.from_numpy(unpack(t.numpy(), "arcore")).to(dtype)
+
+
+__all__ = ["SHLayout", "LAYOUTS", "LAYOUT_NAMES", "get_layout", "to_layout", "pack", "unpack", "to_arcore_27",
+           "from_arcore_27"]

@@ -14,7 +14,7 @@ mechanisms under cross-validation" (bench/results/cv/).
 1. Brightness depends on elevation: ELEVATION_GAIN[k] is the mean over the indoor panoramas
    of row-mean luminance / the panorama's mean luminance within +-HORIZON_BAND_DEG of the
    horizon, for GAIN_ROWS bands of 180/GAIN_ROWS degrees from up (+y, docs/conventions.md)
-   to down, smoothed in log over rows (`python -m bench.indoor_fill`). The mean is
+   to down, smoothed in log over rows (`python -m bench.calibration.indoor_fill`). The mean is
    arithmetic: the expected radiance of a band, lamps and windows included, which is what a
    diffuse or matte render integrates. Unseen pixels get the pull-push value x gain(row) /
    the mean gain over the seen pixels, so the seen rows set the level and the profile its
@@ -58,7 +58,7 @@ from core.exposure import chromaticity, luminance
 HORIZON_BAND_DEG = 25.0
 GAIN_ROWS = 24
 GAIN_SMOOTHING_ROWS = 2.0  # Gaussian sigma (rows of 7.5 deg) of the fitted log-gain profile
-# Fitted by `python -m bench.indoor_fill` (arithmetic mean) on all 24 indoor panoramas of
+# Fitted by `python -m bench.calibration.indoor_fill` (arithmetic mean) on all 24 indoor panoramas of
 # MANIFEST.tsv (dev, test and extra; row 0 = up): what a user gets. Scored only under
 # leave-one-room-out, where each room's job gets the profile refitted on the other 23
 # (`python -m bench.real_panoramas --cv`, bench/results/cv/).

@@ -4,8 +4,8 @@
 (core.tracking.track) and returns what the capture needs:
 * poses for the frames kept (frames tracking could not register are dropped and listed);
 * intrinsics: the given ones, or, when they were ASSUMED and the camera panned at least
-  MIN_SELF_CALIBRATION_SPAN_DEG, the focal length the pan's bundle adjustment refined
-  (within SELF_CALIBRATION_HFOV_RANGE; recorded as the intrinsics' source);
+  tracking.geometry.min_self_calibration_span_deg, the focal length the pan's bundle adjustment refined
+  (within tracking.geometry.self_calibration_hfov_range; recorded as the intrinsics' source);
 * depth when none was given, consistent across frames (a world-fixed room, not one that
   turns with the camera): the Manhattan box fitted to the sparse points when structure from
   motion produced them (core.tracking.room), else the documented box room around the first
@@ -21,13 +21,11 @@ import numpy as np
 import torch
 
 from core.camera import Camera, Intrinsics
+from core.tracking.config import tracking_config
 from core.tracking.geometry import rotation_angle_deg
 from core.tracking.room import RoomFitError, assumed_room, box_depth, fit_room
 from core.tracking.track import TrackingResult, track_camera
 
-MIN_SELF_CALIBRATION_SPAN_DEG = 15.0
-SELF_CALIBRATION_HFOV_RANGE = (20.0, 130.0)
-MIN_ROOM_POINTS = 30
 ASSUMED_ROOM_SOURCE = ("assumed:box-room 5x3x4 m (+1 m behind), world-fixed around the first camera 1.5 m above "
                        "the floor, arbitrary scale")
 WORLD_FIXED_ROOM_WARNING = ("no depth given: using the assumed box room, fixed in the world around the first camera "
@@ -65,8 +63,9 @@ def _refined_intrinsics(tr: TrackingResult, k: Intrinsics, warn: list[str]) -> t
         return k, None
     span = _span_deg(tr.poses)
     refined = Intrinsics(tr.focal_px, tr.focal_px * k.fy / k.fx, k.cx, k.cy, k.width, k.height)
-    lo, hi = SELF_CALIBRATION_HFOV_RANGE
-    if span < MIN_SELF_CALIBRATION_SPAN_DEG or not (lo <= refined.hfov_deg <= hi):
+    cfg = tracking_config().geometry
+    lo, hi = cfg.self_calibration_hfov_range
+    if span < cfg.min_self_calibration_span_deg or not (lo <= refined.hfov_deg <= hi):
         warn.append(f"the pan ({span:.0f} deg) did not fix the focal length (refined FOV {refined.hfov_deg:.1f} deg "
                     f"rejected): keeping the assumed {k.hfov_deg:.0f} deg")
         return k, None
@@ -79,7 +78,7 @@ def room_depth(
 ) -> tuple[torch.Tensor, str, dict]:
     """World-consistent depth [K, H, W] for the kept frames: fitted room, else the assumed one."""
     fit = None
-    if tr.points is not None and tr.points.shape[0] >= MIN_ROOM_POINTS:
+    if tr.points is not None and tr.points.shape[0] >= tracking_config().geometry.min_room_points:
         try:
             fit = fit_room(tr.points.numpy(), poses[:, :3, 3].numpy(), scale_hint=1.0)
         except RoomFitError as exc:

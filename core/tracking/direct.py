@@ -13,12 +13,12 @@ that residual over R_ij (3 numbers) and g_ij (1),
 coarse to fine over an image pyramid: at the coarsest level a grid of rotations around each
 starting guess is scored at once (the basin of a direct method is a few pixels; a scan turns
 20-35 deg between frames), the best few are refined (Gauss-Newton on every level), and the one
-with the lowest cost that keeps MIN_OVERLAP of the frame in view wins. The offsets g_ij are the
+with the lowest cost that keeps tracking.direct.min_overlap of the frame in view wins. The offsets g_ij are the
 exposure steps a panorama stitcher estimates from the overlaps; `exposure_from_offsets` solves
 them for every frame.
 
 `track_rotation_direct(frames, intrinsics)` places every frame: consecutive pairs, searched
-first within NEAR_SPAN_DEG of the camera coasting at its last angular velocity (a camera has
+first within tracking.direct.near_span_deg of the camera coasting at its last angular velocity (a camera has
 inertia) and of any rotation the features offer, over the full grid only when that does not
 fix the rotation (whose answer is kept only if cheaper and either as good as the clip's usual
 pair or explaining as much of the frame's texture: `_better_of`); then pairs the first pass
@@ -27,7 +27,7 @@ closures), and rotation averaging over all accepted pairs (robust least squares 
 vectors of the pair residuals, weighted by what each pair fixes), so the chain's drift is
 shared out; with `refine_focal` the averaging also fits the
 focal length's error, which only the loop closures can tell (`_self_calibrate`). A pair is
-accepted when its cost is within MAX_PAIR_COST; the track starts at the first frame of the
+accepted when its cost is within tracking.direct.max_pair_cost; the track starts at the first frame of the
 largest set the trusted pairs connect (frames before it are dropped), and a frame after it that
 no trusted pair fixes is placed by the motion prior and named in the stats.
 """
@@ -46,46 +46,14 @@ from scipy.sparse import lil_matrix
 
 from core.camera import Intrinsics
 from core.conventions import GAMMA
+from core.tracking.config import DirectConfig, tracking_config
 from core.tracking.geometry import matrix_to_rotvec, rotation_angle_deg, rotvec_to_matrix
 
-PYRAMID_HEIGHTS = (18, 36, 72)  # rows per level, coarse to fine (capped at the frame's own)
-SEARCH_STEP_DEG = 5.0  # the coarse grid's spacing around a starting guess
-SEARCH_SPAN_DEG = 30.0  # ... and its half-width in yaw and pitch (roll: +-ROLL_SPAN_DEG)
-ROLL_SPAN_DEG = 30.0  # a ring looking 40 deg down turns 0.64 of its yaw as roll
-LOCAL_SPAN_DEG, LOCAL_STEP_DEG = 4.0, 2.0  # the finer grid around each coarse survivor, on the second level
-LOCAL_CANDIDATES = 6  # ... of which the best are refined there
-COARSE_CANDIDATES = 24  # distinct best grid rotations refined on the coarse level
-SURVIVORS = [24, 3, 2]  # candidates kept after each level (coarse to fine)
-GRID_ITERATIONS = 2  # Gauss-Newton steps every grid rotation takes before they are compared
-GN_ITERATIONS = (6, 4, 3)  # Gauss-Newton steps per level, coarse to fine
-MAX_STEP_DEG = 3.0  # a Gauss-Newton step turns by at most this
 GRID_DTYPE = torch.float32  # the grid search's precision: it only ranks candidates (align_pair)
-ROBUST_SCALE = 0.05  # LDR units: pseudo-Huber scale of the residual
-# Candidates are compared by the textured pixels they explain (_score): residual within SCORE_CAP
-# times what 8-bit and compression noise (SCORE_NOISE, LDR units) and a misregistration of
-# SCORE_SUBPIXEL pixels leave.
-SCORE_CAP = 3.0
-SCORE_NOISE = 0.01
-SCORE_SUBPIXEL = 0.5
-MIN_DEPTH = 0.1  # a bearing this far in front of frame j (cosine to its axis) or less is not in its view
-MIN_OVERLAP = 0.15  # share of frame i's usable pixels frame j must show
-MAX_PAIR_COST = 0.0004  # mean robust cost over the overlap above which a pair is not trusted
-MAX_PAIR_SIGMA_DEG = 1.0  # a pair fixes the rotation when its least certain direction is within this
-INFO_STEP_DEG = 1.5  # the differences the information is measured over
-MIN_RESIDUAL_SIGMA = 0.004  # LDR units: the floor of a pair's residual noise (8-bit, compression)
-MOTION_SIGMA_DEG = 5.0  # prior: a frame's turn differs from the previous frame's by about this much
-DARK_LDR, BRIGHT_LDR = 0.03, 0.97  # usable pixels: neither sunk into the black nor clipped
-LOOP_MAX_AXIS_DEG = 40.0  # frames whose optical axes are this close are tried as loop closures
-LOOP_MIN_GAP = 3  # ... when at least this many frames apart (neighbours are already paired)
-LOOP_SPAN_DEG = 10.0  # a loop closure searches this far around what the chain says
-NEAR_SPAN_DEG = 10.0  # a consecutive pair first searches this far around its guesses
-NEAR_CANDIDATES = 4  # ... and refines this many of that grid's distinct best (loop closures too)
-NEAR_ROLL_SPAN_DEG = 5.0  # ... and this far in roll
-NEAR_COST_RATIO = 3.0  # a near answer costing more than this x the clip's median pair cost is checked on the full grid
-MAX_LOOP_PAIRS = 120
-WEAK_OVERLAP = 2 * MIN_OVERLAP  # a consecutive pair overlapping less, at NEAR_COST_RATIO x the usual cost: untrusted
-MAX_LOG_FOCAL_SCALE = math.log(1.25)  # the focal-length fit's range (a 60 deg guess for a 49-73 deg lens)
-FOCAL_FIT_CHI2 = 10.83  # chi-square of one parameter at p = 0.001: what the focal fit must explain to be kept
+
+
+def _knobs() -> DirectConfig:
+    return tracking_config().direct
 
 
 @dataclass
@@ -104,12 +72,13 @@ class DirectPair:
     @property
     def matched(self) -> bool:
         """The frames agree under the rotation (cost and overlap); how much that fixes is `info`."""
-        return self.cost <= MAX_PAIR_COST and self.overlap >= MIN_OVERLAP
+        return self.cost <= _knobs().max_pair_cost and self.overlap >= _knobs().min_overlap
 
     @property
     def trusted(self) -> bool:
-        """Matched, and the rotation pinned down in every direction to within MAX_PAIR_SIGMA_DEG."""
-        return self.matched and float(np.linalg.eigvalsh(self.info)[0]) >= math.radians(MAX_PAIR_SIGMA_DEG) ** -2
+        """Matched, and the rotation pinned down in every direction to within tracking.direct.max_pair_sigma_deg."""
+        sigma = math.radians(_knobs().max_pair_sigma_deg)
+        return self.matched and float(np.linalg.eigvalsh(self.info)[0]) >= sigma ** -2
 
 
 @dataclass
@@ -126,7 +95,7 @@ def frame_luma(frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """LDR frames [T, H, W, 3] -> (luma [T, H, W] in the frames' own LDR units, usable mask
     [T, H, W] float: not clipped, not black)."""
     y = (0.2126 * frames[..., 0] + 0.7152 * frames[..., 1] + 0.0722 * frames[..., 2]).float()
-    usable = (frames.amax(-1) < BRIGHT_LDR) & (y > DARK_LDR)
+    usable = (frames.amax(-1) < _knobs().bright_ldr) & (y > _knobs().dark_ldr)
     return y, usable.float()
 
 
@@ -179,9 +148,9 @@ class _Level:
         keep = Vi.reshape(-1) > 0.5
         self.bearings = _pixel_bearings(self.h, self.w, k).reshape(-1, 3)[keep]
         # a rotation whose turn of the optical axis (acos R[2, 2]) and the widest pixel's angle off
-        # it (alpha) add up to less than acos(MIN_DEPTH) keeps every pixel in front of frame j
+        # it (alpha) add up to less than acos(tracking.direct.min_depth) keeps every pixel in front of frame j
         alpha = math.acos(min(1.0, float((-self.bearings[:, 2]).min()))) if len(self.bearings) else 0.0
-        self.cos_turn_all_ahead = math.cos(max(0.0, math.acos(MIN_DEPTH) - alpha))
+        self.cos_turn_all_ahead = math.cos(max(0.0, math.acos(_knobs().min_depth) - alpha))
         self.li = Li.reshape(-1)[keep]
         gy, gx = torch.gradient(Li)
         self.texture = torch.sqrt(gx * gx + gy * gy).reshape(-1)[keep]  # what a pixel can tell apart
@@ -206,12 +175,12 @@ class _Level:
         lj, vj = F.grid_sample(self.image, grid[None], align_corners=False, padding_mode="zeros")[0]
         seen = vj > 0.999
         if bool((R[:, 2, 2] < self.cos_turn_all_ahead).any()):
-            seen &= q[:, 2] > MIN_DEPTH
+            seen &= q[:, 2] > _knobs().min_depth
         return lj - torch.exp(gain.reshape(-1, 1)) * self.li[None], seen.to(vj.dtype)
 
 
 def _robust(r: torch.Tensor) -> torch.Tensor:
-    s = ROBUST_SCALE
+    s = _knobs().robust_scale
     return s * s * (torch.sqrt(1.0 + (r / s) ** 2) - 1.0)
 
 
@@ -230,12 +199,14 @@ def _gain_estimate(lev: "_Level", R: torch.Tensor) -> tuple[torch.Tensor, torch.
     return g, lj - torch.exp(g)[:, None] * lev.li[None], w
 
 
-def _search_grid(start: np.ndarray, span: float = SEARCH_SPAN_DEG, step: float = SEARCH_STEP_DEG,
+def _search_grid(start: np.ndarray, span: float | None = None, step: float | None = None,
                  roll_span: float | None = None) -> torch.Tensor:
     """Rotations [S, 3, 3] on a grid of turns (about frame j's axes) around `start`: yaw and pitch
-    within +-span, roll within +-roll_span (default: span up to ROLL_SPAN_DEG), `step` apart."""
+    within +-span, roll within +-roll_span (default: span up to tracking.direct.roll_span_deg), `step` apart."""
+    span = _knobs().search_span_deg if span is None else span
+    step = _knobs().search_step_deg if step is None else step
     yaw = np.arange(-span, span + 1e-9, step)
-    rs = min(span, ROLL_SPAN_DEG) if roll_span is None else roll_span
+    rs = min(span, _knobs().roll_span_deg) if roll_span is None else roll_span
     roll = np.arange(-rs, rs + 1e-9, step)
     a, b, c = np.meshgrid(np.radians(yaw), np.radians(yaw), np.radians(roll), indexing="ij")
     vec = np.stack([b.ravel(), a.ravel(), c.ravel()], -1)  # about x (pitch), y (yaw), z (roll)
@@ -244,13 +215,15 @@ def _search_grid(start: np.ndarray, span: float = SEARCH_SPAN_DEG, step: float =
 
 def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.Tensor, k: Intrinsics,
                starts: list[np.ndarray], i: int = 0, j: int = 1, search: bool = True,
-               span: float = SEARCH_SPAN_DEG, candidates: int = COARSE_CANDIDATES,
+               span: float | None = None, candidates: int | None = None,
                roll_span: float | None = None) -> DirectPair:
     """Register frame j against frame i (luma and masks [H, W] from `frame_luma`) from
     the starting rotations `starts` (bearing i -> bearing j); see the module docstring."""
+    span = _knobs().search_span_deg if span is None else span
+    candidates = _knobs().coarse_candidates if candidates is None else candidates
     starts = [_nearest_rotation(s) for s in starts]
     H = li.shape[0]
-    heights = [h for h in PYRAMID_HEIGHTS if h < H] + [min(H, PYRAMID_HEIGHTS[-1])]
+    heights = [h for h in _knobs().pyramid_heights if h < H] + [min(H, _knobs().pyramid_heights[-1])]
     levels = [_Level(li, vi, lj, vj, k, h) for h in dict.fromkeys(heights)]
     coarse = levels[0]
     if coarse.li.numel() < 8:
@@ -265,18 +238,18 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
         # step that dominates a scan's tracking; the picked ones go on in double
         grid_level = coarse.to(GRID_DTYPE)
         g, _, _ = _gain_estimate(grid_level, cands.to(GRID_DTYPE))
-        cands, g = _refine(grid_level, cands.to(GRID_DTYPE), g, GRID_ITERATIONS)
+        cands, g = _refine(grid_level, cands.to(GRID_DTYPE), g, _knobs().grid_iterations)
         scorer = levels[min(1, len(levels) - 1)].to(GRID_DTYPE)
         r, w = scorer.residuals(cands, g)
         score = _score(r, w, scorer.texture)
         mean_cost = (_robust(r) * w).sum(1) / w.sum(1).clamp_min(1.0)
-        mean_cost = torch.where(w.mean(1) >= MIN_OVERLAP, mean_cost, torch.full_like(mean_cost, math.inf))
+        mean_cost = torch.where(w.mean(1) >= _knobs().min_overlap, mean_cost, torch.full_like(mean_cost, math.inf))
     # the coarse grid is a few degrees apart, where a right answer scores little better than a
     # wrong one: refine the best distinct candidates on the coarse level (by the score, and the
     # cheapest few), then the best of those through the pyramid
     picked = _pick_distinct(score, cands, candidates)
     picked = _pick_distinct(mean_cost, cands, candidates + max(1, candidates // 4), picked)
-    if not picked:  # no rotation near the guesses keeps MIN_OVERLAP of the frame in view: the pair does not match
+    if not picked:  # no rotation near the guesses keeps min_overlap of the frame in view: the pair does not match
         return DirectPair(i, j, np.asarray(starts[0]), 0.0, math.inf, 0.0)
     # successive halving: refine the survivors on each level, keep the best by the score and the
     # cheapest: the score (evidence over frame i's texture) favours a larger overlap, where a
@@ -284,25 +257,26 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
     # is what the right turn brings down to the noise
     R = torch.from_numpy(np.stack([_nearest_rotation(x) for x in cands[picked].double().numpy()]))
     g = g[picked].double()
-    keep_counts = [min(n, candidates) for n in SURVIVORS[: len(levels)]] + [1] * max(0, len(levels) - len(SURVIVORS))
+    survivors = _knobs().survivors
+    keep_counts = [min(n, candidates) for n in survivors[: len(levels)]] + [1] * max(0, len(levels) - len(survivors))
     with torch.no_grad():
         for n, (lev, keep) in enumerate(zip(levels, keep_counts)):
             # a finer grid around each survivor: the coarse level's minima can sit a few degrees off
             if n == 1 and search:
-                R = torch.cat([_search_grid(x.numpy(), LOCAL_SPAN_DEG, LOCAL_STEP_DEG) for x in R])
+                R = torch.cat([_search_grid(x.numpy(), _knobs().local_span_deg, _knobs().local_step_deg) for x in R])
                 g, r, w = _gain_estimate(lev, R)
-                best = _survivors(r, w, lev.texture, LOCAL_CANDIDATES, R)
+                best = _survivors(r, w, lev.texture, _knobs().local_candidates, R)
                 R, g = R[best], g[best]
-            R, g = _refine(lev, R, g, GN_ITERATIONS[min(n, len(GN_ITERATIONS) - 1)])
+            R, g = _refine(lev, R, g, _knobs().gn_iterations[min(n, len(_knobs().gn_iterations) - 1)])
             r, w = lev.residuals(R, g)
             order = _survivors(r, w, lev.texture, keep, R)
             R, g, r, w = R[order], g[order], r[order], w[order]
     overlap = w.mean(1)
     cost = (_robust(r) * w).sum(1) / w.sum(1).clamp_min(1.0)
     score = _score(r, w, levels[-1].texture)
-    # the cheapest survivor that keeps MIN_OVERLAP of the frame in view
+    # the cheapest survivor that keeps tracking.direct.min_overlap of the frame in view
     for c in sorted(range(R.shape[0]), key=lambda c: float(cost[c])):
-        if float(overlap[c]) >= MIN_OVERLAP:
+        if float(overlap[c]) >= _knobs().min_overlap:
             Rc = R[c]
             return DirectPair(
                 i,
@@ -319,9 +293,9 @@ def align_pair(li: torch.Tensor, vi: torch.Tensor, lj: torch.Tensor, vj: torch.T
 
 def _pick_distinct(ranking: torch.Tensor, R: torch.Tensor, quota: int, picked: list[int] | None = None) -> list[int]:
     """`picked` extended, best `ranking` first (finite values only), by candidates whose rotations
-    R [S, 3, 3] are more than SEARCH_STEP_DEG from every one picked, until `quota` are picked."""
+    R [S, 3, 3] are more than tracking.direct.search_step_deg from every one picked, until `quota` are picked."""
     picked = list(picked or [])
-    cos_min = math.cos(math.radians(SEARCH_STEP_DEG + 1e-6))
+    cos_min = math.cos(math.radians(_knobs().search_step_deg + 1e-6))
 
     def far(q: int) -> torch.Tensor:  # [S]: the angle to candidate q above the step (trace of R_q^T R)
         return ((R * R[q]).sum((1, 2)) - 1.0) / 2.0 < cos_min
@@ -340,16 +314,16 @@ def _pick_distinct(ranking: torch.Tensor, R: torch.Tensor, quota: int, picked: l
 
 def _survivors(r: torch.Tensor, w: torch.Tensor, texture: torch.Tensor, keep: int, R: torch.Tensor) -> torch.Tensor:
     """Indices of the `keep` best-scored distinct candidates (`_score`; rotations R [S, 3, 3] more
-    than SEARCH_STEP_DEG apart), plus the cheapest one (mean robust residual over an overlap of at
-    least MIN_OVERLAP) when it is not among them. Distinct: the finer grid round each survivor
-    puts many near-copies of one basin at the top, and keeping only those would drop the right
-    turn when a wrong basin scores a little better on a coarse level (a studio's curtain, whose
-    stripes repeat along the turn: studio_small_05's room scan, bench/README.md section 9)."""
+    than tracking.direct.search_step_deg apart), plus the cheapest one (mean robust residual over
+    an overlap of at least tracking.direct.min_overlap) when it is not among them. Distinct: the
+    finer grid round each survivor puts many near-copies of one basin at the top, and keeping
+    only those would drop the right turn when a wrong basin scores a little better on a coarse
+    level (a texture that repeats along the turn, such as a curtain's stripes)."""
     score = _score(r, w, texture)
     picked = _pick_distinct(score, R, keep)
     order = torch.tensor(picked) if picked else torch.argsort(score)[:keep]
     cost = (_robust(r) * w).sum(1) / w.sum(1).clamp_min(1.0)
-    cost = torch.where(w.mean(1) >= MIN_OVERLAP, cost, torch.full_like(cost, math.inf))
+    cost = torch.where(w.mean(1) >= _knobs().min_overlap, cost, torch.full_like(cost, math.inf))
     cheapest = int(torch.argmin(cost))
     if math.isfinite(float(cost[cheapest])) and cheapest not in order.tolist():
         order = torch.cat([order, torch.tensor([cheapest])])
@@ -359,11 +333,11 @@ def _survivors(r: torch.Tensor, w: torch.Tensor, texture: torch.Tensor, keep: in
 def _information(lev: _Level, R: torch.Tensor, gain: float) -> np.ndarray:
     """Gauss-Newton information [3, 3] of the rotation (a turn about frame j's axes) from the
     overlap's pixels: sum of J J^T / sigma^2 over the inliers (|r| < 3 sigma), sigma the
-    residuals' robust spread (at least MIN_RESIDUAL_SIGMA)."""
+    residuals' robust spread (at least tracking.direct.min_residual_sigma)."""
     # central differences a degree and a half wide: the slope of the cost over the range a wrong
     # registration would be off by, not at the optimum's pixel scale, where smooth shading and
     # compression noise look like information they do not carry
-    step = math.radians(INFO_STEP_DEG)
+    step = math.radians(_knobs().info_step_deg)
     turns = torch.cat([torch.zeros(1, 3), step * torch.eye(3), -step * torch.eye(3)]).double()
     with torch.no_grad():
         rs, ws = lev.residuals(torch.matrix_exp(_skew(turns)) @ R, torch.full((7,), gain, dtype=torch.float64))
@@ -373,7 +347,7 @@ def _information(lev: _Level, R: torch.Tensor, gain: float) -> np.ndarray:
     J = ((rs[1:4] - rs[4:7]) / (2 * step)).T  # [N, 3]
     dg = -torch.exp(torch.tensor(gain, dtype=torch.float64)) * lev.li  # d r / d g
     ins = r[wt > 0]
-    sigma = max(MIN_RESIDUAL_SIGMA, 1.4826 * float((ins - ins.median()).abs().median()))
+    sigma = max(_knobs().min_residual_sigma, 1.4826 * float((ins - ins.median()).abs().median()))
     use = (wt > 0) & (r.abs() < 3 * sigma)
     Ju = torch.cat([J[use], dg[use][:, None]], 1)
     full = (Ju.T @ Ju).numpy() / sigma ** 2
@@ -393,22 +367,22 @@ def _spread(r: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 def _score(r: torch.Tensor, w: torch.Tensor, texture: torch.Tensor) -> torch.Tensor:
     """Per candidate [S] (lower is better): the evidence against it. Each pixel of frame i in the
     overlap counts by its texture (the luma gradient: a blank wall agrees with any rotation and
-    says nothing), for the candidate where its residual is within SCORE_CAP of what noise and a
+    says nothing), for the candidate where its residual is within tracking.direct.score_cap of what noise and a
     fraction of a pixel's misregistration leave there (sqrt(NOISE^2 + (SUBPIXEL x gradient)^2)),
     against it where beyond; the sum over frame i's texture. The right rotation explains what
     the two frames both show, however little that is; a wrong one leaves textured pixels
     unexplained or only overlaps blank ones."""
-    tol2 = (SCORE_CAP ** 2) * (SCORE_NOISE ** 2 + (SCORE_SUBPIXEL * texture[None]) ** 2)
+    tol2 = (_knobs().score_cap ** 2) * (_knobs().score_noise ** 2 + (_knobs().score_subpixel * texture[None]) ** 2)
     explained = (1.0 - r * r / tol2).clamp(min=0.0)
     vote = (w * texture[None] * (1.0 - 2.0 * explained)).sum(1) / texture.sum().clamp_min(1e-12)
-    return torch.where(w.mean(1) >= MIN_OVERLAP, vote, torch.full_like(vote, math.inf))
+    return torch.where(w.mean(1) >= _knobs().min_overlap, vote, torch.full_like(vote, math.inf))
 
 
 def _refine(lev: _Level, R0: torch.Tensor, g0: torch.Tensor, iterations: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Gauss-Newton (iteratively reweighted for the pseudo-Huber cost) over a turn about each of
     the rotations R0 [S, 3, 3] and its log gain g0 [S], all candidates at once on one level; the
     Jacobian by central differences (one batched lookup of 7 probes per candidate), steps of at
-    most MAX_STEP_DEG. Returns (R [S, 3, 3], g [S])."""
+    most tracking.direct.max_step_deg. Returns (R [S, 3, 3], g [S])."""
     S = R0.shape[0]
     step = 1e-3
     probes = torch.cat([torch.zeros(1, 3), step * torch.eye(3), -step * torch.eye(3)]).to(R0.dtype)  # [7, 3]
@@ -422,7 +396,7 @@ def _refine(lev: _Level, R0: torch.Tensor, g0: torch.Tensor, iterations: int) ->
         r0 = r[:, 0]
         J = torch.stack([(r[:, 1 + a] - r[:, 4 + a]) / (2 * step) for a in range(3)]
                         + [-torch.exp(g)[:, None] * lev.li[None]], -1)  # [S, N, 4]
-        irls = common / torch.sqrt(1.0 + (r0 / ROBUST_SCALE) ** 2)
+        irls = common / torch.sqrt(1.0 + (r0 / _knobs().robust_scale) ** 2)
         JtJ = torch.einsum("sn,sna,snb->sab", irls, J, J) + 1e-9 * torch.eye(4, dtype=R.dtype)
         Jtr = torch.einsum("sn,sna,sn->sa", irls, J, r0)
         # a candidate whose system is singular (in single precision the damping above is lost in
@@ -431,7 +405,7 @@ def _refine(lev: _Level, R0: torch.Tensor, g0: torch.Tensor, iterations: int) ->
         delta = torch.where(((info == 0)[:, None] & torch.isfinite(step_)), -step_, torch.zeros_like(step_))  # [S, 4]
         turn = delta[:, :3]
         norm = turn.norm(dim=1, keepdim=True)
-        limit = math.radians(MAX_STEP_DEG)
+        limit = math.radians(_knobs().max_step_deg)
         turn = torch.where(norm > limit, turn * limit / norm.clamp_min(1e-12), turn)
         R = torch.matrix_exp(_skew(turn)) @ R
         g = g + delta[:, 3].clamp(-1.0, 1.0)
@@ -488,15 +462,15 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
         # near the guesses first (a hand-held turn is smooth: the coast is rarely far off, and a
         # hand rolls little), the full grid from every start only when that does not pin the
         # rotation down (a direction change, a jolt)
-        p = align_pair(l[f - 1], v[f - 1], l[f], v[f], k, guesses, f - 1, f, span=NEAR_SPAN_DEG,
-                       candidates=NEAR_CANDIDATES, roll_span=NEAR_ROLL_SPAN_DEG)
+        p = align_pair(l[f - 1], v[f - 1], l[f], v[f], k, guesses, f - 1, f, span=_knobs().near_span_deg,
+                       candidates=_knobs().near_candidates, roll_span=_knobs().near_roll_span_deg)
         usual = float(np.median(costs)) if len(costs) >= 3 else math.inf
-        if not p.trusted or p.cost > NEAR_COST_RATIO * usual:
+        if not p.trusted or p.cost > _knobs().near_cost_ratio * usual:
             # a smooth floor can agree with a wrong turn near a wrong guess (where the scan turns
             # from a tilt into a ring), at a cost well above the clip's usual: the full grid, and
             # the better answer of the two (`_better_of`)
             p = _better_of(p, align_pair(l[f - 1], v[f - 1], l[f], v[f], k, starts, f - 1, f), usual)
-        if p.trusted and p.cost > NEAR_COST_RATIO * usual and p.overlap < WEAK_OVERLAP:
+        if p.trusted and p.cost > _knobs().near_cost_ratio * usual and p.overlap < _knobs().weak_overlap:
             # the full grid gave nothing better either, and the two frames barely overlap (a
             # scan's jump between rings): a wrong basin fits a sliver of overlap as cheaply as the
             # right one, so the pair places nothing; the loop closures will
@@ -510,11 +484,13 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
         R[f] = _nearest_rotation(R[f - 1] @ step.T)  # bearing_f = step bearing_{f-1}: R_f = R_{f-1} step^T
     chained = [p.j for p in pairs if p.trusted]
     axes = {f: R[f] @ np.array([0.0, 0.0, -1.0]) for f in R}
-    loops = [(a, b) for a in range(T) for b in range(a + LOOP_MIN_GAP, T)
-             if math.degrees(math.acos(float(np.clip(axes[a] @ axes[b], -1, 1)))) <= LOOP_MAX_AXIS_DEG][:MAX_LOOP_PAIRS]
+    knobs = _knobs()
+    loops = [(a, b) for a in range(T) for b in range(a + knobs.loop_min_gap, T)
+             if math.degrees(math.acos(float(np.clip(axes[a] @ axes[b], -1, 1)))) <= knobs.loop_max_axis_deg]
+    loops = loops[:knobs.max_loop_pairs]
     for a, b in loops:
-        pairs.append(align_pair(l[a], v[a], l[b], v[b], k, [R[b].T @ R[a]], a, b, span=LOOP_SPAN_DEG,
-                                candidates=NEAR_CANDIDATES, roll_span=NEAR_ROLL_SPAN_DEG))
+        pairs.append(align_pair(l[a], v[a], l[b], v[b], k, [R[b].T @ R[a]], a, b, span=_knobs().loop_span_deg,
+                                candidates=_knobs().near_candidates, roll_span=_knobs().near_roll_span_deg))
     matched = [p for p in pairs if p.matched]
     # the track starts at the first frame of the largest set that trusted pairs connect: a first
     # frame no trusted pair reaches (a blank wall, a pair matched 45 deg off) would otherwise set
@@ -541,15 +517,15 @@ def track_rotation_direct(frames: torch.Tensor, k: Intrinsics, feature_pairs: di
 
 def _better_of(near: DirectPair, full: DirectPair, usual: float) -> DirectPair:
     """A consecutive pair's answer near its guesses or from the full grid (searched where the near
-    one costs over NEAR_COST_RATIO x the clip's `usual` pair cost, or is not trusted): the full
+    one costs over tracking.direct.near_cost_ratio x the clip's `usual` pair cost, or is not trusted): the full
     grid's where the near one is not trusted, or where it is trusted and cheaper, and either fits
     as well as the clip's usual pair or explains at least as much of frame i's texture
     (`DirectPair.score`). Neither test alone decides: where a scan jumps between rings the right
     turn overlaps little and a smooth wall half-agrees with a wrong one over more of the frame
-    (st_fagans_interior: the right turn at 0.3x the usual cost explains 40 % of the texture, the
-    wrong near one at 3x explains 68 %), and a wrong basin keeping a sliver of blank overlap is
-    cheaper than a right turn that fits worse than usual (neon_photostudio: 95 deg off at 2.8x
-    the usual cost explains 2 % of the texture; the right turn at 5.8x explains 55 %)."""
+    (a right turn at 0.3x the usual cost may explain 40 % of the texture where the wrong near
+    one at 3x explains 68 %), and a wrong basin keeping a sliver of blank overlap is cheaper
+    than a right turn that fits worse than usual (95 deg off at 2.8x the usual cost explaining
+    2 % of the texture, where the right turn at 5.8x explains 55 %)."""
     if not near.trusted:
         return full
     if full.trusted and full.cost < near.cost and (full.cost <= usual or full.score <= near.score):
@@ -609,7 +585,7 @@ def _average_rotations(T: int, pairs: list[DirectPair], init: dict[int, np.ndarr
                        fit_focal: bool = False) -> tuple[np.ndarray, float, float]:
     """c2w rotations [T, 3, 3] (frame 0 fixed at I) minimising, robustly, each pair's disagreement
     e_ij = rotvec(R_j^T R_i meas_ij^T) weighted by its information (e^T info e), plus a motion
-    prior: consecutive turns differ by about MOTION_SIGMA_DEG (what keeps frames that no pair
+    prior: consecutive turns differ by about tracking.direct.motion_sigma_deg (what keeps frames that no pair
     fixes on the camera's path). Returns (rotations, focal scale, robust cost).
 
     `fit_focal`: also fit s = f / f_true, the error of the focal length f the pairs were registered
@@ -624,7 +600,7 @@ def _average_rotations(T: int, pairs: list[DirectPair], init: dict[int, np.ndarr
     meas_vec = matrix_to_rotvec(np.stack([p.R for p in pairs])) if pairs else np.zeros((0, 3))
     ia, ib = np.array([p.i for p in pairs], int), np.array([p.j for p in pairs], int)
     L = np.stack([_sqrt_info(p.info) for p in pairs]) if pairs else np.zeros((0, 3, 3))
-    prior = 1.0 / math.radians(MOTION_SIGMA_DEG)
+    prior = 1.0 / math.radians(_knobs().motion_sigma_deg)
     n_rot = 3 * (T - 1)
 
     def rots(x):
@@ -659,7 +635,7 @@ def _average_rotations(T: int, pairs: list[DirectPair], init: dict[int, np.ndarr
     bounds = (-np.inf, np.inf)
     if fit_focal:  # log s within the range of focal errors a phone's assumed field of view makes
         lo, hi = np.full(x0.size, -np.inf), np.full(x0.size, np.inf)
-        lo[n_rot], hi[n_rot] = -MAX_LOG_FOCAL_SCALE, MAX_LOG_FOCAL_SCALE
+        lo[n_rot], hi[n_rot] = -_knobs().max_log_focal_scale, _knobs().max_log_focal_scale
         bounds = (lo, hi)
     sol = least_squares(residuals, x0, jac_sparsity=sparsity, loss="soft_l1", f_scale=3.0, max_nfev=100,
                         bounds=bounds)
@@ -670,12 +646,12 @@ def _self_calibrate(T: int, pairs: list[DirectPair], init: dict[int, np.ndarray]
     """(rotations, focal scale s, stats): the averaging with the focal scale fitted, kept when it
     explains the pairs better than the focal they were registered with by more than one free
     parameter does by chance (the drop in robust cost over the fitted cost per degree of freedom
-    beyond FOCAL_FIT_CHI2, the chi-square of one parameter at p = 0.001); else s = 1."""
+    beyond tracking.direct.focal_fit_chi2, the chi-square of one parameter at p = 0.001); else s = 1."""
     fixed, _, cost_fixed = _average_rotations(T, pairs, init)
     fitted, s, cost_fit = _average_rotations(T, pairs, init, fit_focal=True)
     dof = max(1, 3 * len(pairs) - 3 * (T - 1) - 1)
     gain = (cost_fixed - cost_fit) / max(cost_fit / dof, 1e-12)
-    keep = gain > FOCAL_FIT_CHI2
+    keep = gain > _knobs().focal_fit_chi2
     stats = {"focal_scale_fitted": round(s, 5), "focal_fit_gain": round(gain, 2), "focal_scale_applied": keep}
     return (fitted, s, stats) if keep else (fixed, 1.0, stats)
 

@@ -2,7 +2,7 @@
 
 Keypoints are returned in OUR continuous pixel coordinates (core.conventions: the centre of
 pixel (r, c) is (c + 0.5, r + 0.5)); OpenCV puts pixel centres at integers, hence the + 0.5.
-Frames are tracked at an analysis resolution (long side <= ANALYSIS_MAX_SIDE), so the cost
+Frames are tracked at an analysis resolution (long side <= tracking.features.analysis_max_side), so the cost
 of tracking does not grow with the input's resolution.
 """
 from __future__ import annotations
@@ -14,15 +14,7 @@ import numpy as np
 import torch
 
 from core.camera import Intrinsics
-
-ANALYSIS_MAX_SIDE = 480
-MAX_FEATURES = 1500
-RATIO = 0.8
-# SIFT's contrast threshold, lowered for low-texture frames (a plain wall, a dim studio) until
-# MIN_FEATURES are found: weak features are only kept when strong ones are missing, and matching
-# (mutual ratio test, then RANSAC) discards what noise they add.
-CONTRAST_THRESHOLDS = (0.02, 0.01, 0.005)
-MIN_FEATURES = 150
+from core.tracking.config import tracking_config
 
 
 @dataclass(frozen=True)
@@ -47,10 +39,11 @@ class PairMatches:
         return int(self.xi.shape[0])
 
 
-def analysis_frames(frames: torch.Tensor, intrinsics: Intrinsics, max_side: int = ANALYSIS_MAX_SIDE
+def analysis_frames(frames: torch.Tensor, intrinsics: Intrinsics, max_side: int | None = None
                     ) -> tuple[list[np.ndarray], Intrinsics]:
     """LDR frames [T, H, W, 3] in [0, 1] -> uint8 grey images at the analysis resolution, and
     the intrinsics at that resolution."""
+    max_side = tracking_config().features.analysis_max_side if max_side is None else max_side
     T, H, W, _ = frames.shape
     s = min(1.0, max_side / max(H, W))
     w, h = max(8, round(W * s)), max(8, round(H * s))
@@ -61,10 +54,13 @@ def analysis_frames(frames: torch.Tensor, intrinsics: Intrinsics, max_side: int 
     return images, intrinsics.scaled(w, h)
 
 
-def extract(image: np.ndarray, max_features: int = MAX_FEATURES) -> FrameFeatures:
-    for threshold in CONTRAST_THRESHOLDS:
+def extract(image: np.ndarray, max_features: int | None = None) -> FrameFeatures:
+    """SIFT at the strongest contrast threshold that finds `min_features` (tracking.features)."""
+    cfg = tracking_config().features
+    max_features = cfg.max_features if max_features is None else max_features
+    for threshold in cfg.contrast_thresholds:
         kps, desc = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=threshold).detectAndCompute(image, None)
-        if len(kps) >= MIN_FEATURES:
+        if len(kps) >= cfg.min_features:
             break
     if desc is None or not kps:
         return FrameFeatures(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
@@ -79,8 +75,9 @@ def _ratio_matches(a: np.ndarray, b: np.ndarray, ratio: float) -> dict[int, int]
     return {m[0].queryIdx: m[0].trainIdx for m in knn if len(m) == 2 and m[0].distance < ratio * m[1].distance}
 
 
-def match(fa: FrameFeatures, fb: FrameFeatures, i: int, j: int, ratio: float = RATIO) -> PairMatches:
+def match(fa: FrameFeatures, fb: FrameFeatures, i: int, j: int, ratio: float | None = None) -> PairMatches:
     """Mutual nearest neighbours that also pass Lowe's ratio test both ways."""
+    ratio = tracking_config().features.ratio if ratio is None else ratio
     ab = _ratio_matches(fa.descriptors, fb.descriptors, ratio)
     ba = _ratio_matches(fb.descriptors, fa.descriptors, ratio)
     pairs = [(q, t) for q, t in ab.items() if ba.get(t) == q]

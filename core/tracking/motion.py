@@ -2,7 +2,7 @@
 
 Statistic (docs/engine.md, "Camera tracking"):
 1. SIFT features per frame at the analysis resolution (core.tracking.features).
-2. The reference is the first frame that matches its successor (at least MIN_MATCHES mutual
+2. The reference is the first frame that matches its successor (at least tracking.motion.min_matches mutual
    ratio-test matches): frame 0 unless it is dark, blurred or cut; frames before it are listed
    as without matches. For every later frame t, the MEDIAN displacement of the features
    matched between the reference and frame t. The median ignores a
@@ -16,7 +16,7 @@ Statistic (docs/engine.md, "Camera tracking"):
    frame t - 1 (displacement(t - 1) + median displacement between t - 1 and t).
    Frames with too few matches either way (dark, blurred, a cut) are left out and listed.
 3. statistic = max over frames of that displacement / image width (resolution-free).
-4. threshold = max(MIN_MOTION_FRACTION, K_SIGMA x the keypoint noise), the noise being the
+4. threshold = max(min_motion_fraction, k_sigma x the keypoint noise), the noise being the
    smallest over frames of the robust spread (1.4826 MAD) of the features' residuals after a
    RANSAC homography between the two frames (localisation noise; the smallest because
    parallax adds to the residual of later frames of a moving camera).
@@ -29,13 +29,8 @@ from dataclasses import asdict, dataclass, field
 import cv2
 import numpy as np
 
+from core.tracking.config import tracking_config
 from core.tracking.features import FrameFeatures, match
-
-MIN_MATCHES = 12
-MIN_MOTION_FRACTION = 0.004  # 0.4 % of the width: ~1.3 px at 320 px, ~0.25 deg at 60 deg FOV
-K_SIGMA = 4.0
-STILL_PX = 0.5  # a feature that moved less than this (analysis pixels) stayed put
-STILL_MIN = 6  # that many matches staying put mean a still camera (_still_median)
 
 
 @dataclass(frozen=True)
@@ -51,13 +46,14 @@ class MotionDecision:
 
 
 def _still_median(xi: np.ndarray, xj: np.ndarray) -> float | None:
-    """The median displacement of the matches that stayed within STILL_PX, where at least
-    STILL_MIN did (else None): a moving camera moves every feature of the room, so features that
+    """The median displacement of the matches that stayed within still_px, where at least
+    still_min did (else None): a moving camera moves every feature of the room, so features that
     stayed put are the room behind something moving through the view (a person whose features
     can outnumber a plain wall's), not a camera that moved."""
     norms = np.linalg.norm(xj - xi, axis=1)
-    still = norms < STILL_PX
-    return float(np.median(norms[still])) if still.sum() >= STILL_MIN else None
+    cfg = tracking_config().motion
+    still = norms < cfg.still_px
+    return float(np.median(norms[still])) if still.sum() >= cfg.still_min else None
 
 
 def _median_displacement(xi: np.ndarray, xj: np.ndarray) -> tuple[float, float]:
@@ -74,13 +70,14 @@ def _median_displacement(xi: np.ndarray, xj: np.ndarray) -> tuple[float, float]:
 
 def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
     """Decide from per-frame features (analysis resolution, `width` pixels wide)."""
+    cfg = tracking_config().motion
     T = len(features)
     if T < 2:
         return MotionDecision(False, 0.0, 0.0, "single frame: camera treated as static", {"frames": T})
     ref, first = 0, None
     for t in range(T - 1):  # the reference: the first frame that matches its successor
         first = match(features[t], features[t + 1], t, t + 1)
-        if len(first) >= MIN_MATCHES:
+        if len(first) >= cfg.min_matches:
             ref = t
             break
     else:
@@ -91,7 +88,7 @@ def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
     for t in range(ref + 1, T):
         m = first if t == ref + 1 and first is not None else match(features[ref], features[t], ref, t)
         matches[t] = len(m)
-        if len(m) >= MIN_MATCHES:
+        if len(m) >= cfg.min_matches:
             disp[t], s = _median_displacement(m.xi, m.xj)
             noise.append(s)
             continue
@@ -100,7 +97,7 @@ def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
             disp[t] = still
             continue
         prev = match(features[t - 1], features[t], t - 1, t)
-        if len(prev) >= MIN_MATCHES and np.isfinite(disp[t - 1]):
+        if len(prev) >= cfg.min_matches and np.isfinite(disp[t - 1]):
             step, s = _median_displacement(prev.xi, prev.xj)
             disp[t] = disp[t - 1] + step
             noise.append(s)
@@ -123,7 +120,7 @@ def detect_motion(features: list[FrameFeatures], width: int) -> MotionDecision:
     stat = float(finite.max()) / width
     noise = [n for n in noise if np.isfinite(n)]
     sigma = float(min(noise)) / width if noise else 0.0
-    thr = max(MIN_MOTION_FRACTION, K_SIGMA * sigma)
+    thr = max(cfg.min_motion_fraction, cfg.k_sigma * sigma)
     evidence["keypoint_noise_px"] = round(sigma * width, 4)
     moving = stat > thr
     worst = int(np.nanargmax(disp))

@@ -3,7 +3,7 @@
 With a camera that only turns, two views are related by the homography K R K⁻¹, so the
 matched bearings b of frames i and j satisfy b_j = R_jᵀ R_i b_i with the c2w rotations R:
 1. every scheduled pair: a relative rotation from matched bearings (2-point Kabsch inside
-   RANSAC; inlier threshold INLIER_PX reprojected);
+   RANSAC; inlier threshold tracking.rotation.inlier_px reprojected);
 2. initial rotations grown frame by frame over the largest set of frames the pairs connect,
    from its first frame (R = I there: world = the first kept camera frame), each frame placed
    where most of its pairs with the placed frames agree (`_consensus_tree`; every pair offers
@@ -11,7 +11,7 @@ matched bearings b of frames i and j satisfy b_j = R_jᵀ R_i b_i with the c2w r
    walking through the view, whose features agree with each other, is outvoted by the room);
 3. a small bundle adjustment (Brown & Lowe's panorama formulation: symmetric transfer error
    of every inlier match through the two rotations; scipy least_squares with the Jacobian's
-   sparsity, twice: all RANSAC inliers, then those within INLIER_PX of the first solution —
+   sparsity, twice: all RANSAC inliers, then those within tracking.rotation.inlier_px of the first solution —
    a Huber loss converged ~10x slower in scipy's trust region for the same answer), optionally refining the focal length
    too (self-calibration: a pan of
    more than ~15 deg fixes it), and with a rolling shutter (`readout`, below).
@@ -25,7 +25,7 @@ Exp(w tau) R, with w the frame's angular velocity from its neighbours' rotations
 turn over one frame). The row that sees a match is dated where the model predicts it: dating it
 where the match was found let the noise push the readout up. A global shutter fits r = 0; the
 rotations are the cameras at the frames' centre rows. The readout is fitted from the
-global-shutter solution, on clips that one leaves close to a pan (ROLLING_MAX_RATIO), and only
+global-shutter solution, on clips that one leaves close to a pan (tracking.rotation.rolling_max_ratio), and only
 along the short side: a free readout along the long side of a landscape pan traded with the
 focal length in trials on dev pans and made the rotations worse.
 """
@@ -43,46 +43,13 @@ from scipy.spatial.transform import Rotation
 
 from core.camera import Intrinsics
 from core.conventions import sensor_readout_direction
+from core.tracking.config import RotationConfig, tracking_config
 from core.tracking.features import PairMatches
 from core.tracking.geometry import bearings, kabsch, matrix_to_rotvec, project, rotation_angle_deg, rotvec_to_matrix
 
-INLIER_PX = 2.0
-# MIN_INLIERS consistent matches make a pair: an outlier lands within INLIER_PX of where a
-# 3-parameter rotation puts it with a chance of about 2e-4 at 320 px, so ten agreeing by chance
-# does not happen. Dim, noisy pans match 10-60 features a pair (counted once on the dev clips of
-# bench/handheld.py `dim`); at 15 their pairs fell apart. Tried on the dev `dim` clips and not
-# kept (one-off runs): a looser pair threshold (4 px, for the shear) kept more frames but made
-# the rotations worse, and matches guided by the frames' phase-correlation shift added few true
-# matches there and made the noisy portrait pans' rotations worse (0.83 -> 1.05 deg,
-# 0.95 -> 1.22 deg).
-MIN_INLIERS = 10
-ESSENTIAL_MIN_INLIERS = 15  # five parameters, fitted to the noise of a pure rotation: more matches
-RANSAC_ITERATIONS = 200
-# A pair's candidate rotations (relative_rotations): the room's and, where something moves
-# through the view, theirs. Candidates within CONSENSUS_DEG are one vote for a frame's rotation
-# (_consensus_tree: 1 deg is 2.7 px at 160 px and 60 deg, above INLIER_PX, while a passer-by
-# crossing a pan moves several degrees a frame against the room); a pair's candidate is used if
-# within AGREE_DEG of the placed rotations (_agreeing; the bundle adjustment refines from there).
-PAIR_HYPOTHESES = 2
-CONSENSUS_DEG = 1.0
-AGREE_DEG = 3.0
-BA_ROUNDS = 2
-MAX_PAIR_OBSERVATIONS = 150
-# The rotation model explains the motion when at least FIT_INLIER_SHARE of the matches are its
-# inliers and its median residual is within FIT_RATIO of an essential matrix's on the same
-# matches (parallax raises only the former), or below FIT_FLOOR_PX (pixels at the analysis
-# resolution: translation too small to matter). Measured on panorama-room clips: pans 1.1-1.3x
-# (H.264 included), a 1.3 m walk 4.8-10x.
-FIT_RATIO = 2.0
-FIT_FLOOR_PX = 0.3
-FIT_INLIER_SHARE = 0.6
-# |readout| in frame intervals: a sensor cannot take longer to read out than a frame.
-MAX_READOUT = 1.0
-# The rolling shutter is fitted where the global-shutter rotations leave at most this many times
-# the essential matrix's residual: a rolling shutter with blur and noise raised the handheld pans
-# to 3.0 (bench/results/handheld/ before the readout was modelled), a walk's parallax scores
-# 4.8-10; on a walk the readout only ran to its bound, at many times the bundle adjustment's cost.
-ROLLING_MAX_RATIO = 4.0
+
+def _knobs() -> RotationConfig:
+    return tracking_config().rotation
 
 
 @dataclass
@@ -122,8 +89,8 @@ class RotationTrack:
 
     @property
     def fits(self) -> bool:
-        explained = self.parallax_px <= max(FIT_FLOOR_PX, FIT_RATIO * self.epipolar_px)
-        return explained and self.inlier_share >= FIT_INLIER_SHARE
+        explained = self.parallax_px <= max(_knobs().fit_floor_px, _knobs().fit_ratio * self.epipolar_px)
+        return explained and self.inlier_share >= _knobs().fit_inlier_share
 
 
 def _batched_kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -142,43 +109,43 @@ def relative_rotations(m: PairMatches, k: Intrinsics, seed: int = 0) -> list[Rel
     features one way and the room's another: where they carry more features than the room, the
     first candidate is theirs and the room's is the second. Which one is the camera's is decided
     across pairs (`_consensus_tree`)."""
-    if len(m) < MIN_INLIERS:
+    if len(m) < _knobs().min_inliers:
         return []
     bi, bj = bearings(m.xi, k), bearings(m.xj, k)
     rng = np.random.default_rng(seed)
     out, free = [], np.ones(len(bi), dtype=bool)
-    for _ in range(PAIR_HYPOTHESES):
-        found = _ransac_rotation(bi, bj, free, rng, INLIER_PX / k.fx)  # angle (radians) ~ pixels / focal
+    for _ in range(_knobs().pair_hypotheses):
+        found = _ransac_rotation(bi, bj, free, rng, _knobs().inlier_px / k.fx)  # angle (radians) ~ pixels / focal
         if found is None:
             break
         R, best = found
         keep = np.flatnonzero(best)
-        if len(keep) > MAX_PAIR_OBSERVATIONS:  # enough to constrain 6 numbers; bounds the BA's cost
-            keep = keep[np.linspace(0, len(keep) - 1, MAX_PAIR_OBSERVATIONS).round().astype(int)]
+        if len(keep) > _knobs().max_pair_observations:  # enough to constrain 6 numbers; bounds the BA's cost
+            keep = keep[np.linspace(0, len(keep) - 1, _knobs().max_pair_observations).round().astype(int)]
         out.append(RelativeRotation(m.i, m.j, R, m.xi[keep], m.xj[keep], len(m)))
         free &= ~best
-        if free.sum() < MIN_INLIERS:
+        if free.sum() < _knobs().min_inliers:
             break
     return out
 
 
 def _ransac_rotation(bi: np.ndarray, bj: np.ndarray, usable: np.ndarray, rng, thr: float):
     """(R, inliers [N] among `usable`) of the rotation the most usable bearings agree on (2-point
-    Kabsch inside RANSAC, refitted twice), or None with fewer than MIN_INLIERS."""
+    Kabsch inside RANSAC, refitted twice), or None with fewer than tracking.rotation.min_inliers."""
     idx = np.flatnonzero(usable)
-    if len(idx) < MIN_INLIERS:
+    if len(idx) < _knobs().min_inliers:
         return None
-    samples = idx[np.stack([rng.choice(len(idx), 2, replace=False) for _ in range(RANSAC_ITERATIONS)])]
+    samples = idx[np.stack([rng.choice(len(idx), 2, replace=False) for _ in range(_knobs().ransac_iterations)])]
     hyp = _batched_kabsch(bi[samples], bj[samples])  # [S, 3, 3]
     err = np.linalg.norm(bj[None] - np.einsum("sij,nj->sni", hyp, bi), axis=-1)
     ok = (err < thr) & usable[None]
     best = ok[int(ok.sum(1).argmax())]
-    if best.sum() < MIN_INLIERS:
+    if best.sum() < _knobs().min_inliers:
         return None
     for _ in range(2):  # refit on inliers, re-select
         R = kabsch(bi[best], bj[best])
         best = (np.linalg.norm(bj - bi @ R.T, axis=1) < thr) & usable
-    if best.sum() < MIN_INLIERS:
+    if best.sum() < _knobs().min_inliers:
         return None
     return R, best
 
@@ -199,7 +166,7 @@ def _consensus_tree(n: int, rel: list[RelativeRotation]) -> tuple[dict[int, np.n
     """Initial rotations, grown frame by frame from the root (`_root`, R = I there). Each frame
     not yet placed that shares pairs with the placed ones gets one candidate rotation per
     candidate of those pairs; a candidate's support is the number of those pairs with a
-    candidate within CONSENSUS_DEG of it. The frame and candidate with the most support is
+    candidate within tracking.rotation.consensus_deg of it. The frame and candidate with the most support is
     placed next (ties: a frame next to two placed ones, with the candidate nearest
     `_coasting`'s rotation; else the candidate nearest those that agree with it). Something
     moving through the view agrees with itself only over the frames it is in, while the room
@@ -224,7 +191,7 @@ def _consensus_tree(n: int, rel: list[RelativeRotation]) -> tuple[dict[int, np.n
             pair = np.array([r.i * n + r.j for r, _ in placed])
             cos = np.clip((np.einsum("aij,bij->ab", cands, cands) - 1.0) / 2.0, -1.0, 1.0)
             angle = np.degrees(np.arccos(cos))
-            close = angle <= CONSENSUS_DEG
+            close = angle <= _knobs().consensus_deg
             coasting = _coasting(R, f)
             for a in range(len(placed)):
                 # the most pairs agreeing, then the candidate nearest the camera coasting on from
@@ -255,13 +222,13 @@ def _coasting(R: dict[int, np.ndarray], f: int) -> np.ndarray | None:
 
 def _agreeing(rel: list[RelativeRotation], R: dict[int, np.ndarray]) -> list[RelativeRotation]:
     """Per pair between placed frames, the candidate closest to what the placed rotations say,
-    if within AGREE_DEG (a pair none of whose candidates agrees is left out)."""
+    if within tracking.rotation.agree_deg (a pair none of whose candidates agrees is left out)."""
     chosen: dict[tuple[int, int], tuple[float, RelativeRotation]] = {}
     for r in rel:
         if r.i not in R or r.j not in R:
             continue
         off = rotation_angle_deg((R[r.j].T @ R[r.i]).T @ r.R)
-        if off <= AGREE_DEG and ((r.i, r.j) not in chosen or off < chosen[(r.i, r.j)][0]):
+        if off <= _knobs().agree_deg and ((r.i, r.j) not in chosen or off < chosen[(r.i, r.j)][0]):
             chosen[(r.i, r.j)] = (off, r)
     return [r for _, r in chosen.values()]
 
@@ -358,7 +325,7 @@ def _sparsity(obs: _Observations, n_kept: int, refine_focal: bool, rolling: bool
 def estimate_rotations(pairs: list[PairMatches], n_frames: int, k: Intrinsics, refine_focal: bool = False,
                        max_nfev: int = 30, rolling_shutter: bool = True) -> RotationTrack:
     """Rotations of a pan's frames (module docstring): a global shutter first, then, from it, the
-    rolling shutter where the motion is a pan at all (ROLLING_MAX_RATIO); `rolling_shutter=False`
+    rolling shutter where the motion is a pan at all (tracking.rotation.rolling_max_ratio); `rolling_shutter=False`
     stops at the global one."""
     rel = [r for m in pairs for r in relative_rotations(m, k, seed=m.i * 1000 + m.j)]
     init, dropped = _consensus_tree(n_frames, rel)
@@ -372,7 +339,7 @@ def estimate_rotations(pairs: list[PairMatches], n_frames: int, k: Intrinsics, r
     essential = essential_evidence(pairs, k)
     track, x = _adjust(x0, kept, dropped, rel, k, refine_focal, False, max_nfev)
     track.parallax_px, track.epipolar_px = parallax_evidence(essential, track, k)
-    if not (rolling_shutter and len(kept) > 2 and track.parallax_px <= ROLLING_MAX_RATIO * track.epipolar_px):
+    if not (rolling_shutter and len(kept) > 2 and track.parallax_px <= _knobs().rolling_max_ratio * track.epipolar_px):
         return track  # two frames have no angular velocity to shear by; a walk is no pan either way
     x1 = np.r_[x[: 3 * (len(kept) - 1)], 0.0, x[3 * (len(kept) - 1):]]  # readout 0 before the focal
     rolling, _ = _adjust(x1, kept, dropped, rel, k, refine_focal, True, max_nfev)
@@ -389,10 +356,10 @@ def _adjust(x0: np.ndarray, kept: list[int], dropped: list[int], rel: list[Relat
     frames = np.asarray(kept)
     lower, upper = np.full(len(x0), -np.inf), np.full(len(x0), np.inf)
     if rolling:
-        lower[3 * (len(kept) - 1)], upper[3 * (len(kept) - 1)] = -MAX_READOUT, MAX_READOUT
+        lower[3 * (len(kept) - 1)], upper[3 * (len(kept) - 1)] = -_knobs().max_readout, _knobs().max_readout
     obs = _Observations.build(kept, rel)
     x, nfev = x0, 0
-    for _ in range(BA_ROUNDS):  # least squares on the inliers, re-select, again
+    for _ in range(_knobs().ba_rounds):  # least squares on the inliers, re-select, again
         sol = least_squares(
             _residuals,
             x,
@@ -403,13 +370,13 @@ def _adjust(x0: np.ndarray, kept: list[int], dropped: list[int], rel: list[Relat
             args=(obs, frames, k, refine_focal, rolling, direction),
         )
         x, nfev = sol.x, nfev + sol.nfev
-        keep = np.linalg.norm(sol.fun.reshape(-1, 2), axis=1) < INLIER_PX
-        if keep.all() or keep.sum() < MIN_INLIERS:
+        keep = np.linalg.norm(sol.fun.reshape(-1, 2), axis=1) < _knobs().inlier_px
+        if keep.all() or keep.sum() < _knobs().min_inliers:
             break
         obs = _Observations(obs.xa[keep], obs.xb[keep], obs.a[keep], obs.b[keep])
     err = np.linalg.norm(_residuals(x, _Observations.build(kept, rel), frames, k, refine_focal, rolling, direction)
                          .reshape(-1, 2), axis=1)
-    inl = err < INLIER_PX
+    inl = err < _knobs().inlier_px
     rots, focal, readout = _unpack(x, len(kept), k, refine_focal, rolling)
     track = RotationTrack(
         rotations=rots, kept=kept, dropped=dropped, focal=focal or k.fx,
@@ -448,15 +415,15 @@ def essential_evidence(pairs: list[PairMatches], k: Intrinsics) -> list[Essentia
     global and the rolling-shutter track are both compared with them)."""
     out = []
     for m in pairs:
-        if len(m) < ESSENTIAL_MIN_INLIERS:
+        if len(m) < _knobs().essential_min_inliers:
             continue
         a = np.stack(((m.xi[:, 0] - k.cx) / k.fx, (m.xi[:, 1] - k.cy) / k.fy), 1)
         b = np.stack(((m.xj[:, 0] - k.cx) / k.fx, (m.xj[:, 1] - k.cy) / k.fy), 1)
-        E, mask = cv2.findEssentialMat(a, b, np.eye(3), cv2.RANSAC, 0.999, INLIER_PX / k.fx)
+        E, mask = cv2.findEssentialMat(a, b, np.eye(3), cv2.RANSAC, 0.999, _knobs().inlier_px / k.fx)
         if E is None or E.shape != (3, 3):
             continue
         inl = mask.ravel() > 0
-        if inl.sum() < ESSENTIAL_MIN_INLIERS:
+        if inl.sum() < _knobs().essential_min_inliers:
             continue
         out.append(EssentialFit(m.i, m.j, m.xi[inl], m.xj[inl], _sampson_px(E, a[inl], b[inl], k.fx)))
     return out

@@ -18,9 +18,8 @@ import torch
 
 from core.camera import Camera, Intrinsics
 from core.conventions import valid_depth_mask
+from core.tracking.config import tracking_config
 from core.tracking.room import ASSUMED_FLOOR_BELOW_M, RoomFitError, assumed_room, fit_room
-
-MIN_DEPTH_SAMPLES = 20
 
 
 @dataclass(frozen=True)
@@ -59,7 +58,7 @@ def scale_from_depth(
         ok = valid_depth_mask(torch.from_numpy(dz)).numpy() & (z > 0)
         ratios.append(dz[ok] / z[ok])
     ratios = np.concatenate(ratios) if ratios else np.zeros(0)
-    if len(ratios) < MIN_DEPTH_SAMPLES:
+    if len(ratios) < tracking_config().geometry.min_depth_samples:
         return None
     s = float(np.median(ratios))
     spread = float(1.4826 * np.median(np.abs(ratios - s)) / s)

@@ -11,10 +11,10 @@ almost alike, and with noisy keypoints a model can trade one for the other, fram
 (dev `dancing_hall` `walk-noisy` turned 0.9 deg a frame too far, 17.7 deg by the last, and
 COLMAP's bundle adjustment, rerun to convergence, stayed there, though the true poses
 reproject its own tracks with half its median error). So the mapper runs from the matches
-once per initial-pair angle in INIT_MIN_TRI_ANGLES_DEG (4 deg lets a phone's small baselines
+once per initial-pair angle in tracking.sfm.init_min_tri_angles_deg (4 deg lets a phone's small baselines
 start; COLMAP's 16 deg suits object scans), and `choose_model` keeps the model that registers
 the most frames; among those, the first start's, unless another reprojects the pooled feature
-tracks of all the models clearly better (`pooled_median_error`, CLEARLY_BETTER). Each model's
+tracks of all the models clearly better (`pooled_median_error`, tracking.sfm.clearly_better). Each model's
 own tracks were pruned to fit its own poses; the pooled ones are a common yardstick. Measured
 in bench/README.md section 7, "Three starts".
 
@@ -42,15 +42,9 @@ import numpy as np
 import torch
 
 from core.camera import Intrinsics
+from core.tracking.config import tracking_config
 from core.tracking.geometry import c2w_to_opencv_w2c, opencv_w2c_to_c2w, relative_to_first
 
-INIT_MIN_TRI_ANGLES_DEG = (4.0, 8.0, 16.0)  # the mapper's starts, the first preferred (module docstring)
-# Another start's model replaces the first's only with a pooled median error this many times the
-# first's or lower: smaller differences went either way on dev walks (bench/README.md section 7).
-CLEARLY_BETTER = 0.9
-EXHAUSTIVE_MAX_FRAMES = 40
-SEQUENTIAL_OVERLAP = 10
-MAX_FEATURES = 2048
 THREADS = 1  # more make every COLMAP stage differ from run to run (module docstring)
 
 
@@ -81,12 +75,12 @@ def run_sfm(images: list[np.ndarray], k: Intrinsics, threads: int = THREADS, see
             starts: tuple[float, ...] | None = None) -> SfMTrack | None:
     """Register grey uint8 `images` (analysis resolution, intrinsics `k`); None if COLMAP
     finds no model with at least two frames. `starts`: the mapper's initial-pair angles
-    (default INIT_MIN_TRI_ANGLES_DEG)."""
+    (default tracking.sfm.init_min_tri_angles_deg)."""
     pycolmap = _pycolmap()
     pycolmap.set_random_seed(seed)
     quiet, pycolmap.logging.minloglevel = pycolmap.logging.minloglevel, 2  # COLMAP logs every step at INFO
     try:
-        return _run(pycolmap, images, k, threads, seed, starts or INIT_MIN_TRI_ANGLES_DEG)
+        return _run(pycolmap, images, k, threads, seed, starts or tracking_config().sfm.init_min_tri_angles_deg)
     finally:
         pycolmap.logging.minloglevel = quiet
 
@@ -106,16 +100,17 @@ def _run(pycolmap, images: list[np.ndarray], k: Intrinsics, threads: int, seed: 
         reader.camera_params = f"{k.fx},{k.fy},{k.cx},{k.cy}"
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.num_threads = threads
-        extraction.sift.max_num_features = MAX_FEATURES
+        cfg = tracking_config().sfm
+        extraction.sift.max_num_features = cfg.max_features
         pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
         matching = pycolmap.FeatureMatchingOptions()
         matching.num_threads = threads
-        if len(images) <= EXHAUSTIVE_MAX_FRAMES:
+        if len(images) <= cfg.exhaustive_max_frames:
             pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
         else:
             pairing = pycolmap.SequentialPairingOptions()
-            pairing.overlap = SEQUENTIAL_OVERLAP
+            pairing.overlap = cfg.sequential_overlap
             pycolmap.match_sequential(
                 db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
             )
@@ -176,7 +171,7 @@ def _track(rec, n_images: int) -> SfMTrack | None:
 
 def choose_model(models: list[SfMTrack], k: Intrinsics) -> SfMTrack | None:
     """The model that registers the most frames; among those the first, unless another has a
-    `pooled_median_error` over every model's tracks CLEARLY_BETTER times the first's or lower
+    `pooled_median_error` over every model's tracks tracking.sfm.clearly_better times the first's or lower
     (module docstring). The candidates are recorded in the chosen model's stats."""
     if not models:
         return None
@@ -185,7 +180,7 @@ def choose_model(models: list[SfMTrack], k: Intrinsics) -> SfMTrack | None:
     errors = [pooled_median_error(m, pool, k) if len(m.kept) == most else math.inf for m in models]
     first = next(n for n, m in enumerate(models) if len(m.kept) == most)
     best = min(range(len(models)), key=lambda n: (errors[n], n))
-    chosen = models[best if errors[best] < CLEARLY_BETTER * errors[first] else first]
+    chosen = models[best if errors[best] < tracking_config().sfm.clearly_better * errors[first] else first]
     chosen.stats["models"] = [{"init_min_tri_angle_deg": m.stats.get("init_min_tri_angle_deg"), "frames": len(m.kept),
                                "pooled_median_px": round(e, 4) if math.isfinite(e) else None}
                               for e, m in zip(errors, models)]

@@ -25,7 +25,8 @@
    smooth walls leave features for few frames): when the features' rotations fit but leave
    frames out, or as the last resort before a static camera, the frames are registered by
    their pixels (core.tracking.direct, `_direct_completion`): kept if that places more frames
-   than the features did and agrees with their rotations within DIRECT_MAX_DISAGREEMENT_DEG.
+   than the features did and agrees with their rotations within
+   tracking.track.direct_max_disagreement_deg.
 6. If every method fails: identity poses, method "failed:static-fallback", and a warning.
    The caller still succeeds (a capture is never refused for being hard to track).
 World = the first kept frame's camera frame (core.conventions). Frames that could not be
@@ -42,6 +43,7 @@ import numpy as np
 import torch
 
 from core.camera import Intrinsics
+from core.tracking.config import TrackConfig, tracking_config
 from core.tracking.direct import track_rotation_direct
 from core.tracking.features import analysis_frames, extract, match, pair_schedule
 from core.tracking.geometry import rotation_angle_deg
@@ -51,21 +53,11 @@ from core.tracking.scale import ScaleEstimate, apply_scale, scale_from_depth, sc
 from core.tracking.sfm import run_sfm
 from core.tracking.twoview import run_two_view
 
-MIN_KEPT_FRACTION = 0.5  # a track that registers fewer frames than this is a failure
-# The rotation track stands in when structure from motion fails (rotation_fallback_ok): it must
-# explain this share of the matches with a median residual within this many pixels (analysis
-# resolution), and may exceed an essential matrix's residual by up to FALLBACK_RATIO. The handheld
-# pans the fallback took (bench/results/handheld/, the rotation model fitting the rolling shutter):
-# inliers 0.95-1.00, medians 0.49-0.82 px, ratios 2.06-2.76, all with blur and noise (before that
-# model, up to 2.99); walks with parallax 4.8-10 (core.tracking.rotation).
-FALLBACK_INLIER_SHARE = 0.9
-FALLBACK_MAX_MEDIAN_PX = 1.0
-FALLBACK_RATIO = 3.0
-# ... or, where nothing else registered the clip, a median residual within this many times the
-# keypoint noise (rotation_fallback_ok): pure noise leaves about 0.7x (1.177 / 1.745: the median
-# of a 2D Gaussian residual over core.tracking.motion's 1.4826 x median after a homography).
-FALLBACK_NOISE_RATIO = 2.0
 SFM_ENV = "LIGHTFIELD_SFM"  # "pycolmap" (default) or "opencv": where pycolmap's wheel is unavailable or unwanted
+
+
+def _knobs() -> TrackConfig:
+    return tracking_config().track
 
 
 def sfm_backend_from_env() -> bool:
@@ -173,7 +165,7 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
         if direct is not None:
             direct.motion, direct.analysis_size = motion, size
             return direct
-        if len(rot.kept) >= MIN_KEPT_FRACTION * T:
+        if len(rot.kept) >= _knobs().min_kept_fraction * T:
             focal = rot.focal * full.width / k.width if refine_focal else None
             return TrackingResult(_poses_from_rotations(rot.rotations), rot.kept, rot.dropped, "rotation", motion,
                                   rot.rms_px, size, None, None, focal, _dropped_warning(rot.dropped), stats=stats)
@@ -186,7 +178,8 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
             if track is not None and "models" in track.stats:  # COLMAP's starts, kept whichever method wins
                 stats["models"] = track.stats["models"]
             kept = 0 if track is None else len(track.kept)
-            failure = f"{name}: registered {kept} of {T} frames" if kept < max(2, MIN_KEPT_FRACTION * T) else None
+            too_few = kept < max(2, _knobs().min_kept_fraction * T)
+            failure = f"{name}: registered {kept} of {T} frames" if too_few else None
         except Exception as exc:  # a library failure is a tracking failure, never a job failure
             failure = f"{name}: {type(exc).__name__}: {exc}"
         if failure:
@@ -249,14 +242,6 @@ def _track_moving(images, features, k: Intrinsics, full: Intrinsics, depth, refi
                           warnings=[warning], stats={**stats, "failures": failures})
 
 
-DIRECT_MAX_DISAGREEMENT_DEG = 10.0  # the photometric track must agree with the features' rotations this well: their
-# own error reaches 2-2.5 deg on a scan's tilts and is compared at the refitted focal length, which turns them a few
-# degrees more over a ring (5 deg threw away st_fagans_interior's track at 5.4); a track that went wrong is tens of
-# degrees off (sepulchral_chapel_rotunda's wrong focal fit: 178)
-DIRECT_MIN_MATCHED_SHARE = 0.7  # of the pairs tried (consecutive and loop closures) that must agree: a room scan's
-# 81-100 %; a still camera's frames with someone walking through, forced into a turn, 57 %
-
-
 def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, rot, refine_focal: bool,
                        stats: dict) -> TrackingResult | None:
     """The rotation of every frame from its pixels (core.tracking.direct), where matched features
@@ -264,12 +249,11 @@ def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, ro
     and floor, a studio's smooth walls). The features' rotations start the pairs they cover and
     their refined focal length is used, then refitted from the loop closures where `refine_focal`
     (core.tracking.direct `_self_calibrate`: the features saw too little of the turn to fix it
-    within a degree, and a focal length slightly off turns a ring's frames degrees off); the result is
-    kept if it places more frames than they did and agrees with them, frame by frame, within
-    DIRECT_MAX_DISAGREEMENT_DEG (else None). The comparison is at the refitted focal length, so
-    the features' own focal error counts against it; comparing at the focal length both used was
-    tried and let a focal fit that had gone wrong through (bench/results/room_scans/
-    tried_same_focal_guard.md: `sepulchral_chapel_rotunda` 178 deg off)."""
+    within a degree, and a focal length slightly off turns a ring's frames degrees off); the
+    result is kept if it places more frames than they did and agrees with them, frame by frame,
+    within tracking.track.direct_max_disagreement_deg (else None). The comparison is at the
+    refitted focal length, so the features' own focal error counts against it; comparing at the
+    focal length both used was tried and let a focal fit that had gone wrong, 178 deg off, through."""
     T = frames.shape[0]
     focal = rot.focal * full.width / k.width if refine_focal and len(rot.kept) >= 3 else None
     intr = (
@@ -294,8 +278,9 @@ def _direct_completion(frames: torch.Tensor, k: Intrinsics, full: Intrinsics, ro
     else:
         disagree = 0.0
     stats["direct"] = {**track.stats, "max_disagreement_with_features_deg": round(disagree, 3)}
-    consistent = track.stats["matched_pairs"] >= DIRECT_MIN_MATCHED_SHARE * max(track.stats["pairs"], 1)
-    if (placed <= len(rot.kept) or disagree > DIRECT_MAX_DISAGREEMENT_DEG or placed < MIN_KEPT_FRACTION * T
+    knobs = _knobs()
+    consistent = track.stats["matched_pairs"] >= knobs.direct_min_matched_share * max(track.stats["pairs"], 1)
+    if (placed <= len(rot.kept) or disagree > knobs.direct_max_disagreement_deg or placed < knobs.min_kept_fraction * T
             or not consistent):
         return None
     rots = track.rotations[0].T[None] @ track.rotations  # world = the first kept frame's camera
@@ -317,16 +302,16 @@ def rotation_fallback_ok(rot, T: int, noise_px: float = 0.0, alone: bool = False
     reconstruct. The rotation must register most frames, explain nearly every match, and keep
     its median residual within a pixel or within the clip's keypoint noise (`noise_px`, the
     motion statistic's: a dim room's features are that much less precise), and within
-    FALLBACK_RATIO of the essential matrix's: a walk's parallax leaves 5-10 times
-    (bench/handheld.py). Where nothing else registered the clip (`alone`: the rotation or a
-    static camera), a larger ratio passes when the median residual is still within
-    FALLBACK_NOISE_RATIO of the keypoint noise: in a dim room the ratio of the two residuals
-    reaches 4 on pans (bench/handheld.py `dim`), while a walk's parallax leaves its residual
+    tracking.track.fallback_ratio of the essential matrix's: a walk's parallax leaves 5-10 times.
+    Where nothing else registered the clip (`alone`: the rotation or a static camera), a larger
+    ratio passes when the median residual is still within tracking.track.fallback_noise_ratio of
+    the keypoint noise: in a dim room the ratio of the two residuals reaches 4 on pans, while a
+    walk's parallax leaves its residual
     several times its keypoints' noise (6x on the sharp walk of tests/test_tracking.py)."""
-    explains = (len(rot.kept) >= MIN_KEPT_FRACTION * T and rot.inlier_share >= FALLBACK_INLIER_SHARE
-                and rot.median_px <= max(FALLBACK_MAX_MEDIAN_PX, noise_px))
-    noise_level = alone and rot.median_px <= FALLBACK_NOISE_RATIO * noise_px
-    return explains and (rot.parallax_px <= FALLBACK_RATIO * rot.epipolar_px or noise_level)
+    explains = (len(rot.kept) >= _knobs().min_kept_fraction * T and rot.inlier_share >= _knobs().fallback_inlier_share
+                and rot.median_px <= max(_knobs().fallback_max_median_px, noise_px))
+    noise_level = alone and rot.median_px <= _knobs().fallback_noise_ratio * noise_px
+    return explains and (rot.parallax_px <= _knobs().fallback_ratio * rot.epipolar_px or noise_level)
 
 
 def _dropped_warning(dropped: list[int]) -> list[str]:

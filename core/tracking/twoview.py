@@ -1,13 +1,13 @@
 """Fallback structure from motion with OpenCV: two-view initialisation, then PnP per frame.
 
 Used when COLMAP finds no model. A small incremental tracker:
-1. Initial pair: frame 0 and, of the next INIT_CANDIDATES frames, the one whose matches a
+1. Initial pair: frame 0 and, of the next tracking.twoview.init_candidates frames, the one whose matches a
    homography explains least (parallax, not just rotation); essential matrix (RANSAC) and
-   `recoverPose`, inliers triangulated (positive depth, reprojection under MAX_REPROJ_PX in
-   both views, parallax at least MIN_PARALLAX_DEG).
+   `recoverPose`, inliers triangulated (positive depth, reprojection under tracking.twoview.max_reproj_px in
+   both views, parallax at least tracking.twoview.min_parallax_deg).
 2. Every other frame, nearest to the registered ones first: 2D-3D correspondences through
    its matches with registered frames, `solvePnPRansac` + iterative refinement; then new
-   points triangulated with each registered neighbour (parallax at least MIN_PARALLAX_DEG).
+   points triangulated with each registered neighbour (parallax at least tracking.twoview.min_parallax_deg).
 3. A bundle adjustment of all poses and points (frame 0 fixed), without which the chained
    PnP drifts by degrees over a 20-frame walk.
 OpenCV's pixel centres are at integers and its camera looks along +z with y down, so
@@ -24,16 +24,10 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
 from core.camera import Intrinsics
+from core.tracking.config import tracking_config
 from core.tracking.features import FrameFeatures, PairMatches, match
 from core.tracking.geometry import opencv_w2c_to_c2w, relative_to_first, rotvec_to_matrix
 from core.tracking.sfm import SfMTrack
-
-INIT_CANDIDATES = 8
-INIT_MAX_H_RATIO = 0.9
-MAX_REPROJ_PX = 2.0
-MIN_PARALLAX_DEG = 1.0
-MIN_PNP = 12
-NEIGHBOURS = 4
 
 
 def _k_cv(k: Intrinsics) -> np.ndarray:
@@ -49,6 +43,7 @@ def _reproject(K, Rt: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray
 class _Tracker:
     def __init__(self, features: list[FrameFeatures], k: Intrinsics):
         self.f, self.k, self.K = features, k, _k_cv(k)
+        self.cfg = tracking_config().twoview
         self.cv = [f.points - 0.5 for f in features]  # OpenCV pixel coordinates
         self.Rt: dict[int, np.ndarray] = {}  # frame -> 3x4 OpenCV world-to-camera
         self.points: list[np.ndarray] = []
@@ -69,11 +64,11 @@ class _Tracker:
         ok = np.isfinite(X).all(1)
         for fr, idx in ((a, ia), (b, ib)):
             uv, z = _reproject(self.K, self.Rt[fr], X)
-            ok &= (z > 0) & (np.linalg.norm(uv - self.cv[fr][idx], axis=1) < MAX_REPROJ_PX)
+            ok &= (z > 0) & (np.linalg.norm(uv - self.cv[fr][idx], axis=1) < self.cfg.max_reproj_px)
         ca, cb = (-self.Rt[f][:, :3].T @ self.Rt[f][:, 3] for f in (a, b))
         ra, rb = X - ca, X - cb
         cosang = (ra * rb).sum(1) / (np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1) + 1e-12)
-        ok &= cosang < math.cos(math.radians(MIN_PARALLAX_DEG))
+        ok &= cosang < math.cos(math.radians(self.cfg.min_parallax_deg))
         added = 0
         for x, p, q in zip(X[ok], ia[ok], ib[ok]):
             if (a, p) in self.point_of or (b, q) in self.point_of:
@@ -86,7 +81,7 @@ class _Tracker:
     def _candidate(self, j: int):
         """(homography/essential inlier ratio, E inlier mask, matches) for the pair (0, j)."""
         m = self.matches(0, j)
-        if len(m) < 2 * MIN_PNP:
+        if len(m) < 2 * self.cfg.min_pnp:
             return None
         E, mask = cv2.findEssentialMat(m.xi - 0.5, m.xj - 0.5, self.K, cv2.RANSAC, 0.999, 1.0)
         if E is None or E.shape != (3, 3):
@@ -94,47 +89,48 @@ class _Tracker:
         _, hmask = cv2.findHomography(m.xi, m.xj, cv2.RANSAC, 2.0)
         e_in = int(mask.sum())
         h_in = int(hmask.sum()) if hmask is not None else 0
-        return (h_in / max(e_in, 1), E, mask, m) if e_in >= 2 * MIN_PNP else None
+        return (h_in / max(e_in, 1), E, mask, m) if e_in >= 2 * self.cfg.min_pnp else None
 
     def initialise(self, n: int) -> bool:
-        """Initial pair: among frame 0 and the next INIT_CANDIDATES frames, the one a homography
+        """Initial pair: among frame 0 and the next self.cfg.init_candidates frames, the one a homography
         explains least (most parallax), as COLMAP's max_H_inlier_ratio rule."""
-        cands = [(j, c) for j in range(1, min(n, 1 + INIT_CANDIDATES)) if (c := self._candidate(j)) is not None]
+        last = min(n, 1 + self.cfg.init_candidates)
+        cands = [(j, c) for j in range(1, last) if (c := self._candidate(j)) is not None]
         for j, (ratio, E, mask, m) in sorted(cands, key=lambda jc: jc[1][0]):
-            if ratio > INIT_MAX_H_RATIO:
+            if ratio > self.cfg.init_max_h_ratio:
                 break
             _, R, t, mask = cv2.recoverPose(E, m.xi - 0.5, m.xj - 0.5, self.K, mask=mask)
             inl = mask.ravel() > 0
             self.Rt = {0: np.hstack([np.eye(3), np.zeros((3, 1))]), j: np.hstack([R, t])}
-            if self.triangulate(0, j, m.ii[inl], m.jj[inl]) >= 2 * MIN_PNP:
+            if self.triangulate(0, j, m.ii[inl], m.jj[inl]) >= 2 * self.cfg.min_pnp:
                 return True
             self.Rt, self.points, self.point_of = {}, [], {}
         return False
 
     def register(self, t: int) -> bool:
         corr: dict[int, int] = {}  # feature of t -> point (first registered neighbour wins)
-        for r in sorted(self.Rt, key=lambda r: abs(r - t))[:NEIGHBOURS]:
+        for r in sorted(self.Rt, key=lambda r: abs(r - t))[:self.cfg.neighbours]:
             m = self.matches(t, r)
             for p, q in zip(m.ii, m.jj):
                 pid = self.point_of.get((r, q))
                 if pid is not None and p not in corr:
                     corr[int(p)] = pid
-        if len(corr) < MIN_PNP:
+        if len(corr) < self.cfg.min_pnp:
             return False
         feats = np.array(list(corr))
         pids = np.array([corr[p] for p in feats])
         obj = np.array([self.points[i] for i in pids], np.float64)
         img = self.cv[t][feats]
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, self.K, None, reprojectionError=MAX_REPROJ_PX,
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, self.K, None, reprojectionError=self.cfg.max_reproj_px,
                                                  iterationsCount=200, flags=cv2.SOLVEPNP_EPNP)
-        if not ok or inl is None or len(inl) < MIN_PNP:
+        if not ok or inl is None or len(inl) < self.cfg.min_pnp:
             return False
         inl = inl.ravel()
         rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], self.K, None, rvec, tvec)
         self.Rt[t] = np.hstack([cv2.Rodrigues(rvec)[0], tvec.reshape(3, 1)])
         for p, pid in zip(feats[inl], pids[inl]):  # the inliers extend their tracks (BA needs them)
             self.point_of[(t, int(p))] = int(pid)
-        for r in sorted((r for r in self.Rt if r != t), key=lambda r: abs(r - t))[:NEIGHBOURS]:
+        for r in sorted((r for r in self.Rt if r != t), key=lambda r: abs(r - t))[:self.cfg.neighbours]:
             m = self.matches(t, r)
             free = np.array(
                 [(t, p) not in self.point_of and (r, q) not in self.point_of for p, q in zip(m.ii, m.jj)], bool
@@ -146,7 +142,7 @@ class _Tracker:
 
 def _bundle_adjust(tr: _Tracker, kept: list[int], max_nfev: int = 30) -> None:
     """Refine every kept pose (frame 0 fixed) and point: reprojection error in pixels, scipy
-    least_squares with the Jacobian's sparsity, observations over MAX_REPROJ_PX dropped once."""
+    least_squares with the Jacobian's sparsity, observations over tracking.twoview.max_reproj_px dropped once."""
     pos = {f: n for n, f in enumerate(kept)}
     obs = [(pos[f], tr.cv[f][p], pid) for (f, p), pid in tr.point_of.items() if f in pos]
     cam = np.array([o[0] for o in obs])
@@ -181,7 +177,7 @@ def _bundle_adjust(tr: _Tracker, kept: list[int], max_nfev: int = 30) -> None:
         sol = least_squares(residuals, x, jac_sparsity=sparsity(cam, pid), x_scale="jac", max_nfev=max_nfev,
                             tr_solver="lsmr", args=(cam, uv, pid))
         x = sol.x
-        keep = np.linalg.norm(sol.fun.reshape(-1, 2), axis=1) < MAX_REPROJ_PX
+        keep = np.linalg.norm(sol.fun.reshape(-1, 2), axis=1) < tr.cfg.max_reproj_px
         if keep.all():
             break
         cam, uv, pid = cam[keep], uv[keep], pid[keep]

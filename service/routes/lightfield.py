@@ -13,6 +13,13 @@ from fastapi.responses import JSONResponse, StreamingResponse
 
 from core.conventions import CONVENTIONS_SUMMARY
 from core.export.arkit import arkit_probe
+from core.export.probe_queries import (
+    SH_ENVMAP_HEIGHT,
+    UNITY_GRID_AXIS_MAX,
+    UNITY_GRID_DEFAULT,
+    UNITY_SH_HEIGHT,
+    parse_grid,
+)
 from core.export.products import cube_for, cube_ktx2, cube_source_height, envmap_exr_attributes, probe_glb, probe_usdz
 from core.export.sequence import sequence_fps, sequence_members, sequence_times, zip_stream
 from core.export.sh_layouts import LAYOUTS
@@ -39,7 +46,8 @@ from service.models import (
     SphericalHarmonics,
     UnityProbeGrid,
 )
-from service.queries import DEFAULT_QUALITY, MAX_ABS_EV, MAX_ABS_T_S, X_PATTERN
+from service.queries import DEFAULT_QUALITY
+from service.query_rules import MAX_ABS_EV, MAX_ABS_T_S, X_PATTERN
 
 router = APIRouter(tags=["lightfield"])
 _ERRORS = {s: {"model": ErrorBody} for s in (401, 404, 409, 410, 413, 422, 503)}
@@ -188,7 +196,7 @@ async def get_sh(job_id: str, response: Response, x: str = XQuery, t: float = TQ
                  tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     point, t = queries.parse_x(x), queries.check_t(t)
     cf = await _field_async(job_id, tenant, ctx)
-    answer = await queries.envmap_answer(ctx, cf, point, t, queries.SH_ENVMAP_HEIGHT, quality,
+    answer = await queries.envmap_answer(ctx, cf, point, t, SH_ENVMAP_HEIGHT, quality,
                                          finish=lambda hdr, _flags: queries.sh_from_envmap(hdr))
     light, full_sh = answer.value
     flags = answer.flags
@@ -199,21 +207,18 @@ async def get_sh(job_id: str, response: Response, x: str = XQuery, t: float = TQ
     return SphericalHarmonics.of(point, t, Flags(x=flags.x, t=flags.t), layout, light, full_sh)
 
 
-UNITY_SH_HEIGHT = 32  # band-2 SH need little resolution (the CLI's `unity` uses the same)
 MAX_UNITY_PROBES = 512
 
 
 def _counts(text: str) -> tuple[int, int, int]:
     try:
-        values = tuple(int(v) for v in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != 3 or not all(1 <= v <= 64 for v in values):
-        raise InvalidInput(f"grid must be three integers in 1..64 'NX,NY,NZ', got {text!r}", code="invalid_query")
+        values = parse_grid(text)
+    except ValueError as exc:
+        raise InvalidInput(str(exc), code="invalid_query") from None
     if values[0] * values[1] * values[2] > MAX_UNITY_PROBES:
         raise PayloadTooLarge(f"grid {text} has {values[0] * values[1] * values[2]} probes; at most {MAX_UNITY_PROBES}",
                               code="grid_too_large")
-    return values  # type: ignore[return-value]
+    return values
 
 
 @router.get(
@@ -226,8 +231,8 @@ async def get_unity(
     job_id: str,
     response: Response,
     grid: str = Query(
-        "3,2,3",
-        description=f"probes per axis 'NX,NY,NZ' (each 1..64, at most {MAX_UNITY_PROBES} in all)",
+        ",".join(map(str, UNITY_GRID_DEFAULT)),
+        description=f"probes per axis 'NX,NY,NZ' (each 1..{UNITY_GRID_AXIS_MAX}, at most {MAX_UNITY_PROBES} in all)",
         max_length=40,
     ),
     lo: str | None = Query(

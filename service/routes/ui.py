@@ -30,7 +30,8 @@ from service.errors import ErrorBody, Gone, InvalidInput, NotFound, storage_erro
 from service.fieldcache import CachedField
 from service.lightfields import load_field, succeeded_job
 from service.models import Flags
-from service.queries import MAX_ABS_T_S, X_PATTERN, check_t, parse_x
+from service.queries import check_t, parse_x
+from service.query_rules import MAX_ABS_T_S, X_PATTERN
 from service.stored_preview import PreviewCorrupt, PreviewError, StoredPreview, load_preview
 from service.ui_probes import ProbeError, locate, place
 

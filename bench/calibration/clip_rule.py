@@ -1,6 +1,7 @@
 """How far off is the clip rule? Clipped LDR crops of real HDR panoramas with known radiance.
 
-    python -m bench.clip_rule [--hdri-dir DIR] [--fit] [--splits dev,test,extra] [--curve drawn|NAME] [-o out.json]
+    python -m bench.calibration.clip_rule [--hdri-dir DIR] [--fit] [--splits dev,test,extra] [--curve drawn|NAME]
+        [-o out.json]
 
 For every panorama of the split, VIEWS_PER_PANORAMA photos are made exactly as in the
 real-panorama protocol (bench.real_panoramas: CROP_SIZE, 60° FOV, TonemapHDR's exposure, a
@@ -93,7 +94,7 @@ def exposure_scale(hdr: torch.Tensor) -> float:
 
 def blob_samples(path: Path, curve: str = "drawn") -> list[dict]:
     """Every clipped blob of every view of one panorama: features and true factor."""
-    from bench.real_panoramas import camera_rotation, load_panorama, perspective_crop
+    from bench.panoramas import camera_rotation, load_panorama, perspective_crop
     from core.capture.highlights import clipped_mask, find_blobs, pixel_solid_angle
 
     pano = load_panorama(path)
@@ -269,7 +270,7 @@ def synthetic_lamp_samples(path: Path, curve: str = "drawn") -> list[dict]:
     """SYNTHETIC_LAMPS_PER_PANORAMA photos of the panorama, each with a disc lamp added (radiance
     2^U(1, 8) x white, radius U(1, 6) px, through lens_psf with sigma U(0.5, 1.5), glare
     U(0, 0.05)): bright point sources the 1k panoramas (area-downsampled) hardly contain."""
-    from bench.real_panoramas import camera_rotation, load_panorama, perspective_crop
+    from bench.panoramas import camera_rotation, load_panorama, perspective_crop
     from core.capture.highlights import clipped_mask, find_blobs, pixel_solid_angle
 
     rng = random.Random(f"clip-rule-lamps:{path.name}")
@@ -392,7 +393,7 @@ def leave_one_panorama_out(samples: list[dict]) -> dict:
 
 
 def main(argv=None) -> int:
-    from bench.real_panoramas import DEFAULT_HDRI_DIR, read_manifest
+    from bench.panoramas import DEFAULT_HDRI_DIR, read_manifest
     from core.capture import highlights
     from core.sim.camera_curves import add_curve_argument
 

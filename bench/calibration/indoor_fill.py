@@ -1,7 +1,7 @@
 """Fit core.priors.indoor_fill.ELEVATION_GAIN on every indoor panorama (dev, test and extra of
 MANIFEST.tsv; never `control`): what a user gets.
 
-    python -m bench.indoor_fill [--hdri-dir DIR] [--average arithmetic|geometric]  # fit, print the tuple
+    python -m bench.calibration.indoor_fill [--hdri-dir DIR] [--average arithmetic|geometric]  # fit, print the tuple
 
 Per panorama (area-downsampled to GAIN_ROWS rows, +y up as stored): each row's mean luminance
 over the mean luminance within +-HORIZON_BAND_DEG of the horizon; averaged over the panoramas
@@ -55,7 +55,7 @@ def smooth(log_gain: torch.Tensor, sigma_rows: float) -> torch.Tensor:
 
 
 def panorama_profiles(paths: list[Path]) -> torch.Tensor:
-    from bench.real_panoramas import load_panorama
+    from bench.panoramas import load_panorama
     from core.priors.indoor_fill import GAIN_ROWS, HORIZON_BAND_DEG
 
     return torch.stack([row_profile(load_panorama(p), GAIN_ROWS, HORIZON_BAND_DEG) for p in paths])
@@ -75,7 +75,7 @@ def fit_gain(paths: list[Path], sigma_rows: float | None = None, average: str = 
 
 
 def main(argv=None) -> int:
-    from bench.real_panoramas import DEFAULT_HDRI_DIR, indoor_rooms
+    from bench.panoramas import DEFAULT_HDRI_DIR, indoor_rooms
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--hdri-dir", default=str(DEFAULT_HDRI_DIR))
