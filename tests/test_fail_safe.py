@@ -1,0 +1,194 @@
+"""Faults injected into a capture the engine otherwise reads right (issue 62): a failed track, a
+track drifting to 135 deg off by its end, a wrong exposure course, depth 3x too far, and frames from
+two rooms in one clip. Each must be detected (the job's quality block names the stage, or its
+grade is not "explained"), and each must be answered no worse than the capture's constant map
+(diffuse sphere si-RMSE and angle, core.metrics, at every frame's camera against the room's truth).
+
+The capture is a short walk through the bundled panorama's room (core.sim.panorama_room: real
+texture, exact depth and poses) written as a capture app's export (nerfstudio), so the engine
+reads it without tracking; a fault is injected where its stage would have made it."""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import replace
+
+import pytest
+import torch
+
+from capture_fixtures import PANORAMA, walk_poses, write_nerfstudio
+from core.camera import Camera, Intrinsics
+from core.conventions import inverse_tonemap
+from core.engine.job import run_job
+from core.engine.params import JobParams
+from core.engine.presets import preset
+from core.engine.self_check import GRADES
+from core.metrics import angular_error_deg, render_probe_spheres, si_rmse
+from core.sim.panorama_room import PanoramaRoom, ldr_clip, load_panorama, render_clip
+from core.tracking.room import assumed_room
+
+FRAMES, WIDTH, HEIGHT, FPS = 8, 64, 48, 4.0
+MAP_HEIGHT = 16
+CONFIG = preset("draft").with_overrides({"distill": {"iterations": 100, "work_height": 24, "warmup_steps": 4,
+                                                     "checkpoint_every": 1000}})
+# room scores are compared against the constant map's within this share (its own rounding)
+SAME = 1.02
+
+
+def _room(kind: int) -> PanoramaRoom:
+    pano = load_panorama(PANORAMA, 64)
+    if kind == 1:  # another room: the panorama turned half a turn and upside down, under a warm lamp
+        pano = torch.roll(pano, pano.shape[1] // 2, dims=1).flip(0) * torch.tensor([1.6, 1.0, 0.5])
+    return PanoramaRoom(pano, assumed_room(), torch.zeros(3))
+
+
+def _walk():
+    return [p.double() for p in walk_poses(FRAMES)]
+
+
+def _render(rooms: list[int]):
+    """Frames (one exposure for the clip), depth, intrinsics and poses of the walk, frame i in room rooms[i]."""
+    poses = _walk()
+    parts = [render_clip(_room(k), [Camera(_intr(), p)], supersample=1) for k, p in zip(rooms, poses)]
+    hdr = torch.cat([p[2] for p in parts])
+    return ldr_clip(hdr), torch.cat([p[1] for p in parts]), _intr(), poses
+
+
+def _intr():
+    return Intrinsics.from_hfov(WIDTH, HEIGHT, 60.0)
+
+
+def _yawed(pose: torch.Tensor, deg: float) -> torch.Tensor:
+    a = math.radians(deg)
+    r = torch.tensor([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]], dtype=pose.dtype)
+    out = pose.clone()
+    out[:3, :3] = r @ pose[:3, :3]
+    return out
+
+
+def _inject_after_load(monkeypatch, fault):
+    """Run `fault(capture)` on the loaded capture, where the tracker would have run."""
+    import core.capture.prepare as prepare
+
+    real = prepare.track_capture
+    monkeypatch.setattr(prepare, "track_capture", lambda capture, params=None: fault(real(capture, params)))
+
+
+def _failed_track(capture):
+    meta = {k: v for k, v in capture.metadata.items() if k != "poses_source"}
+    meta["tracking"] = {"method": "failed:static-fallback", "camera_moves": True}
+    return replace(capture, poses=capture.poses[:1].expand_as(capture.poses).clone(), metadata=meta)
+
+
+def _rotated_track(capture):
+    """The track drifts to 135 deg off by the last frame (the first frame anchors the world)."""
+    n = capture.num_frames
+    return replace(capture, poses=torch.stack([_yawed(p, 135.0 * i / (n - 1)) for i, p in enumerate(capture.poses)]))
+
+
+def _depth_off(capture):
+    return replace(capture, depth=capture.depth * 3.0)
+
+
+FAULTS = {
+    "none": ({}, None, [0] * FRAMES),
+    "failed track": ({}, _failed_track, [0] * FRAMES),
+    "track rotated 135 deg": ({}, _rotated_track, [0] * FRAMES),
+    # the frames share one exposure; the capture says it fell by a stop a frame
+    "wrong exposure course": ({"frame_ev": [-1.0 * i for i in range(FRAMES)]}, None, [0] * FRAMES),
+    "depth 3x too far": ({}, _depth_off, [0] * FRAMES),
+    "two rooms in one clip": ({}, None, [0] * (FRAMES // 2) + [1] * (FRAMES // 2)),
+}
+
+
+def _diffuse_scores(pred: torch.Tensor, truth: torch.Tensor) -> tuple[float, float]:
+    (p, g), mask = render_probe_spheres([pred, truth], "diffuse", 32)
+    return si_rmse(p, g, mask), angular_error_deg(p, g, mask)
+
+
+_RESULTS: dict[str, tuple[dict, torch.Tensor, torch.Tensor]] = {}
+
+
+def _result(tmp_path_factory, name):
+    """(quality block, the job's mean diffuse [si-RMSE, angle] over the frames' cameras, the
+    constant map's), each fault's job run once for the module's tests."""
+    if name not in _RESULTS:
+        with pytest.MonkeyPatch.context() as monkeypatch:
+            _RESULTS[name] = _run_fault(tmp_path_factory.mktemp("fault"), monkeypatch, name)
+    return _RESULTS[name]
+
+
+def _run_fault(tmp_path, monkeypatch, name):
+    extra, fault, rooms = FAULTS[name]
+    ldr, depth, intr, poses = _render(rooms)
+    root = write_nerfstudio(tmp_path / "scan", ldr.numpy(), depth.numpy(), intr, [p.numpy() for p in poses])
+    if fault is not None:
+        _inject_after_load(monkeypatch, fault)
+    params = JobParams.model_validate({"fps": FPS, "transfer": "gamma:2.4", **extra})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        artefact = run_job(root, None, params, tmp_path / "field", config=CONFIG).artefact
+    constant = inverse_tonemap(ldr).reshape(-1, 3).mean(0)
+    job, const = [], []
+    for i, pose in enumerate(poses):
+        x = pose[:3, 3].float()
+        truth = _room(rooms[i]).envmap(x, MAP_HEIGHT)
+        t = i / FPS if artefact.uses_time else None
+        answer = artefact.envmap(x, t, MAP_HEIGHT)[0]
+        job.append(_diffuse_scores(answer, truth))
+        const.append(_diffuse_scores(constant.expand_as(truth).clone(), truth))
+    return artefact.meta["quality"], torch.tensor(job).mean(0), torch.tensor(const).mean(0)
+
+
+def test_a_capture_read_right_is_explained_and_kept(tmp_path_factory):
+    quality, job, const = _result(tmp_path_factory, "none")
+    assert quality["grade"] == GRADES[0] and quality["stage"] is None and quality["fallback"] is None, quality
+    assert not quality["frame_agreement"]["pairs_disagreeing"]
+    assert float(job[0]) < float(const[0]) and float(job[1]) < float(const[1])
+
+
+# What neither the field's re-rendering nor the frames' agreement can tell (core.engine.frame_agreement):
+# a wrong exposure course is a gain per frame, which an even change of light also is; depth 3x too far
+# moves this walk's reprojections by about a pixel at the check's 24 rows. Both answers stay better
+# than the constant map (the test below); the check does not flag them.
+UNTOLD = {"wrong exposure course": "a gain per frame: an exposure misstated reads as the light dimming evenly",
+          "depth 3x too far": "the walk's parallax at 24 rows moves by about a pixel: the frames still agree"}
+
+
+@pytest.mark.parametrize("name", [
+    pytest.param(n, marks=pytest.mark.xfail(reason=UNTOLD[n], strict=True)) if n in UNTOLD else n
+    for n in FAULTS if n != "none"])
+def test_an_injected_fault_is_detected(tmp_path_factory, name):
+    quality, _, _ = _result(tmp_path_factory, name)
+    assert quality["grade"] != GRADES[0] and quality["stage"], quality
+
+
+@pytest.mark.parametrize("name", [n for n in FAULTS if n != "none"])
+def test_an_injected_fault_is_answered_no_worse_than_the_constant_map(tmp_path_factory, name):
+    _, job, const = _result(tmp_path_factory, name)
+    assert float(job[0]) <= SAME * float(const[0]), (job.tolist(), const.tolist())
+    assert float(job[1]) <= SAME * float(const[1]), (job.tolist(), const.tolist())
+
+
+@pytest.mark.parametrize("name", ["failed track", "track rotated 135 deg", "two rooms in one clip"])
+def test_a_capture_no_reading_of_which_holds_most_frames_is_answered_by_its_constant_map(tmp_path_factory, name):
+    quality, job, const = _result(tmp_path_factory, name)
+    assert quality["fallback"] and "constant map" in quality["fallback"]["answer"], quality
+    # the capture's constant map as the job read it (its exposures removed): within a few per cent of the test's
+    assert torch.allclose(job, const, rtol=0.05), (job.tolist(), const.tolist())
+
+
+def test_the_constant_field_answers_its_colour_everywhere_and_the_rule_keeps_a_majority():
+    from core.engine.fallback import constant_field, fallback_reason
+    from core.fields import FieldConfig, SceneBounds, build_field
+
+    like = build_field(FieldConfig(kind="mlp", uses_time=True), SceneBounds.from_points(torch.randn(20, 3)))
+    field = constant_field([0.2, 0.5, 3.0], like)
+    maps = field.envmaps(torch.randn(3, 3), None, 8)
+    assert not field.uses_time and torch.allclose(maps, torch.tensor([0.2, 0.5, 3.0]).expand_as(maps), rtol=1e-4)
+    kept = {"grade": GRADES[1], "residual_ratio": 0.5,
+            "frame_agreement": {"pairs_disagreeing": [[3, 4]], "largest_agreeing_share": 0.6}}
+    assert fallback_reason(kept) is None
+    assert "worse than" in fallback_reason({**kept, "residual_ratio": 1.0})
+    assert "disagree" in fallback_reason({**kept, "frame_agreement": {"pairs_disagreeing": [[3, 4]],
+                                                                      "largest_agreeing_share": 0.5}})
