@@ -26,7 +26,9 @@ from dataclasses import dataclass
 import torch
 
 from core.capture.base import Capture
+from core.conventions import direction_to_equirect_pixel, equirect_width
 from core.engine.frame_agreement import frame_agreement
+from core.envmap import solid_angles
 
 GRADES = ("explained", "partly explained", "worse than a constant map")
 DISAGREEING_FRAMES = ("capture: neighbouring frames disagree where their poses and depth say they overlap "
@@ -59,6 +61,24 @@ def failed_stage(capture: Capture) -> str | None:
     if tracking.get("frames_dropped") and len(tracking["frames_dropped"]) > len(tracking.get("frames_kept", [])):
         return "tracking: most frames could not be registered"
     return None
+
+
+SEEN_ROWS = 16  # the sphere's cells for the seen share: about 11 degrees each
+
+
+def seen_share(capture: Capture) -> float:
+    """The share of the sphere of directions (by solid angle) the frames saw from their cameras:
+    the rest of an answer near them is filled by the prior and the field, not measured."""
+    width = equirect_width(SEEN_ROWS)
+    hit = torch.zeros(SEEN_ROWS * width, dtype=torch.bool)
+    for i in range(capture.num_frames):
+        _, d = capture.camera(i).pixel_rays(dtype=torch.float64)
+        row, col = direction_to_equirect_pixel(d.reshape(-1, 3), SEEN_ROWS)
+        row = row.round().long().clamp(0, SEEN_ROWS - 1)
+        col = col.round().long().remainder(width)
+        hit[row * width + col] = True
+    area = solid_angles(SEEN_ROWS, dtype=torch.float64).reshape(-1)
+    return float(area[hit].sum() / area.sum())
 
 
 @torch.no_grad()
@@ -107,6 +127,7 @@ def self_check(field, capture: Capture, uses_time: bool, config: SelfCheckConfig
         "constant_rgb": [round(float(c), 6) for c in constant],  # the constant map (linear, the field's units)
         "per_frame": [{"frame": i, "field": round(f, 4), "constant": round(c, 4)} for i, f, c in rows],
         "frame_agreement": agreement,
+        "seen_share": round(seen_share(small), 4),  # of the sphere, from the cameras; the rest is filled
         "stage": stage,
         "why": ("the field re-renders what the camera saw better than a constant map" if ratio < 1.0 else
                 "the field re-renders what the camera saw worse than a constant map: a stage misread the capture"),
