@@ -96,10 +96,11 @@ def dome_light_stage(path, texture: str, x, t: float | None, artefact: str | Non
     return stage
 
 
-def dome_light_usda(texture: str, x, t: float | None, artefact: str | None = None, intensity: float = 1.0) -> str:
+def dome_light_usda(texture: str, x, t: float | None, artefact: str | None = None, intensity: float = 1.0,
+                    grade: dict | None = None) -> str:
     """The stage as usda text, referencing `texture` (a relative path inside the package or folder)."""
     with tempfile.TemporaryDirectory() as tmp:
-        stage = dome_light_stage(Path(tmp) / "probe.usda", texture, x, t, artefact, intensity)
+        stage = dome_light_stage(Path(tmp) / "probe.usda", texture, x, t, artefact, intensity, grade)
         return stage.GetRootLayer().ExportToString()
 
 
