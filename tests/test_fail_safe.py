@@ -9,61 +9,32 @@ texture, exact depth and poses) written as a capture app's export (nerfstudio), 
 reads it without tracking; a fault is injected where its stage would have made it."""
 from __future__ import annotations
 
-import math
 import warnings
 from dataclasses import replace
 
 import pytest
 import torch
 
-from capture_fixtures import PANORAMA, walk_poses, write_nerfstudio
-from core.camera import Camera, Intrinsics
+from capture_fixtures import PANORAMA
 from core.conventions import inverse_tonemap
 from core.engine.job import run_job
 from core.engine.params import JobParams
 from core.engine.presets import preset
 from core.engine.self_check import GRADES
 from core.metrics import angular_error_deg, render_probe_spheres, si_rmse
-from core.sim.panorama_room import PanoramaRoom, ldr_clip, load_panorama, render_clip
-from core.tracking.room import assumed_room
+from core.sim.faults import FPS, FRAMES, drifting, render_walk, walk_room, write_walk
+from core.sim.panorama_room import load_panorama
 
-FRAMES, WIDTH, HEIGHT, FPS = 8, 64, 48, 4.0
 MAP_HEIGHT = 16
 CONFIG = preset("draft").with_overrides({"distill": {"iterations": 100, "work_height": 24, "warmup_steps": 4,
                                                      "checkpoint_every": 1000}})
 # room scores are compared against the constant map's within this share (its own rounding)
 SAME = 1.02
+PANORAMA_ROWS = 64
 
 
-def _room(kind: int) -> PanoramaRoom:
-    pano = load_panorama(PANORAMA, 64)
-    if kind == 1:  # another room: the panorama turned half a turn and upside down, under a warm lamp
-        pano = torch.roll(pano, pano.shape[1] // 2, dims=1).flip(0) * torch.tensor([1.6, 1.0, 0.5])
-    return PanoramaRoom(pano, assumed_room(), torch.zeros(3))
-
-
-def _walk():
-    return [p.double() for p in walk_poses(FRAMES)]
-
-
-def _render(rooms: list[int]):
-    """Frames (one exposure for the clip), depth, intrinsics and poses of the walk, frame i in room rooms[i]."""
-    poses = _walk()
-    parts = [render_clip(_room(k), [Camera(_intr(), p)], supersample=1) for k, p in zip(rooms, poses)]
-    hdr = torch.cat([p[2] for p in parts])
-    return ldr_clip(hdr), torch.cat([p[1] for p in parts]), _intr(), poses
-
-
-def _intr():
-    return Intrinsics.from_hfov(WIDTH, HEIGHT, 60.0)
-
-
-def _yawed(pose: torch.Tensor, deg: float) -> torch.Tensor:
-    a = math.radians(deg)
-    r = torch.tensor([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]], dtype=pose.dtype)
-    out = pose.clone()
-    out[:3, :3] = r @ pose[:3, :3]
-    return out
+def _panorama() -> torch.Tensor:
+    return load_panorama(PANORAMA, PANORAMA_ROWS)
 
 
 def _inject_after_load(monkeypatch, fault):
@@ -82,8 +53,7 @@ def _failed_track(capture):
 
 def _rotated_track(capture):
     """The track drifts to 135 deg off by the last frame (the first frame anchors the world)."""
-    n = capture.num_frames
-    return replace(capture, poses=torch.stack([_yawed(p, 135.0 * i / (n - 1)) for i, p in enumerate(capture.poses)]))
+    return replace(capture, poses=torch.stack(drifting(list(capture.poses), 135.0)))
 
 
 def _depth_off(capture):
@@ -91,13 +61,13 @@ def _depth_off(capture):
 
 
 FAULTS = {
-    "none": ({}, None, [0] * FRAMES),
-    "failed track": ({}, _failed_track, [0] * FRAMES),
-    "track rotated 135 deg": ({}, _rotated_track, [0] * FRAMES),
+    "none": ({}, None, [False] * FRAMES),
+    "failed track": ({}, _failed_track, [False] * FRAMES),
+    "track rotated 135 deg": ({}, _rotated_track, [False] * FRAMES),
     # the frames share one exposure; the capture says it fell by a stop a frame
-    "wrong exposure course": ({"frame_ev": [-1.0 * i for i in range(FRAMES)]}, None, [0] * FRAMES),
-    "depth 3x too far": ({}, _depth_off, [0] * FRAMES),
-    "two rooms in one clip": ({}, None, [0] * (FRAMES // 2) + [1] * (FRAMES // 2)),
+    "wrong exposure course": ({"frame_ev": [-1.0 * i for i in range(FRAMES)]}, None, [False] * FRAMES),
+    "depth 3x too far": ({}, _depth_off, [False] * FRAMES),
+    "two rooms in one clip": ({}, None, [False] * (FRAMES // 2) + [True] * (FRAMES // 2)),
 }
 
 
@@ -120,8 +90,9 @@ def _result(tmp_path_factory, name):
 
 def _run_fault(tmp_path, monkeypatch, name):
     extra, fault, rooms = FAULTS[name]
-    ldr, depth, intr, poses = _render(rooms)
-    root = write_nerfstudio(tmp_path / "scan", ldr.numpy(), depth.numpy(), intr, [p.numpy() for p in poses])
+    pano = _panorama()
+    ldr, depth, intr, poses = render_walk(pano, rooms)
+    root = write_walk(tmp_path / "scan", ldr, depth, intr, poses)
     if fault is not None:
         _inject_after_load(monkeypatch, fault)
     params = JobParams.model_validate({"fps": FPS, "transfer": "gamma:2.4", **extra})
@@ -132,7 +103,7 @@ def _run_fault(tmp_path, monkeypatch, name):
     job, const = [], []
     for i, pose in enumerate(poses):
         x = pose[:3, 3].float()
-        truth = _room(rooms[i]).envmap(x, MAP_HEIGHT)
+        truth = walk_room(pano, rooms[i]).envmap(x, MAP_HEIGHT)
         t = i / FPS if artefact.uses_time else None
         answer = artefact.envmap(x, t, MAP_HEIGHT)[0]
         job.append(_diffuse_scores(answer, truth))
