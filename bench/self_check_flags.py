@@ -11,7 +11,8 @@ at 24 rows), as a capture app's export.
 
 Score: the field the check judged (the bench keeps it when a fallback replaces it in the artefact),
 at every frame's camera, against the room's truth there: the diffuse sphere's si-RMSE and angle
-(core.metrics), means over the frames, each over the constant map's (the capture's mean colour).
+(core.metrics), means over the frames, each over the constant map's (the capture's mean colour);
+the mirror sphere's si-RMSE beside them, for the light's directions the diffuse sphere averages.
 Flagged: the quality grade is not "explained". The rates the issue asks for: the share of the
 captures worse than 1.2x the constant map (on si-RMSE or angle) that are flagged (want >= 90 %),
 the share of those better than 0.8x (on both) that are flagged (want <= 10 %). Writes RESULTS.md
@@ -52,11 +53,14 @@ def variants(frames: int) -> dict[str, dict]:
     }
 
 
-def diffuse_scores(pred: torch.Tensor, truth: torch.Tensor) -> tuple[float, float]:
+def sphere_scores(pred: torch.Tensor, truth: torch.Tensor) -> tuple[float, float, float]:
+    """(diffuse si-RMSE, diffuse angle, mirror si-RMSE): the mirror shows what the diffuse sphere
+    averages away, the light's directions."""
     from core.metrics import angular_error_deg, render_probe_spheres, si_rmse
 
     (p, g), mask = render_probe_spheres([pred, truth], "diffuse", SPHERE)
-    return si_rmse(p, g, mask), angular_error_deg(p, g, mask)
+    (pm, gm), mirror_mask = render_probe_spheres([pred, truth], "mirror", SPHERE)
+    return si_rmse(p, g, mask), angular_error_deg(p, g, mask), si_rmse(pm, gm, mirror_mask)
 
 
 def run_capture(pano: torch.Tensor, spec: dict, work: Path, iterations: int) -> dict:
@@ -97,8 +101,8 @@ def run_capture(pano: torch.Tensor, spec: dict, work: Path, iterations: int) -> 
             x = pose[:3, 3].float()[None]
             truth = walk_room(pano, spec["rooms"][i]).envmap(x[0], MAP_HEIGHT)
             t = torch.tensor([i / FPS]) if field.uses_time else None
-            job.append(diffuse_scores(field.envmaps(x, t, MAP_HEIGHT)[0].float(), truth))
-            const.append(diffuse_scores(constant.expand_as(truth).clone(), truth))
+            job.append(sphere_scores(field.envmaps(x, t, MAP_HEIGHT)[0].float(), truth))
+            const.append(sphere_scores(constant.expand_as(truth).clone(), truth))
     j, c = torch.tensor(job).mean(0), torch.tensor(const).mean(0)
     quality = artefact.meta["quality"]
     return {"grade": quality.get("grade"), "stage": quality.get("stage"),
@@ -106,6 +110,7 @@ def run_capture(pano: torch.Tensor, spec: dict, work: Path, iterations: int) -> 
             "residual_ratio": quality.get("residual_ratio"),
             "pairs_disagreeing": len((quality.get("frame_agreement") or {}).get("pairs_disagreeing", [])),
             "vs_constant": [round(float(j[0] / c[0]), 4), round(float(j[1] / c[1]), 4)],
+            "mirror_vs_constant": round(float(j[2] / c[2]), 4),
             "cpu_s": round(cpu, 2),
             "self_check_s": (artefact.meta["training"]["stage_timings"].get("self_check") or {}).get("seconds")}
 
@@ -137,12 +142,13 @@ def markdown(report: dict) -> str:
              f"- Better than {BETTER}x (both), flagged: **{b[0]} of {b[1]}** (target <= 10 %).",
              f"- In between: {rates['in_between']}. Self-check time: median {report['self_check_s_median']:.2f} s "
              f"of a median {report['cpu_s_median']:.1f} CPU s a job.", "",
-             "| room yaw | capture | diffuse si-RMSE / angle vs const (judged field) | grade | fallback | "
-             "pairs disagreeing | stage |", "|" + "---|" * 7]
+             "| room yaw | capture | diffuse si-RMSE / angle vs const (judged field) | mirror si-RMSE vs const | "
+             "grade | fallback | pairs disagreeing | stage |", "|" + "---|" * 8]
     for r in report["rows"]:
+        mirror = "–" if r.get("mirror_vs_constant") is None else f"{r['mirror_vs_constant']:.2f}"
+        fallback = "constant map" if r["fallback"] else "–"
         lines.append(f"| {r['yaw']:g} | {r['capture']} | {r['vs_constant'][0]:.2f} / {r['vs_constant'][1]:.2f} | "
-                     f"{r['grade']} | {'constant map' if r['fallback'] else '–'} | {r['pairs_disagreeing']} | "
-                     f"{r['stage'] or '–'} |")
+                     f"{mirror} | {r['grade']} | {fallback} | {r['pairs_disagreeing']} | {r['stage'] or '–'} |")
     return "\n".join(lines) + "\n"
 
 
