@@ -114,18 +114,19 @@ def query_sh_map(artefact, probes: list, t: float) -> torch.Tensor:
 def job_summary(artefact, cpu: float, wall: float) -> dict:
     """What the job decided and cost: time input, the temporal decision's reason, exposure and
     depth sources, whether the camera response estimated from the frames replaced the declared
-    curve, the job's own quality grade."""
+    curve, the job's own quality grade (bench.suite.grade: and whether the constant map answered)."""
+    from bench.suite.grade import job_grade
+
     meta = artefact.meta
     cap = meta.get("capture", {})
     cmeta = cap.get("metadata", {}) if isinstance(cap.get("metadata"), dict) else {}
     temporal = meta.get("temporal") if isinstance(meta.get("temporal"), dict) else {}
     response = cmeta.get("response") if isinstance(cmeta.get("response"), dict) else {}
-    quality = meta.get("quality") if isinstance(meta.get("quality"), dict) else {}
     return {"cpu_s": round(cpu, 2), "wall_s": round(wall, 2), "uses_time": bool(meta["time"]["uses_time"]),
             "temporal_reason": temporal.get("reason"), "exposure_source": cmeta.get("exposure_source"),
             "depth_source": cap.get("depth_source"), "response_used": response.get("used"),
             "response_errors": [response.get("held_out_error_declared"), response.get("held_out_error_fitted")],
-            "quality_grade": quality.get("grade")}
+            "quality_grade": job_grade(meta)}
 
 
 def lights_in_view(scene: dict) -> dict:

@@ -178,10 +178,13 @@ def engine_config(overrides: dict | None):
     return preset(PRESET).with_overrides(overrides)
 
 
-def estimate_field(photo_path: Path, workdir: Path, overrides: dict | None = None, curve=None) -> torch.Tensor:
-    """The product: run_job (as `lightfield estimate`) then the exact env map at the camera."""
+def estimate_field(photo_path: Path, workdir: Path, overrides: dict | None = None, curve=None,
+                   graded: dict | None = None) -> torch.Tensor:
+    """The product: run_job (as `lightfield estimate`) then the exact env map at the camera; the job's
+    quality grade into `graded['grade']` (bench.suite.grade) when given."""
     import warnings
 
+    from bench.suite.grade import job_grade
     from core.engine import run_job
     from core.fields.stored.artefact import LightFieldArtefact
 
@@ -190,6 +193,8 @@ def estimate_field(photo_path: Path, workdir: Path, overrides: dict | None = Non
         warnings.simplefilter("ignore")  # e.g. "no depth: assuming a box room" (expected here)
         run_job(photo_path, None, job_params(curve), out, config=engine_config(overrides))
     art = LightFieldArtefact.load(out)  # what `lightfield envmap OUT --x 0,0,0` loads
+    if graded is not None:
+        graded["grade"] = job_grade(art.meta)
     env, _ = art.envmap(torch.zeros(3), None, GT_HEIGHT)
     return env
 
@@ -269,7 +274,8 @@ def evaluate_panorama(path: Path, sphere_size: int, workdir: Path, methods=METHO
     stem = path.stem + (f"_view{view}" if view else "") + ("" if curve == "drawn" else f"_{cam.name}")
     photo = write_photo(ldr, workdir / (stem + ".png"), cam)
     gt = rotate_envmap(resize_envmap(pano, GT_HEIGHT), R.T)  # camera frame: gt(d) = pano(R d)
-    run = {FIELD: lambda: estimate_field(photo, workdir, overrides, cam),
+    graded: dict = {}
+    run = {FIELD: lambda: estimate_field(photo, workdir, overrides, cam, graded),
            PRIOR: lambda: estimate_prior(photo, overrides, cam),
            CONSTANT: lambda: estimate_mean_colour(ldr, cam)}
     preds, seconds = {}, {}
@@ -284,7 +290,7 @@ def evaluate_panorama(path: Path, sphere_size: int, workdir: Path, methods=METHO
     corr = {name: observed_region_correlation(env, linear, rays) for name, env in {**preds, "truth": gt}.items()}
     return {"file": path.name, "view": view, "curve": cam.name, "yaw_deg": round(yaw, 2), "pitch_deg": round(pitch, 2),
             "clipped_fraction": float((ldr.amax(-1) >= 0.99).float().mean()), "seconds": seconds, "scores": scores,
-            "observed_corr": corr}
+            "observed_corr": corr, "grade": graded.get("grade", "–")}
 
 
 def summarise(images: list[dict], methods=METHODS) -> dict:
@@ -746,8 +752,8 @@ def cv_markdown(res: dict, rows: bool = True) -> list[str]:
         for group, g in res.get("splits", {}).items():
             methods = [k for k in g["methods"] if k not in ("truth", CONSTANT)]
             out += ["", f"Per room, {group} (ratio to the room's constant map: diffuse si-RMSE / diffuse angle):", "",
-                    "| room | split | " + " | ".join(methods) + " | constant diffuse ang (°) |",
-                    "|---|---|" + "---|" * (len(methods) + 1)]
+                    "| room | split | " + " | ".join(methods) + " | job's grade | constant diffuse ang (°) |",
+                    "|---|---|" + "---|" * (len(methods) + 2)]
             for im in g["images"]:
                 c = im["scores"][CONSTANT]["diffuse"]
                 cells = []
@@ -760,7 +766,8 @@ def cv_markdown(res: dict, rows: bool = True) -> list[str]:
                              f"{s['diffuse']['angular_deg'] / c['angular_deg']:.2f}"
                     )
                 out.append(
-                    f"| {im['file']} | {im.get('split')} | " + " | ".join(cells) + f" | {c['angular_deg']:.1f} |"
+                    f"| {im['file']} | {im.get('split')} | " + " | ".join(cells)
+                    + f" | {im.get('grade', '–')} | {c['angular_deg']:.1f} |"
                 )
     return out
 

@@ -192,6 +192,7 @@ def evaluate_room(
     curve: str = "drawn",
 ) -> dict:
     from bench.suite.evaluation import score_probe
+    from bench.suite.grade import job_grade
 
     video, clip = make_scan(pano_path, workdir, path, curve)
     gt = ground_truth(pano_path, clip)
@@ -211,7 +212,7 @@ def evaluate_room(
                                              ground_truth(pano_path, clip, start), sphere_size)
         extra[mode] = {"cpu_s": round(cpu, 2), "seen_corr": round(seen_correlation(first, clip, start), 4),
                        "drift": round(relative_l1(first, last), 4), "uses_time": bool(art.meta["time"]["uses_time"]),
-                       "tracking": tracking_summary(art, clip),
+                       "tracking": tracking_summary(art, clip), "grade": job_grade(art.meta),
                        "exposure": art.meta.get("capture", {}).get("metadata", {}).get("exposure_source")}
     scores = score_probe(preds, gt, sphere_size)
     for mode, own in extra_scores.items():  # scored at the first kept camera, against the constant map there
@@ -317,8 +318,8 @@ def markdown(report: dict) -> list[str]:
     if machine:  # CPU seconds are the host's as much as the code's
         lines += ["", f"CPU seconds on {machine.get('cpu_model')}, {machine.get('cores')} cores, at "
                       f"{str(machine.get('git_commit', ''))[:7]} ({machine.get('date_utc', '')[:10]})."]
-    lines += ["", "| room | split | camera curve | mode | diffuse si-RMSE / angle / mirror vs const | seen corr. | "
-              "drift | CPU s | largest rotation error (°) | exposure span (stops) |", "|" + "---|" * 10]
+    lines += ["", "| room | split | camera curve | mode | diffuse si-RMSE / angle / mirror vs const | job's grade | "
+              "seen corr. | drift | CPU s | largest rotation error (°) | exposure span (stops) |", "|" + "---|" * 11]
     for r in rows:
         for mode, ex in r["modes"].items():
             sc, c = r["scores"][mode], r["scores"].get(f"{CONSTANT}@{mode}", r["scores"][CONSTANT])
@@ -329,7 +330,7 @@ def markdown(report: dict) -> list[str]:
             ]
             lines.append(
                 f"| {r['file']} | {r.get('split')} | {r.get('curve', '–')} | {mode} | "
-                f"{ratio[0]:.2f} / {ratio[1]:.2f} / {ratio[2]:.2f} | "
+                f"{ratio[0]:.2f} / {ratio[1]:.2f} / {ratio[2]:.2f} | {ex.get('grade', '–')} | "
                 f"{ex['seen_corr']:.2f} | {ex['drift']:.3f} | {ex['cpu_s']:.0f} | "
                 f"{ex['tracking'].get('max_rotation_error_deg', '–')} | {r['span_stops']} |"
             )

@@ -31,7 +31,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(problem)
         probe = Probe(args.artefact, args.fast)
         hdr, flags = probe.envmap(args.x, args.t, cube_source_height(args.size))
-        atomic_write(out, probe_glb(hdr, args.x, args.t, args.size, args.levels, probe.id, args.main_light))
+        atomic_write(out, probe_glb(hdr, args.x, args.t, args.size, args.levels, probe.id, args.main_light,
+                                        probe.grade))
         warn_extrapolated(flags)
         print_json({"output": str(out), "format": "glb", "size": args.size, "x": list(args.x), "t": args.t, **flags})
         return 0

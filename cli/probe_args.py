@@ -58,6 +58,13 @@ class Probe:
         return self.artefact.envmap(x, t, height)
 
     @property
+    def grade(self) -> dict:
+        """The job's grade and share seen vs filled (core.export.schema.AnswerGrade) for the exports."""
+        from core.export.schema import AnswerGrade
+
+        return AnswerGrade.of(self.artefact.meta).model_dump()
+
+    @property
     def id(self) -> str:
         from core.export.metadata import artefact_id
 

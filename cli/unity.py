@@ -34,6 +34,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     def body() -> int:
+        from core.export.schema import AnswerGrade
         from core.export.unity import unity_probe_grid
         from core.io.exr import atomic_write
 
@@ -43,7 +44,8 @@ def run(args: argparse.Namespace) -> int:
             hdr, flags = probe.envmap(x, args.t, UNITY_SH_HEIGHT)
             return hdr.cpu().numpy(), {"x": flags["extrapolated_x"], "t": flags["extrapolated_t"]}
 
-        doc = unity_probe_grid(evaluate, probe.artefact.bounds, args.grid, args.t, probe.id, args.lo, args.hi)
+        doc = unity_probe_grid(evaluate, probe.artefact.bounds, args.grid, args.t, probe.id, args.lo, args.hi,
+                               AnswerGrade.of(probe.artefact.meta))
         atomic_write(Path(args.output), doc.model_dump_json().encode())
         if doc.extrapolated_probes:
             print(f"warning: {doc.extrapolated_probes} of {len(doc.probes)} probes lie outside the region the captures "

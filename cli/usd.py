@@ -30,11 +30,11 @@ def run(args: argparse.Namespace) -> int:
         hdr, flags = probe.envmap(args.x, args.t, args.height)
         env = hdr.cpu().numpy()
         if kind == "usdz":
-            atomic_write(out, probe_usdz(env, args.x, args.t, probe.id))
+            atomic_write(out, probe_usdz(env, args.x, args.t, probe.id, probe.grade))
         else:
             texture = out.with_suffix(".exr")
             atomic_write(texture, dome_texture_exr(env, args.x, args.t, probe.id))
-            atomic_write(out, dome_light_usda(texture.name, args.x, args.t, probe.id).encode())
+            atomic_write(out, dome_light_usda(texture.name, args.x, args.t, probe.id, grade=probe.grade).encode())
         warn_extrapolated(flags)
         print_json({"output": str(out), "format": kind, "x": list(args.x), "t": args.t, **flags})
         return 0

@@ -7,6 +7,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt
 
 from core.export.schema import (  # noqa: F401  (the hand-off products: one model each, shared with the CLI)
+    AnswerGrade,
     ArkitProbe,
     DominantLight,
     Flags,
@@ -89,6 +90,7 @@ class LightfieldInfo(BaseModel):
     metadata: dict[str, Any] = Field(description="the artefact's lightfield.json: bounds, time range, "
                                      "temporal decision, prior, training statistics")
     fast_available: bool = Field(description="whether quality=baked (the worker's lattice) can answer queries")
+    grade: AnswerGrade = Field(description="the job's self-check and the share of the sphere seen vs filled")
 
 
 # JSON numbers only (strict: `true` is not 1, "2" is not 2), within what the queries accept
@@ -125,6 +127,7 @@ class EnvmapBatchResponse(BaseModel):
     height: int
     width: int
     format: EnvmapFormat
+    grade: AnswerGrade | None = None
     items: list[EncodedEnvmap]
 
 
@@ -139,6 +142,7 @@ class CubemapResponse(BaseModel):
     t: float
     size: int
     extrapolated: Flags
+    grade: AnswerGrade | None = None
     faces: list[CubemapFace] = Field(description="in the order +X, -X, +Y, -Y, +Z, -Z")
 
 

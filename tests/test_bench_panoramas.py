@@ -216,6 +216,9 @@ def test_cv_summary_ratios_95_interval_and_rooms_failing_on_angle():
     report = {"protocol": "p", "splits": {"indoor (leave-one-room-out)": {"methods": s, "images": images}}}
     text = "\n".join(cv_markdown(report))
     assert "1 / 4" in text and "| d | dev |" in text
+    assert "| job's grade |" in text and "| 1.10 / 1.60 | – |" in text  # rows scored before the self-check
+    images[3]["grade"] = "worse than a constant map -> constant map"
+    assert "| 1.10 / 1.60 | worse than a constant map -> constant map |" in "\n".join(cv_markdown(report))
     assert "Oracle bound, indoor (leave-one-room-out), field" in text and "diffuse angle 0.775" in text
 
 

@@ -63,3 +63,7 @@ def test_the_table_names_the_host_its_cpu_seconds_were_measured_on():
     report["machine"] = {"cpu_model": "Some CPU", "cores": 2, "git_commit": "abcdef0123",
                          "date_utc": "2026-12-07T07:00"}
     assert "CPU seconds on Some CPU, 2 cores, at abcdef0 (2026-12-07)." in markdown(report)
+    row = [line for line in markdown(report) if line.startswith("| a.hdr")][0]
+    assert "| 1.00 / 1.00 / 1.00 | – |" in row  # a row scored before the self-check: no grade
+    room["modes"]["product"]["grade"] = "partly explained"
+    assert "| 1.00 / 1.00 / 1.00 | partly explained |" in [ln for ln in markdown(report) if ln.startswith("| a.hdr")][0]

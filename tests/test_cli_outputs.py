@@ -142,6 +142,7 @@ def test_usd_command_writes_a_stage_usd_core_opens(artefact_dir, tmp_path):
         stage = Usd.Stage.Open(str(out))
         dome = UsdLux.DomeLight(stage.GetPrimAtPath("/Probe/EnvLight"))
         assert dome.GetTextureFormatAttr().Get() == "latlong"
+        assert stage.GetRootLayer().customLayerData["lightfield:grade"] == "unchecked"  # made without a self-check
     assert (tmp_path / "probe.exr").is_file()  # the .usda's texture, beside it
 
 
@@ -188,6 +189,7 @@ def test_unity_command_writes_a_probe_grid_in_unitys_convention(artefact_dir, tm
     assert main(["unity", str(artefact_dir), "--grid", "2,1,2", "--t", "1", "-o", str(out)]) == 0
     doc = UnityProbeGrid.model_validate_json(out.read_text())
     assert len(doc.probes) == 4 and all(np.shape(p.sh) == (3, 9) for p in doc.probes)
+    assert doc.grade.grade == "unchecked"  # the test's artefact was made without the job's self-check
     for p in doc.probes:
         assert p.position_unity == pytest.approx((p.position[0], p.position[1], -p.position[2]))
     x = doc.probes[0].position

@@ -159,7 +159,9 @@ def test_usdz_opens_in_usd_core_with_a_dome_light_in_openexr_latlong():
     from core.io.exr import read_exr, read_exr_header
 
     env = lamp_map(16).float()
-    blob = usdz(env.numpy(), (0.5, 1.2, -2.0), 0.75, "job-9")
+    grade = {"grade": "partly explained", "seen_share": 0.4, "filled_share": 0.6, "residual_ratio": 0.7,
+             "fallback": None}
+    blob = usdz(env.numpy(), (0.5, 1.2, -2.0), 0.75, "job-9", grade)
     import tempfile
     from pathlib import Path
 
@@ -175,6 +177,9 @@ def test_usdz_opens_in_usd_core_with_a_dome_light_in_openexr_latlong():
         from pxr import UsdGeom
 
         assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+        layer_data = dict(stage.GetRootLayer().customLayerData)  # the job's grade: the nulls left out
+        assert layer_data == {"lightfield:grade": "partly explained", "lightfield:seen_share": 0.4,
+                              "lightfield:filled_share": 0.6, "lightfield:residual_ratio": 0.7}, layer_data
         xf = UsdGeom.Xformable(stage.GetPrimAtPath("/Probe")).ComputeLocalToWorldTransform(0)
         np.testing.assert_allclose(list(xf.ExtractTranslation()), [0.5, 1.2, -2.0])
         # usd-core's own validators (usdz package rules: stored, 64-byte aligned; references; stage metadata)
@@ -367,3 +372,26 @@ def test_covered_region_undoes_the_fields_margin_and_the_default_grid_stays_insi
     grid = cell_centre_grid(lo, hi, (3, 2, 3))
     assert grid.shape == (18, 3) and inside(lo, hi, grid).all() and "margin" in source
     assert not inside(lo, hi, [bounds.lo]).any()  # the padded box's corner is outside the room
+
+
+def test_the_products_record_the_jobs_grade():
+    """glTF's probe node extras and the Unity grid carry the job's grade and share seen vs filled
+    (USD's customLayerData: the usdz test above)."""
+    from core.export.gltf import read_glb
+    from core.export.products import probe_glb
+    from core.export.schema import AnswerGrade
+    from core.export.unity import unity_probe_grid
+    from core.fields import SceneBounds
+
+    meta = {"quality": {"grade": "worse than a constant map", "residual_ratio": 1.3, "seen_share": 0.35,
+                        "fallback": {"reason": "the field re-renders the frames worse than the constant map"}}}
+    grade = AnswerGrade.of(meta)
+    assert grade.seen_share == 0.0 and grade.filled_share == 1.0 and "constant map" in grade.fallback
+    assert AnswerGrade.of({}).grade == "unchecked"
+    env = lamp_map(16).float()
+    doc, _ = read_glb(probe_glb(env, (0.0, 1.0, 0.0), 0.5, 16, 2, "job-1", grade=grade.model_dump()))
+    assert doc["nodes"][0]["extras"]["grade"] == grade.model_dump()
+    grid = unity_probe_grid(lambda x: (env, {"x": False, "t": False}),
+                            SceneBounds.from_points(torch.tensor([[-1.0, 0, -1], [1, 2, 1]])), (1, 1, 1), None,
+                            "job-1", grade=grade)
+    assert grid.model_dump()["grade"]["grade"] == "worse than a constant map"

@@ -78,3 +78,12 @@ def test_the_failed_stage_is_named():
     assert failed_stage(capture) is None
     capture.metadata["tracking"] = {"method": "failed:static-fallback", "camera_moves": True}
     assert "tracking" in failed_stage(capture)
+
+
+def test_the_seen_share_is_what_the_frames_cover_of_the_sphere():
+    from core.engine.self_check import seen_share
+
+    one = capture_from_arrays(torch.full((1, 32, 48, 3), 0.5), intrinsics=Intrinsics.from_hfov(48, 32, 70.0))
+    share = seen_share(one)
+    assert 0.05 < share < 0.2, share  # a 70 x 49 deg view: about a tenth of the sphere
+    assert seen_share(turning_capture()) > 2 * share  # the pan's 8 views turning 140 deg

@@ -44,6 +44,11 @@ def test_sh_layouts_agree_and_the_light_says_how_sure_it_is(stack, job):
     assert grade["grade"] in ("explained", "partly explained", "worse than a constant map"), grade
     assert sh.headers["X-Lightfield-Grade"] == env.headers["X-Lightfield-Grade"]
     assert sh.headers["X-Lightfield-Grade"].startswith(f"{grade['grade']}; residual_ratio={grade['residual_ratio']}")
+    assert f"seen={grade['seen_share']}" in sh.headers["X-Lightfield-Grade"]
+    seen = grade["seen_share"]
+    answer = {"grade": grade["grade"], "seen_share": seen, "filled_share": round(1 - seen, 4),
+              "residual_ratio": grade["residual_ratio"], "fallback": None}  # every JSON answer carries it
+    assert sh.json()["grade"] == info["grade"] == answer, (sh.json()["grade"], info["grade"])
     a = np.reshape(arcore["coefficients"], (9, 3))
     t = np.reshape(three["coefficients"], (9, 3))
     np.testing.assert_allclose(t[[0, 2, 4, 6, 8]], a[[0, 2, 4, 6, 8]], rtol=1e-6)
@@ -84,6 +89,7 @@ def test_unity_and_arkit_endpoints_serve_the_clis_models(stack, job):
     probe = ArkitProbe.model_validate(arkit.json())
     assert probe.bytes_per_row == 64 and [len(base64.b64decode(s)) for s in probe.slices_base64] == [512] * 6
     assert SphericalHarmonics.model_validate(sh.json()).layout == "babylon"
+    assert grid.grade == probe.grade and grid.grade.grade != "unchecked" and 0 < grid.grade.seen_share <= 1
     assert bad.status_code == 413 and bad.json()["error"]["code"] == "grid_too_large"
     content = openapi["paths"]["/lightfield/{job_id}/cubemap"]["get"]["responses"]["200"]["content"]
     assert {"application/json", "application/x-npy", "image/ktx2"} <= set(content)
@@ -127,6 +133,7 @@ def test_usdz_endpoint_opens_in_usd_core(stack, job, tmp_path):
     (tmp_path / "probe.usdz").write_bytes(resp.content)
     stage = Usd.Stage.Open(str(tmp_path / "probe.usdz"))
     assert UsdLux.DomeLight(stage.GetPrimAtPath("/Probe/EnvLight")).GetTextureFormatAttr().Get() == "latlong"
+    assert stage.GetRootLayer().customLayerData["lightfield:grade"] == resp.headers["X-Lightfield-Grade"].split(";")[0]
 
 
 def test_sequence_streams_a_zip_of_exrs_with_metadata(stack, job):

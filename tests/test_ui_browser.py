@@ -354,6 +354,8 @@ def test_the_page_shows_the_fov_and_depth_it_used_and_re_estimates_with_a_correc
     assert "params" in text(browser, "fov-source")
     assert "file:" in text(browser, "depth-source")
     assert text(browser, "exposure-source").startswith("locked")  # a static camera, no exposures given
+    assert text(browser, "grade-info").split(" · ")[0] in ("explained", "partly explained", "worse than a constant map")
+    assert "seen" in text(browser, "grade-info") and "filled" in text(browser, "grade-info")
     before = job_id(browser)
     field = browser.find_element("id", "fov-correct")
     field.clear()

@@ -74,13 +74,14 @@ def app_env(tmp_path_factory):
 
 
 def add_job(ctx, state="succeeded", with_preview=True, tenant="alice", uses_time=True, capture_meta=None,
-            frame_ev=None) -> str:
+            frame_ev=None, quality=None) -> str:
     job = new_job_id()
     record = JobRecord(id=job, tenant=tenant, tenant_hash=tenant_hash(tenant), input_kind="video")
     ctx.store.create(record, max_in_flight=100)
     paths = JobPaths.for_job(ctx.settings.data_dir, record.tenant_hash, job)
     if state == "succeeded":
-        save_artefact(paths.artefact_dir, bright_field(uses_time), {"capture": {"fps": FPS, **(capture_meta or {})}})
+        meta = {"capture": {"fps": FPS, **(capture_meta or {})}, **({"quality": quality} if quality else {})}
+        save_artefact(paths.artefact_dir, bright_field(uses_time), meta)
         if with_preview:
             stored = preview()
             if frame_ev is not None:
@@ -132,6 +133,19 @@ def test_capture_says_where_the_camera_and_its_fov_came_from(app_env):
     assert body["warnings"] == ["no depth given: ..."] and body["poses_source"] is None
     plain = get(client, f"/lightfield/{add_job(ctx)}/capture").json()  # an older artefact: nothing recorded
     assert plain["tracking"] is None and plain["notes"] == [] and plain["intrinsics_source"] is None
+    assert plain["grade"]["grade"] == "unchecked" and plain["grade"]["seen_share"] is None
+
+
+def test_capture_carries_the_jobs_grade_and_its_fallback(app_env):
+    client, ctx = app_env
+    checked = add_job(ctx, quality={"grade": "partly explained", "residual_ratio": 0.8, "seen_share": 0.3,
+                                    "fallback": None})
+    assert get(client, f"/lightfield/{checked}/capture").json()["grade"] == {
+        "grade": "partly explained", "seen_share": 0.3, "filled_share": 0.7, "residual_ratio": 0.8, "fallback": None}
+    replaced = add_job(ctx, quality={"grade": "worse than a constant map", "residual_ratio": 1.4, "seen_share": 0.3,
+                                     "fallback": {"reason": "worse than the constant map"}})
+    grade = get(client, f"/lightfield/{replaced}/capture").json()["grade"]
+    assert grade["fallback"] == "worse than the constant map" and grade["filled_share"] == 1.0
 
 
 def test_frame_is_the_stored_frame_nearest_in_time(app_env, job):

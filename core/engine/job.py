@@ -23,6 +23,7 @@ from core.device import resolve_device
 from core.engine.checkpoints import clear_checkpoint
 from core.engine.config import EngineConfig
 from core.engine.distill import DistillResult, distill, torch_threads
+from core.engine.fallback import apply_fallback
 from core.engine.params import JobParams, ResolvedJob, job_prior_settings, resolve_job  # noqa: F401 (job_prior_settings: re-exported)
 from core.engine.progress import CancelCheck, Progress, ProgressCallback, Reporter, StageTimer
 from core.engine.scene import distinct_geometry, scene_bounds
@@ -87,11 +88,15 @@ def run_job(
 
     with timings("self_check"):
         quality = self_check(run.result.field, run.work, run.decision.uses_time)
+        field, quality = apply_fallback(run.result.field, quality)
+    if quality["fallback"]:
+        warnings.warn(f"the job's answer is the capture's constant map: {quality['fallback']['reason']}", stacklevel=2)
     reporter.stage("saving", 0.98, "writing artefact")
     meta = job_metadata(capture, run, params, job.config, timings, wall_time_s=time.perf_counter() - t_start)
     meta["quality"] = quality
+    meta["time"]["uses_time"] = field.uses_time
     with timings("saving"):
-        artefact = save_artefact(out_dir, run.result.field, meta)
+        artefact = save_artefact(out_dir, field, meta)
     if checkpoint_dir is not None:
         clear_checkpoint(Path(checkpoint_dir))
     if progress is not None:

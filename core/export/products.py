@@ -52,19 +52,21 @@ def cube_ktx2(env, size: int, levels: int | None = None, layout: str = "gl") -> 
 
 
 def probe_glb(env, x, t, size: int = 64, levels: int | None = None, artefact: str = "",
-              main_light: bool = True) -> bytes:
+              main_light: bool = True, grade: dict | None = None) -> bytes:
     """glTF binary with EXT_lights_image_based (irradiance SH + prefiltered specular mips) and, with
-    `main_light` and a light found, a KHR_lights_punctual directional light (core.export.gltf)."""
+    `main_light` and a light found, a KHR_lights_punctual directional light (core.export.gltf);
+    `grade` (core.export.schema.AnswerGrade as a dict) in the probe node's extras."""
     from core.export.gltf import build_glb  # noqa: PLC0415 — core.export.gltf pulls in av, cv2, OpenEXR, PIL: imported when used
 
     e = _tensor(env)
     light = extract_dominant_light(e) if main_light else None
     return build_glb(prefiltered(e, size, levels), project_sh(e.double()).numpy(), x, t,
-                     extras={"artefact": artefact, "conventions": CONVENTIONS_SUMMARY}, main_light=light)
+                     extras={"artefact": artefact, "conventions": CONVENTIONS_SUMMARY,
+                             **({"grade": grade} if grade else {})}, main_light=light)
 
 
-def probe_usdz(env, x, t, artefact: str = "") -> bytes:
-    return usdz(np.asarray(_tensor(env).detach().cpu(), np.float32), x, t, artefact)
+def probe_usdz(env, x, t, artefact: str = "", grade: dict | None = None) -> bytes:
+    return usdz(np.asarray(_tensor(env).detach().cpu(), np.float32), x, t, artefact, grade)
 
 
 def envmap_exr_attributes(x, t, artefact: str = "", extrapolated: str | None = None) -> dict:

@@ -19,6 +19,28 @@ SH_BAND_ORDER = ("coefficient k = 0..8 is (l, m) = (0,0), (1,-1), (1,0), (1,1), 
                  "packing: core.export.sh_layouts (docs/integrations.md)")
 
 
+class AnswerGrade(BaseModel):
+    """How far to trust an answer: the job's self-check (core.engine.self_check) and how much of the
+    sphere was seen rather than filled (docs/api.md)."""
+
+    grade: str = Field(description="'explained', 'partly explained', 'worse than a constant map' or 'unchecked'")
+    seen_share: float | None = Field(description="share of the sphere the frames saw from their cameras "
+                                     "(0 when the answer is the constant map)")
+    filled_share: float | None = Field(description="the rest: filled by the prior and the field")
+    residual_ratio: float | None = Field(description="the field's residual over the constant map's on the frames")
+    fallback: str | None = Field(description="why the answer is the capture's constant map; null: the field's")
+
+    @classmethod
+    def of(cls, meta: dict) -> "AnswerGrade":
+        """From an artefact's lightfield.json (its `quality` block; 'unchecked' without one)."""
+        q = meta.get("quality") or {}
+        fallback = (q.get("fallback") or {}).get("reason")
+        seen = 0.0 if fallback else q.get("seen_share")
+        return cls(grade=q.get("grade") or "unchecked", seen_share=seen,
+                   filled_share=None if seen is None else round(1.0 - seen, 4),
+                   residual_ratio=q.get("residual_ratio"), fallback=fallback)
+
+
 class Flags(BaseModel):
     x: bool = Field(description="x lies outside the region the field was estimated in")
     t: bool = Field(description="t lies outside the capture's time range")
@@ -70,6 +92,7 @@ class SphericalHarmonics(BaseModel):
                                    "interleaved, Condon-Shortley signs), whatever the layout")
     band_order: str = SH_BAND_ORDER
     dominant_light: DominantLight
+    grade: AnswerGrade | None = None
 
     @classmethod
     def of(cls, x, t, flags: Flags, layout: str, light, full_sh) -> "SphericalHarmonics":
@@ -102,6 +125,7 @@ class UnityProbeGrid(BaseModel):
     extrapolated_probes: int = Field(description="how many probes lie outside `covered` or the time range")
     probes: list[UnityProbe]
     artefact: str
+    grade: AnswerGrade | None = None
 
 
 class ArkitProbe(BaseModel):
@@ -117,7 +141,8 @@ class ArkitProbe(BaseModel):
     sh_planes: list[float] = Field(description="ambient SH as three planes of 9 (R, G, B), layout 'arkit' "
                                    "(Apple does not document the basis signs)")
     dominant_light: DominantLight
+    grade: AnswerGrade | None = None
 
 
-__all__ = ["Flags", "DominantLight", "SphericalHarmonics", "Region", "UnityProbe", "UnityProbeGrid", "ArkitProbe",
-           "SHLayoutName", "SH_BAND_ORDER"]
+__all__ = ["AnswerGrade", "Flags", "DominantLight", "SphericalHarmonics", "Region", "UnityProbe", "UnityProbeGrid",
+           "ArkitProbe", "SHLayoutName", "SH_BAND_ORDER"]

@@ -51,12 +51,13 @@ def unity_shade_sh9(sh: list[list[float]], normal_unity: np.ndarray) -> np.ndarr
     return n4 @ sha.T + vb @ shb.T + (x * x - y * y) * shc
 
 
-def unity_probe_grid(evaluate, bounds, counts, t, artefact: str = "", lo=None, hi=None):
+def unity_probe_grid(evaluate, bounds, counts, t, artefact: str = "", lo=None, hi=None, grade=None):
     """The Unity probe grid product (core.export.schema.UnityProbeGrid), shared by the CLI and the API.
 
     `evaluate(x)` -> (env map [H, 2H, 3] of ours, {'x': bool, 't': bool} the field's own flags).
     Without lo/hi the probes sit at the cell centres of the region the captures cover
-    (core.export.coverage); every probe outside that region (or the time range) is flagged."""
+    (core.export.coverage); every probe outside that region (or the time range) is flagged. `grade`:
+    the job's core.export.schema.AnswerGrade."""
     from core.export.coverage import cell_centre_grid, covered_region, inside  # noqa: PLC0415 — core.export.coverage pulls in pydantic, torch: imported when used
     from core.export.schema import Flags, Region, UnityProbe, UnityProbeGrid  # noqa: PLC0415 — core.export.schema pulls in pydantic, torch: imported when used
 
@@ -80,7 +81,7 @@ def unity_probe_grid(evaluate, bounds, counts, t, artefact: str = "", lo=None, h
     return UnityProbeGrid(t=t, grid=tuple(int(n) for n in counts),
                           covered=Region(lo=tuple(c_lo.tolist()), hi=tuple(c_hi.tolist()), source=source),
                           extrapolated_probes=sum(p.extrapolated.x or p.extrapolated.t for p in probes),
-                          probes=probes, artefact=artefact)
+                          probes=probes, artefact=artefact, grade=grade)
 
 
 def probe_grid(lo, hi, counts) -> np.ndarray:

@@ -66,9 +66,11 @@ def dome_texture_exr(env: np.ndarray, x=None, t: float | None = None, artefact: 
     return encode_exr(to_openexr_latlong(np.asarray(env, np.float32)), attributes=attrs)
 
 
-def dome_light_stage(path, texture: str, x, t: float | None, artefact: str | None = None, intensity: float = 1.0):
+def dome_light_stage(path, texture: str, x, t: float | None, artefact: str | None = None, intensity: float = 1.0,
+                     grade: dict | None = None):
     """A new USD stage at `path` (.usda/.usdc): /Probe (an Xform at x, our metadata in customData)
-    holding /Probe/EnvLight, a DomeLight textured by `texture` (a path relative to the stage)."""
+    holding /Probe/EnvLight, a DomeLight textured by `texture` (a path relative to the stage);
+    `grade` (core.export.schema.AnswerGrade as a dict) in the layer's customLayerData."""
     Gf, Sdf, Usd, UsdGeom, UsdLux, _ = _pxr()
     if "@" in texture or "\n" in texture:
         raise ValueError(f"texture path {texture!r} cannot be written as a USD asset path")
@@ -81,6 +83,8 @@ def dome_light_stage(path, texture: str, x, t: float | None, artefact: str | Non
     probe = UsdGeom.Xform.Define(stage, "/Probe")
     probe.AddTranslateOp().Set(Gf.Vec3d(px, py, pz))
     stage.SetDefaultPrim(probe.GetPrim())
+    if grade:  # nulls have no USD value: left out
+        stage.GetRootLayer().customLayerData = {f"lightfield:{k}": v for k, v in grade.items() if v is not None}
     custom = {"t": None if t is None else float(t), "artefactId": artefact or "", "units": "relative linear radiance"}
     for key, value in custom.items():
         if value is not None:
@@ -92,21 +96,22 @@ def dome_light_stage(path, texture: str, x, t: float | None, artefact: str | Non
     return stage
 
 
-def dome_light_usda(texture: str, x, t: float | None, artefact: str | None = None, intensity: float = 1.0) -> str:
+def dome_light_usda(texture: str, x, t: float | None, artefact: str | None = None, intensity: float = 1.0,
+                    grade: dict | None = None) -> str:
     """The stage as usda text, referencing `texture` (a relative path inside the package or folder)."""
     with tempfile.TemporaryDirectory() as tmp:
-        stage = dome_light_stage(Path(tmp) / "probe.usda", texture, x, t, artefact, intensity)
+        stage = dome_light_stage(Path(tmp) / "probe.usda", texture, x, t, artefact, intensity, grade)
         return stage.GetRootLayer().ExportToString()
 
 
-def usdz(env: np.ndarray, x, t: float | None, artefact: str | None = None) -> bytes:
+def usdz(env: np.ndarray, x, t: float | None, artefact: str | None = None, grade: dict | None = None) -> bytes:
     """One .usdz packaged by usd-core's UsdUtils.CreateNewARKitUsdzPackage: the stage (flattened to
     one layer) and its texture `envmap.exr` (OpenEXR latlong)."""
     *_, UsdUtils = _pxr()
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         (root / "envmap.exr").write_bytes(dome_texture_exr(env, x, t, artefact))
-        dome_light_stage(root / "probe.usda", "envmap.exr", x, t, artefact).Save()
+        dome_light_stage(root / "probe.usda", "envmap.exr", x, t, artefact, grade=grade).Save()
         if not UsdUtils.CreateNewARKitUsdzPackage(str(root / "probe.usda"), str(root / "probe.usdz")):
             raise RuntimeError("usd-core could not package the stage as a .usdz")
         return (root / "probe.usdz").read_bytes()

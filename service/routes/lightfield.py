@@ -21,6 +21,7 @@ from core.export.probe_queries import (
     parse_grid,
 )
 from core.export.products import cube_for, cube_ktx2, cube_source_height, envmap_exr_attributes, probe_glb, probe_usdz
+from core.export.schema import AnswerGrade
 from core.export.sequence import sequence_fps, sequence_members, sequence_times, zip_stream
 from core.export.sh_layouts import LAYOUTS
 from core.export.unity import unity_probe_grid
@@ -75,13 +76,21 @@ async def _field_async(job_id: str, tenant: Tenant, ctx: AppContext) -> CachedFi
 
 
 def _grade(cf: CachedField) -> str:
-    """'GRADE; residual_ratio=R; frames_explained=K/N' from the artefact's self-check ('unchecked' for
-    an artefact made before the check)."""
+    """'GRADE; residual_ratio=R; frames_explained=K/N; seen=S; filled=F[; fallback=constant map]' from the
+    artefact's self-check ('unchecked' for an artefact made before the check)."""
     q = cf.artefact.meta.get("quality") or {}
     if not q.get("grade"):
         return "unchecked"
+    answer = _answer_grade(cf)
     return (f"{q['grade']}; residual_ratio={q.get('residual_ratio')}; "
-            f"frames_explained={q.get('frames_explained')}/{q.get('frames_checked')}")
+            f"frames_explained={q.get('frames_explained')}/{q.get('frames_checked')}; "
+            f"seen={answer.seen_share}; filled={answer.filled_share}" + ("; fallback=constant map" if answer.fallback
+                                                                          else ""))
+
+
+def _answer_grade(cf: CachedField) -> AnswerGrade:
+    """The grade and the share seen vs filled every JSON answer carries (core.export.schema.AnswerGrade)."""
+    return AnswerGrade.of(cf.artefact.meta)
 
 
 def _npy(array: np.ndarray) -> bytes:
@@ -101,9 +110,9 @@ def _attributes(point, t: float, job_id: str, flags: queries.EvalFlags) -> dict:
     return envmap_exr_attributes(point, t, job_id, flags.header())
 
 
-def _download(data: bytes, media_type: str, filename: str, flags: queries.EvalFlags) -> Response:
+def _download(data: bytes, media_type: str, filename: str, flags: queries.EvalFlags, grade: str) -> Response:
     return Response(data, media_type=media_type, headers={
-        CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, EXTRAPOLATED_HEADER: flags.header(),
+        CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, EXTRAPOLATED_HEADER: flags.header(), GRADE_HEADER: grade,
         "Content-Disposition": f'attachment; filename="{filename}"'})
 
 
@@ -112,7 +121,7 @@ def _download(data: bytes, media_type: str, filename: str, flags: queries.EvalFl
 async def lightfield_info(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     cf = await _field_async(job_id, tenant, ctx)
     return LightfieldInfo(id=job_id, conventions=CONVENTIONS_SUMMARY, metadata=dict(cf.artefact.meta),
-                          fast_available=True)
+                          fast_available=True, grade=_answer_grade(cf))
 
 
 @router.get("/lightfield/{job_id}/envmap", response_class=Response, responses={
@@ -177,7 +186,8 @@ async def post_envmaps(job_id: str, body: EnvmapBatchRequest, response: Response
     response.headers[CONVENTIONS_HEADER] = CONVENTIONS_SUMMARY
     response.headers[QUALITY_HEADER] = body.quality
     response.headers[GRADE_HEADER] = _grade(cf)
-    return EnvmapBatchResponse(height=body.height, width=2 * body.height, format=body.format, items=[
+    return EnvmapBatchResponse(height=body.height, width=2 * body.height, format=body.format, grade=_answer_grade(cf),
+                               items=[
         EncodedEnvmap(x=q.x, t=q.t, extrapolated=Flags(x=a.flags.x, t=a.flags.t), media_type=a.value[1],
                       data_base64=base64.b64encode(a.value[0]).decode())
         for q, a in zip(body.queries, answers)
@@ -204,7 +214,9 @@ async def get_sh(job_id: str, response: Response, x: str = XQuery, t: float = TQ
     response.headers[EXTRAPOLATED_HEADER] = flags.header()
     response.headers[QUALITY_HEADER] = answer.quality
     response.headers[GRADE_HEADER] = _grade(cf)
-    return SphericalHarmonics.of(point, t, Flags(x=flags.x, t=flags.t), layout, light, full_sh)
+    doc = SphericalHarmonics.of(point, t, Flags(x=flags.x, t=flags.t), layout, light, full_sh)
+    doc.grade = _answer_grade(cf)
+    return doc
 
 
 MAX_UNITY_PROBES = 512
@@ -261,8 +273,9 @@ async def get_unity(
         return hdr, {"x": flags.x, "t": flags.t}
 
     doc = await run_in_threadpool(
-        unity_probe_grid, evaluate, cf.artefact.bounds, counts, t, job_id, corner_lo, corner_hi
+        unity_probe_grid, evaluate, cf.artefact.bounds, counts, t, job_id, corner_lo, corner_hi, _answer_grade(cf)
     )
+    response.headers[GRADE_HEADER] = _grade(cf)
     response.headers[CONVENTIONS_HEADER] = CONVENTIONS_SUMMARY
     response.headers[EXTRAPOLATED_HEADER] = "x" if doc.extrapolated_probes else "none"
     return doc
@@ -290,6 +303,8 @@ async def get_arkit(
     cf = await _field_async(job_id, tenant, ctx)
     hdr, flags = await run_in_threadpool(queries.envmap, cf, point, t, cube_source_height(size))
     doc = await run_in_threadpool(arkit_probe, hdr, point, t, Flags(x=flags.x, t=flags.t), size, pixel_format, ev)
+    doc.grade = _answer_grade(cf)
+    response.headers[GRADE_HEADER] = _grade(cf)
     response.headers[CONVENTIONS_HEADER] = CONVENTIONS_SUMMARY
     response.headers[EXTRAPOLATED_HEADER] = flags.header()
     return doc
@@ -335,7 +350,7 @@ async def get_cubemap(
         hdr, flags, used = await _export(request, ctx, queries.envmap_with_quality, cf, point, t,
                                          cube_source_height(size), quality)
         data = await run_in_threadpool(cube_ktx2, hdr, size, levels, layout)
-        return _download(data, "image/ktx2", "cubemap.ktx2", flags)
+        return _download(data, "image/ktx2", "cubemap.ktx2", flags, _grade(cf))
 
     def finish(hdr: np.ndarray, _flags):  # in the batch's thread
         faces = queries.cube_faces(cube_for(hdr, layout).numpy(), size)
@@ -348,10 +363,11 @@ async def get_cubemap(
     answer = await queries.envmap_answer(ctx, cf, point, t, queries.cubemap_height(size), quality, finish=finish)
     flags = answer.flags
     headers = {CONVENTIONS_HEADER: CONVENTIONS_SUMMARY, EXTRAPOLATED_HEADER: flags.header(),
-               QUALITY_HEADER: answer.quality}
+               QUALITY_HEADER: answer.quality, GRADE_HEADER: _grade(cf)}
     if format == "npy":
         return Response(answer.value, media_type="application/x-npy", headers=headers)
-    body = CubemapResponse(x=point, t=t, size=size, extrapolated=Flags(x=flags.x, t=flags.t), faces=[
+    body = CubemapResponse(x=point, t=t, size=size, extrapolated=Flags(x=flags.x, t=flags.t), grade=_answer_grade(cf),
+                           faces=[
         CubemapFace(name=name, media_type="image/x-exr", data_base64=data)
         for name, data in zip(CUBE_FACES, answer.value)
     ])
@@ -392,8 +408,9 @@ async def get_gltf(
     cf = await _field_async(job_id, tenant, ctx)
     hdr, flags, _ = await _export(request, ctx, queries.envmap_with_quality, cf, point, t, cube_source_height(size),
                                   "exact")
-    data = await run_in_threadpool(probe_glb, hdr, point, t, size, levels, job_id, main_light)
-    return _download(data, "model/gltf-binary", "probe.glb", flags)
+    data = await run_in_threadpool(probe_glb, hdr, point, t, size, levels, job_id, main_light,
+                                   _answer_grade(cf).model_dump())
+    return _download(data, "model/gltf-binary", "probe.glb", flags, _grade(cf))
 
 
 @router.get("/lightfield/{job_id}/usdz", response_class=Response, responses={
@@ -407,10 +424,10 @@ async def get_usdz(job_id: str, request: Request, x: str = XQuery, t: float = TQ
     cf = await _field_async(job_id, tenant, ctx)
     hdr, flags, _ = await _export(request, ctx, queries.envmap_with_quality, cf, point, t, height, "exact")
     try:
-        data = await run_in_threadpool(probe_usdz, hdr, point, t, job_id)
+        data = await run_in_threadpool(probe_usdz, hdr, point, t, job_id, _answer_grade(cf).model_dump())
     except USDUnavailable as exc:
         raise ServiceUnavailable(str(exc), code="usd_unavailable") from exc
-    return _download(data, "model/vnd.usdz+zip", "probe.usdz", flags)
+    return _download(data, "model/vnd.usdz+zip", "probe.usdz", flags, _grade(cf))
 
 
 @router.get("/lightfield/{job_id}/sequence", response_class=StreamingResponse, responses={

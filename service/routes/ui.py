@@ -22,6 +22,7 @@ from pydantic import BaseModel, Field
 from core.capture.base import Capture
 from core.chrome_ball import BallPlacementError
 from core.conventions import CONVENTIONS_SUMMARY
+from core.export.schema import AnswerGrade
 from core.insertion import InsertionError, insert_objects, parse_points
 from core.sim.room_scan import write_sample_scan
 from jobs.storage import JobPaths
@@ -80,6 +81,7 @@ class CaptureView(BaseModel):
                                                     "explains held-out frames (null: not estimated)")
     notes: list[str] = Field(default_factory=list, description="what was taken from the file's metadata and applied")
     warnings: list[str] = Field(default_factory=list, description="the capture's warnings (assumptions, fallbacks)")
+    grade: AnswerGrade = Field(description="the job's self-check and the share of the sphere seen vs filled")
 
 
 class ProbeView(BaseModel):
@@ -151,6 +153,7 @@ def get_capture(job_id: str, tenant: Tenant = Depends(get_tenant), ctx: AppConte
     notes = list(meta.get("applied", [])) + list((meta.get("nerfstudio") or {}).get("notes", []))
     return CaptureView(
         id=job_id,
+        grade=AnswerGrade.of(cf.artefact.meta),
         width=preview.width,
         height=preview.height,
         frames=preview.num_frames,

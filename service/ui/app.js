@@ -432,9 +432,19 @@
     const span = ev && ev.length ? ` (${(Math.max(...ev) - Math.min(...ev)).toFixed(2)} stops over the clip)` : "";
     $("exposure-source").textContent = capture.exposure_source ? `${capture.exposure_source}${span}` : "locked (one exposure for every frame)";
     $("camera-source").classList.toggle("warning", Boolean(t && t.method === "failed:static-fallback"));
+    showGrade(capture.grade || {});
     const notes = capture.notes || [];
     $("capture-notes").hidden = !notes.length;
     $("capture-notes").textContent = notes.length ? `From the file: ${notes.join("; ")}` : "";
+  }
+
+  /** The job's self-check: its grade, the share of the sphere seen vs filled, a fallback in words. */
+  function showGrade(g) {
+    const pct = (v) => `${Math.round(100 * v)} %`;
+    const shares = g.seen_share == null ? "" : ` · seen ${pct(g.seen_share)}, filled ${pct(g.filled_share)}`;
+    const fallback = g.fallback ? ` · answered with the capture's constant map: ${g.fallback}` : "";
+    $("grade-info").textContent = `${g.grade || "unchecked"}${shares}${fallback}`;
+    $("grade-info").classList.toggle("warning", Boolean(g.fallback) || g.grade === "worse than a constant map");
   }
 
   // ------------------------------------------------------------------ jobs list
