@@ -83,7 +83,7 @@ def run_job(
     # the whole job at distill.threads, tracking included: on a 2-core box a room scan's job took
     # 79 s of CPU with two threads against 49 s with one (docs/engine.md, "Device")
     with torch_threads(job.config.distill.threads):
-        capture = _capture_stage(input_path, depth_path, params, limits, reporter, timings, on_capture)
+        capture = _capture_stage(input_path, depth_path, params, limits, reporter, timings, on_capture, job.config)
         run = _distillation_stage(capture, job, prior, prior_factory, device, reporter, timings, checkpoint_dir)
 
     with timings("self_check"):
@@ -110,8 +110,10 @@ CAPTURE_STAGE_PROGRESS = {"loading": 0.0, "tracking": 0.02}
 
 
 def _capture_stage(input_path, depth_path, params: JobParams, limits, reporter: Reporter, timings: StageTimer,
-                   on_capture: Callable[[Capture], None] | None) -> Capture:
-    """Capture preparation (core.capture.prepare), its warnings shown to run_job's caller."""
+                   on_capture: Callable[[Capture], None] | None, config) -> Capture:
+    """Capture preparation (core.capture.prepare) with the job's tracking and capture settings
+    (EngineConfig.tracking, .capture: an override is applied, not just recorded), its warnings
+    shown to run_job's caller."""
     prepared = prepare_capture(
         input_path,
         depth_path,
@@ -119,6 +121,8 @@ def _capture_stage(input_path, depth_path, params: JobParams, limits, reporter: 
         limits,
         timed=timings,
         on_stage=lambda name, message: reporter.stage(name, CAPTURE_STAGE_PROGRESS[name], message),
+        tracking=config.tracking,
+        knobs=config.capture,
     )
     capture = prepared.capture
     for w in capture.warnings:  # after tracking, which may replace assumptions (FOV, room)
