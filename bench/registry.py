@@ -92,6 +92,8 @@ for _b in (
     Bench("camera_response", "bench.camera_response", "per camera curve, from room-scan and photo reports"),
     Bench("pbr_sessions", "bench.pbr_sessions", "AR sessions in Mitsuba-rendered rooms (needs mitsuba)",
           quick=("--quick",)),
+    Bench("self_check_flags", "bench.self_check_flags", "the job's self-check: faults flagged, good answers kept",
+          quick=("--rooms", "1")),
     # the simulator's suites
     Bench("accuracy_probe", "bench.accuracy_probe", "the draft field vs its prior vs a constant map, per suite",
           quick=("--suites", "spatial")),

@@ -4,11 +4,10 @@ in the benches that take `--set`.
 
 The tracker reads the active settings (`tracking_config()`) when it runs; `using_tracking(cfg)`
 makes `cfg` the active settings for the code inside it (core.capture.prepare wraps tracking in
-it when given `tracking=`), and outside any `using_tracking` the defaults here hold. run_job
-does not pass its config's section to prepare_capture yet, so a caller that sets it runs the
-job inside `using_tracking(config.tracking)` (bench.overrides.knobs_of does). A context
-variable rather than an argument down every call: the knobs sit five calls deep in the
-tracker, and a value set for one job must not leak into another thread's job. Imports nothing of core, so any layer may read it.
+it when given `tracking=`, as run_job gives its config's section), and outside any
+`using_tracking` the defaults here hold. A context variable rather than an argument down every
+call: the knobs sit five calls deep in the tracker, and a value set for one job must not leak
+into another thread's job. Imports nothing of core, so any layer may read it.
 
 What stays a module constant in core/tracking: the assumed room's size (core.tracking.room: the
 capture's depth and the room share it), the grid search's dtype, COLMAP's thread count (one, so
