@@ -39,7 +39,7 @@ class ServiceLimits(BaseModel):
     max_session_frames: int = Field(240, gt=0, description="frames one session may hold")
     max_session_bytes: int = Field(256 * 1024**2, gt=0, description="stored bytes of one session's frames")
     max_session_fps: int = Field(30, gt=0, description="frames per second one session may receive")
-    max_frames_request_bytes: int = Field(32 * 1024**2, gt=0, description="one POST /sessions/{id}/frames or "
+    max_frames_request_bytes: int = Field(16 * 1024**2, gt=0, description="one POST /sessions/{id}/frames or "
                                           "WebSocket message")
     max_session_probes: int = Field(16, gt=0, description="probe points one subscription names")
     session_idle_s: int = Field(300, gt=0, description="a session without frames for this long expires")
