@@ -87,7 +87,6 @@ class SessionUpdater:
         paths = SessionPaths.of(self.settings.data_dir, record.tenant_hash, record.id)
         version = record.latest + 1
         params = JobParams.model_validate_json(record.params or "{}")
-        self.sessions.set(record.id, tried_frames=count)
         try:
             frames = self.sessions.frames(record.id, count)
             pull_frames(self.files, paths, [n for f in frames for n in (f["image"], f.get("depth")) if n])
@@ -99,13 +98,14 @@ class SessionUpdater:
                 **({"prior_factory": self.prior_factory} if self.prior_factory is not None else {}))
         except user_error_types() as exc:  # the frames so far cannot make a field: say so, wait for more
             log.info("session %s: update on %d frames failed: %s", record.id, count, exc)
-            self.sessions.set(record.id, update_error=str(exc)[:2000])
+            self.sessions.set(record.id, tried_frames=count, update_error=str(exc)[:2000])
             return
         except Exception as exc:
             if lease.lost.is_set():
                 return
             log.exception("session %s: update on %d frames failed", record.id, count)
-            self.sessions.set(record.id, update_error=f"the update failed ({type(exc).__name__}); see worker logs")
+            self.sessions.set(record.id, tried_frames=count,
+                              update_error=f"the update failed ({type(exc).__name__}); see worker logs")
             return
         finally:
             remove_tree(paths.capture_dir)
