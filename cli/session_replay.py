@@ -61,7 +61,8 @@ def read_capture(path: Path, depth: Path | None = None, params: dict | None = No
             ev=None if capture.stated_ev is None else float(capture.stated_ev[i]),
             depth=depth_npy))
     session_params = {k: v for k, v in params.items() if k not in ("poses", "frame_ev", "max_frames")}
-    session_params["intrinsics"] = capture.intrinsics.as_dict()
+    k = capture.intrinsics
+    session_params["intrinsics"] = {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy}
     session_params["fps"] = capture.fps
     return ReplayCapture(frames, capture.fps, session_params)
 

@@ -94,7 +94,8 @@ class SessionUpdater:
             result = self.engine(
                 capture, None, params, paths.version_dir(version),
                 should_cancel=lease.lost.is_set, checkpoint_dir=None, limits=MediaLimits.from_env(),
-                overrides={"distill": self._loop_settings()}, init_state=self._last_state(record, paths),
+                overrides={"distill": self._loop_settings(first=not record.latest)},
+                init_state=self._last_state(record, paths),
                 **({"prior_factory": self.prior_factory} if self.prior_factory is not None else {}))
         except user_error_types() as exc:  # the frames so far cannot make a field: say so, wait for more
             log.info("session %s: update on %d frames failed: %s", record.id, count, exc)
@@ -118,11 +119,12 @@ class SessionUpdater:
         log.info("session %s: version %d from %d frames in %.2f s", record.id, version, count,
                  time.perf_counter() - t0)
 
-    def _loop_settings(self) -> dict:
+    def _loop_settings(self, first: bool) -> dict:
         """The operator's loop overrides, with at most settings.session_steps steps (a bounded
-        cost per version)."""
+        cost per version; session_first_steps for the first, so the first answer comes soon)."""
         loop = dict(self.settings.distill_overrides)
-        loop["iterations"] = min(int(loop.get("iterations", self.settings.session_steps)), self.settings.session_steps)
+        steps = self.settings.session_first_steps if first else self.settings.session_steps
+        loop["iterations"] = min(int(loop.get("iterations", steps)), steps)
         loop["checkpoint_every"] = loop["iterations"] + 1  # a version is the checkpoint
         return loop
 
