@@ -150,6 +150,14 @@ class SessionStore:
     def live_count(self, thash: str) -> int:
         return int(self.client.scard(self._tenant_key(thash)))
 
+    def live_ids(self, thash: str) -> list[str]:
+        """The tenant's live session ids; one whose record is gone (its keys expired) is dropped."""
+        ids = sorted(self.client.smembers(self._tenant_key(thash)))
+        gone = [sid for sid in ids if not self.client.exists(self.key(sid))]
+        if gone:
+            self.client.srem(self._tenant_key(thash), *gone)
+        return [sid for sid in ids if sid not in gone]
+
     def append_frames(self, session_id: str, frames: list[dict], nbytes: int, *, max_frames: int,
                       max_bytes: int, max_per_s: int) -> int:
         """Record accepted frames atomically under the limits; returns the first one's index.

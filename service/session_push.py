@@ -2,9 +2,10 @@
 the lighting as WebXR's `XRLightProbe` / `XRLightEstimate` give it, so a page hands it to its
 renderer as it would the browser's estimate (docs/api.md, "Live sessions"; docs/integrations.md).
 
-    sphericalHarmonicsCoefficients  27 floats: 9 RGB coefficients interleaved, the layout of
-                                    XRLightEstimate and ARCore (core.export.sh_layouts 'arcore');
-                                    the ambient part (the main light taken out)
+    sphericalHarmonicsCoefficients  27 floats: 9 RGB coefficients interleaved in ARCore's layout
+                                    (core.export.sh_layouts 'arcore'), or the subscription's
+                                    `layout` ('threejs': what XREstimatedLight hands to three's
+                                    LightProbe); the ambient part (the main light taken out)
     primaryLightDirection           {x, y, z, w: 0}: towards the light, world frame
     primaryLightIntensity           {x, y, z, w: 1}: its RGB intensity (relative units)
     reflectionCubeMap, environmentMap   URLs of the same point's maps (the latest version when fetched)
@@ -16,7 +17,7 @@ from __future__ import annotations
 
 from urllib.parse import urlencode
 
-from core.export.sh_layouts import pack
+from core.export.sh_layouts import LAYOUTS, pack
 from service import queries
 from service.context import AppContext
 from service.errors import InvalidInput
@@ -48,9 +49,17 @@ def default_time(cf: CachedField) -> float:
     return float((cf.artefact.meta.get("time") or {}).get("t1") or 0.0)
 
 
+def check_layout(layout) -> str:
+    """An SH layout name (core.export.sh_layouts: arcore, threejs, ...); 422 otherwise."""
+    if layout not in LAYOUTS:
+        raise InvalidInput(f"layout must be one of {', '.join(LAYOUTS)}, got {str(layout)[:40]!r}",
+                           code="invalid_query")
+    return layout
+
+
 async def version_event(ctx: AppContext, cf: CachedField, session_id: str, version: int, frames: int,
-                        probes: list, t: float | None) -> dict:
-    """The `version` event: one XRLightProbe-like entry per probe point."""
+                        probes: list, t: float | None, layout: str = "arcore") -> dict:
+    """The `version` event: one XRLightProbe-like entry per probe point, its SH in `layout`."""
     t = default_time(cf) if t is None else t
     entries = []
     for x in probes:
@@ -60,7 +69,7 @@ async def version_event(ctx: AppContext, cf: CachedField, session_id: str, versi
         query = urlencode({"x": ",".join(repr(float(c)) for c in x), "t": repr(float(t))})
         entries.append({
             "position": {"x": x[0], "y": x[1], "z": x[2], "w": 1.0},
-            "sphericalHarmonicsCoefficients": pack(light.ambient_sh, "arcore"),
+            "sphericalHarmonicsCoefficients": pack(light.ambient_sh, layout),
             "primaryLightDirection": dict(zip("xyzw", [*(float(v) for v in light.direction), 0.0])),
             "primaryLightIntensity": dict(zip("xyzw", [*(float(v) for v in light.intensity_rgb), 1.0])),
             "primaryLightFound": bool(light.found),
@@ -70,4 +79,4 @@ async def version_event(ctx: AppContext, cf: CachedField, session_id: str, versi
             "extrapolated": {"x": answer.flags.x, "t": answer.flags.t},
         })
     return {"type": "version", "session": session_id, "version": version, "frames": frames, "t": t,
-            "probes": entries}
+            "layout": layout, "probes": entries}

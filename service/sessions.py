@@ -62,11 +62,9 @@ def expire_if_idle(ctx: AppContext, record: SessionRecord) -> SessionRecord:
 
 
 def expire_idle_of_tenant(ctx: AppContext, thash: str) -> None:
-    for sid in ctx.sessions.client.smembers(ctx.sessions._tenant_key(thash)):
+    for sid in ctx.sessions.live_ids(thash):
         record = ctx.sessions.get(sid)
-        if record is None:
-            ctx.sessions.client.srem(ctx.sessions._tenant_key(thash), sid)
-        else:
+        if record is not None:
             expire_if_idle(ctx, record)
 
 

@@ -262,3 +262,26 @@ def test_a_killed_worker_resumes_from_the_last_version(make_stack):
         assert body["version_frames"] == 4
         info = c.get(f"/lightfield/{sid}").json()["metadata"]
         assert info["training"]["warm_start"]["copied"] > 0  # from version 1, not from scratch
+
+
+# -- the command-line client -------------------------------------------------------------------
+@pytest.mark.slow
+def test_lightfield_stream_replays_a_capture(service_stack, tmp_path, monkeypatch, capsys):
+    from cli.main import main
+    from core.io.images import write_png
+
+    frames = room_frames(4)
+    names = [f"{i}.png" for i in range(len(frames))]
+    for name, frame in zip(names, frames):
+        write_png(tmp_path / name, frame)
+    (tmp_path / "capture.json").write_text(json.dumps({
+        "format": "lightfield-capture", "frames": names, "fps": 4.0, "poses": [_pose(i) for i in range(4)]}))
+    monkeypatch.setenv("LIGHTFIELD_API_KEY", TENANTS["alice"])
+    code = main(["stream", str(tmp_path), "--url", service_stack.base_url, "--speed", "0", "--batch", "2",
+                 "--probe", "0,0,-1"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "4 frames at 4 fps" in out and " version " in out and "ended: stored field /lightfield/" in out
+    sid = out.split()[1].rstrip(":")
+    with service_stack.client("alice") as c:
+        assert c.get(f"/jobs/{sid}").json()["state"] == "succeeded"

@@ -17,7 +17,7 @@ from service.errors import ApiError, ErrorBody, InvalidInput, PayloadTooLarge, T
 from service.lightfields import job_field
 from service.routes.jobs import parse_params
 from service.session_frames import batch_from_message, read_multipart
-from service.session_push import parse_probes, version_event
+from service.session_push import check_layout, parse_probes, version_event
 from service.session_versions import owned_session
 from service.sessions import accept_frames, end_session, expire_idle_of_tenant, expire_if_idle, session_view
 
@@ -95,11 +95,14 @@ def delete_session(session_id: str, tenant: Tenant = Depends(get_tenant), ctx: A
 async def session_events(session_id: str, request: Request,
                          x: list[str] = Query(..., description="probe points 'X,Y,Z' (repeat x=)"),  # noqa: B008 — FastAPI's idiom
                          t: float | None = Query(None, description="seconds; default: each version's last frame"),
+                         layout: str = Query("arcore", description="SH layout of sphericalHarmonicsCoefficients "
+                                             "(arcore: ARCore/WebXR's 27 floats; threejs: LightProbe.sh.fromArray)"),
                          tenant: Tenant = Depends(get_tenant), ctx: AppContext = Depends(get_ctx)):
     probes = parse_probes(x, ctx.settings.limits.max_session_probes)
+    t = _time(t)
     await run_in_threadpool(owned_session, session_id, tenant, ctx)
     follower = _Follower(ctx, tenant, session_id)
-    follower.subscribe(probes, t)
+    follower.subscribe(probes, t, check_layout(layout))
 
     async def stream():
         idle = 0.0
@@ -133,10 +136,11 @@ class _Follower:
         self.ctx, self.tenant, self.session_id = ctx, tenant, session_id
         self.probes: list | None = None
         self.t: float | None = None
+        self.layout = "arcore"
         self.sent_version, self.sent_state, self.done = 0, None, False
 
-    def subscribe(self, probes: list, t: float | None) -> None:
-        self.probes, self.t, self.sent_version = probes, t, 0  # the current version is sent again
+    def subscribe(self, probes: list, t: float | None, layout: str = "arcore") -> None:
+        self.probes, self.t, self.layout, self.sent_version = probes, t, layout, 0  # the current version again
 
     async def poll(self) -> list[tuple[str, dict]]:
         events = []
@@ -152,7 +156,8 @@ class _Follower:
             try:
                 cf = await run_in_threadpool(job_field, self.session_id, self.tenant, self.ctx)
                 events.append(("version", await version_event(self.ctx, cf, self.session_id, record.latest,
-                                                              record.latest_frames, self.probes, self.t)))
+                                                              record.latest_frames, self.probes, self.t,
+                                                              self.layout)))
                 self.sent_version = record.latest
             except ApiError as exc:  # e.g. the version is being replaced: try again at the next poll
                 events.append(("error", {"status": exc.status, "code": exc.code, "message": exc.message}))
@@ -166,7 +171,8 @@ class _Follower:
 @router.websocket("/sessions/{session_id}/stream")
 async def session_stream(websocket: WebSocket, session_id: str):
     """Frames in, versions out, on one connection. Client messages (JSON text):
-    {"type": "frames", ...} (service.session_frames), {"type": "subscribe", "probes": [[x, y, z]], "t": null},
+    {"type": "frames", ...} (service.session_frames), {"type": "subscribe", "probes": [[x, y, z]], "t": null,
+    "layout": "arcore"},
     {"type": "end"}. Server messages: accepted, error (the session goes on), session, version, ended."""
     ctx: AppContext = websocket.app.state.ctx
     await websocket.accept()
@@ -229,7 +235,7 @@ async def _handle(ctx: AppContext, follower: _Follower, session_id: str, record:
             return {"type": "accepted", "id": request_id, **result}
         if kind == "subscribe":
             follower.subscribe(parse_probes(body.get("probes"), ctx.settings.limits.max_session_probes),
-                               _time(body.get("t")))
+                               _time(body.get("t")), check_layout(body.get("layout", "arcore")))
             return {"type": "subscribed", "id": request_id, "probes": len(follower.probes)}
         if kind == "end":
             current = await run_in_threadpool(ctx.sessions.get, session_id) or record
