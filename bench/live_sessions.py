@@ -78,10 +78,11 @@ class RssSampler:
         return {k: round(v, 1) for k, v in self.peak.items()}
 
 
-def run_session(service, capture_dir: Path, doc: dict, codes: list[int]) -> dict:
+def run_session(service, capture_dir: Path, doc: dict, codes: list[int], frames: int | None = None) -> dict:
     from cli.session_replay import SessionClient, read_capture, replay
 
     capture = read_capture(capture_dir, None, {"preset": "draft"})
+    capture.frames = capture.frames[:frames]
     client = SessionClient(service.base_url)
     probes = [",".join(f"{v:.6g}" for v in p["x"]) for p in doc["probes"]]
     sampler = RssSampler(service.proc.pid)
@@ -190,10 +191,13 @@ def markdown(report: dict) -> str:
              f"{m.get('git_tracked_files_modified')}); {m.get('date_utc')}. Wall time {report['wall_s']:.0f} s.", "",
              f"Capture: simulator `moving-camera` stretched to {s['frames']} frames at {s['fps']:g} fps, with depth "
              f"and poses, replayed one frame per request at its frame rate; draft preset, "
-             f"{report['session_steps']} steps per version (LIGHTFIELD_SESSION_STEPS), one worker.", "",
+             f"{report['session_steps']} steps per version ({report['first_steps']} for the first), one worker; "
+             "the service had served one 2-frame session before (its cold numbers are given apart). "
+             "Other work shared the 2 cores (the load above).", "",
              "| measure | target | measured |", "|---|---|---|",
-             f"| first answer after the first frame | ≤ 1 s (from the prior) | {s['first_answer_s']} s "
-             "(a first distillation: no prior-only answer is served) |",
+             f"| first answer after the first frame | ≤ 1 s (from the prior) | {s['first_answer_s']} s; a cold "
+             f"service's first session: {report['cold_session']['first_answer_s']} s (from a first distillation "
+             f"of {report['first_steps']} steps: no prior-only answer is served) |",
              f"| a version after its last frame, median (max) | ≤ 2 s per 10 frames | {report['version_latency']} |",
              f"| versions while {s['frames']} frames arrived | ≥ 1 Hz | {report['versions_rate']} |",
              f"| final field si-RMSE vs truth / batch job's | within 10 % | {q['mean']['session_vs_truth']} / "
@@ -229,6 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--concurrent", type=int, default=20, help="sessions opened at once (0: skip)")
     p.add_argument("--steps", type=int, default=40, help="LIGHTFIELD_SESSION_STEPS")
+    p.add_argument("--first-steps", type=int, default=10, help="LIGHTFIELD_SESSION_FIRST_STEPS")
     p.add_argument("--workdir", default="/tmp/lightfield-live-sessions")
     p.add_argument("-o", "--out", default=str(DEFAULT_OUT))
     args = p.parse_args(argv)
@@ -236,8 +241,12 @@ def main(argv: list[str] | None = None) -> int:
     work, out = Path(args.workdir), Path(args.out)
     doc = simulate(work / "capture", args.frames)
     codes: list[int] = []
-    env = {"OMP_NUM_THREADS": "1", "LIGHTFIELD_SESSION_STEPS": str(args.steps)}
+    env = {"OMP_NUM_THREADS": "1", "LIGHTFIELD_SESSION_STEPS": str(args.steps),
+           "LIGHTFIELD_SESSION_FIRST_STEPS": str(args.first_steps)}
     with EmbeddedService(work / f"service-{int(time.time())}", env=env) as service:
+        # a service answers many sessions: the first one pays for the worker's and the API's
+        # first use of the engine (imports, allocations); it is reported apart
+        cold = run_session(service, work / "capture", doc, codes, frames=2)
         session = run_session(service, work / "capture", doc, codes)
         print(f"session: first answer {session['first_answer_s']} s, {len(session['versions'])} versions",
               file=sys.stderr)
@@ -249,7 +258,9 @@ def main(argv: list[str] | None = None) -> int:
     report = {
         "command": "python -m bench.live_sessions " + " ".join(argv if argv is not None else sys.argv[1:]),
         "machine": machine_info(), "wall_s": time.monotonic() - t0, "session_steps": args.steps,
-        "session": session, "accuracy": accuracy, "batch_wall_s": batch_wall, "concurrent": concurrent,
+        "first_steps": args.first_steps,
+        "cold_session": cold, "session": session, "accuracy": accuracy, "batch_wall_s": batch_wall,
+        "concurrent": concurrent,
         "version_latency": f"{statistics.median(lat):.2f} s ({max(lat):.2f} s)" if lat else "none",
         "versions_rate": f"{len(lat)} versions in {span:.1f} s ({len(lat) / span:.2f} Hz)" if span else "none",
         "status_5xx": sum(1 for c in codes if c >= 500), "status_codes": sorted(set(codes)),

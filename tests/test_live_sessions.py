@@ -190,6 +190,10 @@ def test_session_over_websocket(service_stack):
             if message.get("id") == "f":
                 assert message["type"] == "accepted" and message["frames"] == 4
                 break
+        ws.send(json.dumps({"type": "end", "id": "e"}))
+        while (message := json.loads(ws.recv())).get("id") != "e":
+            pass
+        assert message["type"] == "session" and message["state"] == "ended"
     finally:
         ws.close()
 
@@ -210,6 +214,7 @@ def test_tenants_are_isolated(service_stack):
             ws.close()
         assert alice.get(f"/sessions/{sid}").status_code == 200
         assert alice.post("/sessions", json={"poses": [_pose(0)]}).status_code == 422  # frames carry poses
+        assert alice.delete(f"/sessions/{sid}").status_code == 202
 
 
 # -- limits, expiry, a worker killed mid-session -------------------------------------------------
