@@ -290,3 +290,36 @@ def test_lightfield_stream_replays_a_capture(service_stack, tmp_path, monkeypatc
     sid = out.split()[1].rstrip(":")
     with service_stack.client("alice") as c:
         assert c.get(f"/jobs/{sid}").json()["state"] == "succeeded"
+
+
+# -- hosts sharing only Redis and an S3 store ----------------------------------------------------
+@pytest.mark.slow
+def test_a_session_through_the_object_store(tmp_path, s3_server):
+    from test_storage_s3 import MultiHostStack
+
+    prefix = f"sessions{time.monotonic_ns()}"
+    stack = MultiHostStack(tmp_path / "stack", extra_env={
+        **s3_server.env, "LIGHTFIELD_STORAGE_URL": f"s3://{s3_server.bucket}/{prefix}"})
+    try:
+        stack.start(workers=2)
+        stack.wait_ready()
+        with stack.client("alice") as c:
+            sid = c.post("/sessions", json={}).json()["id"]
+            assert _post_frames(c, sid, [0, 1]).status_code == 202
+            assert not list(stack.host_dir("api").glob(f"uploads/*/{sid}/frames/*"))  # the API keeps no frame
+            assert len([k for k in s3_server.keys(prefix) if f"{sid}/frames/" in k]) == 2
+            _wait_version(c, sid, 1)
+            assert any(k.endswith(f"{sid}/versions/1/lightfield.json") for k in s3_server.keys(prefix))
+            resp = c.get(f"/lightfield/{sid}/sh", params={"x": "0,0,-1"})
+            assert resp.status_code == 200 and resp.headers["X-Lightfield-Session-Version"] == "1"
+            assert _post_frames(c, sid, [2, 3]).status_code == 202
+            assert _wait_version(c, sid, 2)["version_frames"] == 4
+            assert c.delete(f"/sessions/{sid}").status_code == 202
+            wait_until(lambda: _session(c, sid)["final"], 120, what="the final field, the rest deleted")
+            assert c.get(f"/jobs/{sid}").json()["state"] == "succeeded"
+            keys = [k for k in s3_server.keys(prefix) if sid in k]
+            assert any(k.endswith(f"{sid}/lightfield/lightfield.json") for k in keys)
+            assert not [k for k in keys if "/frames/" in k or "/versions/" in k]  # nothing else is kept
+            assert c.get(f"/lightfield/{sid}/sh", params={"x": "0,0,-1"}).status_code == 200
+    finally:
+        stack.stop()
