@@ -142,6 +142,41 @@ def test_session_over_http_and_sse(service_stack):
         assert final.status_code == 200 and "X-Lightfield-Session-Version" not in final.headers
 
 
+@pytest.mark.slow
+def test_a_video_chunk_and_depth_maps(service_stack, tiny_video):
+    import io
+
+    with service_stack.client("alice") as c:
+        sid = c.post("/sessions", json={"fps": 6}).json()["id"]
+        resp = c.post(f"/sessions/{sid}/frames", files=[("video", ("chunk.mp4", tiny_video.read_bytes(), "video/mp4"))])
+        assert resp.status_code == 202 and resp.json()["frames"] == 6, resp.text
+        junk = c.post(f"/sessions/{sid}/frames", files=[("video", ("chunk.mp4", b"\x00" * 4096, "video/mp4"))])
+        assert junk.status_code in (415, 422) and _session(c, sid)["frames"] == 6
+        assert c.delete(f"/sessions/{sid}").status_code == 202
+
+        sid = c.post("/sessions", json={}).json()["id"]
+
+        def depth(h: int, w: int) -> bytes:
+            buf = io.BytesIO()
+            np.save(buf, np.full((h, w), 2.5, np.float32), allow_pickle=False)
+            return buf.getvalue()
+
+        def post(depths):
+            files = [("frame", (f"{i}.png", _png(i), "image/png")) for i in range(len(depths))]
+            files += [("depth", (f"{i}.npy", d, "application/octet-stream")) for i, d in enumerate(depths)]
+            meta = {"poses": [_pose(i) for i in range(len(depths))]}
+            return c.post(f"/sessions/{sid}/frames", files=files, data={"meta": json.dumps(meta)})
+
+        assert post([depth(48, 64), depth(48, 64)]).status_code == 202
+        wrong = post([depth(24, 32)])
+        assert wrong.status_code == 422 and wrong.json()["error"]["code"] == "invalid_depth"
+        assert "frame 0" in wrong.json()["error"]["message"]
+        missing = _post_frames(c, sid, [2])  # this session's frames have depth
+        assert missing.status_code == 422 and missing.json()["error"]["code"] == "invalid_depth"
+        assert _session(c, sid)["frames"] == 2
+        assert c.delete(f"/sessions/{sid}").status_code == 202
+
+
 # -- WebSocket ---------------------------------------------------------------------------------
 def _ws(stack, sid: str, tenant: str = "alice"):
     import websocket
