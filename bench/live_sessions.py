@@ -15,6 +15,8 @@ Measured:
 * memory: peak RSS of the worker and of the API while the session runs (psutil, sampled
   every 0.2 s), and with `--concurrent N` sessions opened at once, one frame each, then ended
   (the target: 20 held without a 5xx);
+* query throughput with a session updating meanwhile: bench.service_load's load phase on the
+  final field, at the default quality and baked (the targets: 300/s and 1000/s);
 * the status codes of every request.
 
 The capture is the simulator's `moving-camera` suite stretched to `--frames` frames (a pan with
@@ -182,6 +184,38 @@ def concurrent_sessions(service, n: int, capture_dir: Path, codes: list[int]) ->
             "peak_rss_mib": memory}
 
 
+def queries_while_a_session_updates(service, field_id: str, capture_dir: Path, clients: int, duration_s: float
+                                    ) -> dict:
+    """bench.service_load's load phase (`clients` keep-alive clients asking 64-row env maps at
+    random points of a finished field, /healthz probed every 50 ms), at the default quality then
+    baked, while another session streams the capture at a pace that spans both phases."""
+    from bench.service_load import EnvmapPaths, load_phase
+    from cli.session_replay import SessionClient, read_capture, replay
+
+    warmup_s = 3.0
+    bounds = service.client.get(f"/lightfield/{field_id}").json()["metadata"]["bounds"]
+    capture = read_capture(capture_dir, None, {"preset": "draft"})
+    client = SessionClient(service.base_url)
+    sid = client.open(capture.params)
+    span_s = 2 * (duration_s + warmup_s + 2.0)
+    streamer = threading.Thread(target=replay, args=(client, sid, capture),
+                                kwargs={"speed": len(capture.frames) / capture.fps / span_s}, daemon=True)
+    streamer.start()
+    try:
+        phases = {quality: load_phase(service.port, EnvmapPaths(field_id, bounds, 64, extra), clients, warmup_s,
+                                      duration_s)
+                  for quality, extra in (("fast", ""), ("baked", "&quality=baked"))}
+        streamer.join(timeout=120)
+        versions = client.get(f"/sessions/{sid}").json()["version"]
+        client.end(sid)
+    finally:
+        client.close()
+    return {"clients": clients, "duration_s": duration_s, "session_versions_meanwhile": versions,
+            **{q: {"answers_per_s": r["answers_per_s"], "p99_s": r["latency_s"].get("p99"),
+                   "statuses": r["statuses"], "healthz_p99_s": r["healthz_s"].get("p99")}
+               for q, r in phases.items()}}
+
+
 def markdown(report: dict) -> str:
     m, s, q = report["machine"], report["session"], report["accuracy"]
     lines = ["# Live sessions (issue 63)", "",
@@ -210,6 +244,13 @@ def markdown(report: dict) -> str:
         lines.append(f"| {c['sessions']} sessions at once, no 5xx | no 5xx | {report['status_5xx']} 5xx; "
                      f"{c['with_a_version']}/{c['sessions']} got a version; peak RSS worker / API "
                      f"{c['peak_rss_mib']['worker']} / {c['peak_rss_mib']['api']} MiB; {c['wall_s']} s |")
+    ql = report.get("queries_under_load")
+    if ql:
+        for quality, target in (("fast", "≥ 300/s (default quality)"), ("baked", "≥ 1000/s")):
+            r = ql[quality]
+            lines.append(f"| queries/s, {quality}, {ql['clients']} clients, a session updating | {target} | "
+                         f"{r['answers_per_s']}/s, p99 {r['p99_s']} s, /healthz p99 {r['healthz_p99_s']} s; "
+                         f"statuses {r['statuses']} |")
     lines += ["", f"Batch job on the same capture directory (in-process, draft preset): {report['batch_wall_s']} s.",
               "", "Versions:", "", "| version | frames seen | s after its last frame | s after the first frame |",
               "|---|---|---|---|"]
@@ -234,6 +275,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--concurrent", type=int, default=20, help="sessions opened at once (0: skip)")
     p.add_argument("--steps", type=int, default=40, help="LIGHTFIELD_SESSION_STEPS")
     p.add_argument("--first-steps", type=int, default=10, help="LIGHTFIELD_SESSION_FIRST_STEPS")
+    p.add_argument("--clients", type=int, default=100, help="query clients while a session updates (0: skip)")
+    p.add_argument("--load-s", type=float, default=10.0, help="seconds of each query load phase")
     p.add_argument("--workdir", default="/tmp/lightfield-live-sessions")
     p.add_argument("-o", "--out", default=str(DEFAULT_OUT))
     args = p.parse_args(argv)
@@ -253,6 +296,8 @@ def main(argv: list[str] | None = None) -> int:
         art, batch_wall = batch_job(work / "capture", work)
         accuracy = score_against_truth(service, session["session"], work / "capture", doc, art, codes)
         concurrent = concurrent_sessions(service, args.concurrent, work / "capture", codes) if args.concurrent else None
+        under_load = (queries_while_a_session_updates(service, session["session"], work / "capture", args.clients,
+                                                      args.load_s) if args.clients else None)
     lat = [v["after_its_last_frame_s"] for v in session["versions"]]
     span = session["versions"][-1]["after_first_frame_s"] if session["versions"] else 0.0
     report = {
@@ -260,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
         "machine": machine_info(), "wall_s": time.monotonic() - t0, "session_steps": args.steps,
         "first_steps": args.first_steps,
         "cold_session": cold, "session": session, "accuracy": accuracy, "batch_wall_s": batch_wall,
-        "concurrent": concurrent,
+        "concurrent": concurrent, "queries_under_load": under_load,
         "version_latency": f"{statistics.median(lat):.2f} s ({max(lat):.2f} s)" if lat else "none",
         "versions_rate": f"{len(lat)} versions in {span:.1f} s ({len(lat) / span:.2f} Hz)" if span else "none",
         "status_5xx": sum(1 for c in codes if c >= 500), "status_codes": sorted(set(codes)),
