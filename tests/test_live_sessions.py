@@ -33,6 +33,35 @@ def test_warm_start_copies_equal_shapes_and_stretches_knots():
     assert resample_axis(torch.ones(2, 1), 1, 5).shape == (2, 5)
 
 
+def test_a_keyless_server_refuses_a_cross_origin_websocket():
+    """The Origin rule of a keyless server (service.origin) holds for a WebSocket handshake too:
+    any page could otherwise open one to loopback and send frames."""
+    import asyncio
+
+    from service.origin import OriginGuard
+
+    def handshake(origin: bytes) -> tuple[list, list]:
+        reached, sent = [], []
+
+        async def app(scope, receive, send):
+            reached.append(scope)
+
+        async def receive():
+            return {"type": "websocket.connect"}
+
+        async def send(message):
+            sent.append(message)
+
+        scope = {"type": "websocket", "scheme": "ws", "headers": [(b"host", b"127.0.0.1:8000"), (b"origin", origin)]}
+        asyncio.run(OriginGuard(app, keyless=True)(scope, receive, send))
+        return reached, sent
+
+    reached, sent = handshake(b"http://attacker.example")
+    assert not reached and sent == [{"type": "websocket.close", "code": 1008, "reason": "origin_not_allowed"}]
+    reached, sent = handshake(b"http://127.0.0.1:8000")  # the server's own page
+    assert reached and not sent
+
+
 # -- helpers -----------------------------------------------------------------------------------
 def _png(i: int, frames=None) -> bytes:
     from core.io.images import encode_png
@@ -198,6 +227,7 @@ def test_session_over_websocket(service_stack):
     try:
         ws.send(json.dumps({"type": "subscribe", "id": "s", "probes": [[0, 0, -1]]}))
         replies = [json.loads(ws.recv())]
+        time.sleep(2.5)  # past the request-header deadline (2 s here): a WebSocket is not a slow request
         ws.send(_ws_frames([0, 1, 2]))
         ws.send(json.dumps({"type": "frames", "id": "bad", "frames": [{"image": "%%%", "pose": _pose(3)}]}))
         ws.send(json.dumps({"type": "frames", "id": "nan", "frames": [
