@@ -256,9 +256,11 @@ def test_session_over_websocket(service_stack):
                 assert message["type"] == "accepted" and message["frames"] == 4
                 break
         ws.send(json.dumps({"type": "end", "id": "e"}))
-        while (message := json.loads(ws.recv())).get("id") != "e":
-            pass
-        assert message["type"] == "session" and message["state"] == "ended"
+        after_end = []
+        while not after_end or after_end[-1]["type"] != "ended":  # the server closes after `ended`
+            after_end.append(json.loads(ws.recv()))
+        reply = next(m for m in after_end if m.get("id") == "e")
+        assert reply["type"] == "session" and reply["session"]["state"] == "ended", after_end
     finally:
         ws.close()
 

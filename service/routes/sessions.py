@@ -192,8 +192,9 @@ async def session_stream(websocket: WebSocket, session_id: str):
 
     async def push() -> None:
         while not follower.done:
-            for name, data in await follower.poll():
-                await send({"type": name, **data} if name != "version" else data)
+            for name, data in await follower.poll():  # a status is wrapped: its "id" is the session's
+                await send({"type": "session", "session": data} if name == "session"
+                           else data if name == "version" else {"type": name, **data})
             await asyncio.sleep(POLL_S)
         await websocket.close(code=1000)
 
@@ -240,7 +241,8 @@ async def _handle(ctx: AppContext, follower: _Follower, session_id: str, record:
         if kind == "end":
             current = await run_in_threadpool(ctx.sessions.get, session_id) or record
             view = await run_in_threadpool(end_session, ctx, current)
-            return {"type": "session", "id": request_id, **session_view(view, ctx.settings.limits.session_idle_s)}
+            return {"type": "session", "id": request_id,
+                    "session": session_view(view, ctx.settings.limits.session_idle_s)}
         raise InvalidInput(f"unknown message type {kind!r}; expected frames, subscribe, end", code="invalid_message")
     except ApiError as exc:
         return {"type": "error", "id": request_id, "status": exc.status, "code": exc.code, "message": exc.message}
