@@ -33,6 +33,35 @@ def test_warm_start_copies_equal_shapes_and_stretches_knots():
     assert resample_axis(torch.ones(2, 1), 1, 5).shape == (2, 5)
 
 
+def test_a_warm_started_run_begins_where_the_last_version_ended(tmp_path):
+    """run_job's init_state: the next version starts from the last one's weights, on more
+    frames, so its first steps already fit the room (lower loss than a fresh start)."""
+    from core.engine import run_job
+    from core.engine.params import JobParams
+    from core.io.images import write_png
+
+    def capture(n: int):
+        out = tmp_path / f"capture{n}"
+        out.mkdir()
+        frames = room_frames(n)
+        for i in range(n):
+            write_png(out / f"{i}.png", frames[i])
+        (out / "capture.json").write_text(json.dumps({"format": "lightfield-capture", "fps": 2.0,
+                                                      "frames": [f"{i}.png" for i in range(n)],
+                                                      "poses": [_pose(i) for i in range(n)]}))
+        return out
+
+    loop = {"distill": {"iterations": 30, "work_height": 24, "warmup_steps": 2, "checkpoint_every": 100}}
+    params = JobParams(temporal="off")
+    first = run_job(capture(2), None, params, tmp_path / "v1", overrides=loop).artefact
+    more = capture(4)
+    cold = run_job(more, None, params, tmp_path / "cold", overrides=loop).artefact.meta["training"]
+    warm = run_job(more, None, params, tmp_path / "warm", overrides=loop,
+                   init_state=first.field.state_dict()).artefact.meta["training"]
+    assert cold["warm_start"] is None and warm["warm_start"]["copied"] > 0
+    assert np.mean(warm["loss_curve"][:5]) < np.mean(cold["loss_curve"][:5])
+
+
 def test_a_keyless_server_refuses_a_cross_origin_websocket():
     """The Origin rule of a keyless server (service.origin) holds for a WebSocket handshake too:
     any page could otherwise open one to loopback and send frames."""
