@@ -21,6 +21,7 @@ COMMANDS = [
     "arkit",
     "preview",
     "serve",
+    "stream",
     "worker",
     "bench",
     "train-prior",

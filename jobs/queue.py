@@ -16,6 +16,7 @@ from celery import Celery
 from jobs.settings import JobSettings
 
 TASK_NAME = "lightfield.distill"
+SESSION_TASK_NAME = "lightfield.session_update"  # a live session's next version (worker.sessions)
 QUEUE = "lightfield"
 
 

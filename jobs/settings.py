@@ -38,6 +38,11 @@ class JobSettings(BaseModel):
     # an S3-compatible store shared by hosts that share nothing else (AWS_* variables for access)
     storage_url: str | None = None
     cache_bytes: int = Field(4 << 30, gt=0)  # this host's cache of fetched light fields (LRU)
+    # a live session's update (worker.sessions): distillation steps from the last version, the
+    # engine's draft loop otherwise (a bounded cost per version, whatever the frames)
+    session_steps: int = Field(40, gt=0)
+    # the first version's steps: fewer, so a first answer lands soon, refined by the next versions
+    session_first_steps: int = Field(10, gt=0)
 
     def storage_retry_delay_s(self, retry: int) -> float:
         """Seconds before storage retry number `retry` (1, 2, ...)."""
@@ -69,6 +74,9 @@ class JobSettings(BaseModel):
             values["storage_url"] = env[ENV_PREFIX + "STORAGE_URL"]
         if ENV_PREFIX + "CACHE_BYTES" in env:
             values["cache_bytes"] = env_number(env, ENV_PREFIX + "CACHE_BYTES", int)
+        for name, key in (("session_steps", "SESSION_STEPS"), ("session_first_steps", "SESSION_FIRST_STEPS")):
+            if ENV_PREFIX + key in env:
+                values[name] = env_number(env, ENV_PREFIX + key, int)
         if ENV_PREFIX + "STORAGE_RETRIES" in env:
             values["storage_retries"] = env_number(env, ENV_PREFIX + "STORAGE_RETRIES", int)
         if env.get(ENV_PREFIX + "DISTILL_OVERRIDES"):

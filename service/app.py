@@ -14,6 +14,7 @@ from fastapi.staticfiles import StaticFiles
 
 from jobs.jobfiles import job_files
 from jobs.queue import make_celery
+from jobs.sessions import SessionStore
 from jobs.store import JobStore, connect
 from service import openapi
 from service.auth import KeyRing
@@ -24,7 +25,8 @@ from service.errors import install_error_handlers
 from service.fieldcache import FieldCache
 from service.metrics import Metrics, MetricsMiddleware
 from service.origin import OriginGuard
-from service.routes import health, jobs, lightfield, ui
+from service.routes import health, jobs, lightfield, sessions, ui
+from service.session_versions import SessionVersionHeaders
 from service.uploadcheck import UploadChecks
 
 log = logging.getLogger("lightfield.service")
@@ -52,7 +54,7 @@ def create_app(settings: ServiceSettings | None = None,
     ctx = AppContext(settings=settings, keyring=keyring, store=store, celery=make_celery(settings),
                      fields=FieldCache(settings.field_cache_size), metrics=metrics,
                      upload_checks=UploadChecks(settings.limits.upload_checks, settings.limits.upload_check_s),
-                     files=job_files(settings))
+                     files=job_files(settings), sessions=SessionStore(store.client))
     app = FastAPI(title="lightfield", version="0.1.0", description=DESCRIPTION, docs_url=None, redoc_url=None)
     install_offline_docs(app)
     app.state.ctx = ctx
@@ -63,9 +65,10 @@ def create_app(settings: ServiceSettings | None = None,
     app.add_middleware(OriginGuard, keyless=not keyring.enabled, allowed_hosts=settings.allowed_hosts,
                        allowed_origins=settings.allowed_origins)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
+    app.add_middleware(SessionVersionHeaders)
     install_error_handlers(app)
     openapi.install(app, settings)
-    for module in (jobs, lightfield, ui, health):
+    for module in (jobs, sessions, lightfield, ui, health):
         app.include_router(module.router)
     if UI_DIR.is_dir():
         app.mount("/ui", StaticFiles(directory=UI_DIR, html=True), name="ui")

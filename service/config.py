@@ -34,6 +34,15 @@ class ServiceLimits(BaseModel):
     # upload checks (service.uploadcheck): threads of their own, and a time budget per upload
     upload_checks: int = Field(2, gt=0, description="upload checks run at once per API process")
     upload_check_s: int = Field(30, gt=0, description="seconds one upload's check may take (413 beyond)")
+    # live sessions (service.routes.sessions): 20 held at once is the target per service
+    max_live_sessions: int = Field(20, gt=0, description="live sessions per tenant")
+    max_session_frames: int = Field(240, gt=0, description="frames one session may hold")
+    max_session_bytes: int = Field(256 * 1024**2, gt=0, description="stored bytes of one session's frames")
+    max_session_fps: int = Field(30, gt=0, description="frames per second one session may receive")
+    max_frames_request_bytes: int = Field(16 * 1024**2, gt=0, description="one POST /sessions/{id}/frames or "
+                                          "WebSocket message")
+    max_session_probes: int = Field(16, gt=0, description="probe points one subscription names")
+    session_idle_s: int = Field(300, gt=0, description="a session without frames for this long expires")
 
 
 class HttpTimeouts(BaseModel):

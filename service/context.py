@@ -26,6 +26,7 @@ class AppContext:
     recent_jobs: dict = field(default_factory=dict)  # job id -> (tenant, expiry): service.lightfields
     upload_checks: Any = None  # service.uploadcheck.UploadChecks: the upload checks' own threads and budget
     files: Any = None  # jobs.jobfiles.JobFiles: this host's directory and the shared store
+    sessions: Any = None  # jobs.sessions.SessionStore: live sessions (service.sessions)
 
 
 @dataclass(frozen=True)

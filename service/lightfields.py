@@ -20,8 +20,9 @@ from jobs.jobfiles import ObjectCorrupt
 from jobs.storage import JobPaths
 from jobs.store import JobRecord
 from service.context import AppContext, Tenant, owned_job
-from service.errors import Conflict, Gone, ServiceUnavailable
+from service.errors import Conflict, Gone, NotFound, ServiceUnavailable
 from service.fieldcache import CachedField
+from service.session_versions import session_field
 
 log = logging.getLogger("lightfield.service")
 ARTEFACT_CORRUPT = "artefact_corrupt"
@@ -75,8 +76,18 @@ RECENT_S = 1.0
 
 
 def job_field(job_id: str, tenant: Tenant, ctx: AppContext) -> CachedField:
-    """The caller's succeeded job's light field (blocking: run in the threadpool)."""
-    cf = load_field(succeeded_job(job_id, tenant, ctx), ctx)
+    """The caller's succeeded job's light field, or the latest version of the caller's live
+    session of that id (service.session_versions; blocking: run in the threadpool)."""
+    try:
+        record = succeeded_job(job_id, tenant, ctx)
+    except NotFound:
+        if ctx.sessions is None:
+            raise
+        try:
+            return session_field(job_id, tenant, ctx)
+        except NotFound:
+            raise NotFound(f"no job or session {job_id!r}", code="job_not_found") from None
+    cf = load_field(record, ctx)
     now = time.monotonic()
     if len(ctx.recent_jobs) > 4096:  # bounded: drop the expired entries
         for key in [k for k, (_, expiry) in list(ctx.recent_jobs.items()) if expiry < now]:

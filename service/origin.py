@@ -49,6 +49,9 @@ class OriginGuard:
         return name in self.allowed_hosts or (not self.allowed_hosts or self.check_origin) and is_loopback(name)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "websocket" and (self.check_host or self.check_origin):
+            await self._websocket(scope, receive, send)
+            return
         if scope["type"] != "http" or not (self.check_host or self.check_origin):
             await self.app(scope, receive, send)
             return
@@ -72,5 +75,21 @@ class OriginGuard:
                 refusal = error_response(403, "origin_not_allowed", f"cross-site {scope['method']} refused")
         if refusal is not None:
             await refusal(scope, receive, send)
+            return
+        await self.app(scope, receive, send)
+
+    async def _websocket(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """A WebSocket handshake sends frames like a POST (any page may open one, no preflight):
+        the same Host and Origin rules, refused by closing with 1008 (policy violation)."""
+        headers = {k.lower(): v.decode("latin-1") for k, v in scope.get("headers") or ()}
+        host, origin = headers.get(b"host"), headers.get(b"origin")
+        scheme = "https" if scope.get("scheme") == "wss" else "http"
+        own = f"{scheme}://{host}".lower() if host else None
+        refused = (self.check_host and host is not None and not self.host_allowed(host)) or (
+            self.check_origin and origin is not None and origin.rstrip("/").lower() not in self.allowed_origins | {own})
+        if refused:
+            message = await receive()
+            if message["type"] == "websocket.connect":
+                await send({"type": "websocket.close", "code": 1008, "reason": "origin_not_allowed"})
             return
         await self.app(scope, receive, send)

@@ -42,7 +42,10 @@ class GuardedH11Protocol(H11Protocol):
             return
         cycle = self.cycle
         super().data_received(data)
-        if self.cycle is not cycle:  # a request's headers are complete: it is the app's now
+        # a request's headers are complete: it is the app's now; or the connection became a
+        # WebSocket (uvicorn hands the transport to its WebSocket protocol, with no new cycle),
+        # whose frames are no request headers: the deadline would cut a live session's stream
+        if self.cycle is not cycle or self.transport.get_protocol() is not self:
             self._disarm_header_timer()
 
     def on_response_complete(self) -> None:

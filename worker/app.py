@@ -5,11 +5,13 @@ from __future__ import annotations
 
 from core.engine import run_job
 from jobs.queue import make_celery
+from jobs.sessions import SessionStore
 from jobs.settings import JobSettings
 from jobs.store import JobStore, connect
 from worker.prior_cache import cached_prior
 from worker.runner import JobRunner
-from worker.tasks import register_distill_task
+from worker.sessions import SessionUpdater
+from worker.tasks import register_distill_task, register_session_task
 
 settings = JobSettings.from_env()
 app = make_celery(settings)
@@ -20,3 +22,11 @@ def _runner() -> JobRunner:
 
 
 distill = register_distill_task(app, _runner)
+
+
+def _updater() -> SessionUpdater:
+    client = connect(settings.broker_url)
+    return SessionUpdater(JobStore(client), SessionStore(client), settings, engine=run_job, prior_factory=cached_prior)
+
+
+session_update = register_session_task(app, _updater)

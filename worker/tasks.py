@@ -8,8 +8,9 @@ from typing import Callable
 
 from celery import Celery
 
-from jobs.queue import TASK_NAME
+from jobs.queue import SESSION_TASK_NAME, TASK_NAME
 from worker.runner import JobRunner, Outcome
+from worker.sessions import SessionOutcome, SessionUpdater
 
 log = logging.getLogger("lightfield.worker")
 
@@ -37,3 +38,25 @@ def register_distill_task(app: Celery, make_runner: Callable[[], JobRunner]):
         return outcome.value
 
     return distill
+
+
+SESSION_REQUEUE_S = 0.5  # a delivery that found another updating the session looks again this soon
+
+
+def register_session_task(app: Celery, make_updater: Callable[[], SessionUpdater]):
+    """Register the live-session update task on `app`; the updater is built on the first delivery."""
+    updater_once = lru_cache(maxsize=1)(make_updater)
+
+    @app.task(name=SESSION_TASK_NAME, bind=True, acks_late=True, max_retries=None)
+    def session_update(self, session_id: str) -> str:
+        updater = updater_once()
+        try:
+            outcome = updater.run(session_id)
+        except Exception as exc:  # e.g. Redis unreachable: the session's frames wait for the next try
+            log.exception("session %s: update delivery failed, retrying", session_id)
+            raise self.retry(exc=exc, countdown=max(updater.settings.lease_ttl_s, 1.0))  # noqa: B904 — Celery's retry idiom
+        if outcome in (SessionOutcome.REQUEUE, SessionOutcome.ABANDONED):
+            self.apply_async(args=[session_id], countdown=SESSION_REQUEUE_S)
+        return outcome.value
+
+    return session_update

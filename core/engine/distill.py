@@ -26,6 +26,7 @@ from core.engine.radiance import frame_floors
 from core.engine.scene import scene_bounds
 from core.engine.surface_extraction import SurfacePoints, observed_surfaces
 from core.engine.trainer import Trainer
+from core.engine.warm_start import warm_start
 from core.fields import FieldConfig, LightField, SceneBounds, build_field
 from core.fields.kinds.base import EMITTER_PIXEL_SIGMA
 from core.priors.base import Prior
@@ -55,13 +56,16 @@ def distill(
     checkpoint_dir: Path | None = None,
     timings: StageTimer | None = None,
     bounds: SceneBounds | None = None,
+    init_state: dict[str, torch.Tensor] | None = None,
 ) -> DistillResult:
     """Optimise a field of `config.field` on `capture` (already at working resolution; prior
     already bound) with the loop settings `config.distill`.
 
     The field, the frames and the per-step tensors live on `resolve_device(cfg.device)`; the
     random choices (one CPU generator) and the field's initialisation stay on CPU, so a seed
-    gives the same run on any device up to floating-point differences of the device's kernels."""
+    gives the same run on any device up to floating-point differences of the device's kernels.
+    `init_state`: an earlier field's state_dict to start from (core.engine.warm_start: a live
+    session's next version) instead of the fresh initialisation."""
     cfg = config.distill
     reporter = reporter or Reporter(None, None)
     timings = timings or StageTimer()
@@ -94,6 +98,7 @@ def distill(
     field = build_field(field_cfg, bounds)
     if sources is not None:
         field.emitters.set_sources(sources.centres, sources.radii, sources.intensity)
+    warm = warm_start(field, init_state) if init_state is not None else None
     field = field.to(device)
     opt = torch.optim.Adam(parameter_groups(field, cfg.time_gain_lr_scale), lr=cfg.lr, betas=cfg.adam_betas)
     run_fingerprint = fingerprint(capture, cfg, field_cfg, seed, prior)
@@ -140,6 +145,7 @@ def distill(
             "supervision": "envmaps" if use_envmaps else "balls",
             "emitters": sources.describe() if sources is not None else [],
             "surfaces": surfaces.describe() if surfaces is not None else None,
+            "warm_start": warm.describe() if warm is not None else None,
         },
     )
 

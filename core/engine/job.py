@@ -66,6 +66,7 @@ def run_job(
     overrides: Mapping[str, Any] | None = None,
     prior_factory: PriorFactory = build_prior,
     on_capture: Callable[[Capture], None] | None = None,
+    init_state: Mapping[str, torch.Tensor] | None = None,
 ) -> JobResult:
     """Prepare the capture, decide time, distil, save the artefact to `out_dir`.
 
@@ -73,7 +74,8 @@ def run_job(
     params.preset, `overrides` changes it (core.engine.params.resolve_job);
     `prior_factory(name, settings, device)` builds the job's prior (the worker's keeps
     weight-loading priors across jobs); `on_capture(capture)` receives the decoded capture at
-    full resolution after loading and tracking (the worker's UI preview)."""
+    full resolution after loading and tracking (the worker's UI preview); `init_state` (an
+    earlier field's state_dict) warm-starts the distillation (core.engine.warm_start)."""
     t_start = time.perf_counter()
     timings = StageTimer()
     reporter = Reporter(progress, should_cancel)
@@ -84,7 +86,8 @@ def run_job(
     # 79 s of CPU with two threads against 49 s with one (docs/engine.md, "Device")
     with torch_threads(job.config.distill.threads):
         capture = _capture_stage(input_path, depth_path, params, limits, reporter, timings, on_capture, job.config)
-        run = _distillation_stage(capture, job, prior, prior_factory, device, reporter, timings, checkpoint_dir)
+        run = _distillation_stage(capture, job, prior, prior_factory, device, reporter, timings, checkpoint_dir,
+                                  init_state)
 
     with timings("self_check"):
         quality = self_check(run.result.field, run.work, run.decision.uses_time)
@@ -143,7 +146,8 @@ class Distillation:
 
 
 def _distillation_stage(capture: Capture, job: ResolvedJob, prior: Prior | None, prior_factory: PriorFactory,
-                        device: torch.device, reporter: Reporter, timings: StageTimer, checkpoint_dir) -> Distillation:
+                        device: torch.device, reporter: Reporter, timings: StageTimer, checkpoint_dir,
+                        init_state: Mapping[str, torch.Tensor] | None = None) -> Distillation:
     """Decide time, build and bind the prior (its geometry built here, so its cost is reported
     as point_cloud), distil the field."""
     params, config = job.params, job.config
@@ -166,7 +170,8 @@ def _distillation_stage(capture: Capture, job: ResolvedJob, prior: Prior | None,
 
     reporter.stage("distill", 0.1, f"{cfg.iterations} steps")
     result = distill(work, prior, config, decision.uses_time, seed=params.seed, reporter=reporter,
-                     checkpoint_dir=Path(checkpoint_dir) if checkpoint_dir else None, timings=timings, bounds=bounds)
+                     checkpoint_dir=Path(checkpoint_dir) if checkpoint_dir else None, timings=timings, bounds=bounds,
+                     init_state=dict(init_state) if init_state is not None else None)
     return Distillation(decision, work, prior, result)
 
 
@@ -202,6 +207,7 @@ def job_metadata(capture: Capture, run: Distillation, params: JobParams, config:
             "supervision": result.stats["supervision"],
             "emitters": result.stats.get("emitters", []),
             "surfaces": result.stats.get("surfaces"),
+            "warm_start": result.stats.get("warm_start"),
             "stage_timings": timings.as_dict(),
         },
         "simulated": {
