@@ -92,6 +92,7 @@ for _b in (
     Bench("camera_response", "bench.camera_response", "per camera curve, from room-scan and photo reports"),
     Bench("pbr_sessions", "bench.pbr_sessions", "AR sessions in Mitsuba-rendered rooms (needs mitsuba)",
           quick=("--quick",)),
+    Bench("live_sessions", "bench.live_sessions", "captures replayed as live sessions: latency, versions, load"),
     Bench("self_check_flags", "bench.self_check_flags", "the job's self-check: faults flagged, good answers kept",
           quick=("--rooms", "1")),
     # the simulator's suites
