@@ -10,11 +10,10 @@ rule's fitted coefficients (bench/calibration fits them) and the texts of source
 from __future__ import annotations
 
 import math
-from contextlib import contextmanager
-from contextvars import ContextVar
-from typing import Iterator
 
 from pydantic import BaseModel, ConfigDict, Field
+
+from core.active_settings import ActiveSettings
 
 
 class _Section(BaseModel):
@@ -53,7 +52,7 @@ class CaptureConfig(_Section):
 
 
 DEFAULT_CAPTURE = CaptureConfig()
-_ACTIVE: ContextVar[CaptureConfig] = ContextVar("capture_config", default=DEFAULT_CAPTURE)
+_ACTIVE = ActiveSettings("capture_config", DEFAULT_CAPTURE)
 
 
 def capture_config() -> CaptureConfig:
@@ -61,14 +60,6 @@ def capture_config() -> CaptureConfig:
     return _ACTIVE.get()
 
 
-@contextmanager
-def using_capture(config: CaptureConfig | None) -> Iterator[CaptureConfig]:
+def using_capture(config: CaptureConfig | None):
     """Prepare captures with `config` inside the block (None: the settings already active)."""
-    if config is None:
-        yield _ACTIVE.get()
-        return
-    token = _ACTIVE.set(config)
-    try:
-        yield config
-    finally:
-        _ACTIVE.reset(token)
+    return _ACTIVE.using(config)

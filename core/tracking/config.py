@@ -15,11 +15,10 @@ every run gives the same poses) and the texts of warnings."""
 from __future__ import annotations
 
 import math
-from contextlib import contextmanager
-from contextvars import ContextVar
-from typing import Iterator
 
 from pydantic import BaseModel, ConfigDict, Field
+
+from core.active_settings import ActiveSettings
 
 
 class _Section(BaseModel):
@@ -202,7 +201,7 @@ class TrackingConfig(_Section):
 
 
 DEFAULT_TRACKING = TrackingConfig()
-_ACTIVE: ContextVar[TrackingConfig] = ContextVar("tracking_config", default=DEFAULT_TRACKING)
+_ACTIVE = ActiveSettings("tracking_config", DEFAULT_TRACKING)
 
 
 def tracking_config() -> TrackingConfig:
@@ -210,14 +209,6 @@ def tracking_config() -> TrackingConfig:
     return _ACTIVE.get()
 
 
-@contextmanager
-def using_tracking(config: TrackingConfig | None) -> Iterator[TrackingConfig]:
+def using_tracking(config: TrackingConfig | None):
     """Track with `config` inside the block (None: the settings already active)."""
-    if config is None:
-        yield _ACTIVE.get()
-        return
-    token = _ACTIVE.set(config)
-    try:
-        yield config
-    finally:
-        _ACTIVE.reset(token)
+    return _ACTIVE.using(config)
