@@ -44,8 +44,7 @@ def read_capture(path: Path, depth: Path | None = None, params: dict | None = No
 
     params = dict(params or {})
     capture_keys = set(CaptureParams.model_fields)
-    capture = load_capture(path, depth, CaptureParams(**{k: v for k, v in params.items() if k in capture_keys}),
-                           track=False)
+    capture = load_capture(path, depth, CaptureParams(**{k: v for k, v in params.items() if k in capture_keys}))
     has_poses = bool(capture.metadata.get("poses_source"))
     has_depth = str(capture.depth_source).startswith("file")
     frames = []

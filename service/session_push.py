@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from urllib.parse import urlencode
 
+from core.export.probe_queries import SH_ENVMAP_HEIGHT
 from core.export.sh_layouts import LAYOUTS, pack
 from service import queries
 from service.context import AppContext
@@ -63,7 +64,7 @@ async def version_event(ctx: AppContext, cf: CachedField, session_id: str, versi
     t = default_time(cf) if t is None else t
     entries = []
     for x in probes:
-        answer = await queries.envmap_answer(ctx, cf, x, t, queries.SH_ENVMAP_HEIGHT, "fast",
+        answer = await queries.envmap_answer(ctx, cf, x, t, SH_ENVMAP_HEIGHT, "fast",
                                              finish=lambda hdr, _flags: queries.sh_from_envmap(hdr))
         light, _full_sh = answer.value
         query = urlencode({"x": ",".join(repr(float(c)) for c in x), "t": repr(float(t))})
