@@ -1,10 +1,7 @@
 """Find the small bright sources of a capture: the field's emitters (core.fields.components.emitters).
 
 Per frame, pixels brighter than `emitter_contrast` x the frame's median luminance (the prior's
-linear radiance, clip rule applied), or clipped by the camera, with valid depth form connected
-blobs (a clipped pixel says only "at least white": an 8-bit frame exposed for the room clips a
-bare bulb, whose estimated radiance then may sit well under the contrast; small and clipped is
-what a lamp looks like to such a camera), each cut to its core
+linear radiance, clip rule applied) with valid depth form connected blobs, each cut to its core
 (pixels at least CORE_FRACTION of its peak: not the wall a lamp lights); each core gives a
 3D centre (along its luminance-weighted ray, at its nearest point), a radius (of the disk of its projected
 area) and an intensity sum(L_p x area_p), area_p the pixel's footprint at its distance, so a
@@ -25,11 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from scipy import ndimage
 
 from core.capture.base import Capture
-from core.capture.highlights import CLIP_LDR
 from core.conventions import pixel_to_camera_ray, valid_depth_mask
 from core.exposure import luminance
 from core.fields import SceneBounds
@@ -67,16 +62,6 @@ def _footprints(k, depth: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) 
     return z.pow(2) / (ray.norm(dim=-1) * k.fx * k.fy)
 
 
-def _clipped(capture: Capture, i: int) -> torch.Tensor:
-    """[H, W] bool: pixels of frame i (at the capture's resolution) holding any pixel the camera
-    clipped at its full resolution (a small lamp area-averaged into a working pixel stays found)."""
-    full = capture.full_resolution or capture
-    clipped = (full.frames[i].amax(-1) >= CLIP_LDR).float()
-    if tuple(clipped.shape) == (capture.height, capture.width):
-        return clipped > 0
-    return F.adaptive_max_pool2d(clipped[None, None], (capture.height, capture.width))[0, 0] > 0
-
-
 def _blobs(capture: Capture, i: int, linear: torch.Tensor, contrast: float, max_radius: float) -> list[tuple]:
     """(centre [3], radius, intensity [3], flat pixel indices) of the brightest bright blobs of frame i."""
     lum = luminance(linear.double())
@@ -86,7 +71,7 @@ def _blobs(capture: Capture, i: int, linear: torch.Tensor, contrast: float, max_
         return []
     threshold = contrast * float(lum[ok].median().clamp_min(1e-12))
     lum_np = lum.numpy()
-    labels, n = ndimage.label((ok & ((lum > threshold) | _clipped(capture, i))).numpy(), structure=EIGHT_NEIGHBOURS)
+    labels, n = ndimage.label((ok & (lum > threshold)).numpy(), structure=EIGHT_NEIGHBOURS)
     if n == 0:
         return []
     H, W = depth.shape

@@ -3,7 +3,8 @@
 The rule, from what the check measures and not from any benchmark's numbers:
 
 * The frames are the only direct measurements of the light the job has. A field that re-renders
-  them worse than the capture's constant map does (residual ratio >= 1) is wrong where it was
+  them worse than the capture's constant map does (its median residual above the constant's by
+  more than one 8-bit step: a flat wall both explain within a code is a tie, not a loss) is wrong where it was
   shown the answer; nothing suggests it is right where it was not, while the constant map (the
   capture's mean colour from every direction) is the answer every suite scores against. It is
   replaced by that constant map.
@@ -32,7 +33,8 @@ def fallback_reason(quality: dict) -> str | None:
     """Why the field is replaced by the constant map (module docstring), or None to keep it."""
     if quality.get("grade") is None:
         return None
-    if quality["residual_ratio"] >= 1.0:
+    worse = quality["field_residual"] - quality["constant_residual"]
+    if worse > quality.get("log_ratio_floor", 0.0):  # within one 8-bit step both explain the frames alike
         return "the field re-renders the frames worse than the capture's constant map"
     agreement = quality.get("frame_agreement") or {}
     if agreement.get("pairs_disagreeing") and agreement.get("largest_agreeing_share", 1.0) <= MAJORITY:
