@@ -188,7 +188,7 @@ print(job.config.field.kind, job.config.field.section().initial_radiance, job.pr
 
 out = sys.argv[3]
 Image.fromarray(np.full((24, 32, 3), 128, np.uint8)).save(out + "/room.png")
-tiny = {"distill.iterations": 4, "distill.work_height": 24, "distill.warmup_steps": 1,
+tiny = {"distill.iterations": 4, "distill.work_height": 24, "distill.warmup_steps": 1, "distill.fallback": False,
         "priors.constant.radiance": (0.5, 0.5, 0.5)}
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")

@@ -35,7 +35,7 @@ def lamp_field(x, t, d, on=None):
 
 
 def tiny(**kw):
-    base = dict(work_height=H, checkpoint_every=1000, warmup_steps=5)
+    base = dict(work_height=H, checkpoint_every=1000, warmup_steps=5, fallback=False)  # the loop's mechanics
     base.update(kw)
     return preset("draft").with_overrides({"distill": base})
 

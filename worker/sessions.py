@@ -121,11 +121,16 @@ class SessionUpdater:
 
     def _loop_settings(self, first: bool) -> dict:
         """The operator's loop overrides, with at most settings.session_steps steps (a bounded
-        cost per version; session_first_steps for the first, so the first answer comes soon)."""
+        cost per version; session_first_steps for the first, so the first answer comes soon), and
+        no fallback."""
         loop = dict(self.settings.distill_overrides)
         steps = self.settings.session_first_steps if first else self.settings.session_steps
         loop["iterations"] = min(int(loop.get("iterations", steps)), steps)
         loop["checkpoint_every"] = loop["iterations"] + 1  # a version is the checkpoint
+        # a version is a step of a refinement, not a final answer: stored as distilled (graded; its
+        # grade travels with every answer) so the next version warm-starts from it, not from a
+        # constant map that the first few steps' field would lose to
+        loop["fallback"] = False
         return loop
 
     def _last_state(self, record: SessionRecord, paths: SessionPaths):

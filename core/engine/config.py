@@ -112,6 +112,9 @@ class DistillConfig(BaseModel):
         0.0, ge=0, le=1, description="the time gain trains from this fraction of the steps on"
     )
     time_gain_lr_scale: float = Field(10.0, gt=0, description="the time gain's learning rate over the network's")
+    fallback: bool = Field(True, description=(
+        "replace a field the job's self-check finds misread by the capture's constant map (core.engine.fallback); "
+        "off: the field is stored whatever its grade (a test of the loop's mechanics at a few steps)"))
     time_gain_channels: Literal[1, 3] = Field(
         3, description="the time gain's values per knot: 3 (RGB) or 1 (brightness)"
     )

@@ -91,7 +91,8 @@ def run_job(
 
     with timings("self_check"):
         quality = self_check(run.result.field, run.work, run.decision.uses_time)
-        field, quality = apply_fallback(run.result.field, quality)
+        field, quality = (apply_fallback(run.result.field, quality) if job.config.distill.fallback
+                          else (run.result.field, {**quality, "fallback": None}))
     if quality["fallback"]:
         warnings.warn(f"the job's answer is the capture's constant map: {quality['fallback']['reason']}", stacklevel=2)
     reporter.stage("saving", 0.98, "writing artefact")
