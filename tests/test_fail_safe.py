@@ -158,9 +158,12 @@ def test_the_constant_field_answers_its_colour_everywhere_and_the_rule_keeps_a_m
     field = constant_field([0.2, 0.5, 3.0], like)
     maps = field.envmaps(torch.randn(3, 3), None, 8)
     assert not field.uses_time and torch.allclose(maps, torch.tensor([0.2, 0.5, 3.0]).expand_as(maps), rtol=1e-4)
-    kept = {"grade": GRADES[1], "residual_ratio": 0.5,
+    kept = {"grade": GRADES[1], "residual_ratio": 0.5, "field_residual": 0.05, "constant_residual": 0.1,
+            "log_ratio_floor": 0.0039,
             "frame_agreement": {"pairs_disagreeing": [[3, 4]], "largest_agreeing_share": 0.6}}
     assert fallback_reason(kept) is None
-    assert "worse than" in fallback_reason({**kept, "residual_ratio": 1.0})
+    assert "worse than" in fallback_reason({**kept, "residual_ratio": 1.5, "field_residual": 0.15})
+    # within one 8-bit step of the constant map's residual: a tie (a flat photo both explain), kept
+    assert fallback_reason({**kept, "residual_ratio": 1.02, "field_residual": 0.102}) is None
     assert "disagree" in fallback_reason({**kept, "frame_agreement": {"pairs_disagreeing": [[3, 4]],
                                                                       "largest_agreeing_share": 0.5}})
