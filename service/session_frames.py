@@ -22,10 +22,10 @@ import json
 import math
 from dataclasses import dataclass, field
 
-from python_multipart.exceptions import FormParserError
 from python_multipart.multipart import MultipartParser, parse_options_header
 
 from service.errors import BadRequest, InvalidInput, PayloadTooLarge, UnsupportedMedia
+from service.upload import feed_multipart
 from service.validation import media_error_to_api
 
 MAX_FRAMES_PER_BATCH = 64
@@ -88,13 +88,7 @@ async def read_multipart(content_type: str | None, chunks, max_bytes: int) -> Fr
         "on_header_value": lambda d, s, e: state["value"].extend(d[s:e]),
         "on_header_end": on_header_end, "on_headers_finished": on_headers_finished,
         "on_part_data": on_part_data, "on_end": lambda: state.update(ended=True)})
-    try:
-        async for chunk in chunks:
-            if chunk:
-                parser.write(chunk)
-        parser.finalize()
-    except FormParserError as exc:
-        raise BadRequest(f"malformed multipart body: {exc}", code="malformed_body") from None
+    await feed_multipart(parser, chunks)
     if not state["ended"]:
         raise BadRequest("multipart body ended before its closing boundary", code="truncated_body")
     batch = FrameBatch()

@@ -132,12 +132,7 @@ class FormReader:
             "on_headers_finished": self._on_headers_finished, "on_end": self._on_end,
         })
         try:
-            async for chunk in chunks:
-                if chunk:
-                    parser.write(chunk)
-            parser.finalize()
-        except FormParserError as exc:
-            raise BadRequest(f"malformed multipart body: {exc}", code="malformed_body") from None
+            await feed_multipart(parser, chunks)
         finally:
             self.close()
         if not self._ended:
@@ -146,3 +141,14 @@ class FormReader:
         if "file" not in self.form.files:
             raise InvalidInput("form field 'file' (the image or video) is required", code="missing_file")
         return self.form
+
+
+async def feed_multipart(parser, chunks: AsyncIterator[bytes]) -> None:
+    """Stream `chunks` through a python-multipart parser; a malformed body is a 400 naming why."""
+    try:
+        async for chunk in chunks:
+            if chunk:
+                parser.write(chunk)
+        parser.finalize()
+    except FormParserError as exc:
+        raise BadRequest(f"malformed multipart body: {exc}", code="malformed_body") from None
