@@ -23,6 +23,7 @@ from __future__ import annotations
 import torch
 
 from core.envmap import voxel_cells
+from core.exposure import luminance
 
 LOG_FLOOR = 1e-6  # luminance floor (linear) before logs: a black reading is very dark, not -inf
 NEIGHBOURS = 8  # cells whose b a poorly seen cell borrows
@@ -43,10 +44,9 @@ def surface_course(points: torch.Tensor, colors: torch.Tensor, view: torch.Tenso
     pos = torch.zeros(M, 3, dtype=torch.float64).index_add(0, cell, points)
     count = torch.zeros(M, dtype=torch.float64).index_add(0, cell, torch.ones_like(cell, dtype=torch.float64))
     pos = pos / count[:, None]
-    lum = (0.2126 * colors[:, 0] + 0.7152 * colors[:, 1] + 0.0722 * colors[:, 2]).clamp_min(LOG_FLOOR)
+    lum = luminance(colors).clamp_min(LOG_FLOOR)
     chroma = torch.zeros(M, 3, dtype=torch.float64).index_add(0, cell, colors)
-    chroma = chroma / (0.2126 * chroma[:, 0] + 0.7152 * chroma[:, 1] + 0.0722 * chroma[:, 2]).clamp_min(
-        LOG_FLOOR)[:, None]
+    chroma = chroma / luminance(chroma).clamp_min(LOG_FLOOR)[:, None]
     # one reading per (cell, view): the mean luminance of the cell's points in that view
     key = cell * V + view
     pair, inverse = torch.unique(key, return_inverse=True)
