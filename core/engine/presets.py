@@ -54,6 +54,12 @@ def _narrow(width: int, layers: int, view_detail_heights: tuple[int, ...] = (), 
                        room_lattice_height=room_lattice_height)
 
 
+def _with_draft_mechanisms(width: int) -> FieldConfig:
+    """The draft's field at `width` x 4: view detail, room lattice, learned time codes."""
+    return _narrow(width, 4, view_detail_heights=(32, 128), room_lattice=(8, 4, 8), room_lattice_height=16,
+                   time_encoding="codes")
+
+
 DRAFT_DISTILL = DistillConfig(
     iterations=400,
     n_probes=9,
@@ -78,9 +84,7 @@ PRESETS: dict[str, EngineConfig] = {
     "draft": EngineConfig(
         name="draft",
         distill=DRAFT_DISTILL,
-        field=_narrow(
-            96, 4, view_detail_heights=(32, 128), room_lattice=(8, 4, 8), room_lattice_height=16, time_encoding="codes"
-        ),
+        field=_with_draft_mechanisms(96),
         priors={"reprojection": {"env_height": 24}},
     ),
     # the draft's machinery (radiance supervision, emitters, observed surfaces, lattice, view detail)
@@ -89,9 +93,7 @@ PRESETS: dict[str, EngineConfig] = {
         name="standard",
         distill=DRAFT_DISTILL.model_copy(update={"iterations": 1000, "work_height": 120, "warmup_steps": 30,
                                                  "checkpoint_every": 100}),
-        field=_narrow(
-            128, 4, view_detail_heights=(32, 128), room_lattice=(8, 4, 8), room_lattice_height=16, time_encoding="codes"
-        ),
+        field=_with_draft_mechanisms(128),
         priors={"reprojection": {"env_height": 32}},
     ),
     # The paper's settings (GPU): full resolution ball crops, MLP 6 x 256
