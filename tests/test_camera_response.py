@@ -150,23 +150,21 @@ def test_a_global_fade_the_auto_exposure_follows_is_not_taken_for_a_curve():
 
 
 
-def test_a_lamp_switching_off_beside_the_wall_in_view_is_not_taken_for_a_curve():
-    """A correctly declared camera, stated exposures, and a lamp switched off halfway whose glow
-    lit part of the wall: the readings of that part fall between the two halves while the rest
-    hold. Held out by pixels, a shoulder fitted through the switch explained its own other pixels
-    (a physically based room did exactly that); held out by stretches of time it is not confirmed."""
-    H, W = 72, 96
-    y, x = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
-    glow = 6.0 * torch.exp(-((x - 0.7) ** 2 + (y - 0.4) ** 2) / 0.05)[..., None]
-    scene = wall_radiance(x, y)
-    frames = torch.stack([encoded((scene + (glow if i < 4 else 0.0)) * 2.0 ** float(e), SRGB.from_linear, i)
-                          for i, e in enumerate(EVS)])
-    capture = capture_from_arrays(frames, frame_ev=EVS)
+def test_readings_a_few_codes_apart_do_not_decide_a_curve():
+    """An auto-exposure creeping 0.03 stop a frame: every pair the fit compares is exposed under
+    a quarter stop apart, its readings a few codes apart, which noise and a highlight's shift
+    swamp (a flat curve called a glossy room's such pairs one light). Without the rule the same
+    capture is fitted; with it, it cannot tell a curve and keeps the declared one."""
+    from dataclasses import replace
+
+    from core.capture.response import DEFAULT
+
+    capture, _ = static_capture(SRGB.from_linear, evs=torch.arange(24) * 0.03)  # 0.69 stop in all
+    assert fit_response(capture, replace(DEFAULT, min_pair_stops=0.0)) is not None
     kept, fit = with_estimated_response(capture)
-    assert fit is not None
-    grey = torch.linspace(0.1, 0.9, 9)
-    assert not fit.better or (fit.apply(grey) - grey).abs().max() < 0.03, fit.as_dict()
-    assert (kept.frames - capture.frames).abs().max() < 0.03
+    assert fit is None and not kept.metadata["response"]["used"]
+    assert torch.equal(kept.frames, capture.frames)
+
 
 # ---------------------------------------------------------------------------------------
 # Files read through their own curve (core.capture.load.decode_transfer)
